@@ -1,0 +1,1 @@
+"""bilevel: bilevel optimization with convex lower levels, certified."""

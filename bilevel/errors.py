@@ -1,0 +1,63 @@
+"""Exceptions of `bilevel`: one narrow class per broken contract, all under `BilevelError`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class BilevelError(Exception):
+    """Base class; `result` carries a partial result when one exists (never lost on raise)."""
+
+    def __init__(self, message: str, result: Any = None) -> None:
+        super().__init__(message)
+        self.result = result
+
+
+class ModelError(BilevelError, ValueError):
+    """A bilevel problem is declared wrongly (shape mismatch, missing objective, bad bounds)."""
+
+
+class NonConvexLowerLevel(ModelError):
+    """The lower level is detectably non-convex in the lower variables."""
+
+
+class LowerLevelInfeasible(BilevelError):
+    """The lower level has no feasible point at the given upper point."""
+
+
+class LowerLevelUnbounded(BilevelError):
+    """The lower level is unbounded below at the given upper point."""
+
+
+class InvalidData(BilevelError, ValueError):
+    """Numerical data are unusable: NaN/inf, length mismatch, wrong shape."""
+
+
+class NotPersistentlyExciting(InvalidData):
+    """Data are not persistently exciting enough for the learner (rank test failed)."""
+
+
+class RankDeficientRegressor(InvalidData):
+    """A least-squares regressor is rank deficient, so the fit is not unique."""
+
+
+class ReferenceModelError(InvalidData):
+    """A reference model cannot be used (not invertible, unstable, improper)."""
+
+
+class UnknownOption(BilevelError, TypeError):
+    """An option name is not understood by the chosen method (typos must not pass silently)."""
+
+
+class UnsupportedPair(BilevelError):
+    """A complementarity mode cannot transcribe a pair of this kind (e.g. PSD pairs)."""
+
+    def __init__(self, mode: object, kind: str) -> None:
+        super().__init__(
+            f"complementarity mode {type(mode).__name__} does not support {kind} pairs; "
+            f"choose a mode that does (e.g. Scholtes) or reformulate the constraint"
+        )
+
+
+class SolverFailed(BilevelError):
+    """A backend failed in a way that leaves no usable point; `result` holds what there is."""
