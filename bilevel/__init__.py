@@ -1,1 +1,18 @@
-"""bilevel: bilevel optimization with convex lower levels, certified."""
+"""bilevel: bilevel optimization with convex lower levels, reduced to KKT form, solved and certified."""
+
+from .certificate import Certificate, certify
+from .errors import (BilevelError, InvalidData, LowerLevelInfeasible, LowerLevelUnbounded, ModelError,
+                     NonConvexLowerLevel, NotPersistentlyExciting, RankDeficientRegressor, ReferenceModelError,
+                     SolverFailed, UnknownOption, UnsupportedPair)
+from .model import BilevelProblem
+from .mpcc import MPCC, Branch, Exact, FischerBurmeister, KanzowSchwartz, Product, Scholtes
+from .result import BilevelResult, Status
+from .solvers import METHODS, register_method, solve
+
+__all__ = [
+    "BilevelError", "BilevelProblem", "BilevelResult", "Branch", "Certificate", "Exact", "FischerBurmeister",
+    "InvalidData", "KanzowSchwartz", "LowerLevelInfeasible", "LowerLevelUnbounded", "METHODS", "MPCC",
+    "ModelError", "NonConvexLowerLevel", "NotPersistentlyExciting", "Product", "RankDeficientRegressor",
+    "ReferenceModelError", "Scholtes", "SolverFailed", "Status", "UnknownOption", "UnsupportedPair", "certify",
+    "register_method", "solve",
+]

@@ -1,0 +1,201 @@
+"""Canonical (flattened) form of a declared bilevel problem, and the sense normalization (max -> min)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+import casadi as ca
+import numpy as np
+
+from .errors import ModelError
+from .lower import LowerLevel, build_lower
+from .model import BilevelProblem, Variable
+from .reduction import KKTPoint, Reduction
+from .sampling import default_start, sample_in_bounds
+
+
+@dataclass
+class CanonicalBilevel:
+    """min/max F(x,y) s.t. G <= 0, H = 0 (upper); y solves min/max f s.t. g <= 0, h = 0, M_k >= 0.
+
+    x and y are the flattened (column-major) upper and lower variables; lower bounds are rows of g.
+    """
+
+    x: ca.SX
+    y: ca.SX
+    x_lb: np.ndarray
+    x_ub: np.ndarray
+    x_start: np.ndarray
+    F: ca.SX
+    G: ca.SX
+    H: ca.SX
+    f: ca.SX
+    g: ca.SX
+    h: ca.SX
+    psd: list[ca.SX]
+    g_rows: list[tuple[str, int]]
+    h_rows: list[tuple[str, int]]
+    psd_names: list[str]
+    upper_sense: str
+    lower_sense: str
+    upper_vars: list[Variable]
+    lower_vars: list[Variable]
+    y_start: np.ndarray | None = None
+    G_names: list[str] = field(default_factory=list)
+
+    @cached_property
+    def lower(self) -> LowerLevel:
+        """The lower level as a classified kind (requires the minimization sense)."""
+        if self.lower_sense != "min":
+            raise ModelError("the lower level must be normalized to minimization first (NormalizeSense)")
+        rng = np.random.default_rng(0)
+        samples = [self.x_start] + [sample_in_bounds(self.x_lb, self.x_ub, rng, 3.0) for _ in range(5)]
+        return build_lower(self.x, self.y, self.f, self.g, self.h, self.psd,
+                           [f"{n}[{i}]" for n, i in self.g_rows], [f"{n}[{i}]" for n, i in self.h_rows],
+                           self.psd_names, samples)
+
+    @cached_property
+    def functions(self) -> ca.Function:
+        """F, G, H, f at (x, y)."""
+        return ca.Function("canon", [self.x, self.y], [self.F, self.G, self.H, self.f])
+
+
+@dataclass
+class BilevelSolution:
+    """A solution mapped back to the user's names: values, multipliers and objectives in declared senses."""
+
+    point: KKTPoint
+    upper_objective: float
+    lower_objective: float
+    x: dict[str, np.ndarray] = field(default_factory=dict)
+    y: dict[str, np.ndarray] = field(default_factory=dict)
+    multipliers: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def _flat(vars_: list[Variable]) -> ca.SX:
+    return ca.vertcat(*[ca.vec(v.sym) for v in vars_]) if vars_ else ca.SX(0, 1)
+
+
+def _check_depends(expr: ca.SX, allowed: ca.SX, where: str) -> None:
+    free = [s for s in ca.symvar(expr) if not any(ca.is_equal(s, a) for a in ca.symvar(allowed))]
+    if free:
+        raise ModelError(f"{where} uses symbols {', '.join(str(s) for s in free)} that are not variables "
+                         "declared on this problem; declare them with upper_variable/lower_variable")
+
+
+class Canonicalize(Reduction):
+    """BilevelProblem -> CanonicalBilevel: flatten variables, split constraints, move lower bounds into g."""
+
+    def apply(self, problem: BilevelProblem) -> tuple[CanonicalBilevel, CanonicalBilevel]:
+        if problem.upper_objective is None:
+            raise ModelError(f"{problem.name}: no upper objective; call minimize_upper or maximize_upper")
+        if problem.lower_objective is None:
+            raise ModelError(f"{problem.name}: no lower objective; call minimize_lower or maximize_lower")
+        if not problem.lower_variables:
+            raise ModelError(f"{problem.name}: no lower variables; declare them with lower_variable")
+        ups, lows = problem.upper_variables, problem.lower_variables
+        x, y = _flat(ups), _flat(lows)
+        allowed = ca.vertcat(x, y)
+        _check_depends(problem.upper_objective.expr, allowed, "the upper objective")
+        _check_depends(problem.lower_objective.expr, allowed, "the lower objective")
+        G, H, G_names = [], [], []
+        for c in problem.upper_constraints:
+            _check_depends(c.body, allowed, f"upper constraint {c.name!r}")
+            (G if c.kind == "<=" else H).append(c.body)
+            if c.kind == "<=":
+                G_names += [f"{c.name}[{i}]" for i in range(int(c.body.numel()))]
+        g, h, g_rows, h_rows = [], [], [], []
+        for c in problem.lower_constraints:
+            _check_depends(c.body, allowed, f"lower constraint {c.name!r}")
+            if not ca.depends_on(c.body, y):
+                raise ModelError(f"lower constraint {c.name!r} does not involve lower variables; "
+                                 "declare it with upper_constraint if it constrains the leader")
+            rows = [(c.name, i) for i in range(int(c.body.numel()))]
+            if c.kind == "<=":
+                g.append(c.body)
+                g_rows += rows
+            else:
+                h.append(c.body)
+                h_rows += rows
+        for v in lows:
+            flat = ca.vec(v.sym)
+            for side, bound, sign in (("lb", v.lb, -1.0), ("ub", v.ub, 1.0)):
+                idx = np.flatnonzero(np.isfinite(bound))
+                for i in idx:
+                    g.append(sign * (flat[int(i)] - bound[i]))
+                    g_rows.append((f"{v.name}.{side}", int(i)))
+        for m in problem.lower_psd_constraints:
+            _check_depends(m.matrix, allowed, f"LMI {m.name!r}")
+        x_lb = np.concatenate([v.lb for v in ups]) if ups else np.zeros(0)
+        x_ub = np.concatenate([v.ub for v in ups]) if ups else np.zeros(0)
+        x_start = default_start(x_lb, x_ub, np.concatenate([v.start if v.start is not None else
+                                                            np.clip(np.zeros(v.size), v.lb, v.ub) for v in ups])
+                                if ups else None)
+        y_start = (np.concatenate([v.start if v.start is not None else np.zeros(v.size) for v in lows])
+                   if any(v.start is not None for v in lows) else None)
+        vert = lambda parts: ca.vertcat(*parts) if parts else ca.SX(0, 1)  # noqa: E731
+        canon = CanonicalBilevel(
+            x=x, y=y, x_lb=x_lb, x_ub=x_ub, x_start=x_start, F=problem.upper_objective.expr, G=vert(G), H=vert(H),
+            f=problem.lower_objective.expr, g=vert(g), h=vert(h),
+            psd=[m.matrix for m in problem.lower_psd_constraints], g_rows=g_rows, h_rows=h_rows,
+            psd_names=[m.name for m in problem.lower_psd_constraints], upper_sense=problem.upper_objective.sense,
+            lower_sense=problem.lower_objective.sense, upper_vars=ups, lower_vars=lows, y_start=y_start,
+            G_names=G_names,
+        )
+        return canon, canon
+
+    def invert(self, solution: BilevelSolution, canon: CanonicalBilevel) -> BilevelSolution:
+        """Split flat x, y into the declared variables and multipliers into the declared constraints."""
+        p = solution.point
+        for vars_, flat, out in ((canon.upper_vars, p.x, solution.x), (canon.lower_vars, p.y, solution.y)):
+            k = 0
+            for v in vars_:
+                out[v.name] = v.unflatten(flat[k:k + v.size])
+                k += v.size
+        mult: dict[str, np.ndarray] = {}
+        for rows, values in ((canon.g_rows, p.lam), (canon.h_rows, p.mu)):
+            for (name, i), value in zip(rows, values):
+                mult.setdefault(name, []).append((i, value))
+        solution.multipliers = {name: self._dense(entries) for name, entries in mult.items()}
+        solution.multipliers.update(zip(canon.psd_names, p.Z))
+        return solution
+
+    @staticmethod
+    def _dense(entries: list[tuple[int, float]]) -> np.ndarray:
+        out = np.zeros(max(i for i, _ in entries) + 1)
+        for i, value in entries:
+            out[i] = value
+        return out
+
+
+class NormalizeSense(Reduction):
+    """max F -> min -F and max f -> min -f, so nothing downstream reasons about signs; invert restores them.
+
+    Multipliers need no change: with L = -f + lam' g, stationarity of the max problem reads grad f = J' lam.
+    """
+
+    def apply(self, canon: CanonicalBilevel) -> tuple[CanonicalBilevel, tuple[str, str]]:
+        senses = (canon.upper_sense, canon.lower_sense)
+        out = replace(canon, F=-canon.F if senses[0] == "max" else canon.F,
+                      f=-canon.f if senses[1] == "max" else canon.f, upper_sense="min", lower_sense="min")
+        return out, senses
+
+    def invert(self, solution: BilevelSolution, senses: tuple[str, str]) -> BilevelSolution:
+        if senses[0] == "max":
+            solution.upper_objective = -solution.upper_objective
+        if senses[1] == "max":
+            solution.lower_objective = -solution.lower_objective
+        return solution
+
+
+def objectives(canon: CanonicalBilevel, point: KKTPoint) -> tuple[float, float]:
+    """(F, f) at a point, in the canonical problem's senses."""
+    out = canon.functions(point.x, point.y)
+    return float(out[0]), float(out[3])
+
+
+def kkt_solution(canon: CanonicalBilevel, point: KKTPoint) -> BilevelSolution:
+    """Wrap a canonical point with its objective values, ready to be inverted to user names."""
+    F, f = objectives(canon, point)
+    return BilevelSolution(point, F, f)
+

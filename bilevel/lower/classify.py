@@ -1,0 +1,68 @@
+"""Pick the lower-level kind from the structure of f, g, h in y, and reject detectably non-convex ones."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from ..errors import ModelError, NonConvexLowerLevel
+from .base import LowerLevel
+from .least_squares import LeastSquaresLower
+from .nlp import ConvexNLPLower
+from .quadratic import LinearLower, QuadraticLower
+
+_PSD_TOL = 1e-9
+
+
+def _min_eig(matrix: np.ndarray) -> float:
+    matrix = np.atleast_2d(matrix)
+    return float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min()) if matrix.size else 0.0
+
+
+def _check_psd(fun: ca.Function, points: list[tuple[np.ndarray, np.ndarray]], what: str) -> float:
+    """Smallest eigenvalue of fun(x, y) over the sample points; raise NonConvexLowerLevel if negative."""
+    worst = np.inf
+    for xs, ys in points:
+        hess = np.asarray(fun(xs, ys))
+        lam = _min_eig(hess)
+        scale = max(1.0, float(np.abs(hess).max()))
+        if lam < -_PSD_TOL * scale:
+            raise NonConvexLowerLevel(
+                f"the lower level is not convex in the lower variables: the Hessian of {what} has eigenvalue "
+                f"{lam:.3g} at x = {np.array2string(xs, precision=3)}; a convex lower level is required "
+                "(minimize a convex function, or maximize a concave one, over a convex set)"
+            )
+        worst = min(worst, lam)
+    return worst
+
+
+def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.SX], g_names: list[str],
+                h_names: list[str], psd_names: list[str], x_samples: list[np.ndarray]) -> LowerLevel:
+    """Classify as least squares, LP, QP or convex NLP (checked at sample points) and build it."""
+    if not ca.depends_on(f, y):
+        raise ModelError("the lower objective does not depend on the lower variables; "
+                         "a bilevel problem needs a lower level that optimizes over y")
+    if psd:
+        raise ModelError("lower levels with linear matrix inequalities need an SDP lower kind, which this "
+                         "version does not provide; express the lower level with scalar constraints")
+    if h.numel() and ca.depends_on(ca.jacobian(h, y), y):
+        raise NonConvexLowerLevel("a lower-level equality constraint is not affine in the lower variables; "
+                                  "only affine equalities keep the lower level convex")
+    args = (x, y, f, g, h, psd, g_names, h_names, psd_names)
+    rng = np.random.default_rng(0)
+    points = [(xs, rng.standard_normal(int(y.numel()))) for xs in x_samples]
+    hess_f = ca.hessian(f, y)[0]
+    affine_g = not (g.numel() and ca.depends_on(ca.jacobian(g, y), y))
+    if affine_g and not ca.depends_on(hess_f, y):
+        if ca.simplify(hess_f).is_zero():
+            return LinearLower(*args)
+        worst = _check_psd(ca.Function("hf", [x, y], [hess_f]), points, "the lower objective")
+        if not g.numel() and not h.numel() and worst > _PSD_TOL:
+            return LeastSquaresLower(*args)
+        return QuadraticLower(*args)
+    _check_psd(ca.Function("hf", [x, y], [hess_f]), points, "the lower objective")
+    for i in range(int(g.numel())):
+        if ca.depends_on(ca.jacobian(g[i], y), y):
+            _check_psd(ca.Function("hg", [x, y], [ca.hessian(g[i], y)[0]]), points,
+                       f"lower constraint {g_names[i]!r}")
+    return ConvexNLPLower(*args)

@@ -1,0 +1,41 @@
+"""Smooth convex NLP lower level, solved independently by IPOPT on the plain lower problem."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from ..errors import LowerLevelInfeasible, SolverFailed
+from .base import LowerLevel, LowerSolution
+
+
+@dataclass
+class ConvexNLPLower(LowerLevel):
+    """Convex f and g in y, affine h in y; any local solution is global."""
+
+    kind = "nlp"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        nlp = {"x": self.y, "p": self.x, "f": self.f, "g": ca.vertcat(self.g, self.h)}
+        opts = {"print_time": False, "ipopt": {"print_level": 0, "tol": 1e-12, "acceptable_tol": 1e-9,
+                                               "max_iter": 3000, "sb": "yes"}}
+        self._solver = ca.nlpsol("lower_nlp", "ipopt", nlp, opts)
+        self._ng = int(self.g.numel())
+
+    def solve(self, x: np.ndarray, y0: np.ndarray | None = None) -> LowerSolution:
+        """Solve the plain lower problem at x by IPOPT (tight tolerance), from y0 or zero."""
+        x = self.check_point(x)
+        lbg = np.concatenate([np.full(self._ng, -np.inf), np.zeros(self.h.numel())])
+        ubg = np.zeros(self._ng + int(self.h.numel()))
+        sol = self._solver(x0=np.zeros(self.n_y) if y0 is None else y0, p=x, lbg=lbg, ubg=ubg)
+        status = self._solver.stats()["return_status"]
+        if status == "Infeasible_Problem_Detected":
+            raise LowerLevelInfeasible(f"the lower level is infeasible at x = {x}")
+        if status not in ("Solve_Succeeded", "Solved_To_Acceptable_Level"):
+            raise SolverFailed(f"IPOPT did not solve the lower level at x = {x}: {status}")
+        lam_g = np.asarray(sol["lam_g"]).ravel()
+        return LowerSolution(np.asarray(sol["x"]).ravel(), float(sol["f"]), np.maximum(lam_g[: self._ng], 0.0),
+                             lam_g[self._ng:], [], status, "ipopt (plain lower problem)")

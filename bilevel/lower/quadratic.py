@@ -1,0 +1,88 @@
+"""LP and convex QP lower levels: numeric coefficients at a fixed x, solved independently by cvxpy + Clarabel."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import cvxpy as cp
+import numpy as np
+
+from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
+from .base import LowerLevel, LowerSolution
+
+
+@dataclass(frozen=True)
+class QPData:
+    """f = 1/2 y'Py + q'y + r, g = A y + b <= 0, h = E y + e = 0 at a fixed upper point."""
+
+    P: np.ndarray
+    q: np.ndarray
+    r: float
+    A: np.ndarray
+    b: np.ndarray
+    E: np.ndarray
+    e: np.ndarray
+
+
+def solve_qp_clarabel(d: QPData, context: str) -> LowerSolution:
+    """Solve a convex QP/LP with cvxpy + Clarabel; raise on infeasible/unbounded, fail loudly otherwise."""
+    n = d.q.size
+    y = cp.Variable(n)
+    objective = d.q @ y + d.r
+    if np.any(d.P):
+        objective = objective + 0.5 * cp.quad_form(y, cp.psd_wrap(0.5 * (d.P + d.P.T)))
+    cons = []
+    if d.b.size:
+        cons.append(d.A @ y + d.b <= 0)
+    if d.e.size:
+        cons.append(d.E @ y + d.e == 0)
+    prob = cp.Problem(cp.Minimize(objective), cons)
+    try:
+        prob.solve(solver=cp.CLARABEL)
+    except cp.error.SolverError as exc:
+        raise SolverFailed(f"Clarabel failed on the lower level {context}: {exc}") from exc
+    if prob.status in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
+        raise LowerLevelInfeasible(f"the lower level is infeasible {context}")
+    if prob.status in (cp.UNBOUNDED, cp.UNBOUNDED_INACCURATE):
+        raise LowerLevelUnbounded(f"the lower level is unbounded below {context}")
+    if prob.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        raise SolverFailed(f"Clarabel returned status {prob.status!r} on the lower level {context}")
+    lam = np.maximum(np.asarray(cons[0].dual_value).ravel(), 0.0) if d.b.size else np.zeros(0)
+    mu = np.asarray(cons[-1].dual_value).ravel() if d.e.size else np.zeros(0)
+    yv = np.asarray(y.value).ravel()
+    fval = float(0.5 * yv @ d.P @ yv + d.q @ yv + d.r)
+    return LowerSolution(yv, fval, lam, mu, [], prob.status, "cvxpy+clarabel")
+
+
+@dataclass
+class QuadraticLower(LowerLevel):
+    """Convex quadratic objective and affine constraints in y (an LP when the Hessian vanishes)."""
+
+    kind = "qp"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        zero = ca.DM.zeros(self.n_y)
+        grad = ca.gradient(self.f, self.y)
+        outs = [ca.hessian(self.f, self.y)[0], grad, self.f, ca.jacobian(self.g, self.y), self.g,
+                ca.jacobian(self.h, self.y), self.h]
+        outs = [ca.substitute(o, self.y, zero) for o in outs]
+        self._coeffs = ca.Function("qp_coeffs", [self.x], outs)
+
+    def data(self, x: np.ndarray) -> QPData:
+        """The QP coefficients at upper point x."""
+        P, q, r, A, b, E, e = (np.asarray(v) for v in self._coeffs(self.check_point(x)))
+        return QPData(np.atleast_2d(P).reshape(self.n_y, self.n_y), q.ravel(), float(np.asarray(r).ravel()[0]),
+                      A.reshape(-1, self.n_y), b.ravel(), E.reshape(-1, self.n_y), e.ravel())
+
+    def solve(self, x: np.ndarray) -> LowerSolution:
+        """Solve at x with cvxpy + Clarabel (independent of the reduction)."""
+        return solve_qp_clarabel(self.data(x), f"at x = {np.array2string(np.asarray(x), precision=4)}")
+
+
+@dataclass
+class LinearLower(QuadraticLower):
+    """Linear objective and affine constraints in y."""
+
+    kind = "lp"

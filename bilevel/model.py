@@ -1,0 +1,234 @@
+"""Declaring a bilevel problem: upper/lower variables, objectives and constraints, read like the maths.
+
+    p = BilevelProblem("bard")
+    x = p.upper_variable("x", lb=0)
+    y = p.lower_variable("y", lb=0)
+    p.minimize_upper(x - 4 * y)
+    p.minimize_lower(y)
+    p.lower_constraint(-x - y <= -3)
+    res = p.solve()
+
+Expressions are CasADi SX expressions of the declared variables.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Literal
+
+import casadi as ca
+import numpy as np
+
+from .errors import ModelError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .result import BilevelResult
+
+Level = Literal["upper", "lower"]
+Sense = Literal["min", "max"]
+
+
+@dataclass(frozen=True)
+class Variable:
+    """A declared block of variables: its symbol, shape, bounds (flattened column-major) and start."""
+
+    name: str
+    level: Level
+    sym: ca.SX
+    lb: np.ndarray
+    ub: np.ndarray
+    start: np.ndarray | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.sym.size1()), int(self.sym.size2()))
+
+    @property
+    def size(self) -> int:
+        return int(self.sym.numel())
+
+    def unflatten(self, values: np.ndarray) -> np.ndarray:
+        """Turn a flat (column-major) slice back into this variable's shape (1-D for vectors)."""
+        rows, cols = self.shape
+        values = np.asarray(values, dtype=float)
+        return values.reshape(rows) if cols == 1 else values.reshape((rows, cols), order="F")
+
+
+@dataclass(frozen=True)
+class Constraint:
+    """`body <= 0` (kind "<=") or `body == 0` (kind "=="), with a name for its multipliers."""
+
+    name: str
+    body: ca.SX
+    kind: Literal["<=", "=="]
+
+
+@dataclass(frozen=True)
+class PSDConstraint:
+    """A linear matrix inequality `matrix >= 0` (positive semidefinite), symmetric by declaration."""
+
+    name: str
+    matrix: ca.SX
+
+
+@dataclass
+class Objective:
+    expr: ca.SX
+    sense: Sense
+
+
+def _bound_array(value: Any, size: int, what: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 2:
+        arr = arr.reshape(-1, order="F")
+    if arr.ndim == 0:
+        arr = np.full(size, float(arr))
+    if arr.shape != (size,):
+        raise ModelError(f"{what} has {arr.size} entries but the variable has {size}; pass a scalar or {size} values")
+    if np.isnan(arr).any():
+        raise ModelError(f"{what} contains NaN; use -inf/inf for a missing bound")
+    return arr
+
+
+def split_comparison(expr: Any, where: str) -> tuple[ca.SX, Literal["<=", "=="]]:
+    """Turn `a <= b`, `a >= b` or `a == b` (CasADi SX) into (`a - b`, kind) so that body <= 0 or == 0."""
+    if not isinstance(expr, ca.SX):
+        raise ModelError(
+            f"{where} expects a CasADi comparison such as `g <= 0` or `h == 0`, got {type(expr).__name__}; "
+            "write the constraint with the declared variables"
+        )
+    if expr.is_constant():
+        raise ModelError(f"{where}: the comparison contains no variables (it evaluates to {expr}); check the expression")
+    bodies, kinds = [], set()
+    for i in range(expr.numel()):
+        e = expr[i]
+        if e.is_op(ca.OP_LE) or e.is_op(ca.OP_LT):
+            kinds.add("<=")
+        elif e.is_op(ca.OP_EQ):
+            kinds.add("==")
+        else:
+            raise ModelError(
+                f"{where}: entry {i} is `{e}`, not a comparison; write `g <= h`, `g >= h` or `g == h`"
+            )
+        bodies.append(e.dep(0) - e.dep(1))
+    if len(kinds) != 1:
+        raise ModelError(f"{where}: mixes equalities and inequalities; declare them separately")
+    return ca.vertcat(*bodies), kinds.pop()
+
+
+class BilevelProblem:
+    """min_x F(x, y) s.t. G(x, y) <= 0, y in argmin_y { f(x, y) : g(x, y) <= 0, h(x, y) = 0, M(x, y) >= 0 }.
+
+    The lower level must be convex in y for every fixed x (this is checked where detectable).
+    Bounds of lower variables belong to the lower level; bounds of upper variables to the upper level.
+    """
+
+    def __init__(self, name: str = "bilevel") -> None:
+        self.name = name
+        self.variables: list[Variable] = []
+        self.upper_objective: Objective | None = None
+        self.lower_objective: Objective | None = None
+        self.upper_constraints: list[Constraint] = []
+        self.lower_constraints: list[Constraint] = []
+        self.lower_psd_constraints: list[PSDConstraint] = []
+
+    # -- variables -----------------------------------------------------------------------------
+    def _variable(self, level: Level, name: str, shape: int | tuple[int, int], lb: Any, ub: Any, start: Any) -> ca.SX:
+        if not isinstance(name, str) or not name.isidentifier():
+            raise ModelError(f"variable name {name!r} must be a Python identifier")
+        if any(v.name == name for v in self.variables):
+            raise ModelError(f"a variable named {name!r} is already declared; names must be unique")
+        rows, cols = (shape, 1) if isinstance(shape, (int, np.integer)) else tuple(shape)
+        if rows < 1 or cols < 1:
+            raise ModelError(f"variable {name!r}: shape {shape} must be positive")
+        sym = ca.SX.sym(name, int(rows), int(cols))
+        size = int(rows) * int(cols)
+        lbv = _bound_array(lb, size, f"lower bound of {name!r}")
+        ubv = _bound_array(ub, size, f"upper bound of {name!r}")
+        if np.any(lbv > ubv):
+            raise ModelError(f"variable {name!r}: a lower bound exceeds its upper bound")
+        st = None if start is None else _bound_array(start, size, f"start of {name!r}")
+        self.variables.append(Variable(name, level, sym, lbv, ubv, st))
+        return sym
+
+    def upper_variable(self, name: str, shape: int | tuple[int, int] = 1, lb: Any = -np.inf,
+                       ub: Any = np.inf, start: Any = None) -> ca.SX:
+        """Declare upper-level (leader) variables; returns their CasADi symbol."""
+        return self._variable("upper", name, shape, lb, ub, start)
+
+    def lower_variable(self, name: str, shape: int | tuple[int, int] = 1, lb: Any = -np.inf,
+                       ub: Any = np.inf, start: Any = None) -> ca.SX:
+        """Declare lower-level (follower) variables; their bounds are lower-level constraints."""
+        return self._variable("lower", name, shape, lb, ub, start)
+
+    @property
+    def upper_variables(self) -> list[Variable]:
+        return [v for v in self.variables if v.level == "upper"]
+
+    @property
+    def lower_variables(self) -> list[Variable]:
+        return [v for v in self.variables if v.level == "lower"]
+
+    # -- objectives ------------------------------------------------------------------------------
+    def _objective(self, expr: Any, sense: Sense, where: str) -> Objective:
+        expr = ca.SX(expr) if not isinstance(expr, ca.SX) else expr
+        if expr.numel() != 1:
+            raise ModelError(f"{where}: the objective must be scalar, got shape {expr.shape}")
+        return Objective(expr, sense)
+
+    def minimize_upper(self, expr: Any) -> None:
+        """Set the upper-level objective F(x, y) to minimize."""
+        self.upper_objective = self._objective(expr, "min", "minimize_upper")
+
+    def maximize_upper(self, expr: Any) -> None:
+        """Set the upper-level objective F(x, y) to maximize."""
+        self.upper_objective = self._objective(expr, "max", "maximize_upper")
+
+    def minimize_lower(self, expr: Any) -> None:
+        """Set the lower-level objective f(x, y) to minimize (convex in y)."""
+        self.lower_objective = self._objective(expr, "min", "minimize_lower")
+
+    def maximize_lower(self, expr: Any) -> None:
+        """Set the lower-level objective f(x, y) to maximize (concave in y)."""
+        self.lower_objective = self._objective(expr, "max", "maximize_lower")
+
+    # -- constraints ---------------------------------------------------------------------------
+    def upper_constraint(self, comparison: Any, name: str | None = None) -> None:
+        """Add an upper-level constraint `G(x, y) <= 0` / `== 0` (any comparison of expressions)."""
+        body, kind = split_comparison(comparison, "upper_constraint")
+        self.upper_constraints.append(Constraint(name or f"G{len(self.upper_constraints)}", body, kind))
+
+    def lower_constraint(self, comparison: Any, name: str | None = None) -> None:
+        """Add a lower-level constraint `g(x, y) <= 0` (convex in y) or `h(x, y) == 0` (affine in y)."""
+        body, kind = split_comparison(comparison, "lower_constraint")
+        self.lower_constraints.append(Constraint(name or f"g{len(self.lower_constraints)}", body, kind))
+
+    def lower_psd_constraint(self, matrix: Any, name: str | None = None) -> None:
+        """Add a lower-level linear matrix inequality `M(x, y) >= 0` (M symmetric, affine in y)."""
+        matrix = ca.SX(matrix)
+        if matrix.size1() != matrix.size2():
+            raise ModelError(f"lower_psd_constraint: matrix must be square, got shape {matrix.shape}")
+        asym = ca.simplify(matrix - matrix.T)
+        if not asym.is_zero():
+            syms = self._all_syms()
+            probe = ca.Function("asym", [syms], [asym])(np.random.default_rng(0).standard_normal(syms.numel()))
+            if float(ca.norm_inf(probe)) > 1e-12:
+                raise ModelError("lower_psd_constraint: matrix is not symmetric; pass (M + M.T) / 2 if that is meant")
+        self.lower_psd_constraints.append(PSDConstraint(name or f"M{len(self.lower_psd_constraints)}", matrix))
+
+    def _all_syms(self) -> ca.SX:
+        return ca.vertcat(*[ca.vec(v.sym) for v in self.variables]) if self.variables else ca.SX(0, 1)
+
+    # -- solving ---------------------------------------------------------------------------------
+    def solve(self, method: Any = "ipopt", **options: Any) -> "BilevelResult":
+        """Solve with a registered method ("ipopt", "relaxation", "hypergradient") or a callable."""
+        from .solvers.registry import solve
+
+        return solve(self, method=method, **options)
+
+    def __repr__(self) -> str:
+        nx = sum(v.size for v in self.upper_variables)
+        ny = sum(v.size for v in self.lower_variables)
+        return (f"BilevelProblem({self.name!r}: {nx} upper, {ny} lower variables, "
+                f"{len(self.upper_constraints)} upper / {len(self.lower_constraints)} lower constraints, "
+                f"{len(self.lower_psd_constraints)} LMIs)")

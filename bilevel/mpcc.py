@@ -1,0 +1,243 @@
+"""The MPCC produced by the single-level reduction, and the complementarity modes that make it an NLP.
+
+A mode is one mechanism with options (as BilevelJuMP's modes): each says how a pair 0 <= G ⟂ H >= 0
+(or S >= 0 ⟂ L >= 0 for PSD matrices) becomes NLP constraints, with a relaxation parameter tau that
+is an NLP *parameter*, so a relaxation sequence re-solves one NLP for decreasing tau.
+"""
+
+from __future__ import annotations
+
+from abc import ABC
+from dataclasses import dataclass, field
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from .errors import ModelError, UnsupportedPair
+
+Row = tuple[ca.SX, float, float]
+
+
+@dataclass(frozen=True)
+class ScalarPair:
+    """Elementwise complementarity 0 <= G ⟂ H >= 0 (e.g. G = -g lower slack, H = its multiplier)."""
+
+    name: str
+    G: ca.SX
+    H: ca.SX
+    labels: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class PSDPair:
+    """Matrix complementarity S >= 0 ⟂ L >= 0 (PSD), i.e. <S, L> = 0 (an LMI and its multiplier)."""
+
+    name: str
+    S: ca.SX
+    L: ca.SX
+
+
+class ComplementarityMode(ABC):
+    """How complementarity pairs become NLP rows; `tau` is the (symbolic) relaxation parameter."""
+
+    tau: float = 0.0
+
+    def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
+        raise UnsupportedPair(self, "scalar")
+
+    def psd_pair(self, pair: PSDPair, tau: ca.SX) -> list[Row]:
+        raise UnsupportedPair(self, "PSD")
+
+    @staticmethod
+    def _nonneg(pair: ScalarPair) -> list[Row]:
+        n = int(pair.G.numel())
+        return [(pair.G, np.zeros(n), np.full(n, np.inf)), (pair.H, np.zeros(n), np.full(n, np.inf))]
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(tau={self.tau:g})"
+
+
+class Exact(ComplementarityMode):
+    """G >= 0, H >= 0, G_i H_i <= 0: the unrelaxed MPCC (degenerate for NLP solvers; use for polishing)."""
+
+    def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
+        n = int(pair.G.numel())
+        return self._nonneg(pair) + [(pair.G * pair.H, np.full(n, -np.inf), np.zeros(n))]
+
+
+@dataclass(repr=False)
+class Scholtes(ComplementarityMode):
+    """G >= 0, H >= 0, G_i H_i <= t (Scholtes 2001); t -> 0 recovers the MPCC."""
+
+    tau: float = 1e-8
+
+    def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
+        n = int(pair.G.numel())
+        return self._nonneg(pair) + [(pair.G * pair.H - tau, np.full(n, -np.inf), np.zeros(n))]
+
+
+@dataclass(repr=False)
+class Product(ComplementarityMode):
+    """G >= 0, H >= 0, sum_i G_i H_i <= eps: one aggregated product constraint per pair."""
+
+    tau: float = 1e-8
+
+    def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
+        return self._nonneg(pair) + [(ca.dot(pair.G, pair.H) - tau, -np.inf, 0.0)]
+
+
+@dataclass(repr=False)
+class KanzowSchwartz(ComplementarityMode):
+    """G >= 0, H >= 0, phi_t(G_i, H_i) <= 0 with the Kanzow–Schwartz (2013) piecewise function."""
+
+    tau: float = 1e-8
+
+    def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
+        a, b = pair.G - tau, pair.H - tau
+        phi = ca.if_else(a + b >= 0, a * b, -0.5 * (a * a + b * b))
+        n = int(pair.G.numel())
+        return self._nonneg(pair) + [(phi, np.full(n, -np.inf), np.zeros(n))]
+
+
+@dataclass(repr=False)
+class FischerBurmeister(ComplementarityMode):
+    """G + H - sqrt(G^2 + H^2 + 2 mu) = 0: smoothed Fischer–Burmeister (G, H > 0, G H = mu)."""
+
+    tau: float = 1e-8
+
+    def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
+        n = int(pair.G.numel())
+        phi = pair.G + pair.H - ca.sqrt(pair.G ** 2 + pair.H ** 2 + 2 * tau)
+        return [(phi, np.zeros(n), np.zeros(n))]
+
+
+@dataclass(repr=False)
+class Branch(ComplementarityMode):
+    """One piece of the MPCC: G_i = 0, H_i >= 0 where side_i is True, else H_i = 0, G_i >= 0 (a regular NLP)."""
+
+    sides: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
+        side = np.asarray(self.sides[pair.name], dtype=bool)
+        n = int(pair.G.numel())
+        if side.shape != (n,):
+            raise ModelError(f"Branch: pair {pair.name!r} has {n} entries, got {side.size} sides")
+        rows: list[Row] = []
+        for i in range(n):
+            zero, free = (pair.G[i], pair.H[i]) if side[i] else (pair.H[i], pair.G[i])
+            rows += [(zero, 0.0, 0.0), (free, 0.0, np.inf)]
+        return rows
+
+    def __repr__(self) -> str:
+        return f"Branch({ {k: int(np.sum(v)) for k, v in self.sides.items()} } G-active)"
+
+
+@dataclass
+class NLPForm:
+    """An NLP min f(x; p) s.t. lbg <= g(x; p) <= ubg, lbx <= x <= ubx; the first n_w entries of x are w."""
+
+    x: ca.SX
+    f: ca.SX
+    g: ca.SX
+    p: ca.SX
+    lbx: np.ndarray
+    ubx: np.ndarray
+    lbg: np.ndarray
+    ubg: np.ndarray
+    p_value: np.ndarray
+    n_w: int
+    _solvers: dict[str, ca.Function] = field(default_factory=dict, repr=False)
+
+    def solver(self, plugin: str = "ipopt", options: dict[str, Any] | None = None) -> ca.Function:
+        """A CasADi nlpsol for this NLP, cached per (plugin, options)."""
+        key = f"{plugin}:{sorted((options or {}).items())!r}"
+        if key not in self._solvers:
+            nlp = {"x": self.x, "f": self.f, "g": self.g, "p": self.p}
+            self._solvers[key] = ca.nlpsol("mpcc_nlp", plugin, nlp, options or {})
+        return self._solvers[key]
+
+
+@dataclass
+class MPCC:
+    """min F(w) s.t. equalities(w) = 0, inequalities(w) <= 0, lbw <= w <= ubw, complementarity pairs.
+
+    `blocks` names the slices of w (x, y, lam, mu, Z_k) so the MPCC can be inspected and inverted.
+    """
+
+    w: ca.SX
+    lbw: np.ndarray
+    ubw: np.ndarray
+    objective: ca.SX
+    equalities: ca.SX
+    inequalities: ca.SX
+    pairs: list[ScalarPair | PSDPair]
+    blocks: dict[str, slice]
+
+    def __post_init__(self) -> None:
+        scalar = [p for p in self.pairs if isinstance(p, ScalarPair)]
+        psd = [p for p in self.pairs if isinstance(p, PSDPair)]
+        outs = [self.objective, self.equalities, self.inequalities]
+        outs += [ca.vertcat(*[p.G for p in scalar]) if scalar else ca.SX(0, 1),
+                 ca.vertcat(*[p.H for p in scalar]) if scalar else ca.SX(0, 1)]
+        outs += [m for p in psd for m in (p.S, p.L)]
+        self._eval = ca.Function("mpcc_eval", [self.w], outs)
+        self._n_psd = len(psd)
+
+    @property
+    def n_variables(self) -> int:
+        return int(self.w.numel())
+
+    def transcribe(self, mode: ComplementarityMode) -> NLPForm:
+        """The NLP obtained by writing every pair with `mode` (tau becomes the NLP parameter)."""
+        tau = ca.SX.sym("tau")
+        n_eq, n_in = int(self.equalities.numel()), int(self.inequalities.numel())
+        rows: list[Row] = [(self.equalities, np.zeros(n_eq), np.zeros(n_eq)),
+                           (self.inequalities, np.full(n_in, -np.inf), np.zeros(n_in))]
+        for pair in self.pairs:
+            rows += mode.scalar_pair(pair, tau) if isinstance(pair, ScalarPair) else mode.psd_pair(pair, tau)
+        g = ca.vertcat(*[r[0] for r in rows])
+        lbg = np.concatenate([np.broadcast_to(r[1], (int(r[0].numel()),)) for r in rows]) if rows else np.zeros(0)
+        ubg = np.concatenate([np.broadcast_to(r[2], (int(r[0].numel()),)) for r in rows]) if rows else np.zeros(0)
+        return NLPForm(self.w, self.objective, g, tau, self.lbw.copy(), self.ubw.copy(), lbg.astype(float),
+                       ubg.astype(float), np.array([mode.tau]), self.n_variables)
+
+    def residuals(self, w: np.ndarray) -> dict[str, float]:
+        """Max violations at w: equality, inequality (incl. bounds), pair sign, complementarity."""
+        out = self._eval(np.asarray(w, dtype=float))
+        eq = np.abs(np.asarray(out[1]).ravel())
+        ineq = np.maximum(np.asarray(out[2]).ravel(), 0.0)
+        bounds = np.maximum(np.maximum(self.lbw - w, w - self.ubw), 0.0)
+        G, H = np.asarray(out[3]).ravel(), np.asarray(out[4]).ravel()
+        sign = np.concatenate([np.maximum(-G, 0.0), np.maximum(-H, 0.0)])
+        comp = np.abs(np.minimum(np.maximum(G, 0.0), np.maximum(H, 0.0)))
+        for k in range(self._n_psd):
+            S, L = np.asarray(out[5 + 2 * k]), np.asarray(out[6 + 2 * k])
+            sign = np.concatenate([sign, [max(-np.linalg.eigvalsh(S).min(), 0.0),
+                                          max(-np.linalg.eigvalsh(L).min(), 0.0)]])
+            comp = np.concatenate([comp, [abs(float(np.sum(S * L)))]])
+        top = lambda a: float(a.max()) if a.size else 0.0  # noqa: E731
+        return {"equality": top(eq), "inequality": max(top(ineq), top(bounds)), "pair_sign": top(sign),
+                "complementarity": top(comp)}
+
+    def pair_values(self, w: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """(G, H) of every scalar pair at w, by pair name."""
+        out = self._eval(np.asarray(w, dtype=float))
+        G, H = np.asarray(out[3]).ravel(), np.asarray(out[4]).ravel()
+        values, k = {}, 0
+        for p in self.pairs:
+            if isinstance(p, ScalarPair):
+                n = int(p.G.numel())
+                values[p.name] = (G[k:k + n], H[k:k + n])
+                k += n
+        return values
+
+    def objective_value(self, w: np.ndarray) -> float:
+        return float(self._eval(np.asarray(w, dtype=float))[0])
+
+    def __repr__(self) -> str:
+        n_scalar = sum(int(p.G.numel()) for p in self.pairs if isinstance(p, ScalarPair))
+        n_psd = sum(1 for p in self.pairs if isinstance(p, PSDPair))
+        return (f"MPCC({self.n_variables} variables {dict((k, v.stop - v.start) for k, v in self.blocks.items())}, "
+                f"{int(self.equalities.numel())} equalities, {int(self.inequalities.numel())} inequalities, "
+                f"{n_scalar} scalar and {n_psd} PSD complementarity pairs)")

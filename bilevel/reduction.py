@@ -1,0 +1,111 @@
+"""Reductions that can be undone (apply/invert), and the single-level (KKT) reduction to an MPCC."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from .lower.base import unvech
+from .mpcc import MPCC, PSDPair, ScalarPair
+
+
+class Reduction(ABC):
+    """A problem transformation: apply(problem) -> (new problem, inverse data); invert maps solutions back."""
+
+    @abstractmethod
+    def apply(self, problem: Any) -> tuple[Any, Any]:
+        """Transform `problem`; return the new problem and what invert() needs."""
+
+    @abstractmethod
+    def invert(self, solution: Any, inverse_data: Any) -> Any:
+        """Map a solution of the transformed problem back to one of the original."""
+
+
+class Chain(Reduction):
+    """Apply reductions in order; invert them in reverse order with their own inverse data."""
+
+    def __init__(self, reductions: list[Reduction]) -> None:
+        self.reductions = list(reductions)
+
+    def apply(self, problem: Any) -> tuple[Any, list[Any]]:
+        inverse = []
+        for r in self.reductions:
+            problem, data = r.apply(problem)
+            inverse.append(data)
+        return problem, inverse
+
+    def invert(self, solution: Any, inverse_data: list[Any]) -> Any:
+        for r, data in zip(reversed(self.reductions), reversed(inverse_data)):
+            solution = r.invert(solution, data)
+        return solution
+
+
+@dataclass(frozen=True)
+class KKTInverse:
+    """Where each block (x, y, lam, mu, vech Z_k) sits in the MPCC variable vector."""
+
+    slices: dict[str, slice]
+    psd_sizes: tuple[int, ...]
+
+
+@dataclass
+class KKTPoint:
+    """A point of the canonical bilevel problem: upper x, lower y and lower multipliers (lam, mu, Z)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    lam: np.ndarray
+    mu: np.ndarray
+    Z: list[np.ndarray]
+
+
+class SingleLevelReduction(Reduction):
+    """Replace the convex lower level by its KKT conditions: stationarity, feasibility, complementarity.
+
+    Variables w = [x, y, lam, mu, vech Z_1, ...]; equalities: upper equalities, stationarity, lower
+    equalities; inequalities: upper inequalities; pairs: 0 <= -g ⟂ lam >= 0 and M_k >= 0 ⟂ Z_k >= 0.
+    """
+
+    def apply(self, canon: Any) -> tuple[MPCC, KKTInverse]:
+        low = canon.lower
+        kkt = low.kkt()
+        blocks = [("x", canon.x), ("y", low.y), ("lam", kkt.lam), ("mu", kkt.mu)]
+        blocks += [(f"Z{k}", v) for k, v in enumerate(kkt.Z_vech)]
+        slices, start = {}, 0
+        for name, sym in blocks:
+            slices[name] = slice(start, start + int(sym.numel()))
+            start += int(sym.numel())
+        w = ca.vertcat(*[sym for _, sym in blocks])
+        lbw = np.full(start, -np.inf)
+        ubw = np.full(start, np.inf)
+        lbw[slices["x"]], ubw[slices["x"]] = canon.x_lb, canon.x_ub
+        pairs: list[ScalarPair | PSDPair] = []
+        if low.g.numel():
+            pairs.append(ScalarPair("lower", -low.g, kkt.lam, tuple(low.g_names)))
+        for k, (m, z) in enumerate(zip(low.psd, kkt.Z)):
+            pairs.append(PSDPair(low.psd_names[k], m, z))
+        mpcc = MPCC(
+            w=w, lbw=lbw, ubw=ubw, objective=canon.F,
+            equalities=ca.vertcat(canon.H, kkt.stationarity, low.h),
+            inequalities=canon.G, pairs=pairs,
+            blocks={name: slices[name] for name, _ in blocks},
+        )
+        return mpcc, KKTInverse(slices, tuple(int(m.size1()) for m in low.psd))
+
+    def invert(self, w: np.ndarray, inverse_data: KKTInverse) -> KKTPoint:
+        s = inverse_data.slices
+        w = np.asarray(w, dtype=float).ravel()
+        zs = [unvech(w[s[f"Z{k}"]], n) for k, n in enumerate(inverse_data.psd_sizes)]
+        return KKTPoint(w[s["x"]], w[s["y"]], w[s["lam"]], w[s["mu"]], zs)
+
+    @staticmethod
+    def pack(point: KKTPoint, inverse_data: KKTInverse) -> np.ndarray:
+        """The MPCC vector w of a point (the inverse of invert), e.g. to warm start from a lower solve."""
+        from .lower.base import vech
+
+        parts = [point.x, point.y, point.lam, point.mu] + [vech(z) for z in point.Z]
+        return np.concatenate([np.asarray(p, dtype=float).ravel() for p in parts])

@@ -1,0 +1,104 @@
+"""The result of every solve: one status vocabulary, fields that always exist, JSON round trip."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from enum import Enum
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from .certificate import Certificate
+
+
+class Status(str, Enum):
+    """What a solve achieved; `success` is true only for SOLVED."""
+
+    SOLVED = "solved"                          # backend converged and the certificate passed
+    INACCURATE = "inaccurate"                  # certificate passed, backend stopped short (e.g. acceptable level)
+    CERTIFICATE_FAILED = "certificate_failed"  # backend claimed success, certificate disagrees
+    MAX_ITERATIONS = "max_iterations"          # iteration/time limit hit, certificate not passed
+    INFEASIBLE = "infeasible"                  # backend found the single-level problem infeasible
+    ERROR = "error"                            # backend failed without a usable point
+
+
+@dataclass(frozen=True)
+class BilevelResult:
+    """A solve's outcome. x, y and multipliers are keyed by declared names; objectives in declared senses.
+
+    history: per-iteration (or per-relaxation-step) records of the method; stats: raw backend output,
+    with no stability promise; starts: one summary per multistart start.
+    """
+
+    status: Status
+    message: str
+    method: str
+    problem: str
+    x: dict[str, np.ndarray]
+    y: dict[str, np.ndarray]
+    multipliers: dict[str, np.ndarray]
+    upper_objective: float | None
+    lower_objective: float | None
+    certificate: Certificate | None
+    wall_time: float
+    nit: int
+    history: tuple[dict[str, Any], ...] = ()
+    starts: tuple[dict[str, Any], ...] = ()
+    stats: dict[str, Any] = field(default_factory=dict)
+    _evaluate: Any = field(default=None, repr=False, compare=False)
+
+    @property
+    def success(self) -> bool:
+        return self.status is Status.SOLVED
+
+    def value(self, expr: Any) -> float | np.ndarray:
+        """Evaluate any CasADi expression of the problem's variables at the solution."""
+        if self._evaluate is None:
+            raise ValueError(f"this result carries no point (status {self.status.value}); nothing to evaluate")
+        out = np.asarray(self._evaluate(ca.SX(expr)))
+        return out.item() if out.size == 1 else out.squeeze()
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready dict (arrays as nested lists; raw stats reduced to JSON-safe entries)."""
+        def clean(v: Any) -> Any:
+            if isinstance(v, np.ndarray):
+                return v.tolist()
+            if isinstance(v, (np.floating, np.integer)):
+                return v.item()
+            if isinstance(v, dict):
+                return {str(k): clean(x) for k, x in v.items()}
+            if isinstance(v, (list, tuple)):
+                return [clean(x) for x in v]
+            if isinstance(v, Enum):
+                return v.value
+            return v if isinstance(v, (str, int, float, bool, type(None))) else repr(v)
+
+        d = {k: getattr(self, k) for k in ("status", "message", "method", "problem", "upper_objective",
+                                            "lower_objective", "wall_time", "nit", "x", "y", "multipliers",
+                                            "history", "starts", "stats")}
+        d["success"] = self.success
+        d["certificate"] = None if self.certificate is None else asdict(self.certificate)
+        return clean(d)
+
+    def to_json(self, path: str | None = None, indent: int = 2) -> str:
+        """Serialize to JSON; also write it to `path` when given."""
+        text = json.dumps(self.to_dict(), indent=indent, allow_nan=True)
+        if path is not None:
+            with open(path, "w", encoding="utf-8") as fh:
+                fh.write(text)
+        return text
+
+    def __repr__(self) -> str:
+        def fmt(v: Any) -> str:
+            if isinstance(v, dict):
+                return "{" + ", ".join(f"{k}: {np.array2string(np.asarray(a), precision=6)}" for k, a in v.items()) + "}"
+            return repr(v)
+
+        keys = [("status", self.status.value), ("success", self.success), ("message", self.message),
+                ("upper_objective", self.upper_objective), ("lower_objective", self.lower_objective),
+                ("x", self.x), ("y", self.y), ("method", self.method), ("nit", self.nit),
+                ("wall_time", round(self.wall_time, 4)), ("certificate", self.certificate)]
+        width = max(len(k) for k, _ in keys)
+        return "\n".join(f"{k.rjust(width)}: {fmt(v)}" for k, v in keys)

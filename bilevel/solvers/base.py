@@ -1,0 +1,113 @@
+"""What every method receives (a prepared problem) and returns (a MethodRun), and how runs become results."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from ..canonical import CanonicalBilevel, Canonicalize, NormalizeSense, kkt_solution
+from ..certificate import DEFAULT_TOL, certify
+from ..errors import BilevelError, UnknownOption
+from ..model import BilevelProblem
+from ..mpcc import MPCC
+from ..reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
+from ..result import BilevelResult, Status
+
+
+@dataclass
+class Prepared:
+    """A problem after canonicalization and sense normalization, with its (lazily built) MPCC."""
+
+    problem: BilevelProblem
+    canon: CanonicalBilevel
+    front: Chain
+    front_inverse: list[Any]
+
+    @cached_property
+    def reduction(self) -> tuple[MPCC, KKTInverse]:
+        return SingleLevelReduction().apply(self.canon)
+
+    @property
+    def mpcc(self) -> MPCC:
+        return self.reduction[0]
+
+    def point(self, w: np.ndarray) -> KKTPoint:
+        """The canonical point of an MPCC vector."""
+        return SingleLevelReduction().invert(w, self.reduction[1])
+
+    def pack(self, point: KKTPoint) -> np.ndarray:
+        """The MPCC vector of a canonical point."""
+        return SingleLevelReduction.pack(point, self.reduction[1])
+
+    def lower_point(self, x: np.ndarray) -> KKTPoint:
+        """Upper point x with the lower level solved there (independent solver) and its multipliers."""
+        sol = self.canon.lower.solve(x)
+        return KKTPoint(np.asarray(x, dtype=float), sol.y, sol.lam, sol.mu, sol.Z)
+
+
+def prepare(problem: BilevelProblem) -> Prepared:
+    """Canonicalize and normalize senses; classification and convexity checks of the lower level run here."""
+    front = Chain([Canonicalize(), NormalizeSense()])
+    canon, inverse = front.apply(problem)
+    _ = canon.lower  # classify now so a bad lower level fails before any solve
+    return Prepared(problem, canon, front, inverse)
+
+
+@dataclass
+class MethodRun:
+    """A method's raw outcome: its best MPCC vector (or None) and its own view of convergence."""
+
+    w: np.ndarray | None
+    status: Status
+    message: str
+    nit: int = 0
+    history: list[dict[str, Any]] = field(default_factory=list)
+    starts: list[dict[str, Any]] = field(default_factory=list)
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+def check_options(method: str, given: dict[str, Any], allowed: set[str]) -> None:
+    """Raise UnknownOption naming the unknown keys and the accepted ones (typos must not run silently)."""
+    unknown = sorted(set(given) - allowed)
+    if unknown:
+        raise UnknownOption(f"method {method!r} does not take option(s) {', '.join(unknown)}; "
+                            f"it accepts: {', '.join(sorted(allowed))}")
+
+
+def _final_status(run: MethodRun, passed: bool) -> tuple[Status, str]:
+    if passed:
+        if run.status is Status.SOLVED:
+            return Status.SOLVED, "converged; certificate passed (a local solution of the bilevel problem)"
+        return Status.INACCURATE, f"backend stopped with {run.status.value} ({run.message}); certificate passed"
+    if run.status in (Status.SOLVED, Status.INACCURATE):
+        return Status.CERTIFICATE_FAILED, f"backend reported {run.status.value} but the certificate failed"
+    return run.status, run.message
+
+
+def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol: float = DEFAULT_TOL) -> BilevelResult:
+    """Certify the run's point, map it back to declared names and senses, and decide the status."""
+    if run.w is None or not np.all(np.isfinite(run.w)):
+        return BilevelResult(run.status if run.status is not Status.SOLVED else Status.ERROR, run.message, method,
+                             prep.problem.name, {}, {}, {}, None, None, None, wall_time, run.nit,
+                             tuple(run.history), tuple(run.starts), run.stats)
+    point = prep.point(run.w)
+    try:
+        cert = certify(prep.canon, point, tol)
+    except BilevelError as exc:  # evaluation failed: keep the point, say why
+        cert = None
+        run = MethodRun(run.w, Status.ERROR, f"certificate could not be computed: {exc}", run.nit, run.history,
+                        run.starts, run.stats)
+    status, message = _final_status(run, cert is not None and cert.passed)
+    if cert is not None and not cert.passed:
+        message += f"; certificate failed on {', '.join(cert.failed)}"
+    sol = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse)
+    syms = ca.vertcat(prep.canon.x, prep.canon.y)
+    values = np.concatenate([point.x, point.y])
+    evaluate = lambda expr: ca.evalf(ca.substitute(expr, syms, ca.DM(values)))  # noqa: E731
+    return BilevelResult(status, message, method, prep.problem.name, sol.x, sol.y, sol.multipliers,
+                         sol.upper_objective, sol.lower_objective, cert, wall_time, run.nit, tuple(run.history),
+                         tuple(run.starts), run.stats, evaluate)

@@ -1,0 +1,153 @@
+"""IPOPT (through CasADi) on the KKT reformulation: multistart from lower-level-optimal points, then polish.
+
+Each start x0 (the declared start, then seeded random points inside the bounds) is completed with the
+lower-level solution at x0 and its multipliers, so IPOPT starts on the MPCC's feasible set. The MPCC
+is transcribed with a complementarity mode (default Scholtes with a tiny t); the result is then
+polished on the branch its complementarity pattern selects (G_i = 0 or H_i = 0), a regular NLP whose
+solution satisfies complementarity exactly. The best start is the feasible one with the lowest F.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import BilevelError
+from ..mpcc import Branch, ComplementarityMode, NLPForm, Scholtes
+from ..result import Status
+from ..sampling import sample_in_bounds
+from .base import MethodRun, Prepared, check_options
+
+IPOPT_STATUS: dict[str, Status] = {
+    "Solve_Succeeded": Status.SOLVED,
+    "Solved_To_Acceptable_Level": Status.INACCURATE,
+    "Feasible_Point_Found": Status.INACCURATE,
+    "Infeasible_Problem_Detected": Status.INFEASIBLE,
+    "Maximum_Iterations_Exceeded": Status.MAX_ITERATIONS,
+    "Maximum_CpuTime_Exceeded": Status.MAX_ITERATIONS,
+    "Maximum_WallTime_Exceeded": Status.MAX_ITERATIONS,
+}
+"""IPOPT return_status -> Status; anything not listed (restoration failure, errors) is Status.ERROR."""
+
+FEASIBILITY_TOL = 1e-6
+
+
+@dataclass
+class NLPRun:
+    """One IPOPT solve: the point, its objective, mapped status, raw status and iteration count."""
+
+    w: np.ndarray
+    objective: float
+    status: Status
+    raw_status: str
+    iterations: int
+    trace: dict[str, Any]
+
+
+def ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> dict[str, Any]:
+    """CasADi nlpsol options for a quiet IPOPT with the given tolerance and iteration limit."""
+    ipopt = {"print_level": 0, "sb": "yes", "tol": tol, "max_iter": max_iter, "acceptable_tol": 1e-7,
+             "mu_strategy": "adaptive"}
+    ipopt.update(extra or {})
+    return {"print_time": False, "ipopt": ipopt}
+
+
+def run_nlp(nlp: NLPForm, w0: np.ndarray, options: dict[str, Any], tau: float | None = None,
+            lam_g0: np.ndarray | None = None) -> NLPRun:
+    """Solve the transcribed NLP from w0 (tau overrides the mode's relaxation parameter)."""
+    solver = nlp.solver("ipopt", options)
+    args = dict(x0=w0, lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg,
+                p=nlp.p_value if tau is None else np.array([tau]))
+    if lam_g0 is not None:
+        args["lam_g0"] = lam_g0
+    sol = solver(**args)
+    stats = solver.stats()
+    raw = str(stats.get("return_status", "unknown"))
+    trace = {k: list(stats.get("iterations", {}).get(k, [])) for k in ("obj", "inf_pr", "inf_du")}
+    return NLPRun(np.asarray(sol["x"]).ravel()[: nlp.n_w], float(sol["f"]), IPOPT_STATUS.get(raw, Status.ERROR),
+                  raw, int(stats.get("iter_count", 0)), trace)
+
+
+def polish(prep: Prepared, w: np.ndarray, options: dict[str, Any]) -> NLPRun | None:
+    """Re-solve on the MPCC branch selected by w (G_i = 0 where G_i <= H_i); None if it fails."""
+    mpcc = prep.mpcc
+    sides = {name: G <= H for name, (G, H) in mpcc.pair_values(w).items()}
+    try:
+        run = run_nlp(mpcc.transcribe(Branch(sides=sides)), w, options)
+    except (RuntimeError, BilevelError):
+        return None
+    return run if run.status is Status.SOLVED else None
+
+
+def start_points(prep: Prepared, starts: int, rng: np.random.Generator, scale: float) -> list[np.ndarray]:
+    """Upper starts: the declared start, then seeded random points inside the upper bounds."""
+    canon = prep.canon
+    return [canon.x_start] + [sample_in_bounds(canon.x_lb, canon.x_ub, rng, scale) for _ in range(starts - 1)]
+
+
+def warm_start(prep: Prepared, x0: np.ndarray) -> np.ndarray:
+    """MPCC start from x0 with the lower level solved there; zeros for y and multipliers if it cannot be."""
+    try:
+        return prep.pack(prep.lower_point(x0))
+    except BilevelError:
+        w = np.zeros(prep.mpcc.n_variables)
+        w[prep.mpcc.blocks["x"]] = x0
+        if prep.canon.y_start is not None:
+            w[prep.mpcc.blocks["y"]] = prep.canon.y_start
+        return w
+
+
+def best_of(candidates: list[tuple[np.ndarray, float, float]]) -> int:
+    """Index of the feasible candidate (residual <= tol) with the lowest objective, else the least infeasible."""
+    feasible = [i for i, (_, _, r) in enumerate(candidates) if r <= FEASIBILITY_TOL]
+    if feasible:
+        return min(feasible, key=lambda i: candidates[i][1])
+    return min(range(len(candidates)), key=lambda i: candidates[i][2])
+
+
+def residual(prep: Prepared, w: np.ndarray) -> float:
+    """Largest MPCC violation at w (equalities, inequalities, pair signs, complementarity)."""
+    return max(prep.mpcc.residuals(w).values())
+
+
+def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
+    """Multistart IPOPT on the KKT reformulation (options: starts, seed, mode, polish, tol, max_iter,
+    ipopt, scale, verbose)."""
+    check_options("ipopt", options, {"starts", "seed", "mode", "polish", "tol", "max_iter", "ipopt", "scale",
+                                     "verbose"})
+    starts = int(options.get("starts", 8))
+    rng = np.random.default_rng(options.get("seed", 0))
+    mode: ComplementarityMode = options.get("mode") or Scholtes(1e-9)
+    nlp_opts = ipopt_options(float(options.get("tol", 1e-10)), int(options.get("max_iter", 3000)),
+                             options.get("ipopt"))
+    nlp = prep.mpcc.transcribe(mode)
+    records, candidates, traces, total_iter = [], [], [], 0
+    for k, x0 in enumerate(start_points(prep, starts, rng, float(options.get("scale", 10.0)))):
+        t0 = time.perf_counter()
+        run = run_nlp(nlp, warm_start(prep, x0), nlp_opts)
+        total_iter += run.iterations
+        final, polished = run, False
+        if options.get("polish", True) and prep.mpcc.pairs:
+            pol = polish(prep, run.w, nlp_opts)
+            if pol is not None:
+                total_iter += pol.iterations
+                final, polished = NLPRun(pol.w, pol.objective, pol.status, f"{run.raw_status}, polished",
+                                         run.iterations + pol.iterations, run.trace), True
+        res = residual(prep, final.w)
+        candidates.append((final.w, final.objective, res))
+        traces.append(final)
+        records.append({"start": k, "x0": x0.tolist(), "status": final.raw_status, "objective": final.objective,
+                        "residual": res, "polished": polished, "iterations": final.iterations,
+                        "time": time.perf_counter() - t0})
+        if options.get("verbose"):
+            print(f"[ipopt] start {k + 1}/{starts}: {final.raw_status}, F = {final.objective:.6g}, "
+                  f"residual {res:.1e}{' (polished)' if polished else ''}", flush=True)
+    i = best_of(candidates)
+    best = traces[i]
+    history = [{"iter": j, "objective": o, "inf_pr": p, "inf_du": d}
+               for j, (o, p, d) in enumerate(zip(best.trace["obj"], best.trace["inf_pr"], best.trace["inf_du"]))]
+    return MethodRun(best.w, best.status, f"best of {starts} starts: start {i} ({best.raw_status})", total_iter,
+                     history, records, {"mode": repr(mode), "best_start": i})
