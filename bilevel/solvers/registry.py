@@ -11,11 +11,13 @@ from ..model import BilevelProblem
 from ..result import BilevelResult
 from .base import MethodRun, Prepared, finalize, prepare
 from .ipopt import solve_ipopt
+from .relaxation import solve_relaxation
 
 Method = Callable[..., MethodRun]
 
 METHODS: dict[str, Method] = {
     "ipopt": solve_ipopt,
+    "relaxation": solve_relaxation,
 }
 """Registered methods: name -> function(prepared, **options) -> MethodRun."""
 

@@ -1,0 +1,81 @@
+"""Warm-started relaxation sequence on the MPCC: solve with Scholtes (or Kanzow–Schwartz) for t_k -> 0.
+
+One NLP is transcribed once with the relaxation parameter as an NLP parameter; each step re-solves it
+from the previous step's primal and dual point. The sequence stops when the complementarity residual
+is below `comp_tol` (or t reaches `t_min`), then the point is polished on its MPCC branch.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from ..errors import ModelError
+from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
+from .base import MethodRun, Prepared, check_options
+from .ipopt import (NLPRun, best_of, ipopt_options, polish, residual, run_nlp, start_points, warm_start)
+
+SCHEMES: dict[str, type[ComplementarityMode]] = {
+    "scholtes": Scholtes,
+    "kanzow-schwartz": KanzowSchwartz,
+}
+
+
+def relaxation_path(prep: Prepared, nlp: Any, w0: np.ndarray, opts: dict[str, Any], t0: float, factor: float,
+                    t_min: float, comp_tol: float) -> tuple[NLPRun, list[dict[str, Any]]]:
+    """Follow t_k = t0 * factor^k, warm starting each solve; return the last run and the path."""
+    path, t, lam_g, run = [], t0, None, None
+    w = w0
+    while True:
+        run = run_nlp(nlp, w, opts, tau=t, lam_g0=lam_g)
+        comp = prep.mpcc.residuals(run.w)["complementarity"]
+        path.append({"t": t, "objective": run.objective, "complementarity": comp, "status": run.raw_status,
+                     "iterations": run.iterations})
+        w = run.w
+        if comp <= comp_tol or t * factor < t_min:
+            return run, path
+        t *= factor
+
+
+def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
+    """Multistart relaxation sequence (options: scheme, t0, factor, t_min, comp_tol, starts, seed, polish,
+    tol, max_iter, ipopt, scale, verbose)."""
+    check_options("relaxation", options, {"scheme", "t0", "factor", "t_min", "comp_tol", "starts", "seed", "polish",
+                                          "tol", "max_iter", "ipopt", "scale", "verbose"})
+    scheme = options.get("scheme", "scholtes")
+    if scheme not in SCHEMES:
+        raise ModelError(f"unknown relaxation scheme {scheme!r}; choose one of {', '.join(SCHEMES)}")
+    factor = float(options.get("factor", 0.1))
+    if not 0.0 < factor < 1.0:
+        raise ModelError(f"relaxation factor must be in (0, 1), got {factor}")
+    mode = SCHEMES[scheme]()
+    starts = int(options.get("starts", 8))
+    rng = np.random.default_rng(options.get("seed", 0))
+    opts = ipopt_options(float(options.get("tol", 1e-10)), int(options.get("max_iter", 3000)), options.get("ipopt"))
+    nlp = prep.mpcc.transcribe(mode)
+    candidates, finals, paths, records, total = [], [], [], [], 0
+    for k, x0 in enumerate(start_points(prep, starts, rng, float(options.get("scale", 10.0)))):
+        t_start = time.perf_counter()
+        run, path = relaxation_path(prep, nlp, warm_start(prep, x0), opts, float(options.get("t0", 1.0)), factor,
+                                    float(options.get("t_min", 1e-12)), float(options.get("comp_tol", 1e-7)))
+        total += sum(p["iterations"] for p in path)
+        polished = polish(prep, run.w, opts) if options.get("polish", True) and prep.mpcc.pairs else None
+        if polished is not None:
+            total += polished.iterations
+            run = polished
+        res = residual(prep, run.w)
+        candidates.append((run.w, run.objective, res))
+        finals.append(run)
+        paths.append(path)
+        records.append({"start": k, "x0": x0.tolist(), "status": path[-1]["status"], "objective": run.objective,
+                        "residual": res, "polished": polished is not None, "steps": len(path),
+                        "time": time.perf_counter() - t_start})
+        if options.get("verbose"):
+            print(f"[relaxation] start {k + 1}/{starts}: {len(path)} steps, F = {run.objective:.6g}, "
+                  f"residual {res:.1e}", flush=True)
+    i = best_of(candidates)
+    return MethodRun(finals[i].w, finals[i].status, f"best of {starts} starts: start {i} "
+                     f"({len(paths[i])} relaxation steps, last t = {paths[i][-1]['t']:.1e})", total, paths[i],
+                     records, {"scheme": scheme, "best_start": i})
