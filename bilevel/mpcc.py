@@ -38,6 +38,40 @@ class PSDPair:
     L: ca.SX
 
 
+def lower_triangular(name: str, n: int) -> tuple[ca.SX, ca.SX]:
+    """An n x n lower-triangular SX matrix of fresh symbols; returns (matrix, symbols)."""
+    v = ca.SX.sym(name, n * (n + 1) // 2)
+    m = ca.SX(n, n)
+    k = 0
+    for j in range(n):
+        for i in range(j, n):
+            m[i, j] = v[k]
+            k += 1
+    return m, v
+
+
+def vech_sx(m: ca.SX) -> ca.SX:
+    """Lower triangle of a symmetric SX matrix, column by column."""
+    n = int(m.size1())
+    return ca.vertcat(*[m[i, j] for j in range(n) for i in range(j, n)])
+
+
+def psd_factor(m: np.ndarray, jitter: float = 1e-8) -> np.ndarray:
+    """Lower-triangular P with P P' ~ the PSD part of m (eigenvalues clipped at jitter), in vech order."""
+    vals, vecs = np.linalg.eigh(0.5 * (m + m.T))
+    p = np.linalg.cholesky((vecs * np.maximum(vals, jitter)) @ vecs.T)
+    n = m.shape[0]
+    return np.concatenate([p[j:, j] for j in range(n)])
+
+
+@dataclass(frozen=True)
+class PSDFactors:
+    """Auxiliary factor variables (vech P, vech W) a mode introduced for one PSD pair."""
+
+    pair: PSDPair
+    symbols: ca.SX
+
+
 class ComplementarityMode(ABC):
     """How complementarity pairs become NLP rows; `tau` is the (symbolic) relaxation parameter."""
 
@@ -46,8 +80,20 @@ class ComplementarityMode(ABC):
     def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
         raise UnsupportedPair(self, "scalar")
 
-    def psd_pair(self, pair: PSDPair, tau: ca.SX) -> list[Row]:
+    def psd_pair(self, pair: PSDPair, tau: ca.SX) -> tuple[list[Row], PSDFactors]:
         raise UnsupportedPair(self, "PSD")
+
+    @staticmethod
+    def _psd_factored(pair: PSDPair, bound: ca.SX | float) -> tuple[list[Row], PSDFactors]:
+        """S = P P', L = W W' (P, W lower triangular, new variables) and ||P' W||_F^2 <= bound."""
+        n = int(pair.S.size1())
+        P, p_sym = lower_triangular(f"P_{pair.name}", n)
+        W, w_sym = lower_triangular(f"W_{pair.name}", n)
+        m = n * (n + 1) // 2
+        rows: list[Row] = [(vech_sx(pair.S - P @ P.T), np.zeros(m), np.zeros(m)),
+                           (vech_sx(pair.L - W @ W.T), np.zeros(m), np.zeros(m)),
+                           (ca.sumsqr(P.T @ W) - bound, -np.inf, 0.0)]
+        return rows, PSDFactors(pair, ca.vertcat(p_sym, w_sym))
 
     @staticmethod
     def _nonneg(pair: ScalarPair) -> list[Row]:
@@ -65,6 +111,9 @@ class Exact(ComplementarityMode):
         n = int(pair.G.numel())
         return self._nonneg(pair) + [(pair.G * pair.H, np.full(n, -np.inf), np.zeros(n))]
 
+    def psd_pair(self, pair: PSDPair, tau: ca.SX) -> tuple[list[Row], PSDFactors]:
+        return self._psd_factored(pair, 0.0)
+
 
 @dataclass(repr=False)
 class Scholtes(ComplementarityMode):
@@ -76,6 +125,10 @@ class Scholtes(ComplementarityMode):
         n = int(pair.G.numel())
         return self._nonneg(pair) + [(pair.G * pair.H - tau, np.full(n, -np.inf), np.zeros(n))]
 
+    def psd_pair(self, pair: PSDPair, tau: ca.SX) -> tuple[list[Row], PSDFactors]:
+        """S = P P', L = W W', <S, L> = ||P' W||_F^2 <= t."""
+        return self._psd_factored(pair, tau)
+
 
 @dataclass(repr=False)
 class Product(ComplementarityMode):
@@ -85,6 +138,9 @@ class Product(ComplementarityMode):
 
     def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
         return self._nonneg(pair) + [(ca.dot(pair.G, pair.H) - tau, -np.inf, 0.0)]
+
+    def psd_pair(self, pair: PSDPair, tau: ca.SX) -> tuple[list[Row], PSDFactors]:
+        return self._psd_factored(pair, tau)
 
 
 @dataclass(repr=False)
@@ -117,6 +173,7 @@ class Branch(ComplementarityMode):
     """One piece of the MPCC: G_i = 0, H_i >= 0 where side_i is True, else H_i = 0, G_i >= 0 (a regular NLP)."""
 
     sides: dict[str, np.ndarray] = field(default_factory=dict)
+    psd_tol: float = 1e-14
 
     def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
         side = np.asarray(self.sides[pair.name], dtype=bool)
@@ -129,13 +186,19 @@ class Branch(ComplementarityMode):
             rows += [(zero, 0.0, 0.0), (free, 0.0, np.inf)]
         return rows
 
+    def psd_pair(self, pair: PSDPair, tau: ca.SX) -> tuple[list[Row], PSDFactors]:
+        """PSD pairs have no finite branch structure: polish them with <S, L> <= psd_tol in factored form
+        (a tiny positive bound keeps an interior for the NLP solver; 0 would make the row degenerate)."""
+        return self._psd_factored(pair, self.psd_tol)
+
     def __repr__(self) -> str:
         return f"Branch({ {k: int(np.sum(v)) for k, v in self.sides.items()} } G-active)"
 
 
 @dataclass
 class NLPForm:
-    """An NLP min f(x; p) s.t. lbg <= g(x; p) <= ubg, lbx <= x <= ubx; the first n_w entries of x are w."""
+    """An NLP min f(x; p) s.t. lbg <= g(x; p) <= ubg, lbx <= x <= ubx; the first n_w entries of x are w,
+    the rest are auxiliary variables of the modes (PSD factors), initialized by `start`."""
 
     x: ca.SX
     f: ca.SX
@@ -147,7 +210,15 @@ class NLPForm:
     ubg: np.ndarray
     p_value: np.ndarray
     n_w: int
+    psd_values: ca.Function | None = None
     _solvers: dict[str, ca.Function] = field(default_factory=dict, repr=False)
+
+    def start(self, w: np.ndarray) -> np.ndarray:
+        """Full NLP start from an MPCC point: w followed by PSD factors of each pair's (S, L) at w."""
+        if self.psd_values is None or self.psd_values.n_out() == 0:
+            return np.asarray(w, dtype=float)
+        mats = [np.asarray(m) for m in self.psd_values(w)]
+        return np.concatenate([np.asarray(w, dtype=float)] + [psd_factor(m) for m in mats])
 
     def solver(self, plugin: str = "ipopt", options: dict[str, Any] | None = None) -> ca.Function:
         """A CasADi nlpsol for this NLP, cached per (plugin, options)."""
@@ -194,13 +265,24 @@ class MPCC:
         n_eq, n_in = int(self.equalities.numel()), int(self.inequalities.numel())
         rows: list[Row] = [(self.equalities, np.zeros(n_eq), np.zeros(n_eq)),
                            (self.inequalities, np.full(n_in, -np.inf), np.zeros(n_in))]
+        factors: list[PSDFactors] = []
         for pair in self.pairs:
-            rows += mode.scalar_pair(pair, tau) if isinstance(pair, ScalarPair) else mode.psd_pair(pair, tau)
+            if isinstance(pair, ScalarPair):
+                rows += mode.scalar_pair(pair, tau)
+            else:
+                pair_rows, aux = mode.psd_pair(pair, tau)
+                rows += pair_rows
+                factors.append(aux)
         g = ca.vertcat(*[r[0] for r in rows])
         lbg = np.concatenate([np.broadcast_to(r[1], (int(r[0].numel()),)) for r in rows]) if rows else np.zeros(0)
         ubg = np.concatenate([np.broadcast_to(r[2], (int(r[0].numel()),)) for r in rows]) if rows else np.zeros(0)
-        return NLPForm(self.w, self.objective, g, tau, self.lbw.copy(), self.ubw.copy(), lbg.astype(float),
-                       ubg.astype(float), np.array([mode.tau]), self.n_variables)
+        aux = ca.vertcat(*[f.symbols for f in factors]) if factors else ca.SX(0, 1)
+        n_aux = int(aux.numel())
+        init = ca.Function("psd_pairs", [self.w], [m for f in factors for m in (f.pair.S, f.pair.L)])
+        return NLPForm(ca.vertcat(self.w, aux), self.objective, g, tau,
+                       np.concatenate([self.lbw, np.full(n_aux, -np.inf)]),
+                       np.concatenate([self.ubw, np.full(n_aux, np.inf)]), lbg.astype(float), ubg.astype(float),
+                       np.array([mode.tau]), self.n_variables, init)
 
     def residuals(self, w: np.ndarray) -> dict[str, float]:
         """Max violations at w: equality, inequality (incl. bounds), pair sign, complementarity."""

@@ -9,9 +9,12 @@ def sample_in_bounds(lb: np.ndarray, ub: np.ndarray, rng: np.random.Generator, s
     """Uniform in finite boxes; lb + |N(0, scale)| / ub - |N(0, scale)| for one-sided; N(0, scale) if free."""
     lb, ub = np.asarray(lb, dtype=float), np.asarray(ub, dtype=float)
     z = rng.standard_normal(lb.shape) * scale
-    out = np.where(np.isfinite(lb) & np.isfinite(ub), lb + rng.random(lb.shape) * (ub - lb), z)
-    out = np.where(np.isfinite(lb) & ~np.isfinite(ub), lb + np.abs(z), out)
-    return np.where(~np.isfinite(lb) & np.isfinite(ub), ub - np.abs(z), out)
+    u = rng.random(lb.shape)
+    lo, hi = np.isfinite(lb), np.isfinite(ub)
+    flb, fub = np.where(lo, lb, 0.0), np.where(hi, ub, 0.0)
+    out = np.where(lo & hi, flb + u * (fub - flb), z)
+    out = np.where(lo & ~hi, flb + np.abs(z), out)
+    return np.where(~lo & hi, fub - np.abs(z), out)
 
 
 def default_start(lb: np.ndarray, ub: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:

@@ -10,6 +10,7 @@ from .base import LowerLevel
 from .least_squares import LeastSquaresLower
 from .nlp import ConvexNLPLower
 from .quadratic import LinearLower, QuadraticLower
+from .sdp import SemidefiniteLower
 
 _PSD_TOL = 1e-9
 
@@ -42,9 +43,6 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
     if not ca.depends_on(f, y):
         raise ModelError("the lower objective does not depend on the lower variables; "
                          "a bilevel problem needs a lower level that optimizes over y")
-    if psd:
-        raise ModelError("lower levels with linear matrix inequalities need an SDP lower kind, which this "
-                         "version does not provide; express the lower level with scalar constraints")
     if h.numel() and ca.depends_on(ca.jacobian(h, y), y):
         raise NonConvexLowerLevel("a lower-level equality constraint is not affine in the lower variables; "
                                   "only affine equalities keep the lower level convex")
@@ -53,6 +51,16 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
     points = [(xs, rng.standard_normal(int(y.numel()))) for xs in x_samples]
     hess_f = ca.hessian(f, y)[0]
     affine_g = not (g.numel() and ca.depends_on(ca.jacobian(g, y), y))
+    if psd:
+        for name, m in zip(psd_names, psd):
+            if ca.depends_on(ca.jacobian(ca.vec(m), y), y):
+                raise NonConvexLowerLevel(f"LMI {name!r} is not affine in the lower variables; an SDP lower level "
+                                          "needs M(x, y) affine in y")
+        if not affine_g or ca.depends_on(hess_f, y):
+            raise ModelError("a lower level with LMIs must have a linear or convex quadratic objective and affine "
+                             "scalar constraints in y (a conic program)")
+        _check_psd(ca.Function("hf", [x, y], [hess_f]), points, "the lower objective")
+        return SemidefiniteLower(*args)
     if affine_g and not ca.depends_on(hess_f, y):
         if ca.simplify(hess_f).is_zero():
             return LinearLower(*args)

@@ -12,6 +12,10 @@ from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
 from .base import LowerLevel, LowerSolution
 
 
+CLARABEL_TOLERANCES = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10, "tol_ktratio": 1e-8}
+"""Tighter than Clarabel's defaults (1e-8): certificates compare against these solutions."""
+
+
 @dataclass(frozen=True)
 class QPData:
     """f = 1/2 y'Py + q'y + r, g = A y + b <= 0, h = E y + e = 0 at a fixed upper point."""
@@ -25,8 +29,11 @@ class QPData:
     e: np.ndarray
 
 
-def solve_qp_clarabel(d: QPData, context: str) -> LowerSolution:
-    """Solve a convex QP/LP with cvxpy + Clarabel; raise on infeasible/unbounded, fail loudly otherwise."""
+def solve_qp_clarabel(d: QPData, context: str, lmis: tuple[tuple[np.ndarray, np.ndarray], ...] = ()) -> LowerSolution:
+    """Solve a convex QP/LP (with LMIs M0 + sum_j y_j M_j >= 0 given as (M0, d vec(M)/dy)) by cvxpy + Clarabel.
+
+    Raises on infeasible/unbounded and fails loudly on any other non-optimal status.
+    """
     n = d.q.size
     y = cp.Variable(n)
     objective = d.q @ y + d.r
@@ -37,9 +44,14 @@ def solve_qp_clarabel(d: QPData, context: str) -> LowerSolution:
         cons.append(d.A @ y + d.b <= 0)
     if d.e.size:
         cons.append(d.E @ y + d.e == 0)
+    n_lin = len(cons)
+    for m0, jac in lmis:
+        k = m0.shape[0]
+        expr = m0 + cp.reshape(jac @ y, (k, k), order="F")
+        cons.append(0.5 * (expr + expr.T) >> 0)
     prob = cp.Problem(cp.Minimize(objective), cons)
     try:
-        prob.solve(solver=cp.CLARABEL)
+        prob.solve(solver=cp.CLARABEL, **CLARABEL_TOLERANCES)
     except cp.error.SolverError as exc:
         raise SolverFailed(f"Clarabel failed on the lower level {context}: {exc}") from exc
     if prob.status in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
@@ -49,10 +61,11 @@ def solve_qp_clarabel(d: QPData, context: str) -> LowerSolution:
     if prob.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
         raise SolverFailed(f"Clarabel returned status {prob.status!r} on the lower level {context}")
     lam = np.maximum(np.asarray(cons[0].dual_value).ravel(), 0.0) if d.b.size else np.zeros(0)
-    mu = np.asarray(cons[-1].dual_value).ravel() if d.e.size else np.zeros(0)
+    mu = np.asarray(cons[n_lin - 1].dual_value).ravel() if d.e.size else np.zeros(0)
+    zs = [np.asarray(c.dual_value) for c in cons[n_lin:]]
     yv = np.asarray(y.value).ravel()
     fval = float(0.5 * yv @ d.P @ yv + d.q @ yv + d.r)
-    return LowerSolution(yv, fval, lam, mu, [], prob.status, "cvxpy+clarabel")
+    return LowerSolution(yv, fval, lam, mu, zs, prob.status, "cvxpy+clarabel")
 
 
 @dataclass

@@ -59,7 +59,7 @@ def run_nlp(nlp: NLPForm, w0: np.ndarray, options: dict[str, Any], tau: float | 
             lam_g0: np.ndarray | None = None) -> NLPRun:
     """Solve the transcribed NLP from w0 (tau overrides the mode's relaxation parameter)."""
     solver = nlp.solver("ipopt", options)
-    args = dict(x0=w0, lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg,
+    args = dict(x0=nlp.start(w0[: nlp.n_w]), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg,
                 p=nlp.p_value if tau is None else np.array([tau]))
     if lam_g0 is not None:
         args["lam_g0"] = lam_g0
@@ -75,8 +75,9 @@ def polish(prep: Prepared, w: np.ndarray, options: dict[str, Any]) -> NLPRun | N
     """Re-solve on the MPCC branch selected by w (G_i = 0 where G_i <= H_i); None if it fails."""
     mpcc = prep.mpcc
     sides = {name: G <= H for name, (G, H) in mpcc.pair_values(w).items()}
+    exact = {**options, "ipopt": {**options["ipopt"], "bound_relax_factor": 0.0}}
     try:
-        run = run_nlp(mpcc.transcribe(Branch(sides=sides)), w, options)
+        run = run_nlp(mpcc.transcribe(Branch(sides=sides)), w, exact)
     except (RuntimeError, BilevelError):
         return None
     return run if run.status is Status.SOLVED else None
