@@ -76,8 +76,9 @@ def _flat(vars_: list[Variable]) -> ca.SX:
     return ca.vertcat(*[ca.vec(v.sym) for v in vars_]) if vars_ else ca.SX(0, 1)
 
 
-def _check_depends(expr: ca.SX, allowed: ca.SX, where: str) -> None:
-    free = [s for s in ca.symvar(expr) if not any(ca.is_equal(s, a) for a in ca.symvar(allowed))]
+def _check_depends(expr: ca.SX, allowed: set[int], where: str) -> None:
+    """Raise if expr uses symbols outside `allowed` (element hashes of the declared variables)."""
+    free = [s for s in ca.symvar(expr) if s.element_hash() not in allowed]
     if free:
         raise ModelError(f"{where} uses symbols {', '.join(str(s) for s in free)} that are not variables "
                          "declared on this problem; declare them with upper_variable/lower_variable")
@@ -95,7 +96,7 @@ class Canonicalize(Reduction):
             raise ModelError(f"{problem.name}: no lower variables; declare them with lower_variable")
         ups, lows = problem.upper_variables, problem.lower_variables
         x, y = _flat(ups), _flat(lows)
-        allowed = ca.vertcat(x, y)
+        allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(x, y))}
         _check_depends(problem.upper_objective.expr, allowed, "the upper objective")
         _check_depends(problem.lower_objective.expr, allowed, "the lower objective")
         G, H, G_names = [], [], []
