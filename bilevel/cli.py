@@ -1,0 +1,149 @@
+"""Command line: `bilevel list | solve | compare | reproduce`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from typing import Sequence
+
+import numpy as np
+
+from .problems import registry
+from .solvers import METHODS, solve
+
+
+def _cmd_list(args: argparse.Namespace) -> int:
+    rows = [registry.spec(n) for n in registry.names(args.tag)]
+    width = max((len(s.name) for s in rows), default=4)
+    for s in rows:
+        opt = "-" if s.optimum is None else f"{s.optimum:.6g}"
+        print(f"{s.name.ljust(width)}  optimum {opt:>10}  [{', '.join(s.tags)}]  {s.description}")
+    print(f"{len(rows)} problems; methods: {', '.join(sorted(METHODS))}")
+    return 0
+
+
+def _parse_value(text: str) -> object:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def _cmd_attack(args: argparse.Namespace) -> int:
+    from .attacks.vrft_methods import ATTACKS
+    from .problems.vrft import attack_instance
+
+    objective = args.problem.removeprefix("vrft-")
+    atk = attack_instance(objective, args.scenario, args.eps_u, args.eps_y, args.seed, args.n, args.convention,
+                          args.norm)
+    method = args.method if args.method in ATTACKS else ("joint" if objective == "destabilize" else "alternating")
+    result = ATTACKS[method](atk, seed=args.seed) if method == "white-noise" else ATTACKS[method](
+        atk, seed=args.seed, starts=args.starts)
+    for key, value in result.summary().items():
+        print(f"{key:>22}: {value}")
+    print(f"{'theta_clean':>22}: {np.array2string(result.theta_clean, precision=5)}")
+    print(f"{'theta_poisoned':>22}: {np.array2string(result.theta_poisoned, precision=5)}")
+    if args.save:
+        result.save(args.save, atk)
+        print(f"wrote {args.save} (clean data, attack signals, clean/poisoned theta, closed-loop poles)")
+    return 0
+
+
+def _cmd_solve(args: argparse.Namespace) -> int:
+    if "attack" in registry.spec(args.problem).tags and args.method not in METHODS:
+        return _cmd_attack(args)
+    args.method = args.method or "ipopt"
+    params = dict(kv.split("=", 1) for kv in args.param)
+    problem = registry.get(args.problem, **{k: _parse_value(v) for k, v in params.items()})
+    options = {k: _parse_value(v) for k, v in (kv.split("=", 1) for kv in args.option)}
+    result = solve(problem, method=args.method, starts=args.starts, seed=args.seed, **options)
+    print(result)
+    known = registry.spec(args.problem).optimum
+    if known is not None and result.upper_objective is not None:
+        gap = abs(result.upper_objective - known) / max(1.0, abs(known))
+        print(f"known optimum {known:.10g}; relative gap {gap:.2e}  ({registry.spec(args.problem).source})")
+    if args.json:
+        result.to_json(args.json)
+        print(f"wrote {args.json}")
+    return 0 if result.success else 1
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from .experiments.compare import compare, markdown_table
+
+    problems = args.problems.split(",") if args.problems else registry.names("textbook")
+    methods = args.methods.split(",") if args.methods else sorted(METHODS)
+    os.makedirs(args.out, exist_ok=True)
+    rows = compare(problems, methods, os.path.join(args.out, "compare.csv"), starts=args.starts, seed=args.seed)
+    table = markdown_table(rows)
+    with open(os.path.join(args.out, "compare.md"), "w", encoding="utf-8") as fh:
+        fh.write(table)
+    print(table)
+    print(f"wrote {args.out}/compare.csv and {args.out}/compare.md")
+    return 0
+
+
+def _cmd_reproduce(args: argparse.Namespace) -> int:
+    if args.target == "vrft":
+        from .experiments.vrft import run_reproduction
+
+        run_reproduction(args.sims, args.out or "out/vrft", args.seed, args.workers)
+    else:
+        from .experiments.willems import run_reproduction as run_willems
+
+        run_willems(args.sims, args.out or "out/willems", args.sims < 256, args.seed)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The `bilevel` argument parser."""
+    parser = argparse.ArgumentParser(prog="bilevel", description="Bilevel optimization with certified answers.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p_list = sub.add_parser("list", help="list registered problems")
+    p_list.add_argument("--tag", default=None, help="only problems with this tag")
+    p_list.set_defaults(run=_cmd_list)
+    p_solve = sub.add_parser("solve", help="solve a registered problem and print its certificate")
+    p_solve.add_argument("problem")
+    p_solve.add_argument("--method", default=None,
+                         help=f"{', '.join(sorted(METHODS))} (default ipopt); vrft-* attacks default to their "
+                              "structured attack (alternating, joint, white-noise) unless a generic method is named")
+    p_solve.add_argument("--starts", type=int, default=8)
+    p_solve.add_argument("--seed", type=int, default=0)
+    p_solve.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="problem parameter")
+    p_solve.add_argument("--option", action="append", default=[], metavar="NAME=VALUE", help="method option")
+    p_solve.add_argument("--json", default=None, metavar="PATH", help="write the result as JSON")
+    p_solve.add_argument("--scenario", default="B", choices=["A", "B"], help="vrft-*: step (A) or white noise (B)")
+    p_solve.add_argument("--eps-u", type=float, default=0.1, help="vrft-*: relative budget on u")
+    p_solve.add_argument("--eps-y", type=float, default=0.057, help="vrft-*: relative budget on y")
+    p_solve.add_argument("--norm", default="l2", choices=["l2", "linf", "l1"], help="vrft-*: budget norm")
+    p_solve.add_argument("--n", type=int, default=512, help="vrft-*: number of samples")
+    p_solve.add_argument("--convention", default="paper", help="vrft-*: paper, prefiltered-drop, raw, raw-drop")
+    p_solve.add_argument("--save", default=None, metavar="PATH.npz", help="vrft-*: save data, signals, thetas, poles")
+    p_solve.set_defaults(run=_cmd_solve)
+    p_cmp = sub.add_parser("compare", help="run solvers on problems; write CSV and Markdown (resumable)")
+    p_cmp.add_argument("--problems", default="", help="comma-separated names (default: all textbook problems)")
+    p_cmp.add_argument("--methods", default="", help="comma-separated methods (default: all registered)")
+    p_cmp.add_argument("--starts", type=int, default=8)
+    p_cmp.add_argument("--seed", type=int, default=0)
+    p_cmp.add_argument("--out", default="out/compare", help="output directory")
+    p_cmp.set_defaults(run=_cmd_compare)
+    p_rep = sub.add_parser("reproduce", help="reproduce the paper's tables and figures (resumable)")
+    p_rep.add_argument("target", choices=["vrft", "willems"])
+    p_rep.add_argument("--sims", type=int, default=32, help="simulations per cell (the paper: 512 vrft, 256 willems)")
+    p_rep.add_argument("--out", default=None, help="output directory (default out/<target>)")
+    p_rep.add_argument("--seed", type=int, default=0)
+    p_rep.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p_rep.set_defaults(run=_cmd_reproduce)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `bilevel` console script."""
+    args = build_parser().parse_args(argv)
+    return int(args.run(args))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

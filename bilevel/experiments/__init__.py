@@ -1,0 +1,1 @@
+"""Experiments: solver comparisons, Monte Carlo sweeps and paper reproductions (results written as made)."""

@@ -1,0 +1,42 @@
+"""Shared fixtures: small bilevel problems with optima known in closed form or from the literature."""
+
+from __future__ import annotations
+
+import casadi as ca
+import pytest
+
+import bilevel as bl
+
+
+def bard_511() -> bl.BilevelProblem:
+    """Bard (1998), Practical Bilevel Optimization, Example 5.1.1 (also Dempe 2002): F* = -12 at (4, 4)."""
+    p = bl.BilevelProblem("bard-5.1.1")
+    x = p.upper_variable("x", lb=0)
+    y = p.lower_variable("y", lb=0)
+    p.minimize_upper(x - 4 * y)
+    p.minimize_lower(y)
+    p.lower_constraint(-x - y <= -3)
+    p.lower_constraint(-2 * x + y <= 0)
+    p.lower_constraint(2 * x + y <= 12)
+    p.lower_constraint(3 * x - 2 * y <= 4)
+    return p
+
+
+def projection_qp(maximize_lower: bool = False) -> bl.BilevelProblem:
+    """y*(x) = projection of x onto {y0 + y1 <= 1}; F = |y - (1,2)|^2 + 0.1|x|^2 (optimum derived in tests)."""
+    p = bl.BilevelProblem("projection-qp")
+    x = p.upper_variable("x", 2, lb=-5, ub=5)
+    y = p.lower_variable("y", 2)
+    p.minimize_upper(ca.sumsqr(y - ca.DM([1, 2])) + 0.1 * ca.sumsqr(x))
+    f = ca.sumsqr(y - x)
+    if maximize_lower:
+        p.maximize_lower(-f)
+    else:
+        p.minimize_lower(f)
+    p.lower_constraint(y[0] + y[1] <= 1)
+    return p
+
+
+@pytest.fixture
+def bard() -> bl.BilevelProblem:
+    return bard_511()

@@ -1,0 +1,86 @@
+"""Methods through the dispatcher: options are checked, statuses are honest, results serialize."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import bilevel as bl
+from bilevel.cli import main
+from tests.conftest import bard_511, projection_qp
+
+
+@pytest.mark.parametrize("method, options", [
+    ("ipopt", {}),
+    ("relaxation", {"scheme": "scholtes"}),
+    ("relaxation", {"scheme": "kanzow-schwartz"}),
+])
+def test_methods_reach_bard_optimum(method: str, options: dict) -> None:
+    """Bard (1998) Example 5.1.1: F* = -12 at (x, y) = (4, 4)."""
+    res = bard_511().solve(method=method, starts=4, seed=0, **options)
+    assert res.status is bl.Status.SOLVED
+    assert res.upper_objective == pytest.approx(-12.0, rel=1e-6)
+    assert res.x["x"] == pytest.approx(4.0, abs=1e-6) and res.y["y"] == pytest.approx(4.0, abs=1e-6)
+    assert res.lower_objective == pytest.approx(4.0, abs=1e-6)
+    assert res.nit > 0 and len(res.starts) == 4 and res.wall_time > 0
+
+
+def test_relaxation_path_is_recorded_and_decreasing() -> None:
+    res = bard_511().solve(method="relaxation", starts=1, t0=1.0, factor=0.1)
+    ts = [h["t"] for h in res.history]
+    assert ts == sorted(ts, reverse=True) and len(ts) >= 2
+    assert res.history[-1]["complementarity"] <= 1e-7  # default comp_tol
+    assert res.certificate.complementarity <= 1e-9  # exact after polishing
+
+
+def test_unknown_option_and_method_raise() -> None:
+    with pytest.raises(bl.UnknownOption, match="strats"):
+        bard_511().solve(strats=3)
+    with pytest.raises(bl.ModelError, match="unknown method"):
+        bard_511().solve(method="newton")
+    with pytest.raises(bl.ModelError, match="scheme"):
+        bard_511().solve(method="relaxation", scheme="nope")
+
+
+def test_custom_callable_method_plugs_in() -> None:
+    def lower_at_start(prep, **_):
+        from bilevel.solvers.base import MethodRun
+        return MethodRun(prep.pack(prep.lower_point(np.array([1.0, 0.0]))), bl.Status.SOLVED, "fixed point")
+
+    res = bl.solve(projection_qp(), method=lower_at_start)
+    assert res.method == "lower_at_start" and res.certificate.passed and res.success
+
+
+def test_infeasible_upper_level_is_a_status_not_an_answer() -> None:
+    p = bard_511()
+    x = p.variables[0].sym
+    p.upper_constraint(x >= 7)  # lower level infeasible for x > 6 (2x + y <= 12, y >= 2x - ...)
+    res = p.solve(starts=3)
+    assert not res.success
+    assert res.status in (bl.Status.INFEASIBLE, bl.Status.CERTIFICATE_FAILED, bl.Status.ERROR,
+                          bl.Status.MAX_ITERATIONS)
+
+
+def test_result_json_round_trip(tmp_path) -> None:
+    res = bard_511().solve(starts=4)
+    path = tmp_path / "r.json"
+    text = res.to_json(str(path))
+    data = json.loads(path.read_text())
+    assert data == json.loads(text)
+    assert data["status"] == "solved" and data["success"] is True
+    assert data["x"]["x"] == pytest.approx([4.0]) and data["certificate"]["passed"] is True
+
+
+def test_value_evaluates_expressions_at_solution() -> None:
+    p = bard_511()
+    x, y = p.variables[0].sym, p.variables[1].sym
+    res = p.solve(starts=4)
+    assert res.value(x + 2 * y) == pytest.approx(12.0, abs=1e-6)
+
+
+def test_cli_list_and_solve(capsys, tmp_path) -> None:
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert "problems; methods:" in out
