@@ -38,6 +38,19 @@ def _divides(divisor: np.ndarray, poly: np.ndarray) -> bool:
     return bool(np.max(np.abs(remainder)) <= 1e-12 * np.max(np.abs(poly)))
 
 
+def basis_polynomials(basis: Basis) -> tuple[np.ndarray, np.ndarray]:
+    """(N, D): row i of N is the numerator of beta_i over the common denominator D, so K = (theta' N) / D."""
+    parts = [num_den(beta) for beta in basis]
+    common = parts[0][1]
+    for _, den in parts[1:]:
+        if _divides(den, common):
+            continue
+        common = den if _divides(common, den) else np.polymul(common, den)
+    nums = [np.polymul(n, np.polydiv(common, d)[0]) for n, d in parts]
+    width = max(x.size for x in nums)
+    return np.array([np.concatenate([np.zeros(width - x.size), x]) for x in nums]), common
+
+
 def controller_tf(
     basis: Basis, theta: ArrayLike, dt: float | bool = True
 ) -> control.TransferFunction:
@@ -45,14 +58,6 @@ def controller_tf(
     theta = np.asarray(theta, dtype=float).ravel()
     if theta.size != len(basis):
         raise InvalidData(f"theta has {theta.size} entries but the basis has {len(basis)} functions")
-    parts = [num_den(beta) for beta in basis]
-    common = parts[0][1]
-    for _, den in parts[1:]:
-        if _divides(den, common):
-            continue
-        common = den if _divides(common, den) else np.polymul(common, den)
-    num = np.zeros(1)
-    for weight, (n, d) in zip(theta, parts):
-        cofactor, _ = np.polydiv(common, d)
-        num = np.polyadd(num, weight * np.polymul(n, cofactor))
+    nums, common = basis_polynomials(basis)
+    num = theta @ nums
     return control.tf(np.trim_zeros(num, "f") if np.any(num) else num, common, dt)

@@ -1,0 +1,1 @@
+"""Data-poisoning attacks on data-driven control learners (VRFT, De Persis–Tesi), built on the bilevel core."""

@@ -1,0 +1,68 @@
+"""Attack budgets as in the paper: ||a||_q <= eps * ||signal||_q, at most floor(rho N) samples changed."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from ..errors import ModelError
+from ..solvers.projections import NormBall, Projection, SparseNormBall
+
+Norm = Literal["l2", "linf", "l1"]
+_ORDER = {"l2": 2, "linf": np.inf, "l1": 1}
+
+
+@dataclass(frozen=True)
+class Budget:
+    """Relative budget eps in norm q, optional sparsity fraction rho (the paper's (delta, rho))."""
+
+    eps: float
+    norm: Norm = "l2"
+    rho: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.eps) and self.eps >= 0):
+            raise ModelError(f"budget eps must be finite and >= 0, got {self.eps}")
+        if self.norm not in _ORDER:
+            raise ModelError(f"budget norm {self.norm!r} is not one of {', '.join(_ORDER)}")
+        if self.rho is not None and not 0.0 <= self.rho <= 1.0:
+            raise ModelError(f"sparsity fraction rho must be in [0, 1], got {self.rho}")
+
+    @property
+    def order(self) -> float:
+        return float(_ORDER[self.norm])
+
+    def radius(self, signal: np.ndarray) -> float:
+        """delta = eps * ||signal||_q."""
+        return float(self.eps * np.linalg.norm(np.asarray(signal, dtype=float), self.order))
+
+    def max_changed(self, n: int) -> int | None:
+        """floor(rho N), or None without a sparsity constraint."""
+        return None if self.rho is None else int(math.floor(self.rho * n))
+
+    def projection(self, signal: np.ndarray) -> Projection:
+        """Euclidean projection onto this budget's feasible set for attacks on `signal`."""
+        k = self.max_changed(np.size(signal))
+        if k is None:
+            return NormBall(self.radius(signal), self.order)
+        return SparseNormBall(self.radius(signal), k, self.order)
+
+    def linear_maximizer(self, g: np.ndarray, radius: float) -> np.ndarray:
+        """argmax <g, a> over the budget set (the linear oracle used by conditional-gradient steps)."""
+        g = np.asarray(g, dtype=float)
+        k = g.size if self.rho is None else self.max_changed(g.size)
+        keep = np.argsort(-np.abs(g), kind="stable")[: max(k, 0)]
+        out = np.zeros_like(g)
+        if keep.size == 0 or not np.any(g[keep]):
+            return out
+        if self.norm == "linf":
+            out[keep] = radius * np.sign(g[keep])
+        elif self.norm == "l1":
+            i = keep[0]
+            out[i] = radius * np.sign(g[i])
+        else:
+            out[keep] = radius * g[keep] / np.linalg.norm(g[keep])
+        return out

@@ -1,0 +1,91 @@
+"""Closed-loop characteristic polynomial of plant + linearly parametrized controller, affine in theta.
+
+p(z; theta) = den_G D + num_G (theta' N): its roots are the closed-loop poles. Gives the spectral
+radius, a smooth surrogate (log-sum-exp of pole moduli) with its theta-gradient, and an ARX
+least-squares fit that an attacker who does not know the plant can use as its model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..ddc.bases import Basis, basis_polynomials
+from ..ddc.systems import SystemLike, num_den
+from ..errors import InvalidData, RankDeficientRegressor
+
+
+@dataclass(frozen=True)
+class LoopPolynomial:
+    """p(theta) = base + theta' slopes (coefficients, highest power first) of the closed loop."""
+
+    base: np.ndarray
+    slopes: np.ndarray
+
+    @classmethod
+    def of(cls, plant: SystemLike, basis: Basis) -> "LoopPolynomial":
+        """The closed loop of `plant` with K = beta' theta (unit negative feedback)."""
+        num_g, den_g = num_den(plant)
+        nums, common = basis_polynomials(basis)
+        base = np.polymul(den_g, common)
+        slopes = [np.polymul(num_g, n) for n in nums]
+        width = max(base.size, max(s.size for s in slopes))
+        pad = lambda p: np.concatenate([np.zeros(width - p.size), p])  # noqa: E731
+        return cls(pad(base), np.array([pad(s) for s in slopes]))
+
+    def coefficients(self, theta: np.ndarray) -> np.ndarray:
+        return self.base + np.asarray(theta, dtype=float) @ self.slopes
+
+    def poles(self, theta: np.ndarray) -> np.ndarray:
+        """Closed-loop poles (roots of p)."""
+        c = self.coefficients(theta)
+        return np.roots(c) if abs(c[0]) > 0 else np.roots(np.trim_zeros(c, "f"))
+
+    def spectral_radius(self, theta: np.ndarray) -> float:
+        """max |pole|; the loop is stable iff it is < 1."""
+        return float(np.max(np.abs(self.poles(theta))))
+
+    def surrogate(self, theta: np.ndarray, beta: float = 50.0) -> tuple[float, np.ndarray]:
+        """Smooth max of pole moduli, (1/beta) log sum exp(beta |lambda_i|), and its gradient in theta."""
+        c = self.coefficients(theta)
+        lam = np.roots(c)
+        mod = np.abs(lam)
+        w = np.exp(beta * (mod - mod.max()))
+        value = float(mod.max() + np.log(w.sum()) / beta)
+        w /= w.sum()
+        dp = np.polyder(c)
+        grad = np.zeros(self.slopes.shape[0])
+        for li, mi, wi in zip(lam, mod, w):
+            denom = np.polyval(dp, li)
+            if abs(denom) < 1e-14 or mi == 0:
+                continue
+            dlam = -np.array([np.polyval(s, li) for s in self.slopes]) / denom  # d lambda / d theta
+            grad += wi * np.real(np.conj(li) * dlam) / mi
+        return value, grad
+
+
+def fit_arx(u: np.ndarray, y: np.ndarray, na: int, nb: int, delay: int) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares ARX model y_t + a_1 y_{t-1} + .. = b_0 u_{t-delay} + .. + b_{nb-1} u_{t-delay-nb+1}.
+
+    Returns (num, den) in powers of z with den = z^na + a_1 z^(na-1) + ... (proper when delay >= 0 and
+    na >= delay + nb - 1), fitted on zero initial conditions.
+    """
+    u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
+    if u.shape != y.shape or u.ndim != 1:
+        raise InvalidData(f"ARX data must be two 1-D signals of equal length, got {u.shape} and {y.shape}")
+    if na < delay + nb - 1:
+        raise InvalidData(f"ARX orders give an improper model: need na >= delay + nb - 1, got na={na}")
+    n = u.size
+    shift = lambda x, k: np.concatenate([np.zeros(k), x[: n - k]])  # noqa: E731
+    cols = [-shift(y, i) for i in range(1, na + 1)] + [shift(u, delay + j) for j in range(nb)]
+    X = np.column_stack(cols)
+    sol, _, rank, _ = np.linalg.lstsq(X, y, rcond=None)
+    if rank < X.shape[1]:
+        raise RankDeficientRegressor(f"ARX regressor has rank {rank} < {X.shape[1]}: the data do not excite "
+                                     "the model orders; lower na/nb or use a richer input")
+    den = np.concatenate([[1.0], sol[:na]])
+    num_shifted = np.zeros(na + 1)
+    for j in range(nb):  # b_j u_{t-delay-j}  ->  b_j z^(na - delay - j)
+        num_shifted[delay + j] += sol[na + j]
+    return np.trim_zeros(num_shifted, "f"), den

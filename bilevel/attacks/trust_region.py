@@ -1,0 +1,54 @@
+"""Global maximization of a quadratic over a Euclidean ball (the trust-region subproblem), any curvature.
+
+maximize v'Av + 2 b'v  s.t. ||v|| <= delta, A symmetric (k x k, small). Global optimality
+(Moré & Sorensen 1983): (mu I - A) v = b, mu I - A >= 0, mu >= 0, mu (delta - ||v||) = 0. Solved by
+an eigendecomposition and the secular equation ||v(mu)|| = delta, with the hard case handled.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import brentq
+
+
+def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, delta: float) -> np.ndarray:
+    """Global maximizer of v'Av + 2b'v over ||v|| <= delta."""
+    A = 0.5 * (np.asarray(A, dtype=float) + np.asarray(A, dtype=float).T)
+    b = np.asarray(b, dtype=float)
+    if delta <= 0:
+        return np.zeros_like(b)
+    lam, Q = np.linalg.eigh(A)
+    beta = Q.T @ b
+    top = lam[-1]
+    scale = max(1.0, float(np.abs(lam).max()), float(np.linalg.norm(b)) / delta)
+    tiny = 1e-13 * scale
+
+    def v_of(mu: float) -> np.ndarray:
+        return Q @ (beta / (mu - lam))
+
+    if top < -tiny:  # strictly concave: the unconstrained maximizer may be inside the ball
+        v0 = v_of(0.0)
+        if np.linalg.norm(v0) <= delta:
+            return v0
+    lo = max(top, 0.0)
+    on_top = np.abs(lam - top) <= tiny
+    if np.linalg.norm(beta[on_top]) <= 1e-12 * max(1.0, float(np.linalg.norm(beta))):  # possible hard case
+        rest = ~on_top
+        v_hat = Q[:, rest] @ (beta[rest] / (lo - lam[rest])) if np.any(rest) else np.zeros_like(b)
+        slack = delta ** 2 - float(v_hat @ v_hat)
+        if slack >= 0 and top >= 0:
+            return v_hat + np.sqrt(slack) * Q[:, -1]
+    hi = lo + float(np.linalg.norm(b)) / delta + tiny + 1e-300
+
+    def secular(mu: float) -> float:
+        return float(np.linalg.norm(beta / (mu - lam))) - delta
+
+    a = lo + tiny
+    while secular(a) < 0 and a > lo:  # move the bracket's left end closer to the pole
+        a = lo + (a - lo) * 1e-3
+        if a - lo < 1e-300:
+            break
+    if secular(a) <= 0:
+        return v_of(a) * (delta / max(np.linalg.norm(v_of(a)), 1e-300))
+    mu = brentq(secular, a, hi, xtol=1e-15 * max(1.0, hi), rtol=1e-15, maxiter=200)
+    return v_of(mu)

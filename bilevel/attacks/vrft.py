@@ -1,0 +1,218 @@
+"""VRFT poisoning as a bilevel problem with a least-squares lower level, in fast structured form.
+
+Lower level (learner): theta(u', y') = argmin ||t(u') - Phi(y') theta||^2 with Phi linear in y'
+(bilevel.ddc.vrft). Upper level (attacker): maximize J(theta(u + a_u, y + a_y)) over budgets on
+a_u, a_y. J is one of
+  "maxmin"      (1/n) ||t(u) - Phi(y) theta||^2, the learner's loss on clean data (paper, eq. op_maxmin);
+  "targeted"    -(1/nk) ||theta_a - theta||^2 (paper appendix A; maximizing minus the distance);
+  "destabilize" a smooth max of the closed-loop pole moduli of an ARX model the attacker fits
+                from the clean data (it does not know the plant).
+Everything is O(N nk) per evaluation: Phi by filtering, theta by a thin QR, gradients by adjoints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Literal
+
+import numpy as np
+import scipy.linalg
+
+from ..ddc.bases import Basis, flexible_transmission_basis
+from ..ddc.data import paper_input, simulate
+from ..ddc.operators import LTIOperator
+from ..ddc.plants import flexible_transmission, flexible_transmission_prefilter, flexible_transmission_reference
+from ..ddc.systems import SystemLike
+from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
+from ..errors import InvalidData, ModelError
+from .budget import Budget
+from .spectral import LoopPolynomial, fit_arx
+from .trust_region import maximize_quadratic_on_ball
+
+Objective = Literal["maxmin", "targeted", "destabilize"]
+DataConvention = Literal["prefiltered", "raw"]
+
+
+@dataclass(frozen=True)
+class VRFTSetting:
+    """The learner's design: plant (for evaluation only), M_r, basis, L, data convention, boundary.
+
+    data="prefiltered": the recorded (u, y) are already filtered by L and the learner regresses on them
+    (the paper's assumption); data="raw": the learner filters by L itself. boundary: see ddc.vrft.
+    """
+
+    plant: SystemLike
+    reference: SystemLike
+    basis: Basis
+    prefilter: SystemLike
+    data: DataConvention = "prefiltered"
+    boundary: Literal["zero-final", "drop"] = "zero-final"
+
+    def __post_init__(self) -> None:
+        if self.data not in ("prefiltered", "raw"):
+            raise ModelError(f"data convention {self.data!r} is not 'prefiltered' or 'raw'")
+
+    @cached_property
+    def regressor(self) -> VRFTRegressor:
+        return vrft_regressor(self.reference, self.basis, None if self.data == "prefiltered" else self.prefilter,
+                              self.boundary)
+
+    @cached_property
+    def loop(self) -> LoopPolynomial:
+        """Closed loop of the true plant (used to judge stability, never by the attacker)."""
+        return LoopPolynomial.of(self.plant, self.basis)
+
+    def recorded(self, u_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The data set the learner receives for plant input u_raw (filtered by L if prefiltered)."""
+        y_raw = simulate(self.plant, u_raw)
+        if self.data == "raw":
+            return np.asarray(u_raw, dtype=float), y_raw
+        pre = LTIOperator(self.prefilter)
+        return pre.apply(u_raw), pre.apply(y_raw)
+
+
+def flexible_transmission_setting(data: DataConvention = "prefiltered",
+                                  boundary: Literal["zero-final", "drop"] = "zero-final") -> VRFTSetting:
+    """The paper's VRFT example: Landau's flexible transmission, M_r with a = e^-0.5, L = (1-M_r)M_r."""
+    return VRFTSetting(flexible_transmission(), flexible_transmission_reference(),
+                       flexible_transmission_basis(), flexible_transmission_prefilter(), data, boundary)
+
+
+def scenario_data(setting: VRFTSetting, scenario: Literal["A", "B"], n: int = 512,
+                  rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Recorded (u, y) of the paper's scenario A (step on [5, 15]) or B (white noise, needs rng)."""
+    return setting.recorded(paper_input(scenario, n, rng))
+
+
+@dataclass
+class State:
+    """The learner's fit on poisoned data: Phi', targets t', theta' and the thin QR of Phi'."""
+
+    a_u: np.ndarray
+    a_y: np.ndarray
+    phi: np.ndarray
+    target: np.ndarray
+    theta: np.ndarray
+    R: np.ndarray
+    Q: np.ndarray
+
+
+@dataclass
+class VRFTAttack:
+    """One attack instance: clean data, the learner, budgets and the attacker's objective."""
+
+    setting: VRFTSetting
+    u: np.ndarray
+    y: np.ndarray
+    budget_u: Budget
+    budget_y: Budget
+    objective: Objective = "maxmin"
+    theta_target: np.ndarray | None = None
+    arx_orders: tuple[int, int, int] = (4, 2, 3)
+    surrogate_beta: float = 50.0
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        self.u = np.asarray(self.u, dtype=float)
+        self.y = np.asarray(self.y, dtype=float)
+        if self.u.shape != self.y.shape or self.u.ndim != 1:
+            raise InvalidData(f"u and y must be 1-D of equal length, got {self.u.shape} and {self.y.shape}")
+        if not (np.all(np.isfinite(self.u)) and np.all(np.isfinite(self.y))):
+            raise InvalidData("attack data contain NaN or inf")
+        if self.objective not in ("maxmin", "targeted", "destabilize"):
+            raise ModelError(f"objective {self.objective!r} is not maxmin, targeted or destabilize")
+        reg = self.setting.regressor
+        self.phi0 = reg(self.y)
+        self.t0 = reg.targets(self.u)
+        self.n = self.t0.size
+        self.theta0 = least_squares(self.phi0, self.t0)[0]
+        if self.objective == "targeted":
+            if self.theta_target is None:
+                raise ModelError("the targeted attack needs theta_target (the paper uses 3 * theta_0)")
+            self.theta_target = np.asarray(self.theta_target, dtype=float)
+        self.delta_u = self.budget_u.radius(self.u)
+        self.delta_y = self.budget_y.radius(self.y)
+        if self.objective == "destabilize":
+            num, den = fit_arx(self.u, self.y, *self.arx_orders)
+            self.model_loop = LoopPolynomial.of((num, den), self.setting.basis)
+
+    @property
+    def N(self) -> int:
+        return self.u.size
+
+    # -- the lower level -------------------------------------------------------------------------
+    def state(self, a_u: np.ndarray, a_y: np.ndarray) -> State:
+        """The learner's least-squares fit on (u + a_u, y + a_y)."""
+        reg = self.setting.regressor
+        phi = self.phi0 + reg(a_y) if np.any(a_y) else self.phi0
+        target = self.t0 + reg.targets(a_u) if np.any(a_u) else self.t0
+        Q, R = np.linalg.qr(phi)
+        theta = scipy.linalg.solve_triangular(R, Q.T @ target)
+        return State(a_u, a_y, phi, target, theta, R, Q)
+
+    def targets_adjoint(self, g: np.ndarray) -> np.ndarray:
+        """Adjoint of a -> targets(a): pad the dropped rows, then L^T if the learner filters."""
+        reg = self.setting.regressor
+        padded = np.concatenate([g, np.zeros(self.N - g.size)])
+        return padded if reg.prefilter is None else reg.prefilter.adjoint(padded)
+
+    # -- the upper level -------------------------------------------------------------------------
+    def value(self, theta: np.ndarray) -> float:
+        """Attacker objective J(theta) (to maximize)."""
+        if self.objective == "maxmin":
+            r = self.t0 - self.phi0 @ theta
+            return float(r @ r / self.n)
+        if self.objective == "targeted":
+            d = self.theta_target - theta
+            return -float(d @ d / d.size)
+        return self.model_loop.surrogate(theta, self.surrogate_beta)[0]
+
+    def grad_theta(self, theta: np.ndarray) -> np.ndarray:
+        """dJ/dtheta."""
+        if self.objective == "maxmin":
+            return -2.0 / self.n * (self.phi0.T @ (self.t0 - self.phi0 @ theta))
+        if self.objective == "targeted":
+            return 2.0 / theta.size * (self.theta_target - theta)
+        return self.model_loop.surrogate(theta, self.surrogate_beta)[1]
+
+    def hypergradient(self, s: State) -> tuple[np.ndarray, np.ndarray]:
+        """(dJ/da_u, dJ/da_y) at state s, by implicit differentiation of the normal equations.
+
+        With w = (Phi'^T Phi')^{-1} dJ/dtheta and r' = t' - Phi' theta':
+        dJ/da_u = targets^T (Phi' w),  dJ/da_y = sum_i T_i^T (w_i r' - theta'_i Phi' w).
+        """
+        w = scipy.linalg.cho_solve((s.R, False), self.grad_theta(s.theta))  # (R'R)^{-1} g, R'R = Phi'^T Phi'
+        pw = s.phi @ w
+        residual = s.target - s.phi @ s.theta
+        g_y = self.setting.regressor.adjoint(np.outer(residual, w) - np.outer(pw, s.theta))
+        return self.targets_adjoint(pw), g_y
+
+    # -- exact a_u step (l2, no sparsity) --------------------------------------------------------
+    def best_input_attack(self, a_y: np.ndarray) -> tuple[np.ndarray, State]:
+        """Globally optimal a_u for fixed a_y when J is quadratic in theta and the budget is a plain l2 ball.
+
+        theta' = theta'_0 + S v and a_u = B v with ||a_u|| = ||v||, where Phi' = QR, W = targets^T Q,
+        S = R^{-1} (W'W)^{1/2}, B = W (W'W)^{-1/2}; a k-dimensional trust-region subproblem in v.
+        """
+        if self.objective == "destabilize" or self.budget_u.norm != "l2" or self.budget_u.rho is not None:
+            raise ModelError("the exact input step needs a quadratic objective (maxmin/targeted) and a plain l2 "
+                             "budget on a_u; use the conditional-gradient step otherwise")
+        s0 = self.state(np.zeros(self.N), a_y)
+        if self.delta_u == 0:
+            return np.zeros(self.N), s0
+        W = np.column_stack([self.targets_adjoint(s0.Q[:, j]) for j in range(s0.Q.shape[1])])
+        lam, V = np.linalg.eigh(W.T @ W)
+        lam = np.maximum(lam, 1e-14 * lam.max())
+        S = scipy.linalg.solve_triangular(s0.R, (V * np.sqrt(lam)) @ V.T)
+        B = W @ ((V / np.sqrt(lam)) @ V.T)
+        if self.objective == "maxmin":
+            M = self.phi0 @ S
+            e0 = self.t0 - self.phi0 @ s0.theta
+            v = maximize_quadratic_on_ball(M.T @ M / self.n, -M.T @ e0 / self.n, self.delta_u)
+        else:
+            d = self.theta_target - s0.theta
+            v = maximize_quadratic_on_ball(-S.T @ S / d.size, S.T @ d / d.size, self.delta_u)
+        a_u = B @ v
+        reg = self.setting.regressor
+        return a_u, State(a_u, a_y, s0.phi, s0.target + reg.targets(a_u), s0.theta + S @ v, s0.R, s0.Q)

@@ -1,0 +1,240 @@
+"""Attack algorithms on a VRFTAttack: alternating (the paper's Algorithm 1, strengthened), joint
+hypergradient ascent, and white-noise poisoning at the same budget.
+
+alternating: ascend the value function V(a_y) = max_{a_u} J(theta(u + a_u, y + a_y)) by projected
+  gradient with Armijo backtracking; the inner max over a_u is solved at every evaluation (globally for
+  l2 budgets by a trust-region subproblem, by monotone conditional gradient for the max-min objective
+  under linf/l1/sparse budgets, by projected gradient otherwise). Danskin: grad V = dJ/da_y at a_u*.
+joint: projected gradient ascent on (a_u, a_y) together, each block's step scaled by its budget.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from ..errors import ModelError
+from .vrft import State, VRFTAttack
+
+ARMIJO = 1e-4
+WINDOW = 5
+
+
+@dataclass
+class AttackResult:
+    """An attack's outcome: the signals, clean and poisoned theta, the objective and the true closed loop."""
+
+    method: str
+    objective: str
+    status: str
+    a_u: np.ndarray
+    a_y: np.ndarray
+    theta_clean: np.ndarray
+    theta_poisoned: np.ndarray
+    value: float
+    value_clean: float
+    learner_loss: float
+    spectral_radius: float
+    spectral_radius_clean: float
+    delta_u: float
+    delta_y: float
+    wall_time: float
+    iterations: int
+    evaluations: int
+    history: list[dict[str, float]] = field(default_factory=list)
+
+    @property
+    def unstable(self) -> bool:
+        """The true plant with the poisoned controller has a pole on or outside the unit circle."""
+        return self.spectral_radius >= 1.0
+
+    def summary(self) -> dict[str, Any]:
+        """Scalars only (for CSV rows and printing)."""
+        return {k: v for k, v in asdict(self).items() if not isinstance(v, (np.ndarray, list))} | {
+            "unstable": self.unstable}
+
+    def save(self, path: str, atk: VRFTAttack) -> None:
+        """Write clean data, attack signals, clean/poisoned theta and closed-loop poles to an .npz file."""
+        loop = atk.setting.loop
+        np.savez(path, u=atk.u, y=atk.y, a_u=self.a_u, a_y=self.a_y, theta_clean=self.theta_clean,
+                 theta_poisoned=self.theta_poisoned, poles_clean=loop.poles(self.theta_clean),
+                 poles_poisoned=loop.poles(self.theta_poisoned), delta_u=self.delta_u, delta_y=self.delta_y,
+                 data_convention=atk.setting.data, boundary=atk.setting.boundary, method=self.method,
+                 objective=self.objective, value=self.value)
+
+
+def _result(atk: VRFTAttack, method: str, status: str, s: State, t0: float, iterations: int, evaluations: int,
+            history: list[dict[str, float]]) -> AttackResult:
+    loop = atk.setting.loop
+    r = atk.t0 - atk.phi0 @ s.theta
+    return AttackResult(method, atk.objective, status, s.a_u, s.a_y, atk.theta0, s.theta, atk.value(s.theta),
+                        atk.value(atk.theta0), float(r @ r / atk.n), loop.spectral_radius(s.theta),
+                        loop.spectral_radius(atk.theta0), atk.delta_u, atk.delta_y, time.perf_counter() - t0,
+                        iterations, evaluations, history)
+
+
+def _scaled(g: np.ndarray, radius: float, order: float) -> np.ndarray:
+    """Gradient rescaled so a unit step moves about one budget radius."""
+    norm = np.linalg.norm(g, order)
+    return g * (radius / norm) if norm > 0 and radius > 0 else np.zeros_like(g)
+
+
+def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]], direction: Callable[[Any], tuple[np.ndarray, np.ndarray]],
+                     project: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, max_iter: int, tol: float,
+                     history: list[dict[str, float]]) -> tuple[np.ndarray, float, Any, int, int, bool]:
+    """Projected gradient ascent with Armijo backtracking along the projection arc.
+
+    direction(aux) returns (gradient, search direction); stops when the relative gain over the last
+    `WINDOW` accepted steps is below tol (plateaus do not stop it early), or no step is accepted.
+    Returns x, f, aux, iterations, evaluations, converged.
+    """
+    x = project(x0)
+    fx, aux = f(x)
+    evals, step, converged = 1, 1.0, False
+    it = 0
+    for it in range(1, max_iter + 1):
+        g, d = direction(aux)
+        if not np.any(d):
+            converged = True
+            break
+        while True:
+            xn = project(x + step * d)
+            fn, auxn = f(xn)
+            evals += 1
+            if fn >= fx + ARMIJO * float(g @ (xn - x)) and fn >= fx:
+                break
+            step *= 0.5
+            if step < 1e-8:
+                converged = True
+                break
+        if converged:
+            break
+        x, fx, aux = xn, fn, auxn
+        history.append({"iter": it, "value": fx, "step": step})
+        if it >= WINDOW and fx - history[-WINDOW]["value"] <= tol * max(abs(fx), 1e-12):
+            converged = True
+            break
+        step = min(1.0, 2.0 * step)
+    return x, fx, aux, it, evals, converged
+
+
+def input_step(atk: VRFTAttack, a_y: np.ndarray, a_u0: np.ndarray | None = None, iters: int = 30) -> tuple[np.ndarray, State]:
+    """The best a_u for fixed a_y: exact (l2), monotone conditional gradient (max-min), or projected gradient."""
+    b = atk.budget_u
+    if atk.objective != "destabilize" and b.norm == "l2" and b.rho is None:
+        return atk.best_input_attack(a_y)
+    a = np.zeros(atk.N) if a_u0 is None else a_u0
+    s = atk.state(a, a_y)
+    if atk.objective == "maxmin":  # J convex in a_u: the linear maximizer never decreases J (Mangasarian 1996)
+        value = atk.value(s.theta)
+        for _ in range(iters):
+            g_u, _ = atk.hypergradient(s)
+            a_new = b.linear_maximizer(g_u, atk.delta_u)
+            s_new = atk.state(a_new, a_y)
+            v_new = atk.value(s_new.theta)
+            if v_new <= value * (1 + 1e-12):
+                break
+            a, s, value = a_new, s_new, v_new
+        return a, s
+    proj = b.projection(atk.u)
+    order = b.order
+    a, _, s, _, _, _ = projected_ascent(lambda x: (atk.value(atk.state(x, a_y).theta), atk.state(x, a_y)),
+                                        lambda st: (g := atk.hypergradient(st)[0], _scaled(g, atk.delta_u, order)),
+                                        proj, a, iters, 1e-9, [])
+    return a, s
+
+
+def _start_points(atk: VRFTAttack, starts: int, rng: np.random.Generator, zero_start: bool) -> list[np.ndarray]:
+    """a_y starts: zero first (unless zero_start is False), then seeded random points on the budget boundary."""
+    proj = atk.budget_y.projection(atk.y)
+    points = [np.zeros(atk.N)] if zero_start else []
+    while len(points) < starts:
+        z = rng.standard_normal(atk.N)
+        points.append(proj(z * (atk.delta_y / max(np.linalg.norm(z, atk.budget_y.order), 1e-300))))
+    return points
+
+
+def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int = 60,
+                       tol: float = 1e-4, zero_start: bool = True) -> AttackResult:
+    """The paper's Algorithm 1 with an exact a_u step and line-searched projected ascent on a_y (multistart)."""
+    if atk.objective == "destabilize":
+        raise ModelError("the alternating attack needs a quadratic objective; use attack_joint for 'destabilize'")
+    t0 = time.perf_counter()
+    proj_y = atk.budget_y.projection(atk.y)
+    order = atk.budget_y.order
+    best, total_it, total_ev, status = None, 0, 0, "converged"
+    with threadpool_limits(1):
+        for k, ay0 in enumerate(_start_points(atk, starts, np.random.default_rng(seed), zero_start)):
+            history: list[dict[str, float]] = []
+            memo: dict[str, np.ndarray] = {}
+
+            def value(a_y: np.ndarray) -> tuple[float, State]:
+                a_u, s = input_step(atk, a_y, memo.get("a_u"))
+                memo["a_u"] = a_u
+                return atk.value(s.theta), s
+
+            def direction(s: State) -> tuple[np.ndarray, np.ndarray]:
+                g_y = atk.hypergradient(s)[1]
+                return g_y, _scaled(g_y, atk.delta_y, order)
+
+            _, fx, s, it, ev, conv = projected_ascent(value, direction, proj_y, ay0, max_iter, tol, history)
+            total_it, total_ev = total_it + it, total_ev + ev
+            if best is None or fx > best[0]:
+                best = (fx, s, history, conv, k)
+    fx, s, history, conv, k = best
+    return _result(atk, "alternating", "converged" if conv else "max_iter", s, t0, total_it, total_ev, history)
+
+
+def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int = 200,
+                 tol: float = 1e-4, zero_start: bool = True) -> AttackResult:
+    """Joint projected hypergradient ascent on (a_u, a_y), each block scaled to its budget (multistart)."""
+    t0 = time.perf_counter()
+    N = atk.N
+    pu, py = atk.budget_u.projection(atk.u), atk.budget_y.projection(atk.y)
+    ou, oy = atk.budget_u.order, atk.budget_y.order
+    project = lambda x: np.concatenate([pu(x[:N]), py(x[N:])])  # noqa: E731
+
+    def value(x: np.ndarray) -> tuple[float, State]:
+        s = atk.state(x[:N], x[N:])
+        return atk.value(s.theta), s
+
+    def direction(s: State) -> tuple[np.ndarray, np.ndarray]:
+        g_u, g_y = atk.hypergradient(s)
+        return np.concatenate([g_u, g_y]), np.concatenate([_scaled(g_u, atk.delta_u, ou),
+                                                           _scaled(g_y, atk.delta_y, oy)])
+
+    best, total_it, total_ev = None, 0, 0
+    with threadpool_limits(1):
+        for ay0 in _start_points(atk, starts, np.random.default_rng(seed), zero_start):
+            history: list[dict[str, float]] = []
+            _, fx, s, it, ev, conv = projected_ascent(value, direction, project, np.concatenate([np.zeros(N), ay0]),
+                                                      max_iter, tol, history)
+            total_it, total_ev = total_it + it, total_ev + ev
+            if best is None or fx > best[0]:
+                best = (fx, s, history, conv)
+    fx, s, history, conv = best
+    return _result(atk, "joint", "converged" if conv else "max_iter", s, t0, total_it, total_ev, history)
+
+
+def attack_white_noise(atk: VRFTAttack, seed: int = 0) -> AttackResult:
+    """White-noise poisoning on the budget boundary (the paper's random baseline)."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    signals = []
+    for budget, signal, radius in ((atk.budget_u, atk.u, atk.delta_u), (atk.budget_y, atk.y, atk.delta_y)):
+        z = rng.standard_normal(atk.N)
+        signals.append(budget.projection(signal)(z * radius / max(np.linalg.norm(z, budget.order), 1e-300)))
+    s = atk.state(*signals)
+    return _result(atk, "white-noise", "sampled", s, t0, 0, 1, [])
+
+
+ATTACKS: dict[str, Callable[..., AttackResult]] = {
+    "alternating": attack_alternating,
+    "joint": attack_joint,
+    "white-noise": attack_white_noise,
+}
+"""Attack methods by name."""

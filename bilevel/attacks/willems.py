@@ -1,0 +1,408 @@
+"""Attacks on the De Persis–Tesi learners: hypergradient ascent through the SDP, the KKT route, and DE.
+
+Hypergradient. At a poisoning x the learner's SDP (bilevel.problems.willems) is solved by its own
+solver (cvxpy + Clarabel) and polished by Newton steps on its KKT system
+
+    r(w; x) = [grad_y L ; h ; vech((M_k Z_k + Z_k M_k) / 2)] = 0,   w = (y, mu, vech Z_k),
+
+with L = f + mu'h - sum_k <Z_k, M_k> (the framework's convention, Z_k >= 0). At a strictly
+complementary, nondegenerate solution dr/dw is nonsingular (Alizadeh, Haeberly & Overton 1998),
+so y*(x) is differentiable with dw/dx = -(dr/dw)^-1 dr/dx. The gradient of phi(x) = F(x, y*(x))
+comes from the adjoint system (dr/dw)' z = (dF/dy, 0, 0): grad phi = dF/dx - (dr/dx)' z. When the
+lower level does not depend on x (U poisoning of the lqr and stabilizing designs) it is solved once.
+
+Ascent: projected gradient steps on the linf box (exact clipping, bilevel.solvers.projections.Box)
+with a Barzilai–Borwein trial step and Armijo backtracking along the projection arc, from the clean
+data and from uniform random points of the box. For the max-min criterion a point whose identified
+closed loop is unstable has phi = +inf (the paper's convention): the ascent stops there.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import scipy.optimize
+from threadpoolctl import threadpool_limits
+
+from ..ddc.plants import batch_reactor
+from ..errors import BilevelError, ModelError, SolverFailed
+from ..lower import LowerSolution, build_lower
+from ..lower.base import unvech, vech
+from ..mpcc import vech_sx
+from ..problems.willems import WillemsAttack, criterion_values
+from ..solvers.projections import Box
+
+ARMIJO = 1e-4
+MAX_BACKTRACKS = 30
+PSD_TOL = 1e-9
+KKT_TOL = 1e-6
+UNSTABLE_PENALTY = 1e12
+"""Finite stand-in for phi = +inf handed to differential evolution (which cannot rank infinities)."""
+
+
+def _solve(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """matrix^-1 rhs, or the minimum-norm least-squares solution if matrix is singular (non-unique Q, reg = 0)."""
+    try:
+        return np.linalg.solve(matrix, rhs)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(matrix, rhs, rcond=None)[0]
+
+
+@dataclass
+class Evaluation:
+    """An upper point with the learner's (polished) response, its gain and the attacker's objective."""
+
+    x: np.ndarray
+    phi: float
+    gain: np.ndarray
+    closed_loop: np.ndarray
+    lower: LowerSolution
+    kkt_residual: float
+    grad_x: np.ndarray
+    grad_y: np.ndarray
+
+    @property
+    def identified_radius(self) -> float:
+        """Spectral radius of the attacker's (identified) closed loop A_id + B_id K."""
+        return float(np.max(np.abs(np.linalg.eigvals(self.closed_loop))))
+
+
+class SDPHypergradient:
+    """phi(x) = F(x, y*(x)) of a WillemsAttack and its gradient by implicit differentiation of the SDP's KKT system."""
+
+    def __init__(self, attack: WillemsAttack, polish_steps: int = 4) -> None:
+        p = attack.problem
+        self.attack, self.polish_steps = attack, int(polish_steps)
+        x = attack.upper
+        y = ca.vertcat(*[ca.vec(v.sym) for v in p.lower_variables])
+        h = ca.vertcat(*[c.body for c in p.lower_constraints])
+        psd = [c.matrix for c in p.lower_psd_constraints]
+        h_names = [f"{c.name}[{i}]" for c in p.lower_constraints for i in range(int(c.body.numel()))]
+        self.lower_level = build_lower(x, y, p.lower_objective.expr, ca.SX(0, 1), h, psd, [], h_names,
+                                       [c.name for c in p.lower_psd_constraints], [np.zeros(int(x.numel()))])
+        kkt = self.lower_level.kkt()
+        sym_products = [vech_sx(0.5 * (ca.mtimes(m, z) + ca.mtimes(z, m))) for m, z in zip(psd, kkt.Z)]
+        residual = ca.vertcat(kkt.stationarity, h, *sym_products)
+        w = ca.vertcat(y, kkt.mu, *kkt.Z_vech)
+        self._sizes = [int(y.numel()), int(kkt.mu.numel())] + [int(v.numel()) for v in kkt.Z_vech]
+        self._psd_dims = [int(m.size1()) for m in psd]
+        self._residual = ca.Function("kkt_residual", [x, w], [residual, ca.jacobian(residual, w)])
+        self._residual_x = ca.Function("kkt_residual_x", [x, w], [ca.jacobian(residual, x)])
+        F = p.upper_objective.expr
+        self._upper = ca.Function("attacker", [x, y], [F, ca.gradient(F, x), ca.gradient(F, y), attack.gain,
+                                                       attack.closed_loop])
+        lower_exprs = ca.vertcat(p.lower_objective.expr, h, *[ca.vec(m) for m in psd])
+        self.lower_fixed = not ca.depends_on(lower_exprs, x)
+        gain_jacobian = ca.jacobian(ca.vec(attack.gain), x)
+        self._gain_affine = self.lower_fixed and not ca.depends_on(gain_jacobian, x)
+        self._gain = ca.Function("gain", [x, y], [attack.gain, gain_jacobian])
+        self.n_x = int(x.numel())
+        self.lower_solves = 0
+        self._cache: tuple[np.ndarray, LowerSolution, float] | None = None
+
+    # -- the learner's response ---------------------------------------------------------------------
+    def _pack(self, sol: LowerSolution) -> np.ndarray:
+        return np.concatenate([sol.y, sol.mu] + [vech(z) for z in sol.Z])
+
+    def _unpack(self, w: np.ndarray, like: LowerSolution, x: np.ndarray) -> LowerSolution:
+        cuts = np.cumsum(self._sizes)[:-1]
+        parts = np.split(w, cuts)
+        zs = [unvech(v, n) for v, n in zip(parts[2:], self._psd_dims)]
+        f = self.lower_level.evaluate(x, parts[0])[0]
+        return LowerSolution(parts[0], f, like.lam, parts[1], zs, like.status, f"{like.solver} + KKT Newton polish")
+
+    def _psd_ok(self, x: np.ndarray, sol: LowerSolution) -> bool:
+        mats = self.lower_level.evaluate(x, sol.y)[3]
+        for mat in list(mats) + list(sol.Z):
+            scale = 1.0 + float(np.abs(mat).max())
+            if np.linalg.eigvalsh(0.5 * (mat + mat.T)).min() < -PSD_TOL * scale:
+                return False
+        return True
+
+    def polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, float]:
+        """Newton steps on r(w; x) = 0 from the solver's point, kept while the residual falls and M, Z stay PSD."""
+        w = self._pack(sol)
+        r, jac = (np.asarray(v) for v in self._residual(x, w))
+        best = float(np.abs(r).max())
+        for _ in range(self.polish_steps):
+            step = _solve(jac, -r.ravel())
+            trial = self._unpack(w + step, sol, x)
+            r_new, jac_new = (np.asarray(v) for v in self._residual(x, w + step))
+            value = float(np.abs(r_new).max())
+            if not value < best or not self._psd_ok(x, trial):
+                break
+            w, r, jac, best, sol = w + step, r_new, jac_new, value, trial
+            if best < 1e-14:
+                break
+        return sol, best
+
+    def lower_solution(self, x: np.ndarray) -> tuple[LowerSolution, float]:
+        """The learner's polished SDP solution at x and its KKT residual (solved once if it cannot depend on x)."""
+        x = self.lower_level.check_point(x)
+        if self._cache is not None and (self.lower_fixed or np.array_equal(self._cache[0], x)):
+            return self._cache[1], self._cache[2]
+        with warnings.catch_warnings():  # cvxpy's "may be inaccurate": the polished KKT residual decides below
+            warnings.simplefilter("ignore", UserWarning)
+            sol = self.lower_level.solve(x)
+        sol, res = self.polish(x, sol)
+        self.lower_solves += 1
+        if res > KKT_TOL:
+            raise SolverFailed(f"the learner's SDP at this poisoning has KKT residual {res:.1e} > {KKT_TOL:g} after "
+                               "Newton polishing (no strictly complementary solution found); the hypergradient "
+                               "is not defined there — lower the budget or raise reg")
+        self._cache = (x.copy(), sol, res)
+        return sol, res
+
+    # -- the attacker's objective ---------------------------------------------------------------------
+    def evaluate(self, x: np.ndarray) -> Evaluation:
+        """Solve the learner at x and evaluate the attacker's criterion (+inf for an unstable max-min loop)."""
+        x = np.asarray(x, dtype=float).ravel()
+        sol, res = self.lower_solution(x)
+        F, gx, gy, k, acl = (np.asarray(v, dtype=float) for v in self._upper(x, sol.y))
+        ev = Evaluation(x, float(F.ravel()[0]), k, acl, sol, res, gx.ravel(), gy.ravel())
+        if self.attack.setting.objective == "maxmin" and ev.identified_radius >= 1.0:
+            ev.phi = float("inf")
+        return ev
+
+    def gradient(self, ev: Evaluation) -> np.ndarray:
+        """d phi / dx at an evaluated point: direct part plus the adjoint of the KKT system."""
+        if self.lower_fixed:
+            return ev.grad_x
+        w = self._pack(ev.lower)
+        jac = np.asarray(self._residual(ev.x, w)[1])
+        jac_x = np.asarray(self._residual_x(ev.x, w))
+        rhs = np.concatenate([ev.grad_y, np.zeros(jac.shape[0] - ev.grad_y.size)])
+        z = _solve(jac.T, rhs)
+        return ev.grad_x - jac_x.T @ z
+
+    def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        """(phi(x), grad phi(x))."""
+        ev = self.evaluate(x)
+        return ev.phi, self.gradient(ev)
+
+    def objectives(self, xs: np.ndarray) -> np.ndarray:
+        """phi at each row of xs; batched in numpy when the learner ignores x and K is then affine in x."""
+        xs = np.atleast_2d(np.asarray(xs, dtype=float))
+        if not self._gain_affine:
+            return np.array([self.evaluate(x).phi for x in xs])
+        at = self.attack
+        y = self.lower_solution(xs[0])[0].y
+        k0, jac = (np.asarray(v, dtype=float) for v in self._gain(np.zeros(self.n_x), y))
+        m, n = at.n_inputs, at.n_states
+        gains = k0[None] + (xs @ jac.T).reshape(xs.shape[0], n, m).transpose(0, 2, 1)
+        return criterion_values(at.a_id + at.b_id @ gains, gains, at.setting.objective, at.qx, at.cost_weight)
+
+
+@dataclass
+class AttackResult:
+    """An attack's poisoning and its effect: gain learned from the poisoned data, objective, true closed loop."""
+
+    method: str
+    x: np.ndarray
+    objective: float
+    gain: np.ndarray
+    eigenvalues: np.ndarray
+    wall_time: float
+    evaluations: int
+    iterations: int
+    message: str
+    budget_violation: float
+    kkt_residual: float
+    details: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def spectral_radius(self) -> float:
+        """max |eig(A + B K)| of the true batch reactor under the learned gain."""
+        return float(np.max(np.abs(self.eigenvalues)))
+
+    @property
+    def unstable(self) -> bool:
+        return self.spectral_radius >= 1.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (objective inf for an unstable max-min loop; eigenvalues as [re, im])."""
+        return {"method": self.method, "objective": self.objective, "spectral_radius": self.spectral_radius,
+                "eig_abs_sum": float(np.sum(np.abs(self.eigenvalues))), "unstable": self.unstable,
+                "gain": self.gain.tolist(), "eigenvalues": [[float(v.real), float(v.imag)] for v in self.eigenvalues],
+                "wall_time": self.wall_time, "evaluations": self.evaluations, "iterations": self.iterations,
+                "message": self.message, "budget_violation": self.budget_violation,
+                "kkt_residual": self.kkt_residual, "x": self.x.tolist(), "details": self.details}
+
+
+def _result(oracle: SDPHypergradient, method: str, x: np.ndarray, t0: float, evaluations: int, iterations: int,
+            message: str, details: dict[str, Any] | None = None) -> AttackResult:
+    ev = oracle.evaluate(x)
+    plant = batch_reactor()
+    eig = np.linalg.eigvals(plant.A + plant.B @ ev.gain)
+    violation = float(np.max(np.maximum(np.abs(x) - oracle.attack.budget(), 0.0), initial=0.0))
+    return AttackResult(method, np.asarray(x, dtype=float), ev.phi, ev.gain, eig, time.perf_counter() - t0,
+                        evaluations, iterations, message, violation, ev.kkt_residual, dict(details or {}))
+
+
+def _ascend(oracle: SDPHypergradient, box: Box, x0: np.ndarray, max_iter: int, ftol: float,
+            stop_unstable: bool) -> tuple[Evaluation, int, int, str]:
+    """Projected gradient ascent from x0: (final evaluation, iterations, evaluations, stop reason).
+
+    A trial point where the learner cannot be solved to KKT accuracy counts as a failed trial (backtrack)."""
+    cur = oracle.evaluate(box(x0))
+    evals = 1
+    if cur.phi == np.inf or (stop_unstable and cur.identified_radius >= 1.0):
+        return cur, 0, evals, "identified closed loop unstable at the start point"
+    grad = oracle.gradient(cur)
+    width = float(np.max(box.ub - box.lb))
+    step = width / max(float(np.max(np.abs(grad))), 1e-300)
+    for it in range(1, max_iter + 1):
+        t, accepted = step, None
+        for _ in range(MAX_BACKTRACKS):
+            trial_x = box(cur.x + t * grad)
+            move = trial_x - cur.x
+            if not np.any(move):
+                return cur, it - 1, evals, "projected gradient is zero (stationary on the box)"
+            evals += 1
+            try:
+                trial = oracle.evaluate(trial_x)
+            except BilevelError:
+                t /= 4.0
+                continue
+            if trial.phi >= cur.phi + ARMIJO / t * float(move @ move):
+                accepted = trial
+                break
+            t /= 4.0
+        if accepted is None:
+            return cur, it - 1, evals, "no ascent along the projection arc"
+        if accepted.phi == np.inf or (stop_unstable and accepted.identified_radius >= 1.0):
+            return accepted, it, evals, "identified closed loop unstable"
+        new_grad = oracle.gradient(accepted)
+        s, dg = accepted.x - cur.x, -(new_grad - grad)
+        gain_rel = (accepted.phi - cur.phi) / max(1.0, abs(cur.phi))
+        cur, grad = accepted, new_grad
+        if gain_rel <= ftol:
+            return cur, it, evals, f"relative increase {gain_rel:.1e} <= ftol"
+        sy = float(s @ dg)
+        step = float(s @ s) / sy if sy > 0 else 4.0 * t
+        step = min(max(step, 1e-12 * width), 1e12 * width)
+    return cur, max_iter, evals, "max_iter reached"
+
+
+def _single_threaded(fn: Any) -> Any:
+    """Run fn with one BLAS thread: its matrices are small, and threaded BLAS on them is 100x slower under load."""
+    return threadpool_limits.wrap(limits=1)(fn)
+
+
+def _seed(seed: int | np.random.SeedSequence | np.random.Generator | None) -> np.random.Generator:
+    return seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+
+
+@_single_threaded
+def hypergradient_attack(attack: WillemsAttack, starts: int = 4, seed: Any = 0, max_iter: int = 300,
+                         ftol: float = 1e-10, stop_when_unstable: bool = True,
+                         oracle: SDPHypergradient | None = None) -> AttackResult:
+    """Multistart projected hypergradient ascent on the poisoning (start 0: clean data; others uniform in the box).
+
+    With stop_when_unstable the attacker stops once its identified closed loop is unstable (its goal) and
+    returns that point; otherwise (and when no start gets there) the best objective over the starts."""
+    t0 = time.perf_counter()
+    oracle = oracle or SDPHypergradient(attack)
+    if oracle.attack is not attack:
+        raise ModelError("hypergradient_attack: the oracle was built for another WillemsAttack")
+    rng = _seed(seed)
+    bound = attack.budget()
+    box = Box(-bound, bound)
+    best, records, evals, iters = None, [], 0, 0
+    for k in range(max(int(starts), 1)):
+        x0 = np.zeros(bound.size) if k == 0 else rng.uniform(-bound, bound)
+        try:
+            ev, it, n_ev, reason = _ascend(oracle, box, x0, max_iter, ftol, stop_when_unstable)
+        except BilevelError as exc:
+            records.append({"start": k, "status": "error", "message": str(exc)})
+            continue
+        evals, iters = evals + n_ev, iters + it
+        records.append({"start": k, "objective": ev.phi, "iterations": it, "message": reason,
+                        "identified_radius": ev.identified_radius})
+        done = ev.phi == np.inf or (stop_when_unstable and ev.identified_radius >= 1.0)
+        if best is None or done or ev.phi > best[0].phi:
+            best = (ev, k, reason)
+        if done:
+            break
+    if best is None:
+        raise SolverFailed(f"hypergradient attack: the learner's SDP could not be solved from any of {starts} starts "
+                           f"({records[-1]['message']})")
+    ev, k, reason = best
+    return _result(oracle, "hypergradient", ev.x, t0, evals, iters, f"start {k} of {len(records)} run ({reason})",
+                   {"starts": records, "lower_solves": oracle.lower_solves})
+
+
+@_single_threaded
+def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize: int = 5, tol: float = 1e-8,
+              stop_when_unstable: bool = True, oracle: SDPHypergradient | None = None) -> AttackResult:
+    """Differential evolution (scipy, best1bin, no gradient polish) on the input poisoning inside the linf box.
+
+    With stop_when_unstable it stops once the incumbent's identified closed loop is unstable (as our attack)."""
+    if attack.setting.poison != "u":
+        raise ModelError(f"de_attack poisons the inputs only (the paper's corollary); got poison="
+                         f"{attack.setting.poison!r}: build the attack with poison='u'")
+    if attack.setting.delta_u <= 0:
+        raise ModelError("de_attack: delta_u = 0 leaves nothing to search; use delta_u > 0")
+    t0 = time.perf_counter()
+    oracle = oracle or SDPHypergradient(attack)
+    bound = attack.budget()
+    counter = {"evaluations": 0}
+
+    def loss(xs: np.ndarray) -> np.ndarray:
+        xs = np.asarray(xs, dtype=float)
+        phi = oracle.objectives(xs.T if xs.ndim == 2 else xs[None, :])
+        counter["evaluations"] += phi.size
+        return -np.minimum(phi, UNSTABLE_PENALTY) if xs.ndim == 2 else float(-min(phi[0], UNSTABLE_PENALTY))
+
+    def stop(intermediate_result: scipy.optimize.OptimizeResult) -> bool:
+        if -intermediate_result.fun >= UNSTABLE_PENALTY:
+            return True
+        return stop_when_unstable and oracle.evaluate(intermediate_result.x).identified_radius >= 1.0
+
+    out = scipy.optimize.differential_evolution(
+        loss, list(zip(-bound, bound)), maxiter=int(maxiter), popsize=int(popsize), tol=float(tol), polish=False,
+        rng=_seed(seed), callback=stop, vectorized=oracle.lower_fixed,
+        updating="deferred" if oracle.lower_fixed else "immediate")
+    return _result(oracle, "differential-evolution", np.clip(out.x, -bound, bound), t0, counter["evaluations"],
+                   int(out.nit), str(out.message), {"lower_solves": oracle.lower_solves})
+
+
+@_single_threaded
+def random_attack(attack: WillemsAttack, seed: Any = 0) -> AttackResult:
+    """A budget-matched, non-adaptive baseline: every poisoned entry +-budget with a fair random sign."""
+    t0 = time.perf_counter()
+    bound = attack.budget()
+    x = bound * _seed(seed).choice([-1.0, 1.0], size=bound.size)
+    return _result(SDPHypergradient(attack), "random", x, t0, 1, 0, "random signs at the budget")
+
+
+@_single_threaded
+def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> AttackResult:
+    """The generic route: bilevel.solve on the registered problem (KKT reformulation, PSD pairs factored).
+
+    The returned point is clipped to the budget box and the learner is re-solved there independently,
+    so gain and eigenvalues are the learner's true response; the solve's status and certificate are kept.
+    """
+    from ..solvers import solve
+
+    t0 = time.perf_counter()
+    res = solve(attack.problem, method=method, **options)
+    if "Du" not in res.x:
+        raise SolverFailed(f"kkt_attack: {method} returned no point (status {res.status.value}: {res.message})",
+                           result=res)
+    x = np.concatenate([np.asarray(res.x[name], dtype=float).reshape(-1, order="F")
+                        for name in ("Du", "Dx") if name in res.x])
+    bound = attack.budget()
+    clipped = float(np.max(np.abs(x - np.clip(x, -bound, bound)), initial=0.0))
+    oracle = SDPHypergradient(attack)
+    cert = res.certificate
+    details = {"status": res.status.value, "solver_objective": res.upper_objective, "clipped_by": clipped,
+               "certificate_passed": bool(cert is not None and cert.passed),
+               "certificate_failed": list(cert.failed) if cert is not None else [], "solve_time": res.wall_time}
+    return _result(oracle, f"kkt-{method}", np.clip(x, -bound, bound), t0, 0, res.nit,
+                   f"{res.status.value}: {res.message}", details)

@@ -1,0 +1,166 @@
+"""Reproduction of the paper's VRFT results: Table 1, figures 2-6, conventions side by side.
+
+Every attack is one sweep task (resumable JSONL rows); seeds come from SeedSequence(seed).spawn(sims),
+and sim i uses the same data in every (eps_u, eps_y) cell (common random numbers).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Callable
+
+import numpy as np
+
+from ..attacks.budget import Budget
+from ..attacks.vrft import VRFTAttack, flexible_transmission_setting, scenario_data
+from ..attacks.vrft_methods import ATTACKS
+from .stats import mean_interval, wilson_interval
+from .sweep import run_sweep
+
+EPS_U = (0.0, 0.1, 0.2)
+EPS_Y = (0.01, 0.023, 0.037, 0.05, 0.057)
+PAPER_THETA0 = np.array([0.33, -0.61, 0.72, -0.66, 0.48, -0.13])
+"""theta_0 of Campi et al. (2002) as quoted by the paper; its targeted attack aims at 3 * theta_0."""
+
+PAPER_TABLE1 = {
+    ("A", 0.0): (0.0, 0.0, 0.0, 0.0, 0.0), ("A", 0.1): (0.78, 0.58, 13.9, 1.56, 0.78),
+    ("A", 0.2): (47.1, 29.7, 19.8, 1.76, 1.56),
+    ("B", 0.0): (0.0, 0.0, 0.0, 0.2, 0.0), ("B", 0.1): (0.0, 0.0, 34.4, 74.6, 75.2),
+    ("B", 0.2): (0.0, 1.75, 54.7, 84.2, 88.9),
+}
+"""The paper's Table 1: % unstable closed loops out of 512 simulations (rows eps_u, columns eps_y)."""
+
+CONVENTIONS = {
+    "paper": ("prefiltered", "zero-final"),
+    "prefiltered-drop": ("prefiltered", "drop"),
+    "raw": ("raw", "zero-final"),
+    "raw-drop": ("raw", "drop"),
+}
+"""Data convention and virtual-reference boundary handling; "paper" is the paper's (Sec. 4.1, Lemma 1)."""
+
+
+def sim_seeds(seed: int, sims: int) -> list[int]:
+    """One integer seed per simulation, from SeedSequence(seed).spawn(sims)."""
+    return [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(sims)]
+
+
+def make_attack(task: dict[str, Any]) -> VRFTAttack:
+    """The VRFTAttack instance described by a task dict."""
+    data, boundary = CONVENTIONS[task["convention"]]
+    setting = flexible_transmission_setting(data, boundary)
+    rng = np.random.default_rng(task["seed"])
+    u, y = scenario_data(setting, task["scenario"], task.get("N", 512), rng)
+    target = 3 * PAPER_THETA0 if task["objective"] == "targeted" else None
+    return VRFTAttack(setting, u, y, Budget(task["eps_u"], task.get("norm", "l2")),
+                      Budget(task["eps_y"], task.get("norm", "l2")), task["objective"], target)
+
+
+def attack_task(task: dict[str, Any]) -> dict[str, Any]:
+    """Run one attack; a row with its scalars and the poisoned theta."""
+    atk = make_attack(task)
+    method = task["method"]
+    if method == "white-noise":
+        res = ATTACKS[method](atk, seed=task["seed"])
+    else:
+        res = ATTACKS[method](atk, seed=task["seed"], zero_start=task["scenario"] == "B")
+    return {**res.summary(), "theta_poisoned": res.theta_poisoned.tolist()}
+
+
+def cell_tasks(sims: int, seed: int, convention: str, objective: str, method: str,
+               eps_u: tuple[float, ...] = EPS_U, eps_y: tuple[float, ...] = EPS_Y) -> list[dict[str, Any]]:
+    """Tasks of a Table-1-shaped sweep: scenarios A and B x eps_u x eps_y x sims."""
+    tasks = []
+    for scenario in ("A", "B"):
+        for i, s in enumerate(sim_seeds(seed, sims)):
+            for eu in eps_u:
+                for ey in eps_y:
+                    tasks.append({"key": f"{convention}/{objective}/{method}/{scenario}/{eu}/{ey}/{i}",
+                                  "convention": convention, "objective": objective, "method": method,
+                                  "scenario": scenario, "eps_u": eu, "eps_y": ey, "sim": i, "seed": s})
+    return tasks
+
+
+def summarize(rows: list[dict[str, Any]]) -> dict[tuple[str, float, float], dict[str, float]]:
+    """Per (scenario, eps_u, eps_y): instability rate with Wilson CI, mean objective with t CI, median time."""
+    cells: dict[tuple[str, float, float], list[dict[str, Any]]] = {}
+    for r in rows:
+        key = r["key"].split("/")
+        cells.setdefault((key[3], float(key[4]), float(key[5])), []).append(r)
+    out = {}
+    for k, rs in cells.items():
+        n = len(rs)
+        unstable = sum(bool(r["unstable"]) for r in rs)
+        lo, hi = wilson_interval(unstable, n)
+        m, mlo, mhi = mean_interval(np.array([r["value"] for r in rs]))
+        loss = mean_interval(np.array([r["learner_loss"] for r in rs]))
+        out[k] = {"n": n, "unstable": unstable, "rate": 100 * unstable / n, "rate_lo": 100 * lo,
+                  "rate_hi": 100 * hi, "value": m, "value_lo": mlo, "value_hi": mhi, "loss": loss[0],
+                  "loss_lo": loss[1], "loss_hi": loss[2],
+                  "time_ms": 1000 * float(np.median([r["wall_time"] for r in rs]))}
+    return out
+
+
+def table_markdown(summary: dict, title: str, paper: dict | None = None) -> str:
+    """Table-1-shaped Markdown: % unstable [95% CI] per cell, the paper's value beside ours when given."""
+    lines = [f"**{title}**", ""]
+    for scenario in ("A", "B"):
+        head = " | ".join(f"eps_y = {e}" for e in EPS_Y)
+        lines += [f"| Scenario {scenario} | {head} |", "|---" * (len(EPS_Y) + 1) + "|"]
+        for eu in EPS_U:
+            cells = []
+            for j, ey in enumerate(EPS_Y):
+                c = summary.get((scenario, eu, ey))
+                if c is None:
+                    cells.append("-")
+                    continue
+                text = f"{c['rate']:.1f}% [{c['rate_lo']:.1f}, {c['rate_hi']:.1f}]"
+                if paper is not None:
+                    text += f" (paper {paper[(scenario, eu)][j]}%)"
+                cells.append(text)
+            lines.append(f"| eps_u = {eu} | " + " | ".join(cells) + " |")
+        lines.append("")
+    n = next(iter(summary.values()))["n"] if summary else 0
+    lines.append(f"{n} simulations per cell; brackets: 95% Wilson interval.")
+    return "\n".join(lines) + "\n"
+
+
+def write_csv(summary: dict, path: str) -> None:
+    """One row per cell."""
+    import csv
+
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        cols = ["n", "unstable", "rate", "rate_lo", "rate_hi", "value", "value_lo", "value_hi", "loss", "loss_lo",
+                "loss_hi", "time_ms"]
+        w.writerow(["scenario", "eps_u", "eps_y"] + cols)
+        for (sc, eu, ey), c in sorted(summary.items()):
+            w.writerow([sc, eu, ey] + [c[k] for k in cols])
+
+
+def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, workers: int | None = None,
+                     side_sims: int | None = None, progress: Callable[[str], None] | None = print) -> str:
+    """Table 1 (paper convention) with `sims` per cell, the other conventions, the destabilizing and
+    targeted attacks and the white-noise baseline with `side_sims`, figures 2-6 and report.md."""
+    from . import vrft_figures
+
+    side = side_sims or max(8, sims // 4)
+    os.makedirs(out_dir, exist_ok=True)
+    runs: dict[str, list[dict[str, Any]]] = {}
+    plan = [("maxmin-paper", sims, "paper", "maxmin", "alternating")]
+    plan += [(f"maxmin-{c}", side, c, "maxmin", "alternating") for c in CONVENTIONS if c != "paper"]
+    plan += [("white-noise-paper", side, "paper", "maxmin", "white-noise"),
+             ("destabilize-paper", side, "paper", "destabilize", "joint"),
+             ("targeted-paper", side, "paper", "targeted", "alternating")]
+    for name, n, convention, objective, method in plan:
+        tasks = cell_tasks(n, seed, convention, objective, method)
+        runs[name] = run_sweep(attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), workers, progress, name)
+    summaries = {name: summarize(rows) for name, rows in runs.items()}
+    for name, s in summaries.items():
+        write_csv(s, os.path.join(out_dir, f"table_{name}.csv"))
+    figures = vrft_figures.make_all(summaries, out_dir, seed)
+    path = os.path.join(out_dir, "report.md")
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(vrft_figures.report(summaries, figures, sims, side))
+    if progress:
+        progress(f"wrote {path}")
+    return path

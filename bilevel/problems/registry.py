@@ -1,0 +1,69 @@
+"""Registry of named bilevel problems: builder, parameters, known optimum and its source."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from ..errors import ModelError
+from ..model import BilevelProblem
+
+
+@dataclass(frozen=True)
+class ProblemSpec:
+    """A registered instance: how to build it and what is known about it (optimum, solution, source)."""
+
+    name: str
+    build: Callable[..., BilevelProblem]
+    source: str
+    optimum: float | None = None
+    solution: dict[str, Any] | None = None
+    lower_optimum: float | None = None
+    tags: tuple[str, ...] = ()
+    description: str = ""
+    defaults: dict[str, Any] = field(default_factory=dict)
+
+
+_REGISTRY: dict[str, ProblemSpec] = {}
+
+
+def register(name: str, *, source: str, optimum: float | None = None, solution: dict[str, Any] | None = None,
+             lower_optimum: float | None = None, tags: tuple[str, ...] = (), description: str = "",
+             defaults: dict[str, Any] | None = None) -> Callable[[Callable[..., BilevelProblem]], Callable[..., BilevelProblem]]:
+    """Decorator registering a problem builder under `name` with its known optimum and source."""
+
+    def decorate(build: Callable[..., BilevelProblem]) -> Callable[..., BilevelProblem]:
+        if name in _REGISTRY:
+            raise ModelError(f"a problem named {name!r} is already registered")
+        doc = (build.__doc__ or "").strip().splitlines()
+        _REGISTRY[name] = ProblemSpec(name, build, source, optimum, solution, lower_optimum, tuple(tags),
+                                      description or (doc[0] if doc else ""), dict(defaults or {}))
+        return build
+
+    return decorate
+
+
+def _load_builtin() -> None:
+    from . import literature, vrft  # noqa: F401  (registers on import)
+
+
+def spec(name: str) -> ProblemSpec:
+    """The registered spec of `name`; raises a KeyError listing the known names otherwise."""
+    _load_builtin()
+    if name not in _REGISTRY:
+        raise KeyError(f"no registered problem {name!r}; known: {', '.join(sorted(_REGISTRY))}")
+    return _REGISTRY[name]
+
+
+def get(name: str, **params: Any) -> BilevelProblem:
+    """Build the registered problem `name` with its default parameters overridden by `params`."""
+    s = spec(name)
+    problem = s.build(**{**s.defaults, **params})
+    problem.name = name
+    return problem
+
+
+def names(tag: str | None = None) -> list[str]:
+    """Sorted names of registered problems, optionally only those carrying `tag`."""
+    _load_builtin()
+    return sorted(n for n, s in _REGISTRY.items() if tag is None or tag in s.tags)
