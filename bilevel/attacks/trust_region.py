@@ -8,7 +8,6 @@ an eigendecomposition and the secular equation ||v(mu)|| = delta, with the hard 
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import brentq
 
 
 def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, delta: float) -> np.ndarray:
@@ -38,17 +37,21 @@ def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, delta: float) -> np
         slack = delta ** 2 - float(v_hat @ v_hat)
         if slack >= 0 and top >= 0:
             return v_hat + np.sqrt(slack) * Q[:, -1]
-    hi = lo + float(np.linalg.norm(b)) / delta + tiny + 1e-300
-
-    def secular(mu: float) -> float:
-        return float(np.linalg.norm(beta / (mu - lam))) - delta
-
-    a = lo + tiny
-    while secular(a) < 0 and a > lo:  # move the bracket's left end closer to the pole
-        a = lo + (a - lo) * 1e-3
-        if a - lo < 1e-300:
+    # Newton on psi(mu) = 1/delta - 1/||v(mu)||, concave and increasing on (lo, inf): from a point left of
+    # the root the iterates increase monotonically to it (More & Sorensen 1983).
+    c2 = beta ** 2
+    mu = lo + max(tiny, 1e-300)
+    if float(np.sqrt(np.sum(c2 / (mu - lam) ** 2))) < delta:  # root left of mu: only in the near-hard case
+        return v_of(mu) * (delta / max(float(np.linalg.norm(v_of(mu))), 1e-300))
+    for _ in range(100):
+        d = mu - lam
+        norm2 = float(np.sum(c2 / d ** 2))
+        norm = np.sqrt(norm2)
+        dnorm2 = -2.0 * float(np.sum(c2 / d ** 3))
+        psi = 1.0 / delta - 1.0 / norm
+        dpsi = 0.5 * dnorm2 / (norm2 * norm)
+        step = -psi / dpsi
+        mu += step
+        if abs(step) <= 1e-15 * max(1.0, abs(mu)) or abs(psi) <= 1e-15 / delta:
             break
-    if secular(a) <= 0:
-        return v_of(a) * (delta / max(np.linalg.norm(v_of(a)), 1e-300))
-    mu = brentq(secular, a, hi, xtol=1e-15 * max(1.0, hi), rtol=1e-15, maxiter=200)
     return v_of(mu)

@@ -201,11 +201,16 @@ class VRFTAttack:
         s0 = self.state(np.zeros(self.N), a_y)
         if self.delta_u == 0:
             return np.zeros(self.N), s0
-        W = np.column_stack([self.targets_adjoint(s0.Q[:, j]) for j in range(s0.Q.shape[1])])
-        lam, V = np.linalg.eigh(W.T @ W)
-        lam = np.maximum(lam, 1e-14 * lam.max())
-        S = scipy.linalg.solve_triangular(s0.R, (V * np.sqrt(lam)) @ V.T)
-        B = W @ ((V / np.sqrt(lam)) @ V.T)
+        reg = self.setting.regressor
+        if reg.prefilter is None:  # targets(a) = a[:n]: W = [Q; 0] has orthonormal columns already
+            S = scipy.linalg.solve_triangular(s0.R, np.eye(s0.R.shape[0]))
+            B = np.vstack([s0.Q, np.zeros((self.N - self.n, s0.Q.shape[1]))])
+        else:
+            W = np.column_stack([self.targets_adjoint(s0.Q[:, j]) for j in range(s0.Q.shape[1])])
+            lam, V = np.linalg.eigh(W.T @ W)
+            lam = np.maximum(lam, 1e-14 * lam.max())
+            S = scipy.linalg.solve_triangular(s0.R, (V * np.sqrt(lam)) @ V.T)
+            B = W @ ((V / np.sqrt(lam)) @ V.T)
         if self.objective == "maxmin":
             M = self.phi0 @ S
             e0 = self.t0 - self.phi0 @ s0.theta
@@ -214,5 +219,4 @@ class VRFTAttack:
             d = self.theta_target - s0.theta
             v = maximize_quadratic_on_ball(-S.T @ S / d.size, S.T @ d / d.size, self.delta_u)
         a_u = B @ v
-        reg = self.setting.regressor
         return a_u, State(a_u, a_y, s0.phi, s0.target + reg.targets(a_u), s0.theta + S @ v, s0.R, s0.Q)

@@ -22,6 +22,7 @@ from .vrft import State, VRFTAttack
 
 ARMIJO = 1e-4
 WINDOW = 5
+DEFAULT_STEPS = (1.0, 0.1)
 
 
 @dataclass
@@ -85,7 +86,7 @@ def _scaled(g: np.ndarray, radius: float, order: float) -> np.ndarray:
 
 def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]], direction: Callable[[Any], tuple[np.ndarray, np.ndarray]],
                      project: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, max_iter: int, tol: float,
-                     history: list[dict[str, float]]) -> tuple[np.ndarray, float, Any, int, int, bool]:
+                     history: list[dict[str, float]], step0: float = 1.0) -> tuple[np.ndarray, float, Any, int, int, bool]:
     """Projected gradient ascent with Armijo backtracking along the projection arc.
 
     direction(aux) returns (gradient, search direction); stops when the relative gain over the last
@@ -94,7 +95,7 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]], direction: Ca
     """
     x = project(x0)
     fx, aux = f(x)
-    evals, step, converged = 1, 1.0, False
+    evals, step, converged = 1, step0, False
     it = 0
     for it in range(1, max_iter + 1):
         g, d = direction(aux)
@@ -159,8 +160,14 @@ def _start_points(atk: VRFTAttack, starts: int, rng: np.random.Generator, zero_s
 
 
 def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int = 60,
-                       tol: float = 1e-4, zero_start: bool = True) -> AttackResult:
-    """The paper's Algorithm 1 with an exact a_u step and line-searched projected ascent on a_y (multistart)."""
+                       tol: float = 1e-4, zero_start: bool = True,
+                       steps: tuple[float, ...] = DEFAULT_STEPS) -> AttackResult:
+    """The paper's Algorithm 1 with an exact a_u step and line-searched projected ascent on a_y.
+
+    V(a_y) is highly multimodal: every start is followed from each initial step in `steps` (fractions
+    of the budget radius; small first steps follow the gradient path further before committing to a
+    basin), and the best end point is kept.
+    """
     if atk.objective == "destabilize":
         raise ModelError("the alternating attack needs a quadratic objective; use attack_joint for 'destabilize'")
     t0 = time.perf_counter()
@@ -168,7 +175,9 @@ def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter
     order = atk.budget_y.order
     best, total_it, total_ev, status = None, 0, 0, "converged"
     with threadpool_limits(1):
-        for k, ay0 in enumerate(_start_points(atk, starts, np.random.default_rng(seed), zero_start)):
+        runs = [(ay0, step0) for ay0 in _start_points(atk, starts, np.random.default_rng(seed), zero_start)
+                for step0 in steps]
+        for k, (ay0, step0) in enumerate(runs):
             history: list[dict[str, float]] = []
             memo: dict[str, np.ndarray] = {}
 
@@ -181,7 +190,7 @@ def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter
                 g_y = atk.hypergradient(s)[1]
                 return g_y, _scaled(g_y, atk.delta_y, order)
 
-            _, fx, s, it, ev, conv = projected_ascent(value, direction, proj_y, ay0, max_iter, tol, history)
+            _, fx, s, it, ev, conv = projected_ascent(value, direction, proj_y, ay0, max_iter, tol, history, step0)
             total_it, total_ev = total_it + it, total_ev + ev
             if best is None or fx > best[0]:
                 best = (fx, s, history, conv, k)

@@ -41,6 +41,7 @@ ARMIJO = 1e-4
 MAX_BACKTRACKS = 30
 PSD_TOL = 1e-9
 KKT_TOL = 1e-6
+TIE_RTOL = 1e-6
 UNSTABLE_PENALTY = 1e12
 """Finite stand-in for phi = +inf handed to differential evolution (which cannot rank infinities)."""
 
@@ -299,7 +300,7 @@ def _seed(seed: int | np.random.SeedSequence | np.random.Generator | None) -> np
 
 
 @_single_threaded
-def hypergradient_attack(attack: WillemsAttack, starts: int = 4, seed: Any = 0, max_iter: int = 300,
+def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, max_iter: int = 300,
                          ftol: float = 1e-10, stop_when_unstable: bool = True,
                          oracle: SDPHypergradient | None = None) -> AttackResult:
     """Multistart projected hypergradient ascent on the poisoning (start 0: clean data; others uniform in the box).
@@ -313,7 +314,7 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 4, seed: Any = 0, 
     rng = _seed(seed)
     bound = attack.budget()
     box = Box(-bound, bound)
-    best, records, evals, iters = None, [], 0, 0
+    finished, records, evals, iters = [], [], 0, 0
     for k in range(max(int(starts), 1)):
         x0 = np.zeros(bound.size) if k == 0 else rng.uniform(-bound, bound)
         try:
@@ -324,17 +325,28 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 4, seed: Any = 0, 
         evals, iters = evals + n_ev, iters + it
         records.append({"start": k, "objective": ev.phi, "iterations": it, "message": reason,
                         "identified_radius": ev.identified_radius})
-        done = ev.phi == np.inf or (stop_when_unstable and ev.identified_radius >= 1.0)
-        if best is None or done or ev.phi > best[0].phi:
-            best = (ev, k, reason)
-        if done:
+        finished.append((ev, k, reason))
+        if ev.phi == np.inf or (stop_when_unstable and ev.identified_radius >= 1.0):
             break
-    if best is None:
+    if not finished:
         raise SolverFailed(f"hypergradient attack: the learner's SDP could not be solved from any of {starts} starts "
                            f"({records[-1]['message']})")
-    ev, k, reason = best
+    ev, k, reason = _select(finished, stop_when_unstable)
     return _result(oracle, "hypergradient", ev.x, t0, evals, iters, f"start {k} of {len(records)} run ({reason})",
                    {"starts": records, "lower_solves": oracle.lower_solves})
+
+
+def _select(finished: list[tuple[Evaluation, int, str]], stop_when_unstable: bool) -> tuple[Evaluation, int, str]:
+    """The start that reached an unstable identified loop (when stopping there), else the best criterion;
+    near-ties (relative TIE_RTOL) go to the larger identified spectral radius. The criteria have flat optimal
+    faces (log|det(A + B K)| is one scalar of the m T poisoned inputs): starts often tie on the criterion but
+    not on the eigenvalue that decides stability."""
+    if stop_when_unstable and finished[-1][0].identified_radius >= 1.0:
+        return finished[-1]
+    top = max(ev.phi for ev, _, _ in finished)
+    close = [f for f in finished
+             if f[0].phi == top or (np.isfinite(top) and top - f[0].phi <= TIE_RTOL * max(1.0, abs(top)))]
+    return max(close, key=lambda f: f[0].identified_radius)
 
 
 @_single_threaded

@@ -7,6 +7,7 @@ and sim i uses the same data in every (eps_u, eps_y) cell (common random numbers
 from __future__ import annotations
 
 import os
+import time
 from typing import Any, Callable
 
 import numpy as np
@@ -151,16 +152,19 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
     plan += [("white-noise-paper", side, "paper", "maxmin", "white-noise"),
              ("destabilize-paper", side, "paper", "destabilize", "joint"),
              ("targeted-paper", side, "paper", "targeted", "alternating")]
+    timings: dict[str, tuple[int, float]] = {}
     for name, n, convention, objective, method in plan:
         tasks = cell_tasks(n, seed, convention, objective, method)
+        t0 = time.perf_counter()
         runs[name] = run_sweep(attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), workers, progress, name)
+        timings[name] = (len(tasks), time.perf_counter() - t0)
     summaries = {name: summarize(rows) for name, rows in runs.items()}
     for name, s in summaries.items():
         write_csv(s, os.path.join(out_dir, f"table_{name}.csv"))
     figures = vrft_figures.make_all(summaries, out_dir, seed)
     path = os.path.join(out_dir, "report.md")
     with open(path, "w", encoding="utf-8") as fh:
-        fh.write(vrft_figures.report(summaries, figures, sims, side))
+        fh.write(vrft_figures.report(summaries, figures, sims, side, timings, workers or os.cpu_count() or 1))
     if progress:
         progress(f"wrote {path}")
     return path

@@ -138,7 +138,8 @@ def make_all(summaries: dict, out_dir: str, seed: int) -> dict[str, str]:
             "4": t4, "5": t5, "6": figure_targeted_losses(summaries, out_dir)}
 
 
-def report(summaries: dict, figures: dict[str, str], sims: int, side: int) -> str:
+def report(summaries: dict, figures: dict[str, str], sims: int, side: int,
+           timings: dict[str, tuple[int, float]], workers: int) -> str:
     """report.md: settings, Table 1 next to the paper's, the other conventions, the other attacks, figures."""
     main = summaries["maxmin-paper"]
     times = [c["time_ms"] for c in main.values()]
@@ -158,7 +159,9 @@ def report(summaries: dict, figures: dict[str, str], sims: int, side: int) -> st
         "Scenario A has deterministic data, so its only randomness is the attack's seeded random start of "
         "a_y (scenario B starts at a_y = 0); the paper does not say where its scenario-A randomness comes from.",
         "",
-        f"Median time per max-min attack: {np.median(times):.1f} ms (one core per worker).", "",
+        f"Median time per max-min attack: {np.median(times):.1f} ms (one core per worker, {workers} workers).", "",
+        "Wall time of the sweeps run by this invocation (sweeps resumed from earlier runs count only their "
+        "new tasks): " + "; ".join(f"{k}: {n} tasks in {t:.0f} s" for k, (n, t) in timings.items()) + ".", "",
         "## Table 1 (paper convention), ours vs the paper", "",
         table_markdown(main, f"Max-min attack, % unstable closed loops ({sims} simulations per cell)", PAPER_TABLE1),
     ]

@@ -1,0 +1,65 @@
+"""VRFT max-min attack: our attack vs the paper-style baseline on the same instances, and scaling in N.
+
+Prints, for scenario B at (eps_u, eps_y) = (0.1, 0.057), N = 512: median time per attack of each method,
+the speed ratio (baseline / ours, same process), the fraction of instances where our attacker objective
+is >= the baseline's, and instability counts; then our attack at N = 65,536 with its peak traced memory.
+Run: python benchmarks/bench_vrft_attack.py [instances]
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+import time
+import tracemalloc
+from datetime import datetime, timezone
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+sys.path.insert(0, os.path.dirname(__file__))
+from vrft_baseline import paper_baseline  # noqa: E402
+
+from bilevel.attacks.vrft_methods import attack_alternating, attack_white_noise  # noqa: E402
+from bilevel.problems.vrft import attack_instance  # noqa: E402
+
+
+def main(instances: int = 20) -> None:
+    print(f"# bench_vrft_attack  {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC  {platform.node()}  "
+          f"{platform.processor() or platform.machine()}  cores={os.cpu_count()}  python {platform.python_version()}")
+    rows = []
+    with threadpool_limits(1):
+        for seed in range(instances):
+            atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=seed, N=512)
+            ours = attack_alternating(atk, seed=seed)
+            base = paper_baseline(atk, seed=seed)
+            wn = attack_white_noise(atk, seed=seed)
+            rows.append((ours.wall_time, base.wall_time, ours.value, base.value, wn.value, ours.unstable,
+                         base.unstable))
+            print(f"seed {seed:3d}: ours {1000 * ours.wall_time:7.1f} ms J = {ours.value:.5f} "
+                  f"(rho {ours.spectral_radius:.4f}) | baseline {1000 * base.wall_time:8.1f} ms J = {base.value:.5f} "
+                  f"(rho {base.spectral_radius:.4f}) | white noise J = {wn.value:.5f}", flush=True)
+        r = np.array(rows, dtype=float)
+        t_ours, t_base = np.median(r[:, 0]), np.median(r[:, 1])
+        stronger = np.mean(r[:, 2] >= r[:, 3] * (1 - 1e-9))
+        print(f"\nN = 512, {instances} instances, scenario B, eps = (0.1, 0.057), one core:")
+        print(f"  median time per attack: ours {1000 * t_ours:.1f} ms, paper-style baseline {1000 * t_base:.1f} ms, "
+              f"ratio {t_base / t_ours:.0f}x")
+        print(f"  ours >= baseline objective on {100 * stronger:.0f}% of instances; median J ours "
+              f"{np.median(r[:, 2]):.4f}, baseline {np.median(r[:, 3]):.4f}, white noise {np.median(r[:, 4]):.4f}")
+        print(f"  unstable: ours {int(r[:, 5].sum())}/{instances}, baseline {int(r[:, 6].sum())}/{instances}")
+        for n in (4096, 65_536):
+            atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=0, N=n)
+            tracemalloc.start()
+            t = time.perf_counter()
+            res = attack_alternating(atk)
+            dt = time.perf_counter() - t
+            peak = tracemalloc.get_traced_memory()[1]
+            tracemalloc.stop()
+            print(f"N = {n}: {dt:.2f} s, {res.iterations} iterations, peak traced memory {peak / 2**20:.1f} MiB "
+                  f"({peak / (8 * n):.0f} doubles per sample; a dense N x N matrix would be {8 * n * n / 2**30:.1f} GiB)")
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 20)

@@ -1,0 +1,448 @@
+"""Reproduction of the paper's attacks on the De Persis–Tesi learners (appendix B): sweeps, tables, figures 7-9.
+
+Paper setting: batch reactor, u ~ N(0, 1), x_0 = 0, N in {15, 50}, the appendix SDP (design "lqr",
+Qx = I), input poisoning in an linf ball of radius delta_u, eigenvalue criterion; our hypergradient
+attack and the differential-evolution baseline run on the same instances (sim i has the same data
+for every delta and method). Side experiments: the paper's output-poisoning remark (delta_y = 1e-3
+on the states, x_0 clean) and the other designs (lqr-r, stabilizing; u and xu poisoning; max-min
+criterion). Every attack is one sweep task (bilevel.experiments.sweep: one JSON line per finished
+attack, resumable, 2 worker processes); seeds come from SeedSequence(seed).spawn(sims).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import platform
+import time
+import warnings
+from dataclasses import asdict, dataclass
+from typing import Any, Callable
+
+import matplotlib
+
+matplotlib.use("Agg")
+import numpy as np  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+
+from ..attacks.willems import AttackResult, de_attack, hypergradient_attack, random_attack  # noqa: E402
+from ..ddc.data import batch_reactor_data  # noqa: E402
+from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller  # noqa: E402
+from ..ddc.plants import batch_reactor  # noqa: E402
+from ..errors import BilevelError  # noqa: E402
+from ..problems.willems import DEFAULT_REG, WillemsSetting, build_attack  # noqa: E402
+from .stats import mean_interval, wilson_interval  # noqa: E402
+from .sweep import run_sweep  # noqa: E402
+
+WORKERS = 2
+DELTA_Y = 1e-3
+METHODS = {"hypergradient": "hypergradient (ours)", "de": "differential evolution", "random": "random signs"}
+PAPER_CLAIMS = (
+    ("small budgets suffice", "\"For very small values of delta_u we can get the system unstable.\""),
+    ("more data is more fragile", "\"increasing the number of points N makes the closed-loop system unstable "
+                                  "for smaller values of delta_u\" (Fig. 7)"),
+    ("output poisoning", "\"an attacker can make the closed-loop system unstable even for perturbations computed "
+                         "using the constraint delta_y = 1e-3 (even without poisoning the initial condition x0)\""),
+)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Sizes of every sweep of one reproduction run."""
+
+    sims: int
+    deltas: tuple[float, ...]
+    horizons: tuple[int, ...]
+    de_popsize: int
+    de_maxiter: int
+    starts: int
+    remark_sims: int
+    remark_horizons: tuple[int, ...]
+    design_sims: int
+    design_deltas: tuple[float, ...]
+
+
+def make_plan(sims: int, quick: bool) -> Plan:
+    """The paper-sized plan (`sims` per cell), or the CI plan (<= 4 sims, 3 budgets, short DE) when quick."""
+    if sims < 1:
+        raise ValueError(f"sims must be >= 1, got {sims}")
+    if quick:
+        return Plan(min(sims, 4), (0.2, 0.6, 1.25), (15, 50), 5, 40, 4, 1, (15,), 1, (1e-3, 1e-1))
+    return Plan(sims, (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 1.0, 1.25), (15, 50), 5, 300, 8,
+                max(2, min(sims, 32)), (15, 50), max(2, min(sims, 16)), (1e-4, 1e-3, 1e-2, 1e-1, 1.0))
+
+
+def sim_seeds(seed: int, sims: int) -> list[tuple[int, int]]:
+    """(data seed, attack seed) per simulation, from SeedSequence(seed).spawn(sims)."""
+    return [tuple(int(v) for v in s.generate_state(2)) for s in np.random.SeedSequence(seed).spawn(sims)]
+
+
+def _task(experiment: str, i: int, seeds: tuple[int, int], method: str, **setting: Any) -> dict[str, Any]:
+    fields = "|".join(f"{k}={setting[k]}" for k in sorted(setting))
+    return {"key": f"{experiment}|{method}|{fields}|sim={i}", "experiment": experiment, "method": method,
+            "sim": i, "seed": seeds[0], "attack_seed": seeds[1], **setting}
+
+
+def paper_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
+    """Input poisoning of the appendix SDP, eigenvalue criterion: every (N, delta_u, sim) for both methods."""
+    return [_task("paper", i, s, method, horizon=n, delta_u=d, delta_x=0.0, poison="u", design="lqr",
+                  criterion="eigen")
+            for n in plan.horizons for d in plan.deltas for i, s in enumerate(sim_seeds(seed, plan.sims))
+            for method in ("hypergradient", "de")]
+
+
+def remark_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
+    """The output-poisoning remark: states poisoned with delta_y = 1e-3 (x_0 clean), inputs clean."""
+    return [_task("remark", i, s, method, horizon=n, delta_u=0.0, delta_x=DELTA_Y, poison="x", design="lqr",
+                  criterion=criterion)
+            for n in plan.remark_horizons for i, s in enumerate(sim_seeds(seed, plan.remark_sims))
+            for method, criterion in (("hypergradient", "eigen"), ("hypergradient", "maxmin"), ("random", "eigen"))]
+
+
+def design_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
+    """Max-min attack on the three designs, inputs only or states and inputs (delta_x = delta_u), N = 15."""
+    return [_task("designs", i, s, "hypergradient", horizon=15, delta_u=d, delta_x=d if poison == "xu" else 0.0,
+                  poison=poison, design=design, criterion="maxmin")
+            for design in ("lqr", "lqr-r", "stabilizing") for poison in ("u", "xu") for d in plan.design_deltas
+            for i, s in enumerate(sim_seeds(seed, plan.design_sims))]
+
+
+def _reference_radius(setting: WillemsSetting, x: np.ndarray, u: np.ndarray) -> float:
+    """Spectral radius of the true loop under the unregularized learner of bilevel.ddc on the poisoned data."""
+    plant = batch_reactor()
+    try:
+        if setting.design == "stabilizing":
+            k = stabilizing_controller(x, u).k
+        else:
+            k = lqr_controller(x, u, input_cost=setting.design == "lqr-r").k
+    except BilevelError:
+        return float("nan")
+    return float(np.max(np.abs(np.linalg.eigvals(plant.A + plant.B @ k))))
+
+
+def attack_task(task: dict[str, Any]) -> dict[str, Any]:
+    """Run one attack described by a task; a JSON row with the task's fields and its outcome (or its error)."""
+    fields = {k: v for k, v in task.items() if k != "key"}
+    setting = WillemsSetting(objective=task["criterion"], horizon=task["horizon"], seed=task["seed"],
+                             delta_u=task["delta_u"], delta_x=task["delta_x"], poison=task["poison"],
+                             design=task["design"])
+    try:
+        attack = build_attack(setting)
+        if task["method"] == "hypergradient":
+            res: AttackResult = hypergradient_attack(attack, starts=task["starts"], seed=task["attack_seed"])
+        elif task["method"] == "de":
+            res = de_attack(attack, seed=task["attack_seed"], maxiter=task["de_maxiter"], popsize=task["de_popsize"])
+        else:
+            res = random_attack(attack, seed=task["attack_seed"])
+    except BilevelError as exc:
+        return {**fields, "error": f"{type(exc).__name__}: {exc}"}
+    du, dx = attack.split(res.x)
+    row = {**fields, **{k: v for k, v in res.to_dict().items()
+                        if k not in ("method", "x", "details", "gain", "eigenvalues")}}
+    with warnings.catch_warnings():  # cvxpy's "solution may be inaccurate" on the badly scaled N = 50 data
+        warnings.simplefilter("ignore", UserWarning)
+        row["reference_radius"] = _reference_radius(setting, attack.x + dx, attack.u + du)
+    if task["experiment"] == "paper":
+        row["du"] = du.tolist()
+    return row
+
+
+# -- summaries and tables -------------------------------------------------------------------------------------
+def summarize(rows: list[dict[str, Any]], fields: tuple[str, ...]) -> dict[tuple, dict[str, float]]:
+    """Per group of `fields`: unstable rate with Wilson 95% CI, means with t CIs, median time, error count."""
+    groups: dict[tuple, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(tuple(r[f] for f in fields), []).append(r)
+    out = {}
+    for key, rs in sorted(groups.items()):
+        ok = [r for r in rs if "error" not in r]
+        n, k = len(ok), sum(bool(r["unstable"]) for r in ok)
+        lo, hi = wilson_interval(k, n)
+        ref = [r["reference_radius"] for r in ok if np.isfinite(r["reference_radius"])]
+        ref_k = sum(v >= 1 for v in ref)
+        cell = {"n": n, "errors": len(rs) - n, "unstable": k, "rate": k / n if n else float("nan"), "rate_lo": lo,
+                "rate_hi": hi, "reference_n": len(ref), "reference_rate": ref_k / len(ref) if ref else float("nan"),
+                "time_median": float(np.median([r["wall_time"] for r in ok])) if ok else float("nan"),
+                "time_total": float(sum(r["wall_time"] for r in ok))}
+        for name in ("spectral_radius", "eig_abs_sum", "objective"):
+            values = np.array([r[name] for r in ok], dtype=float)
+            m, mlo, mhi = mean_interval(values)
+            cell.update({name: m, f"{name}_lo": mlo, f"{name}_hi": mhi,
+                         f"{name}_infinite": int(np.sum(np.isinf(values)))})
+        out[key] = cell
+    return out
+
+
+def _rate(c: dict[str, float] | None) -> str:
+    if c is None or not c["n"]:
+        return "-"
+    return f"{100 * c['rate']:.1f}% [{100 * c['rate_lo']:.1f}, {100 * c['rate_hi']:.1f}]"
+
+
+def write_csv(summary: dict[tuple, dict[str, float]], fields: tuple[str, ...], path: str) -> str:
+    """One CSV row per summary cell."""
+    cols = list(next(iter(summary.values())).keys()) if summary else []
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(list(fields) + cols)
+        for key, cell in summary.items():
+            w.writerow(list(key) + [cell[c] for c in cols])
+    return path
+
+
+def paper_table(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
+    """Markdown: % unstable [Wilson 95% CI] per delta_u, ours and DE side by side for each N."""
+    head = " | ".join(f"N={n} {m}" for n in plan.horizons for m in ("ours", "DE"))
+    lines = [f"| delta_u | {head} |", "|---" * (1 + 2 * len(plan.horizons)) + "|"]
+    for d in plan.deltas:
+        cells = [_rate(summary.get((n, m, d))) for n in plan.horizons for m in ("hypergradient", "de")]
+        lines.append(f"| {d:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def remark_table(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
+    """Markdown: % unstable at delta_y = 1e-3 per N and attack, with the unregularized learner's rate."""
+    lines = ["| N | attack | criterion | unstable (regularized learner) | unstable (bilevel.ddc learner, reg = 0) "
+             "| mean max abs eig | median time (s) |", "|---|---|---|---|---|---|---|"]
+    for (n, method, criterion), c in summary.items():
+        lines.append(f"| {n} | {METHODS[method]} | {criterion} | {_rate(c)} | "
+                     f"{100 * c['reference_rate']:.1f}% of {c['reference_n']} | {c['spectral_radius']:.3f} | "
+                     f"{c['time_median']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def design_table(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
+    """Markdown: % unstable per design / poisoning (rows) and budget (columns), max-min attack, N = 15."""
+    lines = ["| design | poisoned | " + " | ".join(f"delta = {d:g}" for d in plan.design_deltas) + " |",
+             "|---" * (2 + len(plan.design_deltas)) + "|"]
+    for design in ("lqr", "lqr-r", "stabilizing"):
+        for poison in ("u", "xu"):
+            cells = []
+            for d in plan.design_deltas:
+                c = summary.get((design, poison, d))
+                cells.append("-" if c is None else _rate(c) + (f" ({c['errors']} failed)" if c["errors"] else ""))
+            lines.append(f"| {design} | {poison} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+# -- figures --------------------------------------------------------------------------------------------------
+def _save(fig: Figure, out_dir: str, name: str) -> str:
+    for ext in ("png", "pdf"):
+        fig.savefig(os.path.join(out_dir, f"{name}.{ext}"), dpi=130, bbox_inches="tight")
+    return f"{name}.png"
+
+
+def _series(summary: dict[tuple, dict[str, float]], n: int, method: str, deltas: tuple[float, ...],
+            name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    cells = [(d, summary.get((n, method, d))) for d in deltas]
+    cells = [(d, c) for d, c in cells if c is not None and c["n"]]
+    return tuple(np.array(v, dtype=float) for v in zip(*[(d, c[name], c[f"{name}_lo"], c[f"{name}_hi"])
+                                                          for d, c in cells])) if cells else (np.zeros(0),) * 4
+
+
+def figure_eigenvalues(summary: dict[tuple, dict[str, float]], plan: Plan, out_dir: str) -> str:
+    """Fig. 7: mean max |eig(A+BK)| (black, left) and mean sum |eig| (red, right) vs delta_u; N=15 solid, N=50 dashed."""
+    fig = Figure(figsize=(11, 4))
+    for ax, method in zip(fig.subplots(1, 2, sharey=True), ("hypergradient", "de")):
+        twin = ax.twinx()
+        for n, style in zip(plan.horizons, ("-", "--")):
+            for axis, name, color in ((ax, "spectral_radius", "k"), (twin, "eig_abs_sum", "tab:red")):
+                d, m, lo, hi = _series(summary, n, method, plan.deltas, name)
+                axis.plot(d, m, style, color=color, marker="o", ms=3, label=f"N={n}")
+                axis.fill_between(d, lo, hi, color=color, alpha=0.12)
+        ax.axhline(1.0, color="0.6", lw=0.8, ls=":")
+        ax.set_xlabel("delta_u (linf budget)")
+        ax.set_ylabel("max |eig(A+BK)|")
+        twin.set_ylabel("sum |eig(A+BK)|", color="tab:red")
+        ax.set_title(METHODS[method])
+        ax.legend(loc="upper left", fontsize=8)
+    return _save(fig, out_dir, "fig7_eigenvalues")
+
+
+def figure_objective(summary: dict[tuple, dict[str, float]], plan: Plan, out_dir: str) -> str:
+    """Fig. 8: the attacker's criterion log det((A+BK)(A+BK)') vs delta_u, mean and 95% CI."""
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
+    for method, color in (("hypergradient", "tab:blue"), ("de", "tab:orange")):
+        for n, style in zip(plan.horizons, ("-", "--")):
+            d, m, lo, hi = _series(summary, n, method, plan.deltas, "objective")
+            ax.plot(d, m, style, color=color, marker="o", ms=3, label=f"{METHODS[method]}, N={n}")
+            ax.fill_between(d, lo, hi, color=color, alpha=0.15)
+    ax.set_xlabel("delta_u (linf budget)")
+    ax.set_ylabel("attacker objective log det(Acl Acl')")
+    ax.legend(fontsize=8)
+    return _save(fig, out_dir, "fig8_objective")
+
+
+def signal_delta(summary: dict[tuple, dict[str, float]], plan: Plan, n: int) -> float:
+    """The smallest budget at which our attack destabilizes at least half the loops (else the largest budget)."""
+    for d in plan.deltas:
+        c = summary.get((n, "hypergradient", d))
+        if c is not None and c["n"] and c["rate"] >= 0.5:
+            return d
+    return plan.deltas[-1]
+
+
+def figure_signals(rows: list[dict[str, Any]], summary: dict[tuple, dict[str, float]], plan: Plan,
+                   out_dir: str) -> tuple[str, dict[int, tuple[float, int]]]:
+    """Fig. 9: clean and poisoned inputs of the loops our attack destabilized (mean over sims, 95% CI band)."""
+    fig = Figure(figsize=(11, 5))
+    axes = fig.subplots(2, len(plan.horizons), squeeze=False)
+    used = {}
+    for col, n in enumerate(plan.horizons):
+        d = signal_delta(summary, plan, n)
+        sel = [r for r in rows if r["horizon"] == n and r["delta_u"] == d and r["method"] == "hypergradient"
+               and "error" not in r and r["unstable"]]
+        used[n] = (d, len(sel))
+        if not sel:
+            axes[0, col].set_title(f"N={n}: no unstable loop at delta_u={d:g}")
+            continue
+        clean = np.stack([batch_reactor_data(n, np.random.default_rng(r["seed"]))[1] for r in sel])
+        poisoned = clean + np.stack([np.asarray(r["du"]) for r in sel])
+        t = np.arange(n)
+        for ch in range(2):
+            ax = axes[ch, col]
+            for sig, color, label in ((clean, "tab:blue", "clean u"), (poisoned, "tab:orange", "poisoned u'")):
+                stats = np.array([mean_interval(sig[:, ch, j]) for j in range(n)])
+                ax.step(t, stats[:, 0], where="post", color=color, label=label)
+                if color == "tab:orange":
+                    ax.fill_between(t, stats[:, 1], stats[:, 2], step="post", color=color, alpha=0.25)
+            ax.set_ylabel(f"u_{ch + 1}")
+            ax.set_title(f"N={n}, delta_u={d:g}: mean of {len(sel)} destabilized loops" if ch == 0 else "")
+        axes[1, col].set_xlabel("t")
+        axes[0, col].legend(fontsize=8)
+    return _save(fig, out_dir, "fig9_signals"), used
+
+
+# -- the report -----------------------------------------------------------------------------------------------
+def _first(summary: dict[tuple, dict[str, float]], n: int, method: str, deltas: tuple[float, ...],
+           level: float) -> str:
+    for d in deltas:
+        c = summary.get((n, method, d))
+        if c is not None and c["n"] and c["rate"] >= level:
+            return f"{d:g}"
+    return f"> {deltas[-1]:g}"
+
+
+def _timing(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
+    lines = ["| N | ours: median s / attack | DE: median s / attack | DE / ours | ours: CPU s (all) | DE: CPU s (all) |",
+             "|---|---|---|---|---|---|"]
+    for n in plan.horizons:
+        hg = [c for (m_n, m, _), c in summary.items() if m_n == n and m == "hypergradient"]
+        de = [c for (m_n, m, _), c in summary.items() if m_n == n and m == "de"]
+        if not hg or not de:
+            continue
+        t_hg = float(np.median([c["time_median"] for c in hg]))
+        t_de = float(np.median([c["time_median"] for c in de]))
+        lines.append(f"| {n} | {t_hg:.3f} | {t_de:.3f} | {t_de / t_hg:.1f} | {sum(c['time_total'] for c in hg):.0f} "
+                     f"| {sum(c['time_total'] for c in de):.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict], figures: dict[str, str],
+                 signals: dict[int, tuple[float, int]], wall: dict[str, float]) -> str:
+    """report.md: settings, tables, figures, timing and the paper's claims next to ours."""
+    paper = summaries["paper"]
+    hz = plan.horizons
+    first = {(n, m, lv): _first(paper, n, m, plan.deltas, lv) for n in hz for m in ("hypergradient", "de")
+             for lv in (1e-9, 0.5)}
+    remark = summaries["remark"]
+    remark_rates = "; ".join(f"N={n}: {_rate(c)} unstable" for (n, method, crit), c in remark.items()
+                             if method == "hypergradient" and crit == "maxmin")
+    more_data = []
+    for d in plan.deltas:
+        a, b = paper.get((hz[0], "hypergradient", d)), paper.get((hz[-1], "hypergradient", d))
+        if a and b and a["n"] and b["n"]:
+            more_data.append(f"{d:g}: {100 * a['rate']:.0f}% vs {100 * b['rate']:.0f}%")
+    lr = summaries["designs"]
+    lqr_r = ", ".join(f"delta={d:g}: {_rate(lr.get(('lqr-r', 'u', d)))}" for d in plan.design_deltas)
+    claims = [
+        f"ours: N={hz[0]}: first unstable loop at delta_u = {first[(hz[0], 'hypergradient', 1e-9)]}, >= 50% at "
+        f"{first[(hz[0], 'hypergradient', 0.5)]} (DE: {first[(hz[0], 'de', 1e-9)]}, {first[(hz[0], 'de', 0.5)]}); "
+        f"N={hz[-1]}: {first[(hz[-1], 'hypergradient', 1e-9)]}, {first[(hz[-1], 'hypergradient', 0.5)]} "
+        f"(DE: {first[(hz[-1], 'de', 1e-9)]}, {first[(hz[-1], 'de', 0.5)]}). With u ~ N(0, 1) these budgets are "
+        f"not small for the appendix SDP; they are for the R-term design (Thm 4): {lqr_r}.",
+        f"ours (% unstable, N={hz[0]} vs N={hz[-1]}, our attack): " + "; ".join(more_data) + ".",
+        f"ours (max-min attack on the states, delta_y = 1e-3, x_0 clean): {remark_rates}; see the table below.",
+    ]
+    lines = [
+        "# Poisoning the De Persis–Tesi learners (paper appendix B): reproduction", "",
+        f"Generated by `bilevel.experiments.willems.run_reproduction` on {time.strftime('%Y-%m-%d %H:%M:%S %Z')} "
+        f"({platform.node()}, {os.cpu_count()} CPUs, {WORKERS} worker processes). Seed {seed}.", "",
+        "## Settings", "",
+        "- Plant: batch reactor (Walsh & Ye 2001), Ts = 0.1, n = 4, m = 2; data: u ~ N(0, 1) white, x_0 = 0, "
+        "noise free. The attacker uses [B A] = X1 [U0; X0]^+ from the clean data (equal to the plant here).",
+        f"- Learner (paper setting): the appendix SDP min tr(Qx X0 Q) s.t. [[X0 Q - I, X1 Q], [Q' X1', X0 Q]] >= 0, "
+        f"Qx = I, plus reg/2 ||Q||_F^2 with reg = {DEFAULT_REG:g} (minimum-norm selection of the non-unique Q; "
+        "see docs/willems.md); K = U0 Q (X0 Q)^-1.",
+        f"- Attack: input poisoning |Du| <= delta_u entrywise (linf), criterion log det((A+BK)(A+BK)'), "
+        f"delta_u in {list(plan.deltas)}, N in {list(plan.horizons)}, {plan.sims} simulations per cell "
+        "(the same data for every delta and method).",
+        f"- Ours: projected hypergradient ascent, {plan.starts} starts (clean data + uniform in the box). "
+        f"DE: scipy differential_evolution, best1bin, popsize {plan.de_popsize} x dim, {plan.de_maxiter} "
+        "generations, no gradient polish, same box and seeds (the paper used MATLAB's particle swarm).",
+        "- Stability is judged on the true plant: unstable iff max |eig(A + B K)| >= 1.", "",
+        "## Fraction of unstable closed loops (paper setting)", "",
+        paper_table(paper, plan),
+        f"Brackets: 95% Wilson intervals over {plan.sims} simulations. CSV: `table_paper.csv`.", "",
+        f"![Fig. 7]({figures['fig7']})", "",
+        "Figure 7: mean max |eig(A+BK)| (black, left axis) and mean sum |eig| (red, right axis) with 95% CIs; "
+        f"N={hz[0]} solid, N={hz[-1]} dashed.", "",
+        f"![Fig. 8]({figures['fig8']})", "", "Figure 8: the attacker's criterion (mean, 95% CI).", "",
+        f"![Fig. 9]({figures['fig9']})", "",
+        "Figure 9: inputs of the loops our attack destabilized, averaged over simulations (orange band: 95% CI of "
+        "the poisoned signal's mean); " + ", ".join(f"N={n}: delta_u={d:g}, {k} loops" for n, (d, k) in
+                                                    signals.items()) + ".", "",
+        "## Timing", "", _timing(paper, plan),
+        "Wall-clock of this run (all sweeps share 2 workers): " + ", ".join(f"{k} {v:.0f} s" for k, v in wall.items())
+        + " (only work not already in the JSONL files is timed).", "",
+        "## The paper's claims next to ours", "",
+        "| claim | paper | ours |", "|---|---|---|",
+        *[f"| {name} | {text} | {ours} |" for (name, text), ours in zip(PAPER_CLAIMS, claims)], "",
+        f"## Output poisoning (delta_y = {DELTA_Y:g} on the states, x_0 and inputs clean)", "",
+        remark_table(remark, plan),
+        f"{plan.remark_sims} simulations per row. The last learner column re-learns K with `bilevel.ddc.lqr_controller`"
+        " (no regularization, Clarabel's choice of Q) on the poisoned data our attack produced. CSV: "
+        "`table_remark.csv`.", "",
+        "## Other designs (max-min attack, N = 15)", "",
+        design_table(lr, plan),
+        f"{plan.design_sims} simulations per cell; xu poisons states and inputs with delta_x = delta_u; lqr-r is "
+        "De Persis–Tesi Thm 4 (Qx = I, R = I), stabilizing is Thm 3. CSV: `table_designs.csv`.", "",
+    ]
+    path = os.path.join(out_dir, "report.md")
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write("\n".join(lines))
+    return path
+
+
+def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool = False, seed: int = 0,
+                     progress: Callable[[str], None] | None = print) -> str:
+    """Run (or resume) every sweep, then write the tables (CSV + Markdown), figures 7-9 and report.md; returns its path."""
+    plan = make_plan(sims, quick)
+    os.makedirs(out_dir, exist_ok=True)
+    extra = {"de_popsize": plan.de_popsize, "de_maxiter": plan.de_maxiter, "starts": plan.starts}
+    sweeps = {"paper": (paper_tasks(plan, seed), ("horizon", "method", "delta_u")),
+              "remark": (remark_tasks(plan, seed), ("horizon", "method", "criterion")),
+              "designs": (design_tasks(plan, seed), ("design", "poison", "delta_u"))}
+    rows, summaries, wall = {}, {}, {}
+    for name, (tasks, fields) in sweeps.items():
+        t0 = time.perf_counter()
+        rows[name] = run_sweep(attack_task, [{**t, **extra} for t in tasks], os.path.join(out_dir, f"{name}.jsonl"),
+                               WORKERS, progress, f"willems-{name}")
+        wall[name] = time.perf_counter() - t0
+        summaries[name] = summarize(rows[name], fields)
+        write_csv(summaries[name], fields, os.path.join(out_dir, f"table_{name}.csv"))
+    tables = {"paper": paper_table, "remark": remark_table, "designs": design_table}
+    for name, fn in tables.items():
+        with open(os.path.join(out_dir, f"table_{name}.md"), "w", encoding="utf-8") as fh:
+            fh.write(fn(summaries[name], plan))
+    fig9, signals = figure_signals(rows["paper"], summaries["paper"], plan, out_dir)
+    figures = {"fig7": figure_eigenvalues(summaries["paper"], plan, out_dir),
+               "fig8": figure_objective(summaries["paper"], plan, out_dir), "fig9": fig9}
+    with open(os.path.join(out_dir, "plan.json"), "w", encoding="utf-8") as fh:
+        json.dump({**asdict(plan), "seed": seed, "reg": DEFAULT_REG}, fh, indent=2)
+    path = write_report(out_dir, plan, seed, summaries, figures, signals, wall)
+    if progress:
+        progress(f"wrote {path}")
+    return path
