@@ -6,20 +6,12 @@ import casadi as ca
 import pytest
 
 import bilevel as bl
+from bilevel.problems import registry
 
 
 def bard_511() -> bl.BilevelProblem:
     """Bard (1998), Practical Bilevel Optimization, Example 5.1.1 (also Dempe 2002): F* = -12 at (4, 4)."""
-    p = bl.BilevelProblem("bard-5.1.1")
-    x = p.upper_variable("x", lb=0)
-    y = p.lower_variable("y", lb=0)
-    p.minimize_upper(x - 4 * y)
-    p.minimize_lower(y)
-    p.lower_constraint(-x - y <= -3)
-    p.lower_constraint(-2 * x + y <= 0)
-    p.lower_constraint(2 * x + y <= 12)
-    p.lower_constraint(3 * x - 2 * y <= 4)
-    return p
+    return registry.get("bard1998-ex5.1.1")
 
 
 def projection_qp(maximize_lower: bool = False) -> bl.BilevelProblem:

@@ -10,19 +10,13 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InvalidData
+from ..mpcc import lower_triangular
 
 
 def symmetric_from_vech(name: str, n: int) -> tuple[ca.SX, ca.SX]:
     """A symmetric n x n SX matrix built from n(n+1)/2 free symbols; returns (matrix, symbols)."""
-    v = ca.SX.sym(name, n * (n + 1) // 2)
-    m = ca.SX(n, n)
-    k = 0
-    for j in range(n):
-        for i in range(j, n):
-            m[i, j] = v[k]
-            m[j, i] = v[k]
-            k += 1
-    return m, v
+    low, v = lower_triangular(name, n)
+    return low + low.T - ca.diag(ca.diag(low)), v
 
 
 def vech(matrix: np.ndarray) -> np.ndarray:
