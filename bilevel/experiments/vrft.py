@@ -16,7 +16,7 @@ from ..attacks.budget import Budget
 from ..attacks.vrft import VRFTAttack, flexible_transmission_setting, scenario_data
 from ..attacks.vrft_methods import ATTACKS
 from .stats import mean_interval, wilson_interval
-from .sweep import run_sweep
+from .sweep import read_rows, run_sweep
 
 EPS_U = (0.0, 0.1, 0.2)
 EPS_Y = (0.01, 0.023, 0.037, 0.05, 0.057)
@@ -155,9 +155,12 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
     timings: dict[str, tuple[int, float]] = {}
     for name, n, convention, objective, method in plan:
         tasks = cell_tasks(n, seed, convention, objective, method)
+        path = os.path.join(out_dir, f"{name}.jsonl")
+        before = len({r["key"] for r in read_rows(path)} & {t["key"] for t in tasks})
         t0 = time.perf_counter()
-        runs[name] = run_sweep(attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), workers, progress, name)
-        timings[name] = (len(tasks), time.perf_counter() - t0)
+        runs[name] = run_sweep(attack_task, tasks, path, workers, progress, name)
+        if len(tasks) > before:
+            timings[name] = (len(tasks) - before, time.perf_counter() - t0)
     summaries = {name: summarize(rows) for name, rows in runs.items()}
     for name, s in summaries.items():
         write_csv(s, os.path.join(out_dir, f"table_{name}.csv"))
