@@ -22,7 +22,7 @@ from .vrft import State, VRFTAttack
 
 ARMIJO = 1e-4
 WINDOW = 5
-DEFAULT_STEPS = (1.0, 0.1)
+DEFAULT_STEPS = (1.0,)
 
 
 @dataclass
@@ -149,10 +149,29 @@ def input_step(atk: VRFTAttack, a_y: np.ndarray, a_u0: np.ndarray | None = None,
     return a, s
 
 
-def _start_points(atk: VRFTAttack, starts: int, rng: np.random.Generator, zero_start: bool) -> list[np.ndarray]:
-    """a_y starts: zero first (unless zero_start is False), then seeded random points on the budget boundary."""
+def conditioning_start(atk: VRFTAttack, iters: int = 10) -> np.ndarray:
+    """a_y that makes the poisoned regressor ill-conditioned: projected descent on sigma_min(Phi(y + a_y)).
+
+    The learner's loss at theta' grows when Phi'^T Phi' nearly loses rank (theta' then moves far for a
+    small a_u), so the max-min ascent starts from the a_y that shrinks Phi's smallest singular value
+    (gradient sum_i w_i T_i^T l for its singular pair (l, w)), one budget radius per step.
+    """
+    reg = atk.setting.regressor
     proj = atk.budget_y.projection(atk.y)
-    points = [np.zeros(atk.N)] if zero_start else []
+    a = np.zeros(atk.N)
+    for _ in range(iters):
+        U, _, Vt = np.linalg.svd(atk.phi0 + reg(a), full_matrices=False)
+        g = reg.adjoint(np.outer(U[:, -1], Vt[-1]))
+        a = proj(a - _scaled(g, atk.delta_y, atk.budget_y.order))
+    return a
+
+
+def _start_points(atk: VRFTAttack, starts: int, rng: np.random.Generator, first: str) -> list[np.ndarray]:
+    """a_y starts: `first` ("conditioning", "zero" or "random"), then seeded random points on the budget boundary."""
+    if first not in ("conditioning", "zero", "random"):
+        raise ModelError(f"first start {first!r} is not 'conditioning', 'zero' or 'random'")
+    proj = atk.budget_y.projection(atk.y)
+    points = {"conditioning": [conditioning_start(atk)], "zero": [np.zeros(atk.N)], "random": []}[first]
     while len(points) < starts:
         z = rng.standard_normal(atk.N)
         points.append(proj(z * (atk.delta_y / max(np.linalg.norm(z, atk.budget_y.order), 1e-300))))
@@ -160,13 +179,13 @@ def _start_points(atk: VRFTAttack, starts: int, rng: np.random.Generator, zero_s
 
 
 def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int = 60,
-                       tol: float = 1e-4, zero_start: bool = True,
+                       tol: float = 1e-4, first: str = "conditioning",
                        steps: tuple[float, ...] = DEFAULT_STEPS) -> AttackResult:
     """The paper's Algorithm 1 with an exact a_u step and line-searched projected ascent on a_y.
 
-    V(a_y) is highly multimodal: every start is followed from each initial step in `steps` (fractions
-    of the budget radius; small first steps follow the gradient path further before committing to a
-    basin), and the best end point is kept.
+    V(a_y) is multimodal: the first start makes the poisoned regressor ill-conditioned (see
+    conditioning_start), further starts are seeded random points; every start is followed from each
+    initial step in `steps` (fractions of the budget radius) and the best end point is kept.
     """
     if atk.objective == "destabilize":
         raise ModelError("the alternating attack needs a quadratic objective; use attack_joint for 'destabilize'")
@@ -175,7 +194,7 @@ def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter
     order = atk.budget_y.order
     best, total_it, total_ev, status = None, 0, 0, "converged"
     with threadpool_limits(1):
-        runs = [(ay0, step0) for ay0 in _start_points(atk, starts, np.random.default_rng(seed), zero_start)
+        runs = [(ay0, step0) for ay0 in _start_points(atk, starts, np.random.default_rng(seed), first)
                 for step0 in steps]
         for k, (ay0, step0) in enumerate(runs):
             history: list[dict[str, float]] = []
@@ -199,7 +218,7 @@ def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter
 
 
 def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int = 200,
-                 tol: float = 1e-4, zero_start: bool = True) -> AttackResult:
+                 tol: float = 1e-4, first: str = "zero") -> AttackResult:
     """Joint projected hypergradient ascent on (a_u, a_y), each block scaled to its budget (multistart)."""
     t0 = time.perf_counter()
     N = atk.N
@@ -218,7 +237,7 @@ def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int 
 
     best, total_it, total_ev = None, 0, 0
     with threadpool_limits(1):
-        for ay0 in _start_points(atk, starts, np.random.default_rng(seed), zero_start):
+        for ay0 in _start_points(atk, starts, np.random.default_rng(seed), first):
             history: list[dict[str, float]] = []
             _, fx, s, it, ev, conv = projected_ascent(value, direction, project, np.concatenate([np.zeros(N), ay0]),
                                                       max_iter, tol, history)

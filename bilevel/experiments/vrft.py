@@ -63,7 +63,7 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
     if method == "white-noise":
         res = ATTACKS[method](atk, seed=task["seed"])
     else:
-        res = ATTACKS[method](atk, seed=task["seed"], zero_start=task["scenario"] == "B")
+        res = ATTACKS[method](atk, seed=task["seed"])
     return {**res.summary(), "theta_poisoned": res.theta_poisoned.tolist()}
 
 

@@ -30,7 +30,7 @@ def _instance(scenario: str, objective: str, seed: int, eps_u: float = 0.1, eps_
             "seed": sim_seeds(seed, 1)[0]}
     atk = make_attack(task)
     method = "joint" if objective == "destabilize" else "alternating"
-    return atk, ATTACKS[method](atk, seed=task["seed"], zero_start=scenario == "B")
+    return atk, ATTACKS[method](atk, seed=task["seed"])
 
 
 def figure_data(seed: int, out_dir: str) -> str:
