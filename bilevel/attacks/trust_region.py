@@ -41,13 +41,14 @@ def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, delta: float) -> np
     # the root the iterates increase monotonically to it (More & Sorensen 1983).
     c2 = beta ** 2
     mu = lo + max(tiny, 1e-300)
-    if float(np.sqrt(np.sum(c2 / (mu - lam) ** 2))) < delta:  # root left of mu: only in the near-hard case
+    if float(np.sqrt(c2 @ (1.0 / (mu - lam) ** 2))) < delta:  # root left of mu: only in the near-hard case
         return v_of(mu) * (delta / max(float(np.linalg.norm(v_of(mu))), 1e-300))
     for _ in range(100):
-        d = mu - lam
-        norm2 = float(np.sum(c2 / d ** 2))
+        inv = 1.0 / (mu - lam)
+        inv2 = inv * inv
+        norm2 = float(c2 @ inv2)
         norm = np.sqrt(norm2)
-        dnorm2 = -2.0 * float(np.sum(c2 / d ** 3))
+        dnorm2 = -2.0 * float(c2 @ (inv2 * inv))
         psi = 1.0 / delta - 1.0 / norm
         dpsi = 0.5 * dnorm2 / (norm2 * norm)
         step = -psi / dpsi

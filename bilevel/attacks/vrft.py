@@ -148,7 +148,7 @@ class VRFTAttack:
         phi = self.phi0 + reg(a_y) if np.any(a_y) else self.phi0
         target = self.t0 + reg.targets(a_u) if np.any(a_u) else self.t0
         Q, R = np.linalg.qr(phi)
-        theta = scipy.linalg.solve_triangular(R, Q.T @ target)
+        theta = scipy.linalg.solve_triangular(R, Q.T @ target, check_finite=False)
         return State(a_u, a_y, phi, target, theta, R, Q)
 
     def targets_adjoint(self, g: np.ndarray) -> np.ndarray:
@@ -182,7 +182,7 @@ class VRFTAttack:
         With w = (Phi'^T Phi')^{-1} dJ/dtheta and r' = t' - Phi' theta':
         dJ/da_u = targets^T (Phi' w),  dJ/da_y = sum_i T_i^T (w_i r' - theta'_i Phi' w).
         """
-        w = scipy.linalg.cho_solve((s.R, False), self.grad_theta(s.theta))  # (R'R)^{-1} g, R'R = Phi'^T Phi'
+        w = scipy.linalg.cho_solve((s.R, False), self.grad_theta(s.theta), check_finite=False)  # (R'R)^{-1} g, R'R = Phi'^T Phi'
         pw = s.phi @ w
         residual = s.target - s.phi @ s.theta
         g_y = self.setting.regressor.adjoint(np.outer(residual, w) - np.outer(pw, s.theta))
@@ -203,7 +203,7 @@ class VRFTAttack:
             return np.zeros(self.N), s0
         reg = self.setting.regressor
         if reg.prefilter is None:  # targets(a) = a[:n]: W = [Q; 0] has orthonormal columns already
-            S = scipy.linalg.solve_triangular(s0.R, np.eye(s0.R.shape[0]))
+            S = scipy.linalg.solve_triangular(s0.R, np.eye(s0.R.shape[0]), check_finite=False)
             B = np.vstack([s0.Q, np.zeros((self.N - self.n, s0.Q.shape[1]))])
         else:
             W = np.column_stack([self.targets_adjoint(s0.Q[:, j]) for j in range(s0.Q.shape[1])])

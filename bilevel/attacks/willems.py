@@ -14,7 +14,12 @@ lower level does not depend on x (U poisoning of the lqr and stabilizing designs
 Ascent: projected gradient steps on the linf box (exact clipping, bilevel.solvers.projections.Box)
 with a Barzilai–Borwein trial step and Armijo backtracking along the projection arc, from the clean
 data and from uniform random points of the box. For the max-min criterion a point whose identified
-closed loop is unstable has phi = +inf (the paper's convention): the ascent stops there.
+closed loop is unstable has phi = +inf (the paper's convention): the ascent stops there; with
+stop_when_unstable (default) the eigenvalue attack stops there too, since instability is its goal.
+
+Baselines: differential evolution (scipy) on the input poisoning with the same box, criterion and
+stopping rule; random signs at the budget; and the generic route, bilevel.solve on the registered
+problem (KKT reformulation with the LMI's PSD complementarity pair, IPOPT or the relaxation sequence).
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from ..lower import LowerSolution, build_lower
 from ..lower.base import unvech, vech
 from ..mpcc import vech_sx
 from ..problems.willems import WillemsAttack, criterion_values
+from ..solvers import solve
 from ..solvers.projections import Box
 
 ARMIJO = 1e-4
@@ -93,7 +99,8 @@ class SDPHypergradient:
         self._sizes = [int(y.numel()), int(kkt.mu.numel())] + [int(v.numel()) for v in kkt.Z_vech]
         self._psd_dims = [int(m.size1()) for m in psd]
         self._residual = ca.Function("kkt_residual", [x, w], [residual, ca.jacobian(residual, w)])
-        self._residual_x = ca.Function("kkt_residual_x", [x, w], [ca.jacobian(residual, x)])
+        self._residual_expr = (x, w, residual)
+        self._residual_x: ca.Function | None = None
         F = p.upper_objective.expr
         self._upper = ca.Function("attacker", [x, y], [F, ca.gradient(F, x), ca.gradient(F, y), attack.gain,
                                                        attack.closed_loop])
@@ -175,6 +182,9 @@ class SDPHypergradient:
         if self.lower_fixed:
             return ev.grad_x
         w = self._pack(ev.lower)
+        if self._residual_x is None:
+            x, w_sym, residual = self._residual_expr
+            self._residual_x = ca.Function("kkt_residual_x", [x, w_sym], [ca.jacobian(residual, x)])
         jac = np.asarray(self._residual(ev.x, w)[1])
         jac_x = np.asarray(self._residual_x(ev.x, w))
         rhs = np.concatenate([ev.grad_y, np.zeros(jac.shape[0] - ev.grad_y.size)])
@@ -400,8 +410,6 @@ def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> 
     The returned point is clipped to the budget box and the learner is re-solved there independently,
     so gain and eigenvalues are the learner's true response; the solve's status and certificate are kept.
     """
-    from ..solvers import solve
-
     t0 = time.perf_counter()
     res = solve(attack.problem, method=method, **options)
     if "Du" not in res.x:

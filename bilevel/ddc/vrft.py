@@ -21,10 +21,11 @@ from typing import Literal
 import control
 import numpy as np
 import scipy.linalg
+import scipy.signal
 from numpy.typing import ArrayLike
 
 from bilevel.errors import InvalidData, RankDeficientRegressor, UnknownOption
-from bilevel.ddc.bases import Basis, controller_tf
+from bilevel.ddc.bases import Basis, basis_polynomials, controller_tf
 from bilevel.ddc.operators import LTIOperator, virtual_error_operator
 from bilevel.ddc.systems import SystemLike, as_tf
 
@@ -60,12 +61,25 @@ def _pair(u: ArrayLike, y: ArrayLike, suffix: str = "") -> tuple[np.ndarray, np.
 
 @dataclass(frozen=True)
 class VRFTRegressor:
-    """The linear maps of the VRFT regression: y -> Phi(y), u -> targets, and Phi's adjoint."""
+    """The linear maps of the VRFT regression: y -> Phi(y), u -> targets, and Phi's adjoint.
+
+    The basis is applied over its common denominator D: one all-pole filter 1/D, then each
+    numerator as a short FIR on the same signal (a lag matrix times the numerator coefficients).
+    """
 
     error: LTIOperator
     prefilter: LTIOperator | None
     basis: tuple[LTIOperator, ...]
     drop: int
+    basis_num: np.ndarray
+    basis_den: np.ndarray
+
+    def _lags(self, w: np.ndarray) -> np.ndarray:
+        n, width = w.size, self.basis_num.shape[1]
+        lag = np.zeros((n, width))
+        for j in range(width):
+            lag[j:, j] = w[: n - j]
+        return lag
 
     @property
     def n_params(self) -> int:
@@ -84,9 +98,8 @@ class VRFTRegressor:
     def __call__(self, y: ArrayLike) -> np.ndarray:
         """Phi(y), shape (rows, nk); linear in y."""
         y = _signal("y", y)
-        e = self.error_signal(y)
-        phi = np.column_stack([beta.apply(e) for beta in self.basis])
-        return phi[: self.rows(y.size)]
+        w = scipy.signal.lfilter([1.0], self.basis_den, self.error_signal(y))
+        return (self._lags(w) @ self.basis_num.T)[: self.rows(y.size)]
 
     def targets(self, u: ArrayLike) -> np.ndarray:
         """The regressed targets: u (or L u) on the regression rows."""
@@ -99,8 +112,12 @@ class VRFTRegressor:
         g = np.asarray(g, dtype=float)
         if g.ndim != 2 or g.shape[1] != self.n_params:
             raise InvalidData(f"g must have shape (rows, {self.n_params}), got {g.shape}")
-        padded = np.concatenate([g, np.zeros((self.drop, g.shape[1]))], axis=0)
-        back = sum(beta.adjoint(padded[:, i]) for i, beta in enumerate(self.basis))
+        h = np.concatenate([g, np.zeros((self.drop, g.shape[1]))], axis=0) @ self.basis_num
+        n = h.shape[0]
+        fir = np.zeros(n)
+        for j in range(h.shape[1]):  # adjoint of the FIR part: sum_j b_j g_{t+j}
+            fir[: n - j] += h[j:, j]
+        back = scipy.signal.lfilter([1.0], self.basis_den, fir[::-1])[::-1]
         if self.prefilter is not None:
             back = self.prefilter.adjoint(back)
         return self.error.adjoint(back)
@@ -131,7 +148,12 @@ def vrft_regressor(
         prefilter = None
     pre = None if prefilter is None else LTIOperator(prefilter)
     drop = error.advance if boundary == "drop" else 0
-    return VRFTRegressor(error, pre, tuple(LTIOperator(beta) for beta in basis), drop)
+    nums, den = basis_polynomials(basis)
+    if nums.shape[1] > den.size:
+        raise InvalidData("a basis function is improper (numerator degree above denominator degree); "
+                          "only proper controller basis functions can be applied causally")
+    nums = np.hstack([np.zeros((nums.shape[0], den.size - nums.shape[1])), nums])
+    return VRFTRegressor(error, pre, tuple(LTIOperator(beta) for beta in basis), drop, nums / den[0], den / den[0])
 
 
 def normal_equations(phi: ArrayLike, target: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
