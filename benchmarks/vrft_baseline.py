@@ -26,8 +26,7 @@ def dccp_input_step(atk: VRFTAttack, a_y: np.ndarray, seed: int) -> np.ndarray:
     rows = atk.n
     theta = pinv @ (s.target + a[:rows])
     prob = cp.Problem(cp.Maximize(cp.sum_squares(atk.t0 - atk.phi0 @ theta) / rows), [cp.norm(a, 2) <= atk.delta_u])
-    np.random.seed(seed)  # dccp draws its random initial point from numpy's global generator
-    prob.solve(method="dccp", solver=cp.CLARABEL)
+    prob.solve(method="dccp", solver=cp.CLARABEL, seed=seed)  # seeded random initial point: reproducible
     return np.zeros(atk.N) if a.value is None else np.asarray(a.value).ravel()
 
 
