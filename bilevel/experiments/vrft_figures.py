@@ -160,9 +160,11 @@ def report(summaries: dict, figures: dict[str, str], sims: int, side: int,
         "The attacker poisons the data set the learner receives, with budgets relative to those signals.", "",
         "**Attack.** Our max-min attack is the paper's Algorithm 1 made exact in a_u: the a_u-step is a "
         "6-dimensional trust-region subproblem solved globally (eigendecomposition + secular equation), and "
-        "a_y follows projected hypergradient ascent with Armijo backtracking on V(a_y) = max_a_u A. "
-        "Scenario A has deterministic data, so its only randomness is the attack's seeded random start of "
-        "a_y (scenario B starts at a_y = 0); the paper does not say where its scenario-A randomness comes from.",
+        "a_y follows projected hypergradient ascent with Armijo backtracking on V(a_y) = max_a_u A, started "
+        "from an a_y that makes the poisoned regressor ill-conditioned (ten projected steps on "
+        "sigma_min(Phi(y + a_y))). The attack is deterministic, and so are scenario A's data: every "
+        "scenario-A simulation is the same instance, so its cells are 0% or 100% (the paper does not say "
+        "what varies between its 512 scenario-A simulations).",
         "",
         f"Median time per max-min attack: {np.median(times):.1f} ms (one core per worker, {workers} workers).", "",
         "Wall time of the attacks computed by this invocation (finished rows of earlier runs are reused): "
