@@ -159,7 +159,7 @@ class SDPHypergradient:
             sol = self.lower_level.solve(x)
         sol, res = self.polish(x, sol)
         self.lower_solves += 1
-        if res > KKT_TOL:
+        if res > KKT_TOL and not self.lower_fixed:  # a fixed response needs no implicit differentiation
             raise SolverFailed(f"the learner's SDP at this poisoning has KKT residual {res:.1e} > {KKT_TOL:g} after "
                                "Newton polishing (no strictly complementary solution found); the hypergradient "
                                "is not defined there — lower the budget or raise reg")

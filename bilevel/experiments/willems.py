@@ -70,7 +70,8 @@ def make_plan(sims: int, quick: bool) -> Plan:
     if quick:
         return Plan(min(sims, 4), (0.2, 0.6, 1.25), (15, 50), 5, 40, 4, 1, (15,), 1, (1e-3, 1e-1))
     return Plan(sims, (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 1.0, 1.25), (15, 50), 5, 300, 8,
-                max(2, min(sims, 32)), (15, 50), max(2, min(sims, 16)), (1e-4, 1e-3, 1e-2, 1e-1, 1.0))
+                max(2, min(sims, 32)), (15, 50), max(2, min(sims, 16)),
+                (1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0))
 
 
 def sim_seeds(seed: int, sims: int) -> list[tuple[int, int]]:
@@ -101,11 +102,11 @@ def remark_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
 
 
 def design_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
-    """Max-min attack on the three designs, inputs only or states and inputs (delta_x = delta_u), N = 15."""
+    """Both criteria on the three designs, inputs only or states and inputs (delta_x = delta_u), N = 15."""
     return [_task("designs", i, s, "hypergradient", horizon=15, delta_u=d, delta_x=d if poison == "xu" else 0.0,
-                  poison=poison, design=design, criterion="maxmin")
-            for design in ("lqr", "lqr-r", "stabilizing") for poison in ("u", "xu") for d in plan.design_deltas
-            for i, s in enumerate(sim_seeds(seed, plan.design_sims))]
+                  poison=poison, design=design, criterion=criterion)
+            for design in ("lqr", "lqr-r", "stabilizing") for poison in ("u", "xu") for criterion in ("maxmin", "eigen")
+            for d in plan.design_deltas for i, s in enumerate(sim_seeds(seed, plan.design_sims))]
 
 
 def _reference_radius(setting: WillemsSetting, x: np.ndarray, u: np.ndarray) -> float:
@@ -201,6 +202,20 @@ def paper_table(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
     return "\n".join(lines) + "\n"
 
 
+def transfer_table(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
+    """Markdown: % unstable when bilevel.ddc.lqr_controller (reg = 0, Clarabel's Q) learns from our poisoned data."""
+    head = " | ".join(f"N={n}: regularized learner | N={n}: bilevel.ddc learner" for n in plan.horizons)
+    lines = [f"| delta_u | {head} |", "|---" * (1 + 2 * len(plan.horizons)) + "|"]
+    for d in plan.deltas:
+        cells = []
+        for n in plan.horizons:
+            c = summary.get((n, "hypergradient", d))
+            cells += ["-", "-"] if c is None or not c["n"] else [
+                f"{100 * c['rate']:.1f}%", f"{100 * c['reference_rate']:.1f}% of {c['reference_n']}"]
+        lines.append(f"| {d:g} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def remark_table(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
     """Markdown: % unstable at delta_y = 1e-3 per N and attack, with the unregularized learner's rate."""
     lines = ["| N | attack | criterion | unstable (regularized learner) | unstable (bilevel.ddc learner, reg = 0) "
@@ -213,16 +228,17 @@ def remark_table(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
 
 
 def design_table(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
-    """Markdown: % unstable per design / poisoning (rows) and budget (columns), max-min attack, N = 15."""
-    lines = ["| design | poisoned | " + " | ".join(f"delta = {d:g}" for d in plan.design_deltas) + " |",
-             "|---" * (2 + len(plan.design_deltas)) + "|"]
+    """Markdown: % unstable per design / poisoning / criterion (rows) and budget (columns), our attack, N = 15."""
+    lines = ["| design | poisoned | criterion | " + " | ".join(f"delta = {d:g}" for d in plan.design_deltas) + " |",
+             "|---" * (3 + len(plan.design_deltas)) + "|"]
     for design in ("lqr", "lqr-r", "stabilizing"):
         for poison in ("u", "xu"):
-            cells = []
-            for d in plan.design_deltas:
-                c = summary.get((design, poison, d))
-                cells.append("-" if c is None else _rate(c) + (f" ({c['errors']} failed)" if c["errors"] else ""))
-            lines.append(f"| {design} | {poison} | " + " | ".join(cells) + " |")
+            for criterion in ("maxmin", "eigen"):
+                cells = []
+                for d in plan.design_deltas:
+                    c = summary.get((design, poison, criterion, d))
+                    cells.append("-" if c is None else _rate(c) + (f" ({c['errors']} failed)" if c["errors"] else ""))
+                lines.append(f"| {design} | {poison} | {criterion} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -242,8 +258,8 @@ def _series(summary: dict[tuple, dict[str, float]], n: int, method: str, deltas:
 
 
 def figure_eigenvalues(summary: dict[tuple, dict[str, float]], plan: Plan, out_dir: str) -> str:
-    """Fig. 7: mean max |eig(A+BK)| (black, left) and mean sum |eig| (red, right) vs delta_u; N=15 solid, N=50 dashed."""
-    fig = Figure(figsize=(11, 4))
+    """Fig. 7: mean max |eig(A+BK)| (black, left) and mean sum |eig| (red, right) vs delta_u (N=15 solid, 50 dashed)."""
+    fig = Figure(figsize=(12, 4), layout="constrained")
     for ax, method in zip(fig.subplots(1, 2, sharey=True), ("hypergradient", "de")):
         twin = ax.twinx()
         for n, style in zip(plan.horizons, ("-", "--")):
@@ -326,7 +342,8 @@ def _first(summary: dict[tuple, dict[str, float]], n: int, method: str, deltas: 
 
 
 def _timing(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
-    lines = ["| N | ours: median s / attack | DE: median s / attack | DE / ours | ours: CPU s (all) | DE: CPU s (all) |",
+    lines = ["| N | ours: median s / attack | DE: median s / attack | DE / ours | ours: CPU s (all) "
+             "| DE: CPU s (all) |",
              "|---|---|---|---|---|---|"]
     for n in plan.horizons:
         hg = [c for (m_n, m, _), c in summary.items() if m_n == n and m == "hypergradient"]
@@ -356,13 +373,13 @@ def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict]
         if a and b and a["n"] and b["n"]:
             more_data.append(f"{d:g}: {100 * a['rate']:.0f}% vs {100 * b['rate']:.0f}%")
     lr = summaries["designs"]
-    lqr_r = ", ".join(f"delta={d:g}: {_rate(lr.get(('lqr-r', 'u', d)))}" for d in plan.design_deltas)
+    lqr_r = ", ".join(f"delta={d:g}: {_rate(lr.get(('lqr-r', 'u', 'eigen', d)))}" for d in plan.design_deltas)
     claims = [
         f"ours: N={hz[0]}: first unstable loop at delta_u = {first[(hz[0], 'hypergradient', 1e-9)]}, >= 50% at "
         f"{first[(hz[0], 'hypergradient', 0.5)]} (DE: {first[(hz[0], 'de', 1e-9)]}, {first[(hz[0], 'de', 0.5)]}); "
         f"N={hz[-1]}: {first[(hz[-1], 'hypergradient', 1e-9)]}, {first[(hz[-1], 'hypergradient', 0.5)]} "
-        f"(DE: {first[(hz[-1], 'de', 1e-9)]}, {first[(hz[-1], 'de', 0.5)]}). With u ~ N(0, 1) these budgets are "
-        f"not small for the appendix SDP; they are for the R-term design (Thm 4): {lqr_r}.",
+        f"(DE: {first[(hz[-1], 'de', 1e-9)]}, {first[(hz[-1], 'de', 0.5)]}); for scale, u ~ N(0, 1). The R-term "
+        f"design (Thm 4, eigenvalue attack, N=15): {lqr_r}.",
         f"ours (% unstable, N={hz[0]} vs N={hz[-1]}, our attack): " + "; ".join(more_data) + ".",
         f"ours (max-min attack on the states, delta_y = 1e-3, x_0 clean): {remark_rates}; see the table below.",
     ]
@@ -394,6 +411,10 @@ def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict]
         "Figure 9: inputs of the loops our attack destabilized, averaged over simulations (orange band: 95% CI of "
         "the poisoned signal's mean); " + ", ".join(f"N={n}: delta_u={d:g}, {k} loops" for n, (d, k) in
                                                     signals.items()) + ".", "",
+        "## Transfer to the unregularized learner", "",
+        "Our poisoning (computed against the minimum-norm selection) handed to `bilevel.ddc.lqr_controller("
+        "input_cost=False)`, whose Q is whatever Clarabel returns on the optimal face:", "",
+        transfer_table(paper, plan), "",
         "## Timing", "", _timing(paper, plan),
         "Wall-clock of this run (all sweeps share 2 workers): " + ", ".join(f"{k} {v:.0f} s" for k, v in wall.items())
         + " (only work not already in the JSONL files is timed).", "",
@@ -405,7 +426,7 @@ def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict]
         f"{plan.remark_sims} simulations per row. The last learner column re-learns K with `bilevel.ddc.lqr_controller`"
         " (no regularization, Clarabel's choice of Q) on the poisoned data our attack produced. CSV: "
         "`table_remark.csv`.", "",
-        "## Other designs (max-min attack, N = 15)", "",
+        "## Other designs (our attack, N = 15)", "",
         design_table(lr, plan),
         f"{plan.design_sims} simulations per cell; xu poisons states and inputs with delta_x = delta_u; lqr-r is "
         "De Persis–Tesi Thm 4 (Qx = I, R = I), stabilizing is Thm 3. CSV: `table_designs.csv`.", "",
@@ -418,13 +439,13 @@ def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict]
 
 def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool = False, seed: int = 0,
                      progress: Callable[[str], None] | None = print) -> str:
-    """Run (or resume) every sweep, then write the tables (CSV + Markdown), figures 7-9 and report.md; returns its path."""
+    """Run (or resume) every sweep, then write tables (CSV + Markdown), figures 7-9 and report.md; returns its path."""
     plan = make_plan(sims, quick)
     os.makedirs(out_dir, exist_ok=True)
     extra = {"de_popsize": plan.de_popsize, "de_maxiter": plan.de_maxiter, "starts": plan.starts}
     sweeps = {"paper": (paper_tasks(plan, seed), ("horizon", "method", "delta_u")),
               "remark": (remark_tasks(plan, seed), ("horizon", "method", "criterion")),
-              "designs": (design_tasks(plan, seed), ("design", "poison", "delta_u"))}
+              "designs": (design_tasks(plan, seed), ("design", "poison", "criterion", "delta_u"))}
     rows, summaries, wall = {}, {}, {}
     for name, (tasks, fields) in sweeps.items():
         t0 = time.perf_counter()

@@ -1,0 +1,252 @@
+"""Poisoning attacks on the De Persis–Tesi learners (paper appendix B, Willems' lemma) as bilevel problems.
+
+Upper level (attacker): perturbations Du (m x T) of the inputs and, if poisoned, Dx of the states,
+in linf boxes |Du| <= delta_u, |Dx| <= delta_x; it maximizes the max-min criterion (closed-loop H2
+cost trace((Qx + K'RK) W), W = Acl W Acl' + I) or the eigenvalue criterion log det(Acl Acl'), with
+Acl = A_id + B_id K and [B_id A_id] = X1 [U0; X0]^+ identified from the *clean* data (the attacker
+does not know (A, B)). Lower level (learner): the De Persis–Tesi SDP on the poisoned data, with
+lower variable Q (T x n), S = X0' Q (symmetric by equality constraints) and
+
+    lqr          min tr(Qx S)            s.t. [[S - I, X1' Q], [Q' X1'^T, S]] >= 0      (paper appendix)
+    lqr-r        min tr(Qx S) + tr(Xr)   s.t. the same LMI and [[Xr, R^1/2 U0' Q], [., S]] >= 0  (DPT Thm 4)
+    stabilizing  min tr(S)               s.t. [[S - I, X1' Q], [Q' X1'^T, S - I]] >= 0  (DPT Thm 3)
+
+each plus reg/2 ||Q||_F^2, and K = U0' Q S^{-1}. Why reg: the SDP sees Q only through X0'Q, X1'Q
+(and U0'Q for lqr-r); on poisoned data the optimal set in Q is an affine family whose gains
+U0' Q S^{-1} fill all of R^{m x n} (lqr, stabilizing), so "the learned K" is not a function of the
+data. The Tikhonov term selects the minimum-norm optimal Q as reg -> 0; the attacker's criteria
+depend on Q only through K.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import scipy.linalg
+
+from ..ddc.data import batch_reactor_data
+from ..ddc.depersis_tesi import check_persistency, state_data
+from ..errors import InvalidData, ModelError
+from ..model import BilevelProblem
+from .registry import register
+
+DESIGNS = ("lqr", "lqr-r", "stabilizing")
+POISONS = ("u", "x", "xu")
+OBJECTIVES = ("maxmin", "eigen")
+DEFAULT_REG = 1e-8
+"""Tikhonov weight on ||Q||_F^2 / 2: small enough that clean-data gains match the unregularized SDP to 1e-7."""
+
+SOURCE = ("Russo & Proutiere, Poisoning attacks against data-driven control methods (extended), appendix "
+          "'Attacks on methods based on Willems lemma'; De Persis & Tesi, IEEE TAC 2020, Thms 3-4")
+
+
+@dataclass(frozen=True)
+class WillemsSetting:
+    """Parameters of one attack instance (data are the batch reactor under u ~ N(0, 1), x_0 = 0)."""
+
+    objective: str = "eigen"
+    horizon: int = 15
+    seed: int = 0
+    delta_u: float = 0.1
+    delta_x: float = 0.0
+    poison: str = "u"
+    design: str = "lqr"
+    qx: tuple[tuple[float, ...], ...] | None = None
+    r: tuple[tuple[float, ...], ...] | None = None
+    reg: float = DEFAULT_REG
+    poison_x0: bool = False
+
+    def __post_init__(self) -> None:
+        for name, value, allowed in (("objective", self.objective, OBJECTIVES), ("design", self.design, DESIGNS),
+                                     ("poison", self.poison, POISONS)):
+            if value not in allowed:
+                raise ModelError(f"willems: {name}={value!r} is not one of {', '.join(allowed)}")
+        if self.delta_u < 0 or self.delta_x < 0 or not np.isfinite(self.delta_u + self.delta_x):
+            raise ModelError(f"willems: budgets must be finite and >= 0, got delta_u={self.delta_u}, "
+                             f"delta_x={self.delta_x}")
+        if self.reg < 0:
+            raise ModelError(f"willems: reg must be >= 0, got {self.reg}")
+        if "u" not in self.poison and self.delta_u > 0:
+            raise ModelError(f"willems: poison={self.poison!r} leaves U clean but delta_u={self.delta_u}; "
+                             "set delta_u=0 or poison='u'/'xu'")
+        if "x" in self.poison and self.delta_x <= 0:
+            raise ModelError(f"willems: poison={self.poison!r} needs delta_x > 0")
+
+
+def identified_model(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(A, B) from [B A] = X1 [U0; X0]^+ (De Persis–Tesi Thm 1; exact on noise-free, persistently exciting data)."""
+    data = state_data(x, u)
+    check_persistency(data)
+    m = data.u0.shape[0]
+    ba = data.x1 @ np.linalg.pinv(np.vstack([data.u0, data.x0]))
+    return ba[:, m:], ba[:, :m]
+
+
+def _weight(value: Any, size: int, what: str) -> np.ndarray:
+    w = np.eye(size) if value is None else np.asarray(value, dtype=float)
+    if w.shape != (size, size) or not np.allclose(w, w.T) or np.linalg.eigvalsh(w).min() <= 0:
+        raise ModelError(f"willems: {what} must be a symmetric positive definite {size} x {size} matrix")
+    return w
+
+
+def _vech_matrix(v: ca.SX, n: int) -> ca.SX:
+    m = ca.SX(n, n)
+    k = 0
+    for j in range(n):
+        for i in range(j, n):
+            m[i, j] = v[k]
+            m[j, i] = v[k]
+            k += 1
+    return m
+
+
+def criterion_values(closed_loop: np.ndarray, gain: np.ndarray, objective: str, qx: np.ndarray,
+                     r_cost: np.ndarray) -> np.ndarray:
+    """The attacker's criterion for batches Acl (..., n, n), K (..., m, n), numerically (same as the problem's)."""
+    acl, k = np.asarray(closed_loop, dtype=float), np.asarray(gain, dtype=float)
+    if objective == "eigen":
+        return 2.0 * np.linalg.slogdet(acl)[1]
+    n = acl.shape[-1]
+    kron = np.einsum("...ij,...kl->...ikjl", acl, acl).reshape(acl.shape[:-2] + (n * n, n * n))
+    rhs = np.broadcast_to(np.eye(n).reshape(n * n), kron.shape[:-1])
+    w = np.linalg.solve(np.eye(n * n) - kron, rhs[..., None])[..., 0].reshape(acl.shape[:-2] + (n, n))
+    cost = qx + np.swapaxes(k, -1, -2) @ r_cost @ k
+    values = np.einsum("...ij,...ji->...", cost, w)
+    radius = np.max(np.abs(np.linalg.eigvals(acl)), axis=-1)
+    return np.where(radius >= 1.0, np.inf, values)
+
+
+def _gramian_expr(acl: ca.SX) -> ca.SX:
+    """W with W = Acl W Acl' + I, by the Kronecker linear system (valid where Acl is Schur stable)."""
+    n = int(acl.size1())
+    vec_w = ca.solve(ca.SX.eye(n * n) - ca.kron(acl, acl), ca.vec(ca.SX.eye(n)))
+    return ca.reshape(vec_w, n, n)
+
+
+@dataclass
+class WillemsAttack:
+    """A built instance: clean data, identified model, the BilevelProblem, its gain K and closed loop A_id + B_id K
+    (CasADi expressions of the upper and lower variables) and the flat upper vector `upper` = (vec Du, vec Dx)."""
+
+    setting: WillemsSetting
+    x: np.ndarray
+    u: np.ndarray
+    a_id: np.ndarray
+    b_id: np.ndarray
+    qx: np.ndarray
+    r: np.ndarray
+    problem: BilevelProblem
+    du: ca.SX
+    dx: ca.SX | None
+    gain: ca.SX
+    closed_loop: ca.SX
+    upper: ca.SX
+
+    @property
+    def n_states(self) -> int:
+        return self.x.shape[0]
+
+    @property
+    def n_inputs(self) -> int:
+        return self.u.shape[0]
+
+    @property
+    def x_offset(self) -> int:
+        """First state column that may be poisoned (1 unless x_0 is poisoned)."""
+        return 0 if self.setting.poison_x0 else 1
+
+    @property
+    def cost_weight(self) -> np.ndarray:
+        """R in the attacker's H2 cost trace((Qx + K'RK) W): the learner's R for lqr-r, else 0."""
+        return self.r if self.setting.design == "lqr-r" else np.zeros_like(self.r)
+
+    def split(self, xflat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(Du, Dx) from the flat upper vector (column-major); Dx is n x (T+1), zero where not poisoned."""
+        xflat = np.asarray(xflat, dtype=float).ravel()
+        m, t = self.u.shape
+        du = xflat[: m * t].reshape((m, t), order="F")
+        dx = np.zeros_like(self.x)
+        if self.dx is not None:
+            dx[:, self.x_offset:] = xflat[m * t:].reshape((self.n_states, -1), order="F")
+        return du, dx
+
+    def join(self, du: np.ndarray, dx: np.ndarray | None = None) -> np.ndarray:
+        """The flat upper vector of (Du, Dx) (inverse of split)."""
+        parts = [np.asarray(du, dtype=float).reshape(-1, order="F")]
+        if self.dx is not None:
+            dx = np.zeros_like(self.x) if dx is None else np.asarray(dx, dtype=float)
+            parts.append(dx[:, self.x_offset:].reshape(-1, order="F"))
+        return np.concatenate(parts)
+
+    def budget(self) -> np.ndarray:
+        """Upper bounds of |x| entrywise (the linf budgets of each upper entry)."""
+        m, t = self.u.shape
+        parts = [np.full(m * t, self.setting.delta_u)]
+        if self.dx is not None:
+            parts.append(np.full(self.n_states * (self.x.shape[1] - self.x_offset), self.setting.delta_x))
+        return np.concatenate(parts)
+
+
+def build_attack(setting: WillemsSetting | None = None, **params: Any) -> WillemsAttack:
+    """Draw the batch-reactor data of `setting` (or of keyword parameters) and declare the attack problem."""
+    if setting is not None and params:
+        raise ModelError("build_attack: pass either a WillemsSetting or keyword parameters, not both")
+    s = setting if setting is not None else WillemsSetting(**params)
+    if s.horizon < 6:
+        raise InvalidData(f"willems: horizon T={s.horizon} is too short; the batch reactor needs T >= n + m = 6 "
+                          "samples for [U0; X0] to have full row rank")
+    x, u = batch_reactor_data(s.horizon, np.random.default_rng(s.seed))
+    a_id, b_id = identified_model(x, u)
+    n, m, t = x.shape[0], u.shape[0], s.horizon
+    qx, r = _weight(s.qx, n, "qx"), _weight(s.r, m, "r")
+    p = BilevelProblem(f"willems-{s.objective}")
+    du = p.upper_variable("Du", (m, t), lb=-s.delta_u, ub=s.delta_u, start=0.0)
+    xs = ca.SX(ca.DM(x))
+    dx = None
+    if "x" in s.poison:
+        offset = 0 if s.poison_x0 else 1
+        dx = p.upper_variable("Dx", (n, t + 1 - offset), lb=-s.delta_x, ub=s.delta_x, start=0.0)
+        xs = ca.horzcat(xs[:, :offset], xs[:, offset:] + dx) if offset else xs + dx
+    us = ca.DM(u) + du
+    x0p, x1p = xs[:, :t], xs[:, 1:]
+    q = p.lower_variable("Q", (t, n))
+    s_raw = ca.mtimes(x0p, q)
+    p.lower_constraint(ca.vertcat(*[s_raw[i, j] - s_raw[j, i] for j in range(n) for i in range(j)]) == 0,
+                       name="S_symmetric")
+    s_mat = 0.5 * (s_raw + s_raw.T)
+    m_mat = ca.mtimes(x1p, q)
+    eye = ca.SX.eye(n)
+    lower = ca.trace(ca.mtimes(ca.DM(qx), s_mat)) if s.design != "stabilizing" else ca.trace(s_mat)
+    corner = s_mat - eye if s.design == "stabilizing" else s_mat
+    p.lower_psd_constraint(ca.blockcat([[s_mat - eye, m_mat], [m_mat.T, corner]]), name="gramian")
+    v_mat = ca.mtimes(us, q)
+    if s.design == "lqr-r":
+        xr = _vech_matrix(p.lower_variable("Xr", m * (m + 1) // 2), m)
+        weighted = ca.mtimes(ca.DM(np.real(scipy.linalg.sqrtm(r))), v_mat)
+        p.lower_psd_constraint(ca.blockcat([[xr, weighted], [weighted.T, s_mat]]), name="input_cost")
+        lower += ca.trace(xr)
+    p.minimize_lower(lower + 0.5 * s.reg * ca.sumsqr(q))
+    gain = ca.mtimes(v_mat, ca.inv(s_mat))
+    acl = ca.DM(a_id) + ca.mtimes(ca.DM(b_id), gain)
+    if s.objective == "eigen":
+        p.maximize_upper(2 * ca.log(ca.fabs(ca.det(acl))))
+    else:
+        cost = ca.DM(qx) + (ca.mtimes([gain.T, ca.DM(r), gain]) if s.design == "lqr-r" else 0)
+        p.maximize_upper(ca.trace(ca.mtimes(cost, _gramian_expr(acl))))
+    upper = ca.vertcat(ca.vec(du), ca.vec(dx)) if dx is not None else ca.vec(du)
+    return WillemsAttack(s, x, u, a_id, b_id, qx, r, p, du, dx, gain, acl, upper)
+
+
+def _register(objective: str, description: str) -> None:
+    @register(f"willems-{objective}", source=SOURCE, tags=("willems", "attack", "sdp"), description=description,
+              defaults={"horizon": 15, "seed": 0, "delta_u": 0.1, "delta_x": 0.0, "poison": "u", "design": "lqr",
+                        "reg": DEFAULT_REG})
+    def build(**params: Any) -> BilevelProblem:
+        return build_attack(WillemsSetting(objective=objective, **params)).problem
+
+
+_register("maxmin", "max-min attack on De Persis-Tesi: maximize the closed-loop H2 cost through the Gramian")
+_register("eigen", "eigenvalue attack on De Persis-Tesi: maximize log det((A+BK)(A+BK)')")

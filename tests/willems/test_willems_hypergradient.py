@@ -1,0 +1,77 @@
+"""The hypergradient through the De Persis–Tesi SDP against central finite differences that re-solve the SDP."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from threadpoolctl import threadpool_limits
+
+from bilevel.attacks.willems import SDPHypergradient
+from bilevel.errors import SolverFailed
+from bilevel.problems.willems import build_attack
+
+CASES = [
+    dict(design="lqr-r", poison="u", objective="eigen", delta_u=1e-3),
+    dict(design="lqr-r", poison="u", objective="maxmin", delta_u=1e-3, reg=1e-6),
+    dict(design="lqr", poison="xu", objective="maxmin", delta_u=1e-3, delta_x=1e-4, reg=1e-6),
+    dict(design="lqr-r", poison="xu", objective="eigen", delta_u=1e-3, delta_x=1e-4),
+    dict(design="lqr", poison="x", objective="eigen", delta_u=0.0, delta_x=1e-4),
+]
+
+
+@pytest.mark.parametrize("case", range(len(CASES)))
+def test_hypergradient_matches_central_differences(case: int) -> None:
+    """Directional derivatives along 3 random directions agree with central differences (each side re-solves
+    and polishes the SDP) to 1e-5 relative, taking the better of the steps h = 1e-6 and 1e-7 (truncation
+    O(h^2) vs solution noise O(1e-13 / h)). Measured worst over these cases: 5.4e-6 (lqr/xu, where h = 1e-6
+    leaves 1.6e-4 truncation error); typical 1e-8 to 1e-6. The implicit (adjoint) part is not negligible:
+    it is at least 0.89 of the gradient's norm in every case (47x the direct part for lqr-r/u/eigen)."""
+    with threadpool_limits(1):
+        attack = build_attack(horizon=15, seed=10 + case, **CASES[case])
+        oracle = SDPHypergradient(attack)
+        assert not oracle.lower_fixed
+        rng = np.random.default_rng(case)
+        x = 0.5 * rng.uniform(-1, 1, oracle.n_x) * attack.budget()
+        ev = oracle.evaluate(x)
+        assert np.isfinite(ev.phi) and ev.kkt_residual < 1e-10
+        grad = oracle.gradient(ev)
+        assert np.linalg.norm(grad - ev.grad_x) >= 0.5 * np.linalg.norm(grad)
+        worst = 0.0
+        for _ in range(3):
+            v = rng.standard_normal(oracle.n_x) * attack.budget()
+            v /= np.linalg.norm(v)
+            errors = []
+            for h in (1e-6, 1e-7):
+                fd = (oracle.evaluate(x + h * v).phi - oracle.evaluate(x - h * v).phi) / (2 * h)
+                errors.append(abs(fd - grad @ v) / abs(grad @ v))
+            worst = max(worst, min(errors))
+        print(f"case {case}: worst relative FD error {worst:.1e}")
+        assert worst <= 1e-5
+
+
+def test_lower_level_solved_once_when_it_ignores_the_poisoning() -> None:
+    """Input poisoning of the appendix SDP: the SDP does not contain U, so it is solved once and the gradient
+    is the direct one (the paper's corollary: K = (U0 + Du) Q (X0 Q)^-1 with Q fixed)."""
+    attack = build_attack(horizon=15, seed=0, design="lqr", poison="u", delta_u=0.5)
+    oracle = SDPHypergradient(attack)
+    assert oracle.lower_fixed
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        x = rng.uniform(-0.5, 0.5, 30)
+        phi, grad = oracle(x)
+        v = rng.standard_normal(30)
+        fd = (oracle.evaluate(x + 1e-6 * v).phi - oracle.evaluate(x - 1e-6 * v).phi) / 2e-6
+        assert fd == pytest.approx(grad @ v, rel=1e-6)
+    assert oracle.lower_solves == 1
+    xs = rng.uniform(-0.5, 0.5, (4, 30))
+    np.testing.assert_allclose(oracle.objectives(xs), [oracle.evaluate(x).phi for x in xs], rtol=1e-10)
+
+
+def test_unpolishable_learner_is_reported() -> None:
+    """reg = 0 and poisoned U in the R-term design: the SDP's optimal Q is unbounded in size (~1/delta) and not
+    unique; Clarabel's point cannot be polished to a KKT point, and the oracle says so instead of returning
+    a wrong gradient."""
+    attack = build_attack(horizon=15, seed=14, design="lqr-r", poison="u", objective="maxmin", delta_u=1e-5, reg=0.0)
+    oracle = SDPHypergradient(attack)
+    with pytest.raises(SolverFailed, match="raise reg"):
+        oracle.evaluate(0.5 * np.random.default_rng(4).uniform(-1, 1, 30) * attack.budget())
