@@ -52,7 +52,7 @@ def _cmd_attack(args: argparse.Namespace) -> int:
 
 
 def _cmd_solve(args: argparse.Namespace) -> int:
-    if "attack" in registry.spec(args.problem).tags and args.method not in METHODS:
+    if "vrft" in registry.spec(args.problem).tags and args.method not in METHODS:
         return _cmd_attack(args)
     args.method = args.method or "ipopt"
     params = dict(kv.split("=", 1) for kv in args.param)

@@ -44,7 +44,7 @@ def register(name: str, *, source: str, optimum: float | None = None, solution: 
 
 
 def _load_builtin() -> None:
-    from . import literature, vrft  # noqa: F401  (registers on import)
+    from . import literature, vrft, willems  # noqa: F401  (registers on import)
 
 
 def spec(name: str) -> ProblemSpec:

@@ -84,3 +84,11 @@ def test_cli_list_and_solve(capsys, tmp_path) -> None:
     assert main(["list"]) == 0
     out = capsys.readouterr().out
     assert "problems; methods:" in out
+    for name in ("bard1998-ex5.1.1", "vrft-maxmin", "vrft-destabilize", "willems-eigen", "willems-maxmin"):
+        assert name in out
+    assert main(["solve", "bard1998-ex5.1.1", "--starts", "4", "--json", str(tmp_path / "r.json")]) == 0
+    assert "relative gap 0.00e+00" in capsys.readouterr().out
+    save = tmp_path / "a.npz"
+    assert main(["solve", "vrft-maxmin", "--n", "256", "--seed", "1", "--starts", "1", "--save", str(save)]) == 0
+    data = np.load(save)
+    assert data["a_u"].shape == (256,) and data["theta_poisoned"].shape == (6,)
