@@ -93,7 +93,7 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     else:
         from .experiments.willems import run_reproduction as run_willems
 
-        run_willems(args.sims, args.out or "out/willems", args.sims < 256, args.seed)
+        run_willems(args.sims, args.out or "out/willems", args.quick, args.seed)
     return 0
 
 
@@ -135,6 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     p_rep.add_argument("--out", default=None, help="output directory (default out/<target>)")
     p_rep.add_argument("--seed", type=int, default=0)
     p_rep.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p_rep.add_argument("--quick", action="store_true", help="willems: the small CI-sized grid (4 sims, 3 budgets)")
     p_rep.set_defaults(run=_cmd_reproduce)
     return parser
 
