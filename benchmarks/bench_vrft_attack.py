@@ -22,7 +22,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from vrft_baseline import paper_baseline  # noqa: E402
 
 from bilevel.attacks.vrft_methods import attack_alternating, attack_white_noise  # noqa: E402
-from bilevel.problems.vrft import attack_instance  # noqa: E402
+from bilevel.attacks.vrft import attack_instance  # noqa: E402
 
 
 def main(instances: int = 20) -> None:

@@ -33,7 +33,7 @@ def _parse_value(text: str) -> object:
 
 def _cmd_attack(args: argparse.Namespace) -> int:
     from .attacks.vrft_methods import ATTACKS
-    from .problems.vrft import attack_instance
+    from .attacks.vrft import attack_instance
 
     objective = args.problem.removeprefix("vrft-")
     atk = attack_instance(objective, args.scenario, args.eps_u, args.eps_y, args.seed, args.n, args.convention,

@@ -79,6 +79,18 @@ def flexible_transmission_setting(data: DataConvention = "prefiltered",
                        flexible_transmission_basis(), flexible_transmission_prefilter(), data, boundary)
 
 
+CONVENTIONS = {
+    "paper": ("prefiltered", "zero-final"),
+    "prefiltered-drop": ("prefiltered", "drop"),
+    "raw": ("raw", "zero-final"),
+    "raw-drop": ("raw", "drop"),
+}
+"""Data convention and virtual-reference boundary handling; "paper" is the paper's (Sec. 4.1, Lemma 1)."""
+
+PAPER_THETA0 = np.array([0.33, -0.61, 0.72, -0.66, 0.48, -0.13])
+"""theta_0 of Campi et al. (2002) as quoted by the paper; its targeted attack aims at 3 * theta_0."""
+
+
 def scenario_data(setting: VRFTSetting, scenario: Literal["A", "B"], n: int = 512,
                   rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Recorded (u, y) of the paper's scenario A (step on [5, 15]) or B (white noise, needs rng)."""
@@ -220,3 +232,15 @@ class VRFTAttack:
             v = maximize_quadratic_on_ball(-S.T @ S / d.size, S.T @ d / d.size, self.delta_u)
         a_u = B @ v
         return a_u, State(a_u, a_y, s0.phi, s0.target + reg.targets(a_u), s0.theta + S @ v, s0.R, s0.Q)
+
+
+def attack_instance(objective: Objective, scenario: Literal["A", "B"] = "B", eps_u: float = 0.1,
+                    eps_y: float = 0.057, seed: int = 0, N: int = 512, convention: str = "paper",
+                    norm: str = "l2") -> VRFTAttack:
+    """The paper's flexible-transmission attack instance (data drawn with default_rng(seed))."""
+    if convention not in CONVENTIONS:
+        raise ModelError(f"convention {convention!r} is not one of {', '.join(CONVENTIONS)}")
+    setting = flexible_transmission_setting(*CONVENTIONS[convention])
+    u, y = scenario_data(setting, scenario, N, np.random.default_rng(seed))
+    target = 3 * PAPER_THETA0 if objective == "targeted" else None
+    return VRFTAttack(setting, u, y, Budget(eps_u, norm), Budget(eps_y, norm), objective, target)

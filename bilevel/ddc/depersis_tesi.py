@@ -23,12 +23,11 @@ from bilevel.errors import (
     NotPersistentlyExciting,
     SolverFailed,
 )
+from bilevel.lower.quadratic import CLARABEL_TOLERANCES
 
 _ACCEPTED = (cp.OPTIMAL, cp.OPTIMAL_INACCURATE)
-# Clarabel's defaults (1e-8) leave ~1e-4 error in K: the SDP value is flat (quadratic) around the optimal gain.
-CLARABEL_TOLERANCES: dict[str, float] = {
-    "tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10, "tol_ktratio": 1e-8,
-}
+# Clarabel's defaults (1e-8) leave ~1e-4 error in K (the SDP value is flat around the optimal gain), so the
+# learner uses the same tightened tolerances as the lower-level certificates.
 
 
 @dataclass(frozen=True)

@@ -12,17 +12,13 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..attacks.budget import Budget
-from ..attacks.vrft import VRFTAttack, flexible_transmission_setting, scenario_data
+from ..attacks.vrft import CONVENTIONS, VRFTAttack, attack_instance
 from ..attacks.vrft_methods import ATTACKS
 from .stats import mean_interval, wilson_interval
 from .sweep import read_rows, run_sweep
 
 EPS_U = (0.0, 0.1, 0.2)
 EPS_Y = (0.01, 0.023, 0.037, 0.05, 0.057)
-PAPER_THETA0 = np.array([0.33, -0.61, 0.72, -0.66, 0.48, -0.13])
-"""theta_0 of Campi et al. (2002) as quoted by the paper; its targeted attack aims at 3 * theta_0."""
-
 PAPER_TABLE1 = {
     ("A", 0.0): (0.0, 0.0, 0.0, 0.0, 0.0), ("A", 0.1): (0.78, 0.58, 13.9, 1.56, 0.78),
     ("A", 0.2): (47.1, 29.7, 19.8, 1.76, 1.56),
@@ -31,15 +27,6 @@ PAPER_TABLE1 = {
 }
 """The paper's Table 1: % unstable closed loops out of 512 simulations (rows eps_u, columns eps_y)."""
 
-CONVENTIONS = {
-    "paper": ("prefiltered", "zero-final"),
-    "prefiltered-drop": ("prefiltered", "drop"),
-    "raw": ("raw", "zero-final"),
-    "raw-drop": ("raw", "drop"),
-}
-"""Data convention and virtual-reference boundary handling; "paper" is the paper's (Sec. 4.1, Lemma 1)."""
-
-
 def sim_seeds(seed: int, sims: int) -> list[int]:
     """One integer seed per simulation, from SeedSequence(seed).spawn(sims)."""
     return [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(sims)]
@@ -47,13 +34,8 @@ def sim_seeds(seed: int, sims: int) -> list[int]:
 
 def make_attack(task: dict[str, Any]) -> VRFTAttack:
     """The VRFTAttack instance described by a task dict."""
-    data, boundary = CONVENTIONS[task["convention"]]
-    setting = flexible_transmission_setting(data, boundary)
-    rng = np.random.default_rng(task["seed"])
-    u, y = scenario_data(setting, task["scenario"], task.get("N", 512), rng)
-    target = 3 * PAPER_THETA0 if task["objective"] == "targeted" else None
-    return VRFTAttack(setting, u, y, Budget(task["eps_u"], task.get("norm", "l2")),
-                      Budget(task["eps_y"], task.get("norm", "l2")), task["objective"], target)
+    return attack_instance(task["objective"], task["scenario"], task["eps_u"], task["eps_y"], task["seed"],
+                           task.get("N", 512), task["convention"], task.get("norm", "l2"))
 
 
 def attack_task(task: dict[str, Any]) -> dict[str, Any]:

@@ -12,10 +12,8 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from ..attacks.budget import Budget
-from ..attacks.vrft import VRFTAttack, flexible_transmission_setting, scenario_data
+from ..attacks.vrft import VRFTAttack, attack_instance
 from ..ddc.operators import LTIOperator
-from ..experiments.vrft import CONVENTIONS, PAPER_THETA0
 from ..errors import ModelError
 from ..model import BilevelProblem
 from .registry import register
@@ -37,16 +35,6 @@ def sx_filter(op: LTIOperator, x: ca.SX) -> ca.SX:
         acc = acc - sum(a[j] * out[t - j] for j in range(1, a.size) if t - j >= 0 and a[j] != 0)
         out.append(ca.SX(acc))
     return ca.vertcat(*out[d:])
-
-
-def attack_instance(objective: str, scenario: str = "B", eps_u: float = 0.1, eps_y: float = 0.057, seed: int = 0,
-                    N: int = 512, convention: str = "paper", norm: str = "l2") -> VRFTAttack:
-    """The structured attack instance with these parameters (data drawn with default_rng(seed))."""
-    data, boundary = CONVENTIONS[convention]
-    setting = flexible_transmission_setting(data, boundary)
-    u, y = scenario_data(setting, scenario, N, np.random.default_rng(seed))
-    target = 3 * PAPER_THETA0 if objective == "targeted" else None
-    return VRFTAttack(setting, u, y, Budget(eps_u, norm), Budget(eps_y, norm), objective, target)
 
 
 def attack_problem(atk: VRFTAttack) -> BilevelProblem:

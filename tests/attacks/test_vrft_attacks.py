@@ -12,11 +12,10 @@ from hypothesis import strategies as st
 import bilevel as bl
 from bilevel.attacks.budget import Budget
 from bilevel.attacks.trust_region import maximize_quadratic_on_ball
+from bilevel.attacks.vrft import CONVENTIONS, attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating, attack_joint, attack_white_noise, input_step
 from bilevel.ddc.vrft import fit_vrft
-from bilevel.experiments.vrft import CONVENTIONS
 from bilevel.problems import registry
-from bilevel.problems.vrft import attack_instance
 
 
 @pytest.mark.parametrize("convention", sorted(CONVENTIONS))
