@@ -12,7 +12,7 @@ Everything is O(N nk) per evaluation: Phi by filtering, theta by a thin QR, grad
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from typing import Literal
 
@@ -123,7 +123,6 @@ class VRFTAttack:
     theta_target: np.ndarray | None = None
     arx_orders: tuple[int, int, int] = (4, 2, 3)
     surrogate_beta: float = 50.0
-    _cache: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         self.u = np.asarray(self.u, dtype=float)

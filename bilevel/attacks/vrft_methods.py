@@ -143,9 +143,15 @@ def input_step(atk: VRFTAttack, a_y: np.ndarray, a_u0: np.ndarray | None = None,
         return a, s
     proj = b.projection(atk.u)
     order = b.order
-    a, _, s, _, _, _ = projected_ascent(lambda x: (atk.value(atk.state(x, a_y).theta), atk.state(x, a_y)),
-                                        lambda st: (g := atk.hypergradient(st)[0], _scaled(g, atk.delta_u, order)),
-                                        proj, a, iters, 1e-9, [])
+    def value(x: np.ndarray) -> tuple[float, State]:
+        st = atk.state(x, a_y)
+        return atk.value(st.theta), st
+
+    def direction(st: State) -> tuple[np.ndarray, np.ndarray]:
+        g = atk.hypergradient(st)[0]
+        return g, _scaled(g, atk.delta_u, order)
+
+    a, _, s, _, _, _ = projected_ascent(value, direction, proj, a, iters, 1e-9, [])
     return a, s
 
 
