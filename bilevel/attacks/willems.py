@@ -32,7 +32,6 @@ from typing import Any
 import casadi as ca
 import numpy as np
 import scipy.optimize
-from threadpoolctl import threadpool_limits
 
 from ..ddc.plants import batch_reactor
 from ..errors import BilevelError, ModelError, SolverFailed
@@ -42,6 +41,7 @@ from ..mpcc import vech_sx
 from ..problems.willems import WillemsAttack, criterion_values
 from ..solvers import solve
 from ..solvers.projections import Box
+from ..threads import single_threaded_call
 
 ARMIJO = 1e-4
 MAX_BACKTRACKS = 30
@@ -300,16 +300,11 @@ def _ascend(oracle: SDPHypergradient, box: Box, x0: np.ndarray, max_iter: int, f
     return cur, max_iter, evals, "max_iter reached"
 
 
-def _single_threaded(fn: Any) -> Any:
-    """Run fn with one BLAS thread: its matrices are small, and threaded BLAS on them is 100x slower under load."""
-    return threadpool_limits.wrap(limits=1)(fn)
-
-
 def _seed(seed: int | np.random.SeedSequence | np.random.Generator | None) -> np.random.Generator:
     return seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
 
 
-@_single_threaded
+@single_threaded_call
 def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, max_iter: int = 300,
                          ftol: float = 1e-10, stop_when_unstable: bool = True,
                          oracle: SDPHypergradient | None = None) -> AttackResult:
@@ -359,7 +354,7 @@ def _select(finished: list[tuple[Evaluation, int, str]], stop_when_unstable: boo
     return max(close, key=lambda f: f[0].identified_radius)
 
 
-@_single_threaded
+@single_threaded_call
 def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize: int = 5, tol: float = 1e-8,
               stop_when_unstable: bool = True, oracle: SDPHypergradient | None = None) -> AttackResult:
     """Differential evolution (scipy, best1bin, no gradient polish) on the input poisoning inside the linf box.
@@ -394,7 +389,7 @@ def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize:
                    int(out.nit), str(out.message), {"lower_solves": oracle.lower_solves})
 
 
-@_single_threaded
+@single_threaded_call
 def random_attack(attack: WillemsAttack, seed: Any = 0) -> AttackResult:
     """A budget-matched, non-adaptive baseline: every poisoned entry +-budget with a fair random sign."""
     t0 = time.perf_counter()
@@ -403,7 +398,7 @@ def random_attack(attack: WillemsAttack, seed: Any = 0) -> AttackResult:
     return _result(SDPHypergradient(attack), "random", x, t0, 1, 0, "random signs at the budget")
 
 
-@_single_threaded
+@single_threaded_call
 def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> AttackResult:
     """The generic route: bilevel.solve on the registered problem (KKT reformulation, PSD pairs factored).
 

@@ -12,7 +12,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, Callable, Iterable
 
-from threadpoolctl import threadpool_limits
+from ..threads import single_threaded
 
 
 def read_rows(path: str) -> list[dict[str, Any]]:
@@ -30,7 +30,7 @@ def read_rows(path: str) -> list[dict[str, Any]]:
 
 
 def _run(fn: Callable[[dict[str, Any]], dict[str, Any]], task: dict[str, Any]) -> dict[str, Any]:
-    with threadpool_limits(1):
+    with single_threaded():
         return {"key": task["key"], **fn(task)}
 
 
