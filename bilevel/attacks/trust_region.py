@@ -7,6 +7,8 @@ an eigendecomposition and the secular equation ||v(mu)|| = delta, with the hard 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -43,16 +45,16 @@ def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, delta: float) -> np
     mu = lo + max(tiny, 1e-300)
     if float(np.sqrt(c2 @ (1.0 / (mu - lam) ** 2))) < delta:  # root left of mu: only in the near-hard case
         return v_of(mu) * (delta / max(float(np.linalg.norm(v_of(mu))), 1e-300))
+    pairs = list(zip(c2.tolist(), lam.tolist()))  # k is small: plain floats beat numpy calls here
     for _ in range(100):
-        inv = 1.0 / (mu - lam)
-        inv2 = inv * inv
-        norm2 = float(c2 @ inv2)
-        norm = np.sqrt(norm2)
-        dnorm2 = -2.0 * float(c2 @ (inv2 * inv))
-        psi = 1.0 / delta - 1.0 / norm
-        dpsi = 0.5 * dnorm2 / (norm2 * norm)
-        step = -psi / dpsi
+        norm2 = dnorm2 = 0.0
+        for c, l in pairs:
+            inv = 1.0 / (mu - l)
+            norm2 += c * inv * inv
+            dnorm2 += c * inv * inv * inv
+        norm = math.sqrt(norm2)
+        step = -(1.0 / delta - 1.0 / norm) * norm2 * norm / -dnorm2  # -psi / psi', psi' = -dnorm2 / norm^3
         mu += step
-        if abs(step) <= 1e-15 * max(1.0, abs(mu)) or abs(psi) <= 1e-15 / delta:
+        if abs(step) <= 1e-15 * max(1.0, abs(mu)) or abs(1.0 / delta - 1.0 / norm) <= 1e-15 / delta:
             break
     return v_of(mu)

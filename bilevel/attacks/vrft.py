@@ -18,6 +18,7 @@ from typing import Literal
 
 import numpy as np
 import scipy.linalg
+import scipy.linalg.lapack
 
 from ..ddc.bases import Basis, flexible_transmission_basis
 from ..ddc.data import paper_input, simulate
@@ -138,6 +139,7 @@ class VRFTAttack:
         self.t0 = reg.targets(self.u)
         self.n = self.t0.size
         self.theta0 = least_squares(self.phi0, self.t0)[0]
+        self.gram0, self.cross0 = self.phi0.T @ self.phi0, self.phi0.T @ self.t0  # the max-min loss in O(nk^2)
         if self.objective == "targeted":
             if self.theta_target is None:
                 raise ModelError("the targeted attack needs theta_target (the paper uses 3 * theta_0)")
@@ -156,16 +158,20 @@ class VRFTAttack:
     def state(self, a_u: np.ndarray, a_y: np.ndarray) -> State:
         """The learner's least-squares fit on (u + a_u, y + a_y)."""
         reg = self.setting.regressor
-        phi = self.phi0 + reg(a_y) if np.any(a_y) else self.phi0
         target = self.t0 + reg.targets(a_u) if np.any(a_u) else self.t0
+        return self._fit(a_u, a_y, target)
+
+    def _fit(self, a_u: np.ndarray, a_y: np.ndarray, target: np.ndarray) -> State:
+        """Thin QR of Phi(y + a_y) and theta' for the given targets."""
+        phi = self.phi0 + self.setting.regressor(a_y) if np.any(a_y) else self.phi0
         Q, R = np.linalg.qr(phi)
         theta = scipy.linalg.solve_triangular(R, Q.T @ target, check_finite=False)
         return State(a_u, a_y, phi, target, theta, R, Q)
 
     def targets_adjoint(self, g: np.ndarray) -> np.ndarray:
-        """Adjoint of a -> targets(a): pad the dropped rows, then L^T if the learner filters."""
+        """Adjoint of a -> targets(a) (applied to a vector or to columns): pad the dropped rows, then L^T."""
         reg = self.setting.regressor
-        padded = np.concatenate([g, np.zeros(self.N - g.size)])
+        padded = np.concatenate([g, np.zeros((self.N - g.shape[0],) + g.shape[1:])])
         return padded if reg.prefilter is None else reg.prefilter.adjoint(padded)
 
     # -- the upper level -------------------------------------------------------------------------
@@ -182,7 +188,7 @@ class VRFTAttack:
     def grad_theta(self, theta: np.ndarray) -> np.ndarray:
         """dJ/dtheta."""
         if self.objective == "maxmin":
-            return -2.0 / self.n * (self.phi0.T @ (self.t0 - self.phi0 @ theta))
+            return -2.0 / self.n * (self.cross0 - self.gram0 @ theta)
         if self.objective == "targeted":
             return 2.0 / theta.size * (self.theta_target - theta)
         return self.model_loop.surrogate(theta, self.surrogate_beta)[1]
@@ -196,7 +202,7 @@ class VRFTAttack:
         w = scipy.linalg.cho_solve((s.R, False), self.grad_theta(s.theta), check_finite=False)  # (R'R)^{-1} g, R'R = Phi'^T Phi'
         pw = s.phi @ w
         residual = s.target - s.phi @ s.theta
-        g_y = self.setting.regressor.adjoint(np.outer(residual, w) - np.outer(pw, s.theta))
+        g_y = self.setting.regressor.adjoint(residual[:, None] * w - pw[:, None] * s.theta)
         return self.targets_adjoint(pw), g_y
 
     # -- exact a_u step (l2, no sparsity) --------------------------------------------------------
@@ -209,28 +215,35 @@ class VRFTAttack:
         if self.objective == "destabilize" or self.budget_u.norm != "l2" or self.budget_u.rho is not None:
             raise ModelError("the exact input step needs a quadratic objective (maxmin/targeted) and a plain l2 "
                              "budget on a_u; use the conditional-gradient step otherwise")
-        s0 = self.state(np.zeros(self.N), a_y)
+        zero = np.zeros(self.N)
+        s0 = self._fit(zero, a_y, self.t0)
         if self.delta_u == 0:
-            return np.zeros(self.N), s0
+            return zero, s0
         reg = self.setting.regressor
         if reg.prefilter is None:  # targets(a) = a[:n]: W = [Q; 0] has orthonormal columns already
-            S = scipy.linalg.solve_triangular(s0.R, np.eye(s0.R.shape[0]), check_finite=False)
-            B = np.vstack([s0.Q, np.zeros((self.N - self.n, s0.Q.shape[1]))])
+            S = scipy.linalg.lapack.dtrtri(s0.R)[0]  # R^{-1}
+            B = None
         else:
-            W = np.column_stack([self.targets_adjoint(s0.Q[:, j]) for j in range(s0.Q.shape[1])])
+            W = self.targets_adjoint(s0.Q)
             lam, V = np.linalg.eigh(W.T @ W)
             lam = np.maximum(lam, 1e-14 * lam.max())
             S = scipy.linalg.solve_triangular(s0.R, (V * np.sqrt(lam)) @ V.T)
             B = W @ ((V / np.sqrt(lam)) @ V.T)
-        if self.objective == "maxmin":
-            M = self.phi0 @ S
-            e0 = self.t0 - self.phi0 @ s0.theta
-            v = maximize_quadratic_on_ball(M.T @ M / self.n, -M.T @ e0 / self.n, self.delta_u)
+        if self.objective == "maxmin":  # ||t0 - Phi0 (theta + S v)||^2 / n with M = Phi0 S, via Phi0's Gram matrix
+            v = maximize_quadratic_on_ball(S.T @ self.gram0 @ S / self.n,
+                                           -S.T @ (self.cross0 - self.gram0 @ s0.theta) / self.n, self.delta_u)
         else:
             d = self.theta_target - s0.theta
             v = maximize_quadratic_on_ball(-S.T @ S / d.size, S.T @ d / d.size, self.delta_u)
-        a_u = B @ v
-        return a_u, State(a_u, a_y, s0.phi, s0.target + reg.targets(a_u), s0.theta + S @ v, s0.R, s0.Q)
+        if B is None:  # a_u = [Q v; 0] and targets(a_u) = Q v
+            qv = s0.Q @ v
+            a_u = zero
+            a_u[: self.n] = qv
+            target = s0.target + qv
+        else:
+            a_u = B @ v
+            target = s0.target + reg.targets(a_u)
+        return a_u, State(a_u, a_y, s0.phi, target, s0.theta + S @ v, s0.R, s0.Q)
 
 
 def attack_instance(objective: Objective, scenario: Literal["A", "B"] = "B", eps_u: float = 0.1,

@@ -1,11 +1,11 @@
 """Attack algorithms on a VRFTAttack: alternating (the paper's Algorithm 1, strengthened), joint
 hypergradient ascent, and white-noise poisoning at the same budget.
 
-alternating: ascend the value function V(a_y) = max_{a_u} J(theta(u + a_u, y + a_y)) by projected
-  gradient with Armijo backtracking; the inner max over a_u is solved at every evaluation (globally for
+alternating: ascend the value function V(a_y) = max_{a_u} J(theta(u + a_u, y + a_y)) by spectral
+  projected gradient (Barzilai-Borwein steps, Armijo backtracking); the inner max over a_u is solved at every evaluation (globally for
   l2 budgets by a trust-region subproblem, by monotone conditional gradient for the max-min objective
   under linf/l1/sparse budgets, by projected gradient otherwise). Danskin: grad V = dJ/da_y at a_u*.
-joint: projected gradient ascent on (a_u, a_y) together, each block's step scaled by its budget.
+joint: spectral projected gradient ascent on (a_u, a_y) together, each block measured in its budget radius.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from ..errors import ModelError
+from ..threads import single_threaded
 from .vrft import State, VRFTAttack
 
 ARMIJO = 1e-4
@@ -85,41 +85,48 @@ def _scaled(g: np.ndarray, radius: float, order: float) -> np.ndarray:
 
 
 def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]], direction: Callable[[Any], tuple[np.ndarray, np.ndarray]],
-                     project: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, max_iter: int, tol: float,
-                     history: list[dict[str, float]], step0: float = 1.0) -> tuple[np.ndarray, float, Any, int, int, bool]:
-    """Projected gradient ascent with Armijo backtracking along the projection arc.
+                     project: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, scale: float | np.ndarray,
+                     max_iter: int, tol: float, history: list[dict[str, float]],
+                     step0: float = 1.0) -> tuple[np.ndarray, float, Any, int, int, bool]:
+    """Monotone spectral projected gradient ascent (Birgin, Martinez & Raydan 2000) in budget units z = x / scale.
 
-    direction(aux) returns (gradient, search direction); stops when the relative gain over the last
-    `WINDOW` accepted steps is below tol (plateaus do not stop it early), or no step is accepted.
-    Returns x, f, aux, iterations, evaluations, converged.
+    direction(aux) returns (gradient, first direction): the first step is step0 * that direction (about one
+    budget radius), later ones P(x + lam * alpha * scale^2 * g) with alpha the second Barzilai-Borwein length
+    in z and lam halved until an Armijo increase. Stops when the relative gain over the last `WINDOW`
+    accepted steps is below tol, or no step is accepted. Returns x, f, aux, iterations, evaluations, converged.
     """
     x = project(x0)
     fx, aux = f(x)
-    evals, step, converged = 1, step0, False
-    it = 0
+    g, d = direction(aux)
+    metric = np.broadcast_to(np.asarray(scale, dtype=float) ** 2, x.shape)
+    evals, converged, it = 1, False, 0
+    alpha = None  # BB length; None: use the first direction
     for it in range(1, max_iter + 1):
-        g, d = direction(aux)
-        if not np.any(d):
+        if not np.any(d if alpha is None else metric * g):
             converged = True
             break
+        lam = step0 if alpha is None else 1.0
         while True:
-            xn = project(x + step * d)
+            xn = project(x + lam * (d if alpha is None else alpha * (metric * g)))
             fn, auxn = f(xn)
             evals += 1
             if fn >= fx + ARMIJO * float(g @ (xn - x)) and fn >= fx:
                 break
-            step *= 0.5
-            if step < 1e-8:
+            lam *= 0.5
+            if lam < 1e-8:
                 converged = True
                 break
         if converged:
             break
-        x, fx, aux = xn, fn, auxn
-        history.append({"iter": it, "value": fx, "step": step})
+        gn, dn = direction(auxn)
+        s, y = xn - x, gn - g
+        curvature, yy = -float(s @ y), float(y @ (metric * y))  # the ascent's curvature along s, ||y||^2 in z
+        alpha = curvature / yy if curvature > 0 and yy > 0 else None
+        x, fx, aux, g, d = xn, fn, auxn, gn, dn
+        history.append({"iter": it, "value": fx, "step": lam})
         if it >= WINDOW and fx - history[-WINDOW]["value"] <= tol * max(abs(fx), 1e-12):
             converged = True
             break
-        step = min(1.0, 2.0 * step)
     return x, fx, aux, it, evals, converged
 
 
@@ -151,7 +158,7 @@ def input_step(atk: VRFTAttack, a_y: np.ndarray, a_u0: np.ndarray | None = None,
         g = atk.hypergradient(st)[0]
         return g, _scaled(g, atk.delta_u, order)
 
-    a, _, s, _, _, _ = projected_ascent(value, direction, proj, a, iters, 1e-9, [])
+    a, _, s, _, _, _ = projected_ascent(value, direction, proj, a, atk.delta_u, iters, 1e-9, [])
     return a, s
 
 
@@ -199,7 +206,7 @@ def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter
     proj_y = atk.budget_y.projection(atk.y)
     order = atk.budget_y.order
     best, total_it, total_ev, status = None, 0, 0, "converged"
-    with threadpool_limits(1):
+    with single_threaded():
         runs = [(ay0, step0) for ay0 in _start_points(atk, starts, np.random.default_rng(seed), first)
                 for step0 in steps]
         for k, (ay0, step0) in enumerate(runs):
@@ -215,7 +222,8 @@ def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter
                 g_y = atk.hypergradient(s)[1]
                 return g_y, _scaled(g_y, atk.delta_y, order)
 
-            _, fx, s, it, ev, conv = projected_ascent(value, direction, proj_y, ay0, max_iter, tol, history, step0)
+            _, fx, s, it, ev, conv = projected_ascent(value, direction, proj_y, ay0, atk.delta_y, max_iter, tol,
+                                                      history, step0)
             total_it, total_ev = total_it + it, total_ev + ev
             if best is None or fx > best[0]:
                 best = (fx, s, history, conv, k)
@@ -231,6 +239,7 @@ def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int 
     pu, py = atk.budget_u.projection(atk.u), atk.budget_y.projection(atk.y)
     ou, oy = atk.budget_u.order, atk.budget_y.order
     project = lambda x: np.concatenate([pu(x[:N]), py(x[N:])])  # noqa: E731
+    scale = np.concatenate([np.full(N, atk.delta_u), np.full(N, atk.delta_y)])
 
     def value(x: np.ndarray) -> tuple[float, State]:
         s = atk.state(x[:N], x[N:])
@@ -242,11 +251,11 @@ def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int 
                                                            _scaled(g_y, atk.delta_y, oy)])
 
     best, total_it, total_ev = None, 0, 0
-    with threadpool_limits(1):
+    with single_threaded():
         for ay0 in _start_points(atk, starts, np.random.default_rng(seed), first):
             history: list[dict[str, float]] = []
             _, fx, s, it, ev, conv = projected_ascent(value, direction, project, np.concatenate([np.zeros(N), ay0]),
-                                                      max_iter, tol, history)
+                                                      scale, max_iter, tol, history)
             total_it, total_ev = total_it + it, total_ev + ev
             if best is None or fx > best[0]:
                 best = (fx, s, history, conv)

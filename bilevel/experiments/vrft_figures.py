@@ -161,7 +161,8 @@ def report(summaries: dict, figures: dict[str, str], sims: int, side: int,
         "The attacker poisons the data set the learner receives, with budgets relative to those signals.", "",
         "**Attack.** Our max-min attack is the paper's Algorithm 1 made exact in a_u: the a_u-step is a "
         "6-dimensional trust-region subproblem solved globally (eigendecomposition + secular equation), and "
-        "a_y follows projected hypergradient ascent with Armijo backtracking on V(a_y) = max_a_u A, started "
+        "a_y follows spectral projected hypergradient ascent (Barzilai-Borwein steps, Armijo backtracking) on "
+        "V(a_y) = max_a_u A, started "
         "from an a_y that makes the poisoned regressor ill-conditioned (ten projected steps on "
         "sigma_min(Phi(y + a_y))). The attack is deterministic, and so are scenario A's data: every "
         "scenario-A simulation is the same instance, so its cells are 0% or 100% (the paper does not say "

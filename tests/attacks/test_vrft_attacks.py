@@ -13,7 +13,8 @@ import bilevel as bl
 from bilevel.attacks.budget import Budget
 from bilevel.attacks.trust_region import maximize_quadratic_on_ball
 from bilevel.attacks.vrft import CONVENTIONS, attack_instance
-from bilevel.attacks.vrft_methods import attack_alternating, attack_joint, attack_white_noise, input_step
+from bilevel.attacks.vrft_methods import attack_alternating, attack_joint, attack_white_noise, input_step, projected_ascent
+from bilevel.solvers.projections import NormBall
 from bilevel.ddc.vrft import fit_vrft
 from bilevel.problems import registry
 
@@ -84,6 +85,21 @@ def test_hypergradient_matches_central_differences() -> None:
         e[i] = 1e-6
         assert (J(a_u + e, a_y) - J(a_u - e, a_y)) / 2e-6 == pytest.approx(g_u[i], rel=1e-5, abs=1e-10)
         assert (J(a_u, a_y + e) - J(a_u, a_y - e)) / 2e-6 == pytest.approx(g_y[i], rel=1e-5, abs=1e-10)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10**6), st.floats(0.1, 10.0))
+def test_spectral_projected_ascent_reaches_ball_maximizer(seed: int, radius: float) -> None:
+    """max -(x - c)'D(x - c) over ||x|| <= radius, c outside and D = I: x* = radius c / ||c|| (projection)."""
+    rng = np.random.default_rng(seed)
+    c = rng.standard_normal(20)
+    c *= 3 * radius / np.linalg.norm(c)
+    f = lambda x: (-float((x - c) @ (x - c)), x)  # noqa: E731
+    direction = lambda x: (-2 * (x - c), -2 * (x - c) * radius / np.linalg.norm(2 * (x - c)))  # noqa: E731
+    x, fx, _, it, _, converged = projected_ascent(f, direction, NormBall(radius, 2.0), np.zeros(20), radius, 200,
+                                                  1e-12, [])
+    np.testing.assert_allclose(x, radius * c / np.linalg.norm(c), atol=1e-6 * radius)
+    assert np.linalg.norm(x) <= radius * (1 + 1e-12)
 
 
 def test_exact_input_step_beats_random_feasible_inputs() -> None:
