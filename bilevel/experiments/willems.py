@@ -34,6 +34,7 @@ from ..errors import BilevelError  # noqa: E402
 from ..problems.willems import DEFAULT_REG, WillemsSetting, build_attack  # noqa: E402
 from .stats import mean_interval, wilson_interval  # noqa: E402
 from .sweep import run_sweep  # noqa: E402
+from .willems_selection import selection_table  # noqa: E402
 
 WORKERS = 2
 DELTA_Y = 1e-3
@@ -358,7 +359,7 @@ def _timing(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
 
 
 def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict], figures: dict[str, str],
-                 signals: dict[int, tuple[float, int]], wall: dict[str, float]) -> str:
+                 signals: dict[int, tuple[float, int]], wall: dict[str, float], selection: str) -> str:
     """report.md: settings, tables, figures, timing and the paper's claims next to ours."""
     paper = summaries["paper"]
     hz = plan.horizons
@@ -415,6 +416,15 @@ def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict]
         "Our poisoning (computed against the minimum-norm selection) handed to `bilevel.ddc.lqr_controller("
         "input_cost=False)`, whose Q is whatever Clarabel returns on the optimal face:", "",
         transfer_table(paper, plan), "",
+        "## Why more data does not make this learner more fragile here", "",
+        "Input poisoning does not change the SDP (it has no U0), so K' = K + A_u G with G = Q (X0 Q)^-1, and "
+        "|A_u| <= delta_u moves an entry of K by at most delta_u max_j sum_t |G_tj| (the gain below). Q is "
+        "non-unique (any Q + N with [X0; X1] N = 0 is optimal), so the gain depends on the learner's selection; "
+        "see `bilevel.experiments.willems_selection`.", "",
+        selection,
+        "A learner whose gain falls with N cannot show the paper's 'larger N destabilizes at smaller delta_u'; "
+        "that needs a selection that puts a growing null-space component into Q. The paper does not name its "
+        "SDP solver.", "",
         "## Timing", "", _timing(paper, plan),
         "Wall-clock of this run (all sweeps share 2 workers): " + ", ".join(f"{k} {v:.0f} s" for k, v in wall.items())
         + " (only work not already in the JSONL files is timed).", "",
@@ -463,7 +473,10 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
                "fig8": figure_objective(summaries["paper"], plan, out_dir), "fig9": fig9}
     with open(os.path.join(out_dir, "plan.json"), "w", encoding="utf-8") as fh:
         json.dump({**asdict(plan), "seed": seed, "reg": DEFAULT_REG}, fh, indent=2)
-    path = write_report(out_dir, plan, seed, summaries, figures, signals, wall)
+    selection = selection_table(plan.horizons, [s for s, _ in sim_seeds(seed, min(plan.sims, 64))], out_dir)
+    with open(os.path.join(out_dir, "table_selection.md"), "w", encoding="utf-8") as fh:
+        fh.write(selection)
+    path = write_report(out_dir, plan, seed, summaries, figures, signals, wall, selection)
     if progress:
         progress(f"wrote {path}")
     return path
