@@ -6,6 +6,7 @@ import argparse
 import json
 import os
 import sys
+from dataclasses import replace
 from typing import Sequence
 
 import numpy as np
@@ -32,15 +33,25 @@ def _parse_value(text: str) -> object:
 
 
 def _cmd_attack(args: argparse.Namespace) -> int:
-    from .attacks.vrft_methods import ATTACKS
     from .attacks.vrft import attack_instance
+    from .attacks.vrft_methods import ATTACKS, attack_budget_path
+    from .experiments.vrft import EPS_Y
 
     objective = args.problem.removeprefix("vrft-")
     atk = attack_instance(objective, args.scenario, args.eps_u, args.eps_y, args.seed, args.n, args.convention,
                           args.norm)
     method = args.method if args.method in ATTACKS else ("joint" if objective == "destabilize" else "alternating")
-    result = ATTACKS[method](atk, seed=args.seed) if method == "white-noise" else ATTACKS[method](
-        atk, seed=args.seed, starts=args.starts)
+    starts = 1 if args.starts is None else args.starts  # 1: the reproduction's setting
+    if args.path:
+        if method != "alternating":
+            raise SystemExit(f"--path runs the alternating attack; method {method!r} has no budget path")
+        grid = [e for e in EPS_Y if e < args.eps_y] + [args.eps_y]
+        result = attack_budget_path(replace(atk, budget_y=replace(atk.budget_y, eps=grid[0])), grid,
+                                    seed=args.seed, starts=starts)[-1]
+    elif method == "white-noise":
+        result = ATTACKS[method](atk, seed=args.seed)
+    else:
+        result = ATTACKS[method](atk, seed=args.seed, starts=starts)
     for key, value in result.summary().items():
         print(f"{key:>22}: {value}")
     print(f"{'theta_clean':>22}: {np.array2string(result.theta_clean, precision=5)}")
@@ -55,6 +66,7 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     if "vrft" in registry.spec(args.problem).tags and args.method not in METHODS:
         return _cmd_attack(args)
     args.method = args.method or "ipopt"
+    args.starts = 8 if args.starts is None else args.starts
     params = dict(kv.split("=", 1) for kv in args.param)
     problem = registry.get(args.problem, **{k: _parse_value(v) for k, v in params.items()})
     options = {k: _parse_value(v) for k, v in (kv.split("=", 1) for kv in args.option)}
@@ -109,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
     p_solve.add_argument("--method", default=None,
                          help=f"{', '.join(sorted(METHODS))} (default ipopt); vrft-* attacks default to their "
                               "structured attack (alternating, joint, white-noise) unless a generic method is named")
-    p_solve.add_argument("--starts", type=int, default=8)
+    p_solve.add_argument("--starts", type=int, default=None, help="multistart count (default 8; vrft-* attacks 1)")
     p_solve.add_argument("--seed", type=int, default=0)
     p_solve.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="problem parameter")
     p_solve.add_argument("--option", action="append", default=[], metavar="NAME=VALUE", help="method option")
@@ -120,6 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_solve.add_argument("--norm", default="l2", choices=["l2", "linf", "l1"], help="vrft-*: budget norm")
     p_solve.add_argument("--n", type=int, default=512, help="vrft-*: number of samples")
     p_solve.add_argument("--convention", default="paper", help="vrft-*: paper, prefiltered-drop, raw, raw-drop")
+    p_solve.add_argument("--path", action="store_true",
+                         help="vrft-*: attack the paper's eps_y grid below --eps-y first, warm-starting each budget "
+                              "from the last (as the reproduction does)")
     p_solve.add_argument("--save", default=None, metavar="PATH.npz", help="vrft-*: save data, signals, thetas, poles")
     p_solve.set_defaults(run=_cmd_solve)
     p_cmp = sub.add_parser("compare", help="run solvers on problems; write CSV and Markdown (resumable)")

@@ -10,9 +10,10 @@ joint: spectral projected gradient ascent on (a_u, a_y) together, each block mea
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import asdict, dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -179,8 +180,10 @@ def conditioning_start(atk: VRFTAttack, iters: int = 10) -> np.ndarray:
     return a
 
 
-def _start_points(atk: VRFTAttack, starts: int, rng: np.random.Generator, first: str) -> list[np.ndarray]:
-    """a_y starts: `first` ("conditioning", "zero" or "random"), then seeded random points on the budget boundary."""
+def _start_points(atk: VRFTAttack, starts: int, rng: np.random.Generator, first: str,
+                  warm_start: np.ndarray | None = None) -> list[np.ndarray]:
+    """a_y starts: `first` ("conditioning", "zero" or "random"), seeded random points on the budget boundary,
+    then warm_start (projected onto the budget) if given."""
     if first not in ("conditioning", "zero", "random"):
         raise ModelError(f"first start {first!r} is not 'conditioning', 'zero' or 'random'")
     proj = atk.budget_y.projection(atk.y)
@@ -188,17 +191,22 @@ def _start_points(atk: VRFTAttack, starts: int, rng: np.random.Generator, first:
     while len(points) < starts:
         z = rng.standard_normal(atk.N)
         points.append(proj(z * (atk.delta_y / max(np.linalg.norm(z, atk.budget_y.order), 1e-300))))
+    if warm_start is not None:
+        if np.shape(warm_start) != (atk.N,):
+            raise ModelError(f"warm_start must have shape ({atk.N},), got {np.shape(warm_start)}")
+        points.append(proj(np.asarray(warm_start, dtype=float)))
     return points
 
 
 def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int = 60,
                        tol: float = 1e-4, first: str = "conditioning",
-                       steps: tuple[float, ...] = DEFAULT_STEPS) -> AttackResult:
+                       steps: tuple[float, ...] = DEFAULT_STEPS, warm_start: np.ndarray | None = None) -> AttackResult:
     """The paper's Algorithm 1 with an exact a_u step and line-searched projected ascent on a_y.
 
     V(a_y) is multimodal: the first start makes the poisoned regressor ill-conditioned (see
-    conditioning_start), further starts are seeded random points; every start is followed from each
-    initial step in `steps` (fractions of the budget radius) and the best end point is kept.
+    conditioning_start), further starts are seeded random points, and warm_start (an a_y, e.g. the
+    best one at a smaller budget) is one more; every start is followed from each initial step in
+    `steps` (fractions of the budget radius) and the best end point is kept.
     """
     if atk.objective == "destabilize":
         raise ModelError("the alternating attack needs a quadratic objective; use attack_joint for 'destabilize'")
@@ -207,7 +215,7 @@ def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter
     order = atk.budget_y.order
     best, total_it, total_ev, status = None, 0, 0, "converged"
     with single_threaded():
-        runs = [(ay0, step0) for ay0 in _start_points(atk, starts, np.random.default_rng(seed), first)
+        runs = [(ay0, step0) for ay0 in _start_points(atk, starts, np.random.default_rng(seed), first, warm_start)
                 for step0 in steps]
         for k, (ay0, step0) in enumerate(runs):
             history: list[dict[str, float]] = []
@@ -229,6 +237,22 @@ def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter
                 best = (fx, s, history, conv, k)
     fx, s, history, conv, k = best
     return _result(atk, "alternating", "converged" if conv else "max_iter", s, t0, total_it, total_ev, history)
+
+
+def attack_budget_path(atk: VRFTAttack, eps_y: Sequence[float], **options: Any) -> list[AttackResult]:
+    """attack_alternating at each output budget eps_y in increasing order (same data and a_u budget).
+
+    From the second budget on, the previous budget's best a_y (feasible in the larger ball) is an extra
+    start, so the objective never decreases along the path (V is monotone in the budget; a single
+    start can miss that on a multimodal V). Returns one result per budget, in increasing eps_y.
+    """
+    if atk.objective == "destabilize":
+        raise ModelError("the budget path runs the alternating attack; 'destabilize' needs attack_joint")
+    results: list[AttackResult] = []
+    for eps in sorted(eps_y):
+        stage = dataclasses.replace(atk, budget_y=dataclasses.replace(atk.budget_y, eps=eps))
+        results.append(attack_alternating(stage, warm_start=results[-1].a_y if results else None, **options))
+    return results
 
 
 def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int = 200,

@@ -13,7 +13,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..attacks.vrft import CONVENTIONS, VRFTAttack, attack_instance
-from ..attacks.vrft_methods import ATTACKS
+from ..attacks.vrft_methods import ATTACKS, attack_budget_path
 from .stats import mean_interval, wilson_interval
 from .sweep import read_rows, run_sweep
 
@@ -39,34 +39,48 @@ def make_attack(task: dict[str, Any]) -> VRFTAttack:
 
 
 def attack_task(task: dict[str, Any]) -> dict[str, Any]:
-    """Run one attack; a row with its scalars and the poisoned theta."""
-    atk = make_attack(task)
-    method = task["method"]
-    if method == "white-noise":
-        res = ATTACKS[method](atk, seed=task["seed"])
-    else:
-        res = ATTACKS[method](atk, seed=task["seed"])
+    """Run one attack (or a budget path: a list of cells in increasing eps_y); rows keep scalars and theta."""
+    if task["method"] == "path":
+        atk = make_attack({**task, "eps_y": task["eps_y"][0]})
+        return {"cells": [{**r.summary(), "eps_y": eps, "theta_poisoned": r.theta_poisoned.tolist()}
+                          for eps, r in zip(task["eps_y"], attack_budget_path(atk, task["eps_y"], seed=task["seed"]))]}
+    res = ATTACKS[task["method"]](make_attack(task), seed=task["seed"])
     return {**res.summary(), "theta_poisoned": res.theta_poisoned.tolist()}
 
 
 def cell_tasks(sims: int, seed: int, convention: str, objective: str, method: str,
                eps_u: tuple[float, ...] = EPS_U, eps_y: tuple[float, ...] = EPS_Y) -> list[dict[str, Any]]:
-    """Tasks of a Table-1-shaped sweep: scenarios A and B x eps_u x eps_y x sims."""
+    """Tasks of a Table-1-shaped sweep: scenarios A and B x eps_u x eps_y x sims; method "path" makes one
+    task per (scenario, eps_u, sim) that attacks every eps_y in increasing order (attack_budget_path)."""
     tasks = []
     for scenario in ("A", "B"):
         for i, s in enumerate(sim_seeds(seed, sims)):
             for eu in eps_u:
-                for ey in eps_y:
-                    tasks.append({"key": f"{convention}/{objective}/{method}/{scenario}/{eu}/{ey}/{i}",
+                cells = [("*", sorted(eps_y))] if method == "path" else [(ey, ey) for ey in eps_y]
+                for label, ey in cells:
+                    tasks.append({"key": f"{convention}/{objective}/{method}/{scenario}/{eu}/{label}/{i}",
                                   "convention": convention, "objective": objective, "method": method,
                                   "scenario": scenario, "eps_u": eu, "eps_y": ey, "sim": i, "seed": s})
     return tasks
 
 
-def summarize(rows: list[dict[str, Any]]) -> dict[tuple[str, float, float], dict[str, float]]:
-    """Per (scenario, eps_u, eps_y): instability rate with Wilson CI, mean objective with t CI, median time."""
-    cells: dict[tuple[str, float, float], list[dict[str, Any]]] = {}
+def cell_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (scenario, eps_u, eps_y, sim): budget-path rows are split into their cells."""
+    out = []
     for r in rows:
+        if "cells" not in r:
+            out.append(r)
+            continue
+        head, tail = r["key"].split("/*/")
+        out += [{**c, "key": f"{head}/{c['eps_y']}/{tail}"} for c in r["cells"]]
+    return out
+
+
+def summarize(rows: list[dict[str, Any]]) -> dict[tuple[str, float, float], dict[str, float]]:
+    """Per (scenario, eps_u, eps_y): instability rate with Wilson CI, mean objective with t CI, median time
+    (of the cell's own attack; a budget-path cell also carries its warm start)."""
+    cells: dict[tuple[str, float, float], list[dict[str, Any]]] = {}
+    for r in cell_rows(rows):
         key = r["key"].split("/")
         cells.setdefault((key[3], float(key[4]), float(key[5])), []).append(r)
     out = {}
@@ -129,20 +143,21 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
     side = side_sims or max(8, sims // 4)
     os.makedirs(out_dir, exist_ok=True)
     runs: dict[str, list[dict[str, Any]]] = {}
-    plan = [("maxmin-paper", sims, "paper", "maxmin", "alternating")]
-    plan += [(f"maxmin-{c}", side, c, "maxmin", "alternating") for c in CONVENTIONS if c != "paper"]
+    plan = [("maxmin-paper", sims, "paper", "maxmin", "path")]
+    plan += [(f"maxmin-{c}", side, c, "maxmin", "path") for c in CONVENTIONS if c != "paper"]
     plan += [("white-noise-paper", side, "paper", "maxmin", "white-noise"),
              ("destabilize-paper", side, "paper", "destabilize", "joint"),
-             ("targeted-paper", side, "paper", "targeted", "alternating")]
+             ("targeted-paper", side, "paper", "targeted", "path")]
     timings: dict[str, tuple[int, float]] = {}
     for name, n, convention, objective, method in plan:
         tasks = cell_tasks(n, seed, convention, objective, method)
         path = os.path.join(out_dir, f"{name}.jsonl")
-        before = len({r["key"] for r in read_rows(path)} & {t["key"] for t in tasks})
+        done = {r["key"] for r in read_rows(path)}
+        todo = sum(len(t["eps_y"]) if t["method"] == "path" else 1 for t in tasks if t["key"] not in done)
         t0 = time.perf_counter()
         runs[name] = run_sweep(attack_task, tasks, path, workers, progress, name)
-        if len(tasks) > before:
-            timings[name] = (len(tasks) - before, time.perf_counter() - t0)
+        if todo:
+            timings[name] = (todo, time.perf_counter() - t0)
     summaries = {name: summarize(rows) for name, rows in runs.items()}
     for name, s in summaries.items():
         write_csv(s, os.path.join(out_dir, f"table_{name}.csv"))

@@ -164,13 +164,18 @@ def report(summaries: dict, figures: dict[str, str], sims: int, side: int,
         "a_y follows spectral projected hypergradient ascent (Barzilai-Borwein steps, Armijo backtracking) on "
         "V(a_y) = max_a_u A, started "
         "from an a_y that makes the poisoned regressor ill-conditioned (ten projected steps on "
-        "sigma_min(Phi(y + a_y))). The attack is deterministic, and so are scenario A's data: every "
+        "sigma_min(Phi(y + a_y))). The max-min and targeted sweeps follow a budget path: for each "
+        "(scenario, eps_u, simulation) the eps_y grid is attacked in increasing order, and each cell also "
+        "starts from the previous cell's best a_y (feasible in the larger ball), so the attacker objective "
+        "never decreases with eps_y (`attack_budget_path`; one attack alone can land in a worse local "
+        "maximum at a larger budget). The attack is deterministic, and so are scenario A's data: every "
         "scenario-A simulation is the same instance, so its cells are 0% or 100% (the paper does not say "
         "what varies between its 512 scenario-A simulations).",
         "",
-        f"Median time per max-min attack: {np.median(times):.1f} ms (one core per worker, {workers} workers).", "",
+        f"Median time per max-min cell: {np.median(times):.1f} ms, both starts of a path cell included (one core "
+        f"per worker, {workers} workers).", "",
         "Wall time of the attacks computed by this invocation (finished rows of earlier runs are reused): "
-        + ("; ".join(f"{k}: {n} tasks in {t:.0f} s" for k, (n, t) in timings.items()) or "none, all resumed")
+        + ("; ".join(f"{k}: {n} attacks in {t:.0f} s" for k, (n, t) in timings.items()) or "none, all resumed")
         + ".", "",
         "## Summary", "",
         "Unstable closed loops over all 30 cells of each sweep (scenario A / scenario B):", "",

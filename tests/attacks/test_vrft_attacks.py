@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import tracemalloc
 
 import numpy as np
@@ -13,7 +14,8 @@ import bilevel as bl
 from bilevel.attacks.budget import Budget
 from bilevel.attacks.trust_region import maximize_quadratic_on_ball
 from bilevel.attacks.vrft import CONVENTIONS, attack_instance
-from bilevel.attacks.vrft_methods import attack_alternating, attack_joint, attack_white_noise, input_step, projected_ascent
+from bilevel.attacks.vrft_methods import (attack_alternating, attack_budget_path, attack_joint, attack_white_noise,
+                                         input_step, projected_ascent)
 from bilevel.solvers.projections import NormBall
 from bilevel.ddc.vrft import fit_vrft
 from bilevel.problems import registry
@@ -102,6 +104,21 @@ def test_spectral_projected_ascent_reaches_ball_maximizer(seed: int, radius: flo
     assert np.linalg.norm(x) <= radius * (1 + 1e-12)
 
 
+@pytest.mark.parametrize("scenario", ["A", "B"])
+def test_budget_path_is_monotone_and_no_weaker_than_single_attacks(scenario: str) -> None:
+    """V(a_y) is maximized over nested balls, so the optimum grows with eps_y; the warm-started path
+    guarantees that for what it returns, and keeps the fresh start's end point at every budget."""
+    grid = (0.01, 0.023, 0.037, 0.05, 0.057)
+    atk = attack_instance("maxmin", scenario, 0.2, grid[0], seed=0, N=256)
+    path = attack_budget_path(atk, grid, max_iter=30)
+    values = [r.value for r in path]
+    assert all(b >= a * (1 - 1e-12) for a, b in zip(values, values[1:]))
+    for eps, r in zip(grid, path):
+        single = attack_alternating(attack_instance("maxmin", scenario, 0.2, eps, seed=0, N=256), max_iter=30)
+        assert r.value >= single.value * (1 - 1e-12)
+        assert np.linalg.norm(r.a_y) <= eps * np.linalg.norm(atk.y) * (1 + 1e-9)
+
+
 def test_exact_input_step_beats_random_feasible_inputs() -> None:
     atk = attack_instance("maxmin", "B", 0.2, 0.03, seed=2, N=256)
     a_y = np.zeros(256)
@@ -148,7 +165,7 @@ def test_large_attack_runs_in_linear_memory() -> None:
 
 def test_quick_reproduction_end_to_end_and_resumes(tmp_path) -> None:
     """The reproduction writes report.md, the tables and figures 2-6; a rerun reuses every finished row."""
-    from bilevel.experiments.vrft import run_reproduction
+    from bilevel.experiments.vrft import cell_rows, run_reproduction
 
     report = run_reproduction(sims=1, out_dir=str(tmp_path), side_sims=1, workers=2, progress=None)
     text = open(report, encoding="utf-8").read()
@@ -156,7 +173,25 @@ def test_quick_reproduction_end_to_end_and_resumes(tmp_path) -> None:
     for name in ("fig2_data", "fig3a_loss", "fig3b_step", "fig4_targeted_step", "fig5_targeted_bode",
                  "fig6_targeted_losses"):
         assert (tmp_path / f"{name}.png").stat().st_size > 1000 and (tmp_path / f"{name}.pdf").exists()
-    rows = (tmp_path / "maxmin-paper.jsonl").read_text().splitlines()
-    assert len(rows) == 30
+    rows = [json.loads(line) for line in (tmp_path / "maxmin-paper.jsonl").read_text().splitlines()]
+    assert len(rows) == 6 and len(cell_rows(rows)) == 30  # one budget path per (scenario, eps_u): 30 cells
+    for row in rows:
+        values = [c["value"] for c in row["cells"]]
+        assert all(b >= a * (1 - 1e-12) for a, b in zip(values, values[1:]))
     again = open(run_reproduction(sims=1, out_dir=str(tmp_path), side_sims=1, workers=2, progress=None)).read()
     assert "none, all resumed" in again
+
+
+def test_cli_reruns_a_budget_path_cell_of_the_reproduction(tmp_path) -> None:
+    """`bilevel solve vrft-maxmin --path --seed S` reproduces the sweep's cell (same theta, same a_y)."""
+    from bilevel.cli import main
+    from bilevel.experiments.vrft import attack_task, cell_tasks
+
+    task = next(t for t in cell_tasks(1, 0, "paper", "maxmin", "path") if t["scenario"] == "A" and t["eps_u"] == 0.2)
+    cell = attack_task(task)["cells"][3]
+    save = tmp_path / "cell.npz"
+    assert main(["solve", "vrft-maxmin", "--scenario", "A", "--eps-u", "0.2", "--eps-y", str(cell["eps_y"]),
+                 "--seed", str(task["seed"]), "--path", "--save", str(save)]) == 0
+    saved = np.load(save)
+    np.testing.assert_allclose(saved["theta_poisoned"], cell["theta_poisoned"], rtol=1e-12, atol=1e-14)
+    assert float(saved["value"]) == pytest.approx(cell["value"], rel=1e-12)
