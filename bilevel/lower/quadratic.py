@@ -10,6 +10,7 @@ import numpy as np
 
 from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
 from .base import LowerLevel, LowerSolution
+from .polish import Lmi, polish
 
 
 CLARABEL_TOLERANCES = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10, "tol_ktratio": 1e-8}
@@ -29,7 +30,13 @@ class QPData:
     e: np.ndarray
 
 
-def solve_qp_clarabel(d: QPData, context: str, lmis: tuple[tuple[np.ndarray, np.ndarray], ...] = ()) -> LowerSolution:
+def solve_qp_clarabel(d: QPData, context: str, lmis: tuple[Lmi, ...] = ()) -> LowerSolution:
+    """clarabel_solution polished onto its optimal face (solver "cvxpy+clarabel+polish") where that lowers
+    its KKT residual, else unchanged (see polish.py)."""
+    return polish(d, lmis, clarabel_solution(d, context, lmis))
+
+
+def clarabel_solution(d: QPData, context: str, lmis: tuple[Lmi, ...] = ()) -> LowerSolution:
     """Solve a convex QP/LP (with LMIs M0 + sum_j y_j M_j >= 0 given as (M0, d vec(M)/dy)) by cvxpy + Clarabel.
 
     Raises on infeasible/unbounded and fails loudly on any other non-optimal status.
