@@ -143,11 +143,11 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
     side = side_sims or max(8, sims // 4)
     os.makedirs(out_dir, exist_ok=True)
     runs: dict[str, list[dict[str, Any]]] = {}
-    plan = [("maxmin-paper", sims, "paper", "maxmin", "path")]
-    plan += [(f"maxmin-{c}", side, c, "maxmin", "path") for c in CONVENTIONS if c != "paper"]
+    plan = [("maxmin-paper", sims, "paper", "maxmin", "alternating"), ("maxmin-paper-path", sims, "paper", "maxmin", "path")]
+    plan += [(f"maxmin-{c}", side, c, "maxmin", "alternating") for c in CONVENTIONS if c != "paper"]
     plan += [("white-noise-paper", side, "paper", "maxmin", "white-noise"),
              ("destabilize-paper", side, "paper", "destabilize", "joint"),
-             ("targeted-paper", side, "paper", "targeted", "path")]
+             ("targeted-paper", side, "paper", "targeted", "alternating")]
     timings: dict[str, tuple[int, float]] = {}
     for name, n, convention, objective, method in plan:
         tasks = cell_tasks(n, seed, convention, objective, method)

@@ -169,11 +169,12 @@ def test_quick_reproduction_end_to_end_and_resumes(tmp_path) -> None:
 
     report = run_reproduction(sims=1, out_dir=str(tmp_path), side_sims=1, workers=2, progress=None)
     text = open(report, encoding="utf-8").read()
-    assert "(paper 88.9%)" in text and "Destabilizing attack" in text
+    assert "(paper 88.9%)" in text and "Destabilizing attack" in text and "budget path" in text
     for name in ("fig2_data", "fig3a_loss", "fig3b_step", "fig4_targeted_step", "fig5_targeted_bode",
                  "fig6_targeted_losses"):
         assert (tmp_path / f"{name}.png").stat().st_size > 1000 and (tmp_path / f"{name}.pdf").exists()
-    rows = [json.loads(line) for line in (tmp_path / "maxmin-paper.jsonl").read_text().splitlines()]
+    assert len((tmp_path / "maxmin-paper.jsonl").read_text().splitlines()) == 30
+    rows = [json.loads(line) for line in (tmp_path / "maxmin-paper-path.jsonl").read_text().splitlines()]
     assert len(rows) == 6 and len(cell_rows(rows)) == 30  # one budget path per (scenario, eps_u): 30 cells
     for row in rows:
         values = [c["value"] for c in row["cells"]]
