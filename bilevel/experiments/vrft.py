@@ -6,6 +6,7 @@ and sim i uses the same data in every (eps_u, eps_y) cell (common random numbers
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from typing import Any, Callable
@@ -148,7 +149,11 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
     plan += [("white-noise-paper", side, "paper", "maxmin", "white-noise"),
              ("destabilize-paper", side, "paper", "destabilize", "joint"),
              ("targeted-paper", side, "paper", "targeted", "alternating")]
+    timings_path = os.path.join(out_dir, "timings.json")
     timings: dict[str, tuple[int, float]] = {}
+    if os.path.exists(timings_path):  # wall times of sweeps computed by earlier invocations
+        with open(timings_path, encoding="utf-8") as fh:
+            timings = {k: tuple(v) for k, v in json.load(fh).items()}
     for name, n, convention, objective, method in plan:
         tasks = cell_tasks(n, seed, convention, objective, method)
         path = os.path.join(out_dir, f"{name}.jsonl")
@@ -158,6 +163,8 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
         runs[name] = run_sweep(attack_task, tasks, path, workers, progress, name)
         if todo:
             timings[name] = (todo, time.perf_counter() - t0)
+            with open(timings_path, "w", encoding="utf-8") as fh:
+                json.dump(timings, fh, indent=1)
     summaries = {name: summarize(rows) for name, rows in runs.items()}
     for name, s in summaries.items():
         write_csv(s, os.path.join(out_dir, f"table_{name}.csv"))

@@ -50,14 +50,19 @@ def figure_data(seed: int, out_dir: str) -> str:
 
 
 def figure_loss(summaries: dict, out_dir: str) -> str:
-    """Fig. 3a: learner's loss on clean data vs eps_y (mean, 95% CI), and the white-noise baseline."""
+    """Fig. 3a: learner's loss on clean data vs eps_y (mean, 95% CI), dotted along the budget path, and the
+    white-noise baseline."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     main, wn = summaries["maxmin-paper"], summaries.get("white-noise-paper", {})
+    path = summaries.get("maxmin-paper-path", {})
     for ax, scenario in zip(axes, ("A", "B")):
         for eu in EPS_U:
             c = [main[(scenario, eu, ey)] for ey in EPS_Y]
-            ax.plot(EPS_Y, [x["value"] for x in c], marker="o", label=f"attack, eps_u = {eu}")
+            line, = ax.plot(EPS_Y, [x["value"] for x in c], marker="o", label=f"attack, eps_u = {eu}")
             ax.fill_between(EPS_Y, [x["value_lo"] for x in c], [x["value_hi"] for x in c], alpha=0.2)
+            if path:
+                ax.plot(EPS_Y, [path[(scenario, eu, ey)]["value"] for ey in EPS_Y], ls=":", color=line.get_color(),
+                        label=f"budget path, eps_u = {eu}")
         if wn:
             c = [wn[(scenario, 0.2, ey)] for ey in EPS_Y]
             ax.plot(EPS_Y, [x["value"] for x in c], ls="--", color="k", label="white noise, eps_u = 0.2")
@@ -193,8 +198,9 @@ def report(summaries: dict, figures: dict[str, str], sims: int, side: int,
         "what varies between its 512 scenario-A simulations).",
         "",
         f"Median time per max-min attack: {np.median(times):.1f} ms (one core per worker, {workers} workers).", "",
-        "Wall time of the attacks computed by this invocation (finished rows of earlier runs are reused): "
-        + ("; ".join(f"{k}: {n} attacks in {t:.0f} s" for k, (n, t) in timings.items()) or "none, all resumed")
+        "Wall time of the attacks (when each sweep's rows were computed; `timings.json`; a resumed sweep "
+        "records only the rows it added): "
+        + ("; ".join(f"{k}: {n} attacks in {t:.0f} s" for k, (n, t) in timings.items()) or "none recorded")
         + ".", "",
         "## Summary", "",
         "Unstable closed loops over all 30 cells of each sweep (scenario A / scenario B):", "",
