@@ -37,6 +37,7 @@ from ..ddc.plants import batch_reactor
 from ..errors import BilevelError, ModelError, SolverFailed
 from ..lower import LowerSolution, build_lower
 from ..lower.base import unvech, vech
+from ..lower.quadratic import clarabel_solution
 from ..mpcc import vech_sx
 from ..problems.willems import WillemsAttack, criterion_values
 from ..solvers import solve
@@ -156,7 +157,9 @@ class SDPHypergradient:
             return self._cache[1], self._cache[2]
         with warnings.catch_warnings():  # cvxpy's "may be inaccurate": the polished KKT residual decides below
             warnings.simplefilter("ignore", UserWarning)
-            sol = self.lower_level.solve(x)
+            # Clarabel's raw point: the Newton polish below works on this SDP's own KKT system, so the
+            # generic face polish of the certificate's re-solve would only add ~20 ms per solve
+            sol = clarabel_solution(self.lower_level.data(x), "of the learner", self.lower_level.lmi_data(x))
         sol, res = self.polish(x, sol)
         self.lower_solves += 1
         if res > KKT_TOL and not self.lower_fixed:  # a fixed response needs no implicit differentiation
