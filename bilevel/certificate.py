@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import BilevelError
+from .lower.base import psd_violation
 
 if TYPE_CHECKING:  # pragma: no cover
     from .canonical import CanonicalBilevel
@@ -46,10 +47,6 @@ class Certificate:
                 f"upper_feas={self.upper_feasibility:.2e}, gap={self.lower_gap:.2e} via {self.lower_solver})")
 
 
-def _neg_eig(m: np.ndarray) -> float:
-    return max(-float(np.linalg.eigvalsh(0.5 * (m + m.T)).min()), 0.0) if m.size else 0.0
-
-
 def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_TOL) -> Certificate:
     """KKT residuals of the lower level at `point` and its gap to an independent lower-level solve."""
     low = canon.lower
@@ -58,8 +55,8 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_T
     stat, grad_f = low.stationarity(x, y, point.lam, point.mu, point.Z)
     top = lambda a: float(np.max(a)) if np.size(a) else 0.0  # noqa: E731
     stationarity = top(np.abs(stat))
-    lower_feas = max(top(np.maximum(g, 0.0)), top(np.abs(h)), max((_neg_eig(m) for m in mats), default=0.0))
-    dual_feas = max(top(np.maximum(-point.lam, 0.0)), max((_neg_eig(z) for z in point.Z), default=0.0))
+    lower_feas = max(top(np.maximum(g, 0.0)), top(np.abs(h)), max((psd_violation(m) for m in mats), default=0.0))
+    dual_feas = max(top(np.maximum(-point.lam, 0.0)), max((psd_violation(z) for z in point.Z), default=0.0))
     comp = max(top(np.abs(point.lam * g)), max((abs(float(np.sum(z * m))) for z, m in zip(point.Z, mats)), default=0.0))
     out = canon.functions(x, y)
     G, H = np.asarray(out[1]).ravel(), np.asarray(out[2]).ravel()

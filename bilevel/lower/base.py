@@ -25,6 +25,11 @@ def vech(matrix: np.ndarray) -> np.ndarray:
     return np.concatenate([matrix[j:, j] for j in range(n)])
 
 
+def psd_violation(m: np.ndarray) -> float:
+    """How far the symmetric part of m is from PSD: max(-lambda_min, 0), 0 for an empty matrix."""
+    return max(-float(np.linalg.eigvalsh(0.5 * (m + m.T)).min()), 0.0) if m.size else 0.0
+
+
 def unvech(values: np.ndarray, n: int) -> np.ndarray:
     """Rebuild the symmetric matrix from its vech."""
     m = np.zeros((n, n))

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..threads import single_threaded_call
-from .base import LowerSolution
+from .base import LowerSolution, psd_violation
 
 if TYPE_CHECKING:  # pragma: no cover
     from .quadratic import QPData
@@ -59,11 +59,6 @@ def _at(mat: tuple[np.ndarray, np.ndarray], y: np.ndarray) -> np.ndarray:
     return mat[0] + np.tensordot(y, mat[1], 1)
 
 
-def _neg_eig(m: np.ndarray) -> float:
-    """How far the symmetric m is from PSD (0 if it is)."""
-    return max(-float(np.linalg.eigvalsh(m).min()), 0.0) if m.size else 0.0
-
-
 def kkt_residual(d: QPData, lmis: tuple[Lmi, ...], sol: LowerSolution) -> float:
     """Largest absolute stationarity, primal/dual infeasibility and complementarity violation of sol."""
     n, y = d.q.size, sol.y
@@ -74,7 +69,7 @@ def kkt_residual(d: QPData, lmis: tuple[Lmi, ...], sol: LowerSolution) -> float:
     for mat, z in zip(mats, sol.Z):
         m = _at(mat, y)
         stat = stat - np.einsum("jab,ab->j", mat[1], z)
-        parts.append(np.array([_neg_eig(m), _neg_eig(0.5 * (z + z.T)), abs(float(np.sum(z * m)))]))
+        parts.append(np.array([psd_violation(m), psd_violation(z), abs(float(np.sum(z * m)))]))
     return max((float(np.max(p)) for p in [np.abs(stat), *parts] if p.size), default=0.0)
 
 
