@@ -6,7 +6,6 @@ import argparse
 import json
 import os
 import sys
-from dataclasses import replace
 from typing import Sequence
 
 import numpy as np
@@ -46,8 +45,7 @@ def _cmd_attack(args: argparse.Namespace) -> int:
         if method != "alternating":
             raise SystemExit(f"--path runs the alternating attack; method {method!r} has no budget path")
         grid = [e for e in EPS_Y if e < args.eps_y] + [args.eps_y]
-        result = attack_budget_path(replace(atk, budget_y=replace(atk.budget_y, eps=grid[0])), grid,
-                                    seed=args.seed, starts=starts)[-1]
+        result = attack_budget_path(atk, grid, seed=args.seed, starts=starts)[-1]
     elif method == "white-noise":
         result = ATTACKS[method](atk, seed=args.seed)
     else:

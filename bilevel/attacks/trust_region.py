@@ -53,8 +53,9 @@ def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, delta: float) -> np
             norm2 += c * inv * inv
             dnorm2 += c * inv * inv * inv
         norm = math.sqrt(norm2)
-        step = -(1.0 / delta - 1.0 / norm) * norm2 * norm / -dnorm2  # -psi / psi', psi' = -dnorm2 / norm^3
+        psi = 1.0 / delta - 1.0 / norm
+        step = psi * norm2 * norm / dnorm2  # -psi / psi' with psi' = -dnorm2 / norm^3
         mu += step
-        if abs(step) <= 1e-15 * max(1.0, abs(mu)) or abs(1.0 / delta - 1.0 / norm) <= 1e-15 / delta:
+        if abs(step) <= 1e-15 * max(1.0, abs(mu)) or abs(psi) <= 1e-15 / delta:
             break
     return v_of(mu)

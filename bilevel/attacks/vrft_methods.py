@@ -103,12 +103,13 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]], direction: Ca
     evals, converged, it = 1, False, 0
     alpha = None  # BB length; None: use the first direction
     for it in range(1, max_iter + 1):
-        if not np.any(d if alpha is None else metric * g):
+        move = d if alpha is None else alpha * (metric * g)
+        if not np.any(move):
             converged = True
             break
         lam = step0 if alpha is None else 1.0
         while True:
-            xn = project(x + lam * (d if alpha is None else alpha * (metric * g)))
+            xn = project(x + lam * move)
             fn, auxn = f(xn)
             evals += 1
             if fn >= fx + ARMIJO * float(g @ (xn - x)) and fn >= fx:
