@@ -2,9 +2,10 @@
 hypergradient ascent, and white-noise poisoning at the same budget.
 
 alternating: ascend the value function V(a_y) = max_{a_u} J(theta(u + a_u, y + a_y)) by spectral
-  projected gradient (Barzilai-Borwein steps, Armijo backtracking); the inner max over a_u is solved at every evaluation (globally for
-  l2 budgets by a trust-region subproblem, by monotone conditional gradient for the max-min objective
-  under linf/l1/sparse budgets, by projected gradient otherwise). Danskin: grad V = dJ/da_y at a_u*.
+  projected gradient (Barzilai-Borwein steps, Armijo backtracking); the inner max over a_u is solved at
+  every evaluation (globally for l2 budgets by a trust-region subproblem, by monotone conditional gradient
+  for the max-min objective under linf/l1/sparse budgets, by projected gradient otherwise).
+  Danskin: grad V = dJ/da_y at a_u*.
 joint: spectral projected gradient ascent on (a_u, a_y) together, each block measured in its budget radius.
 """
 

@@ -144,7 +144,8 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
     side = side_sims or max(8, sims // 4)
     os.makedirs(out_dir, exist_ok=True)
     runs: dict[str, list[dict[str, Any]]] = {}
-    plan = [("maxmin-paper", sims, "paper", "maxmin", "alternating"), ("maxmin-paper-path", sims, "paper", "maxmin", "path")]
+    plan = [("maxmin-paper", sims, "paper", "maxmin", "alternating"),
+            ("maxmin-paper-path", sims, "paper", "maxmin", "path")]
     plan += [(f"maxmin-{c}", side, c, "maxmin", "alternating") for c in CONVENTIONS if c != "paper"]
     plan += [("white-noise-paper", side, "paper", "maxmin", "white-noise"),
              ("destabilize-paper", side, "paper", "destabilize", "joint"),
