@@ -5,7 +5,10 @@ solver (cvxpy + Clarabel) and polished by Newton steps on its KKT system
 
     r(w; x) = [grad_y L ; h ; vech((M_k Z_k + Z_k M_k) / 2)] = 0,   w = (y, mu, vech Z_k),
 
-with L = f + mu'h - sum_k <Z_k, M_k> (the framework's convention, Z_k >= 0). At a strictly
+with L = f + mu'h - sum_k <Z_k, M_k> (the framework's convention, Z_k >= 0). With the "min-norm"
+selection, Q is then projected onto the row space of the data D(x) the SDP sees (see
+bilevel.problems.willems): this removes the solver's error in Q's null-space directions, which
+only the tiny Tikhonov weight reg pins down, and leaves D Q and every constraint unchanged. At a strictly
 complementary, nondegenerate solution dr/dw is nonsingular (Alizadeh, Haeberly & Overton 1998),
 so y*(x) is differentiable with dw/dx = -(dr/dw)^-1 dr/dx. The gradient of phi(x) = F(x, y*(x))
 comes from the adjoint system (dr/dw)' z = (dF/dy, 0, 0): grad phi = dF/dx - (dr/dx)' z. When the
@@ -24,6 +27,7 @@ problem (KKT reformulation with the LMI's PSD complementarity pair, IPOPT or the
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -48,6 +52,8 @@ ARMIJO = 1e-4
 MAX_BACKTRACKS = 30
 PSD_TOL = 1e-9
 KKT_TOL = 1e-6
+RANK_RTOL = 1e-10
+"""Singular values of D(x) below RANK_RTOL * the largest span its numerical null space (clean D has rank n + m)."""
 TIE_RTOL = 1e-6
 UNSTABLE_PENALTY = 1e12
 """Finite stand-in for phi = +inf handed to differential evolution (which cannot rank infinities)."""
@@ -110,6 +116,8 @@ class SDPHypergradient:
         gain_jacobian = ca.jacobian(ca.vec(attack.gain), x)
         self._gain_affine = self.lower_fixed and not ca.depends_on(gain_jacobian, x)
         self._gain = ca.Function("gain", [x, y], [attack.gain, gain_jacobian])
+        self._seen = ca.Function("seen", [x], [attack.seen])
+        self._q_shape = (attack.setting.horizon, attack.n_states)
         self.n_x = int(x.numel())
         self.lower_solves = 0
         self._cache: tuple[np.ndarray, LowerSolution, float] | None = None
@@ -134,21 +142,37 @@ class SDPHypergradient:
         return True
 
     def polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, float]:
-        """Newton steps on r(w; x) = 0 from the solver's point, kept while the residual falls and M, Z stay PSD."""
+        """Newton steps on r(w; x) = 0 from the solver's point while the residual falls; returns the best iterate
+        at which M and Z are PSD (an iterate a hair outside the cone is stepped through, not returned)."""
         w = self._pack(sol)
         r, jac = (np.asarray(v) for v in self._residual(x, w))
-        best = float(np.abs(r).max())
+        best = last = float(np.abs(r).max())
         for _ in range(self.polish_steps):
-            step = _solve(jac, -r.ravel())
-            trial = self._unpack(w + step, sol, x)
-            r_new, jac_new = (np.asarray(v) for v in self._residual(x, w + step))
-            value = float(np.abs(r_new).max())
-            if not value < best or not self._psd_ok(x, trial):
+            w = w + _solve(jac, -r.ravel())
+            r, jac = (np.asarray(v) for v in self._residual(x, w))
+            value = float(np.abs(r).max())
+            if not value < last:
                 break
-            w, r, jac, best, sol = w + step, r_new, jac_new, value, trial
-            if best < 1e-14:
+            last = value
+            trial = self._unpack(w, sol, x)
+            if value < best and self._psd_ok(x, trial):
+                sol, best = trial, value
+            if value < 1e-14:
                 break
         return sol, best
+
+    def project_rowspace(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, float]:
+        """Q projected onto the row space of D(x) (the minimum-norm Q with the same D Q) and the new KKT residual."""
+        seen = np.asarray(self._seen(x), dtype=float)
+        _, sing, vt = np.linalg.svd(seen, full_matrices=False)
+        basis = vt[sing > RANK_RTOL * sing[0]]
+        size = self._q_shape[0] * self._q_shape[1]
+        q = sol.y[:size].reshape(self._q_shape, order="F")
+        y = sol.y.copy()
+        y[:size] = (basis.T @ (basis @ q)).ravel(order="F")
+        projected = dataclasses.replace(sol, y=y, objective=float(self.lower_level.evaluate(x, y)[0]),
+                                        solver=f"{sol.solver} + row-space projection")
+        return projected, float(np.abs(np.asarray(self._residual(x, self._pack(projected))[0])).max())
 
     def lower_solution(self, x: np.ndarray) -> tuple[LowerSolution, float]:
         """The learner's polished SDP solution at x and its KKT residual (solved once if it cannot depend on x)."""
@@ -161,6 +185,8 @@ class SDPHypergradient:
             # generic face polish of the certificate's re-solve would only add ~20 ms per solve
             sol = clarabel_solution(self.lower_level.data(x), "of the learner", self.lower_level.lmi_data(x))
         sol, res = self.polish(x, sol)
+        if self.attack.setting.selection == "min-norm":
+            sol, res = self.project_rowspace(x, sol)
         self.lower_solves += 1
         if res > KKT_TOL and not self.lower_fixed:  # a fixed response needs no implicit differentiation
             raise SolverFailed(f"the learner's SDP at this poisoning has KKT residual {res:.1e} > {KKT_TOL:g} after "

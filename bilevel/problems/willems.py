@@ -11,11 +11,18 @@ lower variable Q (T x n), S = X0' Q (symmetric by equality constraints) and
     lqr-r        min tr(Qx S) + tr(Xr)   s.t. the same LMI and [[Xr, R^1/2 U0' Q], [., S]] >= 0  (DPT Thm 4)
     stabilizing  min tr(S)               s.t. [[S - I, X1' Q], [Q' X1'^T, S - I]] >= 0  (DPT Thm 3)
 
-each plus reg/2 ||Q||_F^2, and K = U0' Q S^{-1}. Why reg: the SDP sees Q only through X0'Q, X1'Q
-(and U0'Q for lqr-r); on poisoned data the optimal set in Q is an affine family whose gains
-U0' Q S^{-1} fill all of R^{m x n} (lqr, stabilizing), so "the learned K" is not a function of the
-data. The Tikhonov term selects the minimum-norm optimal Q as reg -> 0; the attacker's criteria
-depend on Q only through K.
+each plus reg/2 ||Q||_F^2, and K = U0' Q S^{-1}. Why reg: the SDP sees Q only through D Q with
+D = [X0; X1] ([X0; X1; U0] for lqr-r); on poisoned data the optimal set in Q is an affine family
+whose gains U0' Q S^{-1} fill all of R^{m x n} (lqr, stabilizing), so "the learned K" is not a
+function of the data. The Tikhonov term selects the minimum-norm optimal Q as reg -> 0; the
+attacker's criteria depend on Q only through K.
+
+Selection (`WillemsSetting.selection`). At an exact KKT point of the regularized SDP, reg Q lies in
+the row space of D, but the null-space directions of Q carry curvature reg only, so a solver's KKT
+residual r leaves an error ~ r / reg there (up to 7.7e-4 relative in Q at N = 50). "min-norm"
+(default) projects the learner's Q onto the row space of D after solving, which leaves D Q, the
+SDP's value and the constraints unchanged and makes the selection reproducible to solver accuracy;
+"tikhonov" keeps the solver's Q (the selection of the sweep committed in session 1).
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ from .registry import register
 
 DESIGNS = ("lqr", "lqr-r", "stabilizing")
 POISONS = ("u", "x", "xu")
+SELECTIONS = ("min-norm", "tikhonov")
 OBJECTIVES = ("maxmin", "eigen")
 DEFAULT_REG = 1e-8
 """Tikhonov weight on ||Q||_F^2 / 2: small enough that clean-data gains match the unregularized SDP to 1e-7."""
@@ -58,10 +66,11 @@ class WillemsSetting:
     r: tuple[tuple[float, ...], ...] | None = None
     reg: float = DEFAULT_REG
     poison_x0: bool = False
+    selection: str = "min-norm"
 
     def __post_init__(self) -> None:
         for name, value, allowed in (("objective", self.objective, OBJECTIVES), ("design", self.design, DESIGNS),
-                                     ("poison", self.poison, POISONS)):
+                                     ("poison", self.poison, POISONS), ("selection", self.selection, SELECTIONS)):
             if value not in allowed:
                 raise ModelError(f"willems: {name}={value!r} is not one of {', '.join(allowed)}")
         if self.delta_u < 0 or self.delta_x < 0 or not np.isfinite(self.delta_u + self.delta_x):
@@ -144,6 +153,8 @@ class WillemsAttack:
     gain: ca.SX
     closed_loop: ca.SX
     upper: ca.SX
+    seen: ca.SX
+    """D(x): the poisoned data rows the SDP multiplies Q with ([X0; X1], plus U0 for lqr-r)."""
 
     @property
     def n_states(self) -> int:
@@ -237,7 +248,8 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
         cost = ca.DM(qx) + (ca.mtimes([gain.T, ca.DM(r), gain]) if s.design == "lqr-r" else 0)
         p.maximize_upper(ca.trace(ca.mtimes(cost, _gramian_expr(acl))))
     upper = ca.vertcat(ca.vec(du), ca.vec(dx)) if dx is not None else ca.vec(du)
-    return WillemsAttack(s, x, u, a_id, b_id, qx, r, p, du, dx, gain, acl, upper)
+    seen = ca.vertcat(x0p, x1p, us) if s.design == "lqr-r" else ca.vertcat(x0p, x1p)
+    return WillemsAttack(s, x, u, a_id, b_id, qx, r, p, du, dx, gain, acl, upper, seen)
 
 
 def _register(objective: str, description: str) -> None:
