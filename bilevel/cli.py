@@ -103,7 +103,7 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     else:
         from .experiments.willems import run_reproduction as run_willems
 
-        run_willems(args.sims, args.out or "out/willems", args.quick, args.seed)
+        run_willems(args.sims, args.out or "out/willems", args.quick, args.seed, selection=args.selection)
     return 0
 
 
@@ -149,6 +149,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_rep.add_argument("--seed", type=int, default=0)
     p_rep.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p_rep.add_argument("--quick", action="store_true", help="willems: the small CI-sized grid (4 sims, 3 budgets)")
+    p_rep.add_argument("--selection", choices=["min-norm", "tikhonov"], default="min-norm",
+                       help="willems: the learner's choice among its optimal Q (tikhonov: the session-1 sweep's)")
     p_rep.set_defaults(run=_cmd_reproduce)
     return parser
 

@@ -29,6 +29,21 @@ def read_rows(path: str) -> list[dict[str, Any]]:
     return rows
 
 
+def load_timings(path: str) -> dict[str, tuple[int, float]]:
+    """Sweep name -> (attacks run, wall seconds) recorded by earlier invocations in a timings.json file."""
+    if not os.path.exists(path):
+        return {}
+    with open(path, encoding="utf-8") as fh:
+        return {k: (int(v[0]), float(v[1])) for k, v in json.load(fh).items()}
+
+
+def record_timing(path: str, timings: dict[str, tuple[int, float]], name: str, count: int, seconds: float) -> None:
+    """Store one sweep's (attacks run, wall seconds) in `timings` and rewrite timings.json (kept across resumes)."""
+    timings[name] = (int(count), float(seconds))
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump(timings, fh, indent=1)
+
+
 def _run(fn: Callable[[dict[str, Any]], dict[str, Any]], task: dict[str, Any]) -> dict[str, Any]:
     with single_threaded():
         return {"key": task["key"], **fn(task)}

@@ -16,7 +16,7 @@ import numpy as np
 from ..attacks.vrft import CONVENTIONS, VRFTAttack, attack_instance
 from ..attacks.vrft_methods import ATTACKS, attack_budget_path
 from .stats import mean_interval, wilson_interval
-from .sweep import read_rows, run_sweep
+from .sweep import load_timings, read_rows, record_timing, run_sweep
 
 EPS_U = (0.0, 0.1, 0.2)
 EPS_Y = (0.01, 0.023, 0.037, 0.05, 0.057)
@@ -151,10 +151,7 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
              ("destabilize-paper", side, "paper", "destabilize", "joint"),
              ("targeted-paper", side, "paper", "targeted", "alternating")]
     timings_path = os.path.join(out_dir, "timings.json")
-    timings: dict[str, tuple[int, float]] = {}
-    if os.path.exists(timings_path):  # wall times of sweeps computed by earlier invocations
-        with open(timings_path, encoding="utf-8") as fh:
-            timings = {k: tuple(v) for k, v in json.load(fh).items()}
+    timings = load_timings(timings_path)
     for name, n, convention, objective, method in plan:
         tasks = cell_tasks(n, seed, convention, objective, method)
         path = os.path.join(out_dir, f"{name}.jsonl")
@@ -163,9 +160,7 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
         t0 = time.perf_counter()
         runs[name] = run_sweep(attack_task, tasks, path, workers, progress, name)
         if todo:
-            timings[name] = (todo, time.perf_counter() - t0)
-            with open(timings_path, "w", encoding="utf-8") as fh:
-                json.dump(timings, fh, indent=1)
+            record_timing(timings_path, timings, name, todo, time.perf_counter() - t0)
     summaries = {name: summarize(rows) for name, rows in runs.items()}
     for name, s in summaries.items():
         write_csv(s, os.path.join(out_dir, f"table_{name}.csv"))

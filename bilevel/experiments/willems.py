@@ -33,7 +33,7 @@ from ..ddc.plants import batch_reactor  # noqa: E402
 from ..errors import BilevelError  # noqa: E402
 from ..problems.willems import DEFAULT_REG, WillemsSetting, build_attack  # noqa: E402
 from .stats import mean_interval, wilson_interval  # noqa: E402
-from .sweep import run_sweep  # noqa: E402
+from .sweep import load_timings, read_rows, record_timing, run_sweep  # noqa: E402
 from .willems_selection import selection_table  # noqa: E402
 
 WORKERS = 2
@@ -86,26 +86,26 @@ def _task(experiment: str, i: int, seeds: tuple[int, int], method: str, **settin
             "sim": i, "seed": seeds[0], "attack_seed": seeds[1], **setting}
 
 
-def paper_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
+def paper_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict[str, Any]]:
     """Input poisoning of the appendix SDP, eigenvalue criterion: every (N, delta_u, sim) for both methods."""
     return [_task("paper", i, s, method, horizon=n, delta_u=d, delta_x=0.0, poison="u", design="lqr",
-                  criterion="eigen")
+                  criterion="eigen", selection=selection)
             for n in plan.horizons for d in plan.deltas for i, s in enumerate(sim_seeds(seed, plan.sims))
             for method in ("hypergradient", "de")]
 
 
-def remark_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
+def remark_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict[str, Any]]:
     """The output-poisoning remark: states poisoned with delta_y = 1e-3 (x_0 clean), inputs clean."""
     return [_task("remark", i, s, method, horizon=n, delta_u=0.0, delta_x=DELTA_Y, poison="x", design="lqr",
-                  criterion=criterion)
+                  criterion=criterion, selection=selection)
             for n in plan.remark_horizons for i, s in enumerate(sim_seeds(seed, plan.remark_sims))
             for method, criterion in (("hypergradient", "eigen"), ("hypergradient", "maxmin"), ("random", "eigen"))]
 
 
-def design_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
+def design_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict[str, Any]]:
     """Both criteria on the three designs, inputs only or states and inputs (delta_x = delta_u), N = 15."""
     return [_task("designs", i, s, "hypergradient", horizon=15, delta_u=d, delta_x=d if poison == "xu" else 0.0,
-                  poison=poison, design=design, criterion=criterion)
+                  poison=poison, design=design, criterion=criterion, selection=selection)
             for design in ("lqr", "lqr-r", "stabilizing") for poison in ("u", "xu") for criterion in ("maxmin", "eigen")
             for d in plan.design_deltas for i, s in enumerate(sim_seeds(seed, plan.design_sims))]
 
@@ -128,7 +128,7 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
     fields = {k: v for k, v in task.items() if k != "key"}
     setting = WillemsSetting(objective=task["criterion"], horizon=task["horizon"], seed=task["seed"],
                              delta_u=task["delta_u"], delta_x=task["delta_x"], poison=task["poison"],
-                             design=task["design"])
+                             design=task["design"], selection=task["selection"])
     try:
         attack = build_attack(setting)
         if task["method"] == "hypergradient":
@@ -359,7 +359,7 @@ def _timing(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
 
 
 def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict], figures: dict[str, str],
-                 signals: dict[int, tuple[float, int]], wall: dict[str, float], selection: str) -> str:
+                 signals: dict[int, tuple[float, int]], wall: dict[str, tuple[int, float]], selection_md: str, learner: str) -> str:
     """report.md: settings, tables, figures, timing and the paper's claims next to ours."""
     paper = summaries["paper"]
     hz = plan.horizons
@@ -392,8 +392,10 @@ def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict]
         "- Plant: batch reactor (Walsh & Ye 2001), Ts = 0.1, n = 4, m = 2; data: u ~ N(0, 1) white, x_0 = 0, "
         "noise free. The attacker uses [B A] = X1 [U0; X0]^+ from the clean data (equal to the plant here).",
         f"- Learner (paper setting): the appendix SDP min tr(Qx X0 Q) s.t. [[X0 Q - I, X1 Q], [Q' X1', X0 Q]] >= 0, "
-        f"Qx = I, plus reg/2 ||Q||_F^2 with reg = {DEFAULT_REG:g} (minimum-norm selection of the non-unique Q; "
-        "see docs/willems.md); K = U0 Q (X0 Q)^-1.",
+        f"Qx = I, plus reg/2 ||Q||_F^2 with reg = {DEFAULT_REG:g}; selection `{learner}` of the non-unique Q"
+        + (" (Q projected onto the row space of [X0; X1] after solving: the minimum-norm Q, reproducible to "
+           "solver accuracy)" if learner == "min-norm" else " (the solver's Q under reg alone)")
+        + "; see docs/willems.md. K = U0 Q (X0 Q)^-1.",
         f"- Attack: input poisoning |Du| <= delta_u entrywise (linf), criterion log det((A+BK)(A+BK)'), "
         f"delta_u in {list(plan.deltas)}, N in {list(plan.horizons)}, {plan.sims} simulations per cell "
         "(the same data for every delta and method).",
@@ -421,13 +423,13 @@ def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict]
         "|A_u| <= delta_u moves an entry of K by at most delta_u max_j sum_t |G_tj| (the gain below). Q is "
         "non-unique (any Q + N with [X0; X1] N = 0 is optimal), so the gain depends on the learner's selection; "
         "see `bilevel.experiments.willems_selection`.", "",
-        selection,
+        selection_md,
         "A learner whose gain falls with N cannot show the paper's 'larger N destabilizes at smaller delta_u'; "
         "that needs a selection that puts a growing null-space component into Q. The paper does not name its "
         "SDP solver.", "",
         "## Timing", "", _timing(paper, plan),
-        "Wall-clock of this run (all sweeps share 2 workers): " + ", ".join(f"{k} {v:.0f} s" for k, v in wall.items())
-        + " (only work not already in the JSONL files is timed).", "",
+        "Wall-clock (2 workers; timings.json keeps each sweep's time across resumed runs): "
+        + ", ".join(f"{k} {n} attacks in {v:.0f} s" for k, (n, v) in wall.items()) + ".", "",
         "## The paper's claims next to ours", "",
         "| claim | paper | ours |", "|---|---|---|",
         *[f"| {name} | {text} | {ours} |" for (name, text), ours in zip(PAPER_CLAIMS, claims)], "",
@@ -448,20 +450,28 @@ def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict]
 
 
 def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool = False, seed: int = 0,
-                     progress: Callable[[str], None] | None = print) -> str:
-    """Run (or resume) every sweep, then write tables (CSV + Markdown), figures 7-9 and report.md; returns its path."""
+                     progress: Callable[[str], None] | None = print, selection: str = "min-norm") -> str:
+    """Run (or resume) every sweep, then write tables (CSV + Markdown), figures 7-9 and report.md; returns its path.
+
+    `selection` is the learner's choice among its optimal Q (bilevel.problems.willems): "min-norm" (default) or
+    "tikhonov" (the solver's Q under reg alone, as in the sweep committed in session 1)."""
     plan = make_plan(sims, quick)
     os.makedirs(out_dir, exist_ok=True)
     extra = {"de_popsize": plan.de_popsize, "de_maxiter": plan.de_maxiter, "starts": plan.starts}
-    sweeps = {"paper": (paper_tasks(plan, seed), ("horizon", "method", "delta_u")),
-              "remark": (remark_tasks(plan, seed), ("horizon", "method", "criterion")),
-              "designs": (design_tasks(plan, seed), ("design", "poison", "criterion", "delta_u"))}
-    rows, summaries, wall = {}, {}, {}
+    sweeps = {"paper": (paper_tasks(plan, seed, selection), ("horizon", "method", "delta_u")),
+              "remark": (remark_tasks(plan, seed, selection), ("horizon", "method", "criterion")),
+              "designs": (design_tasks(plan, seed, selection), ("design", "poison", "criterion", "delta_u"))}
+    timings_path = os.path.join(out_dir, "timings.json")
+    rows, summaries, wall = {}, {}, load_timings(timings_path)
     for name, (tasks, fields) in sweeps.items():
+        path = os.path.join(out_dir, f"{name}.jsonl")
+        done = {r["key"] for r in read_rows(path)}
+        todo = sum(t["key"] not in done for t in tasks)
         t0 = time.perf_counter()
-        rows[name] = run_sweep(attack_task, [{**t, **extra} for t in tasks], os.path.join(out_dir, f"{name}.jsonl"),
-                               WORKERS, progress, f"willems-{name}")
-        wall[name] = time.perf_counter() - t0
+        rows[name] = run_sweep(attack_task, [{**t, **extra} for t in tasks], path, WORKERS, progress,
+                               f"willems-{name}")
+        if todo:
+            record_timing(timings_path, wall, name, todo, time.perf_counter() - t0)
         summaries[name] = summarize(rows[name], fields)
         write_csv(summaries[name], fields, os.path.join(out_dir, f"table_{name}.csv"))
     tables = {"paper": paper_table, "remark": remark_table, "designs": design_table}
@@ -472,11 +482,11 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
     figures = {"fig7": figure_eigenvalues(summaries["paper"], plan, out_dir),
                "fig8": figure_objective(summaries["paper"], plan, out_dir), "fig9": fig9}
     with open(os.path.join(out_dir, "plan.json"), "w", encoding="utf-8") as fh:
-        json.dump({**asdict(plan), "seed": seed, "reg": DEFAULT_REG}, fh, indent=2)
-    selection = selection_table(plan.horizons, [s for s, _ in sim_seeds(seed, min(plan.sims, 64))], out_dir)
+        json.dump({**asdict(plan), "seed": seed, "reg": DEFAULT_REG, "selection": selection}, fh, indent=2)
+    selection_md = selection_table(plan.horizons, [s for s, _ in sim_seeds(seed, min(plan.sims, 64))], out_dir)
     with open(os.path.join(out_dir, "table_selection.md"), "w", encoding="utf-8") as fh:
-        fh.write(selection)
-    path = write_report(out_dir, plan, seed, summaries, figures, signals, wall, selection)
+        fh.write(selection_md)
+    path = write_report(out_dir, plan, seed, summaries, figures, signals, wall, selection_md, selection)
     if progress:
         progress(f"wrote {path}")
     return path
