@@ -359,7 +359,8 @@ def _timing(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
 
 
 def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict], figures: dict[str, str],
-                 signals: dict[int, tuple[float, int]], wall: dict[str, tuple[int, float]], selection_md: str, learner: str) -> str:
+                 signals: dict[int, tuple[float, int]], wall: dict[str, tuple[int, float]], selection_md: str,
+                 learner: str) -> str:
     """report.md: settings, tables, figures, timing and the paper's claims next to ours."""
     paper = summaries["paper"]
     hz = plan.horizons

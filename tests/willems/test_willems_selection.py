@@ -1,4 +1,5 @@
-"""The learner's selection among optimal Q sets its sensitivity to input poisoning (bilevel.experiments.willems_selection)."""
+"""The learner's selection among optimal Q: its sensitivity to input poisoning (bilevel.experiments.willems_selection)
+and the reproducibility of the attack oracle's min-norm selection (bilevel.attacks.willems)."""
 
 from __future__ import annotations
 
