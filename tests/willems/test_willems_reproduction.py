@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 import os
 
-from bilevel.experiments.willems import make_plan, paper_tasks, run_reproduction, sim_seeds
+from bilevel.attacks.willems import SDPHypergradient
+from bilevel.experiments.willems import attack_task, make_plan, paper_tasks, run_reproduction, sim_seeds
 
 
 def test_quick_reproduction_writes_report_tables_and_figures(tmp_path) -> None:
@@ -34,6 +35,27 @@ def test_quick_reproduction_writes_report_tables_and_figures(tmp_path) -> None:
     run_reproduction(sims=2, out_dir=out, quick=True, seed=0, progress=lines.append)
     assert not any("running" in line for line in lines)
     assert sum(1 for _ in open(os.path.join(out, "paper.jsonl"), encoding="utf-8")) == paper_rows
+    # the first run's sweep times survive the resume, so the report still states them
+    timings = json.load(open(os.path.join(out, "timings.json"), encoding="utf-8"))
+    assert set(timings) == {"paper", "remark", "designs"} and timings["paper"][0] == paper_rows
+    assert timings["paper"][1] > 0 and f"paper {paper_rows} attacks in" in open(report, encoding="utf-8").read()
+
+
+def test_selection_is_part_of_every_task_and_reaches_the_learner(monkeypatch) -> None:
+    """Rows of the two selections never share a key (a resumed run cannot mix them), and attack_task builds the
+    learner with the task's selection: the row-space projection runs for min-norm tasks only."""
+    plan = make_plan(1, True)
+    tasks = {sel: paper_tasks(plan, 0, sel) for sel in ("min-norm", "tikhonov")}
+    assert not {t["key"] for t in tasks["min-norm"]} & {t["key"] for t in tasks["tikhonov"]}
+    calls = []
+    original = SDPHypergradient.project_rowspace
+    monkeypatch.setattr(SDPHypergradient, "project_rowspace",
+                        lambda self, x, sol: calls.append(self.attack.setting.selection) or original(self, x, sol))
+    for sel in ("min-norm", "tikhonov"):
+        task = next(t for t in tasks[sel] if t["horizon"] == 15 and t["method"] == "hypergradient")
+        row = attack_task({**task, "starts": 1})
+        assert row["selection"] == sel and "error" not in row and row["kkt_residual"] <= 1e-9
+    assert calls and set(calls) == {"min-norm"}
 
 
 def test_simulation_seeds_are_reproducible() -> None:
