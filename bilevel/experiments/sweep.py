@@ -51,8 +51,10 @@ def _run(fn: Callable[[dict[str, Any]], dict[str, Any]], task: dict[str, Any]) -
 
 def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[dict[str, Any]], path: str,
               workers: int | None = None, progress: Callable[[str], None] | None = print,
-              label: str = "sweep") -> list[dict[str, Any]]:
-    """Run fn on every task not yet in `path` (on `workers` processes), appending rows as they finish."""
+              label: str = "sweep",
+              timed: Callable[[list[dict[str, Any]], float], None] | None = None) -> list[dict[str, Any]]:
+    """Run fn on every task not yet in `path` (on `workers` processes), appending rows as they finish;
+    if any ran, timed(tasks run, wall seconds) is called after the last one (e.g. to record_timing)."""
     tasks = list(tasks)
     keys = [t["key"] for t in tasks]
     if len(set(keys)) != len(keys):
@@ -85,4 +87,6 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
         finally:
             if pool is not None:
                 pool.shutdown(cancel_futures=True)
+    if todo and timed is not None:
+        timed(todo, time.perf_counter() - t0)
     return [done[k] for k in keys]

@@ -6,9 +6,7 @@ and sim i uses the same data in every (eps_u, eps_y) cell (common random numbers
 
 from __future__ import annotations
 
-import json
 import os
-import time
 from typing import Any, Callable
 
 import numpy as np
@@ -16,7 +14,7 @@ import numpy as np
 from ..attacks.vrft import CONVENTIONS, VRFTAttack, attack_instance
 from ..attacks.vrft_methods import ATTACKS, attack_budget_path
 from .stats import mean_interval, wilson_interval
-from .sweep import load_timings, read_rows, record_timing, run_sweep
+from .sweep import load_timings, record_timing, run_sweep
 
 EPS_U = (0.0, 0.1, 0.2)
 EPS_Y = (0.01, 0.023, 0.037, 0.05, 0.057)
@@ -154,13 +152,11 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
     timings = load_timings(timings_path)
     for name, n, convention, objective, method in plan:
         tasks = cell_tasks(n, seed, convention, objective, method)
-        path = os.path.join(out_dir, f"{name}.jsonl")
-        done = {r["key"] for r in read_rows(path)}
-        todo = sum(len(t["eps_y"]) if t["method"] == "path" else 1 for t in tasks if t["key"] not in done)
-        t0 = time.perf_counter()
-        runs[name] = run_sweep(attack_task, tasks, path, workers, progress, name)
-        if todo:
-            record_timing(timings_path, timings, name, todo, time.perf_counter() - t0)
+        runs[name] = run_sweep(
+            attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), workers, progress, name,
+            lambda ran, seconds: record_timing(timings_path, timings, name,
+                                               sum(len(t["eps_y"]) if t["method"] == "path" else 1 for t in ran),
+                                               seconds))
     summaries = {name: summarize(rows) for name, rows in runs.items()}
     for name, s in summaries.items():
         write_csv(s, os.path.join(out_dir, f"table_{name}.csv"))

@@ -33,7 +33,7 @@ from ..ddc.plants import batch_reactor  # noqa: E402
 from ..errors import BilevelError  # noqa: E402
 from ..problems.willems import DEFAULT_REG, WillemsSetting, build_attack  # noqa: E402
 from .stats import mean_interval, wilson_interval  # noqa: E402
-from .sweep import load_timings, read_rows, record_timing, run_sweep  # noqa: E402
+from .sweep import load_timings, record_timing, run_sweep  # noqa: E402
 from .willems_selection import selection_table  # noqa: E402
 
 WORKERS = 2
@@ -465,14 +465,9 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
     timings_path = os.path.join(out_dir, "timings.json")
     rows, summaries, wall = {}, {}, load_timings(timings_path)
     for name, (tasks, fields) in sweeps.items():
-        path = os.path.join(out_dir, f"{name}.jsonl")
-        done = {r["key"] for r in read_rows(path)}
-        todo = sum(t["key"] not in done for t in tasks)
-        t0 = time.perf_counter()
-        rows[name] = run_sweep(attack_task, [{**t, **extra} for t in tasks], path, WORKERS, progress,
-                               f"willems-{name}")
-        if todo:
-            record_timing(timings_path, wall, name, todo, time.perf_counter() - t0)
+        rows[name] = run_sweep(attack_task, [{**t, **extra} for t in tasks], os.path.join(out_dir, f"{name}.jsonl"),
+                               WORKERS, progress, f"willems-{name}",
+                               lambda ran, seconds: record_timing(timings_path, wall, name, len(ran), seconds))
         summaries[name] = summarize(rows[name], fields)
         write_csv(summaries[name], fields, os.path.join(out_dir, f"table_{name}.csv"))
     tables = {"paper": paper_table, "remark": remark_table, "designs": design_table}
