@@ -37,10 +37,11 @@ import casadi as ca
 import numpy as np
 import scipy.optimize
 
+from ..ddc.depersis_tesi import min_norm_q
 from ..ddc.plants import batch_reactor
 from ..errors import BilevelError, ModelError, SolverFailed
 from ..lower import LowerSolution, build_lower
-from ..lower.base import unvech, vech
+from ..lower.base import psd_violation, unvech, vech
 from ..lower.quadratic import clarabel_solution
 from ..mpcc import vech_sx
 from ..problems.willems import WillemsAttack, criterion_values
@@ -52,8 +53,6 @@ ARMIJO = 1e-4
 MAX_BACKTRACKS = 30
 PSD_TOL = 1e-9
 KKT_TOL = 1e-6
-RANK_RTOL = 1e-10
-"""Singular values of D(x) below RANK_RTOL * the largest span its numerical null space (clean D has rank n + m)."""
 TIE_RTOL = 1e-6
 UNSTABLE_PENALTY = 1e12
 """Finite stand-in for phi = +inf handed to differential evolution (which cannot rank infinities)."""
@@ -136,8 +135,7 @@ class SDPHypergradient:
     def _psd_ok(self, x: np.ndarray, sol: LowerSolution) -> bool:
         mats = self.lower_level.evaluate(x, sol.y)[3]
         for mat in list(mats) + list(sol.Z):
-            scale = 1.0 + float(np.abs(mat).max())
-            if np.linalg.eigvalsh(0.5 * (mat + mat.T)).min() < -PSD_TOL * scale:
+            if psd_violation(mat) > PSD_TOL * (1.0 + float(np.abs(mat).max())):
                 return False
         return True
 
@@ -163,13 +161,10 @@ class SDPHypergradient:
 
     def project_rowspace(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, float]:
         """Q projected onto the row space of D(x) (the minimum-norm Q with the same D Q) and the new KKT residual."""
-        seen = np.asarray(self._seen(x), dtype=float)
-        _, sing, vt = np.linalg.svd(seen, full_matrices=False)
-        basis = vt[sing > RANK_RTOL * sing[0]]
         size = self._q_shape[0] * self._q_shape[1]
         q = sol.y[:size].reshape(self._q_shape, order="F")
         y = sol.y.copy()
-        y[:size] = (basis.T @ (basis @ q)).ravel(order="F")
+        y[:size] = min_norm_q(np.asarray(self._seen(x), dtype=float), q).ravel(order="F")
         projected = dataclasses.replace(sol, y=y, objective=float(self.lower_level.evaluate(x, y)[0]),
                                         solver=f"{sol.solver} + row-space projection")
         return projected, float(np.abs(np.asarray(self._residual(x, self._pack(projected))[0])).max())

@@ -70,6 +70,14 @@ def check_persistency(data: StateData) -> int:
     return rank
 
 
+def min_norm_q(seen: np.ndarray, q: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
+    """Q projected onto the row space of the data rows `seen` (D): the minimum-norm Q with the same D Q.
+    Singular values of D below rtol * the largest count as zero (clean [X0; X1] has rank n + m)."""
+    _, sing, vt = np.linalg.svd(seen, full_matrices=False)
+    basis = vt[sing > rtol * sing[0]]
+    return basis.T @ (basis @ q)
+
+
 @dataclass(frozen=True)
 class DPTController:
     """A data-driven state-feedback gain u = K x with its certificate Q and the SDP outcome."""

@@ -16,7 +16,7 @@ import os
 import numpy as np
 
 from ..ddc.data import batch_reactor_data
-from ..ddc.depersis_tesi import lqr_controller
+from ..ddc.depersis_tesi import lqr_controller, min_norm_q
 
 SELECTIONS = ("min-norm", "clarabel")
 
@@ -26,7 +26,7 @@ def input_gains(x: np.ndarray, u: np.ndarray) -> dict[str, float]:
     x0, x1 = x[:, :-1], x[:, 1:]
     q_solver = lqr_controller(x, u, input_cost=False).q
     data = np.vstack([x0, x1])
-    q_min = np.linalg.pinv(data) @ (data @ q_solver)  # the part of Q the SDP sees: the minimum-norm optimum
+    q_min = min_norm_q(data, q_solver)  # the part of Q the SDP sees: the minimum-norm optimum
     out = {}
     for name, q in zip(SELECTIONS, (q_min, q_solver)):
         s = x0 @ q
