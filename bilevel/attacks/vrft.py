@@ -29,7 +29,7 @@ from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
 from ..errors import InvalidData, ModelError
 from .budget import Budget
 from .spectral import LoopPolynomial, fit_arx
-from .trust_region import maximize_quadratic_on_ball
+from ..solvers.trust_region import maximize_quadratic_on_ball
 
 Objective = Literal["maxmin", "targeted", "destabilize"]
 DataConvention = Literal["prefiltered", "raw"]

@@ -19,11 +19,10 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..errors import ModelError
+from ..solvers.ascent import budget_direction, projected_ascent
 from ..threads import single_threaded
 from .vrft import State, VRFTAttack
 
-ARMIJO = 1e-4
-WINDOW = 5
 DEFAULT_STEPS = (1.0,)
 
 
@@ -80,59 +79,6 @@ def _result(atk: VRFTAttack, method: str, status: str, s: State, t0: float, iter
                         iterations, evaluations, history)
 
 
-def _scaled(g: np.ndarray, radius: float, order: float) -> np.ndarray:
-    """Gradient rescaled so a unit step moves about one budget radius."""
-    norm = np.linalg.norm(g, order)
-    return g * (radius / norm) if norm > 0 and radius > 0 else np.zeros_like(g)
-
-
-def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]], direction: Callable[[Any], tuple[np.ndarray, np.ndarray]],
-                     project: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, scale: float | np.ndarray,
-                     max_iter: int, tol: float, history: list[dict[str, float]],
-                     step0: float = 1.0) -> tuple[np.ndarray, float, Any, int, int, bool]:
-    """Monotone spectral projected gradient ascent (Birgin, Martinez & Raydan 2000) in budget units z = x / scale.
-
-    direction(aux) returns (gradient, first direction): the first step is step0 * that direction (about one
-    budget radius), later ones P(x + lam * alpha * scale^2 * g) with alpha the second Barzilai-Borwein length
-    in z and lam halved until an Armijo increase. Stops when the relative gain over the last `WINDOW`
-    accepted steps is below tol, or no step is accepted. Returns x, f, aux, iterations, evaluations, converged.
-    """
-    x = project(x0)
-    fx, aux = f(x)
-    g, d = direction(aux)
-    metric = np.broadcast_to(np.asarray(scale, dtype=float) ** 2, x.shape)
-    evals, converged, it = 1, False, 0
-    alpha = None  # BB length; None: use the first direction
-    for it in range(1, max_iter + 1):
-        move = d if alpha is None else alpha * (metric * g)
-        if not np.any(move):
-            converged = True
-            break
-        lam = step0 if alpha is None else 1.0
-        while True:
-            xn = project(x + lam * move)
-            fn, auxn = f(xn)
-            evals += 1
-            if fn >= fx + ARMIJO * float(g @ (xn - x)) and fn >= fx:
-                break
-            lam *= 0.5
-            if lam < 1e-8:
-                converged = True
-                break
-        if converged:
-            break
-        gn, dn = direction(auxn)
-        s, y = xn - x, gn - g
-        curvature, yy = -float(s @ y), float(y @ (metric * y))  # the ascent's curvature along s, ||y||^2 in z
-        alpha = curvature / yy if curvature > 0 and yy > 0 else None
-        x, fx, aux, g, d = xn, fn, auxn, gn, dn
-        history.append({"iter": it, "value": fx, "step": lam})
-        if it >= WINDOW and fx - history[-WINDOW]["value"] <= tol * max(abs(fx), 1e-12):
-            converged = True
-            break
-    return x, fx, aux, it, evals, converged
-
-
 def input_step(atk: VRFTAttack, a_y: np.ndarray, a_u0: np.ndarray | None = None, iters: int = 30) -> tuple[np.ndarray, State]:
     """The best a_u for fixed a_y: exact (l2), monotone conditional gradient (max-min), or projected gradient."""
     b = atk.budget_u
@@ -159,7 +105,7 @@ def input_step(atk: VRFTAttack, a_y: np.ndarray, a_u0: np.ndarray | None = None,
 
     def direction(st: State) -> tuple[np.ndarray, np.ndarray]:
         g = atk.hypergradient(st)[0]
-        return g, _scaled(g, atk.delta_u, order)
+        return g, budget_direction(g, atk.delta_u, order)
 
     a, _, s, _, _, _ = projected_ascent(value, direction, proj, a, atk.delta_u, iters, 1e-9, [])
     return a, s
@@ -178,7 +124,7 @@ def conditioning_start(atk: VRFTAttack, iters: int = 10) -> np.ndarray:
     for _ in range(iters):
         U, _, Vt = np.linalg.svd(atk.phi0 + reg(a), full_matrices=False)
         g = reg.adjoint(np.outer(U[:, -1], Vt[-1]))
-        a = proj(a - _scaled(g, atk.delta_y, atk.budget_y.order))
+        a = proj(a - budget_direction(g, atk.delta_y, atk.budget_y.order))
     return a
 
 
@@ -230,7 +176,7 @@ def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter
 
             def direction(s: State) -> tuple[np.ndarray, np.ndarray]:
                 g_y = atk.hypergradient(s)[1]
-                return g_y, _scaled(g_y, atk.delta_y, order)
+                return g_y, budget_direction(g_y, atk.delta_y, order)
 
             _, fx, s, it, ev, conv = projected_ascent(value, direction, proj_y, ay0, atk.delta_y, max_iter, tol,
                                                       history, step0)
@@ -273,8 +219,8 @@ def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int 
 
     def direction(s: State) -> tuple[np.ndarray, np.ndarray]:
         g_u, g_y = atk.hypergradient(s)
-        return np.concatenate([g_u, g_y]), np.concatenate([_scaled(g_u, atk.delta_u, ou),
-                                                           _scaled(g_y, atk.delta_y, oy)])
+        return np.concatenate([g_u, g_y]), np.concatenate([budget_direction(g_u, atk.delta_u, ou),
+                                                           budget_direction(g_y, atk.delta_y, oy)])
 
     best, total_it, total_ev = None, 0, 0
     with single_threaded():

@@ -12,10 +12,11 @@ from hypothesis import strategies as st
 
 import bilevel as bl
 from bilevel.attacks.budget import Budget
-from bilevel.attacks.trust_region import maximize_quadratic_on_ball
+from bilevel.solvers.trust_region import maximize_quadratic_on_ball
 from bilevel.attacks.vrft import CONVENTIONS, attack_instance
 from bilevel.attacks.vrft_methods import (attack_alternating, attack_budget_path, attack_joint, attack_white_noise,
-                                         input_step, projected_ascent)
+                                         input_step)
+from bilevel.solvers.ascent import projected_ascent
 from bilevel.solvers.projections import NormBall
 from bilevel.ddc.vrft import fit_vrft
 from bilevel.problems import registry

@@ -58,4 +58,5 @@ def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, delta: float) -> np
         mu += step
         if abs(step) <= 1e-15 * max(1.0, abs(mu)) or abs(psi) <= 1e-15 / delta:
             break
-    return v_of(mu)
+    v = v_of(mu)  # Newton approaches the root from the left, where ||v(mu)|| >= delta: land on the sphere
+    return v * min(1.0, delta / max(float(np.linalg.norm(v)), 1e-300))
