@@ -42,6 +42,7 @@ class CanonicalBilevel:
     lower_vars: list[Variable]
     y_start: np.ndarray | None = None
     G_names: list[str] = field(default_factory=list)
+    x_suggested: list[np.ndarray] = field(default_factory=list)
 
     @cached_property
     def lower(self) -> LowerLevel:
@@ -134,6 +135,9 @@ class Canonicalize(Reduction):
                                 if ups else None)
         y_start = (np.concatenate([v.start if v.start is not None else np.zeros(v.size) for v in lows])
                    if any(v.start is not None for v in lows) else None)
+        layout = problem.upper_layout()
+        suggested = [np.clip(np.concatenate([s.get(v.name, x_start[layout[v.name]]) for v in ups]), x_lb, x_ub)
+                     for s in problem.starts]
         vert = lambda parts: ca.vertcat(*parts) if parts else ca.SX(0, 1)  # noqa: E731
         canon = CanonicalBilevel(
             x=x, y=y, x_lb=x_lb, x_ub=x_ub, x_start=x_start, F=problem.upper_objective.expr, G=vert(G), H=vert(H),
@@ -141,7 +145,7 @@ class Canonicalize(Reduction):
             psd=[m.matrix for m in problem.lower_psd_constraints], g_rows=g_rows, h_rows=h_rows,
             psd_names=[m.name for m in problem.lower_psd_constraints], upper_sense=problem.upper_objective.sense,
             lower_sense=problem.lower_objective.sense, upper_vars=ups, lower_vars=lows, y_start=y_start,
-            G_names=G_names,
+            G_names=G_names, x_suggested=suggested,
         )
         return canon, canon
 

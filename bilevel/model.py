@@ -131,6 +131,7 @@ class BilevelProblem:
         self.upper_constraints: list[Constraint] = []
         self.lower_constraints: list[Constraint] = []
         self.lower_psd_constraints: list[PSDConstraint] = []
+        self.starts: list[dict[str, np.ndarray]] = []
 
     # -- variables -----------------------------------------------------------------------------
     def _variable(self, level: Level, name: str, shape: int | tuple[int, int], lb: Any, ub: Any, start: Any) -> ca.SX:
@@ -160,6 +161,31 @@ class BilevelProblem:
                        ub: Any = np.inf, start: Any = None) -> ca.SX:
         """Declare lower-level (follower) variables; their bounds are lower-level constraints."""
         return self._variable("lower", name, shape, lb, ub, start)
+
+    def suggest_start(self, **values: Any) -> None:
+        """Add an upper-level start for the multistart methods (tried before random ones): values by upper-variable
+        name; unnamed upper variables take their declared start."""
+        upper = {v.name: v for v in self.upper_variables}
+        if not values:
+            raise ModelError("suggest_start needs values for at least one upper variable, e.g. suggest_start(x=1.0)")
+        start = {}
+        for name, value in values.items():
+            if name not in upper:
+                raise ModelError(f"suggest_start: {name!r} is not an upper variable; upper variables: "
+                                 f"{', '.join(upper) or 'none'}")
+            arr = _bound_array(value, upper[name].size, f"suggested start of {name!r}")
+            if not np.all(np.isfinite(arr)):
+                raise ModelError(f"suggested start of {name!r} contains inf; give finite values")
+            start[name] = arr
+        self.starts.append(start)
+
+    def upper_layout(self) -> dict[str, slice]:
+        """Where each upper variable sits in the flat upper vector x (declaration order, column-major)."""
+        layout, start = {}, 0
+        for var in self.upper_variables:
+            layout[var.name] = slice(start, start + var.size)
+            start += var.size
+        return layout
 
     @property
     def upper_variables(self) -> list[Variable]:

@@ -19,6 +19,7 @@ class Status(str, Enum):
     SOLVED = "solved"                          # backend converged and the certificate passed
     INACCURATE = "inaccurate"                  # certificate passed, backend stopped short (e.g. acceptable level)
     CERTIFICATE_FAILED = "certificate_failed"  # backend claimed success, certificate disagrees
+    NOT_LOCALLY_OPTIMAL = "not_locally_optimal"  # certificate passed, but a feasible point nearby is better
     MAX_ITERATIONS = "max_iterations"          # iteration/time limit hit, certificate not passed
     INFEASIBLE = "infeasible"                  # backend found the single-level problem infeasible
     ERROR = "error"                            # backend failed without a usable point

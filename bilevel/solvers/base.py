@@ -9,13 +9,16 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from ..canonical import CanonicalBilevel, Canonicalize, NormalizeSense, kkt_solution
+from ..canonical import CanonicalBilevel, Canonicalize, NormalizeSense, kkt_solution, objectives
 from ..certificate import DEFAULT_TOL, certify
 from ..errors import BilevelError, UnknownOption
 from ..model import BilevelProblem
 from ..mpcc import MPCC
 from ..reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
 from ..result import BilevelResult, Status
+from .probe import improving_neighbour
+from .projections import Projection
+from .structure import Ball, find_balls, upper_projection
 
 
 @dataclass
@@ -26,6 +29,16 @@ class Prepared:
     canon: CanonicalBilevel
     front: Chain
     front_inverse: list[Any]
+
+    @cached_property
+    def balls(self) -> list[Ball]:
+        """Upper constraints recognized as Euclidean balls on blocks of x (projected on, not penalized)."""
+        return find_balls(self.canon)
+
+    @cached_property
+    def projection(self) -> Projection:
+        """Projection onto the upper box intersected with the recognized balls."""
+        return upper_projection(self.canon, self.balls)
 
     @cached_property
     def reduction(self) -> tuple[MPCC, KKTInverse]:
@@ -68,6 +81,8 @@ class MethodRun:
     history: list[dict[str, Any]] = field(default_factory=list)
     starts: list[dict[str, Any]] = field(default_factory=list)
     stats: dict[str, Any] = field(default_factory=dict)
+    feasible_set: Projection | None = None
+    """The upper set the method searched when narrower than the declared one (a `projection` option)."""
 
 
 def check_options(method: str, given: dict[str, Any], allowed: set[str]) -> None:
@@ -104,10 +119,22 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
     status, message = _final_status(run, cert is not None and cert.passed)
     if cert is not None and not cert.passed:
         message += f"; certificate failed on {', '.join(cert.failed)}"
+    stats = dict(run.stats)
+    if status in (Status.SOLVED, Status.INACCURATE):
+        F = objectives(prep.canon, point)[0]
+        better = improving_neighbour(prep, point.x, F, run.feasible_set or prep.projection)
+        stats["probe"] = None if better is None else {"x": better.x, "objective": better.objective,
+                                                      "radius": better.radius}
+        if better is not None:
+            status = Status.NOT_LOCALLY_OPTIMAL
+            sign = -1.0 if prep.problem.upper_objective.sense == "max" else 1.0
+            message = (f"not a local solution: a feasible point at relative distance {better.radius:g} has upper "
+                       f"objective {sign * better.objective:.8g} (here {sign * F:.8g}); the method stopped at a stationary point that is not optimal ({message}); try more starts or "
+                       "another method")
     sol = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse)
     syms = ca.vertcat(prep.canon.x, prep.canon.y)
     values = np.concatenate([point.x, point.y])
     evaluate = lambda expr: ca.evalf(ca.substitute(expr, syms, ca.DM(values)))  # noqa: E731
     return BilevelResult(status, message, method, prep.problem.name, sol.x, sol.y, sol.multipliers,
                          sol.upper_objective, sol.lower_objective, cert, wall_time, run.nit, tuple(run.history),
-                         tuple(run.starts), run.stats, evaluate)
+                         tuple(run.starts), stats, evaluate)

@@ -40,8 +40,9 @@ from ..lower.base import LowerSolution
 from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, check_options
-from .ipopt import best_of, start_points
-from .projections import Box, Projection
+from .ipopt import best_of
+from .starts import start_points
+from .projections import Projection
 
 DEFAULT_PENALTY = 1e4
 ACTIVE_TOL = 1e-6
@@ -74,7 +75,8 @@ def _shaped(values: list[ca.DM], shapes: list[tuple[int, int]]) -> list[np.ndarr
 class Hypergradient:
     """The reduced objective phi(x) = F(x, y*(x)) + penalty * (sum max(G, 0) + sum |H|) and its gradient."""
 
-    def __init__(self, prep: Prepared, penalty: float = DEFAULT_PENALTY, active_tol: float = ACTIVE_TOL) -> None:
+    def __init__(self, prep: Prepared, penalty: float = DEFAULT_PENALTY, active_tol: float = ACTIVE_TOL,
+                 projected_rows: tuple[int, ...] = ()) -> None:
         canon = prep.canon
         low = canon.lower
         if low.psd:
@@ -83,7 +85,9 @@ class Hypergradient:
         if not penalty >= 0:
             raise ModelError(f"penalty must be >= 0, got {penalty}")
         self.low, self.penalty, self.active_tol = low, float(penalty), float(active_tol)
-        x, y, G, H = canon.x, canon.y, canon.G, canon.H
+        x, y, H = canon.x, canon.y, canon.H
+        kept = [i for i in range(int(canon.G.numel())) if i not in set(projected_rows)]
+        G = ca.vertcat(*[canon.G[i] for i in kept]) if kept else ca.SX(0, 1)  # projected rows need no penalty
         self._upper = ca.Function("upper", [x, y], [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y),
                                                     ca.jacobian(G, x), ca.jacobian(G, y), ca.jacobian(H, x),
                                                     ca.jacobian(H, y)])
@@ -300,10 +304,10 @@ def _descend(arc: _Arc, start: Evaluation, tol: float, ftol: float, max_iter: in
 
 
 def _projection(prep: Prepared, projection: Any) -> Projection:
-    """The option `projection` intersected with the declared box (the box alone by default)."""
+    """The option `projection` intersected with the declared box (by default the box and the recognized balls)."""
     canon = prep.canon
     if projection is None:
-        return Box(canon.x_lb, canon.x_ub)
+        return prep.projection
     if not isinstance(projection, Projection):
         raise ModelError(f"option projection must be a Projection from bilevel.solvers.projections (Box, NormBall, "
                          f"SparseNormBall, Blocks), got {type(projection).__name__}")
@@ -319,7 +323,8 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     check_options("hypergradient", options, {"starts", "seed", "scale", "projection", "penalty", "tol", "ftol",
                                              "max_iter", "active_tol", "verbose"})
     starts, penalty = int(options.get("starts", 4)), float(options.get("penalty", DEFAULT_PENALTY))
-    oracle = Hypergradient(prep, penalty, float(options.get("active_tol", ACTIVE_TOL)))
+    projected = tuple(b.row for b in prep.balls) if options.get("projection") is None else ()
+    oracle = Hypergradient(prep, penalty, float(options.get("active_tol", ACTIVE_TOL)), projected)
     arc = _Arc(prep, oracle, _projection(prep, options.get("projection")))
     tol, ftol = float(options.get("tol", 1e-7)), float(options.get("ftol", 1e-12))
     max_iter = int(options.get("max_iter", 500))
@@ -351,4 +356,5 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     i = best_of(candidates)
     k, best = runs[i]
     return MethodRun(candidates[i][0], best.status, f"best of {starts} starts: start {k} ({best.message})", nit,
-                     best.history, records, {"best_start": k, "penalty": penalty})
+                     best.history, records, {"best_start": k, "penalty": penalty},
+                     None if options.get("projection") is None else arc.project)

@@ -18,8 +18,8 @@ import numpy as np
 from ..errors import BilevelError
 from ..mpcc import Branch, ComplementarityMode, NLPForm, Scholtes
 from ..result import Status
-from ..sampling import sample_in_bounds
 from .base import MethodRun, Prepared, check_options
+from .starts import start_points
 
 IPOPT_STATUS: dict[str, Status] = {
     "Solve_Succeeded": Status.SOLVED,
@@ -81,12 +81,6 @@ def polish(prep: Prepared, w: np.ndarray, options: dict[str, Any]) -> NLPRun | N
     except (RuntimeError, BilevelError):
         return None
     return run if run.status is Status.SOLVED else None
-
-
-def start_points(prep: Prepared, starts: int, rng: np.random.Generator, scale: float) -> list[np.ndarray]:
-    """Upper starts: the declared start, then seeded random points inside the upper bounds."""
-    canon = prep.canon
-    return [canon.x_start] + [sample_in_bounds(canon.x_lb, canon.x_ub, rng, scale) for _ in range(starts - 1)]
 
 
 def warm_start(prep: Prepared, x0: np.ndarray) -> np.ndarray:

@@ -264,15 +264,6 @@ BlockSpec = Mapping[str, Projection] | Iterable[tuple[slice | str, Projection]]
 """Blocks as {name: projection} or [(slice or name, projection), ...]."""
 
 
-def upper_layout(problem: BilevelProblem) -> dict[str, slice]:
-    """Where each upper variable sits in the flat upper vector x (declaration order, column-major)."""
-    layout, start = {}, 0
-    for var in problem.upper_variables:
-        layout[var.name] = slice(start, start + var.size)
-        start += var.size
-    return layout
-
-
 class Blocks(Projection):
     """One projection per block of entries of a vector of total_size; entries in no block are free.
 
@@ -301,7 +292,7 @@ class Blocks(Projection):
     @classmethod
     def for_problem(cls, problem: BilevelProblem, blocks: BlockSpec) -> "Blocks":
         """Blocks over a problem's flat upper vector, keyed by upper-variable names or slices."""
-        layout = upper_layout(problem)
+        layout = problem.upper_layout()
         return cls(blocks, sum(s.stop - s.start for s in layout.values()), layout)
 
     def _check(self, v: np.ndarray) -> np.ndarray:

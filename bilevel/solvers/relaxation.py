@@ -15,7 +15,8 @@ import numpy as np
 from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
 from .base import MethodRun, Prepared, check_options
-from .ipopt import (NLPRun, best_of, ipopt_options, polish, residual, run_nlp, start_points, warm_start)
+from .ipopt import NLPRun, best_of, ipopt_options, polish, residual, run_nlp, warm_start
+from .starts import start_points
 
 SCHEMES: dict[str, type[ComplementarityMode]] = {
     "scholtes": Scholtes,

@@ -45,12 +45,21 @@ def test_unknown_option_and_method_raise() -> None:
 
 
 def test_custom_callable_method_plugs_in() -> None:
-    def lower_at_start(prep, **_):
-        from bilevel.solvers.base import MethodRun
-        return MethodRun(prep.pack(prep.lower_point(np.array([1.0, 0.0]))), bl.Status.SOLVED, "fixed point")
+    best = bl.solve(projection_qp(), method="ipopt", starts=4)
+    assert best.success
 
-    res = bl.solve(projection_qp(), method=lower_at_start)
-    assert res.method == "lower_at_start" and res.certificate.passed and res.success
+    def fixed_point(x):
+        def method(prep, **_):
+            from bilevel.solvers.base import MethodRun
+            return MethodRun(prep.pack(prep.lower_point(np.asarray(x, dtype=float))), bl.Status.SOLVED, "fixed point")
+        return method
+
+    res = bl.solve(projection_qp(), method=fixed_point(best.x["x"]))
+    assert res.method == "method" and res.certificate.passed and res.success
+    # a plug-in that calls an arbitrary lower-optimal point solved is contradicted by the local probe
+    res = bl.solve(projection_qp(), method=fixed_point([1.0, 0.0]))
+    assert res.certificate.passed and res.status is bl.Status.NOT_LOCALLY_OPTIMAL
+    assert res.stats["probe"]["objective"] < res.upper_objective - 1e-3
 
 
 def test_infeasible_upper_level_is_a_status_not_an_answer() -> None:

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import bilevel as bl
-from bilevel.solvers.projections import Blocks, Box, NormBall, SparseNormBall, upper_layout
+from bilevel.solvers.projections import Blocks, Box, NormBall, SparseNormBall
 
 NORMS = [1, 2, np.inf]
 TOL = 1e-9
@@ -131,7 +131,7 @@ def test_blocks_project_each_budget_and_the_box() -> None:
     p.upper_variable("a_u", 4)
     p.upper_variable("theta", 2, lb=-1, ub=1)
     p.upper_variable("a_y", (2, 2))
-    layout = upper_layout(p)
+    layout = p.upper_layout()
     assert layout == {"a_u": slice(0, 4), "theta": slice(4, 6), "a_y": slice(6, 10)}
     proj = Blocks.for_problem(p, {"a_u": NormBall(1.0), "a_y": SparseNormBall(0.5, 2, np.inf)})
     boxed = proj.with_box(np.r_[np.full(4, -np.inf), -1, -1, np.full(4, -np.inf)],
