@@ -50,19 +50,20 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
     rng = np.random.default_rng(0)
     points = [(xs, rng.standard_normal(int(y.numel()))) for xs in x_samples]
     hess_f = ca.hessian(f, y)[0]
-    affine_g = not (g.numel() and ca.depends_on(ca.jacobian(g, y), y))
+    nonlinear_f = np.asarray(ca.which_depends(f, y, 2, False), dtype=bool)  # sparsity propagation, no simplify
+    affine_g = not (g.numel() and any(ca.which_depends(g, y, 2, False)))
     if psd:
         for name, m in zip(psd_names, psd):
             if ca.depends_on(ca.jacobian(ca.vec(m), y), y):
                 raise NonConvexLowerLevel(f"LMI {name!r} is not affine in the lower variables; an SDP lower level "
                                           "needs M(x, y) affine in y")
-        if not affine_g or ca.depends_on(hess_f, y):
+        if not affine_g or ca.depends_on(hess_f, y):  # hess_f is small (n_y x n_y) next to f
             raise ModelError("a lower level with LMIs must have a linear or convex quadratic objective and affine "
                              "scalar constraints in y (a conic program)")
         _check_psd(ca.Function("hf", [x, y], [hess_f]), points, "the lower objective")
         return SemidefiniteLower(*args)
     if affine_g and not ca.depends_on(hess_f, y):
-        if ca.simplify(hess_f).is_zero():
+        if not nonlinear_f.any():
             return LinearLower(*args)
         worst = _check_psd(ca.Function("hf", [x, y], [hess_f]), points, "the lower objective")
         if not g.numel() and not h.numel() and worst > _PSD_TOL:

@@ -9,7 +9,7 @@ import scipy.linalg as sla
 
 from ..errors import RankDeficientRegressor
 from .base import LowerSolution
-from .quadratic import QuadraticLower
+from .quadratic import QPData, QuadraticLower
 
 
 @dataclass
@@ -18,16 +18,20 @@ class LeastSquaresLower(QuadraticLower):
 
     kind = "least-squares"
 
-    def solve(self, x: np.ndarray) -> LowerSolution:
-        """Closed form via a Cholesky factorization; raises if P(x) is not positive definite."""
+    def factor(self, x: np.ndarray) -> tuple[QPData, tuple[np.ndarray, bool]]:
+        """The coefficients at x and the Cholesky factor of P(x); raises if P(x) is not positive definite."""
         d = self.data(x)
         try:
-            factor = sla.cho_factor(0.5 * (d.P + d.P.T))
+            return d, sla.cho_factor(0.5 * (d.P + d.P.T))
         except np.linalg.LinAlgError as exc:
             raise RankDeficientRegressor(
                 "the least-squares lower level has a singular Hessian at this x, so its solution is not "
                 "unique; add regularization or declare constraints so that it is solved as a QP"
             ) from exc
+
+    def solve(self, x: np.ndarray) -> LowerSolution:
+        """Closed form via a Cholesky factorization; raises if P(x) is not positive definite."""
+        d, factor = self.factor(x)
         y = -sla.cho_solve(factor, d.q)
         fval = float(0.5 * y @ d.P @ y + d.q @ y + d.r)
         return LowerSolution(y, fval, np.zeros(0), np.zeros(0), [], "optimal", "closed-form")

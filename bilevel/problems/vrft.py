@@ -13,6 +13,7 @@ import casadi as ca
 import numpy as np
 
 from ..attacks.vrft import VRFTAttack, attack_instance
+from ..attacks.vrft_methods import conditioning_start
 from ..ddc.operators import LTIOperator
 from ..errors import ModelError
 from ..model import BilevelProblem
@@ -58,6 +59,7 @@ def attack_problem(atk: VRFTAttack) -> BilevelProblem:
     p.minimize_lower(ca.sumsqr(residual) / rows)
     p.upper_constraint(ca.sumsqr(a_u) <= atk.delta_u ** 2, name="budget_u")
     p.upper_constraint(ca.sumsqr(a_y) <= atk.delta_y ** 2, name="budget_y")
+    p.suggest_start(a_y=conditioning_start(atk))  # a_y = 0 is stationary: start where the regressor is ill-conditioned
     if atk.objective == "maxmin":
         clean = ca.DM(atk.t0) - ca.mtimes(ca.DM(atk.phi0), theta)
         p.maximize_upper(ca.sumsqr(clean) / rows)

@@ -97,10 +97,12 @@ class Hypergradient:
         S = kkt.stationarity
         self._kkt = ca.Function("kkt", [low.x, low.y, kkt.lam, kkt.mu],
                                 [S, low.g, low.h, ca.jacobian(S, low.y), ca.jacobian(low.g, low.y),
-                                 ca.jacobian(low.h, low.y), ca.jacobian(S, low.x), ca.jacobian(low.g, low.x),
-                                 ca.jacobian(low.h, low.x)])
+                                 ca.jacobian(low.h, low.y)])
+        self._kkt_x = ca.Function("kkt_x", [low.x, low.y, kkt.lam, kkt.mu],
+                                  [ca.jacobian(S, low.x), ca.jacobian(low.g, low.x), ca.jacobian(low.h, low.x)])
         ng, nh = int(low.g.numel()), int(low.h.numel())
-        self._kkt_shapes = [(ny, 1), (ng, 1), (nh, 1), (ny, ny), (ng, ny), (nh, ny), (ny, nx), (ng, nx), (nh, nx)]
+        self._kkt_shapes = [(ny, 1), (ng, 1), (nh, 1), (ny, ny), (ng, ny), (nh, ny)]
+        self._kkt_x_shapes = [(ny, nx), (ng, nx), (nh, nx)]
 
     def _kkt_values(self, x: np.ndarray, sol: LowerSolution) -> list[np.ndarray]:
         return _shaped(self._kkt(x, sol.y, sol.lam, sol.mu), self._kkt_shapes)
@@ -111,14 +113,18 @@ class Hypergradient:
         return np.flatnonzero(strict), bool(np.any(~strict & (g.ravel() >= -self.active_tol)))
 
     @staticmethod
-    def _system(vals: list[np.ndarray], rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The KKT matrix K of (stationarity, g_A, h) in (y, lam_A, mu) and its x-derivative R."""
-        _, _, _, hyy, jg, jh, sx, gx, hx = vals
+    def _system(vals: list[np.ndarray], rows: np.ndarray) -> np.ndarray:
+        """The KKT matrix K of (stationarity, g_A, h) in (y, lam_A, mu)."""
+        _, _, _, hyy, jg, jh = vals
         na, nh = rows.size, jh.shape[0]
-        K = np.block([[hyy, jg[rows].T, jh.T],
-                      [jg[rows], np.zeros((na, na + nh))],
-                      [jh, np.zeros((nh, na + nh))]])
-        return K, np.vstack([sx, gx[rows], hx])
+        return np.block([[hyy, jg[rows].T, jh.T],
+                         [jg[rows], np.zeros((na, na + nh))],
+                         [jh, np.zeros((nh, na + nh))]])
+
+    def _x_derivative(self, x: np.ndarray, sol: LowerSolution, rows: np.ndarray) -> np.ndarray:
+        """R, the x-derivative of (stationarity, g_A, h)."""
+        sx, gx, hx = _shaped(self._kkt_x(x, sol.y, sol.lam, sol.mu), self._kkt_x_shapes)
+        return np.vstack([sx, gx[rows], hx])
 
     @staticmethod
     def _residual(vals: list[np.ndarray], lam: np.ndarray) -> float:
@@ -129,8 +135,10 @@ class Hypergradient:
     def _polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, list[np.ndarray]]:
         """One Newton step on the active-set KKT equations; kept if it keeps lam >= 0 and lowers the residual."""
         vals = self._kkt_values(x, sol)
+        if self.low.kind == "least-squares":  # a closed form: nothing to polish
+            return sol, vals
         rows, _ = self.active_set(vals[1], sol.lam)
-        K, _ = self._system(vals, rows)
+        K = self._system(vals, rows)
         lam0 = np.zeros_like(sol.lam)
         lam0[rows] = sol.lam[rows]
         S0 = vals[0].ravel() - vals[4].T @ (sol.lam - lam0)
@@ -165,7 +173,7 @@ class Hypergradient:
         its subdifferential (coefficients in [0, penalty] or [-penalty, penalty]) is returned.
         """
         rows, weak = self.active_set(ev.kkt[1], ev.lower.lam)
-        K, R = self._system(ev.kkt, rows)
+        K, R = self._system(ev.kkt, rows), self._x_derivative(ev.x, ev.lower, rows)
         _, G, H, gxF, gyF, Gx, Gy, Hx, Hy = ev.upper
         rhs = np.vstack([np.hstack([gyF, Gy.T, Hy.T]), np.zeros((K.shape[0] - gyF.size, 1 + G.size + H.size))])
         Z, _, rank, _ = np.linalg.lstsq(K.T, rhs, rcond=None)

@@ -2,24 +2,30 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Any, Callable
 
 from ..certificate import DEFAULT_TOL
 from ..errors import ModelError
 from ..model import BilevelProblem
+from ..threads import single_threaded
 from ..result import BilevelResult
 from .base import MethodRun, Prepared, finalize, prepare
+from .block_exact import solve_block_exact
 from .hypergradient import solve_hypergradient
 from .ipopt import solve_ipopt
 from .relaxation import solve_relaxation
 
 Method = Callable[..., MethodRun]
+SMALL_LOWER = 256
+"""Lower levels with at most this many variables are solved with one BLAS thread."""
 
 METHODS: dict[str, Method] = {
     "ipopt": solve_ipopt,
     "hypergradient": solve_hypergradient,
     "relaxation": solve_relaxation,
+    "block-exact": solve_block_exact,
 }
 """Registered methods: name -> function(prepared, **options) -> MethodRun."""
 
@@ -41,5 +47,7 @@ def solve(problem: BilevelProblem, method: str | Method = "ipopt", certificate_t
         fn = METHODS[name]
     t0 = time.perf_counter()
     prep: Prepared = prepare(problem)
-    run = fn(prep, **options)
-    return finalize(prep, run, name, time.perf_counter() - t0, certificate_tol)
+    small = prep.canon.lower.n_y <= SMALL_LOWER  # dense algebra of lower-level size: one BLAS thread is faster
+    with single_threaded() if small else contextlib.nullcontext():
+        run = fn(prep, **options)
+        return finalize(prep, run, name, time.perf_counter() - t0, certificate_tol)

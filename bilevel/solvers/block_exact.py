@@ -1,0 +1,149 @@
+"""Block-exact method: one block of upper variables is optimized globally in closed form at every evaluation,
+the others by spectral projected hypergradient steps on the resulting value function (Danskin).
+
+A block x_S (a recognized ball ||x_S - c|| <= r, no other bound or constraint on it) is exact when
+  - the lower level is an unconstrained strictly convex quadratic (least squares): y*(x) = -P(x)^{-1} q(x),
+  - P does not depend on x_S and q is affine in x_S, so y*(x) = y_c + M z with z = x_S - c,
+  - F does not depend on x_S and is quadratic in y (any curvature).
+Then min_z F(y_c + M z) over ||z|| <= r is a trust-region subproblem in the row space of M (dimension
+<= n_y), solved globally (More & Sorensen 1983). This is the exact input step of the VRFT attacks
+(the learner's targets are affine in the input poisoning), found from the declared structure.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import scipy.linalg as sla
+
+from ..canonical import CanonicalBilevel
+from ..errors import BilevelError, ModelError
+from ..reduction import KKTPoint
+from ..result import Status
+from .ascent import projected_ascent
+from .base import MethodRun, Prepared, check_options
+from .hypergradient import DEFAULT_PENALTY, Evaluation, Hypergradient
+from .starts import start_points
+from .structure import Ball, budget_scale, depends
+from .trust_region import maximize_quadratic_on_ball
+
+
+@dataclass
+class ExactBlock:
+    """A ball block on which the reduced upper objective is a quadratic of a ball-constrained vector."""
+
+    ball: Ball
+    jac_q: ca.Function
+    upper_y: ca.Function
+
+    def solve(self, low: Any, x: np.ndarray) -> np.ndarray:
+        """x with its block replaced by the global minimizer of F(x, y*(x)) over the ball (other entries fixed)."""
+        b = self.ball
+        x = np.array(x, dtype=float)
+        x[b.block] = b.center
+        d, factor = low.factor(x)
+        y_c = -sla.cho_solve(factor, d.q)
+        M = -sla.cho_solve(factor, np.asarray(self.jac_q(x)))
+        _, grad, hess = (np.asarray(v, dtype=float) for v in self.upper_y(x, y_c))
+        U, s, Vt = np.linalg.svd(M, full_matrices=False)
+        keep = s > 1e-12 * max(float(s[0]) if s.size else 0.0, 1e-300)
+        U, s, Vt = U[:, keep], s[keep], Vt[keep]
+        A = -0.5 * (s[:, None] * (U.T @ hess @ U) * s[None, :])
+        v = maximize_quadratic_on_ball(A, -0.5 * s * (U.T @ grad.ravel()), b.radius)
+        x[b.block] = b.center + Vt.T @ v
+        return x
+
+
+def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactBlock | None, list[str]]:
+    """The largest ball block that is exact (see the module docstring), and why each other one is not."""
+    low = canon.lower
+    if low.kind != "least-squares":
+        return None, [f"the lower level is {low.kind}, not an unconstrained strictly convex quadratic"]
+    x, y = canon.x, canon.y
+    hess_F = ca.hessian(canon.F, y)[0]
+    if ca.depends_on(hess_F, y):
+        return None, ["the upper objective is not quadratic in the lower variables"]
+    q = ca.substitute(ca.gradient(low.f, y), y, ca.DM.zeros(int(y.numel())))
+    in_P = depends(ca.hessian(low.f, y)[0], x)
+    in_F = depends(canon.F, x)
+    why: list[str] = []
+    best: Ball | None = None
+    for ball in balls:
+        S = ball.block
+        others = [canon.G[i] for i in range(int(canon.G.numel())) if i != ball.row] + [canon.H]
+        reason = ("has finite bounds" if np.isfinite(canon.x_lb[S]).any() or np.isfinite(canon.x_ub[S]).any()
+                  else "enters the upper objective" if in_F[S].any()
+                  else "enters another upper constraint" if depends(ca.vertcat(*others), x)[S].any()
+                  else "enters the lower Hessian" if in_P[S].any()
+                  else "enters the lower gradient nonlinearly" if depends(q, x[S], 2).any() else "")
+        if reason:
+            why.append(f"x[{S.start}:{S.stop}] {reason}")
+        elif best is None or S.stop - S.start > best.block.stop - best.block.start:
+            best = ball
+    if best is None:
+        return None, why or ["no upper constraint is a Euclidean ball on a block of upper variables"]
+    jac_q = ca.Function("jac_q", [x], [ca.jacobian(q, x[best.block])])
+    upper_y = ca.Function("upper_y", [x, y], [canon.F, ca.gradient(canon.F, y), hess_F])
+    return ExactBlock(best, jac_q, upper_y), why
+
+
+def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
+    """Multistart block-exact method (options: starts, seed, scale, penalty, tol, max_iter, verbose)."""
+    check_options("block-exact", options, {"starts", "seed", "scale", "penalty", "tol", "max_iter", "verbose"})
+    exact, why = find_exact_block(prep.canon, prep.balls)
+    if exact is None:
+        raise ModelError("method 'block-exact' needs a block of upper variables on which the reduced objective is "
+                         f"a ball-constrained quadratic: {'; '.join(why)}; use method='hypergradient'")
+    starts, tol, max_iter = int(options.get("starts", 4)), float(options.get("tol", 1e-5)), int(options.get("max_iter", 100))
+    oracle = Hypergradient(prep, float(options.get("penalty", DEFAULT_PENALTY)), projected_rows=tuple(b.row for b in prep.balls))
+    low, S = prep.canon.lower, exact.ball.block
+    rest = np.ones(int(prep.canon.x.numel()), dtype=bool)
+    rest[S] = False
+    scale = budget_scale(prep.canon, prep.balls)[rest]
+
+    def full(xr: np.ndarray) -> np.ndarray:
+        x = np.empty(rest.size)
+        x[rest], x[S] = xr, exact.ball.center
+        return x
+
+    def value(xr: np.ndarray) -> tuple[float, Evaluation | None]:
+        try:
+            ev = oracle.evaluate(exact.solve(low, full(xr)))
+        except BilevelError:
+            return -np.inf, None
+        return -ev.phi, ev
+
+    def direction(ev: Evaluation) -> tuple[np.ndarray, np.ndarray]:
+        g = -oracle.gradient(ev)[0][rest]  # Danskin: the block is at its optimum
+        unit = float(np.linalg.norm(g * scale))
+        return g, (g * scale ** 2 / unit if unit > 0 else np.zeros_like(g))
+
+    project = lambda xr: prep.projection(full(xr))[rest]  # noqa: E731  (blocks are disjoint)
+    rng = np.random.default_rng(options.get("seed", 0))
+    best, records, nit = None, [], 0
+    for k, x0 in enumerate(start_points(prep, starts, rng, float(options.get("scale", 10.0)))):
+        t0, history = time.perf_counter(), []
+        xr, fx, ev, it, evals, converged = projected_ascent(value, direction, project, x0[rest], scale, max_iter,
+                                                            tol, history)
+        nit += it
+        records.append({"start": k, "objective": None if ev is None else ev.F, "iterations": it,
+                        "evaluations": evals, "converged": converged, "time": time.perf_counter() - t0})
+        if options.get("verbose"):
+            print(f"[block-exact] start {k + 1}/{starts}: phi = {-fx:.8g} after {it} steps", flush=True)
+        if ev is not None and (best is None or fx > best[0]):
+            best = (fx, ev, converged, history, k)
+    if best is None:
+        return MethodRun(None, Status.ERROR, f"the lower level could not be solved at any of {starts} starts", nit,
+                         [], records)
+    fx, ev, converged, history, k = best
+    w = prep.pack(KKTPoint(ev.x, ev.lower.y, ev.lower.lam, ev.lower.mu, ev.lower.Z))
+    g = oracle.gradient(ev)[0][rest]
+    pg = float(np.linalg.norm((project(ev.x[rest] - g * scale ** 2) - ev.x[rest]) / scale))
+    status = Status.SOLVED if converged else Status.MAX_ITERATIONS
+    return MethodRun(w, status, f"best of {starts} starts: start {k} ({'converged' if converged else 'max_iter'})",
+                     nit, history, records, {"best_start": k, "exact_block": [S.start, S.stop],
+                                             "projected_gradient_norm": pg, "not_exact": why})

@@ -1,0 +1,126 @@
+"""Structure recognition (budget balls, exact blocks), the block-exact method, and honest stationary points."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import bilevel as bl
+from bilevel.attacks.vrft import attack_instance
+from bilevel.attacks.vrft_methods import attack_alternating, conditioning_start
+from bilevel.errors import ModelError
+from bilevel.problems import registry
+from bilevel.solvers.base import prepare
+from bilevel.solvers.block_exact import find_exact_block
+from bilevel.solvers.structure import find_balls
+
+
+def test_balls_are_read_from_squared_norm_constraints() -> None:
+    p = bl.BilevelProblem("balls")
+    u = p.upper_variable("u", 3)
+    w = p.upper_variable("w", 2)
+    v = p.upper_variable("v", 2)
+    y = p.lower_variable("y")
+    p.minimize_upper(ca.sumsqr(u) + y + ca.sumsqr(w) + ca.sumsqr(v))
+    p.minimize_lower((y - u[0]) ** 2)
+    p.upper_constraint(2 * ca.sumsqr(u - ca.DM([1, 2, 3])) <= 8)  # ||u - c|| <= 2
+    p.upper_constraint(ca.sumsqr(w) + u[0] <= 1)                   # couples two variables: not a ball
+    p.upper_constraint(v[0] ** 2 + 2 * v[1] ** 2 <= 1)             # an ellipse: not a ball
+    balls = find_balls(prepare(p).canon)
+    assert len(balls) == 1
+    b = balls[0]
+    assert b.row == 0 and b.block == slice(0, 3) and b.radius == pytest.approx(2.0, rel=1e-14)
+    np.testing.assert_allclose(b.center, [1, 2, 3], rtol=1e-14)
+    point = b.sphere_point(np.random.default_rng(0))
+    assert np.linalg.norm(point - b.center) == pytest.approx(2.0, rel=1e-14)
+
+
+def _ridge(radius: float = 0.7) -> tuple[bl.BilevelProblem, np.ndarray, np.ndarray]:
+    """max ||y*(u) - y0||^2 over ||u|| <= r with y*(u) = (A'A + I)^{-1} A'(b + B u): a convex maximization."""
+    rng = np.random.default_rng(3)
+    A, B, b, y0 = rng.standard_normal((6, 3)), rng.standard_normal((6, 2)), rng.standard_normal(6), rng.standard_normal(3)
+    p = bl.BilevelProblem("ridge-ball")
+    u = p.upper_variable("u", 2)
+    y = p.lower_variable("y", 3)
+    p.minimize_lower(ca.sumsqr(ca.mtimes(ca.DM(A), y) - ca.DM(b) - ca.mtimes(ca.DM(B), u)) + ca.sumsqr(y))
+    p.upper_constraint(ca.sumsqr(u) <= radius ** 2)
+    p.maximize_upper(ca.sumsqr(y - ca.DM(y0)))
+    M = np.linalg.solve(A.T @ A + np.eye(3), A.T)
+    return p, M @ b - y0, M @ B
+
+
+def test_block_exact_step_is_global_on_a_convex_maximization() -> None:
+    """The maximum of a convex quadratic over a disc lies on its circle: compare with 200,001 circle points."""
+    radius = 0.7
+    p, c, D = _ridge(radius)
+    res = p.solve(method="block-exact", starts=1)
+    theta = np.linspace(0, 2 * np.pi, 200_001)
+    circle = radius * np.stack([np.cos(theta), np.sin(theta)], -1)
+    brute = float(np.max(np.sum((c + circle @ D.T) ** 2, axis=1)))
+    assert res.success and res.certificate.passed
+    assert res.upper_objective >= brute - 1e-9 and res.upper_objective == pytest.approx(brute, rel=1e-9)
+    assert np.linalg.norm(res.x["u"]) == pytest.approx(radius, rel=1e-12)
+    assert res.stats["exact_block"] == [0, 2]
+
+
+def test_block_exact_names_why_it_does_not_apply() -> None:
+    p = bl.BilevelProblem("not-exact")
+    u = p.upper_variable("u", 2)
+    y = p.lower_variable("y", 2)
+    p.minimize_lower(ca.sumsqr(y - u) + ca.sumsqr(u[0] * y))   # u enters the lower Hessian
+    p.upper_constraint(ca.sumsqr(u) <= 1)
+    p.maximize_upper(ca.sumsqr(y))
+    exact, why = find_exact_block(prepare(p).canon, prepare(p).balls)
+    assert exact is None and why == ["x[0:2] enters the lower Hessian"]
+    with pytest.raises(ModelError, match="enters the lower Hessian"):
+        p.solve(method="block-exact")
+
+
+def _vrft_from_scratch(seed: int, N: int = 64) -> tuple[bl.BilevelProblem, float]:
+    """The paper's VRFT max-min attack (Sec. 4.4) declared with the public API only, dense operators."""
+    atk = attack_instance("maxmin", "B", 0.1, 0.057, seed, N)
+    reg = atk.setting.regressor
+    rows, T = reg.rows(N), reg.dense(N)
+    p = bl.BilevelProblem("vrft-from-scratch")
+    a_u = p.upper_variable("a_u", N)
+    a_y = p.upper_variable("a_y", N)
+    theta = p.lower_variable("theta", T.shape[0])
+    phi = ca.DM(atk.phi0) + ca.horzcat(*[ca.mtimes(ca.DM(Ti), a_y) for Ti in T])
+    p.minimize_lower(ca.sumsqr(ca.DM(atk.t0) + a_u[:rows] - ca.mtimes(phi, theta)) / rows)
+    p.upper_constraint(ca.sumsqr(a_u) <= atk.delta_u ** 2)
+    p.upper_constraint(ca.sumsqr(a_y) <= atk.delta_y ** 2)
+    p.maximize_upper(ca.sumsqr(ca.DM(atk.t0) - ca.mtimes(ca.DM(atk.phi0), theta)) / rows)
+    p.suggest_start(a_y=conditioning_start(atk))
+    return p, attack_alternating(atk).value
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_vrft_declared_from_scratch_matches_the_registered_problem(seed: int) -> None:
+    """The generic hypergradient on a user's own declaration reaches the registered problem's objective (1e-6)."""
+    p, structured = _vrft_from_scratch(seed)
+    mine = p.solve(method="hypergradient", starts=1)
+    registered = registry.get("vrft-maxmin", N=64, seed=seed).solve(method="hypergradient", starts=1)
+    assert mine.success and registered.success and mine.certificate.passed
+    assert mine.upper_objective == pytest.approx(registered.upper_objective, rel=1e-6)
+    assert mine.upper_objective >= structured * (1 - 1e-6)  # and the structured attack's value
+
+
+def test_clean_data_is_never_a_solved_attack() -> None:
+    """Zero poisoning is stationary (the clean learner minimizes the attacker's loss) but is its worst point."""
+    p, _ = _vrft_from_scratch(0)
+    p.starts.clear()  # the declared start only: zero poisoning
+    res = p.solve(method="hypergradient", starts=1)
+    assert res.x["a_u"] == pytest.approx(0.0, abs=1e-12) and res.x["a_y"] == pytest.approx(0.0, abs=1e-12)
+    assert res.status is bl.Status.NOT_LOCALLY_OPTIMAL and not res.success
+    assert res.stats["probe"]["objective"] < -res.upper_objective  # canonical sense: minimize -J
+    assert p.solve(method="hypergradient", starts=2).success  # a start on the budget sphere is not stationary
+
+
+def test_suggest_start_rejects_unknown_names_and_bad_shapes() -> None:
+    p = bl.BilevelProblem("starts")
+    p.upper_variable("x", 2)
+    with pytest.raises(ModelError, match="'z' is not an upper variable"):
+        p.suggest_start(z=1.0)
+    with pytest.raises(ModelError, match="has 3 entries"):
+        p.suggest_start(x=[1.0, 2.0, 3.0])
