@@ -15,6 +15,7 @@ import casadi as ca
 import numpy as np
 
 from .errors import ModelError, UnsupportedPair
+from .vech import lower_triangular, vech_sx
 
 Row = tuple[ca.SX, float, float]
 
@@ -36,24 +37,6 @@ class PSDPair:
     name: str
     S: ca.SX
     L: ca.SX
-
-
-def lower_triangular(name: str, n: int) -> tuple[ca.SX, ca.SX]:
-    """An n x n lower-triangular SX matrix of fresh symbols; returns (matrix, symbols)."""
-    v = ca.SX.sym(name, n * (n + 1) // 2)
-    m = ca.SX(n, n)
-    k = 0
-    for j in range(n):
-        for i in range(j, n):
-            m[i, j] = v[k]
-            k += 1
-    return m, v
-
-
-def vech_sx(m: ca.SX) -> ca.SX:
-    """Lower triangle of a symmetric SX matrix, column by column."""
-    n = int(m.size1())
-    return ca.vertcat(*[m[i, j] for j in range(n) for i in range(j, n)])
 
 
 def psd_factor(m: np.ndarray, jitter: float = 1e-8) -> np.ndarray:

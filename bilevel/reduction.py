@@ -9,7 +9,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from .lower.base import unvech
+from .vech import unvech, vech
 from .mpcc import MPCC, PSDPair, ScalarPair
 
 
@@ -105,7 +105,5 @@ class SingleLevelReduction(Reduction):
     @staticmethod
     def pack(point: KKTPoint, inverse_data: KKTInverse) -> np.ndarray:
         """The MPCC vector w of a point (the inverse of invert), e.g. to warm start from a lower solve."""
-        from .lower.base import vech
-
         parts = [point.x, point.y, point.lam, point.mu] + [vech(z) for z in point.Z]
         return np.concatenate([np.asarray(p, dtype=float).ravel() for p in parts])

@@ -41,13 +41,13 @@ from ..ddc.depersis_tesi import min_norm_q
 from ..ddc.plants import batch_reactor
 from ..errors import BilevelError, ModelError, SolverFailed
 from ..lower import LowerSolution, build_lower
-from ..lower.base import psd_violation, unvech, vech
+from ..lower.base import psd_violation
 from ..lower.quadratic import clarabel_solution
-from ..mpcc import vech_sx
 from ..problems.willems import WillemsAttack, criterion_values
 from ..solvers import solve
 from ..solvers.projections import Box
 from ..threads import single_threaded_call
+from ..vech import unvech, vech, vech_sx
 
 ARMIJO = 1e-4
 MAX_BACKTRACKS = 30

@@ -16,18 +16,14 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike
 
-from bilevel.errors import (
-    InvalidData,
-    LowerLevelInfeasible,
-    LowerLevelUnbounded,
-    NotPersistentlyExciting,
-    SolverFailed,
-)
-from bilevel.lower.quadratic import CLARABEL_TOLERANCES
+from bilevel.errors import InvalidData, NotPersistentlyExciting, SolverFailed
+from bilevel.lower.quadratic import solve_clarabel
 
-_ACCEPTED = (cp.OPTIMAL, cp.OPTIMAL_INACCURATE)
 # Clarabel's defaults (1e-8) leave ~1e-4 error in K (the SDP value is flat around the optimal gain), so the
-# learner uses the same tightened tolerances as the lower-level certificates.
+# learner uses (through solve_clarabel) the same tightened tolerances as the lower-level certificates.
+
+_INFEASIBLE_HINT = (": these data admit no certified controller; check that the data come from a stabilizable "
+                    "system and are noise-free or more informative")
 
 
 @dataclass(frozen=True)
@@ -90,22 +86,6 @@ class DPTController:
     spectral_radius: float
 
 
-def _solve(problem: cp.Problem, what: str, solver_options: Mapping[str, Any] | None) -> None:
-    try:
-        problem.solve(solver=cp.CLARABEL, **{**CLARABEL_TOLERANCES, **dict(solver_options or {})})
-    except cp.SolverError as exc:
-        raise SolverFailed(f"{what}: Clarabel failed ({exc}); rescale the data or loosen tolerances") from exc
-    if problem.status in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
-        raise LowerLevelInfeasible(
-            f"{what} is infeasible (status {problem.status}): these data admit no certified controller; "
-            "check that the data come from a stabilizable system and are noise-free or more informative"
-        )
-    if problem.status in (cp.UNBOUNDED, cp.UNBOUNDED_INACCURATE):
-        raise LowerLevelUnbounded(f"{what} is unbounded (status {problem.status})")
-    if problem.status not in _ACCEPTED:
-        raise SolverFailed(f"{what}: solver ended with status {problem.status!r}, no usable point")
-
-
 def _controller(data: StateData, q: np.ndarray, value: float, status: str, what: str) -> DPTController:
     s = data.x0 @ q
     s = (s + s.T) / 2
@@ -138,7 +118,7 @@ def stabilizing_controller(
         cp.Minimize(cp.trace(s)),
         [data.x0 @ q == s, _symmetric(lmi) >> np.eye(2 * n)],
     )
-    _solve(problem, "De Persis-Tesi stabilization LMI", solver_options)
+    solve_clarabel(problem, "the De Persis-Tesi stabilization LMI", _INFEASIBLE_HINT, dict(solver_options or {}))
     return _controller(data, q.value, float(problem.value), problem.status, "De Persis-Tesi stabilization LMI")
 
 
@@ -171,5 +151,5 @@ def lqr_controller(
         constraints.append(_symmetric(cp.bmat([[big_x, weighted], [weighted.T, s]])) >> 0)
         objective = objective + cp.trace(big_x)
     problem = cp.Problem(cp.Minimize(objective), constraints)
-    _solve(problem, "De Persis-Tesi LQR SDP", solver_options)
+    solve_clarabel(problem, "the De Persis-Tesi LQR SDP", _INFEASIBLE_HINT, dict(solver_options or {}))
     return _controller(data, q.value, float(problem.value), problem.status, "De Persis-Tesi LQR SDP")

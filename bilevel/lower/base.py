@@ -10,35 +10,12 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InvalidData
-from ..mpcc import lower_triangular
-
-
-def symmetric_from_vech(name: str, n: int) -> tuple[ca.SX, ca.SX]:
-    """A symmetric n x n SX matrix built from n(n+1)/2 free symbols; returns (matrix, symbols)."""
-    low, v = lower_triangular(name, n)
-    return low + low.T - ca.diag(ca.diag(low)), v
-
-
-def vech(matrix: np.ndarray) -> np.ndarray:
-    """Stack the lower triangle of a symmetric matrix column by column (inverse of symmetric_from_vech)."""
-    n = matrix.shape[0]
-    return np.concatenate([matrix[j:, j] for j in range(n)])
+from ..vech import symmetric_from_vech
 
 
 def psd_violation(m: np.ndarray) -> float:
     """How far the symmetric part of m is from PSD: max(-lambda_min, 0), 0 for an empty matrix."""
     return max(-float(np.linalg.eigvalsh(0.5 * (m + m.T)).min()), 0.0) if m.size else 0.0
-
-
-def unvech(values: np.ndarray, n: int) -> np.ndarray:
-    """Rebuild the symmetric matrix from its vech."""
-    m = np.zeros((n, n))
-    k = 0
-    for j in range(n):
-        m[j:, j] = values[k:k + n - j]
-        m[j, j:] = values[k:k + n - j]
-        k += n - j
-    return m
 
 
 @dataclass

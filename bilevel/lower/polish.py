@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..threads import single_threaded_call
+from ..vech import smat, svec
 from .base import LowerSolution, psd_violation
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -38,20 +39,6 @@ def _split(lmi: Lmi, n: int) -> tuple[np.ndarray, np.ndarray]:
     s = m0.shape[0]
     mj = np.asarray(jac).reshape(s, s, n, order="F").transpose(2, 0, 1)
     return 0.5 * (m0 + m0.T), 0.5 * (mj + mj.transpose(0, 2, 1))
-
-
-def _svec(m: np.ndarray) -> np.ndarray:
-    """Lower triangle of symmetric matrices (last two axes), off-diagonals times sqrt(2): <X, Y> = svec(X)'svec(Y)."""
-    i, j = np.tril_indices(m.shape[-1])
-    return m[..., i, j] * np.where(i == j, 1.0, np.sqrt(2.0))
-
-
-def _smat(v: np.ndarray, r: int) -> np.ndarray:
-    """Inverse of _svec for one r x r matrix."""
-    i, j = np.tril_indices(r)
-    m = np.zeros((r, r))
-    m[i, j] = v / np.where(i == j, 1.0, np.sqrt(2.0))
-    return m + np.tril(m, -1).T
 
 
 def _at(mat: tuple[np.ndarray, np.ndarray], y: np.ndarray) -> np.ndarray:
@@ -94,15 +81,15 @@ def _face(d: QPData, mats: list[tuple[np.ndarray, np.ndarray]], sol: LowerSoluti
             w, v = np.linalg.eigh(_at(mat, y))
             u = v[:, :r]
             lams.append(u.T @ z @ u)
-            blocks.append(_svec(u.T @ mj @ u).T)
-            rhs.append(-_svec(np.diag(w[:r])))
+            blocks.append(svec(u.T @ mj @ u).T)
+            rhs.append(-svec(np.diag(w[:r])))
             bases.append(u)
             if 0 < r < w.size:  # second derivative of the Schur complement onto span(U) along M_j, M_l
                 G = v[:, r:].T @ mj @ u
                 H = H + 2.0 * G.reshape(n, -1) @ (G / w[r:, None] @ lams[-1]).reshape(n, -1).T
         C = np.vstack([d.A[rows], d.E, *blocks])
         signs = np.concatenate([np.ones(na + ne), -np.ones(C.shape[0] - na - ne)])
-        mult = np.concatenate([lam_a, mu, *(_svec(lam) for lam in lams)])
+        mult = np.concatenate([lam_a, mu, *(svec(lam) for lam in lams)])
         K = np.block([[H, C.T * signs], [C, np.zeros((C.shape[0], C.shape[0]))]])
         b = np.concatenate([-(d.P @ y + d.q + C.T @ (signs * mult)), -(d.A[rows] @ y + d.b[rows]),
                             -(d.E @ y + d.e), *rhs])
@@ -112,7 +99,7 @@ def _face(d: QPData, mats: list[tuple[np.ndarray, np.ndarray]], sol: LowerSoluti
             break  # down to rounding noise: quadratic convergence shrinks steps far faster
         dy, dlam, dmu, *dlams = np.split(step, cuts)
         y, lam_a, mu = y + dy, lam_a + dlam, mu + dmu
-        zs = [u @ (lam + _smat(dl, r)) @ u.T for u, lam, dl, r in zip(bases, lams, dlams, ranks)]
+        zs = [u @ (lam + smat(dl, r)) @ u.T for u, lam, dl, r in zip(bases, lams, dlams, ranks)]
         if size <= 1e-15 * (1.0 + np.abs(np.concatenate([y, mult])).max()):
             break
     lam = np.zeros_like(sol.lam)

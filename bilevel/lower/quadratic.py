@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import casadi as ca
 import cvxpy as cp
@@ -28,6 +29,22 @@ class QPData:
     b: np.ndarray
     E: np.ndarray
     e: np.ndarray
+
+
+def solve_clarabel(problem: cp.Problem, what: str, infeasible_hint: str = "",
+                   options: dict[str, Any] | None = None) -> None:
+    """Solve a cvxpy problem with Clarabel at CLARABEL_TOLERANCES (overridable); map every non-optimal status
+    to a named error: LowerLevelInfeasible, LowerLevelUnbounded or SolverFailed."""
+    try:
+        problem.solve(solver=cp.CLARABEL, **{**CLARABEL_TOLERANCES, **(options or {})})
+    except cp.error.SolverError as exc:
+        raise SolverFailed(f"Clarabel failed on {what} ({exc}); rescale the data or loosen tolerances") from exc
+    if problem.status in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
+        raise LowerLevelInfeasible(f"{what} is infeasible (status {problem.status}){infeasible_hint}")
+    if problem.status in (cp.UNBOUNDED, cp.UNBOUNDED_INACCURATE):
+        raise LowerLevelUnbounded(f"{what} is unbounded below (status {problem.status})")
+    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        raise SolverFailed(f"Clarabel returned status {problem.status!r} on {what}, no usable point")
 
 
 def solve_qp_clarabel(d: QPData, context: str, lmis: tuple[Lmi, ...] = ()) -> LowerSolution:
@@ -57,16 +74,7 @@ def clarabel_solution(d: QPData, context: str, lmis: tuple[Lmi, ...] = ()) -> Lo
         expr = m0 + cp.reshape(jac @ y, (k, k), order="F")
         cons.append(0.5 * (expr + expr.T) >> 0)
     prob = cp.Problem(cp.Minimize(objective), cons)
-    try:
-        prob.solve(solver=cp.CLARABEL, **CLARABEL_TOLERANCES)
-    except cp.error.SolverError as exc:
-        raise SolverFailed(f"Clarabel failed on the lower level {context}: {exc}") from exc
-    if prob.status in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
-        raise LowerLevelInfeasible(f"the lower level is infeasible {context}")
-    if prob.status in (cp.UNBOUNDED, cp.UNBOUNDED_INACCURATE):
-        raise LowerLevelUnbounded(f"the lower level is unbounded below {context}")
-    if prob.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
-        raise SolverFailed(f"Clarabel returned status {prob.status!r} on the lower level {context}")
+    solve_clarabel(prob, f"the lower level {context}")
     lam = np.maximum(np.asarray(cons[0].dual_value).ravel(), 0.0) if d.b.size else np.zeros(0)
     mu = np.asarray(cons[n_lin - 1].dual_value).ravel() if d.e.size else np.zeros(0)
     zs = [np.asarray(c.dual_value) for c in cons[n_lin:]]

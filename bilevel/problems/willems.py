@@ -38,6 +38,7 @@ from ..ddc.data import batch_reactor_data
 from ..ddc.depersis_tesi import check_persistency, state_data
 from ..errors import InvalidData, ModelError
 from ..model import BilevelProblem
+from ..vech import symmetric_sx
 from .registry import register
 
 DESIGNS = ("lqr", "lqr-r", "stabilizing")
@@ -99,17 +100,6 @@ def _weight(value: Any, size: int, what: str) -> np.ndarray:
     if w.shape != (size, size) or not np.allclose(w, w.T) or np.linalg.eigvalsh(w).min() <= 0:
         raise ModelError(f"willems: {what} must be a symmetric positive definite {size} x {size} matrix")
     return w
-
-
-def _vech_matrix(v: ca.SX, n: int) -> ca.SX:
-    m = ca.SX(n, n)
-    k = 0
-    for j in range(n):
-        for i in range(j, n):
-            m[i, j] = v[k]
-            m[j, i] = v[k]
-            k += 1
-    return m
 
 
 def criterion_values(closed_loop: np.ndarray, gain: np.ndarray, objective: str, qx: np.ndarray,
@@ -235,7 +225,7 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
     p.lower_psd_constraint(ca.blockcat([[s_mat - eye, m_mat], [m_mat.T, corner]]), name="gramian")
     v_mat = ca.mtimes(us, q)
     if s.design == "lqr-r":
-        xr = _vech_matrix(p.lower_variable("Xr", m * (m + 1) // 2), m)
+        xr = symmetric_sx(p.lower_variable("Xr", m * (m + 1) // 2), m)
         weighted = ca.mtimes(ca.DM(np.real(scipy.linalg.sqrtm(r))), v_mat)
         p.lower_psd_constraint(ca.blockcat([[xr, weighted], [weighted.T, s_mat]]), name="input_cost")
         lower += ca.trace(xr)
