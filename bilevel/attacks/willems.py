@@ -1,7 +1,8 @@
 """Attacks on the De Persis–Tesi learners: hypergradient ascent through the SDP, the KKT route, and DE.
 
 Hypergradient. At a poisoning x the learner's SDP (bilevel.problems.willems) is solved by its own
-solver (cvxpy + Clarabel) and polished by Newton steps on its KKT system
+solver (cvxpy + Clarabel) and polished by Newton steps on its KKT system (bilevel.lower.sdp.ConicKKT,
+the one implementation the generic hypergradient method uses too)
 
     r(w; x) = [grad_y L ; h ; vech((M_k Z_k + Z_k M_k) / 2)] = 0,   w = (y, mu, vech Z_k),
 
@@ -41,29 +42,19 @@ from ..ddc.depersis_tesi import min_norm_q
 from ..ddc.plants import batch_reactor
 from ..errors import BilevelError, ModelError, SolverFailed
 from ..lower import LowerSolution, build_lower
-from ..lower.base import psd_violation
+from ..lower.sdp import solve_square
 from ..lower.quadratic import clarabel_solution
 from ..problems.willems import WillemsAttack, criterion_values
 from ..solvers import solve
 from ..solvers.projections import Box
 from ..threads import single_threaded_call
-from ..vech import unvech, vech, vech_sx
 
 ARMIJO = 1e-4
 MAX_BACKTRACKS = 30
-PSD_TOL = 1e-9
 KKT_TOL = 1e-6
 TIE_RTOL = 1e-6
 UNSTABLE_PENALTY = 1e12
 """Finite stand-in for phi = +inf handed to differential evolution (which cannot rank infinities)."""
-
-
-def _solve(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """matrix^-1 rhs, or the minimum-norm least-squares solution if matrix is singular (non-unique Q, reg = 0)."""
-    try:
-        return np.linalg.solve(matrix, rhs)
-    except np.linalg.LinAlgError:
-        return np.linalg.lstsq(matrix, rhs, rcond=None)[0]
 
 
 @dataclass
@@ -98,15 +89,6 @@ class SDPHypergradient:
         h_names = [f"{c.name}[{i}]" for c in p.lower_constraints for i in range(int(c.body.numel()))]
         self.lower_level = build_lower(x, y, p.lower_objective.expr, ca.SX(0, 1), h, psd, [], h_names,
                                        [c.name for c in p.lower_psd_constraints], [np.zeros(int(x.numel()))])
-        kkt = self.lower_level.kkt()
-        sym_products = [vech_sx(0.5 * (ca.mtimes(m, z) + ca.mtimes(z, m))) for m, z in zip(psd, kkt.Z)]
-        residual = ca.vertcat(kkt.stationarity, h, *sym_products)
-        w = ca.vertcat(y, kkt.mu, *kkt.Z_vech)
-        self._sizes = [int(y.numel()), int(kkt.mu.numel())] + [int(v.numel()) for v in kkt.Z_vech]
-        self._psd_dims = [int(m.size1()) for m in psd]
-        self._residual = ca.Function("kkt_residual", [x, w], [residual, ca.jacobian(residual, w)])
-        self._residual_expr = (x, w, residual)
-        self._residual_x: ca.Function | None = None
         F = p.upper_objective.expr
         self._upper = ca.Function("attacker", [x, y], [F, ca.gradient(F, x), ca.gradient(F, y), attack.gain,
                                                        attack.closed_loop])
@@ -122,42 +104,9 @@ class SDPHypergradient:
         self._cache: tuple[np.ndarray, LowerSolution, float] | None = None
 
     # -- the learner's response ---------------------------------------------------------------------
-    def _pack(self, sol: LowerSolution) -> np.ndarray:
-        return np.concatenate([sol.y, sol.mu] + [vech(z) for z in sol.Z])
-
-    def _unpack(self, w: np.ndarray, like: LowerSolution, x: np.ndarray) -> LowerSolution:
-        cuts = np.cumsum(self._sizes)[:-1]
-        parts = np.split(w, cuts)
-        zs = [unvech(v, n) for v, n in zip(parts[2:], self._psd_dims)]
-        f = self.lower_level.evaluate(x, parts[0])[0]
-        return LowerSolution(parts[0], f, like.lam, parts[1], zs, like.status, f"{like.solver} + KKT Newton polish")
-
-    def _psd_ok(self, x: np.ndarray, sol: LowerSolution) -> bool:
-        mats = self.lower_level.evaluate(x, sol.y)[3]
-        for mat in list(mats) + list(sol.Z):
-            if psd_violation(mat) > PSD_TOL * (1.0 + float(np.abs(mat).max())):
-                return False
-        return True
-
     def polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, float]:
-        """Newton steps on r(w; x) = 0 from the solver's point while the residual falls; returns the best iterate
-        at which M and Z are PSD (an iterate a hair outside the cone is stepped through, not returned)."""
-        w = self._pack(sol)
-        r, jac = (np.asarray(v) for v in self._residual(x, w))
-        best = last = float(np.abs(r).max())
-        for _ in range(self.polish_steps):
-            w = w + _solve(jac, -r.ravel())
-            r, jac = (np.asarray(v) for v in self._residual(x, w))
-            value = float(np.abs(r).max())
-            if not value < last:
-                break
-            last = value
-            trial = self._unpack(w, sol, x)
-            if value < best and self._psd_ok(x, trial):
-                sol, best = trial, value
-            if value < 1e-14:
-                break
-        return sol, best
+        """The lower level's Newton polish on its KKT system (bilevel.lower.sdp), polish_steps steps."""
+        return self.lower_level.newton_polish(x, sol, self.polish_steps)
 
     def project_rowspace(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, float]:
         """Q projected onto the row space of D(x) (the minimum-norm Q with the same D Q) and the new KKT residual."""
@@ -167,7 +116,7 @@ class SDPHypergradient:
         y[:size] = min_norm_q(np.asarray(self._seen(x), dtype=float), q).ravel(order="F")
         projected = dataclasses.replace(sol, y=y, objective=float(self.lower_level.evaluate(x, y)[0]),
                                         solver=f"{sol.solver} + row-space projection")
-        return projected, float(np.abs(np.asarray(self._residual(x, self._pack(projected))[0])).max())
+        return projected, self.lower_level.kkt_residual(x, projected)
 
     def lower_solution(self, x: np.ndarray) -> tuple[LowerSolution, float]:
         """The learner's polished SDP solution at x and its KKT residual (solved once if it cannot depend on x)."""
@@ -205,14 +154,9 @@ class SDPHypergradient:
         """d phi / dx at an evaluated point: direct part plus the adjoint of the KKT system."""
         if self.lower_fixed:
             return ev.grad_x
-        w = self._pack(ev.lower)
-        if self._residual_x is None:
-            x, w_sym, residual = self._residual_expr
-            self._residual_x = ca.Function("kkt_residual_x", [x, w_sym], [ca.jacobian(residual, x)])
-        jac = np.asarray(self._residual(ev.x, w)[1])
-        jac_x = np.asarray(self._residual_x(ev.x, w))
+        jac, jac_x = self.lower_level.jacobians(ev.x, ev.lower)
         rhs = np.concatenate([ev.grad_y, np.zeros(jac.shape[0] - ev.grad_y.size)])
-        z = _solve(jac.T, rhs)
+        z = solve_square(jac.T, rhs)
         return ev.grad_x - jac_x.T @ z
 
     def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray]:

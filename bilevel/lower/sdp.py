@@ -3,12 +3,39 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import casadi as ca
 import numpy as np
 
-from .base import LowerSolution
+from ..vech import unvech, vech, vech_sx
+from .base import LowerSolution, psd_violation
 from .quadratic import QuadraticLower, solve_qp_clarabel
+
+PSD_TOL = 1e-9
+"""Relative PSD violation of M_k and Z_k tolerated in a polished iterate."""
+
+
+def solve_square(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """matrix^-1 rhs, or the minimum-norm least-squares solution if matrix is singular (a non-unique solution)."""
+    try:
+        return np.linalg.solve(matrix, rhs)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(matrix, rhs, rcond=None)[0]
+
+
+@dataclass(frozen=True)
+class ConicKKT:
+    """r(w; x) = [grad_y L ; lam * g ; h ; vech((M_k Z_k + Z_k M_k) / 2)] = 0 in w = (y, lam, mu, vech Z_k).
+
+    At a strictly complementary, nondegenerate solution dr/dw is nonsingular (Alizadeh, Haeberly & Overton
+    1998): y*(x) is then differentiable with dw/dx = -(dr/dw)^-1 dr/dx.
+    """
+
+    residual: ca.Function      # (x, w) -> (r, dr/dw)
+    residual_x: ca.Function    # (x, w) -> dr/dx
+    sizes: tuple[int, ...]     # n_y, n_g, n_h, then vech sizes of the Z_k
+    psd_dims: tuple[int, ...]
 
 
 @dataclass
@@ -35,3 +62,62 @@ class SemidefiniteLower(QuadraticLower):
         """Solve the SDP at x with cvxpy + Clarabel; Z_k are the LMI multipliers (L = f - sum <Z_k, M_k>)."""
         return solve_qp_clarabel(self.data(x), f"at x = {np.array2string(np.asarray(x), precision=4)}",
                                  self.lmi_data(x))
+
+    @cached_property
+    def conic_kkt(self) -> ConicKKT:
+        """The KKT residual with PSD complementarity and its Jacobians (built on first use)."""
+        kkt = self.kkt()
+        products = [vech_sx(0.5 * (ca.mtimes(m, z) + ca.mtimes(z, m))) for m, z in zip(self.psd, kkt.Z)]
+        r = ca.vertcat(kkt.stationarity, kkt.lam * self.g, self.h, *products)
+        w = ca.vertcat(self.y, kkt.lam, kkt.mu, *kkt.Z_vech)
+        sizes = (self.n_y, int(kkt.lam.numel()), int(kkt.mu.numel()), *(int(v.numel()) for v in kkt.Z_vech))
+        return ConicKKT(ca.Function("kkt_residual", [self.x, w], [r, ca.jacobian(r, w)]),
+                        ca.Function("kkt_residual_x", [self.x, w], [ca.jacobian(r, self.x)]), sizes,
+                        tuple(int(m.size1()) for m in self.psd))
+
+    def pack(self, sol: LowerSolution) -> np.ndarray:
+        """w = (y, lam, mu, vech Z_k) of a solution."""
+        return np.concatenate([sol.y, sol.lam, sol.mu] + [vech(z) for z in sol.Z])
+
+    def unpack(self, w: np.ndarray, like: LowerSolution, x: np.ndarray, solver: str) -> LowerSolution:
+        """The solution with vector w (status from `like`, objective evaluated at x)."""
+        parts = np.split(w, np.cumsum(self.conic_kkt.sizes)[:-1])
+        zs = [unvech(v, n) for v, n in zip(parts[3:], self.conic_kkt.psd_dims)]
+        return LowerSolution(parts[0], self.evaluate(x, parts[0])[0], parts[1], parts[2], zs, like.status, solver)
+
+    def kkt_residual(self, x: np.ndarray, sol: LowerSolution) -> float:
+        """max |r(w; x)| at a solution."""
+        return float(np.abs(np.asarray(self.conic_kkt.residual(x, self.pack(sol))[0])).max(initial=0.0))
+
+    def in_cones(self, x: np.ndarray, sol: LowerSolution) -> bool:
+        """Whether g <= 0, lam >= 0 and every M_k, Z_k is PSD up to PSD_TOL (relative)."""
+        _, g, _, mats = self.evaluate(x, sol.y)
+        scalar = np.all(g <= PSD_TOL * (1.0 + np.abs(g))) and np.all(sol.lam >= -PSD_TOL)
+        return bool(scalar) and all(psd_violation(m) <= PSD_TOL * (1.0 + float(np.abs(m).max()))
+                                    for m in list(mats) + list(sol.Z))
+
+    def newton_polish(self, x: np.ndarray, sol: LowerSolution, steps: int = 4) -> tuple[LowerSolution, float]:
+        """Newton steps on r(w; x) = 0 from sol while the residual falls; returns the best iterate inside the
+        cones and its residual (an iterate a hair outside a cone is stepped through, not returned)."""
+        kkt = self.conic_kkt
+        w = self.pack(sol)
+        r, jac = (np.asarray(v) for v in kkt.residual(x, w))
+        best = last = float(np.abs(r).max(initial=0.0))
+        for _ in range(steps):
+            w = w + solve_square(jac, -r.ravel())
+            r, jac = (np.asarray(v) for v in kkt.residual(x, w))
+            value = float(np.abs(r).max(initial=0.0))
+            if not value < last:
+                break
+            last = value
+            trial = self.unpack(w, sol, x, f"{sol.solver} + KKT Newton polish")
+            if value < best and self.in_cones(x, trial):
+                sol, best = trial, value
+            if value < 1e-14:
+                break
+        return sol, best
+
+    def jacobians(self, x: np.ndarray, sol: LowerSolution) -> tuple[np.ndarray, np.ndarray]:
+        """(dr/dw, dr/dx) at a solution: the implicit-derivative system of y*(x)."""
+        w = self.pack(sol)
+        return np.asarray(self.conic_kkt.residual(x, w)[1]), np.asarray(self.conic_kkt.residual_x(x, w))

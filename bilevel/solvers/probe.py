@@ -3,8 +3,10 @@
 A stationary point of the reduced objective need not be a minimum: zero poisoning is stationary for every
 attack (the clean learner minimizes the attacker's loss) and is its *worst* point. Around x the probe draws
 seeded random directions, scaled per entry (a recognized ball's radius on its block, else 1), projects
-x + h d onto the box and balls for a few radii h, solves the lower level there independently, and reports
-the best upper-feasible point whose upper objective is lower than at x by more than REL_TOL (relative): at a
+x + h d onto the box and balls for a few radii h, solves the lower level there independently (and at x
+itself, the baseline: with a non-unique lower solution F depends on the solver's choice), and reports
+the best upper-feasible point whose upper objective is lower than both F at x and the baseline by more than
+REL_TOL (relative): at a
 stationary point the change is second order, so the tolerance sits at the lower solves' noise, not above it.
 """
 
@@ -41,23 +43,32 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
                         seed: int = 0) -> Probe | None:
     """The best neighbour of x in `projection`'s set, upper-feasible, with upper objective
     < objective - REL_TOL max(1, |objective|); None if the probe finds none."""
-    canon = prep.canon
+    baseline = _feasible_objective(prep, x)  # the same lower solver as at the probes: a non-unique lower
+    if baseline is None:                       # solution must not pass for a better upper point
+        return None
+    reference = min(objective, baseline)
+    threshold = reference - REL_TOL * max(1.0, abs(reference))
     rng = np.random.default_rng(seed)
-    scale = budget_scale(canon, prep.balls)
-    threshold = objective - REL_TOL * max(1.0, abs(objective))
+    scale = budget_scale(prep.canon, prep.balls)
     best: Probe | None = None
     for _ in range(DIRECTIONS):
         d = rng.standard_normal(x.size) * scale
         d /= max(float(np.linalg.norm(d / scale)), 1e-300)
         for h in RADII:
             xp = projection(x + h * d)
-            try:
-                y = canon.lower.solve(xp).y
-            except BilevelError:
-                continue
-            F, G, H, _ = (np.asarray(v, dtype=float).ravel() for v in canon.functions(xp, y))
-            if np.any(G > FEAS_TOL) or np.any(np.abs(H) > FEAS_TOL) or not np.isfinite(F[0]):
-                continue
-            if F[0] < threshold and (best is None or F[0] < best.objective):
-                best = Probe(xp, float(F[0]), h)
+            F = _feasible_objective(prep, xp)
+            if F is not None and F < threshold and (best is None or F < best.objective):
+                best = Probe(xp, F, h)
     return best
+
+
+def _feasible_objective(prep: "Prepared", x: np.ndarray) -> float | None:
+    """F(x, y) with y from the lower level's own solver, or None if that fails or (x, y) is upper-infeasible."""
+    try:
+        y = prep.canon.lower.solve(x).y
+    except BilevelError:
+        return None
+    F, G, H, _ = (np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, y))
+    if np.any(G > FEAS_TOL) or np.any(np.abs(H) > FEAS_TOL) or not np.isfinite(F[0]):
+        return None
+    return float(F[0])
