@@ -23,6 +23,21 @@ DEFAULT_TOL = 1e-6
 
 
 @dataclass(frozen=True)
+class GlobalBound:
+    """Proof of global optimality (method "global"): bounds on the optimal upper value in the declared sense,
+    gap = (upper_bound - lower_bound) / max(1, |best value|), and how each big-M was justified."""
+
+    lower_bound: float
+    upper_bound: float
+    gap: float
+    tolerance: float
+    proven: bool
+    algorithm: str
+    nodes: int
+    big_m: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
 class Certificate:
     """Residuals at a point and the verdict. lower_gap = f(x, y) - f*(x), f* from an independent solve."""
 
@@ -39,6 +54,7 @@ class Certificate:
     passed: bool
     failed: tuple[str, ...] = field(default_factory=tuple)
     note: str = ""
+    global_bound: GlobalBound | None = None
 
     def __repr__(self) -> str:
         verdict = "passed" if self.passed else f"FAILED ({', '.join(self.failed)})"

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
 
@@ -10,7 +10,7 @@ import casadi as ca
 import numpy as np
 
 from ..canonical import CanonicalBilevel, Canonicalize, NormalizeSense, kkt_solution
-from ..certificate import DEFAULT_TOL, certify
+from ..certificate import DEFAULT_TOL, GlobalBound, certify
 from ..errors import BilevelError, UnknownOption
 from ..model import BilevelProblem
 from ..mpcc import MPCC
@@ -68,6 +68,7 @@ class MethodRun:
     history: list[dict[str, Any]] = field(default_factory=list)
     starts: list[dict[str, Any]] = field(default_factory=list)
     stats: dict[str, Any] = field(default_factory=dict)
+    global_bound: GlobalBound | None = None
 
 
 def check_options(method: str, given: dict[str, Any], allowed: set[str]) -> None:
@@ -79,6 +80,8 @@ def check_options(method: str, given: dict[str, Any], allowed: set[str]) -> None
 
 
 def _final_status(run: MethodRun, passed: bool) -> tuple[Status, str]:
+    if passed and run.global_bound is not None:  # a global run's status is its verdict on the bound
+        return run.status, f"{run.message}; certificate passed"
     if passed:
         if run.status is Status.SOLVED:
             return Status.SOLVED, "converged; certificate passed (a local solution of the bilevel problem)"
@@ -97,6 +100,8 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
     point = prep.point(run.w)
     try:
         cert = certify(prep.canon, point, tol)
+        if run.global_bound is not None:
+            cert = replace(cert, global_bound=run.global_bound)
     except BilevelError as exc:  # evaluation failed: keep the point, say why
         cert = None
         run = MethodRun(run.w, Status.ERROR, f"certificate could not be computed: {exc}", run.nit, run.history,

@@ -10,6 +10,7 @@ from ..errors import ModelError
 from ..model import BilevelProblem
 from ..result import BilevelResult
 from .base import MethodRun, Prepared, finalize, prepare
+from .global_method import solve_global
 from .hypergradient import solve_hypergradient
 from .ipopt import solve_ipopt
 from .relaxation import solve_relaxation
@@ -20,6 +21,7 @@ METHODS: dict[str, Method] = {
     "ipopt": solve_ipopt,
     "hypergradient": solve_hypergradient,
     "relaxation": solve_relaxation,
+    "global": solve_global,
 }
 """Registered methods: name -> function(prepared, **options) -> MethodRun."""
 
