@@ -14,10 +14,11 @@ import heapq
 import itertools
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
-from .global_nodes import G_SIDE, H_SIDE, NodeSolution, Relaxation
+from .global_nodes import G_SIDE, H_SIDE, Relaxation
 
 COMPLEMENTARITY_TOL = 1e-9
 
@@ -52,12 +53,20 @@ def sides_of(relax: Relaxation, w: np.ndarray) -> dict[int, int]:
     return {i: G_SIDE if G[i] <= H[i] else H_SIDE for i in range(f.n_pairs)}
 
 
+Guess = Callable[[np.ndarray], "dict[int, int] | None"]
+"""A heuristic: from a relaxation point, the sides of a branch likely to hold a good MPCC point (or None)."""
+
+
 def branch_and_bound(relax: Relaxation, gap_tol: float, time_limit: float, node_limit: int,
-                     incumbent: NodeSolution | None = None) -> SearchOutcome:
-    """Best-bound search until the relative gap is <= gap_tol, the tree is empty, or a limit is hit."""
+                     guess: Guess | None = None) -> SearchOutcome:
+    """Best-bound search until the relative gap is <= gap_tol, the tree is empty, or a limit is hit.
+
+    `guess` (e.g. the lower level solved at the relaxation's x) proposes branches at the root and every 10th node;
+    every point of a branch with all pairs fixed is MPCC-feasible, so each proposal can only improve the incumbent.
+    """
     f = relax.form
     t0 = time.perf_counter()
-    best_w, upper = (incumbent.w, incumbent.value) if incumbent is not None else (None, np.inf)
+    best_w, upper = None, np.inf
     tie = itertools.count()
     heap: list[tuple[float, int, int, dict[int, int]]] = [(-np.inf, 0, next(tie), {})]
     closed_below = np.inf  # smallest bound of nodes dropped because they could not improve by more than the gap
@@ -119,8 +128,11 @@ def branch_and_bound(relax: Relaxation, gap_tol: float, time_limit: float, node_
             if upper <= sol.value + tolerance() or not free:
                 closed_below = min(closed_below, sol.value)
                 continue
-        elif nodes == 1 or nodes % 10 == 0:
-            try_incumbent({**sides_of(relax, w), **fixed})  # rounding heuristic for an early incumbent
+        elif nodes == 1 or nodes % 10 == 0:  # heuristics for an early incumbent
+            try_incumbent({**sides_of(relax, w), **fixed})
+            proposal = guess(w) if guess is not None else None
+            if proposal is not None:
+                try_incumbent(proposal)
         history.append({"node": nodes, "bound": sol.value, "upper": upper})
         for side in (G_SIDE, H_SIDE):
             heapq.heappush(heap, (sol.value, -len(fixed) - 1, next(tie), {**fixed, worst: side}))

@@ -14,10 +14,10 @@ from typing import Any
 import numpy as np
 
 from ..certificate import GlobalBound
-from ..errors import ModelError
+from ..errors import BilevelError, ModelError
 from ..result import Status
 from .base import MethodRun, Prepared, check_options
-from .global_bb import SearchOutcome, branch_and_bound, relative_gap
+from .global_bb import Guess, SearchOutcome, branch_and_bound, relative_gap, sides_of
 from .global_bigm import derive_big_m
 from .global_form import linear_mpcc
 from .global_milp import solve_milp
@@ -31,6 +31,19 @@ def _declared(outcome: SearchOutcome, sense: str) -> tuple[float, float]:
     if sense == "max":
         return -outcome.upper, -outcome.lower
     return outcome.lower, outcome.upper
+
+
+def lower_response_guess(prep: Prepared, relax: Relaxation) -> Guess:
+    """Guess: solve the lower level at the relaxation's x (independent solver); its KKT point selects a branch."""
+    block = prep.mpcc.blocks["x"]
+
+    def guess(w: np.ndarray) -> dict[int, int] | None:
+        try:
+            return sides_of(relax, prep.pack(prep.lower_point(w[block])))
+        except BilevelError:  # lower level infeasible or failing at this x: no proposal
+            return None
+
+    return guess
 
 
 def solve_global(prep: Prepared, **options: Any) -> MethodRun:
@@ -65,7 +78,8 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     if use_milp:
         outcome, name = solve_milp(relax, big_m, gap_tol, remaining, node_limit), "milp (HiGHS, derived big-M)"
     else:
-        outcome, name = branch_and_bound(relax, gap_tol, remaining, node_limit), "branch-and-bound on the pairs"
+        outcome, name = branch_and_bound(relax, gap_tol, remaining, node_limit,
+                                                 lower_response_guess(prep, relax)), "branch-and-bound on the pairs"
     gap = relative_gap(outcome.lower, outcome.upper)
     proven = outcome.ended == "proven" and gap <= gap_tol
     sense = prep.problem.upper_objective.sense
