@@ -60,7 +60,11 @@ class Certificate:
         verdict = "passed" if self.passed else f"FAILED ({', '.join(self.failed)})"
         return (f"Certificate({verdict}; stationarity={self.stationarity:.2e}, lower_feas={self.lower_feasibility:.2e}, "
                 f"dual_feas={self.dual_feasibility:.2e}, compl={self.complementarity:.2e}, "
-                f"upper_feas={self.upper_feasibility:.2e}, gap={self.lower_gap:.2e} via {self.lower_solver})")
+                f"upper_feas={self.upper_feasibility:.2e}, gap={self.lower_gap:.2e} via {self.lower_solver}"
+                + ("" if self.global_bound is None else
+                   f"; global bounds [{self.global_bound.lower_bound:.10g}, {self.global_bound.upper_bound:.10g}], "
+                   f"gap {self.global_bound.gap:.1e}{' proven' if self.global_bound.proven else ' NOT proven'}")
+                + ")")
 
 
 def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_TOL) -> Certificate:

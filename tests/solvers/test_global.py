@@ -7,6 +7,8 @@ tests/problems/test_literature_data.py).
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -67,6 +69,27 @@ def test_out_of_scope_problems_say_why_and_what_to_use(name: str) -> None:
     with pytest.raises(bl.ModelError, match=OUT_OF_SCOPE[name]) as err:
         bl.solve(registry.get(name), method="global")
     assert "relaxation" in str(err.value)
+
+
+def _one_dimensional(lower_objective: Callable, lower_row: Callable) -> bl.BilevelProblem:
+    p = bl.BilevelProblem("scope")
+    x = p.upper_variable("x", 1, lb=0, ub=1)
+    y = p.lower_variable("y", 1, lb=0, ub=5)
+    p.minimize_upper(x - y)
+    p.minimize_lower(lower_objective(x, y))
+    p.lower_constraint(lower_row(x, y))
+    return p
+
+
+@pytest.mark.parametrize("objective, row, reason", [
+    (lambda x, y: (1 + x) * y ** 2 - y, lambda x, y: y <= 3, "KKT stationarity"),  # P depends on x
+    (lambda x, y: -y, lambda x, y: (1 + x) * y <= 3, "KKT stationarity"),          # A(x)'lam in stationarity
+    (lambda x, y: -y, lambda x, y: y + x ** 2 <= 3, "lower inequality constraints"),  # b not affine in x
+], ids=["P(x)", "A(x)", "b(x) nonlinear"])
+def test_x_dependent_lower_data_is_out_of_scope(objective: Callable, row: Callable, reason: str) -> None:
+    assert bl.solve(_one_dimensional(objective, row), method="relaxation").certificate.passed  # well posed
+    with pytest.raises(bl.ModelError, match=reason):
+        bl.solve(_one_dimensional(objective, row), method="global")
 
 
 @settings(max_examples=25, deadline=None)
