@@ -195,3 +195,14 @@ def test_options_are_checked() -> None:
         bl.solve(problem, method="global", algorithm="cplex")
     with pytest.raises(bl.ModelError, match="finite derived big-M"):
         bl.solve(problem, method="global", algorithm="milp")
+
+
+def test_compare_runs_global_and_marks_problems_outside_its_scope(tmp_path) -> None:
+    from bilevel.experiments.compare import NOT_APPLICABLE, compare, markdown_table
+
+    assert "global" in bl.METHODS  # `bilevel compare` iterates over METHODS
+    rows = compare(["macmpec-bilin", "macmpec-ex9.2.8"], ["global"], str(tmp_path / "c.csv"), progress=None)
+    assert rows[0].reached and rows[1].status == NOT_APPLICABLE
+    assert "reached (1e-4 relative, certified) on 1/1 (100%); not applicable to 1" in markdown_table(rows)
+    again = compare(["macmpec-bilin", "macmpec-ex9.2.8"], ["global"], str(tmp_path / "c.csv"), progress=None)
+    assert [r.status for r in again] == [r.status for r in rows]  # rows read back from the CSV (resume)
