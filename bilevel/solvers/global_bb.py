@@ -133,9 +133,10 @@ def branch_and_bound(relax: Relaxation, gap_tol: float, time_limit: float, node_
             proposal = guess(w) if guess is not None else None
             if proposal is not None:
                 try_incumbent(proposal)
-        history.append({"node": nodes, "bound": sol.value, "upper": upper})
         for side in (G_SIDE, H_SIDE):
             heapq.heappush(heap, (sol.value, -len(fixed) - 1, next(tie), {**fixed, worst: side}))
+        if nodes & (nodes - 1) == 0 or nodes % 1000 == 0:  # the bounds' trajectory at nodes 1, 2, 4, ... and every 1000
+            history.append({"node": nodes, "lower": min(upper, closed_below, heap[0][0]), "upper": upper})
     if unbounded:
         return SearchOutcome(None, -np.inf, -np.inf, nodes, "unbounded", failed, history)
     lower = min([upper, closed_below] + [b for b, *_ in heap])

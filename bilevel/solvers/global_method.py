@@ -90,13 +90,15 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     stats = {"algorithm": name, "ended": outcome.ended, "nodes": outcome.nodes, "lower_bound": low,
              "upper_bound": high, "gap": gap, "failed_nodes": outcome.failed_nodes,
              "big_m_slack": big_m.slack.tolist(), "big_m_multiplier": big_m.multiplier.tolist()}
+    history = [h if sense == "min" else {"node": h["node"], "lower": -h["upper"], "upper": -h["lower"]}
+               for h in outcome.history]  # the bounds' trajectory, in the declared sense like the bounds
     summary = f"{name}: bounds [{low:.10g}, {high:.10g}], relative gap {gap:.2e}, {outcome.nodes} nodes"
     if outcome.ended == "infeasible":
         return MethodRun(None, Status.INFEASIBLE, f"{name}: the single-level problem is infeasible", outcome.nodes,
-                         outcome.history, [], stats, bound)
+                         history, [], stats, bound)
     if outcome.ended == "unbounded":
         return MethodRun(None, Status.ERROR, f"{name}: the bilevel problem is unbounded (a branch's relaxation has "
-                         "no finite optimum); add bounds on the upper variables", outcome.nodes, outcome.history, [],
+                         "no finite optimum); add bounds on the upper variables", outcome.nodes, history, [],
                          stats, bound)
     if proven:
         status, message = Status.SOLVED, f"globally optimal (proven): {summary}"
@@ -105,4 +107,4 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     else:
         status, message = Status.MAX_ITERATIONS, f"stopped ({outcome.ended}) before the gap closed: {summary}"
     w = None if outcome.w is None else np.asarray(outcome.w, dtype=float)
-    return MethodRun(w, status, message, outcome.nodes, outcome.history, [], stats, bound)
+    return MethodRun(w, status, message, outcome.nodes, history, [], stats, bound)
