@@ -58,17 +58,18 @@ Guess = Callable[[np.ndarray], "dict[int, int] | None"]
 
 
 def branch_and_bound(relax: Relaxation, gap_tol: float, time_limit: float, node_limit: int,
-                     guess: Guess | None = None) -> SearchOutcome:
+                     guess: Guess | None = None, root: dict[int, int] | None = None) -> SearchOutcome:
     """Best-bound search until the relative gap is <= gap_tol, the tree is empty, or a limit is hit.
 
     `guess` (e.g. the lower level solved at the relaxation's x) proposes branches at the root and every 10th node;
     every point of a branch with all pairs fixed is MPCC-feasible, so each proposal can only improve the incumbent.
+    `root` holds sides known to hold at every feasible point (derive_big_m's fixings).
     """
     f = relax.form
     t0 = time.perf_counter()
     best_w, upper = None, np.inf
     tie = itertools.count()
-    heap: list[tuple[float, int, int, dict[int, int]]] = [(-np.inf, 0, next(tie), {})]
+    heap: list[tuple[float, int, int, dict[int, int]]] = [(-np.inf, 0, next(tie), dict(root or {}))]
     closed_below = np.inf  # smallest bound of nodes dropped because they could not improve by more than the gap
     nodes = failed = 0
     history: list[dict[str, float]] = []

@@ -21,7 +21,7 @@ from .global_bb import Guess, SearchOutcome, branch_and_bound, relative_gap, sid
 from .global_bigm import derive_big_m
 from .global_form import linear_mpcc
 from .global_milp import solve_milp
-from .global_nodes import Relaxation
+from .global_nodes import G_SIDE, Relaxation
 
 ALGORITHMS = ("auto", "milp", "branch-and-bound")
 
@@ -62,10 +62,14 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
                          f"{time_limit}, {node_limit}, {gap_tol}")
     t0 = time.perf_counter()
     form = linear_mpcc(prep)
-    if Relaxation(form).solve({}).status == "infeasible":
+    base = Relaxation(form)
+    if base.solve({}).status == "infeasible":
         return MethodRun(None, Status.INFEASIBLE, "the KKT reformulation is infeasible even without complementarity: "
                          "no upper point has a feasible lower level satisfying the upper constraints")
-    big_m = derive_big_m(form)
+    big_m = derive_big_m(base)
+    if big_m is None:
+        return MethodRun(None, Status.INFEASIBLE, "the KKT reformulation is infeasible: some pair has both its slack "
+                         "and its multiplier bounded away from zero on the relaxed KKT polyhedron")
     relax = Relaxation(form, big_m.slack, big_m.multiplier)
     use_milp = form.linear and big_m.finite and form.n_pairs > 0
     if algorithm == "milp" and not use_milp:
@@ -79,7 +83,7 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
         outcome, name = solve_milp(relax, big_m, gap_tol, remaining, node_limit), "milp (HiGHS, derived big-M)"
     else:
         outcome, name = branch_and_bound(relax, gap_tol, remaining, node_limit,
-                                                 lower_response_guess(prep, relax)), "branch-and-bound on the pairs"
+                                                 lower_response_guess(prep, relax), big_m.fixed), "branch-and-bound on the pairs"
     gap = relative_gap(outcome.lower, outcome.upper)
     proven = outcome.ended == "proven" and gap <= gap_tol
     sense = prep.problem.upper_objective.sense
@@ -89,7 +93,8 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     bound = GlobalBound(low, high, gap, gap_tol, proven, name, outcome.nodes, justification)
     stats = {"algorithm": name, "ended": outcome.ended, "nodes": outcome.nodes, "lower_bound": low,
              "upper_bound": high, "gap": gap, "failed_nodes": outcome.failed_nodes,
-             "big_m_slack": big_m.slack.tolist(), "big_m_multiplier": big_m.multiplier.tolist()}
+             "big_m_slack": big_m.slack.tolist(), "big_m_multiplier": big_m.multiplier.tolist(),
+             "fixed_by_lp": {form.labels[i]: "G = 0" if side == G_SIDE else "H = 0" for i, side in big_m.fixed.items()}}
     history = [h if sense == "min" else {"node": h["node"], "lower": -h["upper"], "upper": -h["lower"]}
                for h in outcome.history]  # the bounds' trajectory, in the declared sense like the bounds
     summary = f"{name}: bounds [{low:.10g}, {high:.10g}], relative gap {gap:.2e}, {outcome.nodes} nodes"

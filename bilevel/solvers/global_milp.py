@@ -36,6 +36,12 @@ def milp_form(relax: Relaxation, big_m: BigM) -> MILPForm:
     """The big-M MILP of relax.form (which must be linear, with every bound finite)."""
     f = relax.form
     m, n = f.n_pairs, f.n
+    z_lo, z_hi = np.zeros(m), np.ones(m)  # sides fixed by derive_big_m: z_i = 1 (G_i = 0) or z_i = 0 (H_i = 0)
+    for i, side in big_m.fixed.items():
+        if side == G_SIDE:
+            z_lo[i] = 1.0
+        else:
+            z_hi[i] = 0.0
     blocks = [
         (np.hstack([f.A_eq, np.zeros((f.b_eq.size, m))]), f.b_eq, f.b_eq),
         (np.hstack([relax.A_ub, np.zeros((relax.b_ub.size, m))]), np.full(relax.b_ub.size, -np.inf), relax.b_ub),
@@ -45,7 +51,7 @@ def milp_form(relax: Relaxation, big_m: BigM) -> MILPForm:
     A = np.vstack([b[0] for b in blocks]) if m or f.b_eq.size or relax.b_ub.size else np.zeros((0, n + m))
     return MILPForm(np.concatenate([f.c, np.zeros(m)]), A, np.concatenate([b[1] for b in blocks]),
                     np.concatenate([b[2] for b in blocks]),
-                    Bounds(np.concatenate([f.lb, np.zeros(m)]), np.concatenate([f.ub, np.ones(m)])),
+                    Bounds(np.concatenate([f.lb, z_lo]), np.concatenate([f.ub, z_hi])),
                     np.concatenate([np.zeros(n), np.ones(m)]))
 
 

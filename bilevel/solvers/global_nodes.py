@@ -86,6 +86,29 @@ class Relaxation:
 
     def _highs_lp(self, fixed: dict[int, int]) -> NodeSolution:
         """The node LP on the persistent model: pair rows G_i >= 0 (or = 0), H_i >= 0 (or = 0)."""
+        sol = self._highs_run(fixed)
+        if sol.status == "failed":
+            self._highs = None  # rebuild next time; this node falls back to a fresh linprog
+        return sol if sol.w is None else NodeSolution(sol.status, sol.value + self.form.c0, sol.w)
+
+    def minimize_linear(self, cost: np.ndarray, fixed: dict[int, int]) -> NodeSolution:
+        """min cost'w over the node's polyhedron, whatever the objective (HiGHS; for bounding LPs)."""
+        f = self.form
+        if self._highs is None:
+            self._highs = self._highs_model()
+        cols = np.arange(f.n, dtype=np.int32)
+        self._highs.changeColsCost(f.n, cols, np.asarray(cost, dtype=float))
+        try:
+            sol = self._highs_run(fixed)
+        finally:
+            if self._highs is not None:
+                self._highs.changeColsCost(f.n, cols, f.c.astype(float))
+        if sol.status == "failed":
+            self._highs = None
+        return sol
+
+    def _highs_run(self, fixed: dict[int, int]) -> NodeSolution:
+        """Set the pair rows' bounds for `fixed`, run HiGHS, map its status (value without the constant c0)."""
         f = self.form
         if self._highs is None:
             self._highs = self._highs_model()
@@ -101,12 +124,11 @@ class Relaxation:
         status = h.getModelStatus()
         if status == highspy.HighsModelStatus.kOptimal:
             w = np.asarray(h.getSolution().col_value, dtype=float)
-            return NodeSolution("optimal", float(h.getInfo().objective_function_value) + f.c0, w)
+            return NodeSolution("optimal", float(h.getInfo().objective_function_value), w)
         if status == highspy.HighsModelStatus.kInfeasible:
             return NodeSolution("infeasible", np.nan, None)
         if status == highspy.HighsModelStatus.kUnbounded:
             return NodeSolution("unbounded", np.nan, None)
-        self._highs = None  # anything else: rebuild next time; this node falls back to a fresh linprog
         return NodeSolution("failed", np.nan, None)
 
     def _lp(self, A_eq: np.ndarray, b_eq: np.ndarray) -> NodeSolution:

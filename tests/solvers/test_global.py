@@ -146,9 +146,9 @@ def test_large_multipliers_derived_big_m_keeps_the_optimum() -> None:
 def test_large_multipliers_a_guessed_big_m_cuts_the_optimum() -> None:
     """The same MILP with the multiplier bound guessed at 1e3 returns 10, not 0: the derivation is what matters."""
     form = linear_mpcc(prepare(large_multiplier_problem()))
-    derived = derive_big_m(form)
-    guessed = BigM(derived.slack, np.minimum(derived.multiplier, 1e3), derived.labels)
     relax = Relaxation(form)
+    derived = derive_big_m(relax)
+    guessed = BigM(derived.slack, np.minimum(derived.multiplier, 1e3), derived.labels, derived.fixed)
     assert solve_milp(relax, derived, GAP, 30.0, 1000).upper == pytest.approx(0.0, abs=1e-9)
     assert solve_milp(relax, guessed, GAP, 30.0, 1000).upper == pytest.approx(10.0, abs=1e-6)
 
@@ -206,3 +206,13 @@ def test_compare_runs_global_and_marks_problems_outside_its_scope(tmp_path) -> N
     assert "reached (1e-4 relative, certified) on 1/1 (100%); not applicable to 1" in markdown_table(rows)
     again = compare(["macmpec-bilin", "macmpec-ex9.2.8"], ["global"], str(tmp_path / "c.csv"), progress=None)
     assert [r.status for r in again] == [r.status for r in rows]  # rows read back from the CSV (resume)
+
+
+def test_sides_forced_over_the_relaxed_polyhedron_are_fixed_and_justified() -> None:
+    """bard2: the resource rows and x <= (10, 5, 15, 20) keep y <= (8.33, 14.3, 33.3, 21.4) on R, below the
+    bounds (20, 20, 40, 40), so y <= ub never binds: those multipliers are fixed to 0 and reported as forced."""
+    res = bl.solve(registry.get("macmpec-bard2"), method="global")
+    assert res.stats["fixed_by_lp"] == {f"y.ub[{i}]": "H = 0" for i in range(4)}
+    assert np.abs(res.multipliers["y.ub"]).max() <= 1e-12
+    lines = [line for line in res.certificate.global_bound.big_m if line.startswith("y.ub")]
+    assert len(lines) == 4 and all("multiplier = 0" in line for line in lines)
