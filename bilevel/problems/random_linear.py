@@ -48,7 +48,8 @@ def random_linear_data(rng: np.random.Generator, n_x: int, n_y: int, m: int, qua
     empty = ~A.any(axis=1)
     A[empty, rng.integers(0, n_y, size=int(empty.sum()))] = nonzero(int(empty.sum()))
     return LinearBilevelData(
-        c_x=ints(n_x), c_y=ints(n_y), u=rng.integers(0, 4, size=n_x).astype(float) if quadratic_upper else np.zeros(n_x),
+        c_x=ints(n_x), c_y=ints(n_y),
+        u=rng.integers(0, 4, size=n_x).astype(float) if quadratic_upper else np.zeros(n_x),
         x0=rng.random(n_x), d=nonzero(n_y), C=ints(n_y, n_x) if coupled_cost else np.zeros((n_y, n_x)),
         A=A, B=ints(m, n_x), b=rng.integers(1, 11, size=m).astype(float), y_max=10.0)
 

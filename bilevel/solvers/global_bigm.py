@@ -51,7 +51,8 @@ class BigM:
             if side == H_SIDE:
                 lines.append(f"{name}: multiplier = 0 (its slack has a positive minimum over R), slack <= {say(s)}")
             elif side == G_SIDE:
-                lines.append(f"{name}: slack = 0 (its multiplier has a positive minimum over R), multiplier <= {say(m)}")
+                lines.append(f"{name}: slack = 0 (its multiplier has a positive minimum over R), "
+                             f"multiplier <= {say(m)}")
             else:
                 lines.append(f"{name}: slack <= {say(s)}, multiplier <= {say(m)}")
         return tuple(lines)

@@ -46,11 +46,9 @@ def lower_response_guess(prep: Prepared, relax: Relaxation) -> Guess:
     return guess
 
 
-def solve_global(prep: Prepared, **options: Any) -> MethodRun:
-    """Global optimum with a proof (options: time_limit [s, 60], node_limit [100000], gap [1e-6 relative],
-    algorithm [auto | milp | branch-and-bound], verbose; starts and seed are accepted and unused: it is
-    deterministic and needs no starts)."""
-    check_options("global", options, {"time_limit", "node_limit", "gap", "algorithm", "verbose", "starts", "seed"})
+def _options(options: dict[str, Any]) -> tuple[float, int, float, str]:
+    """(time_limit, node_limit, gap, algorithm), checked."""
+    check_options("global", options, {"time_limit", "node_limit", "gap", "algorithm", "starts", "seed"})
     time_limit = float(options.get("time_limit", 60.0))
     node_limit = int(options.get("node_limit", 100_000))
     gap_tol = float(options.get("gap", 1e-6))
@@ -60,6 +58,27 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     if time_limit <= 0 or node_limit <= 0 or not 0 < gap_tol < 1:
         raise ModelError("method 'global' needs time_limit > 0, node_limit > 0 and 0 < gap < 1; got "
                          f"{time_limit}, {node_limit}, {gap_tol}")
+    return time_limit, node_limit, gap_tol, algorithm
+
+
+def _verdict(outcome: SearchOutcome, name: str, summary: str, proven: bool) -> tuple[Status, str]:
+    """Status and message of a finished search."""
+    if outcome.ended == "infeasible":
+        return Status.INFEASIBLE, f"{name}: the single-level problem is infeasible"
+    if outcome.ended == "unbounded":
+        return Status.ERROR, (f"{name}: the bilevel problem is unbounded (a branch's relaxation has no finite "
+                              "optimum); add bounds on the upper variables")
+    if proven:
+        return Status.SOLVED, f"globally optimal (proven): {summary}"
+    if outcome.ended == "failed":
+        return Status.ERROR, f"{name} failed: {summary}"
+    return Status.MAX_ITERATIONS, f"stopped ({outcome.ended}) before the gap closed: {summary}"
+
+
+def solve_global(prep: Prepared, **options: Any) -> MethodRun:
+    """Global optimum with a proof (options: time_limit [s, 60], node_limit [100000], gap [1e-6 relative],
+    algorithm [auto | milp | branch-and-bound]; starts and seed are accepted and unused: it is deterministic)."""
+    time_limit, node_limit, gap_tol, algorithm = _options(options)
     t0 = time.perf_counter()
     form = linear_mpcc(prep)
     base = Relaxation(form)
@@ -76,20 +95,22 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
         raise ModelError("algorithm 'milp' needs a linear upper objective and a finite derived big-M for every pair "
                          f"(here: linear objective {form.linear}, all bounds finite {big_m.finite}); use "
                          "algorithm='branch-and-bound' or 'auto'")
-    if algorithm == "branch-and-bound":
-        use_milp = False
+    use_milp = use_milp and algorithm != "branch-and-bound"
     remaining = max(time_limit - (time.perf_counter() - t0), 1e-3)
     if use_milp:
-        outcome, name = solve_milp(relax, big_m, gap_tol, remaining, node_limit), "milp (HiGHS, derived big-M)"
+        name = "milp (HiGHS, derived big-M)"
+        outcome = solve_milp(relax, big_m, gap_tol, remaining, node_limit)
     else:
-        outcome, name = branch_and_bound(relax, gap_tol, remaining, node_limit,
-                                                 lower_response_guess(prep, relax), big_m.fixed), "branch-and-bound on the pairs"
+        name = "branch-and-bound on the pairs"
+        outcome = branch_and_bound(relax, gap_tol, remaining, node_limit, lower_response_guess(prep, relax),
+                                   big_m.fixed)
     gap = relative_gap(outcome.lower, outcome.upper)
     proven = outcome.ended == "proven" and gap <= gap_tol
     sense = prep.problem.upper_objective.sense
     low, high = _declared(outcome, sense)
-    justification = (("big-M used: " if use_milp else "big-M not used (hull cuts only): ")
-                     + "each bound is an LP maximum over the relaxed KKT polyhedron R",) + big_m.justification()
+    justification = (("big-M used" if use_milp else "big-M not used (hull cuts only)") + ": each bound is an LP "
+                     "maximum over the relaxed KKT polyhedron R; a side is forced where the other's LP minimum "
+                     "over R is positive",) + big_m.justification()
     bound = GlobalBound(low, high, gap, gap_tol, proven, name, outcome.nodes, justification)
     stats = {"algorithm": name, "ended": outcome.ended, "nodes": outcome.nodes, "lower_bound": low,
              "upper_bound": high, "gap": gap, "failed_nodes": outcome.failed_nodes,
@@ -98,18 +119,6 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     history = [h if sense == "min" else {"node": h["node"], "lower": -h["upper"], "upper": -h["lower"]}
                for h in outcome.history]  # the bounds' trajectory, in the declared sense like the bounds
     summary = f"{name}: bounds [{low:.10g}, {high:.10g}], relative gap {gap:.2e}, {outcome.nodes} nodes"
-    if outcome.ended == "infeasible":
-        return MethodRun(None, Status.INFEASIBLE, f"{name}: the single-level problem is infeasible", outcome.nodes,
-                         history, [], stats, bound)
-    if outcome.ended == "unbounded":
-        return MethodRun(None, Status.ERROR, f"{name}: the bilevel problem is unbounded (a branch's relaxation has "
-                         "no finite optimum); add bounds on the upper variables", outcome.nodes, history, [],
-                         stats, bound)
-    if proven:
-        status, message = Status.SOLVED, f"globally optimal (proven): {summary}"
-    elif outcome.ended == "failed":
-        status, message = Status.ERROR, f"{name} failed: {summary}"
-    else:
-        status, message = Status.MAX_ITERATIONS, f"stopped ({outcome.ended}) before the gap closed: {summary}"
-    w = None if outcome.w is None else np.asarray(outcome.w, dtype=float)
+    status, message = _verdict(outcome, name, summary, proven)
+    w = None if outcome.w is None or status is Status.INFEASIBLE else np.asarray(outcome.w, dtype=float)
     return MethodRun(w, status, message, outcome.nodes, history, [], stats, bound)

@@ -133,7 +133,7 @@ class Relaxation:
 
     def _lp(self, A_eq: np.ndarray, b_eq: np.ndarray) -> NodeSolution:
         f = self.form
-        bounds = np.column_stack([np.where(np.isfinite(f.lb), f.lb, -np.inf), np.where(np.isfinite(f.ub), f.ub, np.inf)])
+        bounds = np.column_stack([f.lb, f.ub])
         res = linprog(f.c, A_ub=self.A_ub if self.b_ub.size else None, b_ub=self.b_ub if self.b_ub.size else None,
                       A_eq=A_eq if b_eq.size else None, b_eq=b_eq if b_eq.size else None, bounds=bounds,
                       method="highs")
