@@ -23,6 +23,21 @@ DEFAULT_TOL = 1e-6
 
 
 @dataclass(frozen=True)
+class GlobalBound:
+    """Proof of global optimality (method "global"): bounds on the optimal upper value in the declared sense,
+    gap = (upper_bound - lower_bound) / max(1, |best value|), and how each big-M was justified."""
+
+    lower_bound: float
+    upper_bound: float
+    gap: float
+    tolerance: float
+    proven: bool
+    algorithm: str
+    nodes: int
+    big_m: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
 class Certificate:
     """Residuals at a point and the verdict. lower_gap = f(x, y) - f*(x), f* from an independent solve."""
 
@@ -39,12 +54,17 @@ class Certificate:
     passed: bool
     failed: tuple[str, ...] = field(default_factory=tuple)
     note: str = ""
+    global_bound: GlobalBound | None = None
 
     def __repr__(self) -> str:
         verdict = "passed" if self.passed else f"FAILED ({', '.join(self.failed)})"
         return (f"Certificate({verdict}; stationarity={self.stationarity:.2e}, lower_feas={self.lower_feasibility:.2e}, "
                 f"dual_feas={self.dual_feasibility:.2e}, compl={self.complementarity:.2e}, "
-                f"upper_feas={self.upper_feasibility:.2e}, gap={self.lower_gap:.2e} via {self.lower_solver})")
+                f"upper_feas={self.upper_feasibility:.2e}, gap={self.lower_gap:.2e} via {self.lower_solver}"
+                + ("" if self.global_bound is None else
+                   f"; global bounds [{self.global_bound.lower_bound:.10g}, {self.global_bound.upper_bound:.10g}], "
+                   f"gap {self.global_bound.gap:.1e}{' proven' if self.global_bound.proven else ' NOT proven'}")
+                + ")")
 
 
 def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_TOL) -> Certificate:

@@ -12,9 +12,13 @@ import os
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
+from ..errors import ModelError
 from ..problems import registry
 from ..result import BilevelResult
 from ..solvers import solve
+
+NOT_APPLICABLE = "not_applicable"
+"""Status of a row whose method rejected the problem as outside its scope (a ModelError, e.g. 'global' on an NLP)."""
 
 COLUMNS = ["problem", "method", "status", "objective", "known_optimum", "relative_gap", "certified",
            "stationarity", "complementarity", "lower_gap", "upper_feasibility", "wall_time", "nit", "starts", "seed"]
@@ -66,6 +70,14 @@ def row_of(name: str, method: str, result: BilevelResult, starts: int, seed: int
                       c.upper_feasibility if c else nan, result.wall_time, result.nit, starts, seed)
 
 
+def not_applicable(name: str, method: str, starts: int, seed: int) -> CompareRow:
+    """The row of a method that rejects the problem as outside its scope (no objective, no time)."""
+    known = registry.spec(name).optimum
+    nan = math.nan
+    return CompareRow(name, method, NOT_APPLICABLE, nan, nan if known is None else known, nan, False, nan, nan, nan,
+                      nan, 0.0, 0, starts, seed)
+
+
 def _read(path: str) -> list[CompareRow]:
     if not os.path.exists(path):
         return []
@@ -98,8 +110,11 @@ def compare(problems: Sequence[str], methods: Sequence[str], csv_path: str, star
                 if (name, method) in done:
                     continue
                 opts = dict((method_options or {}).get(method, {}))
-                result = solve(registry.get(name), method=method, starts=starts, seed=seed, **opts)
-                row = row_of(name, method, result, starts, seed)
+                try:
+                    result = solve(registry.get(name), method=method, starts=starts, seed=seed, **opts)
+                    row = row_of(name, method, result, starts, seed)
+                except ModelError:
+                    row = not_applicable(name, method, starts, seed)
                 writer.writerow([getattr(row, c) for c in COLUMNS])
                 fh.flush()
                 done[(name, method)] = row
@@ -120,9 +135,14 @@ def markdown_table(rows: Sequence[CompareRow]) -> str:
                      f"{r.relative_gap:.1e} | {'yes' if r.certified else 'no'} | {resid:.1e} | {r.wall_time:.3f} |")
     lines.append("")
     for method in dict.fromkeys(r.method for r in rows):
-        mine = [r for r in rows if r.method == method]
+        mine = [r for r in rows if r.method == method and r.status != NOT_APPLICABLE]
+        skipped = sum(1 for r in rows if r.method == method and r.status == NOT_APPLICABLE)
+        if not mine:
+            lines.append(f"- **{method}**: applies to none of these problems")
+            continue
         hit = sum(r.reached for r in mine)
         t = sorted(r.wall_time for r in mine)
+        outside = f"; not applicable to {skipped}" if skipped else ""
         lines.append(f"- **{method}**: known optimum reached (1e-4 relative, certified) on {hit}/{len(mine)} "
-                     f"({100 * hit / len(mine):.0f}%); median time {t[len(t) // 2]:.3f} s")
+                     f"({100 * hit / len(mine):.0f}%){outside}; median time {t[len(t) // 2]:.3f} s")
     return "\n".join(lines) + "\n"

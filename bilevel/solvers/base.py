@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
 
@@ -10,7 +10,7 @@ import casadi as ca
 import numpy as np
 
 from ..canonical import CanonicalBilevel, Canonicalize, NormalizeSense, kkt_solution, objectives
-from ..certificate import DEFAULT_TOL, certify
+from ..certificate import DEFAULT_TOL, GlobalBound, certify
 from ..errors import BilevelError, UnknownOption
 from ..model import BilevelProblem
 from ..mpcc import MPCC
@@ -83,6 +83,7 @@ class MethodRun:
     stats: dict[str, Any] = field(default_factory=dict)
     feasible_set: Projection | None = None
     """The upper set the method searched when narrower than the declared one (a `projection` option)."""
+    global_bound: GlobalBound | None = None
 
 
 def check_options(method: str, given: dict[str, Any], allowed: set[str]) -> None:
@@ -94,6 +95,8 @@ def check_options(method: str, given: dict[str, Any], allowed: set[str]) -> None
 
 
 def _final_status(run: MethodRun, passed: bool) -> tuple[Status, str]:
+    if passed and run.global_bound is not None:  # a global run's status is its verdict on the bound
+        return run.status, f"{run.message}; certificate passed"
     if passed:
         if run.status is Status.SOLVED:
             return Status.SOLVED, "converged; certificate passed (a local solution of the bilevel problem)"
@@ -112,6 +115,8 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
     point = prep.point(run.w)
     try:
         cert = certify(prep.canon, point, tol)
+        if run.global_bound is not None:
+            cert = replace(cert, global_bound=run.global_bound)
     except BilevelError as exc:  # evaluation failed: keep the point, say why
         cert = None
         run = MethodRun(run.w, Status.ERROR, f"certificate could not be computed: {exc}", run.nit, run.history,
@@ -120,7 +125,8 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
     if cert is not None and not cert.passed:
         message += f"; certificate failed on {', '.join(cert.failed)}"
     stats = dict(run.stats)
-    if status in (Status.SOLVED, Status.INACCURATE):
+    proven = run.global_bound is not None and run.global_bound.proven  # a global proof needs no local probe
+    if status in (Status.SOLVED, Status.INACCURATE) and not proven:
         F = objectives(prep.canon, point)[0]
         better = improving_neighbour(prep, point.x, F, run.feasible_set or prep.projection)
         stats["probe"] = None if better is None else {"x": better.x, "objective": better.objective,
@@ -129,8 +135,8 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
             status = Status.NOT_LOCALLY_OPTIMAL
             sign = -1.0 if prep.problem.upper_objective.sense == "max" else 1.0
             message = (f"not a local solution: a feasible point at relative distance {better.radius:g} has upper "
-                       f"objective {sign * better.objective:.8g} (here {sign * F:.8g}); the method stopped at a stationary point that is not optimal ({message}); try more starts or "
-                       "another method")
+                       f"objective {sign * better.objective:.8g} (here {sign * F:.8g}); the method stopped at a "
+                       f"stationary point that is not optimal ({message}); try more starts or another method")
     sol = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse)
     syms = ca.vertcat(prep.canon.x, prep.canon.y)
     values = np.concatenate([point.x, point.y])

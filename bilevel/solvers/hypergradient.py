@@ -365,4 +365,4 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     k, best = runs[i]
     return MethodRun(candidates[i][0], best.status, f"best of {starts} starts: start {k} ({best.message})", nit,
                      best.history, records, {"best_start": k, "penalty": penalty},
-                     None if options.get("projection") is None else arc.project)
+                     feasible_set=None if options.get("projection") is None else arc.project)

@@ -13,6 +13,7 @@ from ..threads import single_threaded
 from ..result import BilevelResult
 from .base import MethodRun, Prepared, finalize, prepare
 from .block_exact import solve_block_exact
+from .global_method import solve_global
 from .hypergradient import solve_hypergradient
 from .ipopt import solve_ipopt
 from .relaxation import solve_relaxation
@@ -26,6 +27,7 @@ METHODS: dict[str, Method] = {
     "hypergradient": solve_hypergradient,
     "relaxation": solve_relaxation,
     "block-exact": solve_block_exact,
+    "global": solve_global,
 }
 """Registered methods: name -> function(prepared, **options) -> MethodRun."""
 

@@ -1,0 +1,124 @@
+"""method="global": a proven global optimum for LP / convex-QP lower levels (scope in global_form.py).
+
+Big-M bounds are derived by LPs (global_bigm.py). A linear upper objective with every bound finite goes to HiGHS
+as a MILP (global_milp.py); otherwise (a convex-quadratic upper objective, or a pair with no finite bound) the
+pairs are branched on directly (global_bb.py). The KKT reformulation is exact for these lower levels, so its
+global optimum is the optimistic bilevel optimum, also when the lower solution is not unique.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from ..certificate import GlobalBound
+from ..errors import BilevelError, ModelError
+from ..result import Status
+from .base import MethodRun, Prepared, check_options
+from .global_bb import Guess, SearchOutcome, branch_and_bound, relative_gap, sides_of
+from .global_bigm import derive_big_m
+from .global_form import linear_mpcc
+from .global_milp import solve_milp
+from .global_nodes import G_SIDE, Relaxation
+
+ALGORITHMS = ("auto", "milp", "branch-and-bound")
+
+
+def _declared(outcome: SearchOutcome, sense: str) -> tuple[float, float]:
+    """(lower bound, upper bound) on the optimal upper value in the declared sense."""
+    if sense == "max":
+        return -outcome.upper, -outcome.lower
+    return outcome.lower, outcome.upper
+
+
+def lower_response_guess(prep: Prepared, relax: Relaxation) -> Guess:
+    """Guess: solve the lower level at the relaxation's x (independent solver); its KKT point selects a branch."""
+    block = prep.mpcc.blocks["x"]
+
+    def guess(w: np.ndarray) -> dict[int, int] | None:
+        try:
+            return sides_of(relax, prep.pack(prep.lower_point(w[block])))
+        except BilevelError:  # lower level infeasible or failing at this x: no proposal
+            return None
+
+    return guess
+
+
+def _options(options: dict[str, Any]) -> tuple[float, int, float, str]:
+    """(time_limit, node_limit, gap, algorithm), checked."""
+    check_options("global", options, {"time_limit", "node_limit", "gap", "algorithm", "starts", "seed"})
+    time_limit = float(options.get("time_limit", 60.0))
+    node_limit = int(options.get("node_limit", 100_000))
+    gap_tol = float(options.get("gap", 1e-6))
+    algorithm = str(options.get("algorithm", "auto"))
+    if algorithm not in ALGORITHMS:
+        raise ModelError(f"unknown algorithm {algorithm!r} for method 'global'; choose one of {', '.join(ALGORITHMS)}")
+    if time_limit <= 0 or node_limit <= 0 or not 0 < gap_tol < 1:
+        raise ModelError("method 'global' needs time_limit > 0, node_limit > 0 and 0 < gap < 1; got "
+                         f"{time_limit}, {node_limit}, {gap_tol}")
+    return time_limit, node_limit, gap_tol, algorithm
+
+
+def _verdict(outcome: SearchOutcome, name: str, summary: str, proven: bool) -> tuple[Status, str]:
+    """Status and message of a finished search."""
+    if outcome.ended == "infeasible":
+        return Status.INFEASIBLE, f"{name}: the single-level problem is infeasible"
+    if outcome.ended == "unbounded":
+        return Status.ERROR, (f"{name}: the bilevel problem is unbounded (a branch's relaxation has no finite "
+                              "optimum); add bounds on the upper variables")
+    if proven:
+        return Status.SOLVED, f"globally optimal (proven): {summary}"
+    if outcome.ended == "failed":
+        return Status.ERROR, f"{name} failed: {summary}"
+    return Status.MAX_ITERATIONS, f"stopped ({outcome.ended}) before the gap closed: {summary}"
+
+
+def solve_global(prep: Prepared, **options: Any) -> MethodRun:
+    """Global optimum with a proof (options: time_limit [s, 60], node_limit [100000], gap [1e-6 relative],
+    algorithm [auto | milp | branch-and-bound]; starts and seed are accepted and unused: it is deterministic)."""
+    time_limit, node_limit, gap_tol, algorithm = _options(options)
+    t0 = time.perf_counter()
+    form = linear_mpcc(prep)
+    base = Relaxation(form)
+    if base.solve({}).status == "infeasible":
+        return MethodRun(None, Status.INFEASIBLE, "the KKT reformulation is infeasible even without complementarity: "
+                         "no upper point has a feasible lower level satisfying the upper constraints")
+    big_m = derive_big_m(base)
+    if big_m is None:
+        return MethodRun(None, Status.INFEASIBLE, "the KKT reformulation is infeasible: some pair has both its slack "
+                         "and its multiplier bounded away from zero on the relaxed KKT polyhedron")
+    relax = Relaxation(form, big_m.slack, big_m.multiplier)
+    use_milp = form.linear and big_m.finite and form.n_pairs > 0
+    if algorithm == "milp" and not use_milp:
+        raise ModelError("algorithm 'milp' needs a linear upper objective and a finite derived big-M for every pair "
+                         f"(here: linear objective {form.linear}, all bounds finite {big_m.finite}); use "
+                         "algorithm='branch-and-bound' or 'auto'")
+    use_milp = use_milp and algorithm != "branch-and-bound"
+    remaining = max(time_limit - (time.perf_counter() - t0), 1e-3)
+    if use_milp:
+        name = "milp (HiGHS, derived big-M)"
+        outcome = solve_milp(relax, big_m, gap_tol, remaining, node_limit)
+    else:
+        name = "branch-and-bound on the pairs"
+        outcome = branch_and_bound(relax, gap_tol, remaining, node_limit, lower_response_guess(prep, relax),
+                                   big_m.fixed)
+    gap = relative_gap(outcome.lower, outcome.upper)
+    proven = outcome.ended == "proven" and gap <= gap_tol
+    sense = prep.problem.upper_objective.sense
+    low, high = _declared(outcome, sense)
+    justification = (("big-M used" if use_milp else "big-M not used (hull cuts only)") + ": each bound is an LP "
+                     "maximum over the relaxed KKT polyhedron R; a side is forced where the other's LP minimum "
+                     "over R is positive",) + big_m.justification()
+    bound = GlobalBound(low, high, gap, gap_tol, proven, name, outcome.nodes, justification)
+    stats = {"algorithm": name, "ended": outcome.ended, "nodes": outcome.nodes, "lower_bound": low,
+             "upper_bound": high, "gap": gap, "failed_nodes": outcome.failed_nodes,
+             "big_m_slack": big_m.slack.tolist(), "big_m_multiplier": big_m.multiplier.tolist(),
+             "fixed_by_lp": {form.labels[i]: "G = 0" if side == G_SIDE else "H = 0" for i, side in big_m.fixed.items()}}
+    history = [h if sense == "min" else {"node": h["node"], "lower": -h["upper"], "upper": -h["lower"]}
+               for h in outcome.history]  # the bounds' trajectory, in the declared sense like the bounds
+    summary = f"{name}: bounds [{low:.10g}, {high:.10g}], relative gap {gap:.2e}, {outcome.nodes} nodes"
+    status, message = _verdict(outcome, name, summary, proven)
+    w = None if outcome.w is None or status is Status.INFEASIBLE else np.asarray(outcome.w, dtype=float)
+    return MethodRun(w, status, message, outcome.nodes, history, [], stats, global_bound=bound)
