@@ -53,9 +53,11 @@ class Executor(ABC):
             self.abort()
 
 
-def _ignore_sigint() -> None:
-    """Worker initializer: a Ctrl-C on the process group is the main process's to handle (it stops us)."""
+def _worker_signals() -> None:
+    """Worker initializer: a Ctrl-C on the process group is the main process's to handle (it stops us), and
+    SIGTERM just ends the worker (a forked worker would otherwise inherit the sweep's raising handler)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 class LocalExecutor(Executor):
@@ -72,22 +74,19 @@ class LocalExecutor(Executor):
                 yield task, run_task(fn, task)
             return
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_ignore_sigint)
+            self._pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_worker_signals)
         futures = {self._pool.submit(run_task, fn, t): t for t in tasks}
-        try:
-            for fut in as_completed(futures):
-                yield futures[fut], fut.result()
-        finally:
-            for fut in futures:
-                fut.cancel()
+        for fut in as_completed(futures):
+            yield futures[fut], fut.result()
 
     def abort(self) -> None:
         if self._pool is None:
             return
-        # ProcessPoolExecutor has no terminate() before Python 3.14; shutdown alone waits for running tasks
+        # ProcessPoolExecutor has no terminate() before Python 3.14 and shutdown alone waits for running tasks;
+        # queued futures are not cancelled first (3.11 then fails to mark them broken, with a traceback)
         for proc in list((self._pool._processes or {}).values()):
             proc.terminate()
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._pool.shutdown(wait=False)
         self._pool = None
 
     def close(self) -> None:
