@@ -129,17 +129,15 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    from .experiments.sweep import stderr_progress
-
     if args.target == "vrft":
         from .experiments.vrft import run_reproduction
 
         return _run_sweeps(args, lambda: run_reproduction(args.sims, args.out or "out/vrft", args.seed, args.workers,
-                                                          progress=stderr_progress, dask=args.dask))
+                                                          dask=args.dask))
     from .experiments.willems import run_reproduction as run_willems
 
     return _run_sweeps(args, lambda: run_willems(args.sims, args.out or "out/willems", args.quick, args.seed,
-                                                 stderr_progress, args.selection, args.workers, args.dask))
+                                                 selection=args.selection, workers=args.workers, dask=args.dask))
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -15,7 +15,7 @@ from ..attacks.vrft import CONVENTIONS, VRFTAttack, attack_instance
 from ..attacks.vrft_methods import ATTACKS, attack_budget_path
 from .stats import mean_interval, wilson_interval
 from .executor import open_executor
-from .sweep import load_timings, record_timing, run_sweep, settings_of
+from .sweep import load_timings, record_timing, run_sweep, settings_of, stderr_progress
 
 EPS_U = (0.0, 0.1, 0.2)
 EPS_Y = (0.01, 0.023, 0.037, 0.05, 0.057)
@@ -145,7 +145,7 @@ def write_csv(summary: dict, path: str) -> None:
 
 
 def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, workers: int | None = None,
-                     side_sims: int | None = None, progress: Callable[[str], None] | None = print,
+                     side_sims: int | None = None, progress: Callable[[str], None] | None = stderr_progress,
                      dask: str | None = None) -> str:
     """Table 1 (paper convention) with `sims` per cell, the other conventions, the destabilizing and
     targeted attacks and the white-noise baseline with `side_sims`, figures 2-6 and report.md; tasks run on

@@ -34,7 +34,7 @@ from ..errors import BilevelError  # noqa: E402
 from ..problems.willems import DEFAULT_REG, WillemsSetting, build_attack  # noqa: E402
 from .stats import mean_interval, wilson_interval  # noqa: E402
 from .executor import open_executor  # noqa: E402
-from .sweep import load_timings, record_timing, run_sweep, settings_of  # noqa: E402
+from .sweep import load_timings, record_timing, run_sweep, settings_of, stderr_progress  # noqa: E402
 from .willems_selection import selection_table  # noqa: E402
 
 DELTA_Y = 1e-3
@@ -466,7 +466,7 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
 
 
 def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool = False, seed: int = 0,
-                     progress: Callable[[str], None] | None = print, selection: str = "min-norm",
+                     progress: Callable[[str], None] | None = stderr_progress, selection: str = "min-norm",
                      workers: int | None = None, dask: str | None = None) -> str:
     """Run (or resume) every sweep on `workers` local processes or the Dask cluster `dask`, then write tables
     (CSV + Markdown), figures 7-9 and report.md; returns its path.

@@ -87,7 +87,7 @@ def test_worker_killed_mid_sweep_loses_and_duplicates_nothing(tmp_path) -> None:
 @pytest.mark.slow
 def test_cli_reproduction_on_dask_with_a_killed_worker_equals_the_local_pool(tmp_path) -> None:
     """`bilevel reproduce vrft --sims 4 --dask tcp://127.0.0.1:PORT`, one worker killed mid-run: every table
-    equals `--workers 2` on the local pool (about 3 minutes on 2 cores)."""
+    equals `--workers 2` on the local pool (5 min on a shared 2-core machine)."""
     local, remote = str(tmp_path / "local"), str(tmp_path / "dask")
     subprocess.run(BILEVEL + ["reproduce", "vrft", "--sims", "4", "--workers", "2", "--out", local], check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
