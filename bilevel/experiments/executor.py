@@ -7,6 +7,7 @@ every worker at once (used on SIGINT/SIGTERM) instead of waiting for running tas
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import signal
@@ -121,20 +122,27 @@ class DaskExecutor(Executor):
         # pure=False: a fresh Dask key per submission, never a result cached from another run
         futures = {self.client.submit(run_task, fn, t, pure=False): t for t in tasks}
         self._futures = list(futures)
-        try:
-            for fut in dask_completed(futures):
-                yield futures[fut], fut.result()
-        finally:
-            self.client.cancel([f for f in futures if not f.done()])
-            self._futures = []
+        for fut in dask_completed(futures):
+            yield futures[fut], fut.result()
+        self._futures = []
 
     def abort(self) -> None:
-        if self._futures:
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)  # its "connection closed" tracebacks
+        if self._cluster is not None:
+            # a LocalCluster's nannies give a busy worker seconds to finish; its processes are ours: kill them now
+            for nanny in self._cluster.workers.values():
+                nanny.auto_restart = False
+                proc = getattr(getattr(nanny, "process", None), "process", None)
+                if proc is not None and proc.pid:
+                    os.kill(proc.pid, signal.SIGKILL)
+        elif self._futures and self.client.status == "running":
             self.client.cancel(self._futures, force=True)
+        self._futures = []
         self.close()
 
     def close(self) -> None:
-        self.client.close(timeout=3)
+        if self.client.status != "closed":
+            self.client.close(timeout=3)
         if self._cluster is not None:
             self._cluster.close(timeout=3)
             self._cluster = None

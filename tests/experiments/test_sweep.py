@@ -35,15 +35,17 @@ def willems_seed0(tmp_path_factory) -> str:
     return out
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
-def test_signal_to_main_process_only_stops_within_5s_and_resume_matches(tmp_path, willems_seed0, signum) -> None:
-    """The signal goes to the main process alone (as `timeout -s INT` sends it): workers are stopped, the
-    process exits within 5 s with 128 + signum, finished rows are kept, and the resumed run's tables equal
-    an uninterrupted run's."""
+@pytest.mark.parametrize("signum,executor", [(signal.SIGINT, []), (signal.SIGTERM, []),
+                                             (signal.SIGINT, ["--dask", "local"])])
+def test_signal_to_main_process_only_stops_within_5s_and_resume_matches(tmp_path, willems_seed0, signum,
+                                                                        executor) -> None:
+    """The signal goes to the main process alone (as `timeout -s INT` sends it): workers (local pool or Dask
+    LocalCluster) are stopped, the process exits within 5 s with 128 + signum, finished rows are kept, and the
+    resumed run's tables equal an uninterrupted run's."""
     out = str(tmp_path / "run")
     paper = os.path.join(out, "paper.jsonl")
-    proc = subprocess.Popen(BILEVEL + WILLEMS + ["--out", out], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
+    proc = subprocess.Popen(BILEVEL + WILLEMS + executor + ["--out", out], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         wait_for_rows(proc, paper, 2)
         children = psutil.Process(proc.pid).children(recursive=True)
@@ -61,8 +63,8 @@ def test_signal_to_main_process_only_stops_within_5s_and_resume_matches(tmp_path
     assert not [c for c in children if c.is_running() and c.status() != psutil.STATUS_ZOMBIE]
     kept = row_count(paper)
     assert 2 <= kept < len(willems.paper_tasks(willems.make_plan(1, True), 0))
-    if signum == signal.SIGTERM:
-        return  # the resume below is the same code path whichever signal stopped the run
+    if signum == signal.SIGTERM or executor:
+        return  # the resume below is the same code path whichever signal or executor stopped the run
     assert main(WILLEMS + ["--out", out]) == 0
     with open(paper, encoding="utf-8") as fh:
         keys = [json.loads(line)["key"] for line in fh]
