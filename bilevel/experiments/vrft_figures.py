@@ -198,7 +198,7 @@ def report(summaries: dict, figures: dict[str, str], sims: int, side: int,
         "scenario-A simulation is the same instance, so its cells are 0% or 100% (the paper does not say "
         "what varies between its 512 scenario-A simulations).",
         "",
-        "Settings read from the result rows: " + "; ".join(f"{k} {', '.join(map(str, v))}"
+        "Settings read from the result rows: " + "; ".join(f"{k.removeprefix('root_')} {', '.join(map(str, v))}"
                                                           for k, v in settings.items()) + ".", "",
         f"Median time per max-min attack: {np.median(times):.1f} ms (one core per worker, {executor}).", "",
         "Wall time of the attacks (when each sweep's rows were computed; `timings.json`; a resumed sweep "
