@@ -117,7 +117,8 @@ def remark_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dic
 def design_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict[str, Any]]:
     """Both criteria on the three designs, inputs only or states and inputs (delta_x = delta_u), N = 15."""
     return [_task(plan, seed, "designs", i, s, "hypergradient", horizon=15, delta_u=d,
-                  delta_x=d if poison == "xu" else 0.0, poison=poison, design=design, criterion=criterion, selection=selection)
+                  delta_x=d if poison == "xu" else 0.0, poison=poison, design=design, criterion=criterion,
+                  selection=selection)
             for design in ("lqr", "lqr-r", "stabilizing") for poison in ("u", "xu") for criterion in ("maxmin", "eigen")
             for d in plan.design_deltas for i, s in enumerate(sim_seeds(seed, plan.design_sims))]
 
