@@ -18,14 +18,16 @@ from collections.abc import Callable
 import numpy as np
 
 from bilevel.attacks.willems import AttackResult, de_attack, hypergradient_attack, kkt_attack
+from bilevel.experiments.executor import LocalExecutor
 from bilevel.experiments.sweep import run_sweep
-from bilevel.experiments.willems import WORKERS, attack_task, make_plan, paper_tasks, sim_seeds
+from bilevel.experiments.willems import attack_task, make_plan, paper_tasks, sim_seeds
 from bilevel.problems.willems import build_attack
 
 INSTANCES = 5
 DELTA_U = 0.6
 SWEEP_SIMS = 4
 PAPER_SIMS = 256
+WORKERS = 2
 
 
 def time_attacks(horizon: int, stop: bool) -> dict[str, list[AttackResult]]:
@@ -72,11 +74,11 @@ def sweep_fraction() -> None:
     """The paper-setting sweep (every N, delta_u and method) on SWEEP_SIMS sims with 2 workers, extrapolated."""
     plan = make_plan(PAPER_SIMS, quick=False)
     fraction = make_plan(SWEEP_SIMS, quick=False)
-    extra = {"de_popsize": plan.de_popsize, "de_maxiter": plan.de_maxiter, "starts": plan.starts}
-    tasks = [{**t, **extra} for t in paper_tasks(fraction, 0)]
+    tasks = paper_tasks(fraction, 0)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        run_sweep(attack_task, tasks, os.path.join(tmp, "paper.jsonl"), WORKERS, None, "bench")
+        with LocalExecutor(WORKERS) as executor:
+            run_sweep(attack_task, tasks, os.path.join(tmp, "paper.jsonl"), executor, None, "bench")
         wall = time.perf_counter() - t0
     total = len(paper_tasks(plan, 0))
     print(f"\nPaper-setting sweep: measured {len(tasks)} of its {total} attacks ({SWEEP_SIMS} of {PAPER_SIMS} sims, "

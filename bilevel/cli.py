@@ -6,7 +6,7 @@ import argparse
 import json
 import os
 import sys
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -80,31 +80,64 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     return 0 if result.success else 1
 
 
+def _invalid_numbers(args: argparse.Namespace) -> str | None:
+    """Why the numeric/executor flags of `compare`/`reproduce` are unusable (checked before any work), or None."""
+    from .experiments.executor import check_dask_address
+
+    for flag, low in (("sims", 1), ("starts", 1), ("workers", 1), ("seed", 0)):
+        value = getattr(args, flag, None)
+        if value is not None and value < low:
+            return f"--{flag} must be >= {low}, got {value}"
+    if args.dask is not None:
+        if (why := check_dask_address(args.dask)) is not None:
+            return f"--dask: {why}"
+        if args.dask != "local" and args.workers is not None:
+            return "--workers sizes the local pool or --dask local; a scheduler's cluster has its own workers"
+    return None
+
+
+def _run_sweeps(args: argparse.Namespace, work: Callable[[], object]) -> int:
+    """Validate the flags (one-line error, exit 2), then run; an interrupted sweep exits 128 + signal number."""
+    from .experiments.sweep import SweepInterrupted
+
+    if (why := _invalid_numbers(args)) is not None:
+        print(f"bilevel {args.command}: error: {why}", file=sys.stderr)
+        return 2
+    try:
+        work()
+    except SweepInterrupted as exc:
+        return 128 + exc.signum
+    return 0
+
+
 def _cmd_compare(args: argparse.Namespace) -> int:
     from .experiments.compare import compare, markdown_table
 
     problems = args.problems.split(",") if args.problems else registry.names("textbook")
     methods = args.methods.split(",") if args.methods else sorted(METHODS)
-    os.makedirs(args.out, exist_ok=True)
-    rows = compare(problems, methods, os.path.join(args.out, "compare.csv"), starts=args.starts, seed=args.seed)
-    table = markdown_table(rows)
-    with open(os.path.join(args.out, "compare.md"), "w", encoding="utf-8") as fh:
-        fh.write(table)
-    print(table)
-    print(f"wrote {args.out}/compare.csv and {args.out}/compare.md")
-    return 0
+
+    def work() -> None:
+        rows = compare(problems, methods, os.path.join(args.out, "compare.csv"), starts=args.starts, seed=args.seed,
+                       workers=args.workers, dask=args.dask)
+        table = markdown_table(rows)
+        with open(os.path.join(args.out, "compare.md"), "w", encoding="utf-8") as fh:
+            fh.write(table)
+        print(table)
+        print(f"wrote {args.out}/compare.csv and {args.out}/compare.md")
+
+    return _run_sweeps(args, work)
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
     if args.target == "vrft":
         from .experiments.vrft import run_reproduction
 
-        run_reproduction(args.sims, args.out or "out/vrft", args.seed, args.workers)
-    else:
-        from .experiments.willems import run_reproduction as run_willems
+        return _run_sweeps(args, lambda: run_reproduction(args.sims, args.out or "out/vrft", args.seed, args.workers,
+                                                          dask=args.dask))
+    from .experiments.willems import run_reproduction as run_willems
 
-        run_willems(args.sims, args.out or "out/willems", args.quick, args.seed, selection=args.selection)
-    return 0
+    return _run_sweeps(args, lambda: run_willems(args.sims, args.out or "out/willems", args.quick, args.seed,
+                                                 selection=args.selection, workers=args.workers, dask=args.dask))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -141,13 +174,18 @@ def build_parser() -> argparse.ArgumentParser:
     p_cmp.add_argument("--starts", type=int, default=8)
     p_cmp.add_argument("--seed", type=int, default=0)
     p_cmp.add_argument("--out", default="out/compare", help="output directory")
+    p_cmp.add_argument("--workers", type=int, default=None, help="local processes (default: all cores)")
+    p_cmp.add_argument("--dask", default=None, metavar="ADDRESS",
+                       help="run on a Dask cluster: tcp://HOST:PORT of its scheduler, or 'local' (docs/clusters.md)")
     p_cmp.set_defaults(run=_cmd_compare)
     p_rep = sub.add_parser("reproduce", help="reproduce the paper's tables and figures (resumable)")
     p_rep.add_argument("target", choices=["vrft", "willems"])
     p_rep.add_argument("--sims", type=int, default=32, help="simulations per cell (the paper: 512 vrft, 256 willems)")
     p_rep.add_argument("--out", default=None, help="output directory (default out/<target>)")
     p_rep.add_argument("--seed", type=int, default=0)
-    p_rep.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p_rep.add_argument("--workers", type=int, default=None, help="local processes (default: all cores)")
+    p_rep.add_argument("--dask", default=None, metavar="ADDRESS",
+                       help="run on a Dask cluster: tcp://HOST:PORT of its scheduler, or 'local' (docs/clusters.md)")
     p_rep.add_argument("--quick", action="store_true", help="willems: the small CI-sized grid (4 sims, 3 budgets)")
     p_rep.add_argument("--selection", choices=["min-norm", "tikhonov"], default="min-norm",
                        help="willems: the learner's choice among its optimal Q (tikhonov: the session-1 sweep's)")

@@ -1,7 +1,8 @@
-"""Solver-comparison harness: every method on every chosen problem, one CSV row per run, written as made.
+"""Solver-comparison harness: every method on every chosen problem, one sweep task per run.
 
-Rerunning with the same output file skips (problem, method) pairs already recorded, so an
-interrupted comparison resumes without losing finished work.
+Runs go through bilevel.experiments.sweep (rows in `<csv>.jsonl` as they finish, resumable, on the local
+pool or Dask); a rerun reuses a (problem, method) row only if starts, seed and options match too. The CSV
+is rewritten from the rows at the end.
 """
 
 from __future__ import annotations
@@ -9,13 +10,15 @@ from __future__ import annotations
 import csv
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any, Callable, Sequence
 
 from ..errors import ModelError
 from ..problems import registry
 from ..result import BilevelResult
 from ..solvers import solve
+from .executor import open_executor
+from .sweep import run_sweep, stderr_progress
 
 NOT_APPLICABLE = "not_applicable"
 """Status of a row whose method rejected the problem as outside its scope (a ModelError, e.g. 'global' on an NLP)."""
@@ -78,50 +81,35 @@ def not_applicable(name: str, method: str, starts: int, seed: int) -> CompareRow
                       nan, 0.0, 0, starts, seed)
 
 
-def _read(path: str) -> list[CompareRow]:
-    if not os.path.exists(path):
-        return []
-    with open(path, newline="", encoding="utf-8") as fh:
-        rows = []
-        for r in csv.DictReader(fh):
-            rows.append(CompareRow(r["problem"], r["method"], r["status"], float(r["objective"]),
-                                   float(r["known_optimum"]), float(r["relative_gap"]), r["certified"] == "True",
-                                   float(r["stationarity"]), float(r["complementarity"]), float(r["lower_gap"]),
-                                   float(r["upper_feasibility"]), float(r["wall_time"]), int(r["nit"]),
-                                   int(r["starts"]), int(r["seed"])))
-        return rows
+def compare_task(task: dict[str, Any]) -> dict[str, Any]:
+    """One (problem, method) run described by a sweep task; the CompareRow's fields (not_applicable when the
+    method rejects the problem as outside its scope)."""
+    try:
+        result = solve(registry.get(task["problem"]), method=task["method"], starts=task["starts"],
+                       seed=task["seed"], **task["options"])
+    except ModelError:
+        return asdict(not_applicable(task["problem"], task["method"], task["starts"], task["seed"]))
+    return asdict(row_of(task["problem"], task["method"], result, task["starts"], task["seed"]))
 
 
 def compare(problems: Sequence[str], methods: Sequence[str], csv_path: str, starts: int = 8, seed: int = 0,
             method_options: dict[str, dict[str, Any]] | None = None,
-            progress: Callable[[str], None] | None = print) -> list[CompareRow]:
-    """Run every method on every problem, appending each row to csv_path as it finishes (resumable)."""
-    done = {(r.problem, r.method): r for r in _read(csv_path)}
-    new_file = not os.path.exists(csv_path)
+            progress: Callable[[str], None] | None = stderr_progress, workers: int | None = None,
+            dask: str | None = None) -> list[CompareRow]:
+    """Run every method on every problem (resumable rows in csv_path's .jsonl), then write csv_path."""
+    tasks = [{"key": f"{name}/{method}", "problem": name, "method": method,
+              "options": dict((method_options or {}).get(method, {})), "starts": starts, "seed": seed}
+             for name in problems for method in methods]
+    with open_executor(workers, dask) as executor:
+        rows = run_sweep(compare_task, tasks, os.path.splitext(csv_path)[0] + ".jsonl", executor, progress,
+                         "compare", valid=lambda r: set(COLUMNS) <= r.keys())
+    out = [CompareRow(**{c: r[c] for c in COLUMNS}) for r in rows]
     os.makedirs(os.path.dirname(os.path.abspath(csv_path)), exist_ok=True)
-    total, k = len(problems) * len(methods), 0
-    with open(csv_path, "a", newline="", encoding="utf-8") as fh:
+    with open(csv_path, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
-        if new_file:
-            writer.writerow(COLUMNS)
-        for name in problems:
-            for method in methods:
-                k += 1
-                if (name, method) in done:
-                    continue
-                opts = dict((method_options or {}).get(method, {}))
-                try:
-                    result = solve(registry.get(name), method=method, starts=starts, seed=seed, **opts)
-                    row = row_of(name, method, result, starts, seed)
-                except ModelError:
-                    row = not_applicable(name, method, starts, seed)
-                writer.writerow([getattr(row, c) for c in COLUMNS])
-                fh.flush()
-                done[(name, method)] = row
-                if progress:
-                    progress(f"[{k}/{total}] {name} / {method}: {row.status}, F = {row.objective:.6g}, "
-                             f"gap {row.relative_gap:.1e}, {row.wall_time:.2f} s")
-    return [done[(n, m)] for n in problems for m in methods]
+        writer.writerow(COLUMNS)
+        writer.writerows([getattr(r, c) for c in COLUMNS] for r in out)
+    return out
 
 
 def markdown_table(rows: Sequence[CompareRow]) -> str:
@@ -133,7 +121,8 @@ def markdown_table(rows: Sequence[CompareRow]) -> str:
                     max(r.lower_gap, 0.0)) if r.certified or math.isfinite(r.stationarity) else math.nan
         lines.append(f"| {r.problem} | {r.method} | {r.status} | {r.objective:.6g} | {r.known_optimum:.6g} | "
                      f"{r.relative_gap:.1e} | {'yes' if r.certified else 'no'} | {resid:.1e} | {r.wall_time:.3f} |")
-    lines.append("")
+    lines += ["", "Settings read from the rows: starts " + ", ".join(map(str, sorted({r.starts for r in rows})))
+              + "; seed " + ", ".join(map(str, sorted({r.seed for r in rows}))) + ".", ""]
     for method in dict.fromkeys(r.method for r in rows):
         mine = [r for r in rows if r.method == method and r.status != NOT_APPLICABLE]
         skipped = sum(1 for r in rows if r.method == method and r.status == NOT_APPLICABLE)

@@ -1,32 +1,114 @@
-"""Parallel, resumable sweeps: each finished task is appended to a JSONL file as it completes.
+"""Resumable sweeps: each finished task is appended to a JSONL file as it completes, on any executor.
 
-A task is a JSON-serializable dict with a unique "key"; rerunning skips keys already in the file,
-so an interrupted sweep resumes without losing finished work. Progress lines show count and ETA.
+A task is a JSON-serializable dict with a unique "key"; fn(task) may depend on nothing else. A row
+stores the task and its digest (every task field plus ALGORITHM_VERSION), and a rerun reuses a row
+only when key and digest both match, so a row computed under other settings is never reused (it stays
+in the file, unused). A row that does not parse or lacks fields is reported, set aside in
+`<path>.rejected` and recomputed. SIGINT/SIGTERM stop the workers at once and keep every finished row.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import signal
+import sys
+import threading
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from typing import Any, Callable, Iterable
+from contextlib import contextmanager
+from importlib import metadata
+from typing import Any, Callable, Iterable, Iterator
 
-from ..threads import single_threaded
+from .executor import Executor, LocalExecutor
+
+try:
+    _PACKAGE = metadata.version("bilevel")
+except metadata.PackageNotFoundError:  # pragma: no cover - running from a source tree without install
+    _PACKAGE = "unknown"
+ALGORITHM_VERSION = f"bilevel-{_PACKAGE}/sweep-2"
+"""Part of every row's digest: bump the suffix when an attack changes its numbers for the same task."""
+ROW_FIELDS = ("key", "digest", "version", "task")
 
 
-def read_rows(path: str) -> list[dict[str, Any]]:
-    """All rows of a JSONL results file (a truncated last line from an interrupted run is ignored)."""
+class SweepInterrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM arrived during a sweep; finished rows are on disk."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def task_digest(task: dict[str, Any]) -> str:
+    """Hash of every field of `task` and ALGORITHM_VERSION: equal digests mean the same computation."""
+    text = json.dumps({"task": task, "version": ALGORITHM_VERSION}, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def stderr_progress(text: str) -> None:
+    """Progress sink: stderr; on a terminal, a sweep's updates ("\\r"-prefixed) rewrite one line."""
+    tty = sys.stderr.isatty()
+    if text.startswith("\r"):
+        sys.stderr.write(("\r\x1b[K" + text[1:]) if tty else text[1:] + "\n")
+    else:
+        sys.stderr.write(("\n" if tty else "") + text + "\n")
+    sys.stderr.flush()
+
+
+def _malformed(line: str, valid: Callable[[dict[str, Any]], bool] | None) -> tuple[dict[str, Any] | None, str]:
+    """(row, "") for a usable row, else (None, why not)."""
+    if not line.endswith("\n"):
+        return None, "truncated line"
+    try:
+        row = json.loads(line)
+    except json.JSONDecodeError as exc:
+        return None, f"not JSON ({exc.msg})"
+    if not isinstance(row, dict):
+        return None, "not a JSON object"
+    missing = [f for f in ROW_FIELDS if f not in row]
+    if missing:
+        return None, f"lacks {', '.join(missing)}"
+    if valid is not None and not valid(row):
+        return None, "lacks result fields"
+    return row, ""
+
+
+def load_rows(path: str, valid: Callable[[dict[str, Any]], bool] | None = None,
+              report: Callable[[str], None] | None = None) -> list[dict[str, Any]]:
+    """The usable rows of a JSONL results file; malformed lines are moved to `<path>.rejected` and reported."""
     if not os.path.exists(path):
         return []
-    rows = []
     with open(path, encoding="utf-8") as fh:
-        for line in fh:
-            try:
-                rows.append(json.loads(line))
-            except json.JSONDecodeError:
-                continue
+        lines = [line for line in fh if line.strip()]
+    rows, good, bad = [], [], []
+    for i, line in enumerate(lines, 1):
+        row, why = _malformed(line, valid)
+        if row is None:
+            bad.append((i, why, line if line.endswith("\n") else line + "\n"))
+        else:
+            rows.append(row)
+            good.append(line)
+    if bad:
+        with open(path + ".rejected", "a", encoding="utf-8") as fh:
+            fh.writelines(line for _, _, line in bad)
+        tmp = path + ".tmp"
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.writelines(good)
+        os.replace(tmp, path)
+        if report:
+            report(f"{path}: set aside {len(bad)} malformed row(s) in {path}.rejected, to be recomputed: "
+                   + "; ".join(f"line {i}: {why}" for i, why, _ in bad[:5]) + (" ..." if len(bad) > 5 else ""))
     return rows
+
+
+def settings_of(rows: Iterable[dict[str, Any]], *fields: str) -> dict[str, list[Any]]:
+    """Field -> sorted distinct values among the rows' tasks (what a report states, read from the rows)."""
+    out: dict[str, set] = {f: set() for f in fields}
+    for r in rows:
+        for f in fields:
+            if f in r["task"]:
+                out[f].add(json.dumps(r["task"][f], sort_keys=True))
+    return {f: sorted((json.loads(v) for v in vs), key=str) for f, vs in out.items()}
 
 
 def load_timings(path: str) -> dict[str, tuple[int, float]]:
@@ -44,49 +126,78 @@ def record_timing(path: str, timings: dict[str, tuple[int, float]], name: str, c
         json.dump(timings, fh, indent=1)
 
 
-def _run(fn: Callable[[dict[str, Any]], dict[str, Any]], task: dict[str, Any]) -> dict[str, Any]:
-    with single_threaded():
-        return {"key": task["key"], **fn(task)}
+@contextmanager
+def _signals_raise() -> Iterator[None]:
+    """While inside: SIGINT and SIGTERM raise SweepInterrupted in the main thread (no-op in other threads)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, _frame: Any) -> None:
+        raise SweepInterrupted(signum)
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[dict[str, Any]], path: str,
-              workers: int | None = None, progress: Callable[[str], None] | None = print,
-              label: str = "sweep",
-              timed: Callable[[list[dict[str, Any]], float], None] | None = None) -> list[dict[str, Any]]:
-    """Run fn on every task not yet in `path` (on `workers` processes), appending rows as they finish;
-    if any ran, timed(tasks run, wall seconds) is called after the last one (e.g. to record_timing)."""
+              executor: Executor | None = None, progress: Callable[[str], None] | None = stderr_progress,
+              label: str = "sweep", timed: Callable[[list[dict[str, Any]], float], None] | None = None,
+              valid: Callable[[dict[str, Any]], bool] | None = None) -> list[dict[str, Any]]:
+    """Run fn on every task without a matching row in `path` (on `executor`, default all local cores), appending
+    rows as they finish; rows come back in task order. timed(tasks run, wall seconds) follows the last one."""
     tasks = list(tasks)
     keys = [t["key"] for t in tasks]
     if len(set(keys)) != len(keys):
         raise ValueError(f"{label}: task keys must be unique")
-    done = {r["key"]: r for r in read_rows(path)}
+    digests = {t["key"]: task_digest(t) for t in tasks}
+    rows = load_rows(path, valid, progress)
+    done = {}
+    for r in rows:
+        if digests.get(r["key"]) == r["digest"]:
+            done.setdefault(r["key"], r)
     todo = [t for t in tasks if t["key"] not in done]
+    stale = sum(r["key"] in digests and r["digest"] != digests[r["key"]] for r in rows)
+    if not todo:
+        return [done[k] for k in keys]
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    if todo and progress:
-        progress(f"[{label}] {len(done)} of {len(tasks)} already done; running {len(todo)} on "
-                 f"{workers or os.cpu_count()} workers -> {path}")
+    own = executor is None
+    executor = executor or LocalExecutor()
+    if progress:
+        progress(f"[{label}] {len(done)} of {len(tasks)} already done"
+                 + (f" ({stale} row(s) of other settings not reused)" if stale else "")
+                 + f"; running {len(todo)} on {executor.description} -> {path}")
     t0, finished = time.perf_counter(), 0
     report_every = max(1, len(todo) // 20)
-    with open(path, "a", encoding="utf-8") as fh:
-        if workers == 1:
-            results = (_run(fn, t) for t in todo)
-            pool = None
-        else:
-            pool = ProcessPoolExecutor(max_workers=workers or os.cpu_count())
-            results = (f.result() for f in as_completed([pool.submit(_run, fn, t) for t in todo]))
-        try:
-            for row in results:
+    try:
+        with _signals_raise(), open(path, "a", encoding="utf-8") as fh:
+            for task, result in executor.imap_unordered(fn, todo):
+                row = {**result, "key": task["key"], "digest": digests[task["key"]], "version": ALGORITHM_VERSION,
+                       "task": {k: v for k, v in task.items() if k != "key"}}
                 fh.write(json.dumps(row) + "\n")
                 fh.flush()
-                done[row["key"]] = row
+                done[task["key"]] = row
                 finished += 1
                 if progress and (finished % report_every == 0 or finished == len(todo)):
-                    rate = (time.perf_counter() - t0) / finished
-                    progress(f"[{label}] {finished}/{len(todo)} done, {rate * 1000:.0f} ms/task, "
-                             f"ETA {rate * (len(todo) - finished):.0f} s")
-        finally:
-            if pool is not None:
-                pool.shutdown(cancel_futures=True)
-    if todo and timed is not None:
+                    elapsed = time.perf_counter() - t0
+                    rate = finished / elapsed
+                    progress(f"\r[{label}] {len(done)}/{len(tasks)} done, {rate:.2f} tasks/s, "
+                             f"ETA {(len(todo) - finished) / rate:.0f} s")
+    except SweepInterrupted as exc:
+        executor.abort()
+        if progress:
+            progress(f"[{label}] {exc}: workers stopped; {len(done)} of {len(tasks)} rows kept in {path}; "
+                     "rerun the same command to resume")
+        raise
+    except BaseException:
+        executor.abort()
+        raise
+    if own:
+        executor.close()
+    if timed is not None:
         timed(todo, time.perf_counter() - t0)
     return [done[k] for k in keys]

@@ -14,7 +14,8 @@ import numpy as np
 from ..attacks.vrft import CONVENTIONS, VRFTAttack, attack_instance
 from ..attacks.vrft_methods import ATTACKS, attack_budget_path
 from .stats import mean_interval, wilson_interval
-from .sweep import load_timings, record_timing, run_sweep
+from .executor import open_executor
+from .sweep import load_timings, record_timing, run_sweep, settings_of, stderr_progress
 
 EPS_U = (0.0, 0.1, 0.2)
 EPS_Y = (0.01, 0.023, 0.037, 0.05, 0.057)
@@ -25,6 +26,8 @@ PAPER_TABLE1 = {
     ("B", 0.2): (0.0, 1.75, 54.7, 84.2, 88.9),
 }
 """The paper's Table 1: % unstable closed loops out of 512 simulations (rows eps_u, columns eps_y)."""
+N_SAMPLES, NORM = 512, "l2"
+ROW_FIELDS = {"value", "unstable", "learner_loss", "wall_time", "theta_poisoned"}
 
 def sim_seeds(seed: int, sims: int) -> list[int]:
     """One integer seed per simulation, from SeedSequence(seed).spawn(sims)."""
@@ -34,7 +37,7 @@ def sim_seeds(seed: int, sims: int) -> list[int]:
 def make_attack(task: dict[str, Any]) -> VRFTAttack:
     """The VRFTAttack instance described by a task dict."""
     return attack_instance(task["objective"], task["scenario"], task["eps_u"], task["eps_y"], task["seed"],
-                           task.get("N", 512), task["convention"], task.get("norm", "l2"))
+                           task.get("N", N_SAMPLES), task["convention"], task.get("norm", NORM))
 
 
 def attack_task(task: dict[str, Any]) -> dict[str, Any]:
@@ -59,8 +62,16 @@ def cell_tasks(sims: int, seed: int, convention: str, objective: str, method: st
                 for label, ey in cells:
                     tasks.append({"key": f"{convention}/{objective}/{method}/{scenario}/{eu}/{label}/{i}",
                                   "convention": convention, "objective": objective, "method": method,
-                                  "scenario": scenario, "eps_u": eu, "eps_y": ey, "sim": i, "seed": s})
+                                  "scenario": scenario, "eps_u": eu, "eps_y": ey, "sim": i, "seed": s,
+                                  "root_seed": seed, "N": N_SAMPLES, "norm": NORM})
     return tasks
+
+
+def valid_row(row: dict[str, Any]) -> bool:
+    """A row has every field the summaries read (each cell of a budget-path row too)."""
+    cells = row.get("cells", [row])
+    return isinstance(cells, list) and all(isinstance(c, dict) and ROW_FIELDS <= c.keys() for c in cells) and (
+        "cells" not in row or all("eps_y" in c for c in cells))
 
 
 def cell_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -134,11 +145,16 @@ def write_csv(summary: dict, path: str) -> None:
 
 
 def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, workers: int | None = None,
-                     side_sims: int | None = None, progress: Callable[[str], None] | None = print) -> str:
+                     side_sims: int | None = None, progress: Callable[[str], None] | None = stderr_progress,
+                     dask: str | None = None) -> str:
     """Table 1 (paper convention) with `sims` per cell, the other conventions, the destabilizing and
-    targeted attacks and the white-noise baseline with `side_sims`, figures 2-6 and report.md."""
+    targeted attacks and the white-noise baseline with `side_sims`, figures 2-6 and report.md; tasks run on
+    `workers` local processes or on the Dask cluster `dask` (bilevel.experiments.executor.open_executor)."""
     from . import vrft_figures
 
+    if sims < 1 or (side_sims is not None and side_sims < 1) or seed < 0:
+        raise ValueError(f"vrft reproduction: sims and side_sims must be >= 1 and seed >= 0, got sims={sims}, "
+                         f"side_sims={side_sims}, seed={seed}")
     side = side_sims or max(8, sims // 4)
     os.makedirs(out_dir, exist_ok=True)
     runs: dict[str, list[dict[str, Any]]] = {}
@@ -150,20 +166,23 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
              ("targeted-paper", side, "paper", "targeted", "alternating")]
     timings_path = os.path.join(out_dir, "timings.json")
     timings = load_timings(timings_path)
-    for name, n, convention, objective, method in plan:
-        tasks = cell_tasks(n, seed, convention, objective, method)
-        runs[name] = run_sweep(
-            attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), workers, progress, name,
-            lambda ran, seconds: record_timing(timings_path, timings, name,
-                                               sum(len(t["eps_y"]) if t["method"] == "path" else 1 for t in ran),
-                                               seconds))
+    with open_executor(workers, dask) as executor:
+        for name, n, convention, objective, method in plan:
+            tasks = cell_tasks(n, seed, convention, objective, method)
+            runs[name] = run_sweep(
+                attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress, name,
+                lambda ran, seconds: record_timing(timings_path, timings, name,
+                                                   sum(len(t["eps_y"]) if t["method"] == "path" else 1 for t in ran),
+                                                   seconds), valid_row)
     summaries = {name: summarize(rows) for name, rows in runs.items()}
     for name, s in summaries.items():
         write_csv(s, os.path.join(out_dir, f"table_{name}.csv"))
     figures = vrft_figures.make_all(summaries, out_dir, seed)
     path = os.path.join(out_dir, "report.md")
     with open(path, "w", encoding="utf-8") as fh:
-        fh.write(vrft_figures.report(summaries, figures, sims, side, timings, workers or os.cpu_count() or 1))
+        fh.write(vrft_figures.report(summaries, figures, sims, side, timings, executor.description,
+                                     settings_of([r for rs in runs.values() for r in rs], "root_seed", "N", "norm")
+                                     | {"version": sorted({r["version"] for rs in runs.values() for r in rs})}))
     if progress:
         progress(f"wrote {path}")
     return path

@@ -171,8 +171,9 @@ def path_section(single: dict, path: dict) -> str:
 
 
 def report(summaries: dict, figures: dict[str, str], sims: int, side: int,
-           timings: dict[str, tuple[int, float]], workers: int) -> str:
-    """report.md: settings, Table 1 next to the paper's, the other conventions, the other attacks, figures."""
+           timings: dict[str, tuple[int, float]], executor: str, settings: dict[str, list]) -> str:
+    """report.md: settings (`settings`: field -> values read from the rows), Table 1 next to the paper's, the
+    other conventions, the other attacks, figures."""
     main = summaries["maxmin-paper"]
     times = [c["time_ms"] for c in main.values()]
     parts = [
@@ -197,7 +198,9 @@ def report(summaries: dict, figures: dict[str, str], sims: int, side: int,
         "scenario-A simulation is the same instance, so its cells are 0% or 100% (the paper does not say "
         "what varies between its 512 scenario-A simulations).",
         "",
-        f"Median time per max-min attack: {np.median(times):.1f} ms (one core per worker, {workers} workers).", "",
+        "Settings read from the result rows: " + "; ".join(f"{k.removeprefix('root_')} {', '.join(map(str, v))}"
+                                                          for k, v in settings.items()) + ".", "",
+        f"Median time per max-min attack: {np.median(times):.1f} ms (one core per worker, {executor}).", "",
         "Wall time of the attacks (when each sweep's rows were computed; `timings.json`; a resumed sweep "
         "records only the rows it added): "
         + ("; ".join(f"{k}: {n} attacks in {t:.0f} s" for k, (n, t) in timings.items()) or "none recorded")

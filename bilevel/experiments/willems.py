@@ -6,7 +6,7 @@ attack and the differential-evolution baseline run on the same instances (sim i 
 for every delta and method). Side experiments: the paper's output-poisoning remark (delta_y = 1e-3
 on the states, x_0 clean) and the other designs (lqr-r, stabilizing; u and xu poisoning; max-min
 criterion). Every attack is one sweep task (bilevel.experiments.sweep: one JSON line per finished
-attack, resumable, 2 worker processes); seeds come from SeedSequence(seed).spawn(sims).
+attack, resumable, on the local pool or a Dask cluster); seeds come from SeedSequence(seed).spawn(sims).
 """
 
 from __future__ import annotations
@@ -33,10 +33,10 @@ from ..ddc.plants import batch_reactor  # noqa: E402
 from ..errors import BilevelError  # noqa: E402
 from ..problems.willems import DEFAULT_REG, WillemsSetting, build_attack  # noqa: E402
 from .stats import mean_interval, wilson_interval  # noqa: E402
-from .sweep import load_timings, record_timing, run_sweep  # noqa: E402
+from .executor import open_executor  # noqa: E402
+from .sweep import load_timings, record_timing, run_sweep, settings_of, stderr_progress  # noqa: E402
 from .willems_selection import selection_table  # noqa: E402
 
-WORKERS = 2
 DELTA_Y = 1e-3
 METHODS = {"hypergradient": "hypergradient (ours)", "de": "differential evolution", "random": "random signs"}
 PAPER_CLAIMS = (
@@ -80,15 +80,27 @@ def sim_seeds(seed: int, sims: int) -> list[tuple[int, int]]:
     return [tuple(int(v) for v in s.generate_state(2)) for s in np.random.SeedSequence(seed).spawn(sims)]
 
 
-def _task(experiment: str, i: int, seeds: tuple[int, int], method: str, **setting: Any) -> dict[str, Any]:
+ROW_FIELDS = {"horizon", "method", "delta_u", "criterion", "design", "poison", "seed", "unstable", "wall_time",
+              "reference_radius", "spectral_radius", "eig_abs_sum", "objective"}
+
+
+def valid_row(row: dict[str, Any]) -> bool:
+    """A row has every field the summaries and figures read (an error row: its settings and the error)."""
+    need = {"horizon", "method", "delta_u", "criterion", "design", "poison", "error"} if "error" in row else ROW_FIELDS
+    return need <= row.keys() and (row.get("experiment") != "paper" or "error" in row or "du" in row)
+
+
+def _task(plan: Plan, root_seed: int, experiment: str, i: int, seeds: tuple[int, int], method: str,
+          **setting: Any) -> dict[str, Any]:
     fields = "|".join(f"{k}={setting[k]}" for k in sorted(setting))
     return {"key": f"{experiment}|{method}|{fields}|sim={i}", "experiment": experiment, "method": method,
-            "sim": i, "seed": seeds[0], "attack_seed": seeds[1], **setting}
+            "sim": i, "seed": seeds[0], "attack_seed": seeds[1], **setting, "root_seed": root_seed,
+            "reg": DEFAULT_REG, "starts": plan.starts, "de_popsize": plan.de_popsize, "de_maxiter": plan.de_maxiter}
 
 
 def paper_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict[str, Any]]:
     """Input poisoning of the appendix SDP, eigenvalue criterion: every (N, delta_u, sim) for both methods."""
-    return [_task("paper", i, s, method, horizon=n, delta_u=d, delta_x=0.0, poison="u", design="lqr",
+    return [_task(plan, seed, "paper", i, s, method, horizon=n, delta_u=d, delta_x=0.0, poison="u", design="lqr",
                   criterion="eigen", selection=selection)
             for n in plan.horizons for d in plan.deltas for i, s in enumerate(sim_seeds(seed, plan.sims))
             for method in ("hypergradient", "de")]
@@ -96,7 +108,7 @@ def paper_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict
 
 def remark_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict[str, Any]]:
     """The output-poisoning remark: states poisoned with delta_y = 1e-3 (x_0 clean), inputs clean."""
-    return [_task("remark", i, s, method, horizon=n, delta_u=0.0, delta_x=DELTA_Y, poison="x", design="lqr",
+    return [_task(plan, seed, "remark", i, s, method, horizon=n, delta_u=0.0, delta_x=DELTA_Y, poison="x", design="lqr",
                   criterion=criterion, selection=selection)
             for n in plan.remark_horizons for i, s in enumerate(sim_seeds(seed, plan.remark_sims))
             for method, criterion in (("hypergradient", "eigen"), ("hypergradient", "maxmin"), ("random", "eigen"))]
@@ -104,8 +116,9 @@ def remark_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dic
 
 def design_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict[str, Any]]:
     """Both criteria on the three designs, inputs only or states and inputs (delta_x = delta_u), N = 15."""
-    return [_task("designs", i, s, "hypergradient", horizon=15, delta_u=d, delta_x=d if poison == "xu" else 0.0,
-                  poison=poison, design=design, criterion=criterion, selection=selection)
+    return [_task(plan, seed, "designs", i, s, "hypergradient", horizon=15, delta_u=d,
+                  delta_x=d if poison == "xu" else 0.0, poison=poison, design=design, criterion=criterion,
+                  selection=selection)
             for design in ("lqr", "lqr-r", "stabilizing") for poison in ("u", "xu") for criterion in ("maxmin", "eigen")
             for d in plan.design_deltas for i, s in enumerate(sim_seeds(seed, plan.design_sims))]
 
@@ -128,7 +141,7 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
     fields = {k: v for k, v in task.items() if k != "key"}
     setting = WillemsSetting(objective=task["criterion"], horizon=task["horizon"], seed=task["seed"],
                              delta_u=task["delta_u"], delta_x=task["delta_x"], poison=task["poison"],
-                             design=task["design"], selection=task["selection"])
+                             design=task["design"], selection=task["selection"], reg=task["reg"])
     try:
         attack = build_attack(setting)
         if task["method"] == "hypergradient":
@@ -358,10 +371,12 @@ def _timing(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict], figures: dict[str, str],
-                 signals: dict[int, tuple[float, int]], wall: dict[str, tuple[int, float]], selection_md: str,
-                 learner: str) -> str:
-    """report.md: settings, tables, figures, timing and the paper's claims next to ours."""
+def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries: dict[str, dict],
+                 figures: dict[str, str], signals: dict[int, tuple[float, int]], wall: dict[str, tuple[int, float]],
+                 selection_md: str, executor: str) -> str:
+    """report.md: settings (field -> values read from the rows), tables, figures, timing and the paper's claims
+    next to ours."""
+    seed, learner, reg = (", ".join(map(str, settings[k])) for k in ("root_seed", "selection", "reg"))
     paper = summaries["paper"]
     hz = plan.horizons
     first = {(n, m, lv): _first(paper, n, m, plan.deltas, lv) for n in hz for m in ("hypergradient", "de")
@@ -388,12 +403,13 @@ def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict]
     lines = [
         "# Poisoning the De Persis–Tesi learners (paper appendix B): reproduction", "",
         f"Generated by `bilevel.experiments.willems.run_reproduction` on {time.strftime('%Y-%m-%d %H:%M:%S %Z')} "
-        f"({platform.node()}, {os.cpu_count()} CPUs, {WORKERS} worker processes). Seed {seed}.", "",
+        f"({platform.node()}, {os.cpu_count()} CPUs, {executor}). Settings read from the result rows: seed {seed}, "
+        f"selection {learner}, reg {reg}, algorithm version {', '.join(settings['version'])}.", "",
         "## Settings", "",
         "- Plant: batch reactor (Walsh & Ye 2001), Ts = 0.1, n = 4, m = 2; data: u ~ N(0, 1) white, x_0 = 0, "
         "noise free. The attacker uses [B A] = X1 [U0; X0]^+ from the clean data (equal to the plant here).",
         f"- Learner (paper setting): the appendix SDP min tr(Qx X0 Q) s.t. [[X0 Q - I, X1 Q], [Q' X1', X0 Q]] >= 0, "
-        f"Qx = I, plus reg/2 ||Q||_F^2 with reg = {DEFAULT_REG:g}; selection `{learner}` of the non-unique Q"
+        f"Qx = I, plus reg/2 ||Q||_F^2 with reg = {reg}; selection `{learner}` of the non-unique Q"
         + (" (Q projected onto the row space of [X0; X1] after solving: the minimum-norm Q, reproducible to "
            "solver accuracy)" if learner == "min-norm" else " (the solver's Q under reg alone)")
         + "; see docs/willems.md. K = U0 Q (X0 Q)^-1.",
@@ -429,7 +445,7 @@ def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict]
         "that needs a selection that puts a growing null-space component into Q. The paper does not name its "
         "SDP solver.", "",
         "## Timing", "", _timing(paper, plan),
-        "Wall-clock (2 workers; timings.json keeps each sweep's time across resumed runs): "
+        f"Wall-clock ({executor}; timings.json keeps each sweep's time across resumed runs): "
         + ", ".join(f"{k} {n} attacks in {v:.0f} s" for k, (n, v) in wall.items()) + ".", "",
         "## The paper's claims next to ours", "",
         "| claim | paper | ours |", "|---|---|---|",
@@ -451,25 +467,30 @@ def write_report(out_dir: str, plan: Plan, seed: int, summaries: dict[str, dict]
 
 
 def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool = False, seed: int = 0,
-                     progress: Callable[[str], None] | None = print, selection: str = "min-norm") -> str:
-    """Run (or resume) every sweep, then write tables (CSV + Markdown), figures 7-9 and report.md; returns its path.
+                     progress: Callable[[str], None] | None = stderr_progress, selection: str = "min-norm",
+                     workers: int | None = None, dask: str | None = None) -> str:
+    """Run (or resume) every sweep on `workers` local processes or the Dask cluster `dask`, then write tables
+    (CSV + Markdown), figures 7-9 and report.md; returns its path.
 
     `selection` is the learner's choice among its optimal Q (bilevel.problems.willems): "min-norm" (default) or
     "tikhonov" (the solver's Q under reg alone, as in the sweep committed in session 1)."""
     plan = make_plan(sims, quick)
+    if seed < 0:
+        raise ValueError(f"seed must be >= 0, got {seed}")
     os.makedirs(out_dir, exist_ok=True)
-    extra = {"de_popsize": plan.de_popsize, "de_maxiter": plan.de_maxiter, "starts": plan.starts}
     sweeps = {"paper": (paper_tasks(plan, seed, selection), ("horizon", "method", "delta_u")),
               "remark": (remark_tasks(plan, seed, selection), ("horizon", "method", "criterion")),
               "designs": (design_tasks(plan, seed, selection), ("design", "poison", "criterion", "delta_u"))}
     timings_path = os.path.join(out_dir, "timings.json")
     rows, summaries, wall = {}, {}, load_timings(timings_path)
-    for name, (tasks, fields) in sweeps.items():
-        rows[name] = run_sweep(attack_task, [{**t, **extra} for t in tasks], os.path.join(out_dir, f"{name}.jsonl"),
-                               WORKERS, progress, f"willems-{name}",
-                               lambda ran, seconds: record_timing(timings_path, wall, name, len(ran), seconds))
-        summaries[name] = summarize(rows[name], fields)
-        write_csv(summaries[name], fields, os.path.join(out_dir, f"table_{name}.csv"))
+    with open_executor(workers, dask) as executor:
+        for name, (tasks, fields) in sweeps.items():
+            rows[name] = run_sweep(attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress,
+                                   f"willems-{name}",
+                                   lambda ran, seconds: record_timing(timings_path, wall, name, len(ran), seconds),
+                                   valid_row)
+            summaries[name] = summarize(rows[name], fields)
+            write_csv(summaries[name], fields, os.path.join(out_dir, f"table_{name}.csv"))
     tables = {"paper": paper_table, "remark": remark_table, "designs": design_table}
     for name, fn in tables.items():
         with open(os.path.join(out_dir, f"table_{name}.md"), "w", encoding="utf-8") as fh:
@@ -482,7 +503,10 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
     selection_md = selection_table(plan.horizons, [s for s, _ in sim_seeds(seed, min(plan.sims, 64))], out_dir)
     with open(os.path.join(out_dir, "table_selection.md"), "w", encoding="utf-8") as fh:
         fh.write(selection_md)
-    path = write_report(out_dir, plan, seed, summaries, figures, signals, wall, selection_md, selection)
+    every = [r for rs in rows.values() for r in rs]
+    settings = settings_of(every, "root_seed", "selection", "reg") | {"version": sorted({r["version"] for r in every})}
+    path = write_report(out_dir, plan, settings, summaries, figures, signals, wall, selection_md,
+                        executor.description)
     if progress:
         progress(f"wrote {path}")
     return path

@@ -171,6 +171,7 @@ def test_quick_reproduction_end_to_end_and_resumes(tmp_path) -> None:
     report = run_reproduction(sims=1, out_dir=str(tmp_path), side_sims=1, workers=2, progress=None)
     text = open(report, encoding="utf-8").read()
     assert "(paper 88.9%)" in text and "Destabilizing attack" in text and "budget path" in text
+    assert "Settings read from the result rows: seed 0; N 512; norm l2; version bilevel-" in text
     for name in ("fig2_data", "fig3a_loss", "fig3b_step", "fig4_targeted_step", "fig5_targeted_bode",
                  "fig6_targeted_losses"):
         assert (tmp_path / f"{name}.png").stat().st_size > 1000 and (tmp_path / f"{name}.pdf").exists()

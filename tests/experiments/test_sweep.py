@@ -1,0 +1,161 @@
+"""Sweeps never mix settings, never lose rows, repair malformed rows, stop on SIGINT/SIGTERM, and the CLI
+rejects bad numbers before any work."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import time
+
+import psutil
+import pytest
+
+from bilevel.cli import main
+from bilevel.experiments import vrft, willems
+from bilevel.experiments.executor import LocalExecutor
+from bilevel.experiments.sweep import run_sweep
+
+from .tables import BILEVEL, row_count, tables, wait_for_rows
+
+WILLEMS = ["reproduce", "willems", "--quick", "--sims", "1", "--workers", "2"]
+
+
+def _strip_times(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in r.items() if k != "wall_time"} for r in rows]
+
+
+@pytest.fixture(scope="module")
+def willems_seed0(tmp_path_factory) -> str:
+    """An uninterrupted quick Willems reproduction (1 sim, seed 0, 2 workers): the reference tables."""
+    out = str(tmp_path_factory.mktemp("willems") / "seed0")
+    willems.run_reproduction(sims=1, out_dir=out, quick=True, seed=0, progress=None, workers=2)
+    return out
+
+
+@pytest.mark.parametrize("signum,executor", [(signal.SIGINT, []), (signal.SIGTERM, []),
+                                             (signal.SIGINT, ["--dask", "local"])])
+def test_signal_to_main_process_only_stops_within_5s_and_resume_matches(tmp_path, willems_seed0, signum,
+                                                                        executor) -> None:
+    """The signal goes to the main process alone (as `timeout -s INT` sends it): workers (local pool or Dask
+    LocalCluster) are stopped, the process exits within 5 s with 128 + signum, finished rows are kept, and the
+    resumed run's tables equal an uninterrupted run's."""
+    out = str(tmp_path / "run")
+    paper = os.path.join(out, "paper.jsonl")
+    proc = subprocess.Popen(BILEVEL + WILLEMS + executor + ["--out", out], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        wait_for_rows(proc, paper, 2)
+        children = psutil.Process(proc.pid).children(recursive=True)
+        t0 = time.monotonic()
+        os.kill(proc.pid, signum)
+        proc.wait(timeout=5)
+        assert time.monotonic() - t0 < 5
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    stderr = proc.stderr.read()
+    assert proc.returncode == 128 + signum, stderr
+    assert "workers stopped" in stderr and "Traceback" not in stderr
+    psutil.wait_procs(children, timeout=2)
+    assert not [c for c in children if c.is_running() and c.status() != psutil.STATUS_ZOMBIE]
+    kept = row_count(paper)
+    assert 2 <= kept < len(willems.paper_tasks(willems.make_plan(1, True), 0))
+    if signum == signal.SIGTERM or executor:
+        return  # the resume below is the same code path whichever signal or executor stopped the run
+    assert main(WILLEMS + ["--out", out]) == 0
+    with open(paper, encoding="utf-8") as fh:
+        keys = [json.loads(line)["key"] for line in fh]
+    assert len(keys) == len(set(keys)) == len(willems.paper_tasks(willems.make_plan(1, True), 0))
+    assert tables(out) == tables(willems_seed0)
+
+
+def test_willems_other_seed_recomputes_and_report_states_the_rows_seed(tmp_path, willems_seed0) -> None:
+    """`reproduce willems --seed 5` on a seed-0 directory computes every row anew; the report's seed comes
+    from the rows, and the tables differ from seed 0's."""
+    out = str(tmp_path / "w")
+    shutil.copytree(willems_seed0, out)
+    before = row_count(os.path.join(out, "paper.jsonl"))
+    assert main(WILLEMS + ["--out", out, "--seed", "5"]) == 0
+    assert row_count(os.path.join(out, "paper.jsonl")) == 2 * before  # seed-0 rows kept, none reused
+    report = open(os.path.join(out, "report.md"), encoding="utf-8").read()
+    assert "Settings read from the result rows: seed 5," in report
+    assert "seed 0" not in report
+    assert tables(out)["table_paper.csv"] != tables(willems_seed0)["table_paper.csv"]
+
+
+def test_vrft_other_seed_or_budget_never_reuses_rows(tmp_path) -> None:
+    """A VRFT sweep resumed with another seed (or another budget norm / N) recomputes every task; going back
+    to the first settings reuses its rows, which are the same numbers as before."""
+    path = str(tmp_path / "white-noise.jsonl")
+    lines: list[str] = []
+    tasks = {s: vrft.cell_tasks(1, s, "paper", "maxmin", "white-noise", eps_u=(0.1,), eps_y=(0.05,))
+             for s in (0, 1)}
+    first = run_sweep(vrft.attack_task, tasks[0], path, LocalExecutor(1), lines.append, "t")
+    lines.clear()
+    second = run_sweep(vrft.attack_task, tasks[1], path, LocalExecutor(1), lines.append, "t")
+    assert any("0 of 2 already done (2 row(s) of other settings not reused); running 2" in ln for ln in lines)
+    assert [r["task"]["seed"] for r in second] == [t["seed"] for t in tasks[1]] != [t["seed"] for t in tasks[0]]
+    assert [r["value"] for r in second] != [r["value"] for r in first]
+    lines.clear()
+    other_n = [{**t, "N": 256} for t in tasks[0]]
+    assert [r["task"]["N"] for r in run_sweep(vrft.attack_task, other_n, path, LocalExecutor(1), lines.append,
+                                              "t")] == [256, 256]
+    assert any("running 2" in ln for ln in lines)
+    lines.clear()
+    assert run_sweep(vrft.attack_task, tasks[0], path, LocalExecutor(1), lines.append, "t") == first
+    assert not lines and row_count(path) == 6
+
+
+def test_compare_more_starts_never_reuses_a_one_start_row(tmp_path) -> None:
+    """`compare --starts 8` after `--starts 1` recomputes; the CSV and the Markdown state 8 starts."""
+    out = str(tmp_path / "cmp")
+    args = ["compare", "--problems", "bard1998-ex5.1.1", "--methods", "ipopt", "--workers", "1", "--out", out]
+    assert main(args + ["--starts", "1"]) == 0
+    assert main(args + ["--starts", "8"]) == 0
+    assert row_count(os.path.join(out, "compare.jsonl")) == 2
+    with open(os.path.join(out, "compare.csv"), encoding="utf-8") as fh:
+        header, row = [line.strip().split(",") for line in fh]
+    assert row[header.index("starts")] == "8"
+    assert float(row[header.index("objective")]) == pytest.approx(-12.0, abs=1e-6)  # one start stops at -7
+    assert "Settings read from the rows: starts 8; seed 0." in open(os.path.join(out, "compare.md")).read()
+
+
+def test_malformed_rows_are_reported_set_aside_and_recomputed(tmp_path) -> None:
+    """A line that does not parse, a row lacking a result field, one lacking its digest and a truncated last
+    line: each is reported, moved to <path>.rejected and recomputed to the same numbers."""
+    path = str(tmp_path / "s.jsonl")
+    tasks = vrft.cell_tasks(1, 0, "paper", "maxmin", "white-noise", eps_u=(0.1,), eps_y=(0.01, 0.05))
+    first = run_sweep(vrft.attack_task, tasks, path, LocalExecutor(1), None, "t", valid=vrft.valid_row)
+    with open(path, encoding="utf-8") as fh:
+        lines = fh.readlines()
+    rows = [json.loads(line) for line in lines]
+    del rows[1]["value"], rows[2]["digest"]
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write('{"key": "paper/maxmin/white-noise/A/0.1/0.01/0", "val\n')
+        fh.writelines(json.dumps(r) + "\n" for r in rows[1:3])
+        fh.write(lines[3][:40])
+    report: list[str] = []
+    again = run_sweep(vrft.attack_task, tasks, path, LocalExecutor(1), report.append, "t", valid=vrft.valid_row)
+    assert _strip_times(again) == _strip_times(first)
+    assert any("set aside 4 malformed row(s)" in ln and "line 1: not JSON" in ln and "line 2: lacks result fields"
+               in ln and "line 3: lacks digest" in ln and "line 4: truncated line" in ln for ln in report)
+    assert row_count(path + ".rejected") == 4 and row_count(path) == 4
+    report.clear()
+    run_sweep(vrft.attack_task, tasks, path, LocalExecutor(1), report.append, "t", valid=vrft.valid_row)
+    assert not report
+
+
+@pytest.mark.parametrize("argv", [["reproduce", "vrft", "--sims", "0"], ["reproduce", "vrft", "--sims", "-3"],
+                                  ["reproduce", "willems", "--workers", "0"], ["reproduce", "vrft", "--seed", "-1"],
+                                  ["compare", "--starts", "0"], ["reproduce", "vrft", "--dask", "nowhere"],
+                                  ["reproduce", "vrft", "--dask", "tcp://127.0.0.1:1", "--workers", "2"]])
+def test_bad_numbers_are_one_line_errors_before_any_work(tmp_path, capsys, argv) -> None:
+    """Exit 2 with one line on stderr, nothing written."""
+    out = tmp_path / "out"
+    assert main(argv + ["--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"bilevel {argv[0]}: error: ")
+    assert not out.exists()
