@@ -15,6 +15,7 @@ import casadi as ca
 import numpy as np
 
 from .errors import ModelError, UnsupportedPair
+from .symmetric import lower_triangular
 
 Row = tuple[ca.SX, float, float]
 
@@ -38,18 +39,6 @@ class PSDPair:
     L: ca.SX
 
 
-def lower_triangular(name: str, n: int) -> tuple[ca.SX, ca.SX]:
-    """An n x n lower-triangular SX matrix of fresh symbols; returns (matrix, symbols)."""
-    v = ca.SX.sym(name, n * (n + 1) // 2)
-    m = ca.SX(n, n)
-    k = 0
-    for j in range(n):
-        for i in range(j, n):
-            m[i, j] = v[k]
-            k += 1
-    return m, v
-
-
 def vech_sx(m: ca.SX) -> ca.SX:
     """Lower triangle of a symmetric SX matrix, column by column."""
     n = int(m.size1())
@@ -57,9 +46,16 @@ def vech_sx(m: ca.SX) -> ca.SX:
 
 
 def psd_factor(m: np.ndarray, jitter: float = 1e-8) -> np.ndarray:
-    """Lower-triangular P with P P' ~ the PSD part of m (eigenvalues clipped at jitter), in vech order."""
+    """Lower-triangular P with P P' ~ the PSD part of m (eigenvalues clipped at jitter), in vech order.
+
+    P is R' from the QR factorization of diag(sqrt(lambda)) V' (so P P' = V diag(lambda) V'), which,
+    unlike a Cholesky factorization of the rebuilt matrix, cannot fail on an ill-conditioned m.
+    """
     vals, vecs = np.linalg.eigh(0.5 * (m + m.T))
-    p = np.linalg.cholesky((vecs * np.maximum(vals, jitter)) @ vecs.T)
+    if not np.all(np.isfinite(vals)):
+        raise ModelError("a PSD start matrix contains NaN or inf; the warm start cannot be factored")
+    r = np.linalg.qr(np.sqrt(np.maximum(vals, jitter))[:, None] * vecs.T, mode="r")
+    p = (np.sign(np.diag(r))[:, None] * r).T  # positive diagonal, as Cholesky's
     n = m.shape[0]
     return np.concatenate([p[j:, j] for j in range(n)])
 

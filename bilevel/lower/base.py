@@ -10,35 +10,12 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InvalidData
-from ..mpcc import lower_triangular
-
-
-def symmetric_from_vech(name: str, n: int) -> tuple[ca.SX, ca.SX]:
-    """A symmetric n x n SX matrix built from n(n+1)/2 free symbols; returns (matrix, symbols)."""
-    low, v = lower_triangular(name, n)
-    return low + low.T - ca.diag(ca.diag(low)), v
-
-
-def vech(matrix: np.ndarray) -> np.ndarray:
-    """Stack the lower triangle of a symmetric matrix column by column (inverse of symmetric_from_vech)."""
-    n = matrix.shape[0]
-    return np.concatenate([matrix[j:, j] for j in range(n)])
+from ..symmetric import symmetric_from_vech, unvech, vech  # noqa: F401  (re-exported)
 
 
 def psd_violation(m: np.ndarray) -> float:
     """How far the symmetric part of m is from PSD: max(-lambda_min, 0), 0 for an empty matrix."""
     return max(-float(np.linalg.eigvalsh(0.5 * (m + m.T)).min()), 0.0) if m.size else 0.0
-
-
-def unvech(values: np.ndarray, n: int) -> np.ndarray:
-    """Rebuild the symmetric matrix from its vech."""
-    m = np.zeros((n, n))
-    k = 0
-    for j in range(n):
-        m[j:, j] = values[k:k + n - j]
-        m[j, j:] = values[k:k + n - j]
-        k += n - j
-    return m
 
 
 @dataclass
@@ -92,6 +69,7 @@ class LowerLevel(ABC):
         self._derivs = ca.Function("lower_derivs", [self.x, self.y],
                                    [ca.gradient(self.f, self.y), ca.jacobian(self.g, self.y),
                                     ca.jacobian(self.h, self.y), *jac_psd])
+        self._hess = ca.Function("lower_hess", [self.x, self.y], [ca.hessian(self.f, self.y)[0]])
 
     @property
     def n_x(self) -> int:
@@ -119,6 +97,16 @@ class LowerLevel(ABC):
         out = self._eval(x, y)
         return (float(out[0]), np.asarray(out[1]).ravel(), np.asarray(out[2]).ravel(),
                 [np.asarray(m) for m in out[3:]])
+
+    def derivatives(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+        """grad_y f, J_g, J_h (rows by constraint) and d vec(M_k) / dy at (x, y)."""
+        out = self._derivs(x, y)
+        return (np.asarray(out[0]).ravel(), np.asarray(out[1]).reshape(-1, self.n_y),
+                np.asarray(out[2]).reshape(-1, self.n_y), [np.asarray(j) for j in out[3:]])
+
+    def hessian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Hessian of f in y at (x, y)."""
+        return np.asarray(self._hess(x, y))
 
     def stationarity(self, x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarray,
                      Z: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

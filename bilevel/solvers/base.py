@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
 
@@ -102,12 +102,21 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
         run = MethodRun(run.w, Status.ERROR, f"certificate could not be computed: {exc}", run.nit, run.history,
                         run.starts, run.stats)
     status, message = _final_status(run, cert is not None and cert.passed)
+    stats = run.stats
     if cert is not None and not cert.passed:
-        message += f"; certificate failed on {', '.join(cert.failed)}"
+        message += f"; certificate failed on {cert.describe_failures()}"
+    if cert is not None and "lower_solution" in cert.failed:
+        # report the bilevel-feasible point (x, y_ref): its y is the unique lower solution at x
+        method_F = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse).upper_objective
+        stats = {**run.stats, "method_y": point.y.tolist(), "method_upper_objective": method_F}
+        point = replace(point, y=np.asarray(cert.lower_reference_y), lam=np.zeros_like(point.lam),
+                        mu=np.zeros_like(point.mu), Z=[np.zeros_like(z) for z in point.Z])
+        message += ("; y and the upper objective are reported at the re-solved lower solution (bilevel feasible), "
+                    "multipliers zeroed; the method's y is in stats['method_y']")
     sol = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse)
     syms = ca.vertcat(prep.canon.x, prep.canon.y)
     values = np.concatenate([point.x, point.y])
     evaluate = lambda expr: ca.evalf(ca.substitute(expr, syms, ca.DM(values)))  # noqa: E731
     return BilevelResult(status, message, method, prep.problem.name, sol.x, sol.y, sol.multipliers,
                          sol.upper_objective, sol.lower_objective, cert, wall_time, run.nit, tuple(run.history),
-                         tuple(run.starts), run.stats, evaluate)
+                         tuple(run.starts), stats, evaluate)
