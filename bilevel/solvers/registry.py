@@ -7,6 +7,8 @@ import time
 from numbers import Integral, Real
 from typing import Any, Callable
 
+import numpy as np
+
 from ..certificate import DEFAULT_TOL
 from ..errors import ModelError
 from ..model import BilevelProblem
@@ -50,8 +52,10 @@ def check_common_options(options: dict[str, Any], certificate_tol: Any) -> None:
         raise bad("tol", options["tol"], "a finite number > 0")
     if not positive_real(certificate_tol):
         raise bad("certificate_tol", certificate_tol, "a finite number > 0")
-    if "seed" in options and options["seed"] is not None and not (integer(options["seed"]) and options["seed"] >= 0):
-        raise bad("seed", options["seed"], "None or an integer >= 0")
+    seed = options.get("seed")
+    if not (seed is None or isinstance(seed, (np.random.Generator, np.random.SeedSequence))
+            or (integer(seed) and seed >= 0)):
+        raise bad("seed", seed, "None, an integer >= 0, or a numpy Generator / SeedSequence")
 
 
 def solve(problem: BilevelProblem, method: str | Method = "ipopt", certificate_tol: float = DEFAULT_TOL,

@@ -249,3 +249,12 @@ def test_json_is_strict_and_round_trips() -> None:
     np.testing.assert_array_equal(back.y["y"], res.y["y"])
     assert back.certificate.failed == res.certificate.failed
     assert back.certificate.worst == res.certificate.worst
+
+
+def test_lyapunov_from_an_unstable_start_is_an_honest_status() -> None:
+    """K = 0 leaves A + BK unstable (spectral radius 1.1) and only 6% of K in [-3, 3]^3 stabilize, so the
+    lower level is infeasible at almost every start: a status, with the point kept, never an exception."""
+    assert max(abs(np.linalg.eigvals(A3))) == pytest.approx(1.1, abs=1e-9)
+    res = lyapunov3().solve("ipopt", starts=2)
+    assert res.status is bl.Status.INFEASIBLE and not res.success
+    assert "lower_gap" in res.certificate.failed and res.x["K"].shape == (1, 3)
