@@ -48,14 +48,19 @@ def vech_sx(m: ca.SX) -> ca.SX:
 def psd_factor(m: np.ndarray, jitter: float = 1e-8) -> np.ndarray:
     """Lower-triangular P with P P' ~ the PSD part of m (eigenvalues clipped at jitter), in vech order.
 
-    P is R' from the QR factorization of diag(sqrt(lambda)) V' (so P P' = V diag(lambda) V'), which,
-    unlike a Cholesky factorization of the rebuilt matrix, cannot fail on an ill-conditioned m.
+    P is the Cholesky factor of the rebuilt matrix; where rounding makes that matrix numerically
+    indefinite (an ill-conditioned m), P is R' from the QR factorization of diag(sqrt(lambda)) V'
+    (P P' = V diag(lambda) V' as well), which cannot fail.
     """
-    vals, vecs = np.linalg.eigh(0.5 * (m + m.T))
-    if not np.all(np.isfinite(vals)):
+    if not np.all(np.isfinite(m)):
         raise ModelError("a PSD start matrix contains NaN or inf; the warm start cannot be factored")
-    r = np.linalg.qr(np.sqrt(np.maximum(vals, jitter))[:, None] * vecs.T, mode="r")
-    p = (np.sign(np.diag(r))[:, None] * r).T  # positive diagonal, as Cholesky's
+    vals, vecs = np.linalg.eigh(0.5 * (m + m.T))
+    vals = np.maximum(vals, jitter)
+    try:
+        p = np.linalg.cholesky((vecs * vals) @ vecs.T)
+    except np.linalg.LinAlgError:
+        r = np.linalg.qr(np.sqrt(vals)[:, None] * vecs.T, mode="r")
+        p = (np.sign(np.diag(r))[:, None] * r).T  # positive diagonal, as Cholesky's
     n = m.shape[0]
     return np.concatenate([p[j:, j] for j in range(n)])
 
