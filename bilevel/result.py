@@ -67,7 +67,7 @@ class BilevelResult:
         """A JSON-ready dict (arrays as nested lists; raw stats reduced to JSON-safe entries)."""
         def clean(v: Any) -> Any:
             if isinstance(v, np.ndarray):
-                return v.tolist()
+                return clean(v.tolist())
             if isinstance(v, (np.floating, np.integer)):
                 v = v.item()
             if isinstance(v, float) and not np.isfinite(v):

@@ -249,6 +249,9 @@ def test_json_is_strict_and_round_trips() -> None:
     np.testing.assert_array_equal(back.y["y"], res.y["y"])
     assert back.certificate.failed == res.certificate.failed
     assert back.certificate.worst == res.certificate.worst
+    nan_inside = dataclasses.replace(res, upper_objective=float("nan"), stats={"trace": np.array([1.0, np.inf])})
+    d = json.loads(nan_inside.to_json())
+    assert d["upper_objective"] is None and d["stats"]["trace"] == [1.0, None]
 
 
 def test_lyapunov_from_an_unstable_start_is_an_honest_status() -> None:
