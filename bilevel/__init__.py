@@ -3,7 +3,7 @@
 from .certificate import Certificate, certify
 from .errors import (BilevelError, InvalidData, LowerLevelInfeasible, LowerLevelUnbounded, ModelError,
                      NonConvexLowerLevel, NotPersistentlyExciting, RankDeficientRegressor, ReferenceModelError,
-                     SolverFailed, UnknownOption, UnsupportedPair)
+                     SolverFailed, UnknownName, UnknownOption, UnsupportedPair)
 from .model import BilevelProblem
 from .mpcc import MPCC, Branch, Exact, FischerBurmeister, KanzowSchwartz, Product, Scholtes
 from .result import BilevelResult, Status
@@ -13,6 +13,6 @@ __all__ = [
     "BilevelError", "BilevelProblem", "BilevelResult", "Branch", "Certificate", "Exact", "FischerBurmeister",
     "InvalidData", "KanzowSchwartz", "LowerLevelInfeasible", "LowerLevelUnbounded", "METHODS", "MPCC",
     "ModelError", "NonConvexLowerLevel", "NotPersistentlyExciting", "Product", "RankDeficientRegressor",
-    "ReferenceModelError", "Scholtes", "SolverFailed", "Status", "UnknownOption", "UnsupportedPair", "certify",
-    "register_method", "solve",
+    "ReferenceModelError", "Scholtes", "SolverFailed", "Status", "UnknownName", "UnknownOption", "UnsupportedPair",
+    "certify", "register_method", "solve",
 ]

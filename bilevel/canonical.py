@@ -7,7 +7,7 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
-from .errors import ModelError
+from .errors import InvalidData, ModelError
 from .lower import LowerLevel, build_lower
 from .model import BilevelProblem, Variable
 from .reduction import KKTPoint, Reduction
@@ -43,6 +43,9 @@ class CanonicalBilevel:
     y_start: np.ndarray | None = None
     G_names: list[str] = field(default_factory=list)
     x_suggested: list[np.ndarray] = field(default_factory=list)
+    y_lb: np.ndarray | None = None
+    y_ub: np.ndarray | None = None
+    assume_convex: bool = False
 
     @cached_property
     def lower(self) -> LowerLevel:
@@ -53,12 +56,29 @@ class CanonicalBilevel:
         samples = [self.x_start] + [sample_in_bounds(self.x_lb, self.x_ub, rng, 3.0) for _ in range(5)]
         return build_lower(self.x, self.y, self.f, self.g, self.h, self.psd,
                            [f"{n}[{i}]" for n, i in self.g_rows], [f"{n}[{i}]" for n, i in self.h_rows],
-                           self.psd_names, samples)
+                           self.psd_names, samples, self.y_lb, self.y_ub, self.assume_convex)
 
     @cached_property
     def functions(self) -> ca.Function:
         """F, G, H, f at (x, y)."""
         return ca.Function("canon", [self.x, self.y], [self.F, self.G, self.H, self.f])
+
+    @cached_property
+    def _upper(self) -> ca.Function:
+        xy = ca.vertcat(self.x, self.y)
+        return ca.Function("upper", [self.x, self.y], [self.F, self.G, self.H, ca.jacobian(self.G, xy),
+                                                       ca.jacobian(self.H, xy), ca.gradient(self.F, self.y)])
+
+    def upper_values(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray,
+                                                                  np.ndarray]:
+        """F, G, H and the Jacobians of G and H in (x, y) at (x, y)."""
+        out = self._upper(x, y)
+        return (float(out[0]), np.asarray(out[1]).ravel(), np.asarray(out[2]).ravel(), np.asarray(out[3]),
+                np.asarray(out[4]))
+
+    def upper_gradient_y(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """grad_y F at (x, y)."""
+        return np.asarray(self._upper(x, y)[5]).ravel()
 
 
 @dataclass
@@ -78,11 +98,18 @@ def _flat(vars_: list[Variable]) -> ca.SX:
 
 
 def _check_depends(expr: ca.SX, allowed: set[int], where: str) -> None:
-    """Raise if expr uses symbols outside `allowed` (element hashes of the declared variables)."""
+    """Raise if expr uses symbols outside `allowed` (element hashes of the declared variables), or if its
+    data (the constants in it) contain NaN or inf."""
     free = [s for s in ca.symvar(expr) if s.element_hash() not in allowed]
     if free:
         raise ModelError(f"{where} uses symbols {', '.join(str(s) for s in free)} that are not variables "
                          "declared on this problem; declare them with upper_variable/lower_variable")
+    fun = ca.Function("data", ca.symvar(expr), [expr])
+    bad = [fun.instruction_constant(k) for k in range(fun.n_instructions())
+           if fun.instruction_id(k) == ca.OP_CONST and not np.isfinite(fun.instruction_constant(k))]
+    if bad:
+        raise InvalidData(f"{where} contains the constant {bad[0]} (NaN/inf in the data); "
+                          "clean or impute the data before building the problem")
 
 
 class Canonicalize(Reduction):
@@ -128,6 +155,7 @@ class Canonicalize(Reduction):
                     g_rows.append((f"{v.name}.{side}", int(i)))
         for m in problem.lower_psd_constraints:
             _check_depends(m.matrix, allowed, f"LMI {m.name!r}")
+        y_lb, y_ub = (np.concatenate([getattr(v, side) for v in lows]) for side in ("lb", "ub"))
         x_lb = np.concatenate([v.lb for v in ups]) if ups else np.zeros(0)
         x_ub = np.concatenate([v.ub for v in ups]) if ups else np.zeros(0)
         x_start = default_start(x_lb, x_ub, np.concatenate([v.start if v.start is not None else
@@ -146,6 +174,7 @@ class Canonicalize(Reduction):
             psd_names=[m.name for m in problem.lower_psd_constraints], upper_sense=problem.upper_objective.sense,
             lower_sense=problem.lower_objective.sense, upper_vars=ups, lower_vars=lows, y_start=y_start,
             G_names=G_names, x_suggested=suggested,
+            G_names=G_names, y_lb=y_lb, y_ub=y_ub, assume_convex=problem.lower_objective.assume_convex,
         )
         return canon, canon
 

@@ -1,8 +1,27 @@
 """Certify a bilevel point: KKT residuals of the lower level plus an independent re-solve of it.
 
-Residuals are absolute; a check passes when residual <= tol * (1 + scale), with scale the size of
-the quantity it is compared against (|grad_y f| for stationarity, |f*(x)| for the optimality gap).
-Upper-level optimality is not certified (no method can for a non-convex bilevel program).
+Every residual is scaled row by row: a row passes when r_i <= tol * (1 + s_i), and the certificate
+reports max_i r_i / (1 + s_i) (so a check passes when its reported value is <= tol), with s_i the size
+of what the row balances:
+
+- stationarity, row j of grad_y L: the largest of |grad_y f|_j, |J_g' lam|_j, |J_h' mu|_j, |LMI term|_j;
+- lower feasibility, row i of g (violation max(g_i, 0)) or h (|h_i|): sum_j |dg_i/dy_j y_j|, the size
+  of its y-terms; an LMI: its largest entry;
+- dual feasibility (max(-lam_i, 0), and the negative eigenvalues of Z_k): the largest multiplier;
+- complementarity |lam_i g_i|: |lam_i| (1 + s_i of g_i); <Z_k, M_k>: |Z_k|_F |M_k|_F;
+- upper feasibility, rows of G, H and the bounds of x: the size of the row's terms, as for g;
+- the lower-level gap f(x, y) - f*(x): |f*(x)|.
+
+`worst` names the worst row of every check. The independent re-solve is cvxpy + Clarabel (or a closed
+form) for LP/QP/LS/SDP lower levels, a global optimum; a nonlinear lower level is re-solved by IPOPT
+from several starts inside the declared bounds, which is local evidence, not a proof.
+
+When the re-solve says the lower solution is unique (reduced Hessian positive definite at it, or, for a
+nonlinear lower level, every start reaching the same y), y is compared with the re-solved y through
+the upper objective: `upper_at_reference` = F(x, y_ref) is the bilevel-feasible value at x, and the
+check "lower_solution" fails when F(x, y) differs from it by more than tol * (1 + |F|) plus what the
+spread of the re-solves allows. Upper-level optimality is not certified (no method can for a
+non-convex bilevel program).
 """
 
 from __future__ import annotations
@@ -14,12 +33,15 @@ import numpy as np
 
 from .errors import BilevelError
 from .lower.base import psd_violation
+from .sampling import sample_in_bounds
 
 if TYPE_CHECKING:  # pragma: no cover
     from .canonical import CanonicalBilevel
     from .reduction import KKTPoint
 
 DEFAULT_TOL = 1e-6
+NLP_STARTS = 8
+"""Starts of the independent re-solve of a nonlinear lower level (the point's y, the default, and random)."""
 
 
 @dataclass(frozen=True)
@@ -39,7 +61,12 @@ class GlobalBound:
 
 @dataclass(frozen=True)
 class Certificate:
-    """Residuals at a point and the verdict. lower_gap = f(x, y) - f*(x), f* from an independent solve."""
+    """Scaled residuals at a point and the verdict (see the module docstring for the scaling).
+
+    lower_gap = f(x, y) - f*(x), f* from an independent solve (scaled by 1 + |f*|); worst: the worst row
+    of each check; lower_unique: whether the re-solve found a unique lower solution (None: not decided);
+    y_distance: max |y - y_ref|; upper_at_reference: F(x, y_ref) in the canonical (minimization) sense.
+    """
 
     stationarity: float
     lower_feasibility: float
@@ -55,9 +82,17 @@ class Certificate:
     failed: tuple[str, ...] = field(default_factory=tuple)
     note: str = ""
     global_bound: GlobalBound | None = None
+    worst: dict[str, str] = field(default_factory=dict)
+    lower_unique: bool | None = None
+    y_distance: float = 0.0
+    upper_at_reference: float | None = None
+
+    def describe_failures(self) -> str:
+        """'check (row name), ...' for the failed checks."""
+        return ", ".join(f"{k} ({self.worst[k]})" if self.worst.get(k) else k for k in self.failed)
 
     def __repr__(self) -> str:
-        verdict = "passed" if self.passed else f"FAILED ({', '.join(self.failed)})"
+        verdict = "passed" if self.passed else f"FAILED ({self.describe_failures()})"
         return (f"Certificate({verdict}; stationarity={self.stationarity:.2e}, lower_feas={self.lower_feasibility:.2e}, "
                 f"dual_feas={self.dual_feasibility:.2e}, compl={self.complementarity:.2e}, "
                 f"upper_feas={self.upper_feasibility:.2e}, gap={self.lower_gap:.2e} via {self.lower_solver}"
@@ -67,36 +102,126 @@ class Certificate:
                 + ")")
 
 
+def _worst(residual: np.ndarray, scale: np.ndarray, names: list[str]) -> tuple[float, str]:
+    """max_i r_i / (1 + s_i) and the name of that row (0 and '' for no rows; NaN counts as worst)."""
+    r = np.asarray(residual, dtype=float).ravel()
+    if not r.size:
+        return 0.0, ""
+    v = r / (1.0 + np.abs(np.asarray(scale, dtype=float).ravel()))
+    v = np.where(np.isnan(v), np.inf, v)
+    i = int(np.argmax(v))
+    return float(v[i]), names[i]
+
+
+def _row_scale(jac: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """sum_j |J_ij v_j|: the size of the terms of each row that involve v."""
+    jac = np.asarray(jac, dtype=float).reshape(-1, v.size) if v.size else np.zeros((0, 0))
+    return np.abs(jac * v[None, :]).sum(axis=1) if jac.size else np.zeros(jac.shape[0])
+
+
+def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: float):
+    """The independent lower solve; for an NLP lower level a multistart. Returns (best, spread, unique, note)."""
+    low = canon.lower
+    if low.kind != "nlp":
+        ref = low.solve(x)
+        return ref, 0.0, _reduced_hessian_unique(low, x, ref, tol), ""
+    rng = np.random.default_rng(0)
+    lb, ub = canon.y_lb, canon.y_ub
+    starts = [np.clip(y, lb, ub), np.clip(np.zeros_like(y), lb, ub)]
+    starts += [sample_in_bounds(lb, ub, rng, 3.0) for _ in range(NLP_STARTS - 2)]
+    sols, errors = [], []
+    for y0 in starts:
+        try:
+            sols.append(low.solve(x, y0))
+        except BilevelError as exc:
+            errors.append(exc)
+    if not sols:
+        raise errors[0]
+    best = min(sols, key=lambda s: s.objective)
+    near = [s for s in sols if s.objective <= best.objective + tol * (1.0 + abs(best.objective))]
+    spread = max(float(np.max(np.abs(s.y - best.y), initial=0.0)) for s in near)
+    unique = len(near) == len(sols) and spread <= np.sqrt(tol) * (1.0 + float(np.max(np.abs(best.y), initial=0.0)))
+    note = (f"nonlinear lower level: re-solved by IPOPT from {len(starts)} starts ({len(sols)} converged), "
+            "local evidence, not a proof of lower-level optimality")
+    return best, spread, unique, note
+
+
+def _reduced_hessian_unique(low, x: np.ndarray, ref, tol: float) -> bool | None:
+    """Unique if the Hessian of f is positive definite on the null space of the equalities and the
+    strongly active inequalities at the re-solved point (sufficient for a convex program); None with LMIs."""
+    if low.psd:
+        return None
+    _, g, _, _ = low.evaluate(x, ref.y)
+    _, jg, jh, _ = low.derivatives(x, ref.y)
+    strong = (ref.lam > np.sqrt(tol)) & (g > -np.sqrt(tol))
+    rows = np.vstack([jh, jg[strong]])
+    if rows.size:
+        _, sv, vt = np.linalg.svd(rows)
+        rank = int(np.sum(sv > 1e-9 * max(1.0, float(sv.max(initial=0.0)))))
+        null = vt[rank:].T
+    else:
+        null = np.eye(low.n_y)
+    if null.shape[1] == 0:
+        return True
+    hess = low.hessian(x, ref.y)
+    reduced = null.T @ hess @ null
+    return bool(np.linalg.eigvalsh(0.5 * (reduced + reduced.T)).min() > 1e-9 * max(1.0, float(np.abs(hess).max())))
+
+
 def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_TOL) -> Certificate:
-    """KKT residuals of the lower level at `point` and its gap to an independent lower-level solve."""
+    """Scaled KKT residuals of the lower level at `point` and its gap to an independent lower-level solve."""
     low = canon.lower
     x, y = point.x, point.y
     f, g, h, mats = low.evaluate(x, y)
-    stat, grad_f = low.stationarity(x, y, point.lam, point.mu, point.Z)
-    top = lambda a: float(np.max(a)) if np.size(a) else 0.0  # noqa: E731
-    stationarity = top(np.abs(stat))
-    lower_feas = max(top(np.maximum(g, 0.0)), top(np.abs(h)), max((psd_violation(m) for m in mats), default=0.0))
-    dual_feas = max(top(np.maximum(-point.lam, 0.0)), max((psd_violation(z) for z in point.Z), default=0.0))
-    comp = max(top(np.abs(point.lam * g)), max((abs(float(np.sum(z * m))) for z, m in zip(point.Z, mats)), default=0.0))
-    out = canon.functions(x, y)
-    G, H = np.asarray(out[1]).ravel(), np.asarray(out[2]).ravel()
-    bounds = np.maximum(np.maximum(canon.x_lb - x, x - canon.x_ub), 0.0)
-    upper_feas = max(top(np.maximum(G, 0.0)), top(np.abs(H)), top(bounds))
-    note = ""
+    grad_f, jg, jh, jpsd = low.derivatives(x, y)
+    terms = [np.abs(grad_f), np.abs(jg.T @ point.lam), np.abs(jh.T @ point.mu)]
+    terms += [np.abs(j.T @ np.asarray(z).reshape(-1, order="F")) for j, z in zip(jpsd, point.Z)]
+    stat, _ = low.stationarity(x, y, point.lam, point.mu, point.Z)
+    y_names = [f"grad_y L[{i}]" for i in range(low.n_y)]
+    sg, sh = _row_scale(jg, y), _row_scale(jh, y)
+    checks: dict[str, tuple[float, str]] = {}
+    checks["stationarity"] = _worst(np.abs(stat), np.max(terms, axis=0), y_names)
+    feas = [_worst(np.maximum(g, 0.0), sg, low.g_names), _worst(np.abs(h), sh, low.h_names)]
+    feas += [_worst(np.array([psd_violation(m)]), np.array([np.abs(m).max(initial=0.0)]), [n])
+             for m, n in zip(mats, low.psd_names)]
+    checks["lower_feasibility"] = max(feas, key=lambda t: t[0])
+    lam_size = float(np.max(np.abs(np.concatenate([point.lam, point.mu])), initial=0.0))
+    dual = [_worst(np.maximum(-point.lam, 0.0), np.full(point.lam.size, lam_size), low.g_names)]
+    dual += [_worst(np.array([psd_violation(z)]), np.array([np.abs(z).max(initial=0.0)]), [f"Z of {n}"])
+             for z, n in zip(point.Z, low.psd_names)]
+    checks["dual_feasibility"] = max(dual, key=lambda t: t[0])
+    comp = [_worst(np.abs(point.lam * g), np.abs(point.lam) * (1.0 + sg), low.g_names)]
+    comp += [_worst(np.array([abs(float(np.sum(z * m)))]), np.array([np.linalg.norm(z) * np.linalg.norm(m)]), [n])
+             for z, m, n in zip(point.Z, mats, low.psd_names)]
+    checks["complementarity"] = max(comp, key=lambda t: t[0])
+    F, G, H, jG, jH = canon.upper_values(x, y)
+    xy = np.concatenate([x, y])
+    upper = [_worst(np.maximum(G, 0.0), _row_scale(jG, xy), canon.G_names or [f"G[{i}]" for i in range(G.size)]),
+             _worst(np.abs(H), _row_scale(jH, xy), [f"H[{i}]" for i in range(H.size)]),
+             _worst(np.maximum(canon.x_lb - x, 0.0), np.where(np.isfinite(canon.x_lb), canon.x_lb, 0.0),
+                    [f"x.lb[{i}]" for i in range(x.size)]),
+             _worst(np.maximum(x - canon.x_ub, 0.0), np.where(np.isfinite(canon.x_ub), canon.x_ub, 0.0),
+                    [f"x.ub[{i}]" for i in range(x.size)])]
+    checks["upper_feasibility"] = max(upper, key=lambda t: t[0])
+    note, unique, spread, F_ref = "", None, 0.0, None
     try:
-        ref = low.solve(x)
+        ref, spread, unique, note = _re_solve(canon, x, y, tol)
         f_ref, y_ref, solver = ref.objective, ref.y, ref.solver
     except BilevelError as exc:
         f_ref, y_ref, solver, note = np.nan, np.full(low.n_y, np.nan), "none", f"independent lower solve failed: {exc}"
     gap = f - f_ref if np.isfinite(f_ref) else np.inf
-    checks = {
-        "stationarity": stationarity <= tol * (1.0 + top(np.abs(grad_f))),
-        "lower_feasibility": lower_feas <= tol,
-        "dual_feasibility": dual_feas <= tol,
-        "complementarity": comp <= tol,
-        "upper_feasibility": upper_feas <= tol,
-        "lower_gap": gap <= tol * (1.0 + abs(f_ref)) if np.isfinite(gap) else False,
-    }
-    failed = tuple(k for k, ok in checks.items() if not ok)
-    return Certificate(stationarity, lower_feas, dual_feas, comp, upper_feas, float(gap), float(f_ref),
-                       [float(v) for v in y_ref], solver, tol, not failed, failed, note)
+    checks["lower_gap"] = (gap / (1.0 + abs(f_ref)) if np.isfinite(gap) else np.inf, "")
+    y_distance = float(np.max(np.abs(y - y_ref), initial=0.0)) if np.all(np.isfinite(y_ref)) else np.inf
+    if unique and np.isfinite(y_distance):
+        F_ref = float(canon.upper_values(x, y_ref)[0])
+        grad_F = np.abs(np.asarray(canon.upper_gradient_y(x, y_ref))).ravel()
+        slack = tol * (1.0 + abs(F_ref)) + float(grad_F @ np.full(low.n_y, spread + tol * (1.0 + np.abs(y_ref).max())))
+        checks["lower_solution"] = (abs(F - F_ref) / (slack / tol) if np.isfinite(F) else np.inf,
+                                    f"y is {y_distance:.2e} from the unique re-solved y; F there = {F_ref:.10g}")
+    checks["upper_objective"] = (0.0 if np.isfinite(F) else np.inf, "" if np.isfinite(F) else f"F = {F}")
+    failed = tuple(k for k, (v, _) in checks.items() if not v <= tol)
+    values = {k: v for k, (v, _) in checks.items()}
+    return Certificate(values["stationarity"], values["lower_feasibility"], values["dual_feasibility"],
+                       values["complementarity"], values["upper_feasibility"], float(values["lower_gap"]),
+                       float(f_ref), [float(v) for v in y_ref], solver, tol, not failed, failed, note,
+                       {k: name for k, (_, name) in checks.items() if name}, unique, y_distance, F_ref)

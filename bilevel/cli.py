@@ -10,6 +10,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .errors import BilevelError, ModelError
 from .problems import registry
 from .solvers import METHODS, solve
 
@@ -56,19 +57,34 @@ def _cmd_attack(args: argparse.Namespace) -> int:
     print(f"{'theta_poisoned':>22}: {np.array2string(result.theta_poisoned, precision=5)}")
     if args.save:
         result.save(args.save, atk)
-        print(f"wrote {args.save} (clean data, attack signals, clean/poisoned theta, closed-loop poles)")
+        written = args.save if args.save.endswith(".npz") else args.save + ".npz"  # np.savez appends .npz
+        print(f"wrote {written} (clean data, attack signals, clean/poisoned theta, closed-loop poles)")
     return 0
+
+
+def _pairs(items: list[str], flag: str) -> dict[str, object]:
+    """NAME=VALUE strings to a dict (values parsed as JSON where they are JSON)."""
+    bad = [kv for kv in items if "=" not in kv or not kv.split("=", 1)[0]]
+    if bad:
+        raise ModelError(f"{flag} {bad[0]!r} is not NAME=VALUE; write e.g. {flag} starts=4")
+    return {k: _parse_value(v) for k, v in (kv.split("=", 1) for kv in items)}
 
 
 def _cmd_solve(args: argparse.Namespace) -> int:
     if "vrft" in registry.spec(args.problem).tags and args.method not in METHODS:
+        if args.method is not None and args.method not in _attack_methods():
+            raise ModelError(f"unknown method {args.method!r} for {args.problem}; choose one of "
+                             f"{', '.join(sorted(set(METHODS) | set(_attack_methods())))}")
         return _cmd_attack(args)
+    if args.save:
+        raise ModelError(f"--save writes a VRFT attack's signals; {args.problem} is not a vrft-* problem "
+                         "(use --json to save the result)")
     args.method = args.method or "ipopt"
     args.starts = 8 if args.starts is None else args.starts
-    params = dict(kv.split("=", 1) for kv in args.param)
-    problem = registry.get(args.problem, **{k: _parse_value(v) for k, v in params.items()})
-    options = {k: _parse_value(v) for k, v in (kv.split("=", 1) for kv in args.option)}
-    result = solve(problem, method=args.method, starts=args.starts, seed=args.seed, **options)
+    params = _pairs(args.param, "--param")
+    options = _pairs(args.option, "--option")
+    problem = registry.get(args.problem, **params)
+    result = solve(problem, method=args.method, **{"starts": args.starts, "seed": args.seed, **options})
     print(result)
     known = registry.spec(args.problem).optimum
     if known is not None and result.upper_objective is not None:
@@ -193,10 +209,41 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _attack_methods() -> list[str]:
+    from .attacks.vrft_methods import ATTACKS
+
+    return list(ATTACKS)
+
+
+def _check_paths(args: argparse.Namespace) -> None:
+    """Output paths are checked before any work, so a long run never ends in a traceback."""
+    for flag in ("json", "save"):
+        path = getattr(args, flag, None)
+        if path:
+            parent = os.path.dirname(os.path.abspath(path))
+            if os.path.isdir(path):
+                raise ModelError(f"--{flag} {path!r} is a directory; give a file name inside it")
+            if not os.path.isdir(parent):
+                raise ModelError(f"--{flag} {path!r}: directory {parent!r} does not exist; create it first")
+    out = getattr(args, "out", None)
+    if out and os.path.exists(out) and not os.path.isdir(out):
+        raise ModelError(f"--out {out!r} is a file, not a directory; give a directory (it is created if missing)")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `bilevel` console script."""
-    args = build_parser().parse_args(argv)
-    return int(args.run(args))
+    """Entry point of the `bilevel` console script. Named errors (bad input, unknown names, unusable
+    paths) print one line `bilevel: error: ...` to stderr and exit with status 2, as argparse does."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        _check_paths(args)
+        return int(args.run(args))
+    except (BilevelError, OSError) as exc:
+        text = str(exc).replace("\n", " ")
+        if isinstance(exc, OSError) and exc.filename:
+            text = f"{exc.strerror}: {exc.filename!r}; check the path"
+        print(f"bilevel: error: {text}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

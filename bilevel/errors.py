@@ -49,6 +49,13 @@ class UnknownOption(BilevelError, TypeError):
     """An option name is not understood by the chosen method (typos must not pass silently)."""
 
 
+class UnknownName(BilevelError, KeyError):
+    """A name (registered problem, method) is not known; still a KeyError for lookups that expect one."""
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0]) if self.args else ""
+
+
 class UnsupportedPair(BilevelError):
     """A complementarity mode cannot transcribe a pair of this kind (e.g. PSD pairs)."""
 

@@ -20,6 +20,7 @@ import casadi as ca
 import numpy as np
 
 from .errors import ModelError
+from .vech import symmetric_from_vech, unvech, vech
 
 if TYPE_CHECKING:  # pragma: no cover
     from .result import BilevelResult
@@ -30,7 +31,11 @@ Sense = Literal["min", "max"]
 
 @dataclass(frozen=True)
 class Variable:
-    """A declared block of variables: its symbol, shape, bounds (flattened column-major) and start."""
+    """A declared block of variables: its symbol, shape, bounds (flattened column-major) and start.
+
+    A symmetric n x n variable has n(n+1)/2 free symbols `sym` (its vech: lower triangle, column by
+    column), the symmetric matrix built from them in `matrix`, and bounds/start per vech entry.
+    """
 
     name: str
     level: Level
@@ -38,10 +43,16 @@ class Variable:
     lb: np.ndarray
     ub: np.ndarray
     start: np.ndarray | None = None
+    matrix: ca.SX | None = None
+
+    @property
+    def expr(self) -> ca.SX:
+        """What the user writes with: the symbol, or the symmetric matrix of a symmetric variable."""
+        return self.sym if self.matrix is None else self.matrix
 
     @property
     def shape(self) -> tuple[int, int]:
-        return (int(self.sym.size1()), int(self.sym.size2()))
+        return (int(self.expr.size1()), int(self.expr.size2()))
 
     @property
     def size(self) -> int:
@@ -51,6 +62,8 @@ class Variable:
         """Turn a flat (column-major) slice back into this variable's shape (1-D for vectors)."""
         rows, cols = self.shape
         values = np.asarray(values, dtype=float)
+        if self.matrix is not None:
+            return unvech(values, rows)
         return values.reshape(rows) if cols == 1 else values.reshape((rows, cols), order="F")
 
 
@@ -73,14 +86,25 @@ class PSDConstraint:
 
 @dataclass
 class Objective:
+    """An objective and its sense; assume_convex (lower level only) skips the convexity probe."""
+
     expr: ca.SX
     sense: Sense
+    assume_convex: bool = False
 
 
-def _bound_array(value: Any, size: int, what: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
+def _bound_array(value: Any, size: int, what: str, symmetric: bool = False) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ModelError(f"{what} must be a number or an array of numbers, got {type(value).__name__}") from None
     if arr.ndim == 2:
-        arr = arr.reshape(-1, order="F")
+        if symmetric and arr.shape[0] == arr.shape[1]:
+            if not np.allclose(arr, arr.T, equal_nan=True):
+                raise ModelError(f"{what} is not symmetric; a symmetric variable takes a symmetric matrix")
+            arr = vech(arr)
+        else:
+            arr = arr.reshape(-1, order="F")
     if arr.ndim == 0:
         arr = np.full(size, float(arr))
     if arr.shape != (size,):
@@ -110,6 +134,10 @@ def split_comparison(expr: Any, where: str) -> tuple[ca.SX, Literal["<=", "=="]]
             raise ModelError(
                 f"{where}: entry {i} is `{e}`, not a comparison; write `g <= h`, `g >= h` or `g == h`"
             )
+        for side in (e.dep(0), e.dep(1)):
+            if side.is_constant() and not np.isfinite(float(side)):
+                raise ModelError(f"{where}: entry {i} compares with {float(side)}; a bound at infinity is no "
+                                 "constraint: drop it, or use lb/ub of the variable for finite bounds")
         bodies.append(e.dep(0) - e.dep(1))
     if len(kinds) != 1:
         raise ModelError(f"{where}: mixes equalities and inequalities; declare them separately")
@@ -134,33 +162,53 @@ class BilevelProblem:
         self.starts: list[dict[str, np.ndarray]] = []
 
     # -- variables -----------------------------------------------------------------------------
-    def _variable(self, level: Level, name: str, shape: int | tuple[int, int], lb: Any, ub: Any, start: Any) -> ca.SX:
+    def _variable(self, level: Level, name: str, shape: int | tuple[int, int], lb: Any, ub: Any, start: Any,
+                  symmetric: bool = False) -> ca.SX:
         if not isinstance(name, str) or not name.isidentifier():
             raise ModelError(f"variable name {name!r} must be a Python identifier")
         if any(v.name == name for v in self.variables):
             raise ModelError(f"a variable named {name!r} is already declared; names must be unique")
-        rows, cols = (shape, 1) if isinstance(shape, (int, np.integer)) else tuple(shape)
+        try:
+            rows, cols = (shape, 1) if isinstance(shape, (int, np.integer)) else tuple(int(n) for n in shape)
+        except (TypeError, ValueError):
+            raise ModelError(f"variable {name!r}: shape {shape!r} must be an int or a pair (rows, cols)") from None
         if rows < 1 or cols < 1:
             raise ModelError(f"variable {name!r}: shape {shape} must be positive")
-        sym = ca.SX.sym(name, int(rows), int(cols))
-        size = int(rows) * int(cols)
-        lbv = _bound_array(lb, size, f"lower bound of {name!r}")
-        ubv = _bound_array(ub, size, f"upper bound of {name!r}")
+        matrix = None
+        if symmetric:
+            if rows != cols:
+                raise ModelError(f"variable {name!r}: a symmetric variable must be square, got shape {shape}")
+            matrix, sym = symmetric_from_vech(name, int(rows))
+        else:
+            sym = ca.SX.sym(name, int(rows), int(cols))
+        size = int(sym.numel())
+        lbv = _bound_array(lb, size, f"lower bound of {name!r}", symmetric)
+        ubv = _bound_array(ub, size, f"upper bound of {name!r}", symmetric)
         if np.any(lbv > ubv):
             raise ModelError(f"variable {name!r}: a lower bound exceeds its upper bound")
-        st = None if start is None else _bound_array(start, size, f"start of {name!r}")
-        self.variables.append(Variable(name, level, sym, lbv, ubv, st))
-        return sym
+        if np.any(lbv == np.inf) or np.any(ubv == -np.inf):
+            raise ModelError(f"variable {name!r}: a lower bound of +inf or an upper bound of -inf leaves no "
+                             "feasible value; use lb=-inf / ub=inf for a free variable")
+        st = None if start is None else _bound_array(start, size, f"start of {name!r}", symmetric)
+        if st is not None and not np.all(np.isfinite(st)):
+            raise ModelError(f"start of {name!r} contains inf; give finite start values")
+        self.variables.append(Variable(name, level, sym, lbv, ubv, st, matrix))
+        return sym if matrix is None else matrix
 
     def upper_variable(self, name: str, shape: int | tuple[int, int] = 1, lb: Any = -np.inf,
-                       ub: Any = np.inf, start: Any = None) -> ca.SX:
-        """Declare upper-level (leader) variables; returns their CasADi symbol."""
-        return self._variable("upper", name, shape, lb, ub, start)
+                       ub: Any = np.inf, start: Any = None, symmetric: bool = False) -> ca.SX:
+        """Declare upper-level (leader) variables; returns their CasADi symbol (see lower_variable)."""
+        return self._variable("upper", name, shape, lb, ub, start, symmetric)
 
     def lower_variable(self, name: str, shape: int | tuple[int, int] = 1, lb: Any = -np.inf,
-                       ub: Any = np.inf, start: Any = None) -> ca.SX:
-        """Declare lower-level (follower) variables; their bounds are lower-level constraints."""
-        return self._variable("lower", name, shape, lb, ub, start)
+                       ub: Any = np.inf, start: Any = None, symmetric: bool = False) -> ca.SX:
+        """Declare lower-level (follower) variables; their bounds are lower-level constraints.
+
+        symmetric=True (shape (n, n)) returns a symmetric n x n matrix of n(n+1)/2 free variables;
+        lb, ub and start are then scalars, symmetric n x n matrices or n(n+1)/2 vech values, and the
+        result reports the full matrix.
+        """
+        return self._variable("lower", name, shape, lb, ub, start, symmetric)
 
     def suggest_start(self, **values: Any) -> None:
         """Add an upper-level start for the multistart methods (tried before random ones): values by upper-variable
@@ -196,11 +244,15 @@ class BilevelProblem:
         return [v for v in self.variables if v.level == "lower"]
 
     # -- objectives ------------------------------------------------------------------------------
-    def _objective(self, expr: Any, sense: Sense, where: str) -> Objective:
-        expr = ca.SX(expr) if not isinstance(expr, ca.SX) else expr
+    def _objective(self, expr: Any, sense: Sense, where: str, assume_convex: bool = False) -> Objective:
+        try:
+            expr = ca.SX(expr) if not isinstance(expr, ca.SX) else expr
+        except (NotImplementedError, TypeError, RuntimeError):
+            raise ModelError(f"{where}: expected a CasADi expression of the declared variables, "
+                             f"got {type(expr).__name__}") from None
         if expr.numel() != 1:
             raise ModelError(f"{where}: the objective must be scalar, got shape {expr.shape}")
-        return Objective(expr, sense)
+        return Objective(expr, sense, bool(assume_convex))
 
     def minimize_upper(self, expr: Any) -> None:
         """Set the upper-level objective F(x, y) to minimize."""
@@ -210,13 +262,19 @@ class BilevelProblem:
         """Set the upper-level objective F(x, y) to maximize."""
         self.upper_objective = self._objective(expr, "max", "maximize_upper")
 
-    def minimize_lower(self, expr: Any) -> None:
-        """Set the lower-level objective f(x, y) to minimize (convex in y)."""
-        self.lower_objective = self._objective(expr, "min", "minimize_lower")
+    def minimize_lower(self, expr: Any, assume_convex: bool = False) -> None:
+        """Set the lower-level objective f(x, y) to minimize (convex in y on the declared bounds of y).
 
-    def maximize_lower(self, expr: Any) -> None:
-        """Set the lower-level objective f(x, y) to maximize (concave in y)."""
-        self.lower_objective = self._objective(expr, "max", "maximize_lower")
+        Convexity is probed at sample points inside the bounds; assume_convex=True skips the probe (for
+        a function convex on a domain set by constraints rather than bounds). The certificate still
+        re-solves the lower level independently (multistart for a nonlinear one) and fails if a better
+        lower-level point exists.
+        """
+        self.lower_objective = self._objective(expr, "min", "minimize_lower", assume_convex)
+
+    def maximize_lower(self, expr: Any, assume_convex: bool = False) -> None:
+        """Set the lower-level objective f(x, y) to maximize (concave in y); see minimize_lower."""
+        self.lower_objective = self._objective(expr, "max", "maximize_lower", assume_convex)
 
     # -- constraints ---------------------------------------------------------------------------
     def upper_constraint(self, comparison: Any, name: str | None = None) -> None:

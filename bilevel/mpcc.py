@@ -40,9 +40,21 @@ class PSDPair:
 
 
 def psd_factor(m: np.ndarray, jitter: float = 1e-8) -> np.ndarray:
-    """Lower-triangular P with P P' ~ the PSD part of m (eigenvalues clipped at jitter), in vech order."""
+    """Lower-triangular P with P P' ~ the PSD part of m (eigenvalues clipped at jitter), in vech order.
+
+    P is the Cholesky factor of the rebuilt matrix; where rounding makes that matrix numerically
+    indefinite (an ill-conditioned m), P is R' from the QR factorization of diag(sqrt(lambda)) V'
+    (P P' = V diag(lambda) V' as well), which cannot fail.
+    """
+    if not np.all(np.isfinite(m)):
+        raise ModelError("a PSD start matrix contains NaN or inf; the warm start cannot be factored")
     vals, vecs = np.linalg.eigh(0.5 * (m + m.T))
-    p = np.linalg.cholesky((vecs * np.maximum(vals, jitter)) @ vecs.T)
+    vals = np.maximum(vals, jitter)
+    try:
+        p = np.linalg.cholesky((vecs * vals) @ vecs.T)
+    except np.linalg.LinAlgError:
+        r = np.linalg.qr(np.sqrt(vals)[:, None] * vecs.T, mode="r")
+        p = (np.sign(np.diag(r))[:, None] * r).T  # positive diagonal, as Cholesky's
     n = m.shape[0]
     return np.concatenate([p[j:, j] for j in range(n)])
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from enum import Enum
 from typing import Any
 
@@ -11,6 +11,9 @@ import casadi as ca
 import numpy as np
 
 from .certificate import Certificate
+
+_CERT_FLOATS = ("stationarity", "lower_feasibility", "dual_feasibility", "complementarity", "upper_feasibility",
+                "lower_gap", "lower_reference", "tolerance", "y_distance")
 
 
 class Status(str, Enum):
@@ -65,9 +68,11 @@ class BilevelResult:
         """A JSON-ready dict (arrays as nested lists; raw stats reduced to JSON-safe entries)."""
         def clean(v: Any) -> Any:
             if isinstance(v, np.ndarray):
-                return v.tolist()
+                return clean(v.tolist())
             if isinstance(v, (np.floating, np.integer)):
-                return v.item()
+                v = v.item()
+            if isinstance(v, float) and not np.isfinite(v):
+                return None  # JSON has no NaN/inf
             if isinstance(v, dict):
                 return {str(k): clean(x) for k, x in v.items()}
             if isinstance(v, (list, tuple)):
@@ -84,12 +89,40 @@ class BilevelResult:
         return clean(d)
 
     def to_json(self, path: str | None = None, indent: int = 2) -> str:
-        """Serialize to JSON; also write it to `path` when given."""
-        text = json.dumps(self.to_dict(), indent=indent, allow_nan=True)
+        """Serialize to strict JSON (NaN and inf become null); also write it to `path` when given."""
+        text = json.dumps(self.to_dict(), indent=indent, allow_nan=False)
         if path is not None:
             with open(path, "w", encoding="utf-8") as fh:
                 fh.write(text)
         return text
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "BilevelResult":
+        """Rebuild a result from to_dict() output (arrays as numpy, null numbers as NaN; no evaluator)."""
+        arrays = lambda m: {k: np.asarray(v, dtype=float) for k, v in (m or {}).items()}  # noqa: E731
+        num = lambda v: np.nan if v is None else float(v)  # noqa: E731
+        cert = d.get("certificate")
+        if cert is not None:
+            names = {f.name for f in fields(Certificate)}
+            cert = {k: v for k, v in cert.items() if k in names}
+            cert = Certificate(**{**cert, **{k: num(cert[k]) for k in _CERT_FLOATS if k in cert},
+                                  "failed": tuple(cert.get("failed", ())),
+                                  "lower_reference_y": [num(v) for v in cert.get("lower_reference_y", [])]})
+        return cls(Status(d["status"]), d["message"], d["method"], d["problem"], arrays(d.get("x")),
+                   arrays(d.get("y")), arrays(d.get("multipliers")),
+                   None if d.get("upper_objective") is None else float(d["upper_objective"]),
+                   None if d.get("lower_objective") is None else float(d["lower_objective"]), cert,
+                   float(d.get("wall_time") or 0.0), int(d.get("nit") or 0), tuple(d.get("history", ())),
+                   tuple(d.get("starts", ())), dict(d.get("stats", {})))
+
+    @classmethod
+    def from_json(cls, source: str) -> "BilevelResult":
+        """Read a result written by to_json: `source` is a JSON text or the path of a file holding one."""
+        text = source
+        if not source.lstrip().startswith("{"):
+            with open(source, encoding="utf-8") as fh:
+                text = fh.read()
+        return cls.from_dict(json.loads(text))
 
     def __repr__(self) -> str:
         def fmt(v: Any) -> str:

@@ -33,8 +33,8 @@ def symmetric_sx(v: ca.SX, n: int) -> ca.SX:
 
 def symmetric_from_vech(name: str, n: int) -> tuple[ca.SX, ca.SX]:
     """A symmetric n x n SX matrix built from n(n+1)/2 free symbols; returns (matrix, symbols)."""
-    v = ca.SX.sym(name, n * (n + 1) // 2)
-    return symmetric_sx(v, n), v
+    low, v = lower_triangular(name, n)
+    return low + low.T - ca.diag(ca.diag(low)), v
 
 
 def vech_sx(m: ca.SX) -> ca.SX:

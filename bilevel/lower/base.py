@@ -69,6 +69,7 @@ class LowerLevel(ABC):
         self._derivs = ca.Function("lower_derivs", [self.x, self.y],
                                    [ca.gradient(self.f, self.y), ca.jacobian(self.g, self.y),
                                     ca.jacobian(self.h, self.y), *jac_psd])
+        self._hess = ca.Function("lower_hess", [self.x, self.y], [ca.hessian(self.f, self.y)[0]])
 
     @property
     def n_x(self) -> int:
@@ -96,6 +97,16 @@ class LowerLevel(ABC):
         out = self._eval(x, y)
         return (float(out[0]), np.asarray(out[1]).ravel(), np.asarray(out[2]).ravel(),
                 [np.asarray(m) for m in out[3:]])
+
+    def derivatives(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+        """grad_y f, J_g, J_h (rows by constraint) and d vec(M_k) / dy at (x, y)."""
+        out = self._derivs(x, y)
+        return (np.asarray(out[0]).ravel(), np.asarray(out[1]).reshape(-1, self.n_y),
+                np.asarray(out[2]).reshape(-1, self.n_y), [np.asarray(j) for j in out[3:]])
+
+    def hessian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Hessian of f in y at (x, y)."""
+        return np.asarray(self._hess(x, y))
 
     def stationarity(self, x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarray,
                      Z: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

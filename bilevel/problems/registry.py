@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from ..errors import ModelError
+from ..errors import ModelError, UnknownName
 from ..model import BilevelProblem
 
 
@@ -48,17 +48,22 @@ def _load_builtin() -> None:
 
 
 def spec(name: str) -> ProblemSpec:
-    """The registered spec of `name`; raises a KeyError listing the known names otherwise."""
+    """The registered spec of `name`; raises UnknownName (a KeyError) listing the known names otherwise."""
     _load_builtin()
     if name not in _REGISTRY:
-        raise KeyError(f"no registered problem {name!r}; known: {', '.join(sorted(_REGISTRY))}")
+        raise UnknownName(f"no registered problem {name!r}; `bilevel list` shows the known ones: "
+                          f"{', '.join(sorted(_REGISTRY))}")
     return _REGISTRY[name]
 
 
 def get(name: str, **params: Any) -> BilevelProblem:
     """Build the registered problem `name` with its default parameters overridden by `params`."""
     s = spec(name)
-    problem = s.build(**{**s.defaults, **params})
+    try:
+        problem = s.build(**{**s.defaults, **params})
+    except TypeError as exc:  # an unknown or mistyped parameter
+        raise ModelError(f"problem {name!r} rejected its parameters ({exc}); "
+                         f"its defaults are {s.defaults}") from exc
     problem.name = name
     return problem
 

@@ -123,8 +123,16 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
                         run.starts, run.stats)
     status, message = _final_status(run, cert is not None and cert.passed)
     if cert is not None and not cert.passed:
-        message += f"; certificate failed on {', '.join(cert.failed)}"
+        message += f"; certificate failed on {cert.describe_failures()}"
     stats = dict(run.stats)
+    if cert is not None and "lower_solution" in cert.failed:
+        # report the bilevel-feasible point (x, y_ref): its y is the unique lower solution at x
+        method_F = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse).upper_objective
+        stats |= {"method_y": point.y.tolist(), "method_upper_objective": method_F}
+        point = replace(point, y=np.asarray(cert.lower_reference_y), lam=np.zeros_like(point.lam),
+                        mu=np.zeros_like(point.mu), Z=[np.zeros_like(z) for z in point.Z])
+        message += ("; y and the upper objective are reported at the re-solved lower solution (bilevel feasible), "
+                    "multipliers zeroed; the method's y is in stats['method_y']")
     proven = run.global_bound is not None and run.global_bound.proven  # a global proof needs no local probe
     if status in (Status.SOLVED, Status.INACCURATE) and not proven:
         F = objectives(prep.canon, point)[0]

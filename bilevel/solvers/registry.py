@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import time
+from numbers import Integral, Real
 from typing import Any, Callable
+
+import numpy as np
 
 from ..certificate import DEFAULT_TOL
 from ..errors import ModelError
@@ -37,6 +41,31 @@ def register_method(name: str, method: Method) -> None:
     METHODS[name.lower()] = method
 
 
+def check_common_options(options: dict[str, Any], certificate_tol: Any) -> None:
+    """Validate the options every method shares, once, before dispatch (ModelError naming the option)."""
+    def bad(name: str, value: Any, want: str) -> ModelError:
+        return ModelError(f"option {name}={value!r} is invalid: it must be {want}")
+
+    def integer(v: Any) -> bool:
+        return isinstance(v, Integral) and not isinstance(v, bool)
+
+    def positive_real(v: Any) -> bool:
+        return isinstance(v, Real) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+
+    if "starts" in options and not (integer(options["starts"]) and options["starts"] >= 1):
+        raise bad("starts", options["starts"], "an integer >= 1 (the number of multistart starts)")
+    if "max_iter" in options and not (integer(options["max_iter"]) and options["max_iter"] >= 0):
+        raise bad("max_iter", options["max_iter"], "an integer >= 0")
+    if "tol" in options and not positive_real(options["tol"]):
+        raise bad("tol", options["tol"], "a finite number > 0")
+    if not positive_real(certificate_tol):
+        raise bad("certificate_tol", certificate_tol, "a finite number > 0")
+    seed = options.get("seed")
+    if not (seed is None or isinstance(seed, (np.random.Generator, np.random.SeedSequence))
+            or (integer(seed) and seed >= 0)):
+        raise bad("seed", seed, "None, an integer >= 0, or a numpy Generator / SeedSequence")
+
+
 def solve(problem: BilevelProblem, method: str | Method = "ipopt", certificate_tol: float = DEFAULT_TOL,
           **options: Any) -> BilevelResult:
     """Solve a bilevel problem with a registered method name or a callable(prepared, **options) -> MethodRun."""
@@ -47,6 +76,7 @@ def solve(problem: BilevelProblem, method: str | Method = "ipopt", certificate_t
         if name not in METHODS:
             raise ModelError(f"unknown method {method!r}; registered methods: {', '.join(sorted(METHODS))}")
         fn = METHODS[name]
+    check_common_options(options, certificate_tol)
     t0 = time.perf_counter()
     prep: Prepared = prepare(problem)
     small = prep.canon.lower.n_y <= SMALL_LOWER  # dense algebra of lower-level size: one BLAS thread is faster
