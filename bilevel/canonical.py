@@ -173,8 +173,8 @@ class Canonicalize(Reduction):
             psd=[m.matrix for m in problem.lower_psd_constraints], g_rows=g_rows, h_rows=h_rows,
             psd_names=[m.name for m in problem.lower_psd_constraints], upper_sense=problem.upper_objective.sense,
             lower_sense=problem.lower_objective.sense, upper_vars=ups, lower_vars=lows, y_start=y_start,
-            G_names=G_names, x_suggested=suggested,
-            G_names=G_names, y_lb=y_lb, y_ub=y_ub, assume_convex=problem.lower_objective.assume_convex,
+            G_names=G_names, x_suggested=suggested, y_lb=y_lb, y_ub=y_ub,
+            assume_convex=problem.lower_objective.assume_convex,
         )
         return canon, canon
 

@@ -81,11 +81,11 @@ class Certificate:
     passed: bool
     failed: tuple[str, ...] = field(default_factory=tuple)
     note: str = ""
-    global_bound: GlobalBound | None = None
     worst: dict[str, str] = field(default_factory=dict)
     lower_unique: bool | None = None
     y_distance: float = 0.0
     upper_at_reference: float | None = None
+    global_bound: GlobalBound | None = None
 
     def describe_failures(self) -> str:
         """'check (row name), ...' for the failed checks."""

@@ -32,11 +32,27 @@ def _parse_value(text: str) -> object:
         return text
 
 
+VRFT_FLAGS = {"scenario": ("scenario", "B"), "eps_u": ("eps_u", 0.1), "eps_y": ("eps_y", 0.057),
+              "norm": ("norm", "l2"), "n": ("N", 512), "convention": ("convention", "paper")}
+"""vrft-* flags: argparse name -> (problem parameter, the structured attack's default)."""
+
+
+def _vrft_params(args: argparse.Namespace) -> dict[str, object]:
+    """The vrft-* flags the user gave, as problem parameters."""
+    return {param: getattr(args, flag) for flag, (param, _) in VRFT_FLAGS.items() if getattr(args, flag) is not None}
+
+
 def _cmd_attack(args: argparse.Namespace) -> int:
     from .attacks.vrft import attack_instance
     from .attacks.vrft_methods import ATTACKS, attack_budget_path
     from .experiments.vrft import EPS_Y
 
+    if args.param or args.option:
+        raise ModelError("the structured vrft attacks take --scenario/--eps-u/--eps-y/--norm/--n/--convention/"
+                         "--starts/--seed, not --param/--option; name a generic --method to use those")
+    for flag, (_, default) in VRFT_FLAGS.items():
+        if getattr(args, flag) is None:
+            setattr(args, flag, default)
     objective = args.problem.removeprefix("vrft-")
     atk = attack_instance(objective, args.scenario, args.eps_u, args.eps_y, args.seed, args.n, args.convention,
                           args.norm)
@@ -59,6 +75,11 @@ def _cmd_attack(args: argparse.Namespace) -> int:
         result.save(args.save, atk)
         written = args.save if args.save.endswith(".npz") else args.save + ".npz"  # np.savez appends .npz
         print(f"wrote {written} (clean data, attack signals, clean/poisoned theta, closed-loop poles)")
+    if args.json:
+        arrays = {k: getattr(result, k).tolist() for k in ("theta_clean", "theta_poisoned", "a_u", "a_y")}
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump({"problem": args.problem, **result.summary(), **arrays}, fh, indent=2)
+        print(f"wrote {args.json}")
     return 0
 
 
@@ -83,6 +104,13 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     args.starts = 8 if args.starts is None else args.starts
     params = _pairs(args.param, "--param")
     options = _pairs(args.option, "--option")
+    if "vrft" in registry.spec(args.problem).tags:
+        flags = _vrft_params(args)
+        if clash := sorted(set(flags) & set(params)):
+            raise ModelError(f"{', '.join(clash)} given both as a flag and as --param; give it once")
+        params = {"seed": args.seed, **flags, **params}
+    elif given := [f"--{flag.replace('_', '-')}" for flag in VRFT_FLAGS if getattr(args, flag) is not None]:
+        raise ModelError(f"{', '.join(given)} only apply to vrft-* problems; {args.problem} takes --param NAME=VALUE")
     problem = registry.get(args.problem, **params)
     result = solve(problem, method=args.method, **{"starts": args.starts, "seed": args.seed, **options})
     print(result)
@@ -173,12 +201,15 @@ def build_parser() -> argparse.ArgumentParser:
     p_solve.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="problem parameter")
     p_solve.add_argument("--option", action="append", default=[], metavar="NAME=VALUE", help="method option")
     p_solve.add_argument("--json", default=None, metavar="PATH", help="write the result as JSON")
-    p_solve.add_argument("--scenario", default="B", choices=["A", "B"], help="vrft-*: step (A) or white noise (B)")
-    p_solve.add_argument("--eps-u", type=float, default=0.1, help="vrft-*: relative budget on u")
-    p_solve.add_argument("--eps-y", type=float, default=0.057, help="vrft-*: relative budget on y")
-    p_solve.add_argument("--norm", default="l2", choices=["l2", "linf", "l1"], help="vrft-*: budget norm")
-    p_solve.add_argument("--n", type=int, default=512, help="vrft-*: number of samples")
-    p_solve.add_argument("--convention", default="paper", help="vrft-*: paper, prefiltered-drop, raw, raw-drop")
+    p_solve.add_argument("--scenario", default=None, choices=["A", "B"],
+                         help="vrft-*: step (A) or white noise (B, default)")
+    p_solve.add_argument("--eps-u", type=float, default=None, help="vrft-*: relative budget on u (default 0.1)")
+    p_solve.add_argument("--eps-y", type=float, default=None, help="vrft-*: relative budget on y (default 0.057)")
+    p_solve.add_argument("--norm", default=None, choices=["l2", "linf", "l1"], help="vrft-*: budget norm (default l2)")
+    p_solve.add_argument("--n", type=int, default=None,
+                         help="vrft-*: number of samples (default 512; 64 for a generic --method)")
+    p_solve.add_argument("--convention", default=None,
+                         help="vrft-*: paper (default), prefiltered-drop, raw, raw-drop")
     p_solve.add_argument("--path", action="store_true",
                          help="vrft-*: attack the paper's eps_y grid below --eps-y first, warm-starting each budget "
                               "from the last (as the reproduction does)")

@@ -10,7 +10,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from .certificate import Certificate
+from .certificate import Certificate, GlobalBound
 
 _CERT_FLOATS = ("stationarity", "lower_feasibility", "dual_feasibility", "complementarity", "upper_feasibility",
                 "lower_gap", "lower_reference", "tolerance", "y_distance")
@@ -105,8 +105,12 @@ class BilevelResult:
         if cert is not None:
             names = {f.name for f in fields(Certificate)}
             cert = {k: v for k, v in cert.items() if k in names}
+            bound = cert.get("global_bound")
             cert = Certificate(**{**cert, **{k: num(cert[k]) for k in _CERT_FLOATS if k in cert},
                                   "failed": tuple(cert.get("failed", ())),
+                                  "global_bound": None if bound is None else GlobalBound(**{
+                                      **bound, **{k: num(bound[k]) for k in ("lower_bound", "upper_bound", "gap")},
+                                      "big_m": tuple(bound.get("big_m", ()))}),
                                   "lower_reference_y": [num(v) for v in cert.get("lower_reference_y", [])]})
         return cls(Status(d["status"]), d["message"], d["method"], d["problem"], arrays(d.get("x")),
                    arrays(d.get("y")), arrays(d.get("multipliers")),

@@ -9,8 +9,12 @@ strictly active rows are kept and the system is solved in the least-squares (min
 then not differentiable there and the result is one element of a generalized derivative. The gradient
 is computed by the adjoint: grad phi = grad_x phi - R' z with K' z = (grad_y phi, 0), K the KKT matrix
 and R its x-derivative, which equals grad_x phi + (dy/dx)' grad_y phi without forming dy/dx.
+A lower level with LMIs is polished and differentiated through its conic KKT system instead (stationarity,
+lam * g, h and vech((M_k Z_k + Z_k M_k) / 2), bilevel.lower.sdp.ConicKKT: the same code as the Willems
+attacks); it needs a unique, strictly complementary lower solution (e.g. a strictly convex objective).
+Upper constraints recognized as balls (bilevel.solvers.structure) are projected on, not penalized.
 
-Upper constraints other than the box are handled by an exact penalty: phi = F + penalty *
+Upper constraints other than the box and the balls are handled by an exact penalty: phi = F + penalty *
 (sum max(G, 0) + sum |H|), exact once the penalty exceeds the upper multipliers (default 1e4); where
 some |G_i| or |H_j| <= 1e-9 the least-norm subgradient of the penalty is used. A point is reported
 feasible when max(G, 0) and |H| are <= 1e-6. The iteration is x+ = P(x - t grad phi), P the projection
@@ -79,9 +83,6 @@ class Hypergradient:
                  projected_rows: tuple[int, ...] = ()) -> None:
         canon = prep.canon
         low = canon.lower
-        if low.psd:
-            raise ModelError("the hypergradient method differentiates scalar KKT systems only; a lower level "
-                             "with LMIs needs method='ipopt' or 'relaxation'")
         if not penalty >= 0:
             raise ModelError(f"penalty must be >= 0, got {penalty}")
         self.low, self.penalty, self.active_tol = low, float(penalty), float(active_tol)
@@ -93,6 +94,9 @@ class Hypergradient:
                                                     ca.jacobian(H, y)])
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
         self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
+        self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
+        if self.conic:
+            return
         kkt = low.kkt()
         S = kkt.stationarity
         self._kkt = ca.Function("kkt", [low.x, low.y, kkt.lam, kkt.mu],
@@ -159,7 +163,10 @@ class Hypergradient:
     def evaluate(self, x: np.ndarray) -> Evaluation:
         """Solve (and polish) the lower level at x and evaluate phi there; raises if the lower solve fails."""
         x = self.low.check_point(x)
-        sol, vals = self._polish(x, self.low.solve(x))
+        if self.conic:
+            sol, vals = self.low.newton_polish(x, self.low.solve(x))[0], []
+        else:
+            sol, vals = self._polish(x, self.low.solve(x))
         upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
         phi = F + self.penalty * (float(np.maximum(G, 0.0).sum()) + float(np.abs(H).sum()))
@@ -172,8 +179,11 @@ class Hypergradient:
         Where some |G_i| or |H_j| <= KINK_TOL the penalty is not differentiable: the least-norm element of
         its subdifferential (coefficients in [0, penalty] or [-penalty, penalty]) is returned.
         """
-        rows, weak = self.active_set(ev.kkt[1], ev.lower.lam)
-        K, R = self._system(ev.kkt, rows), self._x_derivative(ev.x, ev.lower, rows)
+        if self.conic:
+            (K, R), weak, rows = self.low.jacobians(ev.x, ev.lower), False, np.flatnonzero(ev.lower.lam > 0)
+        else:
+            rows, weak = self.active_set(ev.kkt[1], ev.lower.lam)
+            K, R = self._system(ev.kkt, rows), self._x_derivative(ev.x, ev.lower, rows)
         _, G, H, gxF, gyF, Gx, Gy, Hx, Hy = ev.upper
         rhs = np.vstack([np.hstack([gyF, Gy.T, Hy.T]), np.zeros((K.shape[0] - gyF.size, 1 + G.size + H.size))])
         Z, _, rank, _ = np.linalg.lstsq(K.T, rhs, rcond=None)

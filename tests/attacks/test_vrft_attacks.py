@@ -144,12 +144,20 @@ def test_destabilizing_attack_destabilizes_true_loop() -> None:
 
 
 def test_kkt_formulation_certificate_passes() -> None:
-    """Method 2: the joint single-level reduction of vrft-maxmin solved by IPOPT, certified."""
+    """Method 2: the joint single-level reduction of vrft-maxmin solved by IPOPT, certified, and honest: IPOPT
+    (limited-memory Hessian) ends at J = 0.03214 near the clean data, a stationary point the local probe rejects
+    (block-exact reaches 0.1356 on the same instance), so the status may not be `solved` there."""
     p = registry.get("vrft-maxmin", N=48, seed=1)
     res = bl.solve(p, method="ipopt", starts=2, scale=0.01, polish=False,
                    ipopt={"hessian_approximation": "limited-memory", "max_iter": 500})
-    assert res.status is bl.Status.SOLVED and res.certificate.passed
+    assert res.certificate.passed
     assert np.linalg.norm(res.x["a_u"]) <= attack_instance("maxmin", N=48, seed=1).delta_u * (1 + 1e-6)
+    best = bl.solve(p, method="block-exact", starts=2)
+    assert best.success
+    if res.status is bl.Status.SOLVED:
+        assert res.upper_objective >= 0.99 * best.upper_objective
+    else:
+        assert res.status is bl.Status.NOT_LOCALLY_OPTIMAL and best.upper_objective > res.upper_objective * 1.01
 
 
 @pytest.mark.slow
