@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import ClassVar
 
 import casadi as ca
@@ -70,6 +71,11 @@ class LowerLevel(ABC):
                                    [ca.gradient(self.f, self.y), ca.jacobian(self.g, self.y),
                                     ca.jacobian(self.h, self.y), *jac_psd])
         self._hess = ca.Function("lower_hess", [self.x, self.y], [ca.hessian(self.f, self.y)[0]])
+
+    @cached_property
+    def fixed(self) -> bool:
+        """True when f, g, h and the LMIs do not depend on x: y*(x) is then one point, solved once."""
+        return not ca.depends_on(ca.vertcat(self.f, self.g, self.h, *[ca.vec(m) for m in self.psd]), self.x)
 
     @property
     def n_x(self) -> int:

@@ -94,6 +94,8 @@ class Hypergradient:
                                                     ca.jacobian(H, y)])
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
         self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
+        self.lower_fixed = low.fixed  # y* constant in x: solve once, no adjoint
+        self._fixed: tuple[LowerSolution, list[np.ndarray]] | None = None
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
         if self.conic:
             return
@@ -163,10 +165,14 @@ class Hypergradient:
     def evaluate(self, x: np.ndarray) -> Evaluation:
         """Solve (and polish) the lower level at x and evaluate phi there; raises if the lower solve fails."""
         x = self.low.check_point(x)
-        if self.conic:
+        if self._fixed is not None:
+            sol, vals = self._fixed
+        elif self.conic:
             sol, vals = self.low.newton_polish(x, self.low.solve(x))[0], []
         else:
             sol, vals = self._polish(x, self.low.solve(x))
+        if self.lower_fixed:
+            self._fixed = (sol, vals)
         upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
         phi = F + self.penalty * (float(np.maximum(G, 0.0).sum()) + float(np.abs(H).sum()))
@@ -179,15 +185,18 @@ class Hypergradient:
         Where some |G_i| or |H_j| <= KINK_TOL the penalty is not differentiable: the least-norm element of
         its subdifferential (coefficients in [0, penalty] or [-penalty, penalty]) is returned.
         """
-        if self.conic:
-            (K, R), weak, rows = self.low.jacobians(ev.x, ev.lower), False, np.flatnonzero(ev.lower.lam > 0)
-        else:
-            rows, weak = self.active_set(ev.kkt[1], ev.lower.lam)
-            K, R = self._system(ev.kkt, rows), self._x_derivative(ev.x, ev.lower, rows)
         _, G, H, gxF, gyF, Gx, Gy, Hx, Hy = ev.upper
-        rhs = np.vstack([np.hstack([gyF, Gy.T, Hy.T]), np.zeros((K.shape[0] - gyF.size, 1 + G.size + H.size))])
-        Z, _, rank, _ = np.linalg.lstsq(K.T, rhs, rcond=None)
-        total = np.hstack([gxF, Gx.T, Hx.T]) - R.T @ Z  # columns: d/dx of F, G_i, H_j along y*(x)
+        total = np.hstack([gxF, Gx.T, Hx.T])  # columns: d/dx of F, G_i, H_j along y*(x)
+        weak, rows, rank, size = False, np.zeros(0, dtype=int), 0, 0
+        if not self.lower_fixed:  # dy*/dx = 0 otherwise
+            if self.conic:
+                (K, R), rows = self.low.jacobians(ev.x, ev.lower), np.flatnonzero(ev.lower.lam > 0)
+            else:
+                rows, weak = self.active_set(ev.kkt[1], ev.lower.lam)
+                K, R = self._system(ev.kkt, rows), self._x_derivative(ev.x, ev.lower, rows)
+            rhs = np.vstack([np.hstack([gyF, Gy.T, Hy.T]), np.zeros((K.shape[0] - gyF.size, 1 + G.size + H.size))])
+            Z, _, rank, _ = np.linalg.lstsq(K.T, rhs, rcond=None)
+            total, size = total - R.T @ Z, K.shape[0]
         values = np.concatenate([G, H]).ravel()
         kink = np.abs(values) <= KINK_TOL
         coef = self.penalty * np.concatenate([(G.ravel() > 0).astype(float), np.sign(H.ravel())])
@@ -196,7 +205,7 @@ class Hypergradient:
             lo = np.where(np.arange(values.size) < G.size, 0.0, -self.penalty)[kink]
             t = lsq_linear(total[:, 1:][:, kink], -grad, bounds=(lo, np.full(lo.size, self.penalty))).x
             grad = grad + total[:, 1:][:, kink] @ t
-        return grad, bool(weak or rank < K.shape[0]), int(rows.size)
+        return grad, bool(weak or rank < size), int(rows.size)
 
     def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray, LowerSolution]:
         """(phi(x), grad phi(x), lower solution at x)."""

@@ -43,8 +43,13 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
                         seed: int = 0) -> Probe | None:
     """The best neighbour of x in `projection`'s set, upper-feasible, with upper objective
     < objective - REL_TOL max(1, |objective|); None if the probe finds none."""
-    baseline = _feasible_objective(prep, x)  # the same lower solver as at the probes: a non-unique lower
-    if baseline is None:                       # solution must not pass for a better upper point
+    low = prep.canon.lower
+    try:  # the same lower solver as at the probes: a non-unique lower solution must not pass for a better point
+        fixed_y = low.solve(x).y if low.fixed else None  # a lower level that ignores x is solved once
+    except BilevelError:
+        return None
+    baseline = _feasible_objective(prep, x, fixed_y)
+    if baseline is None:
         return None
     reference = min(objective, baseline)
     threshold = reference - REL_TOL * max(1.0, abs(reference))
@@ -56,16 +61,17 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
         d /= max(float(np.linalg.norm(d / scale)), 1e-300)
         for h in RADII:
             xp = projection(x + h * d)
-            F = _feasible_objective(prep, xp)
+            F = _feasible_objective(prep, xp, fixed_y)
             if F is not None and F < threshold and (best is None or F < best.objective):
                 best = Probe(xp, F, h)
     return best
 
 
-def _feasible_objective(prep: "Prepared", x: np.ndarray) -> float | None:
-    """F(x, y) with y from the lower level's own solver, or None if that fails or (x, y) is upper-infeasible."""
+def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = None) -> float | None:
+    """F(x, y), y from the lower level's own solver unless given; None if that fails or (x, y) is
+    upper-infeasible."""
     try:
-        y = prep.canon.lower.solve(x).y
+        y = prep.canon.lower.solve(x).y if y is None else y
     except BilevelError:
         return None
     F, G, H, _ = (np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, y))

@@ -1,4 +1,4 @@
-"""The generic route against the structured VRFT attack on the paper's instances (issue "One engine").
+"""The generic route against the structured attacks on the paper's instances (issue "One engine").
 
 For scenario B, N = 512, eps = (0.1, 0.057), each seed: the structured alternating attack
 (bilevel.attacks.vrft_methods), then the registered vrft-maxmin problem declared once and solved by the
@@ -6,7 +6,11 @@ generic methods `hypergradient` and `block-exact` with one start (the problem's 
 start). Times: declaration (building the CasADi expressions), and `solve` (canonicalization,
 classification, method, certificate and local probe). Objectives are ratios to the structured attack's.
 `--kkt S` also runs `ipopt` and `relaxation` (one start) on the first S seeds.
-Run: python benchmarks/bench_generic_vrft.py [seeds] [--kkt S]
+Willems (appendix B, N = 15, input poisoning, lqr design): the Willems hypergradient attack (8 starts, no stop at
+instability) against `bilevel.solve(..., method="hypergradient", starts=8)` on the same problem, for the eigenvalue
+criterion at delta_u = 0.6 and the max-min criterion at delta_u = 0.1 (where the loops stay stable: the attack's
++inf convention for an unstable identified loop has no counterpart in the declared H2 cost).
+Run: python benchmarks/bench_generic.py [seeds] [--kkt S] [--willems W]
 """
 
 from __future__ import annotations
@@ -19,15 +23,37 @@ from datetime import datetime, timezone
 
 import numpy as np
 
+import bilevel as bl
 from bilevel.attacks.vrft import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating
+from bilevel.attacks.willems import hypergradient_attack
 from bilevel.problems.vrft import attack_problem
+from bilevel.problems.willems import build_attack
 
 GENERIC = ("hypergradient", "block-exact")
 
 
-def main(seeds: int = 40, kkt: int = 0) -> None:
-    print(f"# bench_generic_vrft  {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC  {platform.node()}  "
+def willems(seeds: int) -> None:
+    """Generic hypergradient vs the Willems attack: time ratio and criterion difference, per criterion/selection."""
+    for objective, delta in (("eigen", 0.6), ("maxmin", 0.1)):
+        for selection in ("tikhonov", "min-norm"):
+            ratios, diffs, solved = [], [], 0
+            for seed in range(seeds):
+                attack = build_attack(objective=objective, horizon=15, seed=seed, delta_u=delta, selection=selection)
+                ours = hypergradient_attack(attack, seed=seed, starts=8, stop_when_unstable=False)
+                t = time.perf_counter()
+                res = bl.solve(attack.problem, method="hypergradient", starts=8, seed=seed)
+                ratios.append((time.perf_counter() - t) / ours.wall_time)
+                diffs.append(abs(res.upper_objective - ours.objective) / max(1.0, abs(ours.objective)))
+                solved += res.status.value == "solved"
+            print(f"willems-{objective} N = 15, delta_u = {delta}, {selection:8s} learner, {seeds} seeds: generic / "
+                  f"attack time median {np.median(ratios):.2f}x (max {np.max(ratios):.2f}x); criterion difference "
+                  f"median {np.median(diffs):.1e}, max {np.max(diffs):.1e} (relative); solved {solved}/{seeds}",
+                  flush=True)
+
+
+def main(seeds: int = 40, kkt: int = 0, willems_seeds: int = 0) -> None:
+    print(f"# bench_generic  {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC  {platform.node()}  "
           f"{platform.processor() or platform.machine()}  cores={os.cpu_count()}  python {platform.python_version()}")
     rows = {m: [] for m in ("structured", "declare", *GENERIC, "ipopt", "relaxation")}
     for seed in range(seeds):
@@ -61,10 +87,13 @@ def main(seeds: int = 40, kkt: int = 0) -> None:
               f"J >= 0.98 J_s on {100 * np.mean(ratio >= 0.98):.0f}%, >= 0.95 J_s on {100 * np.mean(ratio >= 0.95):.0f}%,"
               f" >= J_s (1e-6) on {100 * np.mean(ratio >= 1 - 1e-6):.0f}% of {t.size}; min ratio {np.nanmin(ratio):.4f};"
               f" status solved {solved}/{t.size}")
+    if willems_seeds:
+        print()
+        willems(willems_seeds)
 
 
 if __name__ == "__main__":
     args = sys.argv[1:]
-    kkt = int(args[args.index("--kkt") + 1]) if "--kkt" in args else 0
-    pos = [a for i, a in enumerate(args) if a != "--kkt" and (i == 0 or args[i - 1] != "--kkt")]
-    main(int(pos[0]) if pos else 40, kkt)
+    flags = {f: int(args[args.index(f) + 1]) if f in args else 0 for f in ("--kkt", "--willems")}
+    pos = [a for i, a in enumerate(args) if not a.startswith("--") and (i == 0 or not args[i - 1].startswith("--"))]
+    main(int(pos[0]) if pos else 40, flags["--kkt"], flags["--willems"])
