@@ -84,8 +84,9 @@ def main(seeds: int = 40, kkt: int = 0, willems_seeds: int = 0) -> None:
         solved = sum(r[2] == "solved" for r in rows[m])
         print(f"  {m:13s}: median solve {np.median(t):.2f} s = {np.median(t) / t_ref:.0f}x the structured attack "
               f"(with declaration {np.median(t + [r[0] for r in rows['declare'][:t.size]]) / t_ref:.0f}x); "
-              f"J >= 0.98 J_s on {100 * np.mean(ratio >= 0.98):.0f}%, >= 0.95 J_s on {100 * np.mean(ratio >= 0.95):.0f}%,"
-              f" >= J_s (1e-6) on {100 * np.mean(ratio >= 1 - 1e-6):.0f}% of {t.size}; min ratio {np.nanmin(ratio):.4f};"
+              f"J >= 0.98 J_s on {100 * np.mean(ratio >= 0.98):.0f}%, >= 0.95 J_s on "
+              f"{100 * np.mean(ratio >= 0.95):.0f}%, >= J_s (1e-6) on {100 * np.mean(ratio >= 1 - 1e-6):.0f}% of "
+              f"{t.size}; min ratio {np.nanmin(ratio):.4f};"
               f" status solved {solved}/{t.size}")
     if willems_seeds:
         print()

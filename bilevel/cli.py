@@ -159,11 +159,16 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
     problems = args.problems.split(",") if args.problems else registry.names("textbook")
     methods = args.methods.split(",") if args.methods else sorted(METHODS)
+    params = _pairs(args.param, "--param")
+    for name in problems:
+        registry.spec(name)  # an unknown name fails here, before any work
+    if unused := sorted(k for k in params if not any(k in registry.spec(n).defaults for n in problems)):
+        raise ModelError(f"--param {', '.join(unused)}: no selected problem has such a parameter")
 
     def work() -> None:
         rows = compare(problems, methods, os.path.join(args.out, "compare.csv"), starts=args.starts, seed=args.seed,
-                       workers=args.workers, dask=args.dask)
-        table = markdown_table(rows)
+                       workers=args.workers, dask=args.dask, params=params)
+        table = markdown_table(rows, params)
         with open(os.path.join(args.out, "compare.md"), "w", encoding="utf-8") as fh:
             fh.write(table)
         print(table)
@@ -219,6 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_cmp.add_argument("--problems", default="", help="comma-separated names (default: all textbook problems)")
     p_cmp.add_argument("--methods", default="", help="comma-separated methods (default: all registered)")
     p_cmp.add_argument("--starts", type=int, default=8)
+    p_cmp.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                       help="problem parameter, for every selected problem that has it (e.g. N=512)")
     p_cmp.add_argument("--seed", type=int, default=0)
     p_cmp.add_argument("--out", default="out/compare", help="output directory")
     p_cmp.add_argument("--workers", type=int, default=None, help="local processes (default: all cores)")

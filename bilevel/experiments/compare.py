@@ -84,9 +84,9 @@ def not_applicable(name: str, method: str, starts: int, seed: int) -> CompareRow
 def compare_task(task: dict[str, Any]) -> dict[str, Any]:
     """One (problem, method) run described by a sweep task; the CompareRow's fields (not_applicable when the
     method rejects the problem as outside its scope)."""
+    problem = registry.get(task["problem"], **task["params"])
     try:
-        result = solve(registry.get(task["problem"]), method=task["method"], starts=task["starts"],
-                       seed=task["seed"], **task["options"])
+        result = solve(problem, method=task["method"], starts=task["starts"], seed=task["seed"], **task["options"])
     except ModelError:
         return asdict(not_applicable(task["problem"], task["method"], task["starts"], task["seed"]))
     return asdict(row_of(task["problem"], task["method"], result, task["starts"], task["seed"]))
@@ -95,9 +95,11 @@ def compare_task(task: dict[str, Any]) -> dict[str, Any]:
 def compare(problems: Sequence[str], methods: Sequence[str], csv_path: str, starts: int = 8, seed: int = 0,
             method_options: dict[str, dict[str, Any]] | None = None,
             progress: Callable[[str], None] | None = stderr_progress, workers: int | None = None,
-            dask: str | None = None) -> list[CompareRow]:
-    """Run every method on every problem (resumable rows in csv_path's .jsonl), then write csv_path."""
-    tasks = [{"key": f"{name}/{method}", "problem": name, "method": method,
+            dask: str | None = None, params: dict[str, Any] | None = None) -> list[CompareRow]:
+    """Run every method on every problem (resumable rows in csv_path's .jsonl), then write csv_path; `params`
+    override the defaults of each problem that has them."""
+    own = lambda name: {k: v for k, v in (params or {}).items() if k in registry.spec(name).defaults}  # noqa: E731
+    tasks = [{"key": f"{name}/{method}", "problem": name, "method": method, "params": own(name),
               "options": dict((method_options or {}).get(method, {})), "starts": starts, "seed": seed}
              for name in problems for method in methods]
     with open_executor(workers, dask) as executor:
@@ -112,8 +114,8 @@ def compare(problems: Sequence[str], methods: Sequence[str], csv_path: str, star
     return out
 
 
-def markdown_table(rows: Sequence[CompareRow]) -> str:
-    """The comparison as a Markdown table plus a per-method summary line."""
+def markdown_table(rows: Sequence[CompareRow], params: dict[str, Any] | None = None) -> str:
+    """The comparison as a Markdown table plus a per-method summary line (`params`: the problem parameters used)."""
     lines = ["| problem | method | status | F | known F* | rel. gap | certified | max residual | time (s) |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -122,7 +124,8 @@ def markdown_table(rows: Sequence[CompareRow]) -> str:
         lines.append(f"| {r.problem} | {r.method} | {r.status} | {r.objective:.6g} | {r.known_optimum:.6g} | "
                      f"{r.relative_gap:.1e} | {'yes' if r.certified else 'no'} | {resid:.1e} | {r.wall_time:.3f} |")
     lines += ["", "Settings read from the rows: starts " + ", ".join(map(str, sorted({r.starts for r in rows})))
-              + "; seed " + ", ".join(map(str, sorted({r.seed for r in rows}))) + ".", ""]
+              + "; seed " + ", ".join(map(str, sorted({r.seed for r in rows})))
+              + "".join(f"; {k} = {v}" for k, v in (params or {}).items()) + ".", ""]
     for method in dict.fromkeys(r.method for r in rows):
         mine = [r for r in rows if r.method == method and r.status != NOT_APPLICABLE]
         skipped = sum(1 for r in rows if r.method == method and r.status == NOT_APPLICABLE)

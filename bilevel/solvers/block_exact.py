@@ -22,6 +22,7 @@ import scipy.linalg as sla
 
 from ..canonical import CanonicalBilevel
 from ..errors import BilevelError, ModelError
+from ..lower.least_squares import LeastSquaresLower
 from ..reduction import KKTPoint
 from ..result import Status
 from .ascent import projected_ascent
@@ -40,7 +41,7 @@ class ExactBlock:
     jac_q: ca.Function
     upper_y: ca.Function
 
-    def solve(self, low: Any, x: np.ndarray) -> np.ndarray:
+    def solve(self, low: LeastSquaresLower, x: np.ndarray) -> np.ndarray:
         """x with its block replaced by the global minimizer of F(x, y*(x)) over the ball (other entries fixed)."""
         b = self.ball
         x = np.array(x, dtype=float)
@@ -98,8 +99,10 @@ def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
     if exact is None:
         raise ModelError("method 'block-exact' needs a block of upper variables on which the reduced objective is "
                          f"a ball-constrained quadratic: {'; '.join(why)}; use method='hypergradient'")
-    starts, tol, max_iter = int(options.get("starts", 4)), float(options.get("tol", 1e-5)), int(options.get("max_iter", 100))
-    oracle = Hypergradient(prep, float(options.get("penalty", DEFAULT_PENALTY)), projected_rows=tuple(b.row for b in prep.balls))
+    starts, tol = int(options.get("starts", 4)), float(options.get("tol", 1e-5))
+    max_iter = int(options.get("max_iter", 100))
+    oracle = Hypergradient(prep, float(options.get("penalty", DEFAULT_PENALTY)),
+                           projected_rows=tuple(b.row for b in prep.balls))
     low, S = prep.canon.lower, exact.ball.block
     rest = np.ones(int(prep.canon.x.numel()), dtype=bool)
     rest[S] = False

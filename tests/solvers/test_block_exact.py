@@ -39,7 +39,8 @@ def test_balls_are_read_from_squared_norm_constraints() -> None:
 def _ridge(radius: float = 0.7) -> tuple[bl.BilevelProblem, np.ndarray, np.ndarray]:
     """max ||y*(u) - y0||^2 over ||u|| <= r with y*(u) = (A'A + I)^{-1} A'(b + B u): a convex maximization."""
     rng = np.random.default_rng(3)
-    A, B, b, y0 = rng.standard_normal((6, 3)), rng.standard_normal((6, 2)), rng.standard_normal(6), rng.standard_normal(3)
+    A, B = rng.standard_normal((6, 3)), rng.standard_normal((6, 2))
+    b, y0 = rng.standard_normal(6), rng.standard_normal(3)
     p = bl.BilevelProblem("ridge-ball")
     u = p.upper_variable("u", 2)
     y = p.lower_variable("y", 3)
