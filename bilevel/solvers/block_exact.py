@@ -100,7 +100,7 @@ def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
         raise ModelError("method 'block-exact' needs a block of upper variables on which the reduced objective is "
                          f"a ball-constrained quadratic: {'; '.join(why)}; use method='hypergradient'")
     starts, tol = int(options.get("starts", 4)), float(options.get("tol", 1e-5))
-    max_iter = int(options.get("max_iter", 100))
+    max_iter = int(options.get("max_iter", 500))
     oracle = Hypergradient(prep, float(options.get("penalty", DEFAULT_PENALTY)),
                            projected_rows=tuple(b.row for b in prep.balls))
     low, S = prep.canon.lower, exact.ball.block
