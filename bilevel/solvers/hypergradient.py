@@ -346,7 +346,7 @@ def _projection(prep: Prepared, projection: Any) -> Projection:
 
 def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     """Multistart projected hypergradient descent (options: starts, seed, scale, projection, penalty, tol,
-    ftol, max_iter, active_tol, verbose); upper constraints enter through an exact penalty."""
+    ftol, max_iter, active_tol, verbose); recognized balls are projected on, other upper constraints penalized."""
     check_options("hypergradient", options, {"starts", "seed", "scale", "projection", "penalty", "tol", "ftol",
                                              "max_iter", "active_tol", "verbose"})
     starts, penalty = int(options.get("starts", 4)), float(options.get("penalty", DEFAULT_PENALTY))
