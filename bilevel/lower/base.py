@@ -62,15 +62,19 @@ class LowerLevel(ABC):
     g_names: list[str]
     h_names: list[str]
     psd_names: list[str]
+    hess_f: ca.SX | None = field(default=None, repr=False)
+    """d^2 f / dy^2, symbolic; computed here unless the classification already did (one AD pass on f)."""
     kind: ClassVar[str] = "nlp"
 
     def __post_init__(self) -> None:
+        if self.hess_f is None:
+            self.hess_f = ca.hessian(self.f, self.y)[0]
         self._eval = ca.Function("lower_eval", [self.x, self.y], [self.f, self.g, self.h, *self.psd])
         jac_psd = [ca.jacobian(ca.vec(m), self.y) for m in self.psd]
         self._derivs = ca.Function("lower_derivs", [self.x, self.y],
                                    [ca.gradient(self.f, self.y), ca.jacobian(self.g, self.y),
                                     ca.jacobian(self.h, self.y), *jac_psd])
-        self._hess = ca.Function("lower_hess", [self.x, self.y], [ca.hessian(self.f, self.y)[0]])
+        self._hess = ca.Function("lower_hess", [self.x, self.y], [self.hess_f])
 
     @cached_property
     def fixed(self) -> bool:

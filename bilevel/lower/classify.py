@@ -78,19 +78,19 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
             raise ModelError("a lower level with LMIs must have a linear or convex quadratic objective and affine "
                              "scalar constraints in y (a conic program)")
         _check_psd(ca.Function("hf", [x, y], [hess_f]), points, "the lower objective")
-        return SemidefiniteLower(*args)
+        return SemidefiniteLower(*args, hess_f=hess_f)
     if affine_g and not ca.depends_on(hess_f, y):
         if not nonlinear_f.any():
-            return LinearLower(*args)
+            return LinearLower(*args, hess_f=hess_f)
         worst = _check_psd(ca.Function("hf", [x, y], [hess_f]), points, "the lower objective")
         if not g.numel() and not h.numel() and worst > _PSD_TOL:
-            return LeastSquaresLower(*args)
-        return QuadraticLower(*args)
+            return LeastSquaresLower(*args, hess_f=hess_f)
+        return QuadraticLower(*args, hess_f=hess_f)
     if assume_convex:  # a Hessian that varies with y: convexity is the user's claim, checked by the certificate
-        return ConvexNLPLower(*args)
+        return ConvexNLPLower(*args, hess_f=hess_f)
     _check_psd(ca.Function("hf", [x, y], [hess_f]), points, "the lower objective")
     for i in range(int(g.numel())):
         if ca.depends_on(ca.jacobian(g[i], y), y):
             _check_psd(ca.Function("hg", [x, y], [ca.hessian(g[i], y)[0]]), points,
                        f"lower constraint {g_names[i]!r}")
-    return ConvexNLPLower(*args)
+    return ConvexNLPLower(*args, hess_f=hess_f)

@@ -93,7 +93,7 @@ class QuadraticLower(LowerLevel):
         super().__post_init__()
         zero = ca.DM.zeros(self.n_y)
         grad = ca.gradient(self.f, self.y)
-        outs = [ca.hessian(self.f, self.y)[0], grad, self.f, ca.jacobian(self.g, self.y), self.g,
+        outs = [self.hess_f, grad, self.f, ca.jacobian(self.g, self.y), self.g,
                 ca.jacobian(self.h, self.y), self.h]
         outs = [ca.substitute(o, self.y, zero) for o in outs]
         self._coeffs = ca.Function("qp_coeffs", [self.x], outs)

@@ -69,7 +69,7 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
     if ca.depends_on(hess_F, y):
         return None, ["the upper objective is not quadratic in the lower variables"]
     q = ca.substitute(ca.gradient(low.f, y), y, ca.DM.zeros(int(y.numel())))
-    in_P = depends(ca.hessian(low.f, y)[0], x)
+    in_P = depends(low.hess_f, x)
     in_F = depends(canon.F, x)
     why: list[str] = []
     best: Ball | None = None
