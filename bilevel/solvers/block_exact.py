@@ -145,7 +145,7 @@ def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
     fx, ev, converged, history, k = best
     w = prep.pack(KKTPoint(ev.x, ev.lower.y, ev.lower.lam, ev.lower.mu, ev.lower.Z))
     g = oracle.gradient(ev)[0][rest]
-    pg = float(np.linalg.norm((project(ev.x[rest] - g * scale ** 2) - ev.x[rest]) / scale))
+    pg = float(np.linalg.norm(project(ev.x[rest] - g) - ev.x[rest]))  # ||P(x - grad phi) - x||, as hypergradient
     status = Status.SOLVED if converged else Status.MAX_ITERATIONS
     return MethodRun(w, status, f"best of {starts} starts: start {k} ({'converged' if converged else 'max_iter'})",
                      nit, history, records, {"best_start": k, "exact_block": [S.start, S.stop],

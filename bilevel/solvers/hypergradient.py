@@ -383,5 +383,6 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     i = best_of(candidates)
     k, best = runs[i]
     return MethodRun(candidates[i][0], best.status, f"best of {starts} starts: start {k} ({best.message})", nit,
-                     best.history, records, {"best_start": k, "penalty": penalty},
+                     best.history, records, {"best_start": k, "penalty": penalty,
+                                             "projected_gradient_norm": best.history[-1]["projected_step_norm"]},
                      feasible_set=None if options.get("projection") is None else arc.project)

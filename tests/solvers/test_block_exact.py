@@ -105,6 +105,7 @@ def test_vrft_declared_from_scratch_matches_the_registered_problem(seed: int) ->
     assert mine.success and registered.success and mine.certificate.passed
     assert mine.upper_objective == pytest.approx(registered.upper_objective, rel=1e-6)
     assert mine.upper_objective >= structured * (1 - 1e-6)  # and the structured attack's value
+    assert mine.stats["projected_gradient_norm"] <= 1e-3 * np.sqrt(2 * 64)  # stationary to the method's tolerance
 
 
 def test_clean_data_is_never_a_solved_attack() -> None:
