@@ -18,6 +18,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ..certificate import DEFAULT_TOL
 from ..errors import ModelError
 from ..solvers.ascent import budget_direction, projected_ascent
 from ..threads import single_threaded
@@ -48,6 +49,15 @@ class AttackResult:
     iterations: int
     evaluations: int
     history: list[dict[str, float]] = field(default_factory=list)
+    learner_stationarity: float = float("nan")
+    """Certificate: max |Phi'(t - Phi theta)| at the poisoned data over (1 + |Phi|_F |t|) (the learner's KKT)."""
+    refit_distance: float = float("nan")
+    """Certificate: |theta - theta_ref| / max(1, |theta|), theta_ref an independent SVD least-squares refit."""
+
+    @property
+    def certified(self) -> bool:
+        """The poisoned theta is the learner's answer to the poisoned data (both checks <= DEFAULT_TOL)."""
+        return self.learner_stationarity <= DEFAULT_TOL and self.refit_distance <= DEFAULT_TOL
 
     @property
     def unstable(self) -> bool:
@@ -57,7 +67,7 @@ class AttackResult:
     def summary(self) -> dict[str, Any]:
         """Scalars only (for CSV rows and printing)."""
         return {k: v for k, v in asdict(self).items() if not isinstance(v, (np.ndarray, list))} | {
-            "unstable": self.unstable}
+            "unstable": self.unstable, "certified": self.certified}
 
     def save(self, path: str, atk: VRFTAttack) -> None:
         """Write clean data, attack signals, clean/poisoned theta and closed-loop poles to an .npz file."""
@@ -71,12 +81,17 @@ class AttackResult:
 
 def _result(atk: VRFTAttack, method: str, status: str, s: State, t0: float, iterations: int, evaluations: int,
             history: list[dict[str, float]]) -> AttackResult:
+    wall_time = time.perf_counter() - t0
     loop = atk.setting.loop
     r = atk.t0 - atk.phi0 @ s.theta
+    stationarity = float(np.abs(s.phi.T @ (s.target - s.phi @ s.theta)).max()
+                         / (1.0 + np.linalg.norm(s.phi) * np.linalg.norm(s.target)))
+    refit = np.linalg.lstsq(s.phi, s.target, rcond=None)[0]  # SVD: independent of the attack's QR path
+    distance = float(np.linalg.norm(s.theta - refit) / max(1.0, float(np.linalg.norm(s.theta))))
     return AttackResult(method, atk.objective, status, s.a_u, s.a_y, atk.theta0, s.theta, atk.value(s.theta),
                         atk.value(atk.theta0), float(r @ r / atk.n), loop.spectral_radius(s.theta),
-                        loop.spectral_radius(atk.theta0), atk.delta_u, atk.delta_y, time.perf_counter() - t0,
-                        iterations, evaluations, history)
+                        loop.spectral_radius(atk.theta0), atk.delta_u, atk.delta_y, wall_time,
+                        iterations, evaluations, history, stationarity, distance)
 
 
 def input_step(atk: VRFTAttack, a_y: np.ndarray, a_u0: np.ndarray | None = None, iters: int = 30) -> tuple[np.ndarray, State]:

@@ -207,3 +207,20 @@ def test_cli_reruns_a_budget_path_cell_of_the_reproduction(tmp_path) -> None:
     saved = np.load(save)
     np.testing.assert_allclose(saved["theta_poisoned"], cell["theta_poisoned"], rtol=1e-12, atol=1e-14)
     assert float(saved["value"]) == pytest.approx(cell["value"], rel=1e-12)
+
+
+@pytest.mark.parametrize("objective", ["maxmin", "targeted", "destabilize"])
+def test_attack_results_carry_a_learner_certificate(objective: str) -> None:
+    """Each attack's poisoned theta is the learner's answer to the poisoned data: normal equations and an
+    independent SVD refit agree to round-off; a theta off by 1e-4 fails both checks."""
+    import dataclasses
+
+    from bilevel.attacks.vrft_methods import _result
+
+    atk = attack_instance(objective, "B", 0.1, 0.057, seed=0, N=256)
+    res = (attack_joint if objective == "destabilize" else attack_alternating)(atk)
+    assert res.certified and res.learner_stationarity < 1e-12 and res.refit_distance < 1e-12
+    assert res.summary()["certified"] is True
+    s = atk.state(res.a_u, res.a_y)
+    wrong = _result(atk, "tampered", "converged", dataclasses.replace(s, theta=s.theta + 1e-4), 0.0, 0, 0, [])
+    assert not wrong.certified and wrong.refit_distance > 1e-5 and wrong.learner_stationarity > 1e-7
