@@ -158,12 +158,17 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from .experiments.compare import compare, markdown_table
 
     problems = args.problems.split(",") if args.problems else registry.names("textbook")
+    if any(":" in name for name in problems) and os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())  # module:function problems may live in the working directory
     methods = args.methods.split(",") if args.methods else sorted(METHODS)
     params = _pairs(args.param, "--param")
     for name in problems:
         registry.spec(name)  # an unknown name fails here, before any work
     if unused := sorted(k for k in params if not any(k in registry.spec(n).defaults for n in problems)):
         raise ModelError(f"--param {', '.join(unused)}: no selected problem has such a parameter")
+    for name in problems:  # a user's builder is run once up front, so that a broken one fails before any work
+        if ":" in name:
+            registry.get(name, **registry.params_for(name, params))
 
     def work() -> None:
         rows = compare(problems, methods, os.path.join(args.out, "compare.csv"), starts=args.starts, seed=args.seed,
@@ -221,7 +226,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_solve.add_argument("--save", default=None, metavar="PATH.npz", help="vrft-*: save data, signals, thetas, poles")
     p_solve.set_defaults(run=_cmd_solve)
     p_cmp = sub.add_parser("compare", help="run solvers on problems; write CSV and Markdown (resumable)")
-    p_cmp.add_argument("--problems", default="", help="comma-separated names (default: all textbook problems)")
+    p_cmp.add_argument("--problems", default="", help="comma-separated registered names or module:function "
+                       "builders of your own (default: all textbook problems)")
     p_cmp.add_argument("--methods", default="", help="comma-separated methods (default: all registered)")
     p_cmp.add_argument("--starts", type=int, default=8)
     p_cmp.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",

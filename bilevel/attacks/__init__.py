@@ -1,1 +1,17 @@
-"""Data-poisoning attacks on data-driven control learners (VRFT, De Persis–Tesi), built on the bilevel core."""
+"""Data-poisoning attacks on data-driven control learners (VRFT, De Persis–Tesi), built on the bilevel core.
+
+The public VRFT attack API (docs/own_plant.md): describe the learner with `VRFTSetting`, the instance with
+`VRFTAttack` (budgets as `Budget` or plain numbers), and run `attack_alternating`, `attack_joint`,
+`attack_white_noise` or `attack_budget_path`; each returns an `AttackResult`.
+"""
+
+from .budget import Budget
+from .spectral import LoopPolynomial, arx_orders_for, fit_arx
+from .vrft import PAPER_THETA0, VRFTAttack, VRFTSetting, attack_instance, flexible_transmission_setting
+from .vrft_methods import ATTACKS, AttackResult, attack_alternating, attack_budget_path, attack_joint, attack_white_noise
+
+__all__ = [
+    "ATTACKS", "AttackResult", "Budget", "LoopPolynomial", "PAPER_THETA0", "VRFTAttack", "VRFTSetting",
+    "arx_orders_for", "attack_alternating", "attack_budget_path", "attack_instance", "attack_joint",
+    "attack_white_noise", "fit_arx", "flexible_transmission_setting",
+]

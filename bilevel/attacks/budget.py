@@ -31,6 +31,16 @@ class Budget:
         if self.rho is not None and not 0.0 <= self.rho <= 1.0:
             raise ModelError(f"sparsity fraction rho must be in [0, 1], got {self.rho}")
 
+    @classmethod
+    def of(cls, value: "Budget | float") -> "Budget":
+        """`value` as a Budget: a plain number eps means Budget(eps), the l2 budget eps * ||signal||_2."""
+        if isinstance(value, Budget):
+            return value
+        if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+            return cls(float(value))
+        raise ModelError(f"a budget must be a Budget or a number eps (meaning Budget(eps), l2), got "
+                         f"{type(value).__name__} {value!r}; e.g. Budget(0.1, norm='linf', rho=0.2)")
+
     @property
     def order(self) -> float:
         return float(_ORDER[self.norm])

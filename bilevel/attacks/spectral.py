@@ -89,3 +89,35 @@ def fit_arx(u: np.ndarray, y: np.ndarray, na: int, nb: int, delay: int) -> tuple
     for j in range(nb):  # b_j u_{t-delay-j}  ->  b_j z^(na - delay - j)
         num_shifted[delay + j] += sol[na + j]
     return np.trim_zeros(num_shifted, "f"), den
+
+
+def arx_orders_for(u: np.ndarray, y: np.ndarray, max_order: int = 6) -> tuple[int, int, int]:
+    """(na, nb, delay) with na <= max_order whose ARX fit has full rank and the least AIC, N log(rss/N) + 2 k.
+
+    rss is floored at 1e-10 ||y||^2 so that on noise-free data the smallest exact model wins.
+    """
+    u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
+    floor = 1e-10 * float(y @ y) + 1e-300
+    best: tuple[float, tuple[int, int, int]] | None = None
+    for na in range(1, max_order + 1):
+        for delay in range(na + 1):
+            for nb in range(1, na - delay + 2):
+                try:
+                    num, den = fit_arx(u, y, na, nb, delay)
+                except RankDeficientRegressor:
+                    continue
+                rss = float(np.sum((y - _arx_prediction(u, y, num, den)) ** 2))
+                aic = u.size * np.log(max(rss, floor) / u.size) + 2 * (na + nb)
+                if best is None or aic < best[0] - 1e-9:
+                    best = (aic, (na, nb, delay))
+    if best is None:
+        raise RankDeficientRegressor(f"no ARX orders up to na = {max_order} have a full-rank regressor on these "
+                                     "data; use a richer input")
+    return best[1]
+
+
+def _arx_prediction(u: np.ndarray, y: np.ndarray, num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """One-step-ahead ARX prediction of y (zero initial conditions)."""
+    na = den.size - 1
+    b = np.concatenate([np.zeros(na + 1 - num.size), num])  # b[k] multiplies u_{t-k}
+    return np.convolve(u, b)[: u.size] - np.convolve(y, np.concatenate([[0.0], den[1:]]))[: y.size]

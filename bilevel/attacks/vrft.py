@@ -26,9 +26,9 @@ from ..ddc.operators import LTIOperator
 from ..ddc.plants import flexible_transmission, flexible_transmission_prefilter, flexible_transmission_reference
 from ..ddc.systems import SystemLike
 from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
-from ..errors import InvalidData, ModelError
+from ..errors import InvalidData, ModelError, RankDeficientRegressor
 from .budget import Budget
-from .spectral import LoopPolynomial, fit_arx
+from .spectral import LoopPolynomial, arx_orders_for, fit_arx
 from ..solvers.trust_region import maximize_quadratic_on_ball
 
 Objective = Literal["maxmin", "targeted", "destabilize"]
@@ -113,13 +113,16 @@ class State:
 
 @dataclass
 class VRFTAttack:
-    """One attack instance: clean data, the learner, budgets and the attacker's objective."""
+    """One attack instance: clean data, the learner, budgets and the attacker's objective.
+
+    A budget given as a number eps means Budget(eps): ||a||_2 <= eps * ||signal||_2.
+    """
 
     setting: VRFTSetting
     u: np.ndarray
     y: np.ndarray
-    budget_u: Budget
-    budget_y: Budget
+    budget_u: Budget | float
+    budget_y: Budget | float
     objective: Objective = "maxmin"
     theta_target: np.ndarray | None = None
     arx_orders: tuple[int, int, int] = (4, 2, 3)
@@ -132,6 +135,7 @@ class VRFTAttack:
             raise InvalidData(f"u and y must be 1-D of equal length, got {self.u.shape} and {self.y.shape}")
         if not (np.all(np.isfinite(self.u)) and np.all(np.isfinite(self.y))):
             raise InvalidData("attack data contain NaN or inf")
+        self.budget_u, self.budget_y = Budget.of(self.budget_u), Budget.of(self.budget_y)
         if self.objective not in ("maxmin", "targeted", "destabilize"):
             raise ModelError(f"objective {self.objective!r} is not maxmin, targeted or destabilize")
         reg = self.setting.regressor
@@ -147,7 +151,14 @@ class VRFTAttack:
         self.delta_u = self.budget_u.radius(self.u)
         self.delta_y = self.budget_y.radius(self.y)
         if self.objective == "destabilize":
-            num, den = fit_arx(self.u, self.y, *self.arx_orders)
+            try:
+                num, den = fit_arx(self.u, self.y, *self.arx_orders)
+            except RankDeficientRegressor as err:
+                raise RankDeficientRegressor(
+                    f"the destabilize objective's ARX model with arx_orders={tuple(self.arx_orders)} (na, nb, delay) "
+                    f"is rank-deficient on these data ({err}); pass VRFTAttack(..., arx_orders=...), e.g. "
+                    f"arx_orders={arx_orders_for(self.u, self.y)} (chosen from the data by "
+                    "bilevel.attacks.arx_orders_for: least AIC among full-rank orders)") from err
             self.model_loop = LoopPolynomial.of((num, den), self.setting.basis)
 
     @property

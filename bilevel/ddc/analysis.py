@@ -1,6 +1,6 @@
 """Closed-loop analysis of learned controllers: unit-feedback loops G K (VRFT) and state feedback A + B K (Willems).
 
-Computation returns data objects; ``plot()`` builds a matplotlib figure without showing it.
+Computation returns data objects (python-control's where it has one); ``plot()`` builds a figure without showing it.
 """
 
 from __future__ import annotations
@@ -124,9 +124,15 @@ def closed_loop_response(
     )
 
 
-def closed_loop_step(plant: SystemLike, controller: SystemLike, n: int = 200) -> ClosedLoopResponse:
-    """Unit-step response of the unit-feedback loop over n samples."""
-    return closed_loop_response(plant, controller, np.ones(n))
+def closed_loop_step(plant: SystemLike, controller: SystemLike, n: int = 200) -> control.TimeResponseData:
+    """Unit-step response of G K / (1 + G K) over n samples, as python-control's TimeResponseData (.time, .outputs).
+
+    Stability is closed_loop_poles'; for the control input or another reference use closed_loop_response.
+    """
+    if n < 1:
+        raise InvalidData(f"the step response needs n >= 1 samples, got n={n}")
+    loop = closed_loop(plant, controller)
+    return control.step_response(loop, T=np.arange(n) * (1.0 if loop.dt is True else float(loop.dt)))
 
 
 @dataclass(frozen=True)

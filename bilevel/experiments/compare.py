@@ -98,8 +98,8 @@ def compare(problems: Sequence[str], methods: Sequence[str], csv_path: str, star
             dask: str | None = None, params: dict[str, Any] | None = None) -> list[CompareRow]:
     """Run every method on every problem (resumable rows in csv_path's .jsonl), then write csv_path; `params`
     override the defaults of each problem that has them."""
-    own = lambda name: {k: v for k, v in (params or {}).items() if k in registry.spec(name).defaults}  # noqa: E731
-    tasks = [{"key": f"{name}/{method}", "problem": name, "method": method, "params": own(name),
+    tasks = [{"key": f"{name}/{method}", "problem": name, "method": method,
+              "params": registry.params_for(name, params or {}),
               "options": dict((method_options or {}).get(method, {})), "starts": starts, "seed": seed}
              for name in problems for method in methods]
     with open_executor(workers, dask) as executor:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib
+import inspect
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -47,9 +49,29 @@ def _load_builtin() -> None:
     from . import literature, vrft, willems  # noqa: F401  (registers on import)
 
 
+def _register_reference(ref: str) -> None:
+    """Register the builder `module:function` under the name `ref` (its keyword defaults become parameters)."""
+    module_name, _, attr = ref.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise UnknownName(f"problem {ref!r}: cannot import module {module_name!r} ({exc}); make it importable "
+                          "(install it, or run from its directory or with PYTHONPATH)") from exc
+    build = getattr(module, attr, None)
+    if not callable(build):
+        raise UnknownName(f"problem {ref!r}: module {module_name!r} has no function {attr!r}; give "
+                          "module:function with a function returning a BilevelProblem")
+    defaults = {k: p.default for k, p in inspect.signature(build).parameters.items()
+                if p.default is not inspect.Parameter.empty}
+    register(ref, source=ref, tags=("user",), defaults=defaults)(build)
+
+
 def spec(name: str) -> ProblemSpec:
-    """The registered spec of `name`; raises UnknownName (a KeyError) listing the known names otherwise."""
+    """The spec of `name`: a registered problem, or `module:function` building one (registered on first use);
+    raises UnknownName (a KeyError) listing the known names otherwise."""
     _load_builtin()
+    if name not in _REGISTRY and ":" in name:
+        _register_reference(name)
     if name not in _REGISTRY:
         raise UnknownName(f"no registered problem {name!r}; `bilevel list` shows the known ones: "
                           f"{', '.join(sorted(_REGISTRY))}")
@@ -64,8 +86,15 @@ def get(name: str, **params: Any) -> BilevelProblem:
     except TypeError as exc:  # an unknown or mistyped parameter
         raise ModelError(f"problem {name!r} rejected its parameters ({exc}); "
                          f"its defaults are {s.defaults}") from exc
+    if not isinstance(problem, BilevelProblem):
+        raise ModelError(f"problem {name!r}: its builder returned {type(problem).__name__}, not a BilevelProblem")
     problem.name = name
     return problem
+
+
+def params_for(name: str, params: dict[str, Any]) -> dict[str, Any]:
+    """The entries of `params` that problem `name` has as parameters (shared --param values)."""
+    return {k: v for k, v in params.items() if k in spec(name).defaults}
 
 
 def names(tag: str | None = None) -> list[str]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import tracemalloc
 
+import control
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -13,12 +14,15 @@ from hypothesis import strategies as st
 import bilevel as bl
 from bilevel.attacks.budget import Budget
 from bilevel.solvers.trust_region import maximize_quadratic_on_ball
-from bilevel.attacks.vrft import CONVENTIONS, attack_instance
+from bilevel.attacks.spectral import arx_orders_for
+from bilevel.attacks.vrft import CONVENTIONS, VRFTAttack, VRFTSetting, attack_instance
 from bilevel.attacks.vrft_methods import (attack_alternating, attack_budget_path, attack_joint, attack_white_noise,
                                          input_step)
 from bilevel.solvers.ascent import projected_ascent
 from bilevel.solvers.projections import NormBall
+from bilevel.ddc import pid_basis, simulate, white_noise
 from bilevel.ddc.vrft import fit_vrft
+from bilevel.errors import ModelError, RankDeficientRegressor
 from bilevel.problems import registry
 
 
@@ -224,3 +228,39 @@ def test_attack_results_carry_a_learner_certificate(objective: str) -> None:
     s = atk.state(res.a_u, res.a_y)
     wrong = _result(atk, "tampered", "converged", dataclasses.replace(s, theta=s.theta + 1e-4), 0.0, 0, 0, [])
     assert not wrong.certified and wrong.refit_distance > 1e-5 and wrong.learner_stationarity > 1e-7
+
+
+def _resonant_attack_data(n: int = 512) -> tuple[VRFTSetting, np.ndarray, np.ndarray]:
+    """A second-order resonant plant (poles 0.9 e^{+-0.48j}, delay 1) with a PID basis, raw data convention."""
+    plant = control.tf([0.05, 0.04], [1.0, -1.6, 0.81], 0.1)
+    setting = VRFTSetting(plant, control.tf([0.4], [1.0, -0.6], 0.1), pid_basis(0.1), control.tf([1.0], [1.0], 0.1),
+                          data="raw")
+    u = white_noise(n, np.random.default_rng(0))
+    return setting, u, simulate(plant, u)
+
+
+def test_float_budgets_mean_l2_budgets_and_other_types_are_refused() -> None:
+    """Issue 16: budget_u=0.1 is Budget(0.1) (same attack); a string budget names the fix."""
+    atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=1, N=256)
+    plain = VRFTAttack(atk.setting, atk.u, atk.y, 0.1, 0.057)
+    assert plain.budget_u == Budget(0.1) and plain.budget_y == Budget(0.057)
+    assert plain.delta_u == atk.delta_u and plain.delta_y == atk.delta_y
+    assert attack_alternating(plain).value == attack_alternating(atk).value
+    with pytest.raises(ModelError, match=r"Budget\(eps\)"):
+        VRFTAttack(atk.setting, atk.u, atk.y, "0.1", 0.057)
+    with pytest.raises(ModelError, match="Budget or a number"):
+        Budget.of(None)
+
+
+def test_destabilize_orders_are_named_in_the_error_and_chosen_from_the_data() -> None:
+    """Issue 16: the default ARX orders (4, 2, 3) are rank-deficient on a second-order plant's data; the error
+    names arx_orders and suggests the plant's orders, which arx_orders_for finds (and (4, 2, 3) on Landau's plant)."""
+    setting, u, y = _resonant_attack_data()
+    with pytest.raises(RankDeficientRegressor, match=r"arx_orders=\(2, 2, 1\)"):
+        VRFTAttack(setting, u, y, 0.1, 0.05, objective="destabilize")
+    assert arx_orders_for(u, y) == (2, 2, 1)
+    atk = VRFTAttack(setting, u, y, 0.1, 0.05, objective="destabilize", arx_orders=(2, 2, 1))
+    res = attack_joint(atk)
+    assert res.value > res.value_clean and res.spectral_radius > res.spectral_radius_clean
+    u_ft = white_noise(512, np.random.default_rng(1))
+    assert arx_orders_for(u_ft, simulate(bl.ddc.flexible_transmission(), u_ft)) == (4, 2, 3)

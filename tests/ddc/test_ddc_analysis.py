@@ -15,6 +15,7 @@ from bilevel.ddc.analysis import (
     closed_loop,
     closed_loop_bode,
     closed_loop_poles,
+    closed_loop_response,
     closed_loop_step,
 )
 from bilevel.ddc.bases import controller_tf, flexible_transmission_basis
@@ -32,11 +33,14 @@ def test_closed_loop_matches_python_control_feedback():
     poles = np.sort_complex(closed_loop_poles(g, k))
     np.testing.assert_allclose(poles, np.sort_complex(reference.poles()), atol=1e-8)
     step = closed_loop_step(g, k, n=300)
+    assert isinstance(step, control.TimeResponseData) and step.outputs.shape == (300,)
     _, y_ref = control.forced_response(reference, T=np.arange(300) * 0.05, U=np.ones(300))
-    np.testing.assert_allclose(step.output, y_ref, atol=1e-8)
+    np.testing.assert_allclose(step.outputs, y_ref, atol=1e-8)
+    response = closed_loop_response(g, k, np.ones(300))
+    np.testing.assert_allclose(response.output, y_ref, atol=1e-8)
     _, u_ref = control.forced_response(control.feedback(k, g), T=np.arange(300) * 0.05, U=np.ones(300))
-    np.testing.assert_allclose(step.input, u_ref, atol=1e-8)
-    assert step.time[1] == pytest.approx(0.05) and step.stable
+    np.testing.assert_allclose(response.input, u_ref, atol=1e-8)
+    assert step.time[1] == pytest.approx(0.05) and response.time[1] == pytest.approx(0.05) and response.stable
     omega = np.linspace(0.01, np.pi / 0.05, 50)
     np.testing.assert_allclose(closed_loop_bode(g, k, omega).magnitude.ravel(),
                                np.abs(reference(np.exp(1j * omega * 0.05))), rtol=1e-8)
@@ -45,11 +49,20 @@ def test_closed_loop_matches_python_control_feedback():
 
 def test_unstable_loop_is_flagged_and_serialises():
     """A large proportional gain destabilises G = 1/(z - 0.5): pole at 0.5 - 2 = -1.5."""
-    response = closed_loop_step(([1.0], [1.0, -0.5]), ([2.0], [1.0]), n=20)
+    response = closed_loop_response(([1.0], [1.0, -0.5]), ([2.0], [1.0]), np.ones(20))
     assert not response.stable and response.spectral_radius == pytest.approx(1.5)
     payload = json.loads(response.to_json())
     assert payload["stable"] is False and payload["poles"] == [[-1.5, 0.0]]
     assert isinstance(response.plot(), Figure)
+
+
+def test_step_response_on_a_plain_polynomial_loop():
+    """G = 1/(z - 0.5), K = 2 (dt unspecified): y = 0, 2, -1, 3.5 (pole -1.5) on sample times 0, 1, 2; n < 1 is refused."""
+    step = closed_loop_step(([1.0], [1.0, -0.5]), ([2.0], [1.0]), n=4)
+    np.testing.assert_allclose(step.time, [0, 1, 2, 3])
+    np.testing.assert_allclose(step.outputs, [0.0, 2.0, -1.0, 3.5])
+    with pytest.raises(InvalidData, match="n >= 1"):
+        closed_loop_step(([1.0], [1.0, -0.5]), ([2.0], [1.0]), n=0)
 
 
 def test_ill_posed_loop_is_refused():

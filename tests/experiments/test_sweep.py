@@ -148,6 +148,50 @@ def test_malformed_rows_are_reported_set_aside_and_recomputed(tmp_path) -> None:
     assert not report
 
 
+OWN_PROBLEMS = '''
+import bilevel as bl
+
+
+def bard(scale=1.0):
+    """Bard's example (optimum -12 at x = y = 4), upper objective times `scale`."""
+    p = bl.BilevelProblem("bard")
+    x = p.upper_variable("x", lb=0)
+    y = p.lower_variable("y", lb=0)
+    p.minimize_upper(scale * (x - 4 * y))
+    p.minimize_lower(y)
+    p.lower_constraint(-x - y <= -3)
+    p.lower_constraint(-2 * x + y <= 0)
+    p.lower_constraint(2 * x + y <= 12)
+    p.lower_constraint(3 * x - 2 * y <= 4)
+    return p
+
+
+def not_a_problem():
+    return 42
+'''
+
+
+def test_compare_runs_a_users_own_problem_by_module_path(tmp_path, monkeypatch, capsys) -> None:
+    """Issue 16: `compare --problems mod:function` imports a builder from the working directory; its keyword
+    defaults are --param parameters; a bad module, function or return type is a one-line error (exit 2)."""
+    (tmp_path / "own_problems_issue16.py").write_text(OWN_PROBLEMS)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.path", list(__import__("sys").path))
+    args = ["compare", "--methods", "ipopt", "--workers", "1", "--starts", "4", "--out", str(tmp_path / "cmp")]
+    assert main(args + ["--problems", "own_problems_issue16:bard", "--param", "scale=2"]) == 0
+    with open(tmp_path / "cmp" / "compare.csv", encoding="utf-8") as fh:
+        header, row = [line.strip().split(",") for line in fh]
+    assert row[header.index("problem")] == "own_problems_issue16:bard"
+    assert float(row[header.index("objective")]) == pytest.approx(-24.0, abs=1e-6)
+    capsys.readouterr()
+    for ref, message in (("no_such_module_issue16:f", "cannot import module"),
+                         ("own_problems_issue16:missing", "has no function 'missing'"),
+                         ("own_problems_issue16:not_a_problem", "returned int, not a BilevelProblem")):
+        assert main(args + ["--problems", ref, "--out", str(tmp_path / "bad")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and message in err and not (tmp_path / "bad").exists()
+
+
 @pytest.mark.parametrize("argv", [["reproduce", "vrft", "--sims", "0"], ["reproduce", "vrft", "--sims", "-3"],
                                   ["reproduce", "willems", "--workers", "0"], ["reproduce", "vrft", "--seed", "-1"],
                                   ["compare", "--starts", "0"], ["reproduce", "vrft", "--dask", "nowhere"],
