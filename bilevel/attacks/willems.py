@@ -92,8 +92,7 @@ class SDPHypergradient:
         F = p.upper_objective.expr
         self._upper = ca.Function("attacker", [x, y], [F, ca.gradient(F, x), ca.gradient(F, y), attack.gain,
                                                        attack.closed_loop])
-        lower_exprs = ca.vertcat(p.lower_objective.expr, h, *[ca.vec(m) for m in psd])
-        self.lower_fixed = not ca.depends_on(lower_exprs, x)
+        self.lower_fixed = self.lower_level.fixed
         gain_jacobian = ca.jacobian(ca.vec(attack.gain), x)
         self._gain_affine = self.lower_fixed and not ca.depends_on(gain_jacobian, x)
         self._gain = ca.Function("gain", [x, y], [attack.gain, gain_jacobian])

@@ -94,7 +94,6 @@ class Hypergradient:
                                                     ca.jacobian(H, y)])
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
         self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
-        self.lower_fixed = low.fixed  # y* constant in x: solve once, no adjoint
         self._fixed: tuple[LowerSolution, list[np.ndarray]] | None = None
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
         if self.conic:
@@ -171,7 +170,7 @@ class Hypergradient:
             sol, vals = self.low.newton_polish(x, self.low.solve(x))[0], []
         else:
             sol, vals = self._polish(x, self.low.solve(x))
-        if self.lower_fixed:
+        if self.low.fixed:  # y* constant in x: solved once, no adjoint
             self._fixed = (sol, vals)
         upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
@@ -188,7 +187,7 @@ class Hypergradient:
         _, G, H, gxF, gyF, Gx, Gy, Hx, Hy = ev.upper
         total = np.hstack([gxF, Gx.T, Hx.T])  # columns: d/dx of F, G_i, H_j along y*(x)
         weak, rows, rank, size = False, np.zeros(0, dtype=int), 0, 0
-        if not self.lower_fixed:  # dy*/dx = 0 otherwise
+        if not self.low.fixed:  # dy*/dx = 0 otherwise
             if self.conic:
                 (K, R), rows = self.low.jacobians(ev.x, ev.lower), np.flatnonzero(ev.lower.lam > 0)
             else:
