@@ -10,7 +10,7 @@ import numpy as np
 from .errors import InvalidData, ModelError
 from .lower import LowerLevel, build_lower
 from .model import BilevelProblem, Variable
-from .parameters import ParameterSet
+from .parameters import ParameterSet, scalar
 from .reduction import KKTPoint, Reduction
 from .sampling import default_start, sample_in_bounds
 
@@ -76,7 +76,7 @@ class CanonicalBilevel:
                                                                   np.ndarray]:
         """F, G, H and the Jacobians of G and H in (x, y) at (x, y)."""
         out = self._upper(x, y)
-        return (float(out[0]), np.asarray(out[1]).ravel(), np.asarray(out[2]).ravel(), np.asarray(out[3]),
+        return (scalar(out[0]), np.asarray(out[1]).ravel(), np.asarray(out[2]).ravel(), np.asarray(out[3]),
                 np.asarray(out[4]))
 
     def upper_gradient_y(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -233,7 +233,7 @@ class NormalizeSense(Reduction):
 def objectives(canon: CanonicalBilevel, point: KKTPoint) -> tuple[float, float]:
     """(F, f) at a point, in the canonical problem's senses."""
     out = canon.functions(point.x, point.y)
-    return float(out[0]), float(out[3])
+    return scalar(out[0]), scalar(out[3])
 
 
 def kkt_solution(canon: CanonicalBilevel, point: KKTPoint) -> BilevelSolution:

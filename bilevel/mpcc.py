@@ -15,7 +15,7 @@ import casadi as ca
 import numpy as np
 
 from .errors import ModelError, UnsupportedPair
-from .parameters import ParameterSet
+from .parameters import ParameterSet, scalar
 from .vech import lower_triangular, vech_sx
 
 Row = tuple[ca.SX, float, float]
@@ -313,7 +313,7 @@ class MPCC:
         return values
 
     def objective_value(self, w: np.ndarray) -> float:
-        return float(self._eval(np.asarray(w, dtype=float))[0])
+        return scalar(self._eval(np.asarray(w, dtype=float))[0])
 
     def __repr__(self) -> str:
         n_scalar = sum(int(p.G.numel()) for p in self.pairs if isinstance(p, ScalarPair))

@@ -11,7 +11,7 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InvalidData
-from ..parameters import ParameterSet
+from ..parameters import ParameterSet, scalar
 from ..vech import symmetric_from_vech
 
 
@@ -108,7 +108,7 @@ class LowerLevel(ABC):
     def evaluate(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, list[np.ndarray]]:
         """f, g, h and the LMI matrices at (x, y)."""
         out = self._eval(x, y)
-        return (float(out[0]), np.asarray(out[1]).ravel(), np.asarray(out[2]).ravel(),
+        return (scalar(out[0]), np.asarray(out[1]).ravel(), np.asarray(out[2]).ravel(),
                 [np.asarray(m) for m in out[3:]])
 
     def derivatives(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import ModelError
 from ..mpcc import ScalarPair
-from ..parameters import ParameterSet
+from ..parameters import ParameterSet, scalar
 from .base import Prepared
 
 LOCAL_METHODS = "use a local method instead: method='relaxation' (most robust) or method='ipopt'"
@@ -87,7 +87,7 @@ def _objective(F: ca.SX, w: ca.SX, params: ParameterSet) -> tuple[np.ndarray, np
         if low < -CONVEXITY_TOL * max(1.0, float(np.abs(Q).max())):
             raise ModelError("method 'global' needs a convex upper objective (in minimization form): its Hessian in "
                              f"(x, y) has eigenvalue {low:.3g} (e.g. a bilinear x*y term); {LOCAL_METHODS}")
-    return Q, np.asarray(c, dtype=float).ravel(), float(c0)
+    return Q, np.asarray(c, dtype=float).ravel(), scalar(c0)
 
 
 def linear_mpcc(prep: Prepared) -> LinearMPCC:

@@ -14,6 +14,7 @@ import casadi as ca
 import numpy as np
 
 from ..canonical import CanonicalBilevel
+from ..parameters import scalar
 from .projections import Blocks, Box, NormBall, Projection
 
 _REL = 1e-12
@@ -68,7 +69,7 @@ def _ball(canon: CanonicalBilevel, row: int) -> Ball | None:
         return None
     value, grad = canon.params.function("ball", [canon.x], [g, ca.gradient(g, xs)])(np.zeros(int(canon.x.numel())))
     center = -np.asarray(grad).ravel() / (2 * a)
-    r2 = float(center @ center) - float(value) / a
+    r2 = float(center @ center) - scalar(value) / a
     if r2 < 0:
         return None
     return Ball(row, block, center, float(np.sqrt(r2)))
