@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import Callable
+
 import casadi as ca
 import numpy as np
 
 from .errors import InvalidData, ModelError
-from .lower import LowerLevel, build_lower
+from .lower import LowerLevel, LowerSolution, build_lower
 from .model import BilevelProblem, Variable
 from .reduction import KKTPoint, Reduction
 from .sampling import default_start, sample_in_bounds
@@ -46,6 +48,8 @@ class CanonicalBilevel:
     y_lb: np.ndarray | None = None
     y_ub: np.ndarray | None = None
     assume_convex: bool = False
+    lower_reference: Callable[[ca.SX, np.ndarray, np.ndarray], LowerSolution] | None = None
+    """The declared problem's own independent lower solver, if any (BilevelProblem.lower_reference)."""
 
     @cached_property
     def lower(self) -> LowerLevel:
@@ -174,7 +178,7 @@ class Canonicalize(Reduction):
             psd_names=[m.name for m in problem.lower_psd_constraints], upper_sense=problem.upper_objective.sense,
             lower_sense=problem.lower_objective.sense, upper_vars=ups, lower_vars=lows, y_start=y_start,
             G_names=G_names, x_suggested=suggested, y_lb=y_lb, y_ub=y_ub,
-            assume_convex=problem.lower_objective.assume_convex,
+            assume_convex=problem.lower_objective.assume_convex, lower_reference=problem.lower_reference,
         )
         return canon, canon
 

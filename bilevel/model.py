@@ -14,7 +14,7 @@ Expressions are CasADi SX expressions of the declared variables.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import casadi as ca
 import numpy as np
@@ -23,6 +23,10 @@ from .errors import ModelError
 from .vech import symmetric_from_vech, unvech, vech
 
 if TYPE_CHECKING:  # pragma: no cover
+    import cvxpy as cp
+
+    from .frontends.cvxpy_lower import CvxpyLower
+    from .lower.base import LowerSolution
     from .result import BilevelResult
 
 Level = Literal["upper", "lower"]
@@ -160,6 +164,9 @@ class BilevelProblem:
         self.lower_constraints: list[Constraint] = []
         self.lower_psd_constraints: list[PSDConstraint] = []
         self.starts: list[dict[str, np.ndarray]] = []
+        self.lower_reference: Callable[[ca.SX, np.ndarray, np.ndarray], LowerSolution] | None = None
+        """An independent solver of the lower level that the certificate re-solves with instead of the engine's,
+        (x symbols, x, y) -> LowerSolution; set by a front end that has the user's own model (lower_cvxpy)."""
 
     # -- variables -----------------------------------------------------------------------------
     def _variable(self, level: Level, name: str, shape: int | tuple[int, int], lb: Any, ub: Any, start: Any,
@@ -299,6 +306,23 @@ class BilevelProblem:
             if float(ca.norm_inf(probe)) > 1e-12:
                 raise ModelError("lower_psd_constraint: matrix is not symmetric; pass (M + M.T) / 2 if that is meant")
         self.lower_psd_constraints.append(PSDConstraint(name or f"M{len(self.lower_psd_constraints)}", matrix))
+
+    def lower_cvxpy(self, learner: "cp.Problem", parameters: dict[Any, Any] | None = None,
+                    name: str = "cvxpy") -> "CvxpyLower":
+        """Declare the whole lower level as a cvxpy Problem (DCP, and DPP in its Parameters).
+
+        parameters maps cvxpy Parameters to CasADi expressions of upper variables (any expression: the lower
+        level stays conic in its own variables); unbound Parameters keep their current value. Returns `ll`,
+        with `ll[v]` the cvxpy Variable v as a CasADi expression for the upper level. See docs/cvxpy.md.
+        """
+        if self.lower_variables or self.lower_objective is not None:
+            raise ModelError(f"{self.name}: lower_cvxpy declares the whole lower level, but lower variables or a "
+                             "lower objective are already declared; use one or the other")
+        from .frontends.cvxpy_lower import CvxpyLower
+
+        lower = CvxpyLower(self, learner, dict(parameters or {}), name)
+        self.lower_reference = lower.reference
+        return lower
 
     def _all_syms(self) -> ca.SX:
         return ca.vertcat(*[ca.vec(v.sym) for v in self.variables]) if self.variables else ca.SX(0, 1)

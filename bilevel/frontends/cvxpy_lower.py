@@ -1,0 +1,211 @@
+"""A lower level written as a cvxpy Problem, translated into the framework's own lower-level declarations.
+
+cvxpy's parametrized conic form (frontends/conic.py) becomes: one lower variable (the conic variables,
+less the auxiliaries that an equality row defines, which are substituted out so that a least-squares
+learner stays least squares), zero-cone rows as equalities, nonnegative rows as inequalities,
+second-order cones as arrow LMIs [[t I, u], [u', t]] >= 0 (exact: PSD iff ||u|| <= t) and PSD cones
+as LMIs. Every method and the certificate then see an ordinary lower level; the certificate's
+independent re-solve is the user's own cvxpy problem (`CvxpyLower.reference`).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import casadi as ca
+import cvxpy as cp
+import numpy as np
+
+from ..errors import ModelError
+from ..lower.base import LowerSolution
+from ..lower.quadratic import solve_clarabel
+from .conic import ConeBlock, ConicForm, conic_form
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..model import BilevelProblem
+
+
+def _label(param: cp.Parameter) -> str:
+    return f"Parameter {param.name()!r} (shape {param.shape})"
+
+
+def _bind(problem: BilevelProblem, learner: cp.Problem, parameters: dict[Any, Any]) -> dict[int, ca.SX]:
+    """Parameter id -> its CasADi value: the bound expression of upper variables, or the current .value."""
+    own = {p.id: p for p in learner.parameters()}
+    upper = {s.element_hash() for v in problem.upper_variables for s in ca.symvar(ca.vec(v.sym))}
+    values: dict[int, ca.SX] = {}
+    for param, expr in parameters.items():
+        if not isinstance(param, cp.Parameter) or param.id not in own:
+            raise ModelError(f"lower_cvxpy: the key {param!r} of parameters= is not a cvxpy Parameter of this "
+                             "problem; bind the Parameters that appear in the cvxpy problem")
+        value = expr if isinstance(expr, ca.SX) else ca.SX(ca.DM(np.asarray(expr, dtype=float)))
+        rows, cols = (param.shape + (1, 1))[:2] if len(param.shape) < 2 else param.shape
+        if value.shape != (rows, cols) and not (len(param.shape) == 1 and value.shape == (1, rows)):
+            raise ModelError(f"lower_cvxpy: {_label(param)} is bound to an expression of shape {value.shape}; "
+                             f"bind it to a {rows} x {cols} CasADi expression (a vector Parameter takes a column)")
+        free = [s for s in ca.symvar(value) if s.element_hash() not in upper]
+        if free:
+            raise ModelError(f"lower_cvxpy: {_label(param)} is bound to an expression of {free[0]}, which is not an "
+                             "upper variable of this problem; declare it with upper_variable first")
+        values[param.id] = ca.reshape(value, rows, cols)
+    for param in learner.parameters():
+        if param.id not in values:
+            if param.value is None:
+                raise ModelError(f"lower_cvxpy: {_label(param)} is not bound in parameters= and has no value; bind "
+                                 "it to an upper-level expression or set param.value before declaring")
+            values[param.id] = ca.SX(ca.DM(np.asarray(param.value, dtype=float).reshape(-1, order="F")))
+    return values
+
+
+def _check_convex(learner: cp.Problem) -> None:
+    if learner.is_mixed_integer():
+        raise ModelError("lower_cvxpy: the cvxpy problem has integer or boolean variables; a lower level must be "
+                         "convex (relax them, or solve the integer bilevel problem elsewhere)")
+    if not learner.is_dcp():
+        raise ModelError("lower_cvxpy: the cvxpy problem is not DCP (learner.is_dcp() is False); rewrite it "
+                         "following cvxpy's disciplined convex programming rules")
+    if not learner.is_dcp(dpp=True):
+        raise ModelError("lower_cvxpy: the cvxpy problem is DCP but not DPP in its Parameters (e.g. a product of two "
+                         "Parameters, or a Parameter inside a nonlinear atom), so its conic data are not affine in "
+                         "them; introduce one Parameter for the product or nonlinear term and bind it instead")
+
+
+class CvxpyLower:
+    """The lower level of a BilevelProblem declared from a cvxpy Problem (BilevelProblem.lower_cvxpy).
+
+    `ll[v]` is the user's cvxpy Variable v as a CasADi expression (its shape; a vector is a column).
+    """
+
+    def __init__(self, problem: BilevelProblem, learner: cp.Problem, parameters: dict[Any, Any], name: str) -> None:
+        _check_convex(learner)
+        self.learner = learner
+        self._bindings = {p: parameters[p] for p in parameters}
+        form = conic_form(learner, _bind(problem, learner, parameters), name)
+        keep, z_of_r, used_rows = self._eliminate(form)
+        self.y = problem.lower_variable(name, len(keep), lb=form.lb[keep], ub=form.ub[keep])
+        z = ca.substitute(z_of_r, form.z, self._spread(form, keep))
+        objective = 0.5 * ca.bilin(form.P, z, z) + ca.dot(form.q, z) + form.d
+        if form.minimize:
+            problem.minimize_lower(objective)
+        else:
+            problem.maximize_lower(-objective)
+        self._declare(problem, form, z, name, used_rows)
+        self._user = {vid: ca.mtimes(ca.DM(mat.tocsc()), z) for vid, mat in form.user.items()}
+        self._variables = {v.id: v for v in learner.variables()}
+
+    def __getitem__(self, variable: cp.Variable) -> ca.SX:
+        """The cvxpy Variable's value as a CasADi expression of the lower variables (its shape, column-major)."""
+        if not isinstance(variable, cp.Variable) or variable.id not in self._user:
+            raise ModelError(f"{variable!r} is not a Variable of this cvxpy lower level")
+        shape = variable.shape
+        rows, cols = (shape + (1, 1))[:2] if len(shape) < 2 else shape
+        return ca.reshape(self._user[variable.id], rows, cols)
+
+    # -- translation -------------------------------------------------------------------------------
+    @staticmethod
+    def _eliminate(form: ConicForm) -> tuple[np.ndarray, ca.SX, set[int]]:
+        """Auxiliary conic variables that occur in one zero-cone row only, with a constant coefficient, unbounded and
+        not part of a user Variable, are solved from that row; returns kept indices, z in terms of kept z, and
+        the rows used up (numbered across all blocks)."""
+        n = int(form.z.numel())
+        rows = ca.vertcat(*[b.rows for b in form.blocks]) if form.blocks else ca.SX(0, 1)
+        jac = ca.jacobian(rows, form.z)
+        count = np.diff(np.asarray(jac.sparsity().colind()))
+        used = np.zeros(n, dtype=bool)
+        for mat in form.user.values():
+            used |= np.asarray(abs(mat).sum(axis=0)).ravel() > 0
+        free = (count == 1) & ~used & ~np.isfinite(form.lb) & ~np.isfinite(form.ub)
+        z_of = [form.z[k] for k in range(n)]
+        gone: set[int] = set()
+        used_rows: set[int] = set()
+        start = 0
+        for block in form.blocks:
+            size = int(block.rows.numel())
+            if block.kind == "zero":
+                for i in range(start, start + size):
+                    for k in np.asarray(jac[i, :].sparsity().get_col(), dtype=int):
+                        coef = jac[i, int(k)]
+                        if free[k] and coef.is_constant() and float(coef) != 0.0:
+                            z_of[k] = -ca.substitute(rows[i], form.z[int(k)], 0) / float(coef)
+                            gone.add(int(k))
+                            used_rows.add(i)
+                            break
+            start += size
+        keep = np.array([k for k in range(n) if k not in gone], dtype=int)
+        return keep, ca.vertcat(*z_of), used_rows
+
+    def _spread(self, form: ConicForm, keep: np.ndarray) -> ca.SX:
+        """z with the kept entries replaced by the declared lower variable (eliminated entries do not occur)."""
+        z = ca.SX.zeros(int(form.z.numel()))
+        for j, k in enumerate(keep):
+            z[int(k)] = self.y[j]
+        return z
+
+    def _declare(self, problem: BilevelProblem, form: ConicForm, z: ca.SX, name: str, used_rows: set[int]) -> None:
+        """Declare the cone rows (less those used up by elimination) as constraints and LMIs."""
+        offset = 0
+        for b, block in enumerate(form.blocks):
+            rows = ca.substitute(block.rows, form.z, z)
+            size = int(rows.numel())
+            rows = rows[[i for i in range(size) if offset + i not in used_rows]] if used_rows else rows
+            offset += size
+            if block.kind in ("zero", "nonneg"):
+                rows = self._live_rows(rows, block.kind, f"{name}.{block.kind}{b}")
+                if rows.numel():
+                    comparison = rows == 0 if block.kind == "zero" else rows >= 0
+                    problem.lower_constraint(comparison, name=f"{name}.{block.kind}{b}")
+                continue
+            start = 0
+            for c, size in enumerate(block.sizes):
+                if block.kind == "soc":
+                    t, u = rows[start], rows[start + 1:start + size]
+                    start += size
+                    mat = ca.blockcat([[t * ca.SX.eye(size - 1), u], [u.T, t]]) if size > 1 else t
+                else:
+                    mat = ca.reshape(rows[start:start + size * size], size, size)
+                    start += size * size
+                problem.lower_psd_constraint(mat, name=f"{name}.{block.kind}{b}_{c}")
+
+    def _live_rows(self, rows: ca.SX, kind: str, where: str) -> ca.SX:
+        """Rows that involve the lower variables; the others must hold as constants (else ModelError)."""
+        jac = ca.jacobian(rows, self.y)
+        live = np.diff(np.asarray(jac.T.sparsity().colind())) > 0
+        for i in np.flatnonzero(~live):
+            row = rows[int(i)]
+            if not row.is_constant():
+                raise ModelError(f"lower_cvxpy: constraint row {where}[{i}] involves only Parameters, so it "
+                                 "constrains the upper level; state it with upper_constraint instead")
+            value = float(row)
+            if (kind == "zero" and value != 0.0) or (kind == "nonneg" and value < 0.0):
+                raise ModelError(f"lower_cvxpy: constraint row {where}[{i}] is the constant {value:g}, which is "
+                                 "infeasible; check the cvxpy problem")
+        return rows[np.flatnonzero(live).tolist()] if live.any() else ca.SX(0, 1)
+
+    # -- the certificate's independent re-solve ---------------------------------------------------
+    def reference(self, x_sym: ca.SX, x: np.ndarray, y: np.ndarray) -> LowerSolution:
+        """Solve the user's cvxpy problem with Clarabel at upper point x (bound Parameters set there, restored after).
+
+        The returned y is the lower vector nearest to `y` that reproduces the re-solved user Variables
+        (auxiliary conic entries are not the user's), so F(x, y_ref) is the upper objective at the re-solve.
+        """
+        params = list(self._bindings)
+        fun = ca.Function("bind", [x_sym], [ca.SX(self._bindings[p]) for p in params])
+        old = [p.value for p in params]
+        try:
+            for p, value in zip(params, fun.call([ca.DM(x)])):
+                v = np.asarray(value, dtype=float).reshape(p.shape, order="F")
+                p.value = np.maximum(v, 0.0) if p.is_nonneg() else np.minimum(v, 0.0) if p.is_nonpos() else v
+            solve_clarabel(self.learner, "the cvxpy lower level (independent re-solve)")
+            w_ref = np.concatenate([np.asarray(self._variables[vid].value, dtype=float).reshape(-1, order="F")
+                                    for vid in self._user])
+            value = float(self.learner.value)
+            status = str(self.learner.status)
+        finally:
+            for p, v in zip(params, old):
+                p.value = v
+        users = ca.vertcat(*self._user.values())
+        w_fun = ca.Function("users", [x_sym, self.y], [users, ca.jacobian(users, self.y)])
+        w, jac = (np.asarray(v) for v in w_fun(x, y))
+        y_ref = y + np.linalg.lstsq(jac, w_ref - w.ravel(), rcond=None)[0]
+        f_ref = value if isinstance(self.learner.objective, cp.Minimize) else -value
+        return LowerSolution(y_ref, f_ref, np.zeros(0), np.zeros(0), [], status, "cvxpy+clarabel (user's problem)")
