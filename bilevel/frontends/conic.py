@@ -24,8 +24,8 @@ from ..errors import ModelError
 
 CONE_HINTS = {
     ExpCone: "exponential cone (from exp, log, entr, kl_div, logistic, log_sum_exp, ...)",
-    PowCone3D: "power cone (from power, pnorm with p not 1, 2 or inf, geo_mean, ...)",
-    PowConeND: "power cone (from geo_mean, ...)",
+    PowCone3D: "power cone (from power, pnorm or geo_mean with approx=False; the default approx=True gives SOCs)",
+    PowConeND: "power cone (from power, pnorm or geo_mean with approx=False; the default approx=True gives SOCs)",
 }
 
 
