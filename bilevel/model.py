@@ -215,6 +215,7 @@ class BilevelProblem:
         lb, ub and start are then scalars, symmetric n x n matrices or n(n+1)/2 vech values, and the
         result reports the full matrix.
         """
+        self._check_lower_open("lower_variable")
         return self._variable("lower", name, shape, lb, ub, start, symmetric)
 
     def suggest_start(self, **values: Any) -> None:
@@ -277,10 +278,12 @@ class BilevelProblem:
         re-solves the lower level independently (multistart for a nonlinear one) and fails if a better
         lower-level point exists.
         """
+        self._check_lower_open("minimize_lower")
         self.lower_objective = self._objective(expr, "min", "minimize_lower", assume_convex)
 
     def maximize_lower(self, expr: Any, assume_convex: bool = False) -> None:
         """Set the lower-level objective f(x, y) to maximize (concave in y); see minimize_lower."""
+        self._check_lower_open("maximize_lower")
         self.lower_objective = self._objective(expr, "max", "maximize_lower", assume_convex)
 
     # -- constraints ---------------------------------------------------------------------------
@@ -291,11 +294,13 @@ class BilevelProblem:
 
     def lower_constraint(self, comparison: Any, name: str | None = None) -> None:
         """Add a lower-level constraint `g(x, y) <= 0` (convex in y) or `h(x, y) == 0` (affine in y)."""
+        self._check_lower_open("lower_constraint")
         body, kind = split_comparison(comparison, "lower_constraint")
         self.lower_constraints.append(Constraint(name or f"g{len(self.lower_constraints)}", body, kind))
 
     def lower_psd_constraint(self, matrix: Any, name: str | None = None) -> None:
         """Add a lower-level linear matrix inequality `M(x, y) >= 0` (M symmetric, affine in y)."""
+        self._check_lower_open("lower_psd_constraint")
         matrix = ca.SX(matrix)
         if matrix.size1() != matrix.size2():
             raise ModelError(f"lower_psd_constraint: matrix must be square, got shape {matrix.shape}")
@@ -323,6 +328,11 @@ class BilevelProblem:
         lower = CvxpyLower(self, learner, dict(parameters or {}), name)
         self.lower_reference = lower.reference
         return lower
+
+    def _check_lower_open(self, where: str) -> None:
+        if self.lower_reference is not None:
+            raise ModelError(f"{where}: the lower level of {self.name!r} is a cvxpy problem (lower_cvxpy), complete as "
+                             "declared; add the variable, objective or constraint to the cvxpy problem instead")
 
     def _all_syms(self) -> ca.SX:
         return ca.vertcat(*[ca.vec(v.sym) for v in self.variables]) if self.variables else ca.SX(0, 1)

@@ -85,3 +85,14 @@ def test_unbound_parameter_takes_its_value_and_unknown_variable_is_refused() -> 
     with pytest.raises(bl.ModelError, match="not a Variable of this cvxpy lower level"):
         ll[cp.Variable()]
     assert np.isfinite(res.upper_objective)
+
+
+def test_lower_level_is_closed_after_lower_cvxpy() -> None:
+    p = bl.BilevelProblem("closed")
+    x = p.upper_variable("x")
+    a, y = cp.Parameter(), cp.Variable()
+    ll = p.lower_cvxpy(cp.Problem(cp.Minimize(cp.square(y - a))), parameters={a: x})
+    with pytest.raises(bl.ModelError, match="lower_constraint: the lower level of 'closed' is a cvxpy problem"):
+        p.lower_constraint(ll[y] <= 1)
+    with pytest.raises(bl.ModelError, match="add the variable, objective or constraint to the cvxpy problem"):
+        p.lower_variable("z")
