@@ -15,6 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 from cvxpy.constraints import PSD, SOC, ExpCone, NonNeg, PowCone3D, PowConeND, Zero
 from cvxpy.constraints.psd import SvecPSD
+from cvxpy.reductions.cvx_attr2constr import CvxAttr2Constr, recover_value_for_leaf
 from cvxpy.reductions.solution import Solution
 from cvxpy.utilities.psd_utils import tri_to_full
 
@@ -61,7 +62,8 @@ def _tensor(tensor: sp.spmatrix | sp.sparray, pvec: ca.SX, rows: int) -> ca.SX:
 
 
 def _user_map(problem: cp.Problem, chain: list, inverse: list, n: int) -> dict[int, sp.csr_array]:
-    """The linear map z -> each user Variable, by inverting cvxpy's own chain on unit vectors (it is linear)."""
+    """The linear map z -> each user Variable, by inverting cvxpy's own chain on unit vectors (linear once the
+    projection of values onto variable bounds, in CvxAttr2Constr's invert, is left out)."""
     columns: dict[int, list[np.ndarray]] = {v.id: [] for v in problem.variables()}
     for j in range(n + 1):
         z = np.zeros(n)
@@ -69,7 +71,13 @@ def _user_map(problem: cp.Problem, chain: list, inverse: list, n: int) -> dict[i
             z[j] = 1.0
         sol = Solution(cp.OPTIMAL, 0.0, {0: z}, {}, {})
         for red, inv in zip(reversed(chain), reversed(inverse)):
-            sol = red.invert(sol, inv)
+            if isinstance(red, CvxAttr2Constr) and inv:  # its invert projects onto the bounds: not linear
+                new, old, _ = inv
+                values = {vid: recover_value_for_leaf(var, sol.primal_vars[new[vid].id], project=False)
+                          for vid, var in old.items() if new[vid].id in sol.primal_vars}
+                sol = Solution(cp.OPTIMAL, 0.0, values, {}, {})
+            else:
+                sol = red.invert(sol, inv)
         for v in problem.variables():
             columns[v.id].append(np.asarray(sol.primal_vars[v.id], dtype=float).reshape(-1, order="F"))
     out = {}

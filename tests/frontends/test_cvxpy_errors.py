@@ -96,3 +96,9 @@ def test_lower_level_is_closed_after_lower_cvxpy() -> None:
         p.lower_constraint(ll[y] <= 1)
     with pytest.raises(bl.ModelError, match="add the variable, objective or constraint to the cvxpy problem"):
         p.lower_variable("z")
+
+
+def test_parameter_with_a_structural_attribute_is_named() -> None:
+    a, y = cp.Parameter((2, 2), symmetric=True, value=np.eye(2)), cp.Variable(2)
+    with pytest.raises(bl.ModelError, match="structural attribute.*declare it without the attribute"):
+        declare(cp.Problem(cp.Minimize(cp.sum_squares(a @ y - 1))))
