@@ -33,10 +33,11 @@ CONE_HINTS = {
 @dataclass(frozen=True)
 class ConeBlock:
     """Rows A z + b of one cvxpy cone constraint: kind 'zero', 'nonneg', 'soc' or 'psd', and the cone sizes
-    (SOC: the length of each (t, u) pair; PSD: the matrix side)."""
+    (SOC: the length of each (t, u) row group; PSD: the matrix side, rows = vec of the symmetric matrix)."""
 
     kind: str
-    rows: ca.SX
+    A: ca.SX
+    b: ca.SX
     sizes: tuple[int, ...]
 
 
@@ -44,7 +45,6 @@ class ConeBlock:
 class ConicForm:
     """min 1/2 z'Pz + q'z + d s.t. blocks, lb <= z <= ub; `user` maps z linearly to each user Variable (F order)."""
 
-    z: ca.SX
     P: ca.SX
     q: ca.SX
     d: ca.SX
@@ -53,6 +53,10 @@ class ConicForm:
     ub: np.ndarray
     user: dict[int, sp.csr_array]
     minimize: bool
+
+    @property
+    def n(self) -> int:
+        return int(self.lb.size)
 
 
 def _tensor(tensor: sp.spmatrix | sp.sparray, pvec: ca.SX, rows: int) -> ca.SX:
@@ -110,7 +114,7 @@ def _parameter_vector(prog, values: dict[int, ca.SX]) -> ca.SX:
     return ca.vertcat(*parts)
 
 
-def conic_form(problem: cp.Problem, values: dict[int, ca.SX], name: str) -> ConicForm:
+def conic_form(problem: cp.Problem, values: dict[int, ca.SX]) -> ConicForm:
     """Apply cvxpy's Clarabel chain minus the solver and read its ParamConeProg, Parameter id -> `values` (SX)."""
     _, chain, _ = problem.get_problem_data(cp.CLARABEL)
     reductions = chain.reductions[:-1]
@@ -120,45 +124,47 @@ def conic_form(problem: cp.Problem, values: dict[int, ca.SX], name: str) -> Coni
         inverse.append(inv)
     n = int(prog.x.size)
     pvec = _parameter_vector(prog, values) if prog.param_id_to_col else ca.SX(1)
-    z = ca.SX.sym(name, n)
     qd = _tensor(prog.q, pvec, 1)
     P = _tensor(prog.P, pvec, n) if prog.P is not None else ca.SX(n, n)
     Ab = _tensor(prog.A, pvec, prog.constr_size) if prog.constr_size else ca.SX(0, n + 1)
-    rows_all = ca.mtimes(Ab[:, :n], z) + Ab[:, n]
     context = next((r.solver_context for r in reductions if hasattr(r, "solver_context")), None)
     blocks, start = [], 0
     for con in prog.constraints:
         size = int(con.size)
-        rows = rows_all[start:start + size]
+        rows = Ab[start:start + size, :]
         start += size
-        if isinstance(con, Zero):
-            blocks.append(ConeBlock("zero", rows, (size,)))
-        elif isinstance(con, NonNeg):
-            blocks.append(ConeBlock("nonneg", rows, (size,)))
-        elif isinstance(con, SOC):
-            t, u = con.args
-            cones = int(t.size)
-            dim = int(u.size) // cones
-            # rows: t (one per cone), then the u of every cone stacked (column j of u, F order)
-            pairs = [ca.vertcat(rows[j], rows[cones + j * dim:cones + (j + 1) * dim]) for j in range(cones)]
-            blocks.append(ConeBlock("soc", ca.vertcat(*pairs), (dim + 1,) * cones))
-        elif isinstance(con, (SvecPSD, PSD)):
-            side = int(con.args[0].shape[-1]) if isinstance(con, PSD) else int(con._n)
-            if isinstance(con, PSD):
-                mats = [ca.reshape(rows[k * side * side:(k + 1) * side * side], side, side)
-                        for k in range(size // (side * side))]
-            else:
-                op = ca.DM(_psd_operator(side, context.psd_triangle_kind, context.psd_sqrt2_scaling))
-                tri = side * (side + 1) // 2
-                mats = [ca.reshape(ca.mtimes(op, rows[k * tri:(k + 1) * tri]), side, side) for k in range(size // tri)]
-            mats = [0.5 * (m + m.T) for m in mats]
-            blocks.append(ConeBlock("psd", ca.vertcat(*[ca.vec(m) for m in mats]), (side,) * len(mats)))
-        else:
-            what = next((hint for cls, hint in CONE_HINTS.items() if isinstance(con, cls)), type(con).__name__)
-            raise ModelError(f"the cvxpy lower level uses the {what}; bilevel reduces zero, nonnegative, "
-                             "second-order and PSD cones only: rewrite that term with those cones, or declare a "
-                             "smooth convex lower objective directly with minimize_lower")
+        kind, sizes, op = _cone(con, size, context)
+        rows = rows if op is None else ca.mtimes(ca.DM(sp.csc_matrix(op)), rows)
+        blocks.append(ConeBlock(kind, rows[:, :n], rows[:, n], sizes))
     lb = np.full(n, -np.inf) if prog.lower_bounds is None else np.asarray(prog.lower_bounds, dtype=float)
     ub = np.full(n, np.inf) if prog.upper_bounds is None else np.asarray(prog.upper_bounds, dtype=float)
-    return ConicForm(z, P, qd[:, :n].T, qd[:, n], tuple(blocks), lb, ub, _user_map(problem, reductions, inverse, n),
+    return ConicForm(P, qd[:, :n].T, qd[:, n], tuple(blocks), lb, ub, _user_map(problem, reductions, inverse, n),
                      isinstance(problem.objective, cp.Minimize))
+
+
+def _cone(con, size: int, context) -> tuple[str, tuple[int, ...], sp.sparray | None]:
+    """(kind, sizes, operator on the constraint's rows or None for identity) of one cvxpy cone constraint."""
+    if isinstance(con, Zero):
+        return "zero", (size,), None
+    if isinstance(con, NonNeg):
+        return "nonneg", (size,), None
+    if isinstance(con, SOC):
+        cones = int(con.args[0].size)
+        dim = (size - cones) // cones
+        # rows: t (one per cone), then the u of every cone stacked (column j of u, F order) -> (t_j, u_j) groups
+        order = [k for j in range(cones) for k in [j, *range(cones + j * dim, cones + (j + 1) * dim)]]
+        return "soc", (dim + 1,) * cones, sp.csr_array(np.eye(size)[order])
+    if isinstance(con, (SvecPSD, PSD)):
+        side = int(con.args[0].shape[-1]) if isinstance(con, PSD) else int(con._n)
+        if isinstance(con, PSD):  # vec of the full matrix: its symmetric part, as cvxpy's PSD constraint means
+            swap = np.arange(side * side).reshape(side, side).T.ravel()
+            one = 0.5 * (np.eye(side * side) + np.eye(side * side)[swap])
+            count = size // (side * side)
+        else:  # cvxpy's scaled triangle in the solver's convention (context), back to the full symmetric matrix
+            one = _psd_operator(side, context.psd_triangle_kind, context.psd_sqrt2_scaling)
+            count = size // (side * (side + 1) // 2)
+        return "psd", (side,) * count, sp.block_diag([sp.csr_array(one)] * count, format="csr")
+    what = next((hint for cls, hint in CONE_HINTS.items() if isinstance(con, cls)), type(con).__name__)
+    raise ModelError(f"the cvxpy lower level uses the {what}; bilevel reduces zero, nonnegative, "
+                     "second-order and PSD cones only: rewrite that term with those cones, or declare a "
+                     "smooth convex lower objective directly with minimize_lower")

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import casadi as ca
 import cvxpy as cp
 import numpy as np
+import scipy.sparse as sp
 
 from ..errors import ModelError
 from ..lower.base import LowerSolution
@@ -80,16 +81,16 @@ class CvxpyLower:
         _check_convex(learner)
         self.learner = learner
         self._bindings = {p: parameters[p] for p in parameters}
-        form = conic_form(learner, _bind(problem, learner, parameters), name)
-        keep, z_of_r, used_rows = self._eliminate(form)
+        form = conic_form(learner, _bind(problem, learner, parameters))
+        keep, E, e, used_rows = self._eliminate(form)
         self.y = problem.lower_variable(name, len(keep), lb=form.lb[keep], ub=form.ub[keep])
-        z = ca.substitute(z_of_r, form.z, self._spread(form, keep))
+        z = ca.mtimes(E, self.y) + e
         objective = 0.5 * ca.bilin(form.P, z, z) + ca.dot(form.q, z) + form.d
         if form.minimize:
             problem.minimize_lower(objective)
         else:
             problem.maximize_lower(-objective)
-        self._declare(problem, form, z, name, used_rows)
+        self._declare(problem, form, E, e, name, used_rows)
         self._user = {vid: ca.mtimes(ca.DM(mat.tocsc()), z) for vid, mat in form.user.items()}
         self._variables = {v.id: v for v in learner.variables()}
 
@@ -103,73 +104,71 @@ class CvxpyLower:
 
     # -- translation -------------------------------------------------------------------------------
     @staticmethod
-    def _eliminate(form: ConicForm) -> tuple[np.ndarray, ca.SX, set[int]]:
+    def _eliminate(form: ConicForm) -> tuple[np.ndarray, ca.SX, ca.SX, set[int]]:
         """Auxiliary conic variables that occur in one zero-cone row only, with a constant coefficient, unbounded and
-        not part of a user Variable, are solved from that row; returns kept indices, z in terms of kept z, and
-        the rows used up (numbered across all blocks)."""
-        n = int(form.z.numel())
-        rows = ca.vertcat(*[b.rows for b in form.blocks]) if form.blocks else ca.SX(0, 1)
-        jac = ca.jacobian(rows, form.z)
-        count = np.diff(np.asarray(jac.sparsity().colind()))
+        not part of a user Variable, are solved from that row. Returns the kept indices, z = E y + e in the kept
+        variables y, and the rows used up (numbered across all blocks)."""
+        n = form.n
+        A = ca.vertcat(*[blk.A for blk in form.blocks]) if form.blocks else ca.SX(0, n)
+        b = ca.vertcat(*[blk.b for blk in form.blocks]) if form.blocks else ca.SX(0, 1)
+        rows_of, cols_of = (np.asarray(v, dtype=int) for v in A.sparsity().get_triplet())
+        count = np.bincount(cols_of, minlength=n)
         used = np.zeros(n, dtype=bool)
         for mat in form.user.values():
             used |= np.asarray(abs(mat).sum(axis=0)).ravel() > 0
         free = (count == 1) & ~used & ~np.isfinite(form.lb) & ~np.isfinite(form.ub)
-        z_of = [form.z[k] for k in range(n)]
-        gone: set[int] = set()
-        used_rows: set[int] = set()
-        start = 0
-        for block in form.blocks:
-            size = int(block.rows.numel())
-            if block.kind == "zero":
-                for i in range(start, start + size):
-                    for k in np.asarray(jac[i, :].sparsity().get_col(), dtype=int):
-                        coef = jac[i, int(k)]
-                        if free[k] and coef.is_constant() and float(coef) != 0.0:
-                            z_of[k] = -ca.substitute(rows[i], form.z[int(k)], 0) / float(coef)
-                            gone.add(int(k))
-                            used_rows.add(i)
-                            break
-            start += size
-        keep = np.array([k for k in range(n) if k not in gone], dtype=int)
-        return keep, ca.vertcat(*z_of), used_rows
+        zero_row = np.concatenate([np.full(int(blk.b.numel()), blk.kind == "zero") for blk in form.blocks] or [[]])
+        solved: dict[int, tuple[int, float]] = {}
+        taken: set[int] = set()
+        for i, k in zip(rows_of, cols_of):
+            if free[k] and zero_row[i] and i not in taken:
+                coef = A[int(i), int(k)]
+                if coef.is_constant() and float(coef) != 0.0:
+                    solved[int(k)] = (int(i), float(coef))
+                    taken.add(int(i))
+        keep = np.array([k for k in range(n) if k not in solved], dtype=int)
+        gone = sorted(solved)
+        rows = [solved[k][0] for k in gone]
+        scale = ca.DM(sp.diags([-1.0 / solved[k][1] for k in gone]).tocsc()) if gone else ca.DM(0, 0)
+        solved_rows = ca.mtimes(scale, A[rows, keep.tolist()]) if gone else ca.SX(0, len(keep))
+        stacked = ca.vertcat(ca.SX.eye(len(keep)), solved_rows)
+        offsets = ca.vertcat(ca.SX(len(keep), 1), ca.mtimes(scale, b[rows]) if gone else ca.SX(0, 1))
+        order = np.argsort(np.concatenate([keep, gone])).tolist()  # back to the conic variables' order
+        return keep, stacked[order, :], offsets[order], taken
 
-    def _spread(self, form: ConicForm, keep: np.ndarray) -> ca.SX:
-        """z with the kept entries replaced by the declared lower variable (eliminated entries do not occur)."""
-        z = ca.SX.zeros(int(form.z.numel()))
-        for j, k in enumerate(keep):
-            z[int(k)] = self.y[j]
-        return z
-
-    def _declare(self, problem: BilevelProblem, form: ConicForm, z: ca.SX, name: str, used_rows: set[int]) -> None:
-        """Declare the cone rows (less those used up by elimination) as constraints and LMIs."""
+    def _declare(self, problem: BilevelProblem, form: ConicForm, E: ca.SX, e: ca.SX, name: str,
+                 used_rows: set[int]) -> None:
+        """Declare the cone rows, A (E y + e) + b, less those used up by elimination, as constraints and LMIs."""
         offset = 0
-        for b, block in enumerate(form.blocks):
-            rows = ca.substitute(block.rows, form.z, z)
-            size = int(rows.numel())
-            rows = rows[[i for i in range(size) if offset + i not in used_rows]] if used_rows else rows
+        for b, blk in enumerate(form.blocks):
+            size = int(blk.b.numel())
+            rest = [i for i in range(size) if offset + i not in used_rows]
             offset += size
-            if block.kind in ("zero", "nonneg"):
-                rows = self._live_rows(rows, block.kind, f"{name}.{block.kind}{b}")
+            if not rest:
+                continue
+            A_y, b_y = ca.mtimes(blk.A, E)[rest, :], (ca.mtimes(blk.A, e) + blk.b)[rest]
+            rows = ca.mtimes(A_y, self.y) + b_y
+            if blk.kind in ("zero", "nonneg"):
+                live = np.diff(np.asarray(A_y.T.sparsity().colind())) > 0
+                rows = self._live_rows(rows, live, blk.kind, f"{name}.{blk.kind}{b}")
                 if rows.numel():
-                    comparison = rows == 0 if block.kind == "zero" else rows >= 0
-                    problem.lower_constraint(comparison, name=f"{name}.{block.kind}{b}")
+                    comparison = rows == 0 if blk.kind == "zero" else rows >= 0
+                    problem.lower_constraint(comparison, name=f"{name}.{blk.kind}{b}")
                 continue
             start = 0
-            for c, size in enumerate(block.sizes):
-                if block.kind == "soc":
-                    t, u = rows[start], rows[start + 1:start + size]
-                    start += size
-                    mat = ca.blockcat([[t * ca.SX.eye(size - 1), u], [u.T, t]]) if size > 1 else t
+            for c, side in enumerate(blk.sizes):
+                if blk.kind == "soc":
+                    t, u = rows[start], rows[start + 1:start + side]
+                    start += side
+                    mat = ca.blockcat([[t * ca.SX.eye(side - 1), u], [u.T, t]]) if side > 1 else t
                 else:
-                    mat = ca.reshape(rows[start:start + size * size], size, size)
-                    start += size * size
-                problem.lower_psd_constraint(mat, name=f"{name}.{block.kind}{b}_{c}")
+                    mat = ca.reshape(rows[start:start + side * side], side, side)
+                    start += side * side
+                problem.lower_psd_constraint(mat, name=f"{name}.{blk.kind}{b}_{c}")
 
-    def _live_rows(self, rows: ca.SX, kind: str, where: str) -> ca.SX:
-        """Rows that involve the lower variables; the others must hold as constants (else ModelError)."""
-        jac = ca.jacobian(rows, self.y)
-        live = np.diff(np.asarray(jac.T.sparsity().colind())) > 0
+    @staticmethod
+    def _live_rows(rows: ca.SX, live: np.ndarray, kind: str, where: str) -> ca.SX:
+        """Rows that involve the lower variables (`live`); the others must hold as constants (else ModelError)."""
         for i in np.flatnonzero(~live):
             row = rows[int(i)]
             if not row.is_constant():
