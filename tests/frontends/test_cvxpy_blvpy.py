@@ -46,7 +46,7 @@ def test_analytic_quadratic_reaches_two(method: str) -> None:
     assert res.x["x"] == pytest.approx(0.0, abs=1e-6)
 
 
-@pytest.mark.parametrize("method", ["hypergradient", "ipopt"])
+@pytest.mark.parametrize("method", ["hypergradient", "ipopt", "relaxation"])
 def test_parameter_dependent_socp_matches_blvpy_reference(method: str) -> None:
     p, ll, y, t = parameter_dependent_socp()
     res = p.solve(method=method)
