@@ -12,6 +12,7 @@ import numpy as np
 from .errors import InvalidData, ModelError
 from .lower import LowerLevel, LowerSolution, build_lower
 from .model import BilevelProblem, Variable
+from .parameters import ParameterSet
 from .reduction import KKTPoint, Reduction
 from .sampling import default_start, sample_in_bounds
 
@@ -48,6 +49,8 @@ class CanonicalBilevel:
     y_lb: np.ndarray | None = None
     y_ub: np.ndarray | None = None
     assume_convex: bool = False
+    params: ParameterSet = field(default_factory=ParameterSet)
+    """The problem's parameters: every function built from these expressions reads their current values."""
     lower_reference: Callable[[ca.SX, np.ndarray, np.ndarray], LowerSolution] | None = None
     """The declared problem's own independent lower solver, if any (BilevelProblem.lower_reference)."""
 
@@ -60,18 +63,18 @@ class CanonicalBilevel:
         samples = [self.x_start] + [sample_in_bounds(self.x_lb, self.x_ub, rng, 3.0) for _ in range(5)]
         return build_lower(self.x, self.y, self.f, self.g, self.h, self.psd,
                            [f"{n}[{i}]" for n, i in self.g_rows], [f"{n}[{i}]" for n, i in self.h_rows],
-                           self.psd_names, samples, self.y_lb, self.y_ub, self.assume_convex)
+                           self.psd_names, samples, self.y_lb, self.y_ub, self.assume_convex, self.params)
 
     @cached_property
     def functions(self) -> ca.Function:
         """F, G, H, f at (x, y)."""
-        return ca.Function("canon", [self.x, self.y], [self.F, self.G, self.H, self.f])
+        return self.params.function("canon", [self.x, self.y], [self.F, self.G, self.H, self.f])
 
     @cached_property
     def _upper(self) -> ca.Function:
         xy = ca.vertcat(self.x, self.y)
-        return ca.Function("upper", [self.x, self.y], [self.F, self.G, self.H, ca.jacobian(self.G, xy),
-                                                       ca.jacobian(self.H, xy), ca.gradient(self.F, self.y)])
+        return self.params.function("upper", [self.x, self.y], [self.F, self.G, self.H, ca.jacobian(self.G, xy),
+                                                                ca.jacobian(self.H, xy), ca.gradient(self.F, self.y)])
 
     def upper_values(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray,
                                                                   np.ndarray]:
@@ -116,6 +119,14 @@ def _check_depends(expr: ca.SX, allowed: set[int], where: str) -> None:
                           "clean or impute the data before building the problem")
 
 
+def suggested_starts(problem: BilevelProblem, x_start: np.ndarray, x_lb: np.ndarray,
+                     x_ub: np.ndarray) -> list[np.ndarray]:
+    """The problem's suggested starts as flat upper points (unnamed variables at x_start), clipped to the box."""
+    layout = problem.upper_layout()
+    return [np.clip(np.concatenate([s.get(v.name, x_start[layout[v.name]]) for v in problem.upper_variables]),
+                    x_lb, x_ub) for s in problem.starts]
+
+
 class Canonicalize(Reduction):
     """BilevelProblem -> CanonicalBilevel: flatten variables, split constraints, move lower bounds into g."""
 
@@ -128,7 +139,7 @@ class Canonicalize(Reduction):
             raise ModelError(f"{problem.name}: no lower variables; declare them with lower_variable")
         ups, lows = problem.upper_variables, problem.lower_variables
         x, y = _flat(ups), _flat(lows)
-        allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(x, y))}
+        allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(x, y, problem.parameters.sym))}
         _check_depends(problem.upper_objective.expr, allowed, "the upper objective")
         _check_depends(problem.lower_objective.expr, allowed, "the lower objective")
         G, H, G_names = [], [], []
@@ -167,9 +178,6 @@ class Canonicalize(Reduction):
                                 if ups else None)
         y_start = (np.concatenate([v.start if v.start is not None else np.zeros(v.size) for v in lows])
                    if any(v.start is not None for v in lows) else None)
-        layout = problem.upper_layout()
-        suggested = [np.clip(np.concatenate([s.get(v.name, x_start[layout[v.name]]) for v in ups]), x_lb, x_ub)
-                     for s in problem.starts]
         vert = lambda parts: ca.vertcat(*parts) if parts else ca.SX(0, 1)  # noqa: E731
         canon = CanonicalBilevel(
             x=x, y=y, x_lb=x_lb, x_ub=x_ub, x_start=x_start, F=problem.upper_objective.expr, G=vert(G), H=vert(H),
@@ -177,8 +185,9 @@ class Canonicalize(Reduction):
             psd=[m.matrix for m in problem.lower_psd_constraints], g_rows=g_rows, h_rows=h_rows,
             psd_names=[m.name for m in problem.lower_psd_constraints], upper_sense=problem.upper_objective.sense,
             lower_sense=problem.lower_objective.sense, upper_vars=ups, lower_vars=lows, y_start=y_start,
-            G_names=G_names, x_suggested=suggested, y_lb=y_lb, y_ub=y_ub,
-            assume_convex=problem.lower_objective.assume_convex, lower_reference=problem.lower_reference,
+            G_names=G_names, x_suggested=suggested_starts(problem, x_start, x_lb, x_ub), y_lb=y_lb, y_ub=y_ub,
+            assume_convex=problem.lower_objective.assume_convex, params=problem.parameters,
+            lower_reference=problem.lower_reference,
         )
         return canon, canon
 

@@ -20,6 +20,7 @@ import casadi as ca
 import numpy as np
 
 from .errors import ModelError
+from .parameters import ParameterSet
 from .vech import symmetric_from_vech, unvech, vech
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -164,6 +165,10 @@ class BilevelProblem:
         self.lower_constraints: list[Constraint] = []
         self.lower_psd_constraints: list[PSDConstraint] = []
         self.starts: list[dict[str, np.ndarray]] = []
+        self.parameters = ParameterSet()
+        self.revision = 0
+        """Incremented by every declaration (not by set_value or suggest_start): solves reuse their preparation
+        while it is unchanged."""
         self.lower_reference: Callable[[ca.SX, np.ndarray, np.ndarray], LowerSolution] | None = None
         """An independent solver of the lower level that the certificate re-solves with instead of the engine's,
         (x symbols, x, y) -> LowerSolution; set by a front end that has the user's own model (lower_cvxpy)."""
@@ -171,10 +176,7 @@ class BilevelProblem:
     # -- variables -----------------------------------------------------------------------------
     def _variable(self, level: Level, name: str, shape: int | tuple[int, int], lb: Any, ub: Any, start: Any,
                   symmetric: bool = False) -> ca.SX:
-        if not isinstance(name, str) or not name.isidentifier():
-            raise ModelError(f"variable name {name!r} must be a Python identifier")
-        if any(v.name == name for v in self.variables):
-            raise ModelError(f"a variable named {name!r} is already declared; names must be unique")
+        self._check_new_name(name)
         try:
             rows, cols = (shape, 1) if isinstance(shape, (int, np.integer)) else tuple(int(n) for n in shape)
         except (TypeError, ValueError):
@@ -200,7 +202,35 @@ class BilevelProblem:
         if st is not None and not np.all(np.isfinite(st)):
             raise ModelError(f"start of {name!r} contains inf; give finite start values")
         self.variables.append(Variable(name, level, sym, lbv, ubv, st, matrix))
+        self.revision += 1
         return sym if matrix is None else matrix
+
+    def _check_new_name(self, name: str) -> None:
+        if not isinstance(name, str) or not name.isidentifier():
+            raise ModelError(f"name {name!r} must be a Python identifier")
+        if any(v.name == name for v in self.variables) or any(p.name == name for p in self.parameters.items):
+            raise ModelError(f"a variable or parameter named {name!r} is already declared; names must be unique")
+
+    def parameter(self, name: str, shape: int | tuple[int, int] = 1, value: Any = None) -> ca.SX:
+        """Declare data that can be re-set without rebuilding (set_value); returns its CasADi symbol.
+
+        Solving again after set_value reuses the canonical form, classification, reduction and compiled functions.
+        """
+        self._check_new_name(name)
+        try:
+            rows, cols = (shape, 1) if isinstance(shape, (int, np.integer)) else tuple(int(n) for n in shape)
+        except (TypeError, ValueError):
+            raise ModelError(f"parameter {name!r}: shape {shape!r} must be an int or a pair (rows, cols)") from None
+        if rows < 1 or cols < 1:
+            raise ModelError(f"parameter {name!r}: shape {shape} must be positive")
+        sym = ca.SX.sym(name, int(rows), int(cols))
+        self.parameters.add(name, sym, value)
+        self.revision += 1
+        return sym
+
+    def set_value(self, name: str, value: Any) -> None:
+        """Set the value of parameter `name` (its declared shape, or flattened column-major)."""
+        self.parameters.set(name, value)
 
     def upper_variable(self, name: str, shape: int | tuple[int, int] = 1, lb: Any = -np.inf,
                        ub: Any = np.inf, start: Any = None, symmetric: bool = False) -> ca.SX:
@@ -265,10 +295,12 @@ class BilevelProblem:
     def minimize_upper(self, expr: Any) -> None:
         """Set the upper-level objective F(x, y) to minimize."""
         self.upper_objective = self._objective(expr, "min", "minimize_upper")
+        self.revision += 1
 
     def maximize_upper(self, expr: Any) -> None:
         """Set the upper-level objective F(x, y) to maximize."""
         self.upper_objective = self._objective(expr, "max", "maximize_upper")
+        self.revision += 1
 
     def minimize_lower(self, expr: Any, assume_convex: bool = False) -> None:
         """Set the lower-level objective f(x, y) to minimize (convex in y on the declared bounds of y).
@@ -280,23 +312,27 @@ class BilevelProblem:
         """
         self._check_lower_open("minimize_lower")
         self.lower_objective = self._objective(expr, "min", "minimize_lower", assume_convex)
+        self.revision += 1
 
     def maximize_lower(self, expr: Any, assume_convex: bool = False) -> None:
         """Set the lower-level objective f(x, y) to maximize (concave in y); see minimize_lower."""
         self._check_lower_open("maximize_lower")
         self.lower_objective = self._objective(expr, "max", "maximize_lower", assume_convex)
+        self.revision += 1
 
     # -- constraints ---------------------------------------------------------------------------
     def upper_constraint(self, comparison: Any, name: str | None = None) -> None:
         """Add an upper-level constraint `G(x, y) <= 0` / `== 0` (any comparison of expressions)."""
         body, kind = split_comparison(comparison, "upper_constraint")
         self.upper_constraints.append(Constraint(name or f"G{len(self.upper_constraints)}", body, kind))
+        self.revision += 1
 
     def lower_constraint(self, comparison: Any, name: str | None = None) -> None:
         """Add a lower-level constraint `g(x, y) <= 0` (convex in y) or `h(x, y) == 0` (affine in y)."""
         self._check_lower_open("lower_constraint")
         body, kind = split_comparison(comparison, "lower_constraint")
         self.lower_constraints.append(Constraint(name or f"g{len(self.lower_constraints)}", body, kind))
+        self.revision += 1
 
     def lower_psd_constraint(self, matrix: Any, name: str | None = None) -> None:
         """Add a lower-level linear matrix inequality `M(x, y) >= 0` (M symmetric, affine in y)."""
@@ -311,6 +347,7 @@ class BilevelProblem:
             if float(ca.norm_inf(probe)) > 1e-12:
                 raise ModelError("lower_psd_constraint: matrix is not symmetric; pass (M + M.T) / 2 if that is meant")
         self.lower_psd_constraints.append(PSDConstraint(name or f"M{len(self.lower_psd_constraints)}", matrix))
+        self.revision += 1
 
     def lower_cvxpy(self, learner: "cp.Problem", parameters: dict[Any, Any] | None = None,
                     name: str = "cvxpy") -> "CvxpyLower":
@@ -335,7 +372,10 @@ class BilevelProblem:
                              "declared; add the variable, objective or constraint to the cvxpy problem instead")
 
     def _all_syms(self) -> ca.SX:
-        return ca.vertcat(*[ca.vec(v.sym) for v in self.variables]) if self.variables else ca.SX(0, 1)
+        return ca.vertcat(*[ca.vec(v.sym) for v in self.variables], self.parameters.sym)
+
+    def __getstate__(self) -> dict[str, Any]:  # the cached preparation (compiled functions) is not pickled
+        return {k: v for k, v in self.__dict__.items() if k != "_prepared"}
 
     # -- solving ---------------------------------------------------------------------------------
     def solve(self, method: Any = "ipopt", **options: Any) -> "BilevelResult":

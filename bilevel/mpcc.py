@@ -9,12 +9,13 @@ from __future__ import annotations
 
 from abc import ABC
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
 
 from .errors import ModelError, UnsupportedPair
+from .parameters import ParameterSet
 from .vech import lower_triangular, vech_sx
 
 Row = tuple[ca.SX, float, float]
@@ -205,7 +206,8 @@ class NLPForm:
     ubg: np.ndarray
     p_value: np.ndarray
     n_w: int
-    psd_values: ca.Function | None = None
+    psd_values: Callable | None = None
+    params: ParameterSet = field(default_factory=ParameterSet)
     _solvers: dict[str, ca.Function] = field(default_factory=dict, repr=False)
 
     def start(self, w: np.ndarray) -> np.ndarray:
@@ -219,7 +221,7 @@ class NLPForm:
         """A CasADi nlpsol for this NLP, cached per (plugin, options)."""
         key = f"{plugin}:{sorted((options or {}).items())!r}"
         if key not in self._solvers:
-            nlp = {"x": self.x, "f": self.f, "g": self.g, "p": self.p}
+            nlp = {"x": self.x, "f": self.f, "g": self.g, "p": ca.vertcat(self.p, self.params.sym)}
             self._solvers[key] = ca.nlpsol("mpcc_nlp", plugin, nlp, options or {})
         return self._solvers[key]
 
@@ -239,6 +241,7 @@ class MPCC:
     inequalities: ca.SX
     pairs: list[ScalarPair | PSDPair]
     blocks: dict[str, slice]
+    params: ParameterSet = field(default_factory=ParameterSet)
 
     def __post_init__(self) -> None:
         scalar = [p for p in self.pairs if isinstance(p, ScalarPair)]
@@ -247,7 +250,7 @@ class MPCC:
         outs += [ca.vertcat(*[p.G for p in scalar]) if scalar else ca.SX(0, 1),
                  ca.vertcat(*[p.H for p in scalar]) if scalar else ca.SX(0, 1)]
         outs += [m for p in psd for m in (p.S, p.L)]
-        self._eval = ca.Function("mpcc_eval", [self.w], outs)
+        self._eval = self.params.function("mpcc_eval", [self.w], outs)
         self._n_psd = len(psd)
 
     @property
@@ -273,11 +276,11 @@ class MPCC:
         ubg = np.concatenate([np.broadcast_to(r[2], (int(r[0].numel()),)) for r in rows]) if rows else np.zeros(0)
         aux = ca.vertcat(*[f.symbols for f in factors]) if factors else ca.SX(0, 1)
         n_aux = int(aux.numel())
-        init = ca.Function("psd_pairs", [self.w], [m for f in factors for m in (f.pair.S, f.pair.L)])
+        init = self.params.function("psd_pairs", [self.w], [m for f in factors for m in (f.pair.S, f.pair.L)])
         return NLPForm(ca.vertcat(self.w, aux), self.objective, g, tau,
                        np.concatenate([self.lbw, np.full(n_aux, -np.inf)]),
                        np.concatenate([self.ubw, np.full(n_aux, np.inf)]), lbg.astype(float), ubg.astype(float),
-                       np.array([mode.tau]), self.n_variables, init)
+                       np.array([mode.tau]), self.n_variables, init, self.params)
 
     def residuals(self, w: np.ndarray) -> dict[str, float]:
         """Max violations at w: equality, inequality (incl. bounds), pair sign, complementarity."""

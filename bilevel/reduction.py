@@ -92,7 +92,7 @@ class SingleLevelReduction(Reduction):
             w=w, lbw=lbw, ubw=ubw, objective=canon.F,
             equalities=ca.vertcat(canon.H, kkt.stationarity, low.h),
             inequalities=canon.G, pairs=pairs,
-            blocks={name: slices[name] for name, _ in blocks},
+            blocks={name: slices[name] for name, _ in blocks}, params=canon.params,
         )
         return mpcc, KKTInverse(slices, tuple(int(m.size1()) for m in low.psd))
 

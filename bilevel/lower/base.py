@@ -11,6 +11,7 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InvalidData
+from ..parameters import ParameterSet
 from ..vech import symmetric_from_vech
 
 
@@ -64,17 +65,19 @@ class LowerLevel(ABC):
     psd_names: list[str]
     hess_f: ca.SX | None = field(default=None, repr=False)
     """d^2 f / dy^2, symbolic; computed here unless the classification already did (one AD pass on f)."""
+    params: ParameterSet = field(default_factory=ParameterSet, repr=False)
+    """The problem's parameters (data symbols in f, g, h, M_k): functions built here read their current values."""
     kind: ClassVar[str] = "nlp"
 
     def __post_init__(self) -> None:
         if self.hess_f is None:
             self.hess_f = ca.hessian(self.f, self.y)[0]
-        self._eval = ca.Function("lower_eval", [self.x, self.y], [self.f, self.g, self.h, *self.psd])
+        self._eval = self.params.function("lower_eval", [self.x, self.y], [self.f, self.g, self.h, *self.psd])
         jac_psd = [ca.jacobian(ca.vec(m), self.y) for m in self.psd]
-        self._derivs = ca.Function("lower_derivs", [self.x, self.y],
-                                   [ca.gradient(self.f, self.y), ca.jacobian(self.g, self.y),
-                                    ca.jacobian(self.h, self.y), *jac_psd])
-        self._hess = ca.Function("lower_hess", [self.x, self.y], [self.hess_f])
+        self._derivs = self.params.function("lower_derivs", [self.x, self.y],
+                                            [ca.gradient(self.f, self.y), ca.jacobian(self.g, self.y),
+                                             ca.jacobian(self.h, self.y), *jac_psd])
+        self._hess = self.params.function("lower_hess", [self.x, self.y], [self.hess_f])
 
     @cached_property
     def fixed(self) -> bool:

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from typing import Callable
+
 import casadi as ca
 import numpy as np
 
 from ..errors import ModelError, NonConvexLowerLevel
+from ..parameters import ParameterSet
 from ..sampling import sample_in_bounds
 from .base import LowerLevel
 from .least_squares import LeastSquaresLower
@@ -23,7 +26,7 @@ def _min_eig(matrix: np.ndarray) -> float:
     return float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min()) if matrix.size else 0.0
 
 
-def _check_psd(fun: ca.Function, points: list[tuple[np.ndarray, np.ndarray]], what: str) -> float:
+def _check_psd(fun: Callable, points: list[tuple[np.ndarray, np.ndarray]], what: str) -> float:
     """Smallest eigenvalue of fun(x, y) over the sample points; raise NonConvexLowerLevel if negative."""
     worst = np.inf
     if not fun.sparsity_out(0).nnz() or not ca.depends_on(fun.sx_out(0), fun.sx_in(1)):
@@ -47,7 +50,7 @@ def _check_psd(fun: ca.Function, points: list[tuple[np.ndarray, np.ndarray]], wh
 def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.SX], g_names: list[str],
                 h_names: list[str], psd_names: list[str], x_samples: list[np.ndarray],
                 y_lb: np.ndarray | None = None, y_ub: np.ndarray | None = None,
-                assume_convex: bool = False) -> LowerLevel:
+                assume_convex: bool = False, params: ParameterSet | None = None) -> LowerLevel:
     """Classify as least squares, LP, QP or convex NLP and build it.
 
     Convexity in y is probed at the upper samples times Y_PROBES lower points inside the declared bounds
@@ -61,6 +64,8 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
         raise NonConvexLowerLevel("a lower-level equality constraint is not affine in the lower variables; "
                                   "only affine equalities keep the lower level convex")
     args = (x, y, f, g, h, psd, g_names, h_names, psd_names)
+    params = ParameterSet() if params is None else params
+    function = params.function
     ny = int(y.numel())
     y_lb = np.full(ny, -np.inf) if y_lb is None else y_lb
     y_ub = np.full(ny, np.inf) if y_ub is None else y_ub
@@ -77,20 +82,20 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
         if not affine_g or ca.depends_on(hess_f, y):  # hess_f is small (n_y x n_y) next to f
             raise ModelError("a lower level with LMIs must have a linear or convex quadratic objective and affine "
                              "scalar constraints in y (a conic program)")
-        _check_psd(ca.Function("hf", [x, y], [hess_f]), points, "the lower objective")
-        return SemidefiniteLower(*args, hess_f=hess_f)
+        _check_psd(function("hf", [x, y], [hess_f]), points, "the lower objective")
+        return SemidefiniteLower(*args, hess_f=hess_f, params=params)
     if affine_g and not ca.depends_on(hess_f, y):
         if not nonlinear_f.any():
-            return LinearLower(*args, hess_f=hess_f)
-        worst = _check_psd(ca.Function("hf", [x, y], [hess_f]), points, "the lower objective")
+            return LinearLower(*args, hess_f=hess_f, params=params)
+        worst = _check_psd(function("hf", [x, y], [hess_f]), points, "the lower objective")
         if not g.numel() and not h.numel() and worst > _PSD_TOL:
-            return LeastSquaresLower(*args, hess_f=hess_f)
-        return QuadraticLower(*args, hess_f=hess_f)
+            return LeastSquaresLower(*args, hess_f=hess_f, params=params)
+        return QuadraticLower(*args, hess_f=hess_f, params=params)
     if assume_convex:  # a Hessian that varies with y: convexity is the user's claim, checked by the certificate
-        return ConvexNLPLower(*args, hess_f=hess_f)
-    _check_psd(ca.Function("hf", [x, y], [hess_f]), points, "the lower objective")
+        return ConvexNLPLower(*args, hess_f=hess_f, params=params)
+    _check_psd(function("hf", [x, y], [hess_f]), points, "the lower objective")
     for i in range(int(g.numel())):
         if ca.depends_on(ca.jacobian(g[i], y), y):
-            _check_psd(ca.Function("hg", [x, y], [ca.hessian(g[i], y)[0]]), points,
+            _check_psd(function("hg", [x, y], [ca.hessian(g[i], y)[0]]), points,
                        f"lower constraint {g_names[i]!r}")
-    return ConvexNLPLower(*args, hess_f=hess_f)
+    return ConvexNLPLower(*args, hess_f=hess_f, params=params)

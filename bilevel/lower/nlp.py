@@ -19,7 +19,7 @@ class ConvexNLPLower(LowerLevel):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        nlp = {"x": self.y, "p": self.x, "f": self.f, "g": ca.vertcat(self.g, self.h)}
+        nlp = {"x": self.y, "p": ca.vertcat(self.x, self.params.sym), "f": self.f, "g": ca.vertcat(self.g, self.h)}
         opts = {"print_time": False, "ipopt": {"print_level": 0, "tol": 1e-12, "acceptable_tol": 1e-9,
                                                "max_iter": 3000, "sb": "yes"}}
         self._solver = ca.nlpsol("lower_nlp", "ipopt", nlp, opts)
@@ -30,7 +30,8 @@ class ConvexNLPLower(LowerLevel):
         x = self.check_point(x)
         lbg = np.concatenate([np.full(self._ng, -np.inf), np.zeros(self.h.numel())])
         ubg = np.zeros(self._ng + int(self.h.numel()))
-        sol = self._solver(x0=np.zeros(self.n_y) if y0 is None else y0, p=x, lbg=lbg, ubg=ubg)
+        sol = self._solver(x0=np.zeros(self.n_y) if y0 is None else y0, p=np.concatenate([x, self.params.value]),
+                           lbg=lbg, ubg=ubg)
         status = self._solver.stats()["return_status"]
         if status == "Infeasible_Problem_Detected":
             raise LowerLevelInfeasible(f"the lower level is infeasible at x = {x}")

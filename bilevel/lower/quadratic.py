@@ -96,7 +96,7 @@ class QuadraticLower(LowerLevel):
         outs = [self.hess_f, grad, self.f, ca.jacobian(self.g, self.y), self.g,
                 ca.jacobian(self.h, self.y), self.h]
         outs = [ca.substitute(o, self.y, zero) for o in outs]
-        self._coeffs = ca.Function("qp_coeffs", [self.x], outs)
+        self._coeffs = self.params.function("qp_coeffs", [self.x], outs)
 
     def data(self, x: np.ndarray) -> QPData:
         """The QP coefficients at upper point x."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Callable
 
 import casadi as ca
 import numpy as np
@@ -32,8 +33,8 @@ class ConicKKT:
     1998): y*(x) is then differentiable with dw/dx = -(dr/dw)^-1 dr/dx.
     """
 
-    residual: ca.Function      # (x, w) -> (r, dr/dw)
-    residual_x: ca.Function    # (x, w) -> dr/dx
+    residual: Callable      # (x, w) -> (r, dr/dw)
+    residual_x: Callable    # (x, w) -> dr/dx
     sizes: tuple[int, ...]     # n_y, n_g, n_h, then vech sizes of the Z_k
     psd_dims: tuple[int, ...]
 
@@ -50,7 +51,7 @@ class SemidefiniteLower(QuadraticLower):
         outs = []
         for m in self.psd:
             outs += [ca.substitute(m, self.y, zero), ca.substitute(ca.jacobian(ca.vec(m), self.y), self.y, zero)]
-        self._lmi = ca.Function("lmi_coeffs", [self.x], outs)
+        self._lmi = self.params.function("lmi_coeffs", [self.x], outs)
 
     def lmi_data(self, x: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
         """(M_k0, d vec(M_k)/dy) for every LMI at upper point x."""
@@ -71,8 +72,8 @@ class SemidefiniteLower(QuadraticLower):
         r = ca.vertcat(kkt.stationarity, kkt.lam * self.g, self.h, *products)
         w = ca.vertcat(self.y, kkt.lam, kkt.mu, *kkt.Z_vech)
         sizes = (self.n_y, int(kkt.lam.numel()), int(kkt.mu.numel()), *(int(v.numel()) for v in kkt.Z_vech))
-        return ConicKKT(ca.Function("kkt_residual", [self.x, w], [r, ca.jacobian(r, w)]),
-                        ca.Function("kkt_residual_x", [self.x, w], [ca.jacobian(r, self.x)]), sizes,
+        return ConicKKT(self.params.function("kkt_residual", [self.x, w], [r, ca.jacobian(r, w)]),
+                        self.params.function("kkt_residual_x", [self.x, w], [ca.jacobian(r, self.x)]), sizes,
                         tuple(int(m.size1()) for m in self.psd))
 
     def pack(self, sol: LowerSolution) -> np.ndarray:

@@ -39,41 +39,72 @@ def sx_filter(op: LTIOperator, x: ca.SX) -> ca.SX:
 
 
 def attack_problem(atk: VRFTAttack) -> BilevelProblem:
-    """The bilevel program of an attack instance (l2 budgets), declared with the generic API."""
-    if atk.budget_u.norm != "l2" or atk.budget_y.norm != "l2" or atk.budget_u.rho or atk.budget_y.rho:
-        raise ModelError("the declared VRFT problem supports plain l2 budgets; use the structured attacks in "
-                         "bilevel.attacks.vrft_methods for linf/l1/sparse budgets")
+    """The bilevel program of an attack instance (l2 budgets), declared with the generic API.
+
+    The clean data enter as parameters (clean regressor and targets, budget radii, the objective's data), so
+    `load_instance` re-targets the declared problem to another data set of the same scenario and N without
+    rebuilding it.
+    """
+    _check_budgets(atk)
     reg = atk.setting.regressor
     N, k = atk.N, reg.n_params
+    rows = reg.rows(N)
     p = BilevelProblem(f"vrft-{atk.objective}")
     a_u = p.upper_variable("a_u", N)
     a_y = p.upper_variable("a_y", N)
     theta = p.lower_variable("theta", k, start=atk.theta0)
+    t0, phi0 = p.parameter("t0", rows), p.parameter("phi0", (rows, k))
+    delta_u, delta_y = p.parameter("delta_u"), p.parameter("delta_y")
     err = sx_filter(reg.error, a_y)
     if reg.prefilter is not None:
         err = sx_filter(reg.prefilter, err)
-    rows = reg.rows(N)
     phi_a = ca.horzcat(*[sx_filter(beta, err)[:rows] for beta in reg.basis])
     t_a = a_u if reg.prefilter is None else sx_filter(reg.prefilter, a_u)
-    residual = ca.DM(atk.t0) + t_a[:rows] - ca.mtimes(ca.DM(atk.phi0) + phi_a, theta)
+    residual = t0 + t_a[:rows] - ca.mtimes(phi0 + phi_a, theta)
     p.minimize_lower(ca.sumsqr(residual) / rows)
-    p.upper_constraint(ca.sumsqr(a_u) <= atk.delta_u ** 2, name="budget_u")
-    p.upper_constraint(ca.sumsqr(a_y) <= atk.delta_y ** 2, name="budget_y")
-    p.suggest_start(a_y=conditioning_start(atk))  # a_y = 0 is stationary: start where the regressor is ill-conditioned
+    p.upper_constraint(ca.sumsqr(a_u) <= delta_u ** 2, name="budget_u")
+    p.upper_constraint(ca.sumsqr(a_y) <= delta_y ** 2, name="budget_y")
     if atk.objective == "maxmin":
-        clean = ca.DM(atk.t0) - ca.mtimes(ca.DM(atk.phi0), theta)
-        p.maximize_upper(ca.sumsqr(clean) / rows)
+        p.maximize_upper(ca.sumsqr(t0 - ca.mtimes(phi0, theta)) / rows)
     elif atk.objective == "targeted":
-        p.minimize_upper(ca.sumsqr(ca.DM(atk.theta_target) - theta) / k)
+        p.minimize_upper(ca.sumsqr(p.parameter("theta_target", k) - theta) / k)
     else:
-        p.maximize_upper(gelfand_radius(atk.model_loop.base, atk.model_loop.slopes, theta))
+        loop = atk.model_loop
+        p.maximize_upper(gelfand_radius(p.parameter("loop_base", loop.base.size),
+                                        p.parameter("loop_slopes", loop.slopes.shape), theta))
+    load_instance(p, atk)
     return p
 
 
-def gelfand_radius(base: np.ndarray, slopes: np.ndarray, theta: ca.SX, power: int = 16) -> ca.SX:
+def _check_budgets(atk: VRFTAttack) -> None:
+    if atk.budget_u.norm != "l2" or atk.budget_y.norm != "l2" or atk.budget_u.rho or atk.budget_y.rho:
+        raise ModelError("the declared VRFT problem supports plain l2 budgets; use the structured attacks in "
+                         "bilevel.attacks.vrft_methods for linf/l1/sparse budgets")
+
+
+def load_instance(problem: BilevelProblem, atk: VRFTAttack) -> None:
+    """Set the parameters and the suggested start of a problem from `attack_problem` to instance `atk` (same
+    scenario, N and objective); the next solve reuses the declared problem's preparation."""
+    _check_budgets(atk)
+    names = {q.name for q in problem.parameters.items}
+    if problem.name != f"vrft-{atk.objective}" or problem.parameters.items[0].size != atk.t0.size:
+        raise ModelError(f"instance ({atk.objective}, N = {atk.N}) does not fit problem {problem.name!r} declared for "
+                         f"{problem.parameters.items[0].size} regression rows; declare it with attack_problem(atk)")
+    values = {"t0": atk.t0, "phi0": atk.phi0, "delta_u": atk.delta_u, "delta_y": atk.delta_y}
+    if "theta_target" in names:
+        values["theta_target"] = atk.theta_target
+    if "loop_base" in names:
+        values |= {"loop_base": atk.model_loop.base, "loop_slopes": atk.model_loop.slopes}
+    for name, value in values.items():
+        problem.set_value(name, value)
+    problem.starts.clear()  # a_y = 0 is stationary: start where the regressor is ill-conditioned
+    problem.suggest_start(a_y=conditioning_start(atk))
+
+
+def gelfand_radius(base: np.ndarray | ca.SX, slopes: np.ndarray | ca.SX, theta: ca.SX, power: int = 16) -> ca.SX:
     """Smooth spectral-radius surrogate log(||C(theta)^p||_F) / p (Gelfand: -> log rho as p -> inf),
     C the companion matrix of the closed-loop polynomial base + theta' slopes; p a power of two."""
-    coeffs = ca.DM(base) + ca.mtimes(ca.DM(slopes).T, theta)
+    coeffs = ca.SX(base) + ca.mtimes(ca.SX(slopes).T, theta)
     n = int(coeffs.numel()) - 1
     monic = coeffs[1:] / coeffs[0]
     C = ca.vertcat(-monic.T, ca.horzcat(ca.SX.eye(n - 1), ca.SX.zeros(n - 1, 1)))

@@ -9,7 +9,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from ..canonical import CanonicalBilevel, Canonicalize, NormalizeSense, kkt_solution, objectives
+from ..canonical import CanonicalBilevel, Canonicalize, NormalizeSense, kkt_solution, objectives, suggested_starts
 from ..certificate import DEFAULT_TOL, GlobalBound, certify
 from ..errors import BilevelError, UnknownOption
 from ..model import BilevelProblem
@@ -23,12 +23,34 @@ from .structure import Ball, find_balls, upper_projection
 
 @dataclass
 class Prepared:
-    """A problem after canonicalization and sense normalization, with its (lazily built) MPCC."""
+    """A problem after canonicalization and sense normalization, with its (lazily built) MPCC.
+
+    It is kept on the problem and reused by the next solve while no declaration changes; quantities that depend
+    on parameter values (balls, projection) are recomputed after a set_value, the symbolic set-ups are not.
+    """
 
     problem: BilevelProblem
     canon: CanonicalBilevel
     front: Chain
     front_inverse: list[Any]
+    memo: dict[str, Any] = field(default_factory=dict)
+    """Methods' symbolic set-ups (compiled functions), built once per declaration."""
+    values_revision: int = 0
+
+    def cached(self, key: tuple[Any, ...], build: Any) -> Any:
+        """memo[key], built by build() on first use (a method's symbolic set-up, shared by later solves)."""
+        if key not in self.memo:
+            self.memo[key] = build()
+        return self.memo[key]
+
+    def refresh(self) -> None:
+        """Bring value-dependent caches up to date with the problem's parameter values and suggested starts."""
+        canon = self.canon
+        canon.x_suggested = suggested_starts(self.problem, canon.x_start, canon.x_lb, canon.x_ub)
+        if canon.params.revision != self.values_revision:
+            for name in ("balls", "projection"):
+                self.__dict__.pop(name, None)
+            self.values_revision = canon.params.revision
 
     @cached_property
     def balls(self) -> list[Ball]:
@@ -62,12 +84,29 @@ class Prepared:
         return KKTPoint(np.asarray(x, dtype=float), sol.y, sol.lam, sol.mu, sol.Z)
 
 
+def _declaration_key(problem: BilevelProblem) -> tuple[Any, ...]:
+    return (problem.revision, len(problem.variables), len(problem.upper_constraints), len(problem.lower_constraints),
+            len(problem.lower_psd_constraints), len(problem.parameters), id(problem.upper_objective),
+            id(problem.lower_objective))
+
+
 def prepare(problem: BilevelProblem) -> Prepared:
-    """Canonicalize and normalize senses; classification and convexity checks of the lower level run here."""
+    """Canonicalize and normalize senses; classification and convexity checks of the lower level run here.
+
+    The preparation is cached on the problem: a solve after set_value (or suggest_start) reuses it.
+    """
+    key = _declaration_key(problem)
+    cached = problem.__dict__.get("_prepared")
+    if cached is not None and cached[0] == key:
+        cached[1].refresh()
+        return cached[1]
+    _ = problem.parameters.value  # every parameter needs a value before anything is built
     front = Chain([Canonicalize(), NormalizeSense()])
     canon, inverse = front.apply(problem)
     _ = canon.lower  # classify now so a bad lower level fails before any solve
-    return Prepared(problem, canon, front, inverse)
+    prep = Prepared(problem, canon, front, inverse, values_revision=canon.params.revision)
+    problem.__dict__["_prepared"] = (key, prep)
+    return prep
 
 
 @dataclass
@@ -146,8 +185,8 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
                        f"objective {sign * better.objective:.8g} (here {sign * F:.8g}); the method stopped at a "
                        f"stationary point that is not optimal ({message}); try more starts or another method")
     sol = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse)
-    syms = ca.vertcat(prep.canon.x, prep.canon.y)
-    values = np.concatenate([point.x, point.y])
+    syms = ca.vertcat(prep.canon.x, prep.canon.y, prep.canon.params.sym)
+    values = np.concatenate([point.x, point.y, prep.canon.params.value])
     evaluate = lambda expr: ca.evalf(ca.substitute(expr, syms, ca.DM(values)))  # noqa: E731
     return BilevelResult(status, message, method, prep.problem.name, sol.x, sol.y, sol.multipliers,
                          sol.upper_objective, sol.lower_objective, cert, wall_time, run.nit, tuple(run.history),

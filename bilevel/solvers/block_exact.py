@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from dataclasses import replace
+from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
@@ -27,7 +28,7 @@ from ..reduction import KKTPoint
 from ..result import Status
 from .ascent import projected_ascent
 from .base import MethodRun, Prepared, check_options
-from .hypergradient import DEFAULT_PENALTY, Evaluation, Hypergradient
+from .hypergradient import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, Hypergradient
 from .starts import start_points
 from .structure import Ball, budget_scale, depends
 from .trust_region import maximize_quadratic_on_ball
@@ -38,8 +39,8 @@ class ExactBlock:
     """A ball block on which the reduced upper objective is a quadratic of a ball-constrained vector."""
 
     ball: Ball
-    jac_q: ca.Function
-    upper_y: ca.Function
+    jac_q: Callable
+    upper_y: Callable
 
     def solve(self, low: LeastSquaresLower, x: np.ndarray) -> np.ndarray:
         """x with its block replaced by the global minimizer of F(x, y*(x)) over the ball (other entries fixed)."""
@@ -87,22 +88,27 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
             best = ball
     if best is None:
         return None, why or ["no upper constraint is a Euclidean ball on a block of upper variables"]
-    jac_q = ca.Function("jac_q", [x], [ca.jacobian(q, x[best.block])])
-    upper_y = ca.Function("upper_y", [x, y], [canon.F, ca.gradient(canon.F, y), hess_F])
+    jac_q = canon.params.function("jac_q", [x], [ca.jacobian(q, x[best.block])])
+    upper_y = canon.params.function("upper_y", [x, y], [canon.F, ca.gradient(canon.F, y), hess_F])
     return ExactBlock(best, jac_q, upper_y), why
 
 
 def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
     """Multistart block-exact method (options: starts, seed, scale, penalty, tol, max_iter, verbose)."""
     check_options("block-exact", options, {"starts", "seed", "scale", "penalty", "tol", "max_iter", "verbose"})
-    exact, why = find_exact_block(prep.canon, prep.balls)
+    balls = prep.balls
+    exact, why = prep.cached(("block-exact", tuple((b.row, b.block.start, b.block.stop) for b in balls)),
+                             lambda: find_exact_block(prep.canon, balls))
+    if exact is not None:  # the symbolic set-up is shared; center and radius follow the parameter values
+        exact = replace(exact, ball=next(b for b in balls if b.row == exact.ball.row))
     if exact is None:
         raise ModelError("method 'block-exact' needs a block of upper variables on which the reduced objective is "
                          f"a ball-constrained quadratic: {'; '.join(why)}; use method='hypergradient'")
     starts, tol = int(options.get("starts", 4)), float(options.get("tol", 1e-5))
     max_iter = int(options.get("max_iter", 500))
-    oracle = Hypergradient(prep, float(options.get("penalty", DEFAULT_PENALTY)),
-                           projected_rows=tuple(b.row for b in prep.balls))
+    penalty, projected = float(options.get("penalty", DEFAULT_PENALTY)), tuple(b.row for b in balls)
+    oracle = prep.cached(("hypergradient", penalty, ACTIVE_TOL, projected),
+                         lambda: Hypergradient(prep, penalty, ACTIVE_TOL, projected))
     low, S = prep.canon.lower, exact.ball.block
     rest = np.ones(int(prep.canon.x.numel()), dtype=bool)
     rest[S] = False

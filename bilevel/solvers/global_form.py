@@ -15,6 +15,7 @@ import numpy as np
 
 from ..errors import ModelError
 from ..mpcc import ScalarPair
+from ..parameters import ParameterSet
 from .base import Prepared
 
 LOCAL_METHODS = "use a local method instead: method='relaxation' (most robust) or method='ipopt'"
@@ -57,7 +58,7 @@ class LinearMPCC:
         return float(0.5 * w @ self.Q @ w + self.c @ w + self.c0)
 
 
-def _affine(expr: ca.SX, w: ca.SX, what: str, why: str) -> tuple[np.ndarray, np.ndarray]:
+def _affine(expr: ca.SX, w: ca.SX, what: str, why: str, params: ParameterSet) -> tuple[np.ndarray, np.ndarray]:
     """(J, r) with expr = J w + r; ModelError naming `what` and `why` if expr is not affine in w."""
     n_rows = int(expr.numel())
     if n_rows == 0:
@@ -65,19 +66,19 @@ def _affine(expr: ca.SX, w: ca.SX, what: str, why: str) -> tuple[np.ndarray, np.
     jac = ca.jacobian(expr, w)
     if ca.depends_on(jac, w):
         raise ModelError(f"method 'global' needs {what} to be affine: {why}; {LOCAL_METHODS}")
-    fun = ca.Function("affine", [w], [ca.densify(jac), ca.densify(expr)])
+    fun = params.function("affine", [w], [ca.densify(jac), ca.densify(expr)])
     J, r = fun(np.zeros(int(w.numel())))
     return np.asarray(J, dtype=float).reshape(n_rows, -1), np.asarray(r, dtype=float).ravel()
 
 
-def _objective(F: ca.SX, w: ca.SX) -> tuple[np.ndarray, np.ndarray, float]:
+def _objective(F: ca.SX, w: ca.SX, params: ParameterSet) -> tuple[np.ndarray, np.ndarray, float]:
     """(Q, c, c0) of a convex quadratic F; ModelError if F is not quadratic or not convex."""
     grad = ca.gradient(F, w)
     hess = ca.jacobian(grad, w)
     if ca.depends_on(hess, w):
         raise ModelError("method 'global' needs an upper objective that is linear or convex quadratic in (x, y); "
                          f"this one is of higher degree; {LOCAL_METHODS}")
-    fun = ca.Function("quad", [w], [ca.densify(hess), ca.densify(grad), F])
+    fun = params.function("quad", [w], [ca.densify(hess), ca.densify(grad), F])
     Q, c, c0 = fun(np.zeros(int(w.numel())))
     Q = np.asarray(Q, dtype=float)
     Q = 0.5 * (Q + Q.T)
@@ -101,25 +102,27 @@ def linear_mpcc(prep: Prepared) -> LinearMPCC:
     n_H, n_y = int(canon.H.numel()), low.n_y
     eq = mpcc.equalities
     A_H, r_H = _affine(eq[:n_H] if n_H else ca.SX(0, 1), w, "the upper equality constraints",
-                       "they must be linear in (x, y)")
+                       "they must be linear in (x, y)", mpcc.params)
     A_s, r_s = _affine(eq[n_H:n_H + n_y], w, "the lower-level KKT stationarity",
                        "the lower objective's Hessian in y and the constraint matrices in y must not depend on x "
-                       "(an x*y term in a lower constraint or an x-dependent quadratic term breaks this)")
-    A_h, r_h = _affine(eq[n_H + n_y:], w, "the lower equality constraints", "they must be affine in (x, y)")
-    A_in, r_in = _affine(mpcc.inequalities, w, "the upper inequality constraints", "they must be linear in (x, y)")
+                       "(an x*y term in a lower constraint or an x-dependent quadratic term breaks this)", mpcc.params)
+    A_h, r_h = _affine(eq[n_H + n_y:], w, "the lower equality constraints", "they must be affine in (x, y)",
+                       mpcc.params)
+    A_in, r_in = _affine(mpcc.inequalities, w, "the upper inequality constraints", "they must be linear in (x, y)",
+                         mpcc.params)
     G_rows, g, H_rows, h, labels = [], [], [], [], []
     for pair in mpcc.pairs:
         if not isinstance(pair, ScalarPair):
             raise ModelError(f"method 'global' does not handle LMI (PSD) pairs such as {pair.name!r}; {LOCAL_METHODS}")
         Gi, gi = _affine(pair.G, w, "the lower inequality constraints",
-                         "g(x, y) = A y + b(x) with A constant and b affine in x")
-        Hi, hi = _affine(pair.H, w, "the multipliers of the pairs", "they are variables of the MPCC")
+                         "g(x, y) = A y + b(x) with A constant and b affine in x", mpcc.params)
+        Hi, hi = _affine(pair.H, w, "the multipliers of the pairs", "they are variables of the MPCC", mpcc.params)
         G_rows.append(Gi)
         g.append(gi)
         H_rows.append(Hi)
         h.append(hi)
         labels += list(pair.labels) or [f"{pair.name}[{i}]" for i in range(gi.size)]
-    Q, c, c0 = _objective(mpcc.objective, w)
+    Q, c, c0 = _objective(mpcc.objective, w, mpcc.params)
     n = int(w.numel())
     stack = lambda parts: np.vstack(parts) if parts else np.zeros((0, n))  # noqa: E731
     flat = lambda parts: np.concatenate(parts) if parts else np.zeros(0)  # noqa: E731

@@ -89,21 +89,22 @@ class Hypergradient:
         x, y, H = canon.x, canon.y, canon.H
         kept = [i for i in range(int(canon.G.numel())) if i not in set(projected_rows)]
         G = ca.vertcat(*[canon.G[i] for i in kept]) if kept else ca.SX(0, 1)  # projected rows need no penalty
-        self._upper = ca.Function("upper", [x, y], [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y),
+        function = canon.params.function
+        self._upper = function("upper", [x, y], [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y),
                                                     ca.jacobian(G, x), ca.jacobian(G, y), ca.jacobian(H, x),
                                                     ca.jacobian(H, y)])
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
         self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
-        self._fixed: tuple[LowerSolution, list[np.ndarray]] | None = None
+        self._fixed: tuple[int, LowerSolution, list[np.ndarray]] | None = None  # (parameter revision, ...)
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
         if self.conic:
             return
         kkt = low.kkt()
         S = kkt.stationarity
-        self._kkt = ca.Function("kkt", [low.x, low.y, kkt.lam, kkt.mu],
+        self._kkt = function("kkt", [low.x, low.y, kkt.lam, kkt.mu],
                                 [S, low.g, low.h, ca.jacobian(S, low.y), ca.jacobian(low.g, low.y),
                                  ca.jacobian(low.h, low.y)])
-        self._kkt_x = ca.Function("kkt_x", [low.x, low.y, kkt.lam, kkt.mu],
+        self._kkt_x = function("kkt_x", [low.x, low.y, kkt.lam, kkt.mu],
                                   [ca.jacobian(S, low.x), ca.jacobian(low.g, low.x), ca.jacobian(low.h, low.x)])
         ng, nh = int(low.g.numel()), int(low.h.numel())
         self._kkt_shapes = [(ny, 1), (ng, 1), (nh, 1), (ny, ny), (ng, ny), (nh, ny)]
@@ -164,14 +165,15 @@ class Hypergradient:
     def evaluate(self, x: np.ndarray) -> Evaluation:
         """Solve (and polish) the lower level at x and evaluate phi there; raises if the lower solve fails."""
         x = self.low.check_point(x)
-        if self._fixed is not None:
-            sol, vals = self._fixed
+        revision = self.low.params.revision
+        if self._fixed is not None and self._fixed[0] == revision:
+            _, sol, vals = self._fixed
         elif self.conic:
             sol, vals = self.low.newton_polish(x, self.low.solve(x))[0], []
         else:
             sol, vals = self._polish(x, self.low.solve(x))
         if self.low.fixed:  # y* constant in x: solved once, no adjoint
-            self._fixed = (sol, vals)
+            self._fixed = (revision, sol, vals)
         upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
         phi = F + self.penalty * (float(np.maximum(G, 0.0).sum()) + float(np.abs(H).sum()))
@@ -214,11 +216,11 @@ class Hypergradient:
 
 def hypergradient(prep: Prepared, x: np.ndarray, penalty: float = DEFAULT_PENALTY,
                   active_tol: float = ACTIVE_TOL) -> tuple[float, np.ndarray, LowerSolution]:
-    """(phi(x), d phi/dx, lower solution) at x (raises if the lower level cannot be solved there).
-
-    Builds the CasADi functions on every call: for repeated calls build one Hypergradient and call it.
-    """
-    return Hypergradient(prep, penalty, active_tol)(x)
+    """(phi(x), d phi/dx, lower solution) at x (raises if the lower level cannot be solved there); the compiled
+    functions are kept on `prep` for later calls."""
+    oracle = prep.cached(("hypergradient", float(penalty), float(active_tol), ()),
+                         lambda: Hypergradient(prep, penalty, active_tol))
+    return oracle(x)
 
 
 class _Restoration:
@@ -227,7 +229,8 @@ class _Restoration:
     def __init__(self, prep: Prepared) -> None:
         canon = prep.canon
         v = ca.SX.sym("v", canon.x.numel())
-        nlp = {"x": ca.vertcat(canon.x, canon.y), "p": v, "f": 0.5 * ca.sumsqr(canon.x - v),
+        nlp = {"x": ca.vertcat(canon.x, canon.y), "p": ca.vertcat(v, canon.params.sym),
+               "f": 0.5 * ca.sumsqr(canon.x - v),
                "g": ca.vertcat(canon.lower.g, canon.lower.h)}
         opts = {"print_time": False, "ipopt": {"print_level": 0, "sb": "yes", "tol": 1e-12,
                                                "bound_relax_factor": 0.0, "max_iter": 500}}
@@ -239,10 +242,12 @@ class _Restoration:
                             lbg=np.concatenate([np.full(ng, -np.inf), np.zeros(nh)]), ubg=np.zeros(ng + nh))
         self._y0 = np.zeros(ny) if canon.y_start is None else canon.y_start
         self._nx = int(canon.x.numel())
+        self._params = canon.params
 
     def __call__(self, v: np.ndarray) -> np.ndarray | None:
         """The restored point, or None if IPOPT finds none."""
-        sol = self._solver(x0=np.concatenate([v, self._y0]), p=v, **self._bounds)
+        sol = self._solver(x0=np.concatenate([v, self._y0]), p=np.concatenate([v, self._params.value]),
+                           **self._bounds)
         if self._solver.stats()["return_status"] not in ("Solve_Succeeded", "Solved_To_Acceptable_Level"):
             return None
         return np.asarray(sol["x"]).ravel()[: self._nx]
@@ -350,7 +355,9 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
                                              "max_iter", "active_tol", "verbose"})
     starts, penalty = int(options.get("starts", 4)), float(options.get("penalty", DEFAULT_PENALTY))
     projected = tuple(b.row for b in prep.balls) if options.get("projection") is None else ()
-    oracle = Hypergradient(prep, penalty, float(options.get("active_tol", ACTIVE_TOL)), projected)
+    active_tol = float(options.get("active_tol", ACTIVE_TOL))
+    oracle = prep.cached(("hypergradient", penalty, active_tol, projected),
+                         lambda: Hypergradient(prep, penalty, active_tol, projected))
     arc = _Arc(prep, oracle, _projection(prep, options.get("projection")))
     tol, ftol = float(options.get("tol", 1e-7)), float(options.get("ftol", 1e-12))
     max_iter = int(options.get("max_iter", 500))

@@ -60,7 +60,7 @@ def run_nlp(nlp: NLPForm, w0: np.ndarray, options: dict[str, Any], tau: float | 
     """Solve the transcribed NLP from w0 (tau overrides the mode's relaxation parameter)."""
     solver = nlp.solver("ipopt", options)
     args = dict(x0=nlp.start(w0[: nlp.n_w]), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg,
-                p=nlp.p_value if tau is None else np.array([tau]))
+                p=np.concatenate([nlp.p_value if tau is None else [tau], nlp.params.value]))
     if lam_g0 is not None:
         args["lam_g0"] = lam_g0
     sol = solver(**args)

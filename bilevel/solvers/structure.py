@@ -62,11 +62,11 @@ def _ball(canon: CanonicalBilevel, row: int) -> Ball | None:
     n = block.stop - block.start
     if hess.nnz() != n or not all(i == j for i, j in zip(*hess.sparsity().get_triplet())):
         return None
-    diag = np.asarray(ca.evalf(ca.diag(hess))).ravel()
+    diag = np.asarray(ca.evalf(canon.params.substitute(ca.diag(hess)))).ravel()
     a = 0.5 * float(diag[0])
     if a <= 0 or np.max(np.abs(diag - diag[0])) > _REL * abs(diag[0]):
         return None
-    value, grad = ca.Function("ball", [canon.x], [g, ca.gradient(g, xs)])(np.zeros(int(canon.x.numel())))
+    value, grad = canon.params.function("ball", [canon.x], [g, ca.gradient(g, xs)])(np.zeros(int(canon.x.numel())))
     center = -np.asarray(grad).ravel() / (2 * a)
     r2 = float(center @ center) - float(value) / a
     if r2 < 0:

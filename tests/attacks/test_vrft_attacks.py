@@ -24,6 +24,7 @@ from bilevel.ddc import pid_basis, simulate, white_noise
 from bilevel.ddc.vrft import fit_vrft
 from bilevel.errors import ModelError, RankDeficientRegressor
 from bilevel.problems import registry
+from bilevel.problems.vrft import attack_problem, load_instance
 
 
 @pytest.mark.parametrize("convention", sorted(CONVENTIONS))
@@ -162,6 +163,22 @@ def test_kkt_formulation_certificate_passes() -> None:
         assert res.upper_objective >= 0.99 * best.upper_objective
     else:
         assert res.status is bl.Status.NOT_LOCALLY_OPTIMAL and best.upper_objective > res.upper_objective * 1.01
+
+
+@pytest.mark.parametrize("objective", ["maxmin", "targeted"])
+def test_declared_once_problem_reloaded_equals_a_fresh_declaration(objective: str) -> None:
+    """load_instance re-targets a declared VRFT problem (data as parameters) to another data set: the block-exact
+    answer equals that of the problem declared for that data set."""
+    p = attack_problem(attack_instance(objective, "B", 0.1, 0.057, seed=0, N=96))
+    p.solve(method="block-exact", starts=1)
+    atk = attack_instance(objective, "B", 0.1, 0.057, seed=3, N=96)
+    load_instance(p, atk)
+    a, b = p.solve(method="block-exact", starts=1), attack_problem(atk).solve(method="block-exact", starts=1)
+    assert a.status is b.status is bl.Status.SOLVED
+    assert a.upper_objective == pytest.approx(b.upper_objective, rel=1e-10)
+    np.testing.assert_allclose(a.x["a_u"], b.x["a_u"], atol=1e-9 * atk.delta_u)
+    with pytest.raises(ModelError, match="does not fit"):
+        load_instance(p, attack_instance(objective, "B", 0.1, 0.057, seed=3, N=64))
 
 
 @pytest.mark.slow
