@@ -30,32 +30,42 @@ def _label(param: cp.Parameter) -> str:
     return f"Parameter {param.name()!r} (shape {param.shape})"
 
 
-def _bind(problem: BilevelProblem, learner: cp.Problem, parameters: dict[Any, Any]) -> dict[int, ca.SX]:
-    """Parameter id -> its CasADi value: the bound expression of upper variables, or the current .value."""
+def _shape(param: cp.Parameter) -> tuple[int, int]:
+    return (param.shape + (1, 1))[:2] if len(param.shape) < 2 else param.shape
+
+
+def _bind(problem: BilevelProblem, learner: cp.Problem, parameters: dict[Any, Any],
+          name: str) -> tuple[dict[int, ca.SX], dict[int, str]]:
+    """Parameter id -> its CasADi value: the bound expression, or else a model parameter declared with the current
+    .value (re-set later without rebuilding); also the model parameter names of the unbound Parameters."""
     own = {p.id: p for p in learner.parameters()}
-    upper = {s.element_hash() for v in problem.upper_variables for s in ca.symvar(ca.vec(v.sym))}
+    known = ca.vertcat(*[ca.vec(v.sym) for v in problem.upper_variables], problem.parameters.sym)
+    allowed = {s.element_hash() for s in ca.symvar(known)}
     values: dict[int, ca.SX] = {}
     for param, expr in parameters.items():
         if not isinstance(param, cp.Parameter) or param.id not in own:
             raise ModelError(f"lower_cvxpy: the key {param!r} of parameters= is not a cvxpy Parameter of this "
                              "problem; bind the Parameters that appear in the cvxpy problem")
         value = expr if isinstance(expr, ca.SX) else ca.SX(ca.DM(np.asarray(expr, dtype=float)))
-        rows, cols = (param.shape + (1, 1))[:2] if len(param.shape) < 2 else param.shape
+        rows, cols = _shape(param)
         if value.shape != (rows, cols) and not (len(param.shape) == 1 and value.shape == (1, rows)):
             raise ModelError(f"lower_cvxpy: {_label(param)} is bound to an expression of shape {value.shape}; "
                              f"bind it to a {rows} x {cols} CasADi expression (a vector Parameter takes a column)")
-        free = [s for s in ca.symvar(value) if s.element_hash() not in upper]
+        free = [s for s in ca.symvar(value) if s.element_hash() not in allowed]
         if free:
             raise ModelError(f"lower_cvxpy: {_label(param)} is bound to an expression of {free[0]}, which is not an "
-                             "upper variable of this problem; declare it with upper_variable first")
+                             "upper variable or parameter of this problem; declare it with upper_variable first")
         values[param.id] = ca.reshape(value, rows, cols)
+    names: dict[int, str] = {}
     for param in learner.parameters():
         if param.id not in values:
             if param.value is None:
                 raise ModelError(f"lower_cvxpy: {_label(param)} is not bound in parameters= and has no value; bind "
                                  "it to an upper-level expression or set param.value before declaring")
-            values[param.id] = ca.SX(ca.DM(np.asarray(param.value, dtype=float).reshape(-1, order="F")))
-    return values
+            label = f"{name}_{param.name()}"
+            names[param.id] = label if label.isidentifier() else f"{name}_parameter{param.id}"
+            values[param.id] = problem.parameter(names[param.id], _shape(param), param.value)
+    return values, names
 
 
 def _check_convex(learner: cp.Problem) -> None:
@@ -80,8 +90,11 @@ class CvxpyLower:
     def __init__(self, problem: BilevelProblem, learner: cp.Problem, parameters: dict[Any, Any], name: str) -> None:
         _check_convex(learner)
         self.learner = learner
-        self._bindings = {p: parameters[p] for p in parameters}
-        form = conic_form(learner, _bind(problem, learner, parameters))
+        self._problem = problem
+        self._bound = {p.id: (p, parameters[p]) for p in parameters}
+        values, self._model_names = _bind(problem, learner, parameters, name)
+        self._unbound = {p.id: p for p in learner.parameters() if p.id in self._model_names}
+        form = conic_form(learner, values)
         keep, E, e, used_rows = self._eliminate(form)
         self.y = problem.lower_variable(name, len(keep), lb=form.lb[keep], ub=form.ub[keep])
         z = ca.mtimes(E, self.y) + e
@@ -101,6 +114,20 @@ class CvxpyLower:
         shape = variable.shape
         rows, cols = (shape + (1, 1))[:2] if len(shape) < 2 else shape
         return ca.reshape(self._user[variable.id], rows, cols)
+
+    def parameter_name(self, param: cp.Parameter) -> str:
+        """The model parameter (BilevelProblem.parameter) that an unbound cvxpy Parameter was declared as."""
+        if not isinstance(param, cp.Parameter) or param.id not in self._model_names:
+            raise ModelError(f"{param!r} is not an unbound Parameter of this cvxpy lower level (bound Parameters follow "
+                             "their upper-level expressions)")
+        return self._model_names[param.id]
+
+    def set_value(self, param: cp.Parameter, value: Any) -> None:
+        """Give an unbound cvxpy Parameter new data: its .value and its model parameter; the next solve reuses the
+        declared problem (no re-canonicalization)."""
+        name = self.parameter_name(param)
+        param.value = value
+        self._problem.set_value(name, param.value)
 
     # -- translation -------------------------------------------------------------------------------
     @staticmethod
@@ -182,16 +209,22 @@ class CvxpyLower:
 
     # -- the certificate's independent re-solve ---------------------------------------------------
     def reference(self, x_sym: ca.SX, x: np.ndarray, y: np.ndarray) -> LowerSolution:
-        """Solve the user's cvxpy problem with Clarabel at upper point x (bound Parameters set there, restored after).
+        """Solve the user's cvxpy problem with Clarabel at upper point x: bound Parameters at their expressions there,
+        unbound ones at their model parameters' values (all restored after).
 
         The returned y is the lower vector nearest to `y` that reproduces the re-solved user Variables
         (auxiliary conic entries are not the user's), so F(x, y_ref) is the upper objective at the re-solve.
         """
-        params = list(self._bindings)
-        fun = ca.Function("bind", [x_sym], [ca.SX(self._bindings[p]) for p in params])
+        model = self._problem.parameters
+        bound = [p for p, _ in self._bound.values()]
+        fun = ca.Function("bind", [x_sym, model.sym], [ca.SX(expr) for _, expr in self._bound.values()])
+        values = fun.call([ca.DM(x), ca.DM(model.value)])
+        current = {p.name: p.value for p in model.items}
+        values += [current[self._model_names[p.id]] for p in self._unbound.values()]
+        params = bound + list(self._unbound.values())
         old = [p.value for p in params]
         try:
-            for p, value in zip(params, fun.call([ca.DM(x)])):
+            for p, value in zip(params, values):
                 v = np.asarray(value, dtype=float).reshape(p.shape, order="F")
                 p.value = np.maximum(v, 0.0) if p.is_nonneg() else np.minimum(v, 0.0) if p.is_nonpos() else v
             solve_clarabel(self.learner, "the cvxpy lower level (independent re-solve)")
@@ -203,8 +236,8 @@ class CvxpyLower:
             for p, v in zip(params, old):
                 p.value = v
         users = ca.vertcat(*self._user.values())
-        w_fun = ca.Function("users", [x_sym, self.y], [users, ca.jacobian(users, self.y)])
-        w, jac = (np.asarray(v) for v in w_fun(x, y))
+        w_fun = ca.Function("users", [x_sym, self.y, model.sym], [users, ca.jacobian(users, self.y)])
+        w, jac = (np.asarray(v) for v in w_fun(x, y, model.value))
         y_ref = y + np.linalg.lstsq(jac, w_ref - w.ravel(), rcond=None)[0]
         f_ref = value if isinstance(self.learner.objective, cp.Minimize) else -value
         return LowerSolution(y_ref, f_ref, np.zeros(0), np.zeros(0), [], status, "cvxpy+clarabel (user's problem)")
