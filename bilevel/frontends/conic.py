@@ -8,18 +8,21 @@ flattened column-major, then a 1) to (P, q, d, A, b). The canonicalization is cv
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import casadi as ca
 import cvxpy as cp
 import numpy as np
 import scipy.sparse as sp
 from cvxpy.constraints import PSD, SOC, ExpCone, NonNeg, PowCone3D, PowConeND, Zero
+from cvxpy.constraints.constraint import Constraint
 from cvxpy.constraints.psd import SvecPSD
-from cvxpy.reductions.cvx_attr2constr import CvxAttr2Constr, recover_value_for_leaf
-from cvxpy.reductions.solution import Solution
-from cvxpy.utilities.psd_utils import tri_to_full
-
 from cvxpy.lin_ops.lin_op import CONSTANT_ID
+from cvxpy.reductions.cvx_attr2constr import CvxAttr2Constr, recover_value_for_leaf
+from cvxpy.reductions.dcp2cone.cone_matrix_stuffing import ParamConeProg
+from cvxpy.reductions.reduction import Reduction
+from cvxpy.reductions.solution import Solution
+from cvxpy.utilities.psd_utils import TriangleKind, tri_to_full
 
 from ..errors import ModelError
 
@@ -65,7 +68,7 @@ def _tensor(tensor: sp.spmatrix | sp.sparray, pvec: ca.SX, rows: int) -> ca.SX:
     return ca.reshape(flat, rows, int(flat.numel()) // rows)
 
 
-def _user_map(problem: cp.Problem, chain: list, inverse: list, n: int) -> dict[int, sp.csr_array]:
+def _user_map(problem: cp.Problem, chain: list[Reduction], inverse: list[Any], n: int) -> dict[int, sp.csr_array]:
     """The linear map z -> each user Variable, by inverting cvxpy's own chain on unit vectors (linear once the
     projection of values onto variable bounds, in CvxAttr2Constr's invert, is left out)."""
     columns: dict[int, list[np.ndarray]] = {v.id: [] for v in problem.variables()}
@@ -93,21 +96,20 @@ def _user_map(problem: cp.Problem, chain: list, inverse: list, n: int) -> dict[i
     return out
 
 
-def _psd_operator(n: int, triangle, sqrt2: bool) -> np.ndarray:
+def _psd_operator(n: int, triangle: TriangleKind, sqrt2: bool) -> np.ndarray:
     """The n^2 x n(n+1)/2 matrix taking cvxpy's scaled triangle (solver convention) to vec of the full matrix."""
     k = n * (n + 1) // 2
     return np.column_stack([tri_to_full(np.eye(k)[i], n, triangle, sqrt2).reshape(-1, order="F") for i in range(k)])
 
 
-def _parameter_vector(prog, values: dict[int, ca.SX]) -> ca.SX:
+def _parameter_vector(prog: ParamConeProg, values: dict[int, ca.SX]) -> ca.SX:
     """cvxpy's parameter vector (each Parameter column-major at its column, then the constant 1) from `values`."""
-    parts = [ca.SX(0, 1)] * (len(prog.param_id_to_col))
-    order = sorted(prog.param_id_to_col.items(), key=lambda item: item[1])
-    for k, (pid, _) in enumerate(order):
+    parts = []
+    for pid, _ in sorted(prog.param_id_to_col.items(), key=lambda item: item[1]):
         if pid == CONSTANT_ID:
-            parts[k] = ca.SX(1)
+            parts.append(ca.SX(1))
         elif pid in values:
-            parts[k] = ca.vec(values[pid])
+            parts.append(ca.vec(values[pid]))
         else:
             raise ModelError("a cvxpy Parameter with a structural attribute (symmetric, PSD, NSD, diag, sparsity) "
                              "was replaced by cvxpy's canonicalization; declare it without the attribute")
@@ -142,7 +144,7 @@ def conic_form(problem: cp.Problem, values: dict[int, ca.SX]) -> ConicForm:
                      isinstance(problem.objective, cp.Minimize))
 
 
-def _cone(con, size: int, context) -> tuple[str, tuple[int, ...], sp.sparray | None]:
+def _cone(con: Constraint, size: int, context: Any) -> tuple[str, tuple[int, ...], sp.sparray | None]:
     """(kind, sizes, operator on the constraint's rows or None for identity) of one cvxpy cone constraint."""
     if isinstance(con, Zero):
         return "zero", (size,), None

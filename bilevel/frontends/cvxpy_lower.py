@@ -20,7 +20,7 @@ import scipy.sparse as sp
 from ..errors import ModelError
 from ..lower.base import LowerSolution
 from ..lower.quadratic import solve_clarabel
-from .conic import ConeBlock, ConicForm, conic_form
+from .conic import ConicForm, conic_form
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..model import BilevelProblem
@@ -30,8 +30,9 @@ def _label(param: cp.Parameter) -> str:
     return f"Parameter {param.name()!r} (shape {param.shape})"
 
 
-def _shape(param: cp.Parameter) -> tuple[int, int]:
-    return (param.shape + (1, 1))[:2] if len(param.shape) < 2 else param.shape
+def _shape(leaf: cp.Parameter | cp.Variable) -> tuple[int, int]:
+    """A cvxpy shape as CasADi's (rows, cols): () -> (1, 1), (n,) -> (n, 1)."""
+    return (leaf.shape + (1, 1))[:2] if len(leaf.shape) < 2 else leaf.shape
 
 
 def _bind(problem: BilevelProblem, learner: cp.Problem, parameters: dict[Any, Any],
@@ -84,7 +85,8 @@ def _check_convex(learner: cp.Problem) -> None:
 class CvxpyLower:
     """The lower level of a BilevelProblem declared from a cvxpy Problem (BilevelProblem.lower_cvxpy).
 
-    `ll[v]` is the user's cvxpy Variable v as a CasADi expression (its shape; a vector is a column).
+    `ll[v]` is the user's cvxpy Variable v as a CasADi expression (its shape; a vector is a column);
+    `ll.set_value(param, value)` gives an unbound Parameter new data without rebuilding.
     """
 
     def __init__(self, problem: BilevelProblem, learner: cp.Problem, parameters: dict[Any, Any], name: str) -> None:
@@ -111,15 +113,13 @@ class CvxpyLower:
         """The cvxpy Variable's value as a CasADi expression of the lower variables (its shape, column-major)."""
         if not isinstance(variable, cp.Variable) or variable.id not in self._user:
             raise ModelError(f"{variable!r} is not a Variable of this cvxpy lower level")
-        shape = variable.shape
-        rows, cols = (shape + (1, 1))[:2] if len(shape) < 2 else shape
-        return ca.reshape(self._user[variable.id], rows, cols)
+        return ca.reshape(self._user[variable.id], *_shape(variable))
 
     def parameter_name(self, param: cp.Parameter) -> str:
         """The model parameter (BilevelProblem.parameter) that an unbound cvxpy Parameter was declared as."""
         if not isinstance(param, cp.Parameter) or param.id not in self._model_names:
-            raise ModelError(f"{param!r} is not an unbound Parameter of this cvxpy lower level (bound Parameters follow "
-                             "their upper-level expressions)")
+            raise ModelError(f"{param!r} is not an unbound Parameter of this cvxpy lower level (bound Parameters "
+                             "follow their upper-level expressions)")
         return self._model_names[param.id]
 
     def set_value(self, param: cp.Parameter, value: Any) -> None:

@@ -7,6 +7,8 @@ is w0. So the global upper optimum is 0 at x = x0.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import casadi as ca
 import cvxpy as cp
 import numpy as np
@@ -19,7 +21,7 @@ import bilevel as bl
 N_X = 2
 
 
-def lp(rng: np.random.Generator) -> tuple[cp.Problem, cp.Variable, cp.Parameter, callable]:
+def lp(rng: np.random.Generator) -> tuple[cp.Problem, cp.Variable, cp.Parameter, Callable[[ca.SX], ca.SX]]:
     """min c'y s.t. A y <= b0 + B x, |y| <= 5 (y = 0 strictly feasible for |x| <= 1)."""
     ny, m = 3, 6
     y, b = cp.Variable(ny), cp.Parameter(m)
@@ -28,7 +30,7 @@ def lp(rng: np.random.Generator) -> tuple[cp.Problem, cp.Variable, cp.Parameter,
     return problem, y, b, lambda x: ca.DM(b0) + ca.mtimes(ca.DM(bx), x)
 
 
-def socp(rng: np.random.Generator) -> tuple[cp.Problem, cp.Variable, cp.Parameter, callable]:
+def socp(rng: np.random.Generator) -> tuple[cp.Problem, cp.Variable, cp.Parameter, Callable[[ca.SX], ca.SX]]:
     """min c'y s.t. ||G y - center(x)|| <= 1, center affine in x: a unique point on an ellipsoid."""
     ny = 3
     y, center = cp.Variable(ny), cp.Parameter(ny)
@@ -38,7 +40,7 @@ def socp(rng: np.random.Generator) -> tuple[cp.Problem, cp.Variable, cp.Paramete
     return problem, y, center, lambda x: ca.DM(c0) + ca.mtimes(ca.DM(cx), x)
 
 
-def sdp(rng: np.random.Generator) -> tuple[cp.Problem, cp.Variable, cp.Parameter, callable]:
+def sdp(rng: np.random.Generator) -> tuple[cp.Problem, cp.Variable, cp.Parameter, Callable[[ca.SX], ca.SX]]:
     """min <C(x), Y> s.t. tr Y = 1, Y >= 0: Y = v v' for the bottom eigenvector of C(x) (eigengap kept > 0)."""
     def sym(scale: float) -> np.ndarray:
         m = scale * rng.standard_normal((3, 3))
@@ -50,7 +52,7 @@ def sdp(rng: np.random.Generator) -> tuple[cp.Problem, cp.Variable, cp.Parameter
     return problem, y, c, lambda x: ca.DM(c0) + x[0] * ca.DM(c1) + x[1] * ca.DM(c2)
 
 
-def known_optimum(kind, seed: int) -> tuple[bl.BilevelProblem, np.ndarray]:
+def known_optimum(kind: Callable, seed: int) -> tuple[bl.BilevelProblem, np.ndarray]:
     rng = np.random.default_rng(seed)
     learner, w, param, bind = kind(rng)
     x0 = rng.uniform(-0.5, 0.5, N_X)
@@ -67,7 +69,7 @@ def known_optimum(kind, seed: int) -> tuple[bl.BilevelProblem, np.ndarray]:
 @pytest.mark.parametrize("kind", [lp, socp, sdp])
 @given(seed=st.integers(0, 2**31 - 1))
 @settings(max_examples=4, deadline=None, derandomize=True)
-def test_random_conic_lower_level_reaches_the_known_optimum(kind, seed: int) -> None:
+def test_random_conic_lower_level_reaches_the_known_optimum(kind: Callable, seed: int) -> None:
     p, x0 = known_optimum(kind, seed)
     res = p.solve(method="hypergradient", starts=4, seed=0)
     assert res.certificate.passed, res.certificate
