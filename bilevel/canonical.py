@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import Callable
+
 import casadi as ca
 import numpy as np
 
 from .errors import InvalidData, ModelError
-from .lower import LowerLevel, build_lower
+from .lower import LowerLevel, LowerSolution, build_lower
 from .model import BilevelProblem, Variable
 from .parameters import ParameterSet, scalar
 from .reduction import KKTPoint, Reduction
@@ -49,6 +51,8 @@ class CanonicalBilevel:
     assume_convex: bool = False
     params: ParameterSet = field(default_factory=ParameterSet)
     """The problem's parameters: every function built from these expressions reads their current values."""
+    lower_reference: Callable[[ca.SX, np.ndarray, np.ndarray], LowerSolution] | None = None
+    """The declared problem's own independent lower solver, if any (BilevelProblem.lower_reference)."""
 
     @cached_property
     def lower(self) -> LowerLevel:
@@ -183,6 +187,7 @@ class Canonicalize(Reduction):
             lower_sense=problem.lower_objective.sense, upper_vars=ups, lower_vars=lows, y_start=y_start,
             G_names=G_names, x_suggested=suggested_starts(problem, x_start, x_lb, x_ub), y_lb=y_lb, y_ub=y_ub,
             assume_convex=problem.lower_objective.assume_convex, params=problem.parameters,
+            lower_reference=problem.lower_reference,
         )
         return canon, canon
 

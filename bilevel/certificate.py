@@ -120,8 +120,15 @@ def _row_scale(jac: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: float):
-    """The independent lower solve; for an NLP lower level a multistart. Returns (best, spread, unique, note)."""
+    """The independent lower solve; for an NLP lower level a multistart. Returns (best, spread, unique, note).
+
+    A problem that carries its own lower solver (e.g. the user's cvxpy problem) is re-solved with it; uniqueness
+    is then judged on the canonical lower level's solution."""
     low = canon.lower
+    if canon.lower_reference is not None:
+        ref = canon.lower_reference(canon.x, x, y)
+        unique = None if low.psd else _reduced_hessian_unique(low, x, low.solve(x), tol)
+        return ref, 0.0, unique, f"independent re-solve: {ref.solver}"
     if low.kind != "nlp":
         ref = low.solve(x)
         return ref, 0.0, _reduced_hessian_unique(low, x, ref, tol), ""

@@ -14,7 +14,7 @@ Expressions are CasADi SX expressions of the declared variables.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import casadi as ca
 import numpy as np
@@ -24,6 +24,10 @@ from .parameters import ParameterSet
 from .vech import symmetric_from_vech, unvech, vech
 
 if TYPE_CHECKING:  # pragma: no cover
+    import cvxpy as cp
+
+    from .frontends.cvxpy_lower import CvxpyLower
+    from .lower.base import LowerSolution
     from .result import BilevelResult
 
 Level = Literal["upper", "lower"]
@@ -165,6 +169,9 @@ class BilevelProblem:
         self.revision = 0
         """Incremented by every declaration (not by set_value or suggest_start): solves reuse their preparation
         while it is unchanged."""
+        self.lower_reference: Callable[[ca.SX, np.ndarray, np.ndarray], LowerSolution] | None = None
+        """An independent solver of the lower level that the certificate re-solves with instead of the engine's,
+        (x symbols, x, y) -> LowerSolution; set by a front end that has the user's own model (lower_cvxpy)."""
 
     # -- variables -----------------------------------------------------------------------------
     def _variable(self, level: Level, name: str, shape: int | tuple[int, int], lb: Any, ub: Any, start: Any,
@@ -238,6 +245,7 @@ class BilevelProblem:
         lb, ub and start are then scalars, symmetric n x n matrices or n(n+1)/2 vech values, and the
         result reports the full matrix.
         """
+        self._check_lower_open("lower_variable")
         return self._variable("lower", name, shape, lb, ub, start, symmetric)
 
     def suggest_start(self, **values: Any) -> None:
@@ -302,11 +310,13 @@ class BilevelProblem:
         re-solves the lower level independently (multistart for a nonlinear one) and fails if a better
         lower-level point exists.
         """
+        self._check_lower_open("minimize_lower")
         self.lower_objective = self._objective(expr, "min", "minimize_lower", assume_convex)
         self.revision += 1
 
     def maximize_lower(self, expr: Any, assume_convex: bool = False) -> None:
         """Set the lower-level objective f(x, y) to maximize (concave in y); see minimize_lower."""
+        self._check_lower_open("maximize_lower")
         self.lower_objective = self._objective(expr, "max", "maximize_lower", assume_convex)
         self.revision += 1
 
@@ -319,12 +329,14 @@ class BilevelProblem:
 
     def lower_constraint(self, comparison: Any, name: str | None = None) -> None:
         """Add a lower-level constraint `g(x, y) <= 0` (convex in y) or `h(x, y) == 0` (affine in y)."""
+        self._check_lower_open("lower_constraint")
         body, kind = split_comparison(comparison, "lower_constraint")
         self.lower_constraints.append(Constraint(name or f"g{len(self.lower_constraints)}", body, kind))
         self.revision += 1
 
     def lower_psd_constraint(self, matrix: Any, name: str | None = None) -> None:
         """Add a lower-level linear matrix inequality `M(x, y) >= 0` (M symmetric, affine in y)."""
+        self._check_lower_open("lower_psd_constraint")
         matrix = ca.SX(matrix)
         if matrix.size1() != matrix.size2():
             raise ModelError(f"lower_psd_constraint: matrix must be square, got shape {matrix.shape}")
@@ -336,6 +348,28 @@ class BilevelProblem:
                 raise ModelError("lower_psd_constraint: matrix is not symmetric; pass (M + M.T) / 2 if that is meant")
         self.lower_psd_constraints.append(PSDConstraint(name or f"M{len(self.lower_psd_constraints)}", matrix))
         self.revision += 1
+
+    def lower_cvxpy(self, learner: "cp.Problem", parameters: dict[Any, Any] | None = None,
+                    name: str = "cvxpy") -> "CvxpyLower":
+        """Declare the whole lower level as a cvxpy Problem (DCP, and DPP in its Parameters).
+
+        parameters maps cvxpy Parameters to CasADi expressions of upper variables (any expression: the lower
+        level stays conic in its own variables); unbound Parameters keep their current value. Returns `ll`,
+        with `ll[v]` the cvxpy Variable v as a CasADi expression for the upper level. See docs/cvxpy.md.
+        """
+        if self.lower_variables or self.lower_objective is not None:
+            raise ModelError(f"{self.name}: lower_cvxpy declares the whole lower level, but lower variables or a "
+                             "lower objective are already declared; use one or the other")
+        from .frontends.cvxpy_lower import CvxpyLower
+
+        lower = CvxpyLower(self, learner, dict(parameters or {}), name)
+        self.lower_reference = lower.reference
+        return lower
+
+    def _check_lower_open(self, where: str) -> None:
+        if self.lower_reference is not None:
+            raise ModelError(f"{where}: the lower level of {self.name!r} is a cvxpy problem (lower_cvxpy), complete as "
+                             "declared; add the variable, objective or constraint to the cvxpy problem instead")
 
     def _all_syms(self) -> ca.SX:
         return ca.vertcat(*[ca.vec(v.sym) for v in self.variables], self.parameters.sym)
