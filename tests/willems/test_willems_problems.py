@@ -86,7 +86,7 @@ def test_identified_model_is_the_plant() -> None:
     np.testing.assert_allclose(attack.b_id, PLANT.B, atol=1e-10)
 
 
-@pytest.mark.parametrize("objective", ["eigen", "maxmin"])
+@pytest.mark.parametrize("objective", ["eigen", "maxmin", "destabilize"])
 @pytest.mark.parametrize("design", ["lqr", "lqr-r"])
 def test_numeric_criterion_equals_declared_objective(objective: str, design: str) -> None:
     """criterion_values (batched numpy, used by DE) equals the problem's CasADi objective at random points."""
@@ -116,6 +116,9 @@ def test_numeric_criterion_equals_declared_objective(objective: str, design: str
     ({"poison": "xu", "delta_x": 0.0}, "needs delta_x > 0"),
     ({"delta_u": -1.0}, "budgets must be finite and >= 0"),
     ({"reg": -1e-3}, "reg must be >= 0"),
+    ({"selection": "scs", "poison": "xu", "delta_x": 1e-3}, "defined only where the SDP ignores the poisoning"),
+    ({"selection": "clarabel", "design": "lqr-r"}, "defined only where the SDP ignores the poisoning"),
+    ({"selection": "mosek"}, "selection='mosek' is not one of"),
 ])
 def test_bad_settings_name_the_problem(params: dict, match: str) -> None:
     with pytest.raises(ModelError, match=match):
