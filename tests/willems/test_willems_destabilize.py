@@ -8,12 +8,13 @@ import json
 import numpy as np
 import pytest
 
-from bilevel.attacks.willems import SDPHypergradient, destabilize_attack, hypergradient_attack, log_radius_gradient
+from bilevel.attacks.willems import (SDPHypergradient, destabilize_attack, hypergradient_attack, log_radius_gradient,
+                                     smallest_destabilizing_budget)
 from bilevel.cli import main
 from bilevel.ddc.data import batch_reactor_data
 from bilevel.ddc.depersis_tesi import lqr_controller
 from bilevel.errors import ModelError
-from bilevel.problems.willems import build_attack
+from bilevel.problems.willems import WillemsSetting, build_attack
 
 
 def test_log_radius_gradient_matches_central_differences() -> None:
@@ -101,3 +102,16 @@ def test_cli_solves_willems_destabilize_with_json(tmp_path, capsys) -> None:
     assert "spectral_radius" in capsys.readouterr().out
     assert main(["solve", "willems-destabilize", "--param", "budget=1"]) == 2
     assert "willems-destabilize takes delta_u" in capsys.readouterr().err
+
+
+def test_smallest_destabilizing_budget_brackets_the_first_unstable_budget() -> None:
+    """Seed 1, N = 15 (4 starts): the path 0.1, 0.2, 0.3 finds instability at 0.3, bisection narrows it to 5 %;
+    the returned budget is an unstable run and a stable run lies within 5 % below it. Measured: 0.2875."""
+    found = smallest_destabilizing_budget(WillemsSetting(horizon=15, seed=1), path=(0.1, 0.2, 0.3), starts=4)
+    unstable = [d for d, rho in found.runs if rho >= 1.0]
+    stable = [d for d, rho in found.runs if rho < 1.0]
+    assert found.delta == min(unstable) == pytest.approx(0.2875)
+    assert found.delta - max(d for d in stable if d < found.delta) <= 0.05 * found.delta
+    assert smallest_destabilizing_budget(WillemsSetting(horizon=15, seed=1), path=(0.05,), starts=1).delta == np.inf
+    with pytest.raises(ModelError, match="increasing and positive"):
+        smallest_destabilizing_budget(WillemsSetting(horizon=15), path=(0.3, 0.1))
