@@ -21,6 +21,12 @@ data and from uniform random points of the box. For the max-min criterion a poin
 closed loop is unstable has phi = +inf (the paper's convention): the ascent stops there; with
 stop_when_unstable (default) the eigenvalue attack stops there too, since instability is its goal.
 
+Destabilizing attack (destabilize_attack, issue 12): on the engine's projected ascent
+(bilevel.solvers.ascent), per start a smooth path (the Gelfand criterion, then log rho) and a direct path
+(log rho), with d log rho / dK from the top eigenvalue's eigenvectors chained through the learner
+(SDPHypergradient.gain_gradient); the answer is the evaluated point with the largest identified rho.
+smallest_destabilizing_budget finds delta_u* along a budget path, then by bisection.
+
 Baselines: differential evolution (scipy) on the input poisoning with the same box, criterion and
 stopping rule; random signs at the budget; and the generic route, bilevel.solve on the registered
 problem (KKT reformulation with the LMI's PSD complementarity pair, IPOPT or the relaxation sequence).
