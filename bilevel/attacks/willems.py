@@ -430,22 +430,19 @@ def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> 
                    f"{res.status.value}: {res.message}", details)
 
 
-def log_radius_gradient(closed_loop: np.ndarray, b: np.ndarray, beta: float = np.inf) -> tuple[float, np.ndarray]:
-    """Smooth max (1/beta) log sum_i |lam_i|^beta of the log eigenvalue moduli of A + B K (beta = inf: log rho)
-    and its gradient in K (m x n), from d log|lam| = Re(conj(lam) w^H B dK v / (w^H v)) / |lam|^2 (v, w the
-    right and left eigenvectors; the eigenvalues with weight must be simple)."""
+def log_radius_gradient(closed_loop: np.ndarray, b: np.ndarray) -> tuple[float, np.ndarray]:
+    """log rho(A + B K) and its gradient in K (m x n) where the top eigenvalues are simple:
+    d log|lam| = Re(conj(lam) w^H B dK v / (w^H v)) / |lam|^2, v and w lam's right and left eigenvectors
+    (a complex pair gives the same gradient from either member; ties share it equally)."""
     lam, left, right = scipy.linalg.eig(closed_loop, left=True, right=True)
     logs = np.log(np.abs(lam))
-    top = float(logs.max())
-    weights = (logs == top).astype(float) if np.isinf(beta) else np.exp(beta * (logs - top))
-    value = top if np.isinf(beta) else top + float(np.log(weights.sum())) / beta
-    weights /= weights.sum()
+    top = np.flatnonzero(logs == logs.max())
     grad = np.zeros((b.shape[1], closed_loop.shape[0]))
-    for i in np.flatnonzero(weights > 1e-12):
+    for i in top:
         v, w = right[:, i], left[:, i]
         c = np.conj(lam[i]) / (abs(lam[i]) ** 2 * (np.conj(w) @ v))
-        grad += weights[i] * np.real(c * np.outer(b.T @ np.conj(w), v))
-    return value, grad
+        grad += np.real(c * np.outer(b.T @ np.conj(w), v)) / top.size
+    return float(logs.max()), grad
 
 
 @dataclass
@@ -476,7 +473,9 @@ def _radius_phase(oracle: SDPHypergradient, box: Box, scale: np.ndarray, x0: np.
         best.see(ev)
         return (ev.phi if surrogate else float(np.log(ev.identified_radius))), ev
 
-    def direction(ev: Evaluation) -> tuple[np.ndarray, np.ndarray]:
+    def direction(ev: Evaluation | None) -> tuple[np.ndarray, np.ndarray]:
+        if ev is None:  # the start itself could not be evaluated: no move, the path ends there
+            return np.zeros_like(scale), np.zeros_like(scale)
         g = oracle.gradient(ev) if surrogate else oracle.gain_gradient(ev, log_radius_gradient(ev.closed_loop,
                                                                                                   b_id)[1])
         return g, scale * budget_direction(scale * g, 1.0, np.inf)

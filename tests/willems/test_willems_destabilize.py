@@ -18,19 +18,18 @@ from bilevel.problems.willems import WillemsSetting, build_attack
 
 
 def test_log_radius_gradient_matches_central_differences() -> None:
-    """d log rho / dK and the smooth max's gradient (beta = 20) at a random gain agree with central differences."""
+    """d log rho / dK at a random gain (a complex top pair here) agrees with central differences to 1e-6."""
     attack = build_attack(objective="destabilize", horizon=15, seed=1)
     k = np.random.default_rng(0).standard_normal((2, 4))
-    for beta in (np.inf, 20.0):
-        value, grad = log_radius_gradient(attack.a_id + attack.b_id @ k, attack.b_id, beta)
-        fd = np.zeros_like(k)
-        for i in np.ndindex(k.shape):
-            e = np.zeros_like(k)
-            e[i] = 1e-6
-            fd[i] = (log_radius_gradient(attack.a_id + attack.b_id @ (k + e), attack.b_id, beta)[0]
-                     - log_radius_gradient(attack.a_id + attack.b_id @ (k - e), attack.b_id, beta)[0]) / 2e-6
-        np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-8)
-    assert value > np.log(np.max(np.abs(np.linalg.eigvals(attack.a_id + attack.b_id @ k))))  # smooth max >= max
+    value, grad = log_radius_gradient(attack.a_id + attack.b_id @ k, attack.b_id)
+    assert value == pytest.approx(np.log(np.max(np.abs(np.linalg.eigvals(attack.a_id + attack.b_id @ k)))))
+    fd = np.zeros_like(k)
+    for i in np.ndindex(k.shape):
+        e = np.zeros_like(k)
+        e[i] = 1e-6
+        fd[i] = (log_radius_gradient(attack.a_id + attack.b_id @ (k + e), attack.b_id)[0]
+                 - log_radius_gradient(attack.a_id + attack.b_id @ (k - e), attack.b_id)[0]) / 2e-6
+    np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9)
 
 
 def test_gain_gradient_through_the_sdp_matches_central_differences() -> None:
