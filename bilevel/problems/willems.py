@@ -262,7 +262,7 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
 def _register(objective: str, description: str) -> None:
     @register(f"willems-{objective}", source=SOURCE, tags=("willems", "attack", "sdp"), description=description,
               defaults={"horizon": 15, "seed": 0, "delta_u": 0.1, "delta_x": 0.0, "poison": "u", "design": "lqr",
-                        "reg": DEFAULT_REG, "selection": "min-norm"})
+                        "reg": DEFAULT_REG})
     def build(**params: Any) -> BilevelProblem:
         return build_attack(WillemsSetting(objective=objective, **params)).problem
 
