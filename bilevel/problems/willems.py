@@ -264,6 +264,11 @@ def _register(objective: str, description: str) -> None:
               defaults={"horizon": 15, "seed": 0, "delta_u": 0.1, "delta_x": 0.0, "poison": "u", "design": "lqr",
                         "reg": DEFAULT_REG})
     def build(**params: Any) -> BilevelProblem:
+        if params.get("selection") in SOLVER_SELECTIONS:
+            raise ModelError(f"willems-{objective}: the declared problem's learner is the regularized SDP; "
+                             f"selection={params['selection']!r} (the solver's own Q) exists in the structured "
+                             "attacks only (bilevel.attacks.willems; `bilevel solve willems-destabilize` without "
+                             "--method)")
         return build_attack(WillemsSetting(objective=objective, **params)).problem
 
 

@@ -14,6 +14,7 @@ from bilevel.cli import main
 from bilevel.ddc.data import batch_reactor_data
 from bilevel.ddc.depersis_tesi import lqr_controller
 from bilevel.errors import ModelError
+from bilevel.problems import registry
 from bilevel.problems.willems import WillemsSetting, build_attack
 
 
@@ -88,6 +89,12 @@ def test_solver_selection_is_the_solvers_own_q(selection: str) -> None:
     min_norm = SDPHypergradient(build_attack(objective="destabilize", horizon=15, seed=7, delta_u=0.3))
     assert np.abs(min_norm.evaluate(point).gain - ev.gain).max() > 1e-2
     assert own.value == pytest.approx(lqr_controller(x, u, input_cost=False).value, rel=1e-6)
+
+
+def test_declared_problem_refuses_the_solvers_own_selection() -> None:
+    """The generic route solves the declared regularized SDP: a solver selection there would be silently ignored."""
+    with pytest.raises(ModelError, match="exists in the structured attacks only"):
+        registry.get("willems-destabilize", selection="scs")
 
 
 def test_cli_solves_willems_destabilize_with_json(tmp_path, capsys) -> None:
