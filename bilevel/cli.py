@@ -91,7 +91,39 @@ def _pairs(items: list[str], flag: str) -> dict[str, object]:
     return {k: _parse_value(v) for k, v in (kv.split("=", 1) for kv in items)}
 
 
+def _cmd_willems_destabilize(args: argparse.Namespace) -> int:
+    """willems-destabilize without a generic --method: the structured attack (largest spectral radius reached)."""
+    import dataclasses
+
+    from .attacks.willems import destabilize_attack
+    from .problems.willems import WillemsSetting, build_attack
+
+    if args.option:
+        raise ModelError("the willems-destabilize attack takes --starts/--seed and --param NAME=VALUE, not --option; "
+                         "name a generic --method to use options")
+    params = _pairs(args.param, "--param")
+    allowed = sorted(f.name for f in dataclasses.fields(WillemsSetting) if f.name != "objective")
+    if unknown := sorted(set(params) - set(allowed)):
+        raise ModelError(f"--param {', '.join(unknown)}: willems-destabilize takes {', '.join(allowed)}")
+    attack = build_attack(WillemsSetting(objective="destabilize", **params))
+    result = destabilize_attack(attack, starts=16 if args.starts is None else args.starts, seed=args.seed)
+    summary = {"spectral_radius": result.spectral_radius, "unstable": result.unstable,
+               "identified_radius": result.details["identified_radius"], "wall_time": result.wall_time,
+               "budget_violation": result.budget_violation, "message": result.message}
+    for key, value in summary.items():
+        print(f"{key:>18}: {value}")
+    print(f"{'gain':>18}: {np.array2string(result.gain, precision=5)}")
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump({"problem": args.problem, "setting": dataclasses.asdict(attack.setting), **result.to_dict()},
+                      fh, indent=2)
+        print(f"wrote {args.json}")
+    return 0
+
+
 def _cmd_solve(args: argparse.Namespace) -> int:
+    if args.problem == "willems-destabilize" and args.method in (None, "destabilize"):
+        return _cmd_willems_destabilize(args)
     if "vrft" in registry.spec(args.problem).tags and args.method not in METHODS:
         if args.method is not None and args.method not in _attack_methods():
             raise ModelError(f"unknown method {args.method!r} for {args.problem}; choose one of "
@@ -204,9 +236,11 @@ def build_parser() -> argparse.ArgumentParser:
     p_solve = sub.add_parser("solve", help="solve a registered problem and print its certificate")
     p_solve.add_argument("problem")
     p_solve.add_argument("--method", default=None,
-                         help=f"{', '.join(sorted(METHODS))} (default ipopt); vrft-* attacks default to their "
-                              "structured attack (alternating, joint, white-noise) unless a generic method is named")
-    p_solve.add_argument("--starts", type=int, default=None, help="multistart count (default 8; vrft-* attacks 1)")
+                         help=f"{', '.join(sorted(METHODS))} (default ipopt); vrft-* and willems-destabilize "
+                              "default to their structured attack (vrft: alternating, joint, white-noise) unless a "
+                              "generic method is named")
+    p_solve.add_argument("--starts", type=int, default=None,
+                         help="multistart count (default 8; vrft-* attacks 1; willems-destabilize 16)")
     p_solve.add_argument("--seed", type=int, default=0)
     p_solve.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="problem parameter")
     p_solve.add_argument("--option", action="append", default=[], metavar="NAME=VALUE", help="method option")

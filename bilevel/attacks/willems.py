@@ -21,6 +21,12 @@ data and from uniform random points of the box. For the max-min criterion a poin
 closed loop is unstable has phi = +inf (the paper's convention): the ascent stops there; with
 stop_when_unstable (default) the eigenvalue attack stops there too, since instability is its goal.
 
+Destabilizing attack (destabilize_attack, issue 12): on the engine's projected ascent
+(bilevel.solvers.ascent), per start a smooth path (the Gelfand criterion, then log rho) and a direct path
+(log rho), with d log rho / dK from the top eigenvalue's eigenvectors chained through the learner
+(SDPHypergradient.gain_gradient); the answer is the evaluated point with the largest identified rho.
+smallest_destabilizing_budget finds delta_u* along a budget path, then by bisection.
+
 Baselines: differential evolution (scipy) on the input poisoning with the same box, criterion and
 stopping rule; random signs at the budget; and the generic route, bilevel.solve on the registered
 problem (KKT reformulation with the LMI's PSD complementarity pair, IPOPT or the relaxation sequence).
@@ -38,14 +44,16 @@ import casadi as ca
 import numpy as np
 import scipy.optimize
 
-from ..ddc.depersis_tesi import min_norm_q
+from ..ddc.depersis_tesi import lqr_controller, min_norm_q, stabilizing_controller
 from ..ddc.plants import batch_reactor
 from ..errors import BilevelError, ModelError, SolverFailed
 from ..lower import LowerSolution, build_lower
 from ..lower.sdp import solve_square
 from ..lower.quadratic import clarabel_solution
-from ..problems.willems import WillemsAttack, criterion_values
+from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, WillemsSetting, build_attack, criterion_values
+from ..sampling import sample_in_bounds
 from ..solvers import solve
+from ..solvers.ascent import budget_direction, projected_ascent
 from ..solvers.projections import Box
 from ..threads import single_threaded_call
 
@@ -96,6 +104,7 @@ class SDPHypergradient:
         gain_jacobian = ca.jacobian(ca.vec(attack.gain), x)
         self._gain_affine = self.lower_fixed and not ca.depends_on(gain_jacobian, x)
         self._gain = ca.Function("gain", [x, y], [attack.gain, gain_jacobian])
+        self._gain_y = ca.Function("gain_y", [x, y], [ca.jacobian(ca.vec(attack.gain), y)])
         self._seen = ca.Function("seen", [x], [attack.seen])
         self._q_shape = (attack.setting.horizon, attack.n_states)
         self.n_x = int(x.numel())
@@ -117,10 +126,28 @@ class SDPHypergradient:
                                         solver=f"{sol.solver} + row-space projection")
         return projected, self.lower_level.kkt_residual(x, projected)
 
+    def solver_selection(self) -> LowerSolution:
+        """The unregularized learner's Q as its SDP solver returns it (selections "clarabel", "scs"), on the clean
+        states: these selections exist only where the SDP ignores the poisoning (WillemsSetting checks it)."""
+        at = self.attack
+        if at.setting.design == "stabilizing":
+            q = stabilizing_controller(at.x, at.u, solver=at.setting.selection).q
+        else:
+            q = lqr_controller(at.x, at.u, at.qx, input_cost=False, solver=at.setting.selection).q
+        y = q.ravel(order="F")
+        zero = np.zeros(self.n_x)
+        return LowerSolution(y, float(self.lower_level.evaluate(zero, y)[0]), np.zeros(0),
+                             np.zeros(int(self.lower_level.h.numel())), [], "optimal", f"cvxpy+{at.setting.selection}")
+
     def lower_solution(self, x: np.ndarray) -> tuple[LowerSolution, float]:
-        """The learner's polished SDP solution at x and its KKT residual (solved once if it cannot depend on x)."""
+        """The learner's polished SDP solution at x and its KKT residual (solved once if it cannot depend on x).
+        For the solver's own selection the residual is nan: its unregularized KKT system has no unique solution."""
         x = self.lower_level.check_point(x)
         if self._cache is not None and (self.lower_fixed or np.array_equal(self._cache[0], x)):
+            return self._cache[1], self._cache[2]
+        if self.attack.setting.selection in SOLVER_SELECTIONS:
+            self.lower_solves += 1
+            self._cache = (x.copy(), self.solver_selection(), float("nan"))
             return self._cache[1], self._cache[2]
         with warnings.catch_warnings():  # cvxpy's "may be inaccurate": the polished KKT residual decides below
             warnings.simplefilter("ignore", UserWarning)
@@ -151,12 +178,23 @@ class SDPHypergradient:
 
     def gradient(self, ev: Evaluation) -> np.ndarray:
         """d phi / dx at an evaluated point: direct part plus the adjoint of the KKT system."""
+        return self._total(ev, ev.grad_x, ev.grad_y)
+
+    def gain_gradient(self, ev: Evaluation, dk: np.ndarray) -> np.ndarray:
+        """d/dx of a function of the learned gain whose gradient in K at ev is dk (m x n), through the SDP."""
+        g = np.asarray(dk, dtype=float).ravel(order="F")
+        jx = np.asarray(self._gain(ev.x, ev.lower.y)[1], dtype=float)
+        jy = np.asarray(self._gain_y(ev.x, ev.lower.y), dtype=float)
+        return self._total(ev, jx.T @ g, jy.T @ g)
+
+    def _total(self, ev: Evaluation, grad_x: np.ndarray, grad_y: np.ndarray) -> np.ndarray:
+        """grad_x - (dr/dx)' z with (dr/dw)' z = (grad_y, 0): the implicit derivative through the KKT system."""
         if self.lower_fixed:
-            return ev.grad_x
+            return grad_x
         jac, jac_x = self.lower_level.jacobians(ev.x, ev.lower)
-        rhs = np.concatenate([ev.grad_y, np.zeros(jac.shape[0] - ev.grad_y.size)])
+        rhs = np.concatenate([grad_y, np.zeros(jac.shape[0] - grad_y.size)])
         z = solve_square(jac.T, rhs)
-        return ev.grad_x - jac_x.T @ z
+        return grad_x - jac_x.T @ z
 
     def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray]:
         """(phi(x), grad phi(x))."""
@@ -203,13 +241,15 @@ class AttackResult:
         return self.spectral_radius >= 1.0
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready summary (objective inf for an unstable max-min loop; eigenvalues as [re, im])."""
+        """JSON-ready summary (objective inf for an unstable max-min loop; eigenvalues as [re, im]; kkt_residual
+        None for the solver's own selection)."""
         return {"method": self.method, "objective": self.objective, "spectral_radius": self.spectral_radius,
                 "eig_abs_sum": float(np.sum(np.abs(self.eigenvalues))), "unstable": self.unstable,
                 "gain": self.gain.tolist(), "eigenvalues": [[float(v.real), float(v.imag)] for v in self.eigenvalues],
                 "wall_time": self.wall_time, "evaluations": self.evaluations, "iterations": self.iterations,
                 "message": self.message, "budget_violation": self.budget_violation,
-                "kkt_residual": self.kkt_residual, "x": self.x.tolist(), "details": self.details}
+                "kkt_residual": None if np.isnan(self.kkt_residual) else self.kkt_residual, "x": self.x.tolist(),
+                "details": self.details}
 
 
 def _result(oracle: SDPHypergradient, method: str, x: np.ndarray, t0: float, evaluations: int, iterations: int,
@@ -388,3 +428,135 @@ def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> 
                "certificate_failed": list(cert.failed) if cert is not None else [], "solve_time": res.wall_time}
     return _result(oracle, f"kkt-{method}", np.clip(x, -bound, bound), t0, 0, res.nit,
                    f"{res.status.value}: {res.message}", details)
+
+
+def log_radius_gradient(closed_loop: np.ndarray, b: np.ndarray) -> tuple[float, np.ndarray]:
+    """log rho(A + B K) and its gradient in K (m x n) where the top eigenvalues are simple:
+    d log|lam| = Re(conj(lam) w^H B dK v / (w^H v)) / |lam|^2, v and w lam's right and left eigenvectors
+    (a complex pair gives the same gradient from either member; ties share it equally)."""
+    lam, left, right = scipy.linalg.eig(closed_loop, left=True, right=True)
+    logs = np.log(np.abs(lam))
+    top = np.flatnonzero(logs == logs.max())
+    grad = np.zeros((b.shape[1], closed_loop.shape[0]))
+    for i in top:
+        v, w = right[:, i], left[:, i]
+        c = np.conj(lam[i]) / (abs(lam[i]) ** 2 * (np.conj(w) @ v))
+        grad += np.real(c * np.outer(b.T @ np.conj(w), v)) / top.size
+    return float(logs.max()), grad
+
+
+@dataclass
+class _Best:
+    """The evaluated point with the largest identified spectral radius so far."""
+
+    ev: Evaluation | None = None
+    evaluations: int = 0
+
+    def see(self, ev: Evaluation | None, evaluations: int = 1) -> None:
+        """Count `evaluations` and keep ev if its identified radius is the largest so far."""
+        self.evaluations += evaluations
+        if ev is not None and (self.ev is None or ev.identified_radius > self.ev.identified_radius):
+            self.ev = ev
+
+
+def _radius_phase(oracle: SDPHypergradient, box: Box, scale: np.ndarray, x0: np.ndarray, surrogate: bool,
+                  max_iter: int, tol: float, best: _Best) -> tuple[np.ndarray, int]:
+    """One projected ascent (the engine's) on the Gelfand criterion phi (surrogate) or on log rho of the identified
+    closed loop; every evaluated point goes to `best`. Returns the final point and the iteration count."""
+    b_id = oracle.attack.b_id
+
+    def value(x: np.ndarray) -> tuple[float, Evaluation | None]:
+        try:
+            ev = oracle.evaluate(x)
+        except BilevelError:
+            return -np.inf, None  # the learner cannot be solved here: the line search backtracks
+        best.see(ev)
+        return (ev.phi if surrogate else float(np.log(ev.identified_radius))), ev
+
+    def direction(ev: Evaluation | None) -> tuple[np.ndarray, np.ndarray]:
+        if ev is None:  # the start itself could not be evaluated: no move, the path ends there
+            return np.zeros_like(scale), np.zeros_like(scale)
+        g = oracle.gradient(ev) if surrogate else oracle.gain_gradient(ev, log_radius_gradient(ev.closed_loop,
+                                                                                                  b_id)[1])
+        return g, scale * budget_direction(scale * g, 1.0, np.inf)
+
+    x, _, _, it, _, _ = projected_ascent(value, direction, box, x0, scale, max_iter, tol, [])
+    return x, it
+
+
+@single_threaded_call
+def destabilize_attack(attack: WillemsAttack, starts: int = 16, seed: Any = 0, max_iter: int = 100,
+                       tol: float = 1e-9, oracle: SDPHypergradient | None = None) -> AttackResult:
+    """Maximize the spectral radius of the attacker's closed loop A_id + B_id K. From each start (0: clean data, then
+    uniform in the budget box) two projected ascents (max_iter each): the smooth path, on the Gelfand criterion of
+    `attack` (objective "destabilize") and then on log rho, and the direct path, on log rho from the start (the
+    surrogate and the exact objective end in different local maxima). Returns the evaluated point with the
+    largest identified rho over all paths, not the first unstable one."""
+    if attack.setting.objective != "destabilize":
+        raise ModelError(f"destabilize_attack maximizes the Gelfand criterion; got objective="
+                         f"{attack.setting.objective!r}: build the attack with objective='destabilize'")
+    t0 = time.perf_counter()
+    oracle = oracle or SDPHypergradient(attack)
+    if oracle.attack is not attack:
+        raise ModelError("destabilize_attack: the oracle was built for another WillemsAttack")
+    rng = _seed(seed)
+    bound = attack.budget()
+    box, overall, records, iters = Box(-bound, bound), _Best(), [], 0
+    for k in range(max(int(starts), 1)):
+        x0 = np.zeros(bound.size) if k == 0 else sample_in_bounds(-bound, bound, rng)
+        smooth, direct = _Best(), _Best()
+        x, it = _radius_phase(oracle, box, bound, x0, True, max_iter, tol, smooth)
+        _, it2 = _radius_phase(oracle, box, bound, x, False, max_iter, tol, smooth)
+        _, it3 = _radius_phase(oracle, box, bound, x0, False, max_iter, tol, direct)
+        iters += it + it2 + it3
+        records.append({"start": k, "iterations": it + it2 + it3,
+                        **{f"{name}_radius": path.ev.identified_radius if path.ev is not None else None
+                           for name, path in (("smooth", smooth), ("direct", direct))}})
+        for path in (smooth, direct):
+            overall.see(path.ev, path.evaluations)
+    if overall.ev is None:
+        raise SolverFailed(f"destabilize attack: the learner's SDP could not be solved at any point of {starts} "
+                           "starts; lower the budget or raise reg")
+    best = overall.ev
+    return _result(oracle, "destabilize", best.x, t0, overall.evaluations, iters,
+                   f"largest identified spectral radius {best.identified_radius:.6g} over {len(records)} starts",
+                   {"starts": records, "identified_radius": best.identified_radius,
+                    "lower_solves": oracle.lower_solves})
+
+
+@dataclass
+class BudgetSearch:
+    """The smallest input budget delta_u at which the destabilizing attack made the true loop unstable (inf if no
+    budget of the path did), and every attack run on the way: (delta_u, true spectral radius) in run order."""
+
+    delta: float
+    runs: list[tuple[float, float]]
+
+
+def smallest_destabilizing_budget(setting: WillemsSetting, path: tuple[float, ...] = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0),
+                                  rel_tol: float = 0.05, **options: Any) -> BudgetSearch:
+    """delta_u* of one data set: destabilize_attack (options passed on) along the increasing budget `path` until the
+    true loop is unstable, then bisection between the last stable and the first unstable budget to `rel_tol`."""
+    if list(path) != sorted(path) or not path or path[0] <= 0:
+        raise ModelError(f"smallest_destabilizing_budget: path must be increasing and positive, got {path}")
+    if setting.poison != "u":
+        raise ModelError(f"smallest_destabilizing_budget searches delta_u with input poisoning; got poison="
+                         f"{setting.poison!r}: use poison='u'")
+    runs: list[tuple[float, float]] = []
+
+    def unstable(delta: float) -> bool:
+        attack = build_attack(dataclasses.replace(setting, objective="destabilize", delta_u=delta))
+        runs.append((delta, destabilize_attack(attack, **options).spectral_radius))
+        return runs[-1][1] >= 1.0
+
+    low = 0.0
+    for high in path:
+        if unstable(high):
+            break
+        low = high
+    else:
+        return BudgetSearch(float("inf"), runs)
+    while high - low > rel_tol * high:
+        mid = 0.5 * (low + high)
+        low, high = (low, mid) if unstable(mid) else (mid, high)
+    return BudgetSearch(high, runs)

@@ -16,11 +16,15 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike
 
-from bilevel.errors import InvalidData, NotPersistentlyExciting, SolverFailed
+from bilevel.errors import InvalidData, ModelError, NotPersistentlyExciting, SolverFailed
 from bilevel.lower.quadratic import solve_clarabel
 
 # Clarabel's defaults (1e-8) leave ~1e-4 error in K (the SDP value is flat around the optimal gain), so the
 # learner uses (through solve_clarabel) the same tightened tolerances as the lower-level certificates.
+
+SOLVERS = ("clarabel", "scs")
+"""SDP solvers a learner can use; the solver decides which of the non-unique optimal Q the learner returns."""
+SCS_TOLERANCES = {"eps_abs": 1e-7, "eps_rel": 1e-7, "max_iters": 100_000}
 
 _INFEASIBLE_HINT = (": these data admit no certified controller; check that the data come from a stabilizable "
                     "system and are noise-free or more informative")
@@ -100,26 +104,62 @@ def _controller(data: StateData, q: np.ndarray, value: float, status: str, what:
     return DPTController(k=k, q=q, value=value, status=status, closed_loop=acl, spectral_radius=rho)
 
 
+def _solve(problem: cp.Problem, solver: str, what: str, options: dict[str, Any]) -> None:
+    """Solve with Clarabel (solve_clarabel's tolerances and status map) or SCS (tight tolerances, same map)."""
+    if solver == "clarabel":
+        solve_clarabel(problem, what, _INFEASIBLE_HINT, options)
+        return
+    if solver != "scs":
+        raise ModelError(f"solver={solver!r} is not one of {', '.join(SOLVERS)}")
+    try:
+        problem.solve(solver=cp.SCS, **{**SCS_TOLERANCES, **options})
+    except cp.error.SolverError as exc:
+        raise SolverFailed(f"SCS failed on {what} ({exc}); rescale the data or use solver='clarabel'") from exc
+    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or _missing_values(problem):
+        raise SolverFailed(f"SCS returned status {problem.status!r} on {what}, no usable point"
+                           f"{_INFEASIBLE_HINT if 'infeasible' in str(problem.status) else ''}")
+
+
+def _missing_values(problem: cp.Problem) -> bool:
+    """Whether a solved cvxpy problem left any variable without a value."""
+    return any(v.value is None for v in problem.variables())
+
+
+def column_weights(data: StateData, balance: bool) -> np.ndarray:
+    """w_t = 1 / max(1, ||(x_t, x_{t+1})||) (ones unless balance). The learner solves for Q~ = diag(w)^-1 Q:
+    the same SDP in a variable whose data columns are balanced. States of the unstable batch reactor grow like
+    1.22^t (to ~2e4 at T = 50); unbalanced, SCS ends 'optimal_inaccurate' there. States only: input poisoning
+    leaves the weights, and so the appendix learner's Q, unchanged."""
+    if not balance:
+        return np.ones(data.horizon)
+    return 1.0 / np.maximum(1.0, np.linalg.norm(np.vstack([data.x0, data.x1]), axis=0))
+
+
 def _symmetric(block: cp.Expression) -> cp.Expression:
     return (block + block.T) / 2
 
 
 def stabilizing_controller(
-    x: ArrayLike, u: ArrayLike, *, solver_options: Mapping[str, Any] | None = None
+    x: ArrayLike, u: ArrayLike, *, solver: str = "clarabel", balance: bool = True,
+    solver_options: Mapping[str, Any] | None = None
 ) -> DPTController:
-    """Theorem 3: Q with [[X0 Q, X1 Q], [Q^T X1^T, X0 Q]] >= I, min trace(X0 Q); K = U0 Q (X0 Q)^-1."""
+    """Theorem 3: Q with [[X0 Q, X1 Q], [Q^T X1^T, X0 Q]] >= I, min trace(X0 Q); K = U0 Q (X0 Q)^-1.
+    `solver` ("clarabel" or "scs") and `balance` (column_weights) decide which optimal Q the learner returns."""
     data = state_data(x, u)
     check_persistency(data)
     n, horizon = data.x0.shape
+    w = column_weights(data, balance)
+    x0, x1 = data.x0 * w, data.x1 * w
     q = cp.Variable((horizon, n))
     s = cp.Variable((n, n), symmetric=True)
-    lmi = cp.bmat([[s, data.x1 @ q], [(data.x1 @ q).T, s]])
+    lmi = cp.bmat([[s, x1 @ q], [(x1 @ q).T, s]])
     problem = cp.Problem(
         cp.Minimize(cp.trace(s)),
-        [data.x0 @ q == s, _symmetric(lmi) >> np.eye(2 * n)],
+        [x0 @ q == s, _symmetric(lmi) >> np.eye(2 * n)],
     )
-    solve_clarabel(problem, "the De Persis-Tesi stabilization LMI", _INFEASIBLE_HINT, dict(solver_options or {}))
-    return _controller(data, q.value, float(problem.value), problem.status, "De Persis-Tesi stabilization LMI")
+    _solve(problem, solver, "the De Persis-Tesi stabilization LMI", dict(solver_options or {}))
+    return _controller(data, w[:, None] * q.value, float(problem.value), problem.status,
+                       "De Persis-Tesi stabilization LMI")
 
 
 def lqr_controller(
@@ -129,9 +169,12 @@ def lqr_controller(
     r: ArrayLike | None = None,
     *,
     input_cost: bool = True,
+    solver: str = "clarabel",
+    balance: bool = True,
     solver_options: Mapping[str, Any] | None = None,
 ) -> DPTController:
-    """Theorem 4: min trace(Qx X0 Q) + trace(X) s.t. its two LMIs; input_cost=False drops X (paper appendix)."""
+    """Theorem 4: min trace(Qx X0 Q) + trace(X) s.t. its two LMIs; input_cost=False drops X (paper appendix).
+    `solver` ("clarabel" or "scs") and `balance` (column_weights) decide which optimal Q the learner returns."""
     data = state_data(x, u)
     check_persistency(data)
     n, horizon = data.x0.shape
@@ -140,16 +183,18 @@ def lqr_controller(
     r = np.eye(m) if r is None else np.asarray(r, dtype=float)
     if qx.shape != (n, n) or r.shape != (m, m):
         raise InvalidData(f"Qx must be {n} x {n} and R {m} x {m}; got {qx.shape} and {r.shape}")
+    w = column_weights(data, balance)
+    x0, x1 = data.x0 * w, data.x1 * w
     q = cp.Variable((horizon, n))
     s = cp.Variable((n, n), symmetric=True)
-    gramian_lmi = cp.bmat([[s - np.eye(n), data.x1 @ q], [(data.x1 @ q).T, s]])
-    constraints = [data.x0 @ q == s, _symmetric(gramian_lmi) >> 0]
+    gramian_lmi = cp.bmat([[s - np.eye(n), x1 @ q], [(x1 @ q).T, s]])
+    constraints = [x0 @ q == s, _symmetric(gramian_lmi) >> 0]
     objective = cp.trace(qx @ s)
     if input_cost:
         big_x = cp.Variable((m, m), symmetric=True)
-        weighted = scipy.linalg.sqrtm(r).real @ data.u0 @ q
+        weighted = scipy.linalg.sqrtm(r).real @ (data.u0 * w) @ q
         constraints.append(_symmetric(cp.bmat([[big_x, weighted], [weighted.T, s]])) >> 0)
         objective = objective + cp.trace(big_x)
     problem = cp.Problem(cp.Minimize(objective), constraints)
-    solve_clarabel(problem, "the De Persis-Tesi LQR SDP", _INFEASIBLE_HINT, dict(solver_options or {}))
-    return _controller(data, q.value, float(problem.value), problem.status, "De Persis-Tesi LQR SDP")
+    _solve(problem, solver, "the De Persis-Tesi LQR SDP", dict(solver_options or {}))
+    return _controller(data, w[:, None] * q.value, float(problem.value), problem.status, "De Persis-Tesi LQR SDP")

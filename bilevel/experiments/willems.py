@@ -26,7 +26,8 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from ..attacks.willems import AttackResult, de_attack, hypergradient_attack, random_attack  # noqa: E402
+from ..attacks.willems import (AttackResult, de_attack, destabilize_attack, hypergradient_attack,  # noqa: E402
+                               random_attack)
 from ..ddc.data import batch_reactor_data  # noqa: E402
 from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller  # noqa: E402
 from ..ddc.plants import batch_reactor  # noqa: E402
@@ -38,7 +39,8 @@ from .sweep import load_timings, record_timing, run_sweep, settings_of, stderr_p
 from .willems_selection import selection_table  # noqa: E402
 
 DELTA_Y = 1e-3
-METHODS = {"hypergradient": "hypergradient (ours)", "de": "differential evolution", "random": "random signs"}
+METHODS = {"hypergradient": "hypergradient (ours)", "destabilize": "destabilizing (ours, max rho)",
+           "de": "differential evolution", "random": "random signs"}
 PAPER_CLAIMS = (
     ("small budgets suffice", "\"For very small values of delta_u we can get the system unstable.\""),
     ("more data is more fragile", "\"increasing the number of points N makes the closed-loop system unstable "
@@ -62,6 +64,8 @@ class Plan:
     remark_horizons: tuple[int, ...]
     design_sims: int
     design_deltas: tuple[float, ...]
+    rho_iter: int = 100
+    """max_iter per ascent path of the destabilizing attack."""
 
 
 def make_plan(sims: int, quick: bool) -> Plan:
@@ -69,7 +73,7 @@ def make_plan(sims: int, quick: bool) -> Plan:
     if sims < 1:
         raise ValueError(f"sims must be >= 1, got {sims}")
     if quick:
-        return Plan(min(sims, 4), (0.2, 0.6, 1.25), (15, 50), 5, 40, 4, 1, (15,), 1, (1e-3, 1e-1))
+        return Plan(min(sims, 4), (0.2, 0.6, 1.25), (15, 50), 5, 40, 4, 1, (15,), 1, (1e-3, 1e-1), rho_iter=20)
     return Plan(sims, (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 1.0, 1.25), (15, 50), 5, 300, 8,
                 max(2, min(sims, 32)), (15, 50), max(2, min(sims, 16)),
                 (1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0))
@@ -95,15 +99,17 @@ def _task(plan: Plan, root_seed: int, experiment: str, i: int, seeds: tuple[int,
     fields = "|".join(f"{k}={setting[k]}" for k in sorted(setting))
     return {"key": f"{experiment}|{method}|{fields}|sim={i}", "experiment": experiment, "method": method,
             "sim": i, "seed": seeds[0], "attack_seed": seeds[1], **setting, "root_seed": root_seed,
-            "reg": DEFAULT_REG, "starts": plan.starts, "de_popsize": plan.de_popsize, "de_maxiter": plan.de_maxiter}
+            "reg": DEFAULT_REG, "starts": plan.starts, "de_popsize": plan.de_popsize, "de_maxiter": plan.de_maxiter,
+            "rho_iter": plan.rho_iter}
 
 
 def paper_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict[str, Any]]:
-    """Input poisoning of the appendix SDP, eigenvalue criterion: every (N, delta_u, sim) for both methods."""
+    """Input poisoning of the appendix SDP: every (N, delta_u, sim) for the eigenvalue criterion (ours and DE)
+    and for the destabilizing attack (its own criterion)."""
     return [_task(plan, seed, "paper", i, s, method, horizon=n, delta_u=d, delta_x=0.0, poison="u", design="lqr",
-                  criterion="eigen", selection=selection)
+                  criterion="destabilize" if method == "destabilize" else "eigen", selection=selection)
             for n in plan.horizons for d in plan.deltas for i, s in enumerate(sim_seeds(seed, plan.sims))
-            for method in ("hypergradient", "de")]
+            for method in ("hypergradient", "de", "destabilize")]
 
 
 def remark_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict[str, Any]]:
@@ -128,9 +134,9 @@ def _reference_radius(setting: WillemsSetting, x: np.ndarray, u: np.ndarray) -> 
     plant = batch_reactor()
     try:
         if setting.design == "stabilizing":
-            k = stabilizing_controller(x, u).k
+            k = stabilizing_controller(x, u, balance=False).k  # the learner of the committed sweep
         else:
-            k = lqr_controller(x, u, input_cost=setting.design == "lqr-r").k
+            k = lqr_controller(x, u, input_cost=setting.design == "lqr-r", balance=False).k
     except BilevelError:
         return float("nan")
     return float(np.max(np.abs(np.linalg.eigvals(plant.A + plant.B @ k))))
@@ -146,6 +152,8 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
         attack = build_attack(setting)
         if task["method"] == "hypergradient":
             res: AttackResult = hypergradient_attack(attack, starts=task["starts"], seed=task["attack_seed"])
+        elif task["method"] == "destabilize":
+            res = destabilize_attack(attack, starts=task["starts"], seed=task["attack_seed"], max_iter=task["rho_iter"])
         elif task["method"] == "de":
             res = de_attack(attack, seed=task["attack_seed"], maxiter=task["de_maxiter"], popsize=task["de_popsize"])
         else:
@@ -207,11 +215,11 @@ def write_csv(summary: dict[tuple, dict[str, float]], fields: tuple[str, ...], p
 
 
 def paper_table(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
-    """Markdown: % unstable [Wilson 95% CI] per delta_u, ours and DE side by side for each N."""
-    head = " | ".join(f"N={n} {m}" for n in plan.horizons for m in ("ours", "DE"))
-    lines = [f"| delta_u | {head} |", "|---" * (1 + 2 * len(plan.horizons)) + "|"]
+    """Markdown: % unstable [Wilson 95% CI] per delta_u: log-det attack, destabilizing attack and DE for each N."""
+    head = " | ".join(f"N={n} {m}" for n in plan.horizons for m in ("ours log det", "ours max rho", "DE"))
+    lines = [f"| delta_u | {head} |", "|---" * (1 + 3 * len(plan.horizons)) + "|"]
     for d in plan.deltas:
-        cells = [_rate(summary.get((n, m, d))) for n in plan.horizons for m in ("hypergradient", "de")]
+        cells = [_rate(summary.get((n, m, d))) for n in plan.horizons for m in ("hypergradient", "destabilize", "de")]
         lines.append(f"| {d:g} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -254,6 +262,18 @@ def design_table(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
                     cells.append("-" if c is None else _rate(c) + (f" ({c['errors']} failed)" if c["errors"] else ""))
                 lines.append(f"| {design} | {poison} | {criterion} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def path_thresholds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """delta_u* along the sweep's budget grid: per (N, sim) the smallest delta_u at which the destabilizing attack
+    made the true loop unstable (inf if none did); rows in bilevel.experiments.willems_budget's format."""
+    runs: dict[tuple, list[tuple[float, float]]] = {}
+    for r in rows:
+        if r.get("method") == "destabilize" and "error" not in r:
+            runs.setdefault((r["horizon"], r["selection"], r["seed"]), []).append((r["delta_u"], r["spectral_radius"]))
+    return [{"horizon": n, "selection": sel, "data_seed": seed,
+             "delta_star": min((d for d, rho in found if rho >= 1.0), default=float("inf")), "attacks": len(found)}
+            for (n, sel, seed), found in sorted(runs.items())]
 
 
 # -- figures --------------------------------------------------------------------------------------------------
@@ -373,7 +393,7 @@ def _timing(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
 
 def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries: dict[str, dict],
                  figures: dict[str, str], signals: dict[int, tuple[float, int]], wall: dict[str, tuple[int, float]],
-                 selection_md: str, executor: str) -> str:
+                 selection_md: str, executor: str, budget_md: str = "") -> str:
     """report.md: settings (field -> values read from the rows), tables, figures, timing and the paper's claims
     next to ours."""
     seed, learner, reg = (", ".join(map(str, settings[k])) for k in ("root_seed", "selection", "reg"))
@@ -405,6 +425,10 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
         f"Generated by `bilevel.experiments.willems.run_reproduction` on {time.strftime('%Y-%m-%d %H:%M:%S %Z')} "
         f"({platform.node()}, {os.cpu_count()} CPUs, {executor}). Settings read from the result rows: seed {seed}, "
         f"selection {learner}, reg {reg}, algorithm version {', '.join(settings['version'])}.", "",
+        "## How much input poisoning destabilizes the loop", "",
+        "delta_u*: per data set, the smallest budget of the grid at which the destabilizing attack (max rho) made "
+        "the true loop unstable (grid resolution; `smallest_destabilizing_budget` bisects further):", "",
+        budget_md, "![delta_u* CDF](fig_budget_cdf.png)", "",
         "## Settings", "",
         "- Plant: batch reactor (Walsh & Ye 2001), Ts = 0.1, n = 4, m = 2; data: u ~ N(0, 1) white, x_0 = 0, "
         "noise free. The attacker uses [B A] = X1 [U0; X0]^+ from the clean data (equal to the plant here).",
@@ -415,7 +439,9 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
         + "; see docs/willems.md. K = U0 Q (X0 Q)^-1.",
         f"- Attack: input poisoning |Du| <= delta_u entrywise (linf), criterion log det((A+BK)(A+BK)'), "
         f"delta_u in {list(plan.deltas)}, N in {list(plan.horizons)}, {plan.sims} simulations per cell "
-        "(the same data for every delta and method).",
+        "(the same data for every delta and method). The destabilizing attack (`destabilize_attack`, "
+        f"{plan.starts} starts) maximizes max |eig(A_id + B_id K)| instead (Gelfand criterion, then log rho) and "
+        "reports the largest radius it reached.",
         f"- Ours: projected hypergradient ascent, {plan.starts} starts (clean data + uniform in the box). "
         f"DE: scipy differential_evolution, best1bin, popsize {plan.de_popsize} x dim, {plan.de_maxiter} "
         "generations, no gradient polish, same box and seeds (the paper used MATLAB's particle swarm).",
@@ -505,8 +531,11 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
         fh.write(selection_md)
     every = [r for rs in rows.values() for r in rs]
     settings = settings_of(every, "root_seed", "selection", "reg") | {"version": sorted({r["version"] for r in every})}
+    from .willems_budget import write_outputs  # willems_budget reads this module's sim_seeds
+
+    budget_md = write_outputs(path_thresholds(rows["paper"]), out_dir)
     path = write_report(out_dir, plan, settings, summaries, figures, signals, wall, selection_md,
-                        executor.description)
+                        executor.description, budget_md)
     if progress:
         progress(f"wrote {path}")
     return path

@@ -24,7 +24,7 @@ SELECTIONS = ("min-norm", "clarabel")
 def input_gains(x: np.ndarray, u: np.ndarray) -> dict[str, float]:
     """Worst-case linf gain max_j sum_t |G_tj| of K to input poisoning per selection, and Clarabel's null share."""
     x0, x1 = x[:, :-1], x[:, 1:]
-    q_solver = lqr_controller(x, u, input_cost=False).q
+    q_solver = lqr_controller(x, u, input_cost=False, balance=False).q  # Clarabel's raw Q (the committed study)
     data = np.vstack([x0, x1])
     q_min = min_norm_q(data, q_solver)  # the part of Q the SDP sees: the minimum-norm optimum
     out = {}

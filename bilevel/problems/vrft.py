@@ -18,6 +18,7 @@ from ..ddc.operators import LTIOperator
 from ..errors import ModelError
 from ..model import BilevelProblem
 from .registry import register
+from .surrogates import gelfand_log_radius
 
 SOURCE = "Russo & Proutiere, Poisoning Attacks against Data-Driven Control Methods (extended), "
 DEFAULTS = {"scenario": "B", "eps_u": 0.1, "eps_y": 0.057, "seed": 0, "N": 64, "convention": "paper"}
@@ -108,9 +109,7 @@ def gelfand_radius(base: np.ndarray | ca.SX, slopes: np.ndarray | ca.SX, theta: 
     n = int(coeffs.numel()) - 1
     monic = coeffs[1:] / coeffs[0]
     C = ca.vertcat(-monic.T, ca.horzcat(ca.SX.eye(n - 1), ca.SX.zeros(n - 1, 1)))
-    for _ in range(int(np.log2(power))):
-        C = ca.mtimes(C, C)
-    return 0.5 * ca.log(ca.sumsqr(C)) / power
+    return gelfand_log_radius(C, power)
 
 
 @register("vrft-maxmin", source=SOURCE + "Sec. 4.4, eq. (op_maxmin)", tags=("attack", "vrft"), defaults=DEFAULTS,

@@ -2,7 +2,8 @@
 
 Upper level (attacker): perturbations Du (m x T) of the inputs and, if poisoned, Dx of the states,
 in linf boxes |Du| <= delta_u, |Dx| <= delta_x; it maximizes the max-min criterion (closed-loop H2
-cost trace((Qx + K'RK) W), W = Acl W Acl' + I) or the eigenvalue criterion log det(Acl Acl'), with
+cost trace((Qx + K'RK) W), W = Acl W Acl' + I), the eigenvalue criterion log det(Acl Acl') or the
+destabilizing criterion log ||Acl^p||_F / p (Gelfand: -> log rho(Acl) as p -> inf, p = GELFAND_POWER), with
 Acl = A_id + B_id K and [B_id A_id] = X1 [U0; X0]^+ identified from the *clean* data (the attacker
 does not know (A, B)). Lower level (learner): the De Persis–Tesi SDP on the poisoned data, with
 lower variable Q (T x n), S = X0' Q (symmetric by equality constraints) and
@@ -22,7 +23,10 @@ the row space of D, but the null-space directions of Q carry curvature reg only,
 residual r leaves an error ~ r / reg there (up to 7.7e-4 relative in Q at N = 50). "min-norm"
 (default) projects the learner's Q onto the row space of D after solving, which leaves D Q, the
 SDP's value and the constraints unchanged and makes the selection reproducible to solver accuracy;
-"tikhonov" keeps the solver's Q (the selection of the sweep committed in session 1).
+"tikhonov" keeps the solver's Q (the selection of the sweep committed in session 1). "clarabel" and "scs"
+are the unregularized learner bilevel.ddc.lqr_controller / stabilizing_controller with that SDP solver, whose Q
+is the solver's own optimum (same SDP value, another gain); they are defined where the SDP does not see the
+poisoning (poison="u", designs lqr and stabilizing), so Q is fixed and K is affine in Du.
 """
 
 from __future__ import annotations
@@ -40,11 +44,16 @@ from ..errors import InvalidData, ModelError
 from ..model import BilevelProblem
 from ..vech import symmetric_sx
 from .registry import register
+from .surrogates import gelfand_log_radius
 
 DESIGNS = ("lqr", "lqr-r", "stabilizing")
 POISONS = ("u", "x", "xu")
-SELECTIONS = ("min-norm", "tikhonov")
-OBJECTIVES = ("maxmin", "eigen")
+SELECTIONS = ("min-norm", "tikhonov", "clarabel", "scs")
+SOLVER_SELECTIONS = ("clarabel", "scs")
+"""Selections that take the unregularized SDP solver's own Q (bilevel.ddc.depersis_tesi.SOLVERS)."""
+OBJECTIVES = ("maxmin", "eigen", "destabilize")
+GELFAND_POWER = 16
+"""p in the destabilizing criterion log ||Acl^p||_F / p (a power of two; the VRFT attack's too)."""
 DEFAULT_REG = 1e-8
 """Tikhonov weight on ||Q||_F^2 / 2: small enough that clean-data gains match the unregularized SDP to 1e-7."""
 
@@ -84,6 +93,10 @@ class WillemsSetting:
                              "set delta_u=0 or poison='u'/'xu'")
         if "x" in self.poison and self.delta_x <= 0:
             raise ModelError(f"willems: poison={self.poison!r} needs delta_x > 0")
+        if self.selection in SOLVER_SELECTIONS and (self.poison != "u" or self.design == "lqr-r"):
+            raise ModelError(f"willems: selection={self.selection!r} (the solver's own Q) is defined only where the "
+                             f"SDP ignores the poisoning; got poison={self.poison!r}, design={self.design!r}: use "
+                             "poison='u' with design 'lqr' or 'stabilizing', or selection 'min-norm'/'tikhonov'")
 
 
 def identified_model(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -108,6 +121,8 @@ def criterion_values(closed_loop: np.ndarray, gain: np.ndarray, objective: str, 
     acl, k = np.asarray(closed_loop, dtype=float), np.asarray(gain, dtype=float)
     if objective == "eigen":
         return 2.0 * np.linalg.slogdet(acl)[1]
+    if objective == "destabilize":
+        return np.log(np.linalg.norm(np.linalg.matrix_power(acl, GELFAND_POWER), axis=(-2, -1))) / GELFAND_POWER
     n = acl.shape[-1]
     kron = np.einsum("...ij,...kl->...ikjl", acl, acl).reshape(acl.shape[:-2] + (n * n, n * n))
     rhs = np.broadcast_to(np.eye(n).reshape(n * n), kron.shape[:-1])
@@ -234,6 +249,8 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
     acl = ca.DM(a_id) + ca.mtimes(ca.DM(b_id), gain)
     if s.objective == "eigen":
         p.maximize_upper(2 * ca.log(ca.fabs(ca.det(acl))))
+    elif s.objective == "destabilize":
+        p.maximize_upper(gelfand_log_radius(acl, GELFAND_POWER))
     else:
         cost = ca.DM(qx) + (ca.mtimes([gain.T, ca.DM(r), gain]) if s.design == "lqr-r" else 0)
         p.maximize_upper(ca.trace(ca.mtimes(cost, _gramian_expr(acl))))
@@ -247,8 +264,14 @@ def _register(objective: str, description: str) -> None:
               defaults={"horizon": 15, "seed": 0, "delta_u": 0.1, "delta_x": 0.0, "poison": "u", "design": "lqr",
                         "reg": DEFAULT_REG})
     def build(**params: Any) -> BilevelProblem:
+        if params.get("selection") in SOLVER_SELECTIONS:
+            raise ModelError(f"willems-{objective}: the declared problem's learner is the regularized SDP; "
+                             f"selection={params['selection']!r} (the solver's own Q) exists in the structured "
+                             "attacks only (bilevel.attacks.willems; `bilevel solve willems-destabilize` without "
+                             "--method)")
         return build_attack(WillemsSetting(objective=objective, **params)).problem
 
 
 _register("maxmin", "max-min attack on De Persis-Tesi: maximize the closed-loop H2 cost through the Gramian")
 _register("eigen", "eigenvalue attack on De Persis-Tesi: maximize log det((A+BK)(A+BK)')")
+_register("destabilize", "destabilizing attack on De Persis-Tesi: maximize log ||(A+BK)^16||_F / 16 (-> log rho)")

@@ -93,7 +93,8 @@ def test_cli_list_and_solve(capsys, tmp_path) -> None:
     assert main(["list"]) == 0
     out = capsys.readouterr().out
     assert "problems; methods:" in out
-    for name in ("bard1998-ex5.1.1", "vrft-maxmin", "vrft-destabilize", "willems-eigen", "willems-maxmin"):
+    for name in ("bard1998-ex5.1.1", "vrft-maxmin", "vrft-destabilize", "willems-eigen", "willems-maxmin",
+                 "willems-destabilize"):
         assert name in out
     assert main(["solve", "bard1998-ex5.1.1", "--starts", "4", "--json", str(tmp_path / "r.json")]) == 0
     assert "relative gap 0.00e+00" in capsys.readouterr().out

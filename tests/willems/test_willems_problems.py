@@ -47,11 +47,12 @@ def _riccati_gain(r: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("seed", [0, 1])
 def test_lower_level_gain_equals_depersis_tesi_learner(design: str, seed: int) -> None:
     """On clean data (T = 15) the declared lower level, re-solved by Clarabel and KKT-polished, gives the gain
-    of bilevel.ddc.lqr_controller (appendix form for lqr, Thm 4 with R = I for lqr-r) to 1e-5."""
+    of bilevel.ddc.lqr_controller (appendix form for lqr, Thm 4 with R = I for lqr-r) to 2e-5: Clarabel's own
+    accuracy in K (raw or column-balanced data: up to 1.6e-5 / 1.3e-5 from the Riccati gain over 8 seeds)."""
     attack = build_attack(horizon=15, seed=seed, design=design)
     ev = SDPHypergradient(attack).evaluate(np.zeros(30))
     ref = lqr_controller(attack.x, attack.u, input_cost=design == "lqr-r")
-    np.testing.assert_allclose(ev.gain, ref.k, atol=1e-5)
+    np.testing.assert_allclose(ev.gain, ref.k, atol=2e-5)
     assert ev.kkt_residual < 1e-9
 
 
@@ -86,7 +87,7 @@ def test_identified_model_is_the_plant() -> None:
     np.testing.assert_allclose(attack.b_id, PLANT.B, atol=1e-10)
 
 
-@pytest.mark.parametrize("objective", ["eigen", "maxmin"])
+@pytest.mark.parametrize("objective", ["eigen", "maxmin", "destabilize"])
 @pytest.mark.parametrize("design", ["lqr", "lqr-r"])
 def test_numeric_criterion_equals_declared_objective(objective: str, design: str) -> None:
     """criterion_values (batched numpy, used by DE) equals the problem's CasADi objective at random points."""
@@ -116,6 +117,9 @@ def test_numeric_criterion_equals_declared_objective(objective: str, design: str
     ({"poison": "xu", "delta_x": 0.0}, "needs delta_x > 0"),
     ({"delta_u": -1.0}, "budgets must be finite and >= 0"),
     ({"reg": -1e-3}, "reg must be >= 0"),
+    ({"selection": "scs", "poison": "xu", "delta_x": 1e-3}, "defined only where the SDP ignores the poisoning"),
+    ({"selection": "clarabel", "design": "lqr-r"}, "defined only where the SDP ignores the poisoning"),
+    ({"selection": "mosek"}, "selection='mosek' is not one of"),
 ])
 def test_bad_settings_name_the_problem(params: dict, match: str) -> None:
     with pytest.raises(ModelError, match=match):

@@ -17,8 +17,11 @@ def test_quick_reproduction_writes_report_tables_and_figures(tmp_path) -> None:
     text = open(report, encoding="utf-8").read()
     for needle in ("Fraction of unstable closed loops", "fig7_eigenvalues.png", "fig8_objective.png",
                    "fig9_signals.png", "The paper's claims next to ours", "Output poisoning", "Other designs",
-                   "Timing"):
+                   "Timing", "How much input poisoning destabilizes the loop", "fig_budget_cdf.png", "ours max rho"):
         assert needle in text
+    assert os.path.getsize(os.path.join(out, "fig_budget_cdf.png")) > 1000
+    budget = open(os.path.join(out, "budget.csv"), encoding="utf-8").read().splitlines()
+    assert len(budget) == 1 + 2 * 2  # header + (N = 15, 50) x 2 sims
     for name in ("paper", "remark", "designs"):
         assert os.path.getsize(os.path.join(out, f"table_{name}.csv")) > 0
         assert os.path.getsize(os.path.join(out, f"table_{name}.md")) > 0
