@@ -98,6 +98,7 @@ class ParameterSet:
         self.revision = 0
         """Incremented by every set_value: caches of value-dependent quantities compare it."""
         self._flat: np.ndarray | None = None
+        self._sym: ca.SX | None = None
 
     def __len__(self) -> int:
         return len(self.items)
@@ -105,7 +106,9 @@ class ParameterSet:
     @property
     def sym(self) -> ca.SX:
         """All parameter symbols, flattened column-major in declaration order (0 x 1 without parameters)."""
-        return ca.vertcat(*[ca.vec(p.sym) for p in self.items]) if self.items else ca.SX(0, 1)
+        if self._sym is None:
+            self._sym = ca.vertcat(*[ca.vec(p.sym) for p in self.items]) if self.items else ca.SX(0, 1)
+        return self._sym
 
     @property
     def value(self) -> np.ndarray:
@@ -122,6 +125,7 @@ class ParameterSet:
         """Register a parameter symbol (with an optional first value)."""
         param = Parameter(name, sym)
         self.items.append(param)
+        self._sym = self._flat = None
         if value is not None:
             self.set(name, value)
         return param

@@ -18,7 +18,7 @@ from ..reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
 from ..result import BilevelResult, Status
 from .probe import improving_neighbour
 from .projections import Projection
-from .structure import Ball, find_balls, upper_projection
+from .structure import Ball, ball_forms, find_balls, upper_projection
 
 
 @dataclass
@@ -55,7 +55,7 @@ class Prepared:
     @cached_property
     def balls(self) -> list[Ball]:
         """Upper constraints recognized as Euclidean balls on blocks of x (projected on, not penalized)."""
-        return find_balls(self.canon)
+        return find_balls(self.canon, self.cached(("ball-forms",), lambda: ball_forms(self.canon)))
 
     @cached_property
     def projection(self) -> Projection:

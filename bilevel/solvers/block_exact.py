@@ -23,6 +23,7 @@ import scipy.linalg as sla
 
 from ..canonical import CanonicalBilevel
 from ..errors import BilevelError, ModelError
+from ..lower.base import LowerSolution
 from ..lower.least_squares import LeastSquaresLower
 from ..reduction import KKTPoint
 from ..result import Status
@@ -42,8 +43,9 @@ class ExactBlock:
     jac_q: Callable
     upper_y: Callable
 
-    def solve(self, low: LeastSquaresLower, x: np.ndarray) -> np.ndarray:
-        """x with its block replaced by the global minimizer of F(x, y*(x)) over the ball (other entries fixed)."""
+    def solve(self, low: LeastSquaresLower, x: np.ndarray) -> tuple[np.ndarray, LowerSolution]:
+        """x with its block replaced by the global minimizer of F(x, y*(x)) over the ball (other entries fixed),
+        and the lower solution there (y*(x) = y_c + M z in closed form)."""
         b = self.ball
         x = np.array(x, dtype=float)
         x[b.block] = b.center
@@ -56,8 +58,11 @@ class ExactBlock:
         U, s, Vt = U[:, keep], s[keep], Vt[keep]
         A = -0.5 * (s[:, None] * (U.T @ hess @ U) * s[None, :])
         v = maximize_quadratic_on_ball(A, -0.5 * s * (U.T @ grad.ravel()), b.radius)
-        x[b.block] = b.center + Vt.T @ v
-        return x
+        z = Vt.T @ v
+        x[b.block] = b.center + z
+        y = y_c + M @ z
+        return x, LowerSolution(y, low.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal",
+                                "closed-form (exact block)")
 
 
 def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactBlock | None, list[str]]:
@@ -121,7 +126,7 @@ def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
 
     def value(xr: np.ndarray) -> tuple[float, Evaluation | None]:
         try:
-            ev = oracle.evaluate(exact.solve(low, full(xr)))
+            ev = oracle.evaluate(*exact.solve(low, full(xr)))
         except BilevelError:
             return -np.inf, None
         return -ev.phi, ev

@@ -60,7 +60,8 @@ STEP_RANGE = (1e-12, 1e12)
 class Evaluation:
     """An upper point with its (polished) lower solution, penalized objective phi, F and upper violation.
 
-    `upper` holds F, G, H and their partial derivatives in x and y; `kkt` the lower KKT values there.
+    `upper` holds F, G, H and their partial derivatives in x and y; `kkt` the lower KKT values there (empty for a
+    closed-form lower level until a gradient needs them).
     """
 
     x: np.ndarray
@@ -104,11 +105,12 @@ class Hypergradient:
         self._kkt = function("kkt", [low.x, low.y, kkt.lam, kkt.mu],
                                 [S, low.g, low.h, ca.jacobian(S, low.y), ca.jacobian(low.g, low.y),
                                  ca.jacobian(low.h, low.y)])
-        self._kkt_x = function("kkt_x", [low.x, low.y, kkt.lam, kkt.mu],
-                                  [ca.jacobian(S, low.x), ca.jacobian(low.g, low.x), ca.jacobian(low.h, low.x)])
         ng, nh = int(low.g.numel()), int(low.h.numel())
+        v = [ca.SX.sym("v_S", ny), ca.SX.sym("v_g", ng), ca.SX.sym("v_h", nh)]  # one reverse sweep: R' v, not R
+        r_adj = sum((ca.jtimes(e, low.x, w, True) for e, w in zip((S, low.g, low.h), v) if e.numel()),
+                    ca.SX.zeros(nx))
+        self._kkt_x_adjoint = function("kkt_x_adjoint", [low.x, low.y, kkt.lam, kkt.mu, *v], [r_adj])
         self._kkt_shapes = [(ny, 1), (ng, 1), (nh, 1), (ny, ny), (ng, ny), (nh, ny)]
-        self._kkt_x_shapes = [(ny, nx), (ng, nx), (nh, nx)]
 
     def _kkt_values(self, x: np.ndarray, sol: LowerSolution) -> list[np.ndarray]:
         return _shaped(self._kkt(x, sol.y, sol.lam, sol.mu), self._kkt_shapes)
@@ -127,10 +129,16 @@ class Hypergradient:
                          [jg[rows], np.zeros((na, na + nh))],
                          [jh, np.zeros((nh, na + nh))]])
 
-    def _x_derivative(self, x: np.ndarray, sol: LowerSolution, rows: np.ndarray) -> np.ndarray:
-        """R, the x-derivative of (stationarity, g_A, h)."""
-        sx, gx, hx = _shaped(self._kkt_x(x, sol.y, sol.lam, sol.mu), self._kkt_x_shapes)
-        return np.vstack([sx, gx[rows], hx])
+    def _x_adjoint(self, x: np.ndarray, sol: LowerSolution, rows: np.ndarray, Z: np.ndarray) -> np.ndarray:
+        """R' Z, R the x-derivative of (stationarity, g_A, h), one reverse sweep per column of Z."""
+        ny, na = self.low.n_y, rows.size
+        out = np.empty((self.low.n_x, Z.shape[1]))
+        for j in range(Z.shape[1]):
+            vg = np.zeros(int(self.low.g.numel()))
+            vg[rows] = Z[ny:ny + na, j]
+            out[:, j] = np.asarray(self._kkt_x_adjoint(x, sol.y, sol.lam, sol.mu, Z[:ny, j], vg,
+                                                        Z[ny + na:, j])).ravel()
+        return out
 
     @staticmethod
     def _residual(vals: list[np.ndarray], lam: np.ndarray) -> float:
@@ -140,9 +148,9 @@ class Hypergradient:
 
     def _polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, list[np.ndarray]]:
         """One Newton step on the active-set KKT equations; kept if it keeps lam >= 0 and lowers the residual."""
+        if self.low.kind == "least-squares":  # a closed form: nothing to polish; KKT values wait for a gradient
+            return sol, []
         vals = self._kkt_values(x, sol)
-        if self.low.kind == "least-squares":  # a closed form: nothing to polish
-            return sol, vals
         rows, _ = self.active_set(vals[1], sol.lam)
         K = self._system(vals, rows)
         lam0 = np.zeros_like(sol.lam)
@@ -162,12 +170,15 @@ class Hypergradient:
         new.objective = self.low.evaluate(x, new.y)[0]
         return new, new_vals
 
-    def evaluate(self, x: np.ndarray) -> Evaluation:
-        """Solve (and polish) the lower level at x and evaluate phi there; raises if the lower solve fails."""
+    def evaluate(self, x: np.ndarray, lower: LowerSolution | None = None) -> Evaluation:
+        """Solve (and polish) the lower level at x, or take its known solution `lower`, and evaluate phi there;
+        raises if the lower solve fails."""
         x = self.low.check_point(x)
         revision = self.low.params.revision
         if self._fixed is not None and self._fixed[0] == revision:
             _, sol, vals = self._fixed
+        elif lower is not None:
+            sol, vals = lower, []
         elif self.conic:
             sol, vals = self.low.newton_polish(x, self.low.solve(x))[0], []
         else:
@@ -193,11 +204,13 @@ class Hypergradient:
             if self.conic:
                 (K, R), rows = self.low.jacobians(ev.x, ev.lower), np.flatnonzero(ev.lower.lam > 0)
             else:
-                rows, weak = self.active_set(ev.kkt[1], ev.lower.lam)
-                K, R = self._system(ev.kkt, rows), self._x_derivative(ev.x, ev.lower, rows)
+                kkt = ev.kkt or self._kkt_values(ev.x, ev.lower)
+                rows, weak = self.active_set(kkt[1], ev.lower.lam)
+                K = self._system(kkt, rows)
             rhs = np.vstack([np.hstack([gyF, Gy.T, Hy.T]), np.zeros((K.shape[0] - gyF.size, 1 + G.size + H.size))])
             Z, _, rank, _ = np.linalg.lstsq(K.T, rhs, rcond=None)
-            total, size = total - R.T @ Z, K.shape[0]
+            total = total - (R.T @ Z if self.conic else self._x_adjoint(ev.x, ev.lower, rows, Z))
+            size = K.shape[0]
         values = np.concatenate([G, H]).ravel()
         kink = np.abs(values) <= KINK_TOL
         coef = self.penalty * np.concatenate([(G.ravel() > 0).astype(float), np.sign(H.ravel())])

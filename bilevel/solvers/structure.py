@@ -9,6 +9,7 @@ are what `sumsqr(v - c) <= r**2` declares; `norm_2(v) <= r` is not recognized (w
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import casadi as ca
 import numpy as np
@@ -49,7 +50,27 @@ def _contiguous(mask: np.ndarray) -> slice | None:
     return slice(int(idx[0]), int(idx[-1]) + 1)
 
 
-def _ball(canon: CanonicalBilevel, row: int) -> Ball | None:
+@dataclass(frozen=True)
+class BallForm:
+    """A row that may be a ball: symbolically, one contiguous block with a constant diagonal Hessian; whether it
+    is, and its center and radius, are read from the parameter values (`ball`)."""
+
+    row: int
+    block: slice
+    values: Callable  # x -> (diag of the Hessian, G_row, gradient on the block), at x = 0
+
+    def ball(self, n_x: int) -> Ball | None:
+        """The ball at the current parameter values, or None if the row is not one there."""
+        diag, value, grad = (np.asarray(v, dtype=float).ravel() for v in self.values(np.zeros(n_x)))
+        a = 0.5 * float(diag[0])
+        if a <= 0 or np.max(np.abs(diag - diag[0])) > _REL * abs(diag[0]):
+            return None
+        center = -grad / (2 * a)
+        r2 = float(center @ center) - scalar(value) / a
+        return Ball(self.row, self.block, center, float(np.sqrt(r2))) if r2 >= 0 else None
+
+
+def _ball_form(canon: CanonicalBilevel, row: int) -> BallForm | None:
     g = canon.G[row]
     if ca.depends_on(g, canon.y):
         return None
@@ -63,24 +84,21 @@ def _ball(canon: CanonicalBilevel, row: int) -> Ball | None:
     n = block.stop - block.start
     if hess.nnz() != n or not all(i == j for i, j in zip(*hess.sparsity().get_triplet())):
         return None
-    diag = np.asarray(ca.evalf(canon.params.substitute(ca.diag(hess)))).ravel()
-    a = 0.5 * float(diag[0])
-    if a <= 0 or np.max(np.abs(diag - diag[0])) > _REL * abs(diag[0]):
-        return None
-    value, grad = canon.params.function("ball", [canon.x], [g, ca.gradient(g, xs)])(np.zeros(int(canon.x.numel())))
-    center = -np.asarray(grad).ravel() / (2 * a)
-    r2 = float(center @ center) - scalar(value) / a
-    if r2 < 0:
-        return None
-    return Ball(row, block, center, float(np.sqrt(r2)))
+    return BallForm(row, block, canon.params.function("ball", [canon.x], [ca.diag(hess), g, ca.gradient(g, xs)]))
 
 
-def find_balls(canon: CanonicalBilevel) -> list[Ball]:
-    """The upper constraint rows that are Euclidean balls on disjoint contiguous blocks of x."""
+def ball_forms(canon: CanonicalBilevel) -> list[BallForm]:
+    """The upper constraint rows that can be balls (the symbolic part of find_balls, independent of values)."""
+    forms = [_ball_form(canon, row) for row in range(int(canon.G.numel()))]
+    return [f for f in forms if f is not None]
+
+
+def find_balls(canon: CanonicalBilevel, forms: list[BallForm] | None = None) -> list[Ball]:
+    """The upper constraint rows that are Euclidean balls on disjoint contiguous blocks of x (forms: ball_forms)."""
     balls: list[Ball] = []
     owned = np.zeros(int(canon.x.numel()), dtype=bool)
-    for row in range(int(canon.G.numel())):
-        ball = _ball(canon, row)
+    for form in ball_forms(canon) if forms is None else forms:
+        ball = form.ball(int(canon.x.numel()))
         if ball is not None and not owned[ball.block].any():
             owned[ball.block] = True
             balls.append(ball)
