@@ -8,7 +8,7 @@ is an NLP *parameter*, so a relaxation sequence re-solves one NLP for decreasing
 from __future__ import annotations
 
 from abc import ABC
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import casadi as ca
@@ -96,6 +96,10 @@ class ComplementarityMode(ABC):
         n = int(pair.G.numel())
         return [(pair.G, np.zeros(n), np.full(n, np.inf)), (pair.H, np.zeros(n), np.full(n, np.inf))]
 
+    def structure_key(self) -> tuple:
+        """What the transcribed NLP's structure depends on (tau is its parameter, not part of it)."""
+        return (type(self).__name__,)
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(tau={self.tau:g})"
 
@@ -170,6 +174,10 @@ class Branch(ComplementarityMode):
 
     sides: dict[str, np.ndarray] = field(default_factory=dict)
     psd_tol: float = 1e-14
+
+    def structure_key(self) -> tuple:
+        sides = tuple((k, np.asarray(v, dtype=bool).tobytes()) for k, v in sorted(self.sides.items()))
+        return ("Branch", self.psd_tol, sides)
 
     def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
         side = np.asarray(self.sides[pair.name], dtype=bool)
@@ -252,13 +260,21 @@ class MPCC:
         outs += [m for p in psd for m in (p.S, p.L)]
         self._eval = self.params.function("mpcc_eval", [self.w], outs)
         self._n_psd = len(psd)
+        self._nlps: dict[tuple, NLPForm] = {}
 
     @property
     def n_variables(self) -> int:
         return int(self.w.numel())
 
     def transcribe(self, mode: ComplementarityMode) -> NLPForm:
-        """The NLP obtained by writing every pair with `mode` (tau becomes the NLP parameter)."""
+        """The NLP obtained by writing every pair with `mode` (tau becomes the NLP parameter); kept per structure, so
+        its compiled solvers serve later solves (other tau, other parameter values)."""
+        key = mode.structure_key() if self.pairs else ("no pairs",)
+        if key not in self._nlps:
+            self._nlps[key] = self._transcribe(mode)
+        return replace(self._nlps[key], p_value=np.array([mode.tau]))
+
+    def _transcribe(self, mode: ComplementarityMode) -> NLPForm:
         tau = ca.SX.sym("tau")
         n_eq, n_in = int(self.equalities.numel()), int(self.inequalities.numel())
         rows: list[Row] = [(self.equalities, np.zeros(n_eq), np.zeros(n_eq)),

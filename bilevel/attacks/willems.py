@@ -312,6 +312,16 @@ def _seed(seed: int | np.random.SeedSequence | np.random.Generator | None) -> np
 
 
 @single_threaded_call
+def _ascent_setup(attack: WillemsAttack, oracle: "SDPHypergradient | None", seed: Any,
+                  who: str) -> tuple["SDPHypergradient", np.random.Generator, np.ndarray, Box]:
+    """The oracle (built unless given, and checked to be this attack's), the rng, the budget and its box."""
+    oracle = oracle or SDPHypergradient(attack)
+    if oracle.attack is not attack:
+        raise ModelError(f"{who}: the oracle was built for another WillemsAttack")
+    bound = attack.budget()
+    return oracle, _seed(seed), bound, Box(-bound, bound)
+
+
 def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, max_iter: int = 300,
                          ftol: float = 1e-10, stop_when_unstable: bool = True,
                          oracle: SDPHypergradient | None = None) -> AttackResult:
@@ -320,12 +330,7 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, 
     With stop_when_unstable the attacker stops once its identified closed loop is unstable (its goal) and
     returns that point; otherwise (and when no start gets there) the best objective over the starts."""
     t0 = time.perf_counter()
-    oracle = oracle or SDPHypergradient(attack)
-    if oracle.attack is not attack:
-        raise ModelError("hypergradient_attack: the oracle was built for another WillemsAttack")
-    rng = _seed(seed)
-    bound = attack.budget()
-    box = Box(-bound, bound)
+    oracle, rng, bound, box = _ascent_setup(attack, oracle, seed, "hypergradient_attack")
     finished, records, evals, iters = [], [], 0, 0
     for k in range(max(int(starts), 1)):
         x0 = np.zeros(bound.size) if k == 0 else rng.uniform(-bound, bound)
@@ -496,12 +501,8 @@ def destabilize_attack(attack: WillemsAttack, starts: int = 16, seed: Any = 0, m
         raise ModelError(f"destabilize_attack maximizes the Gelfand criterion; got objective="
                          f"{attack.setting.objective!r}: build the attack with objective='destabilize'")
     t0 = time.perf_counter()
-    oracle = oracle or SDPHypergradient(attack)
-    if oracle.attack is not attack:
-        raise ModelError("destabilize_attack: the oracle was built for another WillemsAttack")
-    rng = _seed(seed)
-    bound = attack.budget()
-    box, overall, records, iters = Box(-bound, bound), _Best(), [], 0
+    oracle, rng, bound, box = _ascent_setup(attack, oracle, seed, "destabilize_attack")
+    overall, records, iters = _Best(), [], 0
     for k in range(max(int(starts), 1)):
         x0 = np.zeros(bound.size) if k == 0 else sample_in_bounds(-bound, bound, rng)
         smooth, direct = _Best(), _Best()

@@ -2,26 +2,15 @@
 
 from __future__ import annotations
 
-import contextlib
-import io
-import re
-from pathlib import Path
-
 import numpy as np
 
-PAGE = Path(__file__).resolve().parents[2] / "docs" / "own_plant.md"
+from tests.docs_pages import run_page
 
 
 def test_own_plant_page_runs_and_prints_what_it_says(tmp_path, monkeypatch) -> None:
     """Fit, max-min attack with float budgets, step figure, destabilize with ARX orders from the data."""
-    code = "\n".join(re.findall(r"```python\n(.*?)```", PAGE.read_text(), flags=re.S))
     monkeypatch.chdir(tmp_path)
-    out = io.StringIO()
-    namespace: dict = {}
-    with contextlib.redirect_stdout(out):
-        exec(compile(code, str(PAGE), "exec"), namespace)
-    promised = [line.split("#", 1)[1].strip() for line in code.splitlines() if line.startswith("print(")]
-    assert out.getvalue().splitlines() == promised
+    namespace = run_page("own_plant.md")
     result, fit = namespace["result"], namespace["fit"]
     np.testing.assert_allclose(result.theta_clean, fit.theta, rtol=1e-9)
     assert result.value > 2 * result.value_clean
