@@ -29,7 +29,7 @@ from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
 from .budget import Budget
 from .spectral import LoopPolynomial, arx_orders_for, fit_arx
-from ..solvers.trust_region import maximize_quadratic_on_ball
+from ..solvers.block_exact import quadratic_block_step
 
 Objective = Literal["maxmin", "targeted", "destabilize"]
 DataConvention = Literal["prefiltered", "raw"]
@@ -240,12 +240,13 @@ class VRFTAttack:
             lam = np.maximum(lam, 1e-14 * lam.max())
             S = scipy.linalg.solve_triangular(s0.R, (V * np.sqrt(lam)) @ V.T)
             B = W @ ((V / np.sqrt(lam)) @ V.T)
-        if self.objective == "maxmin":  # ||t0 - Phi0 (theta + S v)||^2 / n with M = Phi0 S, via Phi0's Gram matrix
-            v = maximize_quadratic_on_ball(S.T @ self.gram0 @ S / self.n,
-                                           -S.T @ (self.cross0 - self.gram0 @ s0.theta) / self.n, self.delta_u)
-        else:
-            d = self.theta_target - s0.theta
-            v = maximize_quadratic_on_ball(-S.T @ S / d.size, S.T @ d / d.size, self.delta_u)
+        # theta = s0.theta + S v over ||v|| <= delta_u: the framework's exact block step on -J (quadratic in theta)
+        if self.objective == "maxmin":  # J = ||t0 - Phi0 theta||^2 / n, via Phi0's Gram matrix
+            grad, hess = -2.0 * (self.cross0 - self.gram0 @ s0.theta) / self.n, 2.0 * self.gram0 / self.n
+        else:  # J = -||theta_a - theta||^2 / k
+            k = self.theta_target.size
+            grad, hess = 2.0 * (self.theta_target - s0.theta) / k, -2.0 * np.eye(k) / k
+        v = quadratic_block_step(S, -grad, -hess, self.delta_u)
         if B is None:  # a_u = [Q v; 0] and targets(a_u) = Q v
             qv = s0.Q @ v
             a_u = zero

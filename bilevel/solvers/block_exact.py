@@ -35,6 +35,16 @@ from .structure import Ball, budget_scale, depends
 from .trust_region import maximize_quadratic_on_ball
 
 
+def quadratic_block_step(M: np.ndarray, grad: np.ndarray, hess: np.ndarray, radius: float) -> np.ndarray:
+    """The global minimizer z of F(y_c + M z) over ||z|| <= radius, F quadratic with gradient `grad` and Hessian
+    `hess` at y_c: a trust-region subproblem in the row space of M (dimension <= rows of M)."""
+    U, s, Vt = np.linalg.svd(M, full_matrices=False)
+    keep = s > 1e-12 * max(float(s[0]) if s.size else 0.0, 1e-300)
+    U, s, Vt = U[:, keep], s[keep], Vt[keep]
+    A = -0.5 * (s[:, None] * (U.T @ hess @ U) * s[None, :])
+    return Vt.T @ maximize_quadratic_on_ball(A, -0.5 * s * (U.T @ grad), radius)
+
+
 @dataclass
 class ExactBlock:
     """A ball block on which the reduced upper objective is a quadratic of a ball-constrained vector."""
@@ -53,12 +63,7 @@ class ExactBlock:
         y_c = -sla.cho_solve(factor, d.q)
         M = -sla.cho_solve(factor, np.asarray(self.jac_q(x)))
         _, grad, hess = (np.asarray(v, dtype=float) for v in self.upper_y(x, y_c))
-        U, s, Vt = np.linalg.svd(M, full_matrices=False)
-        keep = s > 1e-12 * max(float(s[0]) if s.size else 0.0, 1e-300)
-        U, s, Vt = U[:, keep], s[keep], Vt[keep]
-        A = -0.5 * (s[:, None] * (U.T @ hess @ U) * s[None, :])
-        v = maximize_quadratic_on_ball(A, -0.5 * s * (U.T @ grad.ravel()), b.radius)
-        z = Vt.T @ v
+        z = quadratic_block_step(M, grad.ravel(), hess, b.radius)
         x[b.block] = b.center + z
         y = y_c + M @ z
         return x, LowerSolution(y, low.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal",
