@@ -176,13 +176,7 @@ class BilevelProblem:
     # -- variables -----------------------------------------------------------------------------
     def _variable(self, level: Level, name: str, shape: int | tuple[int, int], lb: Any, ub: Any, start: Any,
                   symmetric: bool = False) -> ca.SX:
-        self._check_new_name(name)
-        try:
-            rows, cols = (shape, 1) if isinstance(shape, (int, np.integer)) else tuple(int(n) for n in shape)
-        except (TypeError, ValueError):
-            raise ModelError(f"variable {name!r}: shape {shape!r} must be an int or a pair (rows, cols)") from None
-        if rows < 1 or cols < 1:
-            raise ModelError(f"variable {name!r}: shape {shape} must be positive")
+        rows, cols = self._new_shape("variable", name, shape)
         matrix = None
         if symmetric:
             if rows != cols:
@@ -205,6 +199,17 @@ class BilevelProblem:
         self.revision += 1
         return sym if matrix is None else matrix
 
+    def _new_shape(self, what: str, name: str, shape: Any) -> tuple[int, int]:
+        """Check a new name and its shape (an int or a pair of positive ints); (rows, cols)."""
+        self._check_new_name(name)
+        try:
+            rows, cols = (shape, 1) if isinstance(shape, (int, np.integer)) else tuple(int(n) for n in shape)
+        except (TypeError, ValueError):
+            raise ModelError(f"{what} {name!r}: shape {shape!r} must be an int or a pair (rows, cols)") from None
+        if rows < 1 or cols < 1:
+            raise ModelError(f"{what} {name!r}: shape {shape} must be positive")
+        return int(rows), int(cols)
+
     def _check_new_name(self, name: str) -> None:
         if not isinstance(name, str) or not name.isidentifier():
             raise ModelError(f"name {name!r} must be a Python identifier")
@@ -216,14 +221,8 @@ class BilevelProblem:
 
         Solving again after set_value reuses the canonical form, classification, reduction and compiled functions.
         """
-        self._check_new_name(name)
-        try:
-            rows, cols = (shape, 1) if isinstance(shape, (int, np.integer)) else tuple(int(n) for n in shape)
-        except (TypeError, ValueError):
-            raise ModelError(f"parameter {name!r}: shape {shape!r} must be an int or a pair (rows, cols)") from None
-        if rows < 1 or cols < 1:
-            raise ModelError(f"parameter {name!r}: shape {shape} must be positive")
-        sym = ca.SX.sym(name, int(rows), int(cols))
+        rows, cols = self._new_shape("parameter", name, shape)
+        sym = ca.SX.sym(name, rows, cols)
         self.parameters.add(name, sym, value)
         self.revision += 1
         return sym
