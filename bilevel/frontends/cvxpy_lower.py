@@ -108,6 +108,7 @@ class CvxpyLower:
         self._declare(problem, form, E, e, name, used_rows)
         self._user = {vid: ca.mtimes(ca.DM(mat.tocsc()), z) for vid, mat in form.user.items()}
         self._variables = {v.id: v for v in learner.variables()}
+        self._ref_cache: tuple[tuple[int, ...], Any, Any] | None = None
 
     def __getitem__(self, variable: cp.Variable) -> ca.SX:
         """The cvxpy Variable's value as a CasADi expression of the lower variables (its shape, column-major)."""
@@ -208,6 +209,17 @@ class CvxpyLower:
         return rows[np.flatnonzero(live).tolist()] if live.any() else ca.SX(0, 1)
 
     # -- the certificate's independent re-solve ---------------------------------------------------
+    def _reference_functions(self, x_sym: ca.SX) -> tuple[Any, Any]:
+        """x -> the bound Parameters' values, and (x, y) -> (user Variables, their Jacobian in y); built once per
+        upper symbol vector (the canonical form's), reading the model parameters' current values."""
+        key = tuple(s.element_hash() for s in ca.symvar(x_sym))
+        if self._ref_cache is None or self._ref_cache[0] != key:
+            model = self._problem.parameters
+            users = ca.vertcat(*self._user.values())
+            self._ref_cache = (key, model.function("bind", [x_sym], [ca.SX(e) for _, e in self._bound.values()]),
+                               model.function("users", [x_sym, self.y], [users, ca.jacobian(users, self.y)]))
+        return self._ref_cache[1], self._ref_cache[2]
+
     def reference(self, x_sym: ca.SX, x: np.ndarray, y: np.ndarray) -> LowerSolution:
         """Solve the user's cvxpy problem with Clarabel at upper point x: bound Parameters at their expressions there,
         unbound ones at their model parameters' values (all restored after).
@@ -216,9 +228,9 @@ class CvxpyLower:
         (auxiliary conic entries are not the user's), so F(x, y_ref) is the upper objective at the re-solve.
         """
         model = self._problem.parameters
+        bind, users = self._reference_functions(x_sym)
         bound = [p for p, _ in self._bound.values()]
-        fun = ca.Function("bind", [x_sym, model.sym], [ca.SX(expr) for _, expr in self._bound.values()])
-        values = fun.call([ca.DM(x), ca.DM(model.value)])
+        values = list(bind(x)) if len(bound) > 1 else [bind(x)] if bound else []
         current = {p.name: p.value for p in model.items}
         values += [current[self._model_names[p.id]] for p in self._unbound.values()]
         params = bound + list(self._unbound.values())
@@ -235,9 +247,7 @@ class CvxpyLower:
         finally:
             for p, v in zip(params, old):
                 p.value = v
-        users = ca.vertcat(*self._user.values())
-        w_fun = ca.Function("users", [x_sym, self.y, model.sym], [users, ca.jacobian(users, self.y)])
-        w, jac = (np.asarray(v) for v in w_fun(x, y, model.value))
+        w, jac = users(x, y)
         y_ref = y + np.linalg.lstsq(jac, w_ref - w.ravel(), rcond=None)[0]
         f_ref = value if isinstance(self.learner.objective, cp.Minimize) else -value
         return LowerSolution(y_ref, f_ref, np.zeros(0), np.zeros(0), [], status, "cvxpy+clarabel (user's problem)")

@@ -87,14 +87,15 @@ def load_instance(problem: BilevelProblem, atk: VRFTAttack) -> None:
     """Set the parameters and the suggested start of a problem from `attack_problem` to instance `atk` (same
     scenario, N and objective); the next solve reuses the declared problem's preparation."""
     _check_budgets(atk)
-    names = {q.name for q in problem.parameters.items}
-    if problem.name != f"vrft-{atk.objective}" or problem.parameters.items[0].size != atk.t0.size:
+    declared = {q.name: q for q in problem.parameters.items}
+    rows = declared["t0"].size if "t0" in declared else 0
+    if problem.name != f"vrft-{atk.objective}" or rows != atk.t0.size:
         raise ModelError(f"instance ({atk.objective}, N = {atk.N}) does not fit problem {problem.name!r} declared for "
-                         f"{problem.parameters.items[0].size} regression rows; declare it with attack_problem(atk)")
+                         f"{rows} regression rows; declare it with attack_problem(atk)")
     values = {"t0": atk.t0, "phi0": atk.phi0, "delta_u": atk.delta_u, "delta_y": atk.delta_y}
-    if "theta_target" in names:
+    if "theta_target" in declared:
         values["theta_target"] = atk.theta_target
-    if "loop_base" in names:
+    if "loop_base" in declared:
         values |= {"loop_base": atk.model_loop.base, "loop_slopes": atk.model_loop.slopes}
     for name, value in values.items():
         problem.set_value(name, value)

@@ -29,7 +29,7 @@ from ..reduction import KKTPoint
 from ..result import Status
 from .ascent import projected_ascent
 from .base import MethodRun, Prepared, check_options
-from .hypergradient import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, Hypergradient
+from .hypergradient import DEFAULT_PENALTY, Evaluation, shared_oracle
 from .starts import start_points
 from .structure import Ball, budget_scale, depends
 from .trust_region import maximize_quadratic_on_ball
@@ -117,8 +117,7 @@ def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
     starts, tol = int(options.get("starts", 4)), float(options.get("tol", 1e-5))
     max_iter = int(options.get("max_iter", 500))
     penalty, projected = float(options.get("penalty", DEFAULT_PENALTY)), tuple(b.row for b in balls)
-    oracle = prep.cached(("hypergradient", penalty, ACTIVE_TOL, projected),
-                         lambda: Hypergradient(prep, penalty, ACTIVE_TOL, projected))
+    oracle = shared_oracle(prep, penalty, projected_rows=projected)
     low, S = prep.canon.lower, exact.ball.block
     rest = np.ones(int(prep.canon.x.numel()), dtype=bool)
     rest[S] = False

@@ -231,9 +231,14 @@ def hypergradient(prep: Prepared, x: np.ndarray, penalty: float = DEFAULT_PENALT
                   active_tol: float = ACTIVE_TOL) -> tuple[float, np.ndarray, LowerSolution]:
     """(phi(x), d phi/dx, lower solution) at x (raises if the lower level cannot be solved there); the compiled
     functions are kept on `prep` for later calls."""
-    oracle = prep.cached(("hypergradient", float(penalty), float(active_tol), ()),
-                         lambda: Hypergradient(prep, penalty, active_tol))
-    return oracle(x)
+    return shared_oracle(prep, penalty, active_tol)(x)
+
+
+def shared_oracle(prep: Prepared, penalty: float = DEFAULT_PENALTY, active_tol: float = ACTIVE_TOL,
+                  projected_rows: tuple[int, ...] = ()) -> Hypergradient:
+    """The Hypergradient of these settings kept on `prep`: its compiled functions serve every later solve."""
+    key = ("hypergradient", float(penalty), float(active_tol), tuple(projected_rows))
+    return prep.cached(key, lambda: Hypergradient(prep, penalty, active_tol, projected_rows))
 
 
 class _Restoration:
@@ -369,8 +374,7 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     starts, penalty = int(options.get("starts", 4)), float(options.get("penalty", DEFAULT_PENALTY))
     projected = tuple(b.row for b in prep.balls) if options.get("projection") is None else ()
     active_tol = float(options.get("active_tol", ACTIVE_TOL))
-    oracle = prep.cached(("hypergradient", penalty, active_tol, projected),
-                         lambda: Hypergradient(prep, penalty, active_tol, projected))
+    oracle = shared_oracle(prep, penalty, active_tol, projected)
     arc = _Arc(prep, oracle, _projection(prep, options.get("projection")))
     tol, ftol = float(options.get("tol", 1e-7)), float(options.get("ftol", 1e-12))
     max_iter = int(options.get("max_iter", 500))

@@ -77,13 +77,11 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
 def _descent_direction(prep: "Prepared", x: np.ndarray, scale: np.ndarray) -> np.ndarray | None:
     """-grad F(x, y*(x)) in budget units (the hypergradient, balls projected on), or None where it cannot be had:
     a method that stopped short of stationarity (an interior point next to a better vertex) is caught by it."""
-    from .hypergradient import ACTIVE_TOL, DEFAULT_PENALTY, Hypergradient  # hypergradient imports base imports us
+    from .hypergradient import shared_oracle  # hypergradient imports base, which imports this module
 
     rows = tuple(b.row for b in prep.balls)
     try:
-        oracle = prep.cached(("hypergradient", DEFAULT_PENALTY, ACTIVE_TOL, rows),
-                             lambda: Hypergradient(prep, DEFAULT_PENALTY, ACTIVE_TOL, rows))
-        grad = oracle(x)[1]
+        grad = shared_oracle(prep, projected_rows=rows)(x)[1]
     except (BilevelError, np.linalg.LinAlgError, ValueError):
         return None
     return -grad * scale ** 2 if np.all(np.isfinite(grad)) and np.any(grad) else None
