@@ -149,20 +149,13 @@ def test_malformed_rows_are_reported_set_aside_and_recomputed(tmp_path) -> None:
 
 
 OWN_PROBLEMS = '''
-import bilevel as bl
+from bilevel.problems import registry
 
 
 def bard(scale=1.0):
     """Bard's example (optimum -12 at x = y = 4), upper objective times `scale`."""
-    p = bl.BilevelProblem("bard")
-    x = p.upper_variable("x", lb=0)
-    y = p.lower_variable("y", lb=0)
-    p.minimize_upper(scale * (x - 4 * y))
-    p.minimize_lower(y)
-    p.lower_constraint(-x - y <= -3)
-    p.lower_constraint(-2 * x + y <= 0)
-    p.lower_constraint(2 * x + y <= 12)
-    p.lower_constraint(3 * x - 2 * y <= 4)
+    p = registry.get("bard1998-ex5.1.1")
+    p.minimize_upper(scale * p.upper_objective.expr)
     return p
 
 
