@@ -11,7 +11,8 @@ import numpy as np
 
 from .errors import InvalidData, ModelError
 from .lower import LowerLevel, LowerSolution, build_lower
-from .model import BilevelProblem, Variable
+from .lower.matrix import MatrixLower
+from .model import BilevelProblem, LowerQP, Variable
 from .parameters import ParameterSet, scalar
 from .reduction import KKTPoint, Reduction
 from .sampling import default_start, sample_in_bounds
@@ -53,12 +54,19 @@ class CanonicalBilevel:
     """The problem's parameters: every function built from these expressions reads their current values."""
     lower_reference: Callable[[ca.SX, np.ndarray, np.ndarray], LowerSolution] | None = None
     """The declared problem's own independent lower solver, if any (BilevelProblem.lower_reference)."""
+    matrices: LowerQP | None = None
+    """A lower level given by matrices (lower_qp, bounds of y appended to A and b); f, g, h are then empty."""
 
     @cached_property
     def lower(self) -> LowerLevel:
         """The lower level as a classified kind (requires the minimization sense)."""
         if self.lower_sense != "min":
             raise ModelError("the lower level must be normalized to minimization first (NormalizeSense)")
+        if self.matrices is not None:
+            m = self.matrices
+            return MatrixLower(self.x, self.y, m.C, m.P, m.A, m.E, m.d, m.q, m.b, m.e,
+                               [f"{n}[{i}]" for n, i in self.g_rows], [f"{n}[{i}]" for n, i in self.h_rows],
+                               self.params)
         rng = np.random.default_rng(0)
         samples = [self.x_start] + [sample_in_bounds(self.x_lb, self.x_ub, rng, 3.0) for _ in range(5)]
         return build_lower(self.x, self.y, self.f, self.g, self.h, self.psd,
@@ -67,8 +75,8 @@ class CanonicalBilevel:
 
     @cached_property
     def functions(self) -> ca.Function:
-        """F, G, H, f at (x, y)."""
-        return self.params.function("canon", [self.x, self.y], [self.F, self.G, self.H, self.f])
+        """F, G, H at (x, y)."""
+        return self.params.function("canon", [self.x, self.y], [self.F, self.G, self.H])
 
     @cached_property
     def _upper(self) -> ca.Function:
@@ -133,7 +141,7 @@ class Canonicalize(Reduction):
     def apply(self, problem: BilevelProblem) -> tuple[CanonicalBilevel, CanonicalBilevel]:
         if problem.upper_objective is None:
             raise ModelError(f"{problem.name}: no upper objective; call minimize_upper or maximize_upper")
-        if problem.lower_objective is None:
+        if problem.lower_objective is None and problem.lower_matrices is None:
             raise ModelError(f"{problem.name}: no lower objective; call minimize_lower or maximize_lower")
         if not problem.lower_variables:
             raise ModelError(f"{problem.name}: no lower variables; declare them with lower_variable")
@@ -141,7 +149,14 @@ class Canonicalize(Reduction):
         x, y = _flat(ups), _flat(lows)
         allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(x, y, problem.parameters.sym))}
         _check_depends(problem.upper_objective.expr, allowed, "the upper objective")
-        _check_depends(problem.lower_objective.expr, allowed, "the lower objective")
+        mats = problem.lower_matrices
+        for what, expr in ([] if mats is None else [("d", mats.d), ("q", mats.q), ("b", mats.b), ("e", mats.e)]):
+            _check_depends(expr, allowed, f"lower_qp's {what}")
+            if ca.depends_on(expr, y):
+                raise ModelError(f"lower_qp's {what} depends on the lower variable; d, q, b, e are data: expressions "
+                                 "of upper variables and parameters only")
+        if mats is None:
+            _check_depends(problem.lower_objective.expr, allowed, "the lower objective")
         G, H, G_names = [], [], []
         for c in problem.upper_constraints:
             _check_depends(c.body, allowed, f"upper constraint {c.name!r}")
@@ -168,6 +183,13 @@ class Canonicalize(Reduction):
                 for i in idx:
                     g.append(sign * (flat[int(i)] - bound[i]))
                     g_rows.append((f"{v.name}.{side}", int(i)))
+        if mats is not None:  # the bound rows (already in g_rows) become rows of A y <= b: [A; -I; I], [b; -lb; ub]
+            var, eye = mats.variable, np.eye(mats.variable.size)
+            lb_rows, ub_rows = np.flatnonzero(np.isfinite(var.lb)), np.flatnonzero(np.isfinite(var.ub))
+            g_rows = [("A", i) for i in range(mats.A.shape[0])] + g_rows
+            h_rows, g, h = [("E", i) for i in range(mats.E.shape[0])], [], []
+            mats = replace(mats, A=np.vstack([mats.A, -eye[lb_rows], eye[ub_rows]]),
+                           b=ca.vertcat(mats.b, ca.DM(-var.lb[lb_rows]), ca.DM(var.ub[ub_rows])))
         for m in problem.lower_psd_constraints:
             _check_depends(m.matrix, allowed, f"LMI {m.name!r}")
         y_lb, y_ub = (np.concatenate([getattr(v, side) for v in lows]) for side in ("lb", "ub"))
@@ -181,13 +203,13 @@ class Canonicalize(Reduction):
         vert = lambda parts: ca.vertcat(*parts) if parts else ca.SX(0, 1)  # noqa: E731
         canon = CanonicalBilevel(
             x=x, y=y, x_lb=x_lb, x_ub=x_ub, x_start=x_start, F=problem.upper_objective.expr, G=vert(G), H=vert(H),
-            f=problem.lower_objective.expr, g=vert(g), h=vert(h),
+            f=ca.SX(0, 1) if mats is not None else problem.lower_objective.expr, g=vert(g), h=vert(h),
             psd=[m.matrix for m in problem.lower_psd_constraints], g_rows=g_rows, h_rows=h_rows,
             psd_names=[m.name for m in problem.lower_psd_constraints], upper_sense=problem.upper_objective.sense,
-            lower_sense=problem.lower_objective.sense, upper_vars=ups, lower_vars=lows, y_start=y_start,
+            lower_sense="min" if mats is not None else problem.lower_objective.sense, upper_vars=ups, lower_vars=lows, y_start=y_start,
             G_names=G_names, x_suggested=suggested_starts(problem, x_start, x_lb, x_ub), y_lb=y_lb, y_ub=y_ub,
-            assume_convex=problem.lower_objective.assume_convex, params=problem.parameters,
-            lower_reference=problem.lower_reference,
+            assume_convex=mats is None and problem.lower_objective.assume_convex, params=problem.parameters,
+            lower_reference=problem.lower_reference, matrices=mats,
         )
         return canon, canon
 
@@ -237,8 +259,7 @@ class NormalizeSense(Reduction):
 
 def objectives(canon: CanonicalBilevel, point: KKTPoint) -> tuple[float, float]:
     """(F, f) at a point, in the canonical problem's senses."""
-    out = canon.functions(point.x, point.y)
-    return scalar(out[0]), scalar(out[3])
+    return scalar(canon.functions(point.x, point.y)[0]), canon.lower.evaluate(point.x, point.y)[0]
 
 
 def kkt_solution(canon: CanonicalBilevel, point: KKTPoint) -> BilevelSolution:

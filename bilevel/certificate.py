@@ -130,7 +130,7 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
         unique = None if low.psd else _reduced_hessian_unique(low, x, low.solve(x), tol)
         return ref, 0.0, unique, f"independent re-solve: {ref.solver}"
     if low.kind != "nlp":
-        ref = low.solve(x)
+        ref = low.reference_solve(x)
         return ref, 0.0, _reduced_hessian_unique(low, x, ref, tol), ""
     rng = np.random.default_rng(0)
     lb, ub = canon.y_lb, canon.y_ub

@@ -89,6 +89,22 @@ class PSDConstraint:
     matrix: ca.SX
 
 
+@dataclass(frozen=True)
+class LowerQP:
+    """A lower level given by matrices (BilevelProblem.lower_qp): numeric C, P, A, E and vector expressions d, q,
+    b, e of the upper variables and parameters."""
+
+    variable: Variable
+    C: np.ndarray
+    P: np.ndarray
+    A: np.ndarray
+    E: np.ndarray
+    d: ca.SX
+    q: ca.SX
+    b: ca.SX
+    e: ca.SX
+
+
 @dataclass
 class Objective:
     """An objective and its sense; assume_convex (lower level only) skips the convexity probe."""
@@ -169,6 +185,8 @@ class BilevelProblem:
         self.revision = 0
         """Incremented by every declaration (not by set_value or suggest_start): solves reuse their preparation
         while it is unchanged."""
+        self.lower_matrices: LowerQP | None = None
+        """The lower level given by matrices (lower_qp), if it was declared that way."""
         self.lower_reference: Callable[[ca.SX, np.ndarray, np.ndarray], LowerSolution] | None = None
         """An independent solver of the lower level that the certificate re-solves with instead of the engine's,
         (x symbols, x, y) -> LowerSolution; set by a front end that has the user's own model (lower_cvxpy)."""
@@ -365,7 +383,51 @@ class BilevelProblem:
         self.lower_reference = lower.reference
         return lower
 
+    def lower_qp(self, y: Any, *, C: Any = None, d: Any = None, P: Any = None, q: Any = None, A: Any = None,
+                 b: Any = None, E: Any = None, e: Any = None) -> None:
+        """Declare the whole lower level as min_y 1/2 ||C y - d||^2 + 1/2 y'Py + q'y s.t. A y <= b, E y = e.
+
+        y is one declared lower variable (its bounds are kept); C, P, A, E are numeric matrices (numpy or
+        scipy.sparse), d, q, b, e numbers or CasADi expressions of upper variables and parameters. Nothing of size
+        C x y is built symbolically, so large dense learners (e.g. least squares on 2,000 features) stay fast.
+        """
+        from .lower.matrix import as_dense
+
+        var = next((v for v in self.lower_variables if v.sym.shape == ca.SX(y).shape
+                    and ca.is_equal(v.sym, ca.SX(y))), None) if isinstance(y, ca.SX) else None
+        if var is None or var.matrix is not None or var.shape[1] != 1:
+            raise ModelError("lower_qp: y must be a vector lower variable declared on this problem "
+                             "(y = p.lower_variable('y', n))")
+        if len(self.lower_variables) > 1 or self.lower_objective is not None or self.lower_constraints \
+                or self.lower_psd_constraints or self.lower_matrices is not None:
+            raise ModelError(f"lower_qp: it declares the whole lower level of {self.name!r} (objective and "
+                             "constraints) over one lower variable; declare nothing else on the lower level")
+        n = var.size
+        mats = {k: as_dense(m, n, k) for k, m in (("C", C), ("P", P), ("A", A), ("E", E))}
+        if P is None:
+            mats["P"] = np.zeros((n, n))
+        elif mats["P"].shape != (n, n) or not np.allclose(mats["P"], mats["P"].T):
+            raise ModelError(f"lower_qp: P must be a symmetric {n} x {n} matrix")
+        elif np.linalg.eigvalsh(mats["P"]).min() < -1e-9 * max(1.0, float(np.abs(mats["P"]).max())):
+            raise ModelError("lower_qp: P is not positive semidefinite, so the lower level is not convex")
+        sizes = {"d": mats["C"].shape[0], "q": n, "b": mats["A"].shape[0], "e": mats["E"].shape[0]}
+        vecs = {}
+        for k, v in (("d", d), ("q", q), ("b", b), ("e", e)):
+            expr = ca.SX.zeros(sizes[k]) if v is None else ca.SX(v) if isinstance(v, ca.SX) else \
+                ca.SX(ca.DM(np.asarray(v, dtype=float).reshape(-1, 1)))
+            if expr.numel() != sizes[k] or min(expr.shape) > 1:
+                raise ModelError(f"lower_qp: {k} has {expr.numel()} entries; it needs {sizes[k]} "
+                                 f"(rows of {dict(d='C', q='y', b='A', e='E')[k]})")
+            vecs[k] = ca.vec(expr)
+        if mats["C"].shape[0] == 0 and P is None and q is None:
+            raise ModelError("lower_qp: no objective; give C (least squares), P or q")
+        self.lower_matrices = LowerQP(var, mats["C"], mats["P"], mats["A"], mats["E"], **vecs)
+        self.revision += 1
+
     def _check_lower_open(self, where: str) -> None:
+        if self.lower_matrices is not None:
+            raise ModelError(f"{where}: the lower level of {self.name!r} is declared by lower_qp, complete as "
+                             "declared; put the term or constraint into its matrices instead")
         if self.lower_reference is not None:
             raise ModelError(f"{where}: the lower level of {self.name!r} is a cvxpy problem (lower_cvxpy), complete as "
                              "declared; add the variable, objective or constraint to the cvxpy problem instead")

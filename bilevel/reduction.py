@@ -70,15 +70,26 @@ class SingleLevelReduction(Reduction):
     equalities; inequalities: upper inequalities; pairs: 0 <= -g ⟂ lam >= 0 and M_k >= 0 ⟂ Z_k >= 0.
     """
 
-    def apply(self, canon: Any) -> tuple[MPCC, KKTInverse]:
+    @staticmethod
+    def layout(canon: Any) -> KKTInverse:
+        """Where each block sits in w, from the sizes alone (no expression is built)."""
         low = canon.lower
+        dims = tuple(int(m.size1()) for m in low.psd)
+        sizes = [("x", low.n_x), ("y", low.n_y), ("lam", low.n_g), ("mu", low.n_h)]
+        sizes += [(f"Z{k}", n * (n + 1) // 2) for k, n in enumerate(dims)]
+        slices, start = {}, 0
+        for name, size in sizes:
+            slices[name] = slice(start, start + size)
+            start += size
+        return KKTInverse(slices, dims)
+
+    def apply(self, canon: Any) -> tuple[MPCC, KKTInverse]:
+        low = canon.lower.symbolic()
         kkt = low.kkt()
         blocks = [("x", canon.x), ("y", low.y), ("lam", kkt.lam), ("mu", kkt.mu)]
         blocks += [(f"Z{k}", v) for k, v in enumerate(kkt.Z_vech)]
-        slices, start = {}, 0
-        for name, sym in blocks:
-            slices[name] = slice(start, start + int(sym.numel()))
-            start += int(sym.numel())
+        inverse = self.layout(canon)
+        slices, start = inverse.slices, int(sum(int(sym.numel()) for _, sym in blocks))
         w = ca.vertcat(*[sym for _, sym in blocks])
         lbw = np.full(start, -np.inf)
         ubw = np.full(start, np.inf)
@@ -94,7 +105,7 @@ class SingleLevelReduction(Reduction):
             inequalities=canon.G, pairs=pairs,
             blocks={name: slices[name] for name, _ in blocks}, params=canon.params,
         )
-        return mpcc, KKTInverse(slices, tuple(int(m.size1()) for m in low.psd))
+        return mpcc, inverse
 
     def invert(self, w: np.ndarray, inverse_data: KKTInverse) -> KKTPoint:
         s = inverse_data.slices

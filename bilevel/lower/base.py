@@ -47,9 +47,99 @@ class KKTSystem:
     stationarity: ca.SX
 
 
-@dataclass
 class LowerLevel(ABC):
-    """min_y f(x, y) s.t. g(x, y) <= 0, h(x, y) = 0, M_k(x, y) >= 0 (PSD), convex in y for fixed x.
+    """min_y f(x, y) s.t. g(x, y) <= 0, h(x, y) = 0, M_k(x, y) >= 0 (PSD), convex in y for fixed x: what every
+    lower-level kind gives the methods (values, derivatives, its KKT system, an independent solve).
+
+    Two families: ExpressionLower (f, g, h, M_k as CasADi expressions) and MatrixLower (a QP given by matrices).
+    """
+
+    kind: ClassVar[str] = "nlp"
+    params: ParameterSet
+    psd: list
+    g_names: list[str]
+    h_names: list[str]
+    psd_names: list[str]
+
+    @property
+    @abstractmethod
+    def n_x(self) -> int:
+        """Number of upper variables."""
+
+    @property
+    @abstractmethod
+    def n_y(self) -> int:
+        """Number of lower variables."""
+
+    @property
+    def n_g(self) -> int:
+        return len(self.g_names)
+
+    @property
+    def n_h(self) -> int:
+        return len(self.h_names)
+
+    @property
+    @abstractmethod
+    def fixed(self) -> bool:
+        """True when the lower level does not depend on x: y*(x) is then one point, solved once."""
+
+    def check_point(self, x: np.ndarray) -> np.ndarray:
+        """Validate an upper point (shape, finiteness) and return it as a float vector."""
+        x = np.asarray(x, dtype=float).ravel()
+        if x.shape != (self.n_x,):
+            raise InvalidData(f"upper point has {x.size} entries, the problem has {self.n_x} upper variables")
+        if not np.all(np.isfinite(x)):
+            raise InvalidData("upper point contains NaN or inf")
+        return x
+
+    @abstractmethod
+    def evaluate(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, list[np.ndarray]]:
+        """f, g, h and the LMI matrices at (x, y)."""
+
+    @abstractmethod
+    def derivatives(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+        """grad_y f, J_g, J_h (rows by constraint) and d vec(M_k) / dy at (x, y)."""
+
+    @abstractmethod
+    def hessian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Hessian of f in y at (x, y)."""
+
+    def stationarity(self, x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarray,
+                     Z: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """The Lagrangian gradient in y at (x, y, multipliers), and grad_y f (for scaling)."""
+        grad_f, jg, jh, jpsd = self.derivatives(x, y)
+        res = grad_f + jg.T @ lam + jh.T @ mu
+        for jac, z in zip(jpsd, Z):
+            res = res - jac.T @ np.asarray(z).reshape(-1, order="F")
+        return res, grad_f
+
+    @abstractmethod
+    def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> list[np.ndarray]:
+        """[S, g, h, dS/dy, J_g, J_h] at a solution (S the stationarity residual; column vectors, matrices by
+        rows): the implicit-derivative system of a lower level without LMIs."""
+
+    @abstractmethod
+    def kkt_x_adjoint(self, x: np.ndarray, sol: LowerSolution, v_s: np.ndarray, v_g: np.ndarray,
+                      v_h: np.ndarray) -> np.ndarray:
+        """R' v, R the x-derivative of (S, g, h) at a solution (one reverse sweep, R is never formed)."""
+
+    @abstractmethod
+    def solve(self, x: np.ndarray) -> LowerSolution:
+        """Solve the lower level at upper point x, independently of the reduction (raises on failure)."""
+
+    def reference_solve(self, x: np.ndarray) -> LowerSolution:
+        """The certificate's independent re-solve at x (by default the kind's own solve)."""
+        return self.solve(x)
+
+    @abstractmethod
+    def symbolic(self) -> "ExpressionLower":
+        """The lower level as CasADi expressions, for the single-level (KKT) reduction."""
+
+
+@dataclass
+class ExpressionLower(LowerLevel):
+    """A lower level given by CasADi expressions f, g, h, M_k of (x, y, parameters).
 
     Subclasses state their kind and solve themselves independently of the single-level reduction.
     """
@@ -67,7 +157,6 @@ class LowerLevel(ABC):
     """d^2 f / dy^2, symbolic; computed here unless the classification already did (one AD pass on f)."""
     params: ParameterSet = field(default_factory=ParameterSet, repr=False)
     """The problem's parameters (data symbols in f, g, h, M_k): functions built here read their current values."""
-    kind: ClassVar[str] = "nlp"
 
     def __post_init__(self) -> None:
         if self.hess_f is None:
@@ -121,25 +210,30 @@ class LowerLevel(ABC):
         """Hessian of f in y at (x, y)."""
         return np.asarray(self._hess(x, y))
 
-    def stationarity(self, x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarray,
-                     Z: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """The Lagrangian gradient in y at (x, y, multipliers), and grad_y f (for scaling)."""
-        out = self._derivs(x, y)
-        grad_f = np.asarray(out[0]).ravel()
-        res = grad_f + np.asarray(out[1]).reshape(-1, self.n_y).T @ lam + np.asarray(out[2]).reshape(-1, self.n_y).T @ mu
-        for jac, z in zip(out[3:], Z):
-            res = res - np.asarray(jac).T @ np.asarray(z).reshape(-1, order="F")
-        return res, grad_f
+    @cached_property
+    def _kkt_functions(self) -> tuple:
+        """The compiled KKT values and the adjoint R' v (built on first use)."""
+        kkt = self.kkt()
+        S, function = kkt.stationarity, self.params.function
+        values = function("kkt", [self.x, self.y, kkt.lam, kkt.mu],
+                          [S, self.g, self.h, ca.jacobian(S, self.y), ca.jacobian(self.g, self.y),
+                           ca.jacobian(self.h, self.y)])
+        v = [ca.SX.sym("v_S", self.n_y), ca.SX.sym("v_g", self.n_g), ca.SX.sym("v_h", self.n_h)]
+        r_adj = sum((ca.jtimes(e, self.x, w, True) for e, w in zip((S, self.g, self.h), v) if e.numel()),
+                    ca.SX.zeros(self.n_x))
+        adjoint = function("kkt_x_adjoint", [self.x, self.y, kkt.lam, kkt.mu, *v], [r_adj])
+        shapes = [(self.n_y, 1), (self.n_g, 1), (self.n_h, 1), (self.n_y, self.n_y), (self.n_g, self.n_y),
+                  (self.n_h, self.n_y)]
+        return values, adjoint, shapes
 
-    def check_point(self, x: np.ndarray) -> np.ndarray:
-        """Validate an upper point (shape, finiteness) and return it as a float vector."""
-        x = np.asarray(x, dtype=float).ravel()
-        if x.shape != (self.n_x,):
-            raise InvalidData(f"upper point has {x.size} entries, the problem has {self.n_x} upper variables")
-        if not np.all(np.isfinite(x)):
-            raise InvalidData("upper point contains NaN or inf")
-        return x
+    def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> list[np.ndarray]:
+        values, _, shapes = self._kkt_functions
+        return [np.asarray(v, dtype=float).reshape(s, order="F")
+                for v, s in zip(values(x, sol.y, sol.lam, sol.mu), shapes)]
 
-    @abstractmethod
-    def solve(self, x: np.ndarray) -> LowerSolution:
-        """Solve the lower level at upper point x, independently of the reduction (raises on failure)."""
+    def kkt_x_adjoint(self, x: np.ndarray, sol: LowerSolution, v_s: np.ndarray, v_g: np.ndarray,
+                      v_h: np.ndarray) -> np.ndarray:
+        return np.asarray(self._kkt_functions[1](x, sol.y, sol.lam, sol.mu, v_s, v_g, v_h)).ravel()
+
+    def symbolic(self) -> "ExpressionLower":
+        return self

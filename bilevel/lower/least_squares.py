@@ -29,6 +29,10 @@ class LeastSquaresLower(QuadraticLower):
                 "unique; add regularization or declare constraints so that it is solved as a QP"
             ) from exc
 
+    def solve_hessian(self, x: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        """P(x)^{-1} rhs by the Cholesky factor of P(x)."""
+        return sla.cho_solve(self.factor(x)[1], rhs)
+
     def solve(self, x: np.ndarray) -> LowerSolution:
         """Closed form via a Cholesky factorization; raises if P(x) is not positive definite."""
         d, factor = self.factor(x)

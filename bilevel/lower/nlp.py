@@ -8,11 +8,11 @@ import casadi as ca
 import numpy as np
 
 from ..errors import LowerLevelInfeasible, SolverFailed
-from .base import LowerLevel, LowerSolution
+from .base import ExpressionLower, LowerSolution
 
 
 @dataclass
-class ConvexNLPLower(LowerLevel):
+class ConvexNLPLower(ExpressionLower):
     """Convex f and g in y, affine h in y; any local solution is global."""
 
     kind = "nlp"

@@ -10,7 +10,7 @@ import cvxpy as cp
 import numpy as np
 
 from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
-from .base import LowerLevel, LowerSolution
+from .base import ExpressionLower, LowerSolution
 from .polish import Lmi, polish
 
 
@@ -84,7 +84,7 @@ def clarabel_solution(d: QPData, context: str, lmis: tuple[Lmi, ...] = ()) -> Lo
 
 
 @dataclass
-class QuadraticLower(LowerLevel):
+class QuadraticLower(ExpressionLower):
     """Convex quadratic objective and affine constraints in y (an LP when the Hessian vanishes)."""
 
     kind = "qp"

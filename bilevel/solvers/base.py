@@ -70,13 +70,18 @@ class Prepared:
     def mpcc(self) -> MPCC:
         return self.reduction[0]
 
+    @cached_property
+    def layout(self) -> KKTInverse:
+        """Where x, y and the multipliers sit in the MPCC vector (known without building the MPCC)."""
+        return SingleLevelReduction.layout(self.canon)
+
     def point(self, w: np.ndarray) -> KKTPoint:
         """The canonical point of an MPCC vector."""
-        return SingleLevelReduction().invert(w, self.reduction[1])
+        return SingleLevelReduction().invert(w, self.layout)
 
     def pack(self, point: KKTPoint) -> np.ndarray:
         """The MPCC vector of a canonical point."""
-        return SingleLevelReduction.pack(point, self.reduction[1])
+        return SingleLevelReduction.pack(point, self.layout)
 
     def lower_point(self, x: np.ndarray) -> KKTPoint:
         """Upper point x with the lower level solved there (independent solver) and its multipliers."""
@@ -87,7 +92,7 @@ class Prepared:
 def _declaration_key(problem: BilevelProblem) -> tuple[Any, ...]:
     return (problem.revision, len(problem.variables), len(problem.upper_constraints), len(problem.lower_constraints),
             len(problem.lower_psd_constraints), len(problem.parameters), id(problem.upper_objective),
-            id(problem.lower_objective))
+            id(problem.lower_objective), id(problem.lower_matrices))
 
 
 def prepare(problem: BilevelProblem) -> Prepared:

@@ -23,7 +23,7 @@ import scipy.linalg as sla
 
 from ..canonical import CanonicalBilevel
 from ..errors import BilevelError, ModelError
-from ..lower.base import LowerSolution
+from ..lower.base import ExpressionLower, LowerSolution
 from ..lower.least_squares import LeastSquaresLower
 from ..reduction import KKTPoint
 from ..result import Status
@@ -73,6 +73,8 @@ class ExactBlock:
 def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactBlock | None, list[str]]:
     """The largest ball block that is exact (see the module docstring), and why each other one is not."""
     low = canon.lower
+    if not isinstance(low, ExpressionLower):
+        return None, ["the lower level is given by matrices (lower_qp); the exact block reads expressions"]
     if low.kind != "least-squares":
         return None, [f"the lower level is {low.kind}, not an unconstrained strictly convex quadratic"]
     x, y = canon.x, canon.y

@@ -98,22 +98,6 @@ class Hypergradient:
         self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
         self._fixed: tuple[int, LowerSolution, list[np.ndarray]] | None = None  # (parameter revision, ...)
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
-        if self.conic:
-            return
-        kkt = low.kkt()
-        S = kkt.stationarity
-        self._kkt = function("kkt", [low.x, low.y, kkt.lam, kkt.mu],
-                                [S, low.g, low.h, ca.jacobian(S, low.y), ca.jacobian(low.g, low.y),
-                                 ca.jacobian(low.h, low.y)])
-        ng, nh = int(low.g.numel()), int(low.h.numel())
-        v = [ca.SX.sym("v_S", ny), ca.SX.sym("v_g", ng), ca.SX.sym("v_h", nh)]  # one reverse sweep: R' v, not R
-        r_adj = sum((ca.jtimes(e, low.x, w, True) for e, w in zip((S, low.g, low.h), v) if e.numel()),
-                    ca.SX.zeros(nx))
-        self._kkt_x_adjoint = function("kkt_x_adjoint", [low.x, low.y, kkt.lam, kkt.mu, *v], [r_adj])
-        self._kkt_shapes = [(ny, 1), (ng, 1), (nh, 1), (ny, ny), (ng, ny), (nh, ny)]
-
-    def _kkt_values(self, x: np.ndarray, sol: LowerSolution) -> list[np.ndarray]:
-        return _shaped(self._kkt(x, sol.y, sol.lam, sol.mu), self._kkt_shapes)
 
     def active_set(self, g: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, bool]:
         """Rows with lam_i > active_tol, and whether some other row has |g_i| <= active_tol (degenerate)."""
@@ -134,10 +118,9 @@ class Hypergradient:
         ny, na = self.low.n_y, rows.size
         out = np.empty((self.low.n_x, Z.shape[1]))
         for j in range(Z.shape[1]):
-            vg = np.zeros(int(self.low.g.numel()))
+            vg = np.zeros(self.low.n_g)
             vg[rows] = Z[ny:ny + na, j]
-            out[:, j] = np.asarray(self._kkt_x_adjoint(x, sol.y, sol.lam, sol.mu, Z[:ny, j], vg,
-                                                        Z[ny + na:, j])).ravel()
+            out[:, j] = self.low.kkt_x_adjoint(x, sol, Z[:ny, j], vg, Z[ny + na:, j])
         return out
 
     @staticmethod
@@ -150,7 +133,7 @@ class Hypergradient:
         """One Newton step on the active-set KKT equations; kept if it keeps lam >= 0 and lowers the residual."""
         if self.low.kind == "least-squares":  # a closed form: nothing to polish; KKT values wait for a gradient
             return sol, []
-        vals = self._kkt_values(x, sol)
+        vals = self.low.kkt_values(x, sol)
         rows, _ = self.active_set(vals[1], sol.lam)
         K = self._system(vals, rows)
         lam0 = np.zeros_like(sol.lam)
@@ -164,7 +147,7 @@ class Hypergradient:
             return sol, vals
         new = LowerSolution(sol.y + step[:ny], 0.0, np.maximum(lam1, 0.0), sol.mu + step[ny + na:], [],
                             sol.status, f"{sol.solver} + active-set Newton polish")
-        new_vals = self._kkt_values(x, new)
+        new_vals = self.low.kkt_values(x, new)
         if self._residual(new_vals, new.lam) >= self._residual(vals, sol.lam):
             return sol, vals
         new.objective = self.low.evaluate(x, new.y)[0]
@@ -204,11 +187,14 @@ class Hypergradient:
             if self.conic:
                 (K, R), rows = self.low.jacobians(ev.x, ev.lower), np.flatnonzero(ev.lower.lam > 0)
             else:
-                kkt = ev.kkt or self._kkt_values(ev.x, ev.lower)
+                kkt = ev.kkt or self.low.kkt_values(ev.x, ev.lower)
                 rows, weak = self.active_set(kkt[1], ev.lower.lam)
                 K = self._system(kkt, rows)
             rhs = np.vstack([np.hstack([gyF, Gy.T, Hy.T]), np.zeros((K.shape[0] - gyF.size, 1 + G.size + H.size))])
-            Z, _, rank, _ = np.linalg.lstsq(K.T, rhs, rcond=None)
+            if self.low.kind == "least-squares":  # K = P(x), positive definite: its Cholesky factor
+                Z, rank = self.low.solve_hessian(ev.x, rhs), K.shape[0]
+            else:
+                Z, _, rank, _ = np.linalg.lstsq(K.T, rhs, rcond=None)
             total = total - (R.T @ Z if self.conic else self._x_adjoint(ev.x, ev.lower, rows, Z))
             size = K.shape[0]
         values = np.concatenate([G, H]).ravel()
@@ -245,15 +231,15 @@ class _Restoration:
     """The nearest upper point in the box at which the lower level is feasible (IPOPT over (x, y))."""
 
     def __init__(self, prep: Prepared) -> None:
-        canon = prep.canon
+        canon, low = prep.canon, prep.canon.lower.symbolic()
         v = ca.SX.sym("v", canon.x.numel())
         nlp = {"x": ca.vertcat(canon.x, canon.y), "p": ca.vertcat(v, canon.params.sym),
                "f": 0.5 * ca.sumsqr(canon.x - v),
-               "g": ca.vertcat(canon.lower.g, canon.lower.h)}
+               "g": ca.vertcat(low.g, low.h)}
         opts = {"print_time": False, "ipopt": {"print_level": 0, "sb": "yes", "tol": 1e-12,
                                                "bound_relax_factor": 0.0, "max_iter": 500}}
         self._solver = ca.nlpsol("restoration", "ipopt", nlp, opts)
-        ng, nh = int(canon.lower.g.numel()), int(canon.lower.h.numel())
+        ng, nh = low.n_g, low.n_h
         ny = int(canon.y.numel())
         self._bounds = dict(lbx=np.concatenate([canon.x_lb, np.full(ny, -np.inf)]),
                             ubx=np.concatenate([canon.x_ub, np.full(ny, np.inf)]),

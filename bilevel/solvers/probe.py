@@ -94,7 +94,7 @@ def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = 
         y = prep.canon.lower.solve(x).y if y is None else y
     except BilevelError:
         return None
-    F, G, H, _ = (np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, y))
+    F, G, H = (np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, y))
     if np.any(G > FEAS_TOL) or np.any(np.abs(H) > FEAS_TOL) or not np.isfinite(F[0]):
         return None
     return float(F[0])
