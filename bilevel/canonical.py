@@ -63,10 +63,8 @@ class CanonicalBilevel:
         if self.lower_sense != "min":
             raise ModelError("the lower level must be normalized to minimization first (NormalizeSense)")
         if self.matrices is not None:
-            m = self.matrices
-            return MatrixLower(self.x, self.y, m.C, m.P, m.A, m.E, m.d, m.q, m.b, m.e,
-                               [f"{n}[{i}]" for n, i in self.g_rows], [f"{n}[{i}]" for n, i in self.h_rows],
-                               self.params)
+            return MatrixLower(self.x, self.y, self.matrices, [f"{n}[{i}]" for n, i in self.g_rows],
+                               [f"{n}[{i}]" for n, i in self.h_rows], self.params)
         rng = np.random.default_rng(0)
         samples = [self.x_start] + [sample_in_bounds(self.x_lb, self.x_ub, rng, 3.0) for _ in range(5)]
         return build_lower(self.x, self.y, self.f, self.g, self.h, self.psd,

@@ -19,6 +19,7 @@ from scipy.optimize import linprog
 
 from ..errors import (InvalidData, LowerLevelInfeasible, LowerLevelUnbounded, ModelError, RankDeficientRegressor,
                       SolverFailed)
+from ..model import LowerQP
 from ..parameters import ParameterSet
 from .base import ExpressionLower, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower
@@ -37,14 +38,8 @@ class MatrixLower(LowerLevel):
 
     x: ca.SX
     y: ca.SX
-    C: np.ndarray
-    P: np.ndarray
-    A: np.ndarray
-    E: np.ndarray
-    d: ca.SX
-    q: ca.SX
-    b: ca.SX
-    e: ca.SX
+    qp: LowerQP
+    """The declaration, with the bounds of y appended to A and b."""
     g_names: list[str]
     h_names: list[str]
     params: ParameterSet = field(default_factory=ParameterSet, repr=False)
@@ -52,6 +47,9 @@ class MatrixLower(LowerLevel):
     psd_names: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        qp = self.qp
+        self.C, self.P, self.A, self.E, self.d, self.q, self.b, self.e = (qp.C, qp.P, qp.A, qp.E, qp.d, qp.q, qp.b,
+                                                                          qp.e)
         self.hess = self.C.T @ self.C + self.P
         self._vectors = self.params.function("qp_vectors", [self.x], [self.d, self.q, self.b, self.e])
         v = [ca.SX.sym(n, int(s.numel())) for n, s in (("v_d", self.d), ("v_q", self.q), ("v_b", self.b),

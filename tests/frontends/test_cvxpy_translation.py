@@ -71,7 +71,7 @@ def test_engine_lower_solve_is_the_cvxpy_solution(make) -> None:
     prep = prepare(p)
     point = np.array([0.9, -0.2, -0.7])
     lower = prep.lower_point(point)
-    value = np.asarray(prep.canon.functions(lower.x, lower.y)[3]).item()
+    value = prep.canon.lower.evaluate(lower.x, lower.y)[0]
     a.value = point
     solve_clarabel(learner, make.__name__)
     assert value == pytest.approx(learner.value, abs=1e-7 * (1 + abs(learner.value)))
