@@ -89,8 +89,14 @@ def optimum(instance: str, data: tuple) -> float:
 
 def _run(instance: str, form: str, method: str, queue: mp.Queue) -> None:
     data = ls_data() if instance == "ls" else lp_data()
+    from bilevel.errors import BilevelError
+
     t0 = time.perf_counter()
-    res = declare(instance, form, data).solve(method=method, starts=1)
+    try:
+        res = declare(instance, form, data).solve(method=method, starts=1)
+    except BilevelError as exc:
+        queue.put({"status": f"refused: {type(exc).__name__}", "time": time.perf_counter() - t0, "why": str(exc)})
+        return
     queue.put({"status": res.status.value, "objective": res.upper_objective, "time": time.perf_counter() - t0,
                "certificate": None if res.certificate is None else bool(res.certificate.passed), "nit": res.nit})
 
@@ -131,6 +137,9 @@ def main() -> None:
                 f"{r.get('certificate', '')}")
         print(line, flush=True)
         lines.append(line)
+        if "why" in r:
+            lines.append(f"          ({r['why'][:150]})")
+            print(lines[-1], flush=True)
         if form == "matrix" and meth == "hypergradient":
             base[inst] = r["time"]
         elif form == "expression":
