@@ -89,8 +89,8 @@ class SingleLevelReduction(Reduction):
         blocks = [("x", canon.x), ("y", low.y), ("lam", kkt.lam), ("mu", kkt.mu)]
         blocks += [(f"Z{k}", v) for k, v in enumerate(kkt.Z_vech)]
         inverse = self.layout(canon)
-        slices, start = inverse.slices, int(sum(int(sym.numel()) for _, sym in blocks))
         w = ca.vertcat(*[sym for _, sym in blocks])
+        slices, start = inverse.slices, int(w.numel())
         lbw = np.full(start, -np.inf)
         ubw = np.full(start, np.inf)
         lbw[slices["x"]], ubw[slices["x"]] = canon.x_lb, canon.x_ub

@@ -8,7 +8,8 @@ The public VRFT attack API (docs/own_plant.md): describe the learner with `VRFTS
 from .budget import Budget
 from .spectral import LoopPolynomial, arx_orders_for, fit_arx
 from .vrft import PAPER_THETA0, VRFTAttack, VRFTSetting, attack_instance, flexible_transmission_setting
-from .vrft_methods import ATTACKS, AttackResult, attack_alternating, attack_budget_path, attack_joint, attack_white_noise
+from .vrft_methods import (ATTACKS, AttackResult, attack_alternating, attack_budget_path, attack_joint,
+                           attack_white_noise)
 
 __all__ = [
     "ATTACKS", "AttackResult", "Budget", "LoopPolynomial", "PAPER_THETA0", "VRFTAttack", "VRFTSetting",

@@ -78,7 +78,8 @@ def _step_axes(ax: plt.Axes, atk, thetas: dict[str, np.ndarray], n: int = 150) -
     setting = atk.setting
     for label, theta in thetas.items():
         resp = closed_loop_step(setting.plant, controller_tf(setting.basis, theta, setting.plant.dt), n)
-        ax.plot(resp.time, np.clip(resp.outputs, -3, 3), label=f"{label} (rho = {setting.loop.spectral_radius(theta):.3f})")
+        rho = setting.loop.spectral_radius(theta)
+        ax.plot(resp.time, np.clip(resp.outputs, -3, 3), label=f"{label} (rho = {rho:.3f})")
     ax.plot(np.arange(n) * setting.plant.dt, simulate(setting.reference, np.ones(n)), "k--", label="M_r")
     ax.set_xlabel("time (s)")
     ax.set_ylim(-1.5, 2.5)

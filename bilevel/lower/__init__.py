@@ -7,5 +7,5 @@ from .nlp import ConvexNLPLower
 from .quadratic import LinearLower, QPData, QuadraticLower
 from .sdp import SemidefiniteLower
 
-__all__ = ["ConvexNLPLower", "ExpressionLower", "KKTSystem", "LeastSquaresLower", "LinearLower", "LowerLevel", "LowerSolution",
-           "QPData", "QuadraticLower", "SemidefiniteLower", "build_lower"]
+__all__ = ["ConvexNLPLower", "ExpressionLower", "KKTSystem", "LeastSquaresLower", "LinearLower", "LowerLevel",
+           "LowerSolution", "QPData", "QuadraticLower", "SemidefiniteLower", "build_lower"]

@@ -124,6 +124,12 @@ class LowerLevel(ABC):
                       v_h: np.ndarray) -> np.ndarray:
         """R' v, R the x-derivative of (S, g, h) at a solution (one reverse sweep, R is never formed)."""
 
+    def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
+        """Z with K' Z = rhs for the implicit-derivative system K at x, and the rank used: the least-squares
+        (minimum-norm) solution, since K is singular where y* is not differentiable."""
+        Z, _, rank, _ = np.linalg.lstsq(K.T, rhs, rcond=None)
+        return Z, int(rank)
+
     @abstractmethod
     def solve(self, x: np.ndarray) -> LowerSolution:
         """Solve the lower level at upper point x, independently of the reduction (raises on failure)."""

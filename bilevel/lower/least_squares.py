@@ -29,9 +29,9 @@ class LeastSquaresLower(QuadraticLower):
                 "unique; add regularization or declare constraints so that it is solved as a QP"
             ) from exc
 
-    def solve_hessian(self, x: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-        """P(x)^{-1} rhs by the Cholesky factor of P(x)."""
-        return sla.cho_solve(self.factor(x)[1], rhs)
+    def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
+        """K = P(x) is positive definite: P(x)^{-1} rhs by its Cholesky factor, full rank."""
+        return sla.cho_solve(self.factor(x)[1], rhs), K.shape[0]
 
     def solve(self, x: np.ndarray) -> LowerSolution:
         """Closed form via a Cholesky factorization; raises if P(x) is not positive definite."""

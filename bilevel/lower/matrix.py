@@ -17,8 +17,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.optimize import linprog
 
-from ..errors import (InvalidData, LowerLevelInfeasible, LowerLevelUnbounded, ModelError, RankDeficientRegressor,
-                      SolverFailed)
+from ..errors import InvalidData, LowerLevelInfeasible, LowerLevelUnbounded, ModelError, SolverFailed
 from ..model import LowerQP
 from ..parameters import ParameterSet
 from .base import ExpressionLower, LowerLevel, LowerSolution
@@ -105,8 +104,8 @@ class MatrixLower(LowerLevel):
         return self.hess
 
     def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> list[np.ndarray]:
-        d, q, b, e = self.vectors(x)
-        S = self.hess @ sol.y + q - self.C.T @ d + self.A.T @ sol.lam + self.E.T @ sol.mu
+        S = self.stationarity(x, sol.y, sol.lam, sol.mu, [])[0]
+        _, _, b, e = self.vectors(x)
         return [S[:, None], (self.A @ sol.y - b)[:, None], (self.E @ sol.y - e)[:, None], self.hess, self.A, self.E]
 
     def kkt_x_adjoint(self, x: np.ndarray, sol: LowerSolution, v_s: np.ndarray, v_g: np.ndarray,
@@ -115,9 +114,11 @@ class MatrixLower(LowerLevel):
         - J_e'v_h."""
         return np.asarray(self._adjoint(x, -(self.C @ v_s), v_s, -v_g, -v_h)).ravel()
 
-    def solve_hessian(self, x: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-        """(C'C + P)^{-1} rhs by its Cholesky factor (least-squares kind)."""
-        return sla.cho_solve(self._factor, rhs)
+    def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
+        """Least-squares kind: K = C'C + P, solved by its Cholesky factor (factored once); else the default."""
+        if self.kind != "least-squares":
+            return super().kkt_solve(x, K, rhs)
+        return sla.cho_solve(self._factor, rhs), K.shape[0]
 
     def data(self, x: np.ndarray) -> QPData:
         """The QP coefficients at x in the form of the expression kinds (g = A y - b, h = E y - e)."""
@@ -127,10 +128,7 @@ class MatrixLower(LowerLevel):
     def solve(self, x: np.ndarray) -> LowerSolution:
         """Closed form (least squares), HiGHS (LP) or Clarabel (QP) at x."""
         x = self.check_point(x)
-        if self.kind == "least-squares":
-            if self._factor is None:
-                raise RankDeficientRegressor("C'C + P is singular: the least-squares lower level has no unique "
-                                             "solution; add regularization (P) or constraints")
+        if self.kind == "least-squares":  # C'C + P is positive definite: that is what makes the kind
             y = -sla.cho_solve(self._factor, self.linear_term(x))
             return LowerSolution(y, self.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal", "closed-form")
         sol = self._from_active_set(x)

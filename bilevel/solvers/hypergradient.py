@@ -191,10 +191,7 @@ class Hypergradient:
                 rows, weak = self.active_set(kkt[1], ev.lower.lam)
                 K = self._system(kkt, rows)
             rhs = np.vstack([np.hstack([gyF, Gy.T, Hy.T]), np.zeros((K.shape[0] - gyF.size, 1 + G.size + H.size))])
-            if self.low.kind == "least-squares":  # K = P(x), positive definite: its Cholesky factor
-                Z, rank = self.low.solve_hessian(ev.x, rhs), K.shape[0]
-            else:
-                Z, _, rank, _ = np.linalg.lstsq(K.T, rhs, rcond=None)
+            Z, rank = self.low.kkt_solve(ev.x, K, rhs)
             total = total - (R.T @ Z if self.conic else self._x_adjoint(ev.x, ev.lower, rows, Z))
             size = K.shape[0]
         values = np.concatenate([G, H]).ravel()
