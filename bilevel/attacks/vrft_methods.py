@@ -176,7 +176,7 @@ def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter
     t0 = time.perf_counter()
     proj_y = atk.budget_y.projection(atk.y)
     order = atk.budget_y.order
-    best, total_it, total_ev, status = None, 0, 0, "converged"
+    best, total_it, total_ev = None, 0, 0
     with single_threaded():
         runs = [(ay0, step0) for ay0 in _start_points(atk, starts, np.random.default_rng(seed), first, warm_start)
                 for step0 in steps]

@@ -24,7 +24,7 @@ import scipy.linalg as sla
 from ..canonical import CanonicalBilevel
 from ..errors import BilevelError, ModelError
 from ..lower.base import ExpressionLower, LowerSolution
-from ..lower.least_squares import LeastSquaresLower
+from ..lower.least_squares import hessian_factor
 from ..reduction import KKTPoint
 from ..result import Status
 from .ascent import projected_ascent
@@ -50,24 +50,28 @@ class ExactBlock:
     """A ball block on which the reduced upper objective is a quadratic of a ball-constrained vector."""
 
     ball: Ball
-    jac_q: Callable
+    data: Callable
+    """x -> (P, q, dq/dx_S): the lower Hessian, the lower gradient at y = 0 and its Jacobian in the block."""
     upper_y: Callable
 
-    def solve(self, low: LeastSquaresLower, x: np.ndarray) -> tuple[np.ndarray, LowerSolution]:
+    def solve(self, x: np.ndarray) -> tuple[np.ndarray, LowerSolution, list[np.ndarray]]:
         """x with its block replaced by the global minimizer of F(x, y*(x)) over the ball (other entries fixed),
-        and the lower solution there (y*(x) = y_c + M z in closed form)."""
+        the lower solution there (y*(x) = y_c + M z in closed form; its objective NaN, read with F by the
+        hypergradient oracle) and its KKT values (stationarity, g, h, Hessian, J_g, J_h: the oracle's layout)."""
         b = self.ball
         x = np.array(x, dtype=float)
         x[b.block] = b.center
-        d, factor = low.factor(x)
-        y_c = -sla.cho_solve(factor, d.q)
-        M = -sla.cho_solve(factor, np.asarray(self.jac_q(x)))
+        P, q, jac_q = (np.asarray(v, dtype=float) for v in self.data(x))
+        factor = hessian_factor(P)  # P does not depend on the block: it is P(x) for every z
+        y_c = -sla.cho_solve(factor, q.ravel())
+        M = -sla.cho_solve(factor, jac_q)
         _, grad, hess = (np.asarray(v, dtype=float) for v in self.upper_y(x, y_c))
         z = quadratic_block_step(M, grad.ravel(), hess, b.radius)
         x[b.block] = b.center + z
         y = y_c + M @ z
-        return x, LowerSolution(y, low.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal",
-                                "closed-form (exact block)")
+        ny = y.size
+        kkt = [np.zeros((ny, 1)), np.zeros((0, 1)), np.zeros((0, 1)), P, np.zeros((0, ny)), np.zeros((0, ny))]
+        return x, LowerSolution(y, np.nan, np.zeros(0), np.zeros(0), [], "optimal", "closed-form (exact block)"), kkt
 
 
 def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactBlock | None, list[str]]:
@@ -100,9 +104,10 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
             best = ball
     if best is None:
         return None, why or ["no upper constraint is a Euclidean ball on a block of upper variables"]
-    jac_q = canon.params.function("jac_q", [x], [ca.jacobian(q, x[best.block])])
+    P = ca.substitute(low.hess_f, y, ca.DM.zeros(int(y.numel())))
+    data = canon.params.function("exact_block_data", [x], [P, q, ca.jacobian(q, x[best.block])])
     upper_y = canon.params.function("upper_y", [x, y], [canon.F, ca.gradient(canon.F, y), hess_F])
-    return ExactBlock(best, jac_q, upper_y), why
+    return ExactBlock(best, data, upper_y), why
 
 
 def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
@@ -120,7 +125,7 @@ def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
     max_iter = int(options.get("max_iter", 500))
     penalty, projected = float(options.get("penalty", DEFAULT_PENALTY)), tuple(b.row for b in balls)
     oracle = shared_oracle(prep, penalty, projected_rows=projected)
-    low, S = prep.canon.lower, exact.ball.block
+    S = exact.ball.block
     rest = np.ones(int(prep.canon.x.numel()), dtype=bool)
     rest[S] = False
     scale = budget_scale(prep.canon, prep.balls)[rest]
@@ -132,7 +137,7 @@ def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
 
     def value(xr: np.ndarray) -> tuple[float, Evaluation | None]:
         try:
-            ev = oracle.evaluate(*exact.solve(low, full(xr)))
+            ev = oracle.evaluate(*exact.solve(full(xr)))
         except BilevelError:
             return -np.inf, None
         return -ev.phi, ev

@@ -20,11 +20,12 @@ some |G_i| or |H_j| <= 1e-9 the least-norm subgradient of the penalty is used. A
 feasible when max(G, 0) and |H| are <= 1e-6. The iteration is x+ = P(x - t grad phi), P the projection
 onto the option `projection` (see projections.py) intersected with the declared box, with a
 Barzilai-Borwein first trial step and Armijo backtracking along the projection arc,
-phi(x+) <= phi(x) - 1e-4 / t * ||x+ - x||^2. A trial point at which the lower level is infeasible is
-moved to the nearest upper point (in the box) where it is feasible, found by IPOPT on
+phi(x+) <= phi(x) - 1e-4 / t * ||x+ - x||^2. A trial point at which the lower level is infeasible is moved to
+the nearest upper point (in the box) where it is feasible, found by IPOPT on
 min ||x - v||^2 s.t. g(x, y) <= 0, h(x, y) = 0, then projected again: with the default box projection
 and jointly convex lower constraints this makes P the projection onto the lower level's domain.
-Stops when ||x - P(x - grad phi)|| <= tol or the relative decrease of phi is <= ftol (SOLVED), at
+Stops when ||x - P(x - grad phi)|| <= tol (P without the lower solve of the restoration; with it, asked only
+when the line search fails) or the relative decrease of phi is <= ftol (SOLVED), at
 max_iter (MAX_ITERATIONS), or when backtracking finds no decrease (INACCURATE: x is then typically at a
 kink of y*(x), where the generalized gradient is not a descent direction).
 """
@@ -40,7 +41,7 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from ..errors import BilevelError, LowerLevelInfeasible, ModelError
-from ..lower.base import LowerSolution
+from ..lower.base import ExpressionLower, LowerSolution
 from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, check_options
@@ -91,11 +92,13 @@ class Hypergradient:
         kept = [i for i in range(int(canon.G.numel())) if i not in set(projected_rows)]
         G = ca.vertcat(*[canon.G[i] for i in kept]) if kept else ca.SX(0, 1)  # projected rows need no penalty
         function = canon.params.function
+        f = low.f if isinstance(low, ExpressionLower) else ca.SX.nan()  # F and f share subexpressions: one sweep
         self._upper = function("upper", [x, y], [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y),
                                                     ca.jacobian(G, x), ca.jacobian(G, y), ca.jacobian(H, x),
-                                                    ca.jacobian(H, y)])
+                                                    ca.jacobian(H, y), f])
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
-        self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
+        self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny),
+                              (1, 1)]
         self._fixed: tuple[int, LowerSolution, list[np.ndarray]] | None = None  # (parameter revision, ...)
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
 
@@ -153,22 +156,26 @@ class Hypergradient:
         new.objective = self.low.evaluate(x, new.y)[0]
         return new, new_vals
 
-    def evaluate(self, x: np.ndarray, lower: LowerSolution | None = None) -> Evaluation:
-        """Solve (and polish) the lower level at x, or take its known solution `lower`, and evaluate phi there;
-        raises if the lower solve fails."""
+    def evaluate(self, x: np.ndarray, lower: LowerSolution | None = None,
+                 kkt: list[np.ndarray] | None = None) -> Evaluation:
+        """Solve (and polish) the lower level at x, or take its known solution `lower` (and KKT values `kkt`, if
+        known), and evaluate phi there; raises if the lower solve fails. A given solution's objective is read from
+        the same sweep as F when it is NaN."""
         x = self.low.check_point(x)
         revision = self.low.params.revision
         if self._fixed is not None and self._fixed[0] == revision:
             _, sol, vals = self._fixed
         elif lower is not None:
-            sol, vals = lower, []
+            sol, vals = lower, kkt or []
         elif self.conic:
             sol, vals = self.low.newton_polish(x, self.low.solve(x))[0], []
         else:
             sol, vals = self._polish(x, self.low.solve(x))
         if self.low.fixed:  # y* constant in x: solved once, no adjoint
             self._fixed = (revision, sol, vals)
-        upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
+        *upper, f = _shaped(self._upper(x, sol.y), self._upper_shapes)
+        if np.isnan(sol.objective):
+            sol.objective = float(f[0, 0])
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
         phi = F + self.penalty * (float(np.maximum(G, 0.0).sum()) + float(np.abs(H).sum()))
         violation = max([0.0, *np.maximum(G, 0.0), *np.abs(H)])
@@ -306,15 +313,20 @@ def _backtrack(arc: _Arc, cur: Evaluation, grad: np.ndarray, t: float) -> tuple[
     return None, t
 
 
+def _domain_stationary(arc: _Arc, cur: Evaluation, grad: np.ndarray, tol: float) -> bool:
+    """Whether the projected gradient step is <= tol once the projection is restored into the lower level's
+    domain (the arc's P(x - grad)): asked only when the line search fails, as it costs a lower solve."""
+    unit = arc(cur.x - grad)
+    return unit is not None and float(np.linalg.norm(unit.x - cur.x)) <= tol
+
+
 def _descend(arc: _Arc, start: Evaluation, tol: float, ftol: float, max_iter: int) -> _Descent:
     """Projected gradient with Barzilai-Borwein trial steps and Armijo backtracking along the arc."""
     cur, history, decrease, it = start, [], np.inf, 0
     grad, degenerate, n_active = arc.oracle.gradient(cur)
     alpha = 1.0 / max(1.0, float(np.abs(grad).max(initial=0.0)))
     while True:
-        unit = arc(cur.x - grad)
-        target = unit.x if unit is not None else arc.project(cur.x - grad)
-        pstep = float(np.linalg.norm(target - cur.x))
+        pstep = float(np.linalg.norm(arc.project(cur.x - grad) - cur.x))  # no lower solve: see _domain_stationary
         history.append({"iter": it, "objective": cur.phi, "step": 0.0, "grad_norm": float(np.linalg.norm(grad)),
                         "projected_step_norm": pstep, "active": n_active, "degenerate": degenerate})
         if pstep <= tol:
@@ -324,6 +336,9 @@ def _descend(arc: _Arc, start: Evaluation, tol: float, ftol: float, max_iter: in
         if it == max_iter:
             return _Descent(cur, Status.MAX_ITERATIONS, f"max_iter = {max_iter} reached", it, history)
         trial, t = _backtrack(arc, cur, grad, alpha)
+        if trial is None and _domain_stationary(arc, cur, grad, tol):
+            return _Descent(cur, Status.SOLVED, "projected gradient step <= tol on the lower level's domain", it,
+                            history)
         if trial is None:
             return _Descent(cur, Status.INACCURATE, "line search found no decrease (x is likely at a kink of "
                             "y*(x), where the generalized gradient is not a descent direction)", it, history)
