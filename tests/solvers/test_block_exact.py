@@ -13,6 +13,7 @@ from bilevel.errors import ModelError
 from bilevel.problems import registry
 from bilevel.solvers.base import prepare
 from bilevel.solvers.block_exact import find_exact_block
+from bilevel.solvers.hypergradient import shared_oracle
 from bilevel.solvers.structure import find_balls
 
 
@@ -63,6 +64,20 @@ def test_block_exact_step_is_global_on_a_convex_maximization() -> None:
     assert res.upper_objective >= brute - 1e-9 and res.upper_objective == pytest.approx(brute, rel=1e-9)
     assert np.linalg.norm(res.x["u"]) == pytest.approx(radius, rel=1e-12)
     assert res.stats["exact_block"] == [0, 2]
+
+
+def test_exact_block_hands_the_oracle_its_lower_objective_and_kkt_values() -> None:
+    """The exact step returns y*(x) with the lower Hessian as its KKT matrix; the oracle fills in f(x, y*)."""
+    p, _, _ = _ridge()
+    prep = prepare(p)
+    low = prep.canon.lower
+    exact, _ = find_exact_block(prep.canon, prep.balls)
+    x, sol, kkt = exact.solve(np.array([0.3, -0.2]))
+    assert np.isnan(sol.objective) and np.linalg.norm(x) == pytest.approx(0.7, rel=1e-12)
+    ev = shared_oracle(prep, projected_rows=tuple(b.row for b in prep.balls)).evaluate(x, sol, kkt)
+    assert ev.lower.objective == pytest.approx(low.evaluate(x, sol.y)[0], rel=1e-12)
+    np.testing.assert_allclose(kkt[3], low.hessian(x, sol.y), rtol=1e-12)
+    np.testing.assert_allclose(low.kkt_values(x, sol)[0].ravel(), 0.0, atol=1e-10)  # stationary: y = y*(x)
 
 
 def test_block_exact_names_why_it_does_not_apply() -> None:
