@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import casadi as ca
@@ -41,7 +42,8 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from ..errors import BilevelError, LowerLevelInfeasible, ModelError
-from ..lower.base import ExpressionLower, LowerSolution
+from ..lower.base import LowerSolution
+from ..parameters import CompiledFunction
 from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, check_options
@@ -87,20 +89,24 @@ class Hypergradient:
         low = canon.lower
         if not penalty >= 0:
             raise ModelError(f"penalty must be >= 0, got {penalty}")
-        self.low, self.penalty, self.active_tol = low, float(penalty), float(active_tol)
+        self.canon, self.low, self.penalty, self.active_tol = canon, low, float(penalty), float(active_tol)
         x, y, H = canon.x, canon.y, canon.H
         kept = [i for i in range(int(canon.G.numel())) if i not in set(projected_rows)]
         G = ca.vertcat(*[canon.G[i] for i in kept]) if kept else ca.SX(0, 1)  # projected rows need no penalty
-        function = canon.params.function
-        f = low.f if isinstance(low, ExpressionLower) else ca.SX.nan()  # F and f share subexpressions: one sweep
-        self._upper = function("upper", [x, y], [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y),
-                                                    ca.jacobian(G, x), ca.jacobian(G, y), ca.jacobian(H, x),
-                                                    ca.jacobian(H, y), f])
+        self._upper_outputs = [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y), ca.jacobian(G, x),
+                               ca.jacobian(G, y), ca.jacobian(H, x), ca.jacobian(H, y)]
+        self._upper = canon.params.function("upper", [x, y], self._upper_outputs)
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
-        self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny),
-                              (1, 1)]
+        self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
         self._fixed: tuple[int, LowerSolution, list[np.ndarray]] | None = None  # (parameter revision, ...)
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
+
+    @cached_property
+    def _upper_and_f(self) -> CompiledFunction:
+        """The upper sweep with the lower objective f as a last output, for lower solutions that come without it
+        (the exact block's); built on first use, so other solves keep the shorter sweep."""
+        canon = self.canon
+        return canon.params.function("upper_and_f", [canon.x, canon.y], [*self._upper_outputs, self.low.f])
 
     def active_set(self, g: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, bool]:
         """Rows with lam_i > active_tol, and whether some other row has |g_i| <= active_tol (degenerate)."""
@@ -173,9 +179,11 @@ class Hypergradient:
             sol, vals = self._polish(x, self.low.solve(x))
         if self.low.fixed:  # y* constant in x: solved once, no adjoint
             self._fixed = (revision, sol, vals)
-        *upper, f = _shaped(self._upper(x, sol.y), self._upper_shapes)
-        if np.isnan(sol.objective):
+        if np.isnan(sol.objective):  # F and f share subexpressions: one sweep gives both
+            *upper, f = _shaped(self._upper_and_f(x, sol.y), self._upper_shapes + [(1, 1)])
             sol.objective = float(f[0, 0])
+        else:
+            upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
         phi = F + self.penalty * (float(np.maximum(G, 0.0).sum()) + float(np.abs(H).sum()))
         violation = max([0.0, *np.maximum(G, 0.0), *np.abs(H)])
