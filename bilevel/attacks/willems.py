@@ -15,9 +15,9 @@ so y*(x) is differentiable with dw/dx = -(dr/dw)^-1 dr/dx. The gradient of phi(x
 comes from the adjoint system (dr/dw)' z = (dF/dy, 0, 0): grad phi = dF/dx - (dr/dx)' z. When the
 lower level does not depend on x (U poisoning of the lqr and stabilizing designs) it is solved once.
 
-Ascent: projected gradient steps on the linf box (exact clipping, bilevel.solvers.projections.Box)
-with a Barzilai–Borwein trial step and Armijo backtracking along the projection arc, from the clean
-data and from uniform random points of the box. For the max-min criterion a point whose identified
+Ascent: the engine's spectral projected gradient loop (bilevel.solvers.ascent, in budget units) on the
+linf box (exact clipping, bilevel.solvers.projections.Box), from the clean data and from uniform random
+points of the box. For the max-min criterion a point whose identified
 closed loop is unstable has phi = +inf (the paper's convention): the ascent stops there; with
 stop_when_unstable (default) the eigenvalue attack stops there too, since instability is its goal.
 
@@ -38,7 +38,7 @@ import dataclasses
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable, Literal
 
 import casadi as ca
 import numpy as np
@@ -57,8 +57,6 @@ from ..solvers.ascent import budget_direction, projected_ascent
 from ..solvers.projections import Box
 from ..threads import single_threaded_call
 
-ARMIJO = 1e-4
-MAX_BACKTRACKS = 30
 KKT_TOL = 1e-6
 TIE_RTOL = 1e-6
 UNSTABLE_PENALTY = 1e12
@@ -262,51 +260,6 @@ def _result(oracle: SDPHypergradient, method: str, x: np.ndarray, t0: float, eva
                         evaluations, iterations, message, violation, ev.kkt_residual, dict(details or {}))
 
 
-def _ascend(oracle: SDPHypergradient, box: Box, x0: np.ndarray, max_iter: int, ftol: float,
-            stop_unstable: bool) -> tuple[Evaluation, int, int, str]:
-    """Projected gradient ascent from x0: (final evaluation, iterations, evaluations, stop reason).
-
-    A trial point where the learner cannot be solved to KKT accuracy counts as a failed trial (backtrack)."""
-    cur = oracle.evaluate(box(x0))
-    evals = 1
-    if cur.phi == np.inf or (stop_unstable and cur.identified_radius >= 1.0):
-        return cur, 0, evals, "identified closed loop unstable at the start point"
-    grad = oracle.gradient(cur)
-    width = float(np.max(box.ub - box.lb))
-    step = width / max(float(np.max(np.abs(grad))), 1e-300)
-    for it in range(1, max_iter + 1):
-        t, accepted = step, None
-        for _ in range(MAX_BACKTRACKS):
-            trial_x = box(cur.x + t * grad)
-            move = trial_x - cur.x
-            if not np.any(move):
-                return cur, it - 1, evals, "projected gradient is zero (stationary on the box)"
-            evals += 1
-            try:
-                trial = oracle.evaluate(trial_x)
-            except BilevelError:
-                t /= 4.0
-                continue
-            if trial.phi >= cur.phi + ARMIJO / t * float(move @ move):
-                accepted = trial
-                break
-            t /= 4.0
-        if accepted is None:
-            return cur, it - 1, evals, "no ascent along the projection arc"
-        if accepted.phi == np.inf or (stop_unstable and accepted.identified_radius >= 1.0):
-            return accepted, it, evals, "identified closed loop unstable"
-        new_grad = oracle.gradient(accepted)
-        s, dg = accepted.x - cur.x, -(new_grad - grad)
-        gain_rel = (accepted.phi - cur.phi) / max(1.0, abs(cur.phi))
-        cur, grad = accepted, new_grad
-        if gain_rel <= ftol:
-            return cur, it, evals, f"relative increase {gain_rel:.1e} <= ftol"
-        sy = float(s @ dg)
-        step = float(s @ s) / sy if sy > 0 else 4.0 * t
-        step = min(max(step, 1e-12 * width), 1e12 * width)
-    return cur, max_iter, evals, "max_iter reached"
-
-
 def _seed(seed: int | np.random.SeedSequence | np.random.Generator | None) -> np.random.Generator:
     return seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
 
@@ -332,18 +285,25 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, 
     t0 = time.perf_counter()
     oracle, rng, bound, box = _ascent_setup(attack, oracle, seed, "hypergradient_attack")
     finished, records, evals, iters = [], [], 0, 0
+
+    def goal(ev: Evaluation | None) -> bool:
+        return ev is not None and (ev.phi == np.inf or (stop_when_unstable and ev.identified_radius >= 1.0))
+
     for k in range(max(int(starts), 1)):
         x0 = np.zeros(bound.size) if k == 0 else rng.uniform(-bound, bound)
-        try:
-            ev, it, n_ev, reason = _ascend(oracle, box, x0, max_iter, ftol, stop_when_unstable)
-        except BilevelError as exc:
-            records.append({"start": k, "status": "error", "message": str(exc)})
+        path = _Best()
+        _, ev, it, converged = _ascent_path(oracle, box, bound, x0, True, max_iter, ftol, path, goal, "long")
+        evals, iters = evals + path.evaluations, iters + it
+        if ev is None:
+            records.append({"start": k, "status": "error", "message": path.error})
             continue
-        evals, iters = evals + n_ev, iters + it
+        reason = ("identified closed loop unstable" if goal(ev) else
+                  "relative increase <= ftol, or no ascent along the projection arc" if converged else
+                  "max_iter reached")
         records.append({"start": k, "objective": ev.phi, "iterations": it, "message": reason,
                         "identified_radius": ev.identified_radius})
         finished.append((ev, k, reason))
-        if ev.phi == np.inf or (stop_when_unstable and ev.identified_radius >= 1.0):
+        if goal(ev):
             break
     if not finished:
         raise SolverFailed(f"hypergradient attack: the learner's SDP could not be solved from any of {starts} starts "
@@ -456,6 +416,8 @@ class _Best:
 
     ev: Evaluation | None = None
     evaluations: int = 0
+    error: str = ""
+    """The last reason the learner could not be solved at an evaluated point."""
 
     def see(self, ev: Evaluation | None, evaluations: int = 1) -> None:
         """Count `evaluations` and keep ev if its identified radius is the largest so far."""
@@ -464,17 +426,23 @@ class _Best:
             self.ev = ev
 
 
-def _radius_phase(oracle: SDPHypergradient, box: Box, scale: np.ndarray, x0: np.ndarray, surrogate: bool,
-                  max_iter: int, tol: float, best: _Best) -> tuple[np.ndarray, int]:
-    """One projected ascent (the engine's) on the Gelfand criterion phi (surrogate) or on log rho of the identified
-    closed loop; every evaluated point goes to `best`. Returns the final point and the iteration count."""
+def _ascent_path(oracle: SDPHypergradient, box: Box, scale: np.ndarray, x0: np.ndarray, surrogate: bool,
+                 max_iter: int, tol: float, best: _Best, stop: Callable[[Evaluation | None], bool] | None = None,
+                 bb: Literal["short", "long"] = "short") -> tuple[np.ndarray, Evaluation | None, int, bool]:
+    """One projected ascent (the engine's, bilevel.solvers.ascent, Barzilai-Borwein steps `bb`) on the attack's
+    criterion phi (surrogate) or on log rho of the identified closed loop, until `stop` holds; a point where the
+    learner cannot be solved is a failed trial (backtrack); every evaluated point goes to `best`. Returns the final
+    point, its evaluation (None if the start could not be evaluated), the iteration count and whether the ascent
+    converged (or stopped)."""
     b_id = oracle.attack.b_id
 
     def value(x: np.ndarray) -> tuple[float, Evaluation | None]:
         try:
             ev = oracle.evaluate(x)
-        except BilevelError:
-            return -np.inf, None  # the learner cannot be solved here: the line search backtracks
+        except BilevelError as exc:
+            best.error = str(exc)
+            best.see(None)
+            return -np.inf, None
         best.see(ev)
         return (ev.phi if surrogate else float(np.log(ev.identified_radius))), ev
 
@@ -485,8 +453,9 @@ def _radius_phase(oracle: SDPHypergradient, box: Box, scale: np.ndarray, x0: np.
                                                                                                   b_id)[1])
         return g, scale * budget_direction(scale * g, 1.0, np.inf)
 
-    x, _, _, it, _, _ = projected_ascent(value, direction, box, x0, scale, max_iter, tol, [])
-    return x, it
+    x, _, ev, it, _, converged = projected_ascent(value, direction, box, x0, scale, max_iter, tol, [], stop=stop,
+                                                  bb=bb)
+    return x, ev, it, converged
 
 
 @single_threaded_call
@@ -506,9 +475,9 @@ def destabilize_attack(attack: WillemsAttack, starts: int = 16, seed: Any = 0, m
     for k in range(max(int(starts), 1)):
         x0 = np.zeros(bound.size) if k == 0 else sample_in_bounds(-bound, bound, rng)
         smooth, direct = _Best(), _Best()
-        x, it = _radius_phase(oracle, box, bound, x0, True, max_iter, tol, smooth)
-        _, it2 = _radius_phase(oracle, box, bound, x, False, max_iter, tol, smooth)
-        _, it3 = _radius_phase(oracle, box, bound, x0, False, max_iter, tol, direct)
+        x, _, it, _ = _ascent_path(oracle, box, bound, x0, True, max_iter, tol, smooth)
+        _, _, it2, _ = _ascent_path(oracle, box, bound, x, False, max_iter, tol, smooth)
+        _, _, it3, _ = _ascent_path(oracle, box, bound, x0, False, max_iter, tol, direct)
         iters += it + it2 + it3
         records.append({"start": k, "iterations": it + it2 + it3,
                         **{f"{name}_radius": path.ev.identified_radius if path.ev is not None else None

@@ -1,0 +1,70 @@
+"""The one projected ascent loop (bilevel.solvers.ascent) on a box: both Barzilai-Borwein rules and the stop hook."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bilevel.solvers.ascent import budget_direction, projected_ascent
+from bilevel.solvers.projections import Box
+
+
+def _separable(c: np.ndarray, mu: np.ndarray):
+    """f(x) = c'x - sum(mu x^2) / 2, maximized over a box at clip(c / mu, lb, ub) (separable, strictly concave)."""
+    f = lambda x: (float(c @ x - 0.5 * (mu * x) @ x), x)  # noqa: E731
+    return f, lambda x: c - mu * x
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10**6), st.sampled_from(["short", "long"]))
+def test_box_maximizer_is_reached_by_either_step_rule(seed: int, bb: str) -> None:
+    """Some coordinates end on a face of the box, some inside: x* = clip(c / mu, -b, b) coordinate by coordinate."""
+    rng = np.random.default_rng(seed)
+    n = 30
+    b, mu = rng.uniform(0.1, 2.0, n), rng.uniform(0.5, 5.0, n)
+    c = mu * b * rng.uniform(-3.0, 3.0, n)  # |c / mu| > b on about two thirds of the coordinates
+    f, grad = _separable(c, mu)
+
+    def direction(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        g = grad(x)
+        return g, b * budget_direction(b * g, 1.0, np.inf)
+
+    x, fx, _, it, _, converged = projected_ascent(f, direction, Box(-b, b), rng.uniform(-b, b), b, 500, 1e-14, [],
+                                                  bb=bb)
+    np.testing.assert_allclose(x, np.clip(c / mu, -b, b), atol=1e-5 * b.max())
+    assert converged and it < 500
+    assert np.all(np.abs(x) <= b)
+
+
+def test_long_steps_reach_a_vertex_and_stop_where_the_projection_holds_still() -> None:
+    """A linear objective on a box: the maximizer is the vertex sign(c) * b, and once there the projected step is
+    zero, so the loop stops at once instead of waiting for the gain window."""
+    rng = np.random.default_rng(3)
+    b, c = rng.uniform(0.5, 1.5, 12), rng.standard_normal(12)
+    f = lambda x: (float(c @ x), x)  # noqa: E731
+    direction = lambda x: (c, b * budget_direction(b * c, 1.0, np.inf))  # noqa: E731
+    history: list[dict[str, float]] = []
+    x, fx, _, it, evals, converged = projected_ascent(f, direction, Box(-b, b), np.zeros(12), b, 100, 1e-14,
+                                                      history, bb="long")
+    np.testing.assert_array_equal(x, np.sign(c) * b)
+    assert converged and fx == pytest.approx(float(np.abs(c) @ b))
+    assert it < 10 and len(history) == it - 1  # the last iteration only found the zero projected step
+
+
+def test_stop_hook_returns_the_first_accepted_point_that_meets_the_goal() -> None:
+    """stop(aux) is checked at the start and at every accepted point; the loop returns that point as converged."""
+    c, mu, b = np.array([1.0, -2.0, 0.5]), np.ones(3), np.full(3, 10.0)
+    f, grad = _separable(c, mu)
+    direction = lambda x: (grad(x), b * budget_direction(b * grad(x), 0.1, np.inf))  # noqa: E731
+    goal = 2.0  # below the maximum 2.625 = |c|^2 / 2
+    history: list[dict[str, float]] = []
+    x, fx, aux, it, _, converged = projected_ascent(f, direction, Box(-b, b), np.zeros(3), b, 200, 1e-14, history,
+                                                    stop=lambda x: f(x)[0] >= goal)
+    assert converged and goal <= fx <= 2.625 and it == len(history)
+    assert all(h["value"] < goal for h in history[:-1])
+    np.testing.assert_array_equal(aux, x)
+    _, _, _, it0, evals0, _ = projected_ascent(f, direction, Box(-b, b), x, b, 200, 1e-14, [],
+                                               stop=lambda x: f(x)[0] >= goal)
+    assert (it0, evals0) == (0, 1)
