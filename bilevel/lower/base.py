@@ -5,7 +5,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import casadi as ca
 import numpy as np
@@ -34,6 +34,24 @@ class LowerSolution:
     Z: list[np.ndarray] = field(default_factory=list)
     status: str = "optimal"
     solver: str = ""
+
+
+class KKTValues(NamedTuple):
+    """The implicit-derivative system of a lower level without LMIs at a solution: S the stationarity residual
+    and g, h the constraints (column vectors); dS/dy, J_g, J_h (matrices, rows by constraint)."""
+
+    stationarity: np.ndarray
+    g: np.ndarray
+    h: np.ndarray
+    hessian: np.ndarray
+    jac_g: np.ndarray
+    jac_h: np.ndarray
+
+    @classmethod
+    def unconstrained(cls, hessian: np.ndarray) -> "KKTValues":
+        """At the exact minimizer of an unconstrained lower level with this Hessian (S = 0, no g or h)."""
+        n = hessian.shape[0]
+        return cls(np.zeros((n, 1)), np.zeros((0, 1)), np.zeros((0, 1)), hessian, np.zeros((0, n)), np.zeros((0, n)))
 
 
 @dataclass(frozen=True)
@@ -115,9 +133,8 @@ class LowerLevel(ABC):
         return res, grad_f
 
     @abstractmethod
-    def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> list[np.ndarray]:
-        """[S, g, h, dS/dy, J_g, J_h] at a solution (S the stationarity residual; column vectors, matrices by
-        rows): the implicit-derivative system of a lower level without LMIs."""
+    def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> KKTValues:
+        """The implicit-derivative system (S, g, h, dS/dy, J_g, J_h) at a solution, for a lower level without LMIs."""
 
     @abstractmethod
     def kkt_x_adjoint(self, x: np.ndarray, sol: LowerSolution, v_s: np.ndarray, v_g: np.ndarray,
@@ -232,10 +249,10 @@ class ExpressionLower(LowerLevel):
                   (self.n_h, self.n_y)]
         return values, adjoint, shapes
 
-    def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> list[np.ndarray]:
+    def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> KKTValues:
         values, _, shapes = self._kkt_functions
-        return [np.asarray(v, dtype=float).reshape(s, order="F")
-                for v, s in zip(values(x, sol.y, sol.lam, sol.mu), shapes)]
+        return KKTValues(*(np.asarray(v, dtype=float).reshape(s, order="F")
+                           for v, s in zip(values(x, sol.y, sol.lam, sol.mu), shapes)))
 
     def kkt_x_adjoint(self, x: np.ndarray, sol: LowerSolution, v_s: np.ndarray, v_g: np.ndarray,
                       v_h: np.ndarray) -> np.ndarray:

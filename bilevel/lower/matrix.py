@@ -20,7 +20,7 @@ from scipy.optimize import linprog
 from ..errors import InvalidData, LowerLevelInfeasible, LowerLevelUnbounded, ModelError, SolverFailed
 from ..model import LowerQP
 from ..parameters import ParameterSet
-from .base import ExpressionLower, LowerLevel, LowerSolution
+from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower
 from .polish import ACTIVE_TOL
 from .quadratic import LinearLower, QPData, QuadraticLower, clarabel_solution, solve_qp_clarabel
@@ -103,10 +103,11 @@ class MatrixLower(LowerLevel):
     def hessian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return self.hess
 
-    def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> list[np.ndarray]:
+    def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> KKTValues:
         S = self.stationarity(x, sol.y, sol.lam, sol.mu, [])[0]
         _, _, b, e = self.vectors(x)
-        return [S[:, None], (self.A @ sol.y - b)[:, None], (self.E @ sol.y - e)[:, None], self.hess, self.A, self.E]
+        return KKTValues(S[:, None], (self.A @ sol.y - b)[:, None], (self.E @ sol.y - e)[:, None], self.hess, self.A,
+                         self.E)
 
     def kkt_x_adjoint(self, x: np.ndarray, sol: LowerSolution, v_s: np.ndarray, v_g: np.ndarray,
                       v_h: np.ndarray) -> np.ndarray:

@@ -23,7 +23,7 @@ import scipy.linalg as sla
 
 from ..canonical import CanonicalBilevel
 from ..errors import BilevelError, ModelError
-from ..lower.base import ExpressionLower, LowerSolution
+from ..lower.base import ExpressionLower, KKTValues, LowerSolution
 from ..lower.least_squares import hessian_factor
 from ..reduction import KKTPoint
 from ..result import Status
@@ -54,10 +54,10 @@ class ExactBlock:
     """x -> (P, q, dq/dx_S): the lower Hessian, the lower gradient at y = 0 and its Jacobian in the block."""
     upper_y: Callable
 
-    def solve(self, x: np.ndarray) -> tuple[np.ndarray, LowerSolution, list[np.ndarray]]:
+    def solve(self, x: np.ndarray) -> tuple[np.ndarray, LowerSolution, KKTValues]:
         """x with its block replaced by the global minimizer of F(x, y*(x)) over the ball (other entries fixed),
         the lower solution there (y*(x) = y_c + M z in closed form; its objective NaN, read with F by the
-        hypergradient oracle) and its KKT values (stationarity, g, h, Hessian, J_g, J_h: the oracle's layout)."""
+        hypergradient oracle) and its KKT values (an unconstrained minimizer with Hessian P)."""
         b = self.ball
         x = np.array(x, dtype=float)
         x[b.block] = b.center
@@ -69,9 +69,8 @@ class ExactBlock:
         z = quadratic_block_step(M, grad.ravel(), hess, b.radius)
         x[b.block] = b.center + z
         y = y_c + M @ z
-        ny = y.size
-        kkt = [np.zeros((ny, 1)), np.zeros((0, 1)), np.zeros((0, 1)), P, np.zeros((0, ny)), np.zeros((0, ny))]
-        return x, LowerSolution(y, np.nan, np.zeros(0), np.zeros(0), [], "optimal", "closed-form (exact block)"), kkt
+        sol = LowerSolution(y, np.nan, np.zeros(0), np.zeros(0), [], "optimal", "closed-form (exact block)")
+        return x, sol, KKTValues.unconstrained(P)
 
 
 def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactBlock | None, list[str]]:

@@ -42,7 +42,7 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from ..errors import BilevelError, LowerLevelInfeasible, ModelError
-from ..lower.base import LowerSolution
+from ..lower.base import KKTValues, LowerSolution
 from ..parameters import CompiledFunction
 from ..reduction import KKTPoint
 from ..result import Status
@@ -63,7 +63,7 @@ STEP_RANGE = (1e-12, 1e12)
 class Evaluation:
     """An upper point with its (polished) lower solution, penalized objective phi, F and upper violation.
 
-    `upper` holds F, G, H and their partial derivatives in x and y; `kkt` the lower KKT values there (empty for a
+    `upper` holds F, G, H and their partial derivatives in x and y; `kkt` the lower KKT values there (None for a
     closed-form lower level until a gradient needs them).
     """
 
@@ -73,7 +73,7 @@ class Evaluation:
     violation: float
     lower: LowerSolution
     upper: list[np.ndarray]
-    kkt: list[np.ndarray]
+    kkt: KKTValues | None
 
 
 def _shaped(values: list[ca.DM], shapes: list[tuple[int, int]]) -> list[np.ndarray]:
@@ -114,9 +114,9 @@ class Hypergradient:
         return np.flatnonzero(strict), bool(np.any(~strict & (g.ravel() >= -self.active_tol)))
 
     @staticmethod
-    def _system(vals: list[np.ndarray], rows: np.ndarray) -> np.ndarray:
+    def _system(vals: KKTValues, rows: np.ndarray) -> np.ndarray:
         """The KKT matrix K of (stationarity, g_A, h) in (y, lam_A, mu)."""
-        _, _, _, hyy, jg, jh = vals
+        hyy, jg, jh = vals.hessian, vals.jac_g, vals.jac_h
         na, nh = rows.size, jh.shape[0]
         return np.block([[hyy, jg[rows].T, jh.T],
                          [jg[rows], np.zeros((na, na + nh))],
@@ -133,22 +133,22 @@ class Hypergradient:
         return out
 
     @staticmethod
-    def _residual(vals: list[np.ndarray], lam: np.ndarray) -> float:
-        S, g, h = (v.ravel() for v in vals[:3])
+    def _residual(vals: KKTValues, lam: np.ndarray) -> float:
+        S, g, h = vals.stationarity.ravel(), vals.g.ravel(), vals.h.ravel()
         parts = [np.abs(S), np.maximum(g, 0.0), np.abs(h), np.abs(lam * g)]
         return max((float(p.max()) for p in parts if p.size), default=0.0)
 
-    def _polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, list[np.ndarray]]:
+    def _polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, KKTValues | None]:
         """One Newton step on the active-set KKT equations; kept if it keeps lam >= 0 and lowers the residual."""
         if self.low.kind == "least-squares":  # a closed form: nothing to polish; KKT values wait for a gradient
-            return sol, []
+            return sol, None
         vals = self.low.kkt_values(x, sol)
-        rows, _ = self.active_set(vals[1], sol.lam)
+        rows, _ = self.active_set(vals.g, sol.lam)
         K = self._system(vals, rows)
         lam0 = np.zeros_like(sol.lam)
         lam0[rows] = sol.lam[rows]
-        S0 = vals[0].ravel() - vals[4].T @ (sol.lam - lam0)
-        step = np.linalg.lstsq(K, -np.concatenate([S0, vals[1].ravel()[rows], vals[2].ravel()]), rcond=None)[0]
+        S0 = vals.stationarity.ravel() - vals.jac_g.T @ (sol.lam - lam0)
+        step = np.linalg.lstsq(K, -np.concatenate([S0, vals.g.ravel()[rows], vals.h.ravel()]), rcond=None)[0]
         ny, na = self.low.n_y, rows.size
         lam1 = lam0.copy()
         lam1[rows] += step[ny:ny + na]
@@ -163,7 +163,7 @@ class Hypergradient:
         return new, new_vals
 
     def evaluate(self, x: np.ndarray, lower: LowerSolution | None = None,
-                 kkt: list[np.ndarray] | None = None) -> Evaluation:
+                 kkt: KKTValues | None | None = None) -> Evaluation:
         """Solve (and polish) the lower level at x, or take its known solution `lower` (and KKT values `kkt`, if
         known), and evaluate phi there; raises if the lower solve fails. A given solution's objective is read from
         the same sweep as F when it is NaN."""
@@ -172,9 +172,9 @@ class Hypergradient:
         if self._fixed is not None and self._fixed[0] == revision:
             _, sol, vals = self._fixed
         elif lower is not None:
-            sol, vals = lower, kkt or []
+            sol, vals = lower, kkt
         elif self.conic:
-            sol, vals = self.low.newton_polish(x, self.low.solve(x))[0], []
+            sol, vals = self.low.newton_polish(x, self.low.solve(x))[0], None
         else:
             sol, vals = self._polish(x, self.low.solve(x))
         if self.low.fixed:  # y* constant in x: solved once, no adjoint
@@ -202,8 +202,8 @@ class Hypergradient:
             if self.conic:
                 (K, R), rows = self.low.jacobians(ev.x, ev.lower), np.flatnonzero(ev.lower.lam > 0)
             else:
-                kkt = ev.kkt or self.low.kkt_values(ev.x, ev.lower)
-                rows, weak = self.active_set(kkt[1], ev.lower.lam)
+                kkt = ev.kkt if ev.kkt is not None else self.low.kkt_values(ev.x, ev.lower)
+                rows, weak = self.active_set(kkt.g, ev.lower.lam)
                 K = self._system(kkt, rows)
             rhs = np.vstack([np.hstack([gyF, Gy.T, Hy.T]), np.zeros((K.shape[0] - gyF.size, 1 + G.size + H.size))])
             Z, rank = self.low.kkt_solve(ev.x, K, rhs)
