@@ -14,6 +14,9 @@ from .errors import BilevelError, ModelError
 from .problems import registry
 from .solvers import METHODS, solve
 
+WILLEMS_SELECTIONS = ("min-norm", "tikhonov", "clarabel", "scs")
+"""bilevel.problems.willems.SELECTIONS, spelled out so the parser does not import the Willems problems (~1 s)."""
+
 
 def _cmd_list(args: argparse.Namespace) -> int:
     rows = [registry.spec(n) for n in registry.names(args.tag)]
@@ -281,8 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_rep.add_argument("--dask", default=None, metavar="ADDRESS",
                        help="run on a Dask cluster: tcp://HOST:PORT of its scheduler, or 'local' (docs/clusters.md)")
     p_rep.add_argument("--quick", action="store_true", help="willems: the small CI-sized grid (4 sims, 3 budgets)")
-    p_rep.add_argument("--selection", choices=["min-norm", "tikhonov"], default="min-norm",
-                       help="willems: the learner's choice among its optimal Q (tikhonov: the session-1 sweep's)")
+    p_rep.add_argument("--selection", choices=WILLEMS_SELECTIONS, default="min-norm",
+                       help="willems: the learner's choice among its optimal Q (tikhonov: the session-1 sweep's; "
+                            "clarabel, scs: the solver's own Q, input poisoning only)")
     p_rep.set_defaults(run=_cmd_reproduce)
     return parser
 

@@ -32,7 +32,8 @@ from ..ddc.data import batch_reactor_data  # noqa: E402
 from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller  # noqa: E402
 from ..ddc.plants import batch_reactor  # noqa: E402
 from ..errors import BilevelError  # noqa: E402
-from ..problems.willems import DEFAULT_REG, WillemsSetting, build_attack  # noqa: E402
+from ..problems.willems import (DEFAULT_REG, SOLVER_SELECTIONS, WillemsSetting, build_attack,  # noqa: E402
+                                selection_applies)
 from .stats import mean_interval, wilson_interval  # noqa: E402
 from .executor import open_executor  # noqa: E402
 from .sweep import load_timings, record_timing, run_sweep, settings_of, stderr_progress  # noqa: E402
@@ -84,6 +85,16 @@ def sim_seeds(seed: int, sims: int) -> list[tuple[int, int]]:
     return [tuple(int(v) for v in s.generate_state(2)) for s in np.random.SeedSequence(seed).spawn(sims)]
 
 
+LEARNER_TEXT = {
+    "min-norm": " (Q projected onto the row space of [X0; X1] after solving: the minimum-norm Q, reproducible to "
+                "solver accuracy)",
+    "tikhonov": " (the solver's Q under reg alone)",
+    "clarabel": " (Clarabel's own optimal Q of the unregularized SDP, as a user calling the solver gets it)",
+    "scs": " (SCS's own optimal Q of the unregularized SDP, as a user calling the solver gets it)",
+}
+NOT_DEFINED = ("Not run for the `{learner}` selection: the solver's own Q is defined (and differentiable) only where "
+               "the SDP ignores the poisoning, i.e. input poisoning without an input cost; rerun with "
+               "`--selection min-norm` or `tikhonov` for state poisoning and the lqr-r design.")
 ROW_FIELDS = {"horizon", "method", "delta_u", "criterion", "design", "poison", "seed", "unstable", "wall_time",
               "reference_radius", "spectral_radius", "eig_abs_sum", "objective"}
 
@@ -403,7 +414,7 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
              for lv in (1e-9, 0.5)}
     remark = summaries["remark"]
     remark_rates = "; ".join(f"N={n}: {_rate(c)} unstable" for (n, method, crit), c in remark.items()
-                             if method == "hypergradient" and crit == "maxmin")
+                             if method == "hypergradient" and crit == "maxmin") or f"not run for `{learner}`"
     more_data = []
     for d in plan.deltas:
         a, b = paper.get((hz[0], "hypergradient", d)), paper.get((hz[-1], "hypergradient", d))
@@ -433,9 +444,9 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
         "- Plant: batch reactor (Walsh & Ye 2001), Ts = 0.1, n = 4, m = 2; data: u ~ N(0, 1) white, x_0 = 0, "
         "noise free. The attacker uses [B A] = X1 [U0; X0]^+ from the clean data (equal to the plant here).",
         f"- Learner (paper setting): the appendix SDP min tr(Qx X0 Q) s.t. [[X0 Q - I, X1 Q], [Q' X1', X0 Q]] >= 0, "
-        f"Qx = I, plus reg/2 ||Q||_F^2 with reg = {reg}; selection `{learner}` of the non-unique Q"
-        + (" (Q projected onto the row space of [X0; X1] after solving: the minimum-norm Q, reproducible to "
-           "solver accuracy)" if learner == "min-norm" else " (the solver's Q under reg alone)")
+        + ("Qx = I (no regularization)" if learner in SOLVER_SELECTIONS else
+           f"Qx = I, plus reg/2 ||Q||_F^2 with reg = {reg}") + f"; selection `{learner}` of the non-unique Q"
+        + LEARNER_TEXT.get(learner, "")
         + "; see docs/willems.md. K = U0 Q (X0 Q)^-1.",
         f"- Attack: input poisoning |Du| <= delta_u entrywise (linf), criterion log det((A+BK)(A+BK)'), "
         f"delta_u in {list(plan.deltas)}, N in {list(plan.horizons)}, {plan.sims} simulations per cell "
@@ -458,7 +469,7 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
         "the poisoned signal's mean); " + ", ".join(f"N={n}: delta_u={d:g}, {k} loops" for n, (d, k) in
                                                     signals.items()) + ".", "",
         "## Transfer to the unregularized learner", "",
-        "Our poisoning (computed against the minimum-norm selection) handed to `bilevel.ddc.lqr_controller("
+        f"Our poisoning (computed against the `{learner}` selection) handed to `bilevel.ddc.lqr_controller("
         "input_cost=False)`, whose Q is whatever Clarabel returns on the optimal face:", "",
         transfer_table(paper, plan), "",
         "## Why more data does not make this learner more fragile here", "",
@@ -477,12 +488,13 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
         "| claim | paper | ours |", "|---|---|---|",
         *[f"| {name} | {text} | {ours} |" for (name, text), ours in zip(PAPER_CLAIMS, claims)], "",
         f"## Output poisoning (delta_y = {DELTA_Y:g} on the states, x_0 and inputs clean)", "",
-        remark_table(remark, plan),
+        remark_table(remark, plan) if remark else NOT_DEFINED.format(learner=learner),
         f"{plan.remark_sims} simulations per row. The last learner column re-learns K with `bilevel.ddc.lqr_controller`"
         " (no regularization, Clarabel's choice of Q) on the poisoned data our attack produced. CSV: "
         "`table_remark.csv`.", "",
         "## Other designs (our attack, N = 15)", "",
         design_table(lr, plan),
+        *([NOT_DEFINED.format(learner=learner) + " Those cells show '-'."] if learner in SOLVER_SELECTIONS else []),
         f"{plan.design_sims} simulations per cell; xu poisons states and inputs with delta_x = delta_u; lqr-r is "
         "De Persis–Tesi Thm 4 (Qx = I, R = I), stabilizing is Thm 3. CSV: `table_designs.csv`.", "",
     ]
@@ -498,8 +510,10 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
     """Run (or resume) every sweep on `workers` local processes or the Dask cluster `dask`, then write tables
     (CSV + Markdown), figures 7-9 and report.md; returns its path.
 
-    `selection` is the learner's choice among its optimal Q (bilevel.problems.willems): "min-norm" (default) or
-    "tikhonov" (the solver's Q under reg alone, as in the sweep committed in session 1)."""
+    `selection` is the learner's choice among its optimal Q (bilevel.problems.willems): "min-norm" (default),
+    "tikhonov" (the solver's Q under reg alone, as in the sweep committed in session 1), or the SDP solver's own Q
+    ("clarabel", "scs"; defined only for input poisoning without an input cost, so the state-poisoning remark and
+    those designs are not run, and the report says so)."""
     plan = make_plan(sims, quick)
     if seed < 0:
         raise ValueError(f"seed must be >= 0, got {seed}")
@@ -507,6 +521,8 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
     sweeps = {"paper": (paper_tasks(plan, seed, selection), ("horizon", "method", "delta_u")),
               "remark": (remark_tasks(plan, seed, selection), ("horizon", "method", "criterion")),
               "designs": (design_tasks(plan, seed, selection), ("design", "poison", "criterion", "delta_u"))}
+    sweeps = {name: ([t for t in tasks if selection_applies(selection, t["poison"], t["design"])], fields)
+              for name, (tasks, fields) in sweeps.items()}
     timings_path = os.path.join(out_dir, "timings.json")
     rows, summaries, wall = {}, {}, load_timings(timings_path)
     with open_executor(workers, dask) as executor:

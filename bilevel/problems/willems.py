@@ -93,10 +93,16 @@ class WillemsSetting:
                              "set delta_u=0 or poison='u'/'xu'")
         if "x" in self.poison and self.delta_x <= 0:
             raise ModelError(f"willems: poison={self.poison!r} needs delta_x > 0")
-        if self.selection in SOLVER_SELECTIONS and (self.poison != "u" or self.design == "lqr-r"):
+        if not selection_applies(self.selection, self.poison, self.design):
             raise ModelError(f"willems: selection={self.selection!r} (the solver's own Q) is defined only where the "
                              f"SDP ignores the poisoning; got poison={self.poison!r}, design={self.design!r}: use "
                              "poison='u' with design 'lqr' or 'stabilizing', or selection 'min-norm'/'tikhonov'")
+
+
+def selection_applies(selection: str, poison: str, design: str) -> bool:
+    """The solver selections (the SDP solver's own Q) are defined only where the SDP ignores the poisoning: input
+    poisoning of the designs without an input-cost term ('lqr', 'stabilizing'). The others apply everywhere."""
+    return selection not in SOLVER_SELECTIONS or (poison == "u" and design != "lqr-r")
 
 
 def identified_model(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

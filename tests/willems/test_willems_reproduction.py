@@ -66,3 +66,29 @@ def test_simulation_seeds_are_reproducible() -> None:
     assert sim_seeds(0, 3) == sim_seeds(0, 3)
     assert sim_seeds(0, 5)[:3] == sim_seeds(0, 3)
     assert sim_seeds(0, 3) != sim_seeds(1, 3)
+
+
+def test_solver_selection_runs_the_input_poisoning_sweeps_and_says_what_it_left_out(tmp_path) -> None:
+    """With the SDP solver's own Q (clarabel) only input poisoning without an input cost is defined: the paper
+    sweep and those designs run against that learner, the state-poisoning remark and lqr-r do not, and the report
+    names the learner and what was not run."""
+    out = str(tmp_path / "willems-clarabel")
+    report = open(run_reproduction(sims=1, out_dir=out, quick=True, seed=0, progress=None, selection="clarabel"),
+                  encoding="utf-8").read()
+    paper = [json.loads(line) for line in open(os.path.join(out, "paper.jsonl"), encoding="utf-8")]
+    assert len(paper) == len(paper_tasks(make_plan(1, True), 0))
+    assert all(r["selection"] == "clarabel" and "error" not in r for r in paper)
+    designs = [json.loads(line) for line in open(os.path.join(out, "designs.jsonl"), encoding="utf-8")]
+    assert designs and {(r["design"], r["poison"]) for r in designs} == {("lqr", "u"), ("stabilizing", "u")}
+    assert not os.path.exists(os.path.join(out, "remark.jsonl"))
+    assert report.count("Not run for the `clarabel` selection") == 2
+    assert "Clarabel's own optimal Q" in report and "computed against the `clarabel` selection" in report
+    budget = open(os.path.join(out, "budget.csv"), encoding="utf-8").read().splitlines()[1:]
+    assert len(budget) == 2 and all(",clarabel," in line for line in budget)
+
+
+def test_cli_offers_every_learner_selection() -> None:
+    from bilevel.cli import WILLEMS_SELECTIONS
+    from bilevel.problems.willems import SELECTIONS
+
+    assert WILLEMS_SELECTIONS == SELECTIONS
