@@ -23,7 +23,8 @@ sys.path.insert(0, os.path.dirname(__file__))
 from vrft_baseline import paper_baseline  # noqa: E402
 
 from bilevel.attacks.vrft import attack_instance  # noqa: E402
-from bilevel.attacks.vrft_methods import attack_alternating, attack_budget_path, attack_white_noise  # noqa: E402
+from bilevel.attacks.vrft_methods import (attack_alternating, attack_budget_path, attack_value,  # noqa: E402
+                                          attack_white_noise, unstable)
 from bilevel.experiments.vrft import EPS_Y  # noqa: E402
 
 
@@ -37,11 +38,12 @@ def main(instances: int = 20) -> None:
             ours = attack_alternating(atk, seed=seed)
             base = paper_baseline(atk, seed=seed)
             wn = attack_white_noise(atk, seed=seed)
-            rows.append((ours.wall_time, base.wall_time, ours.value, base.value, wn.value, ours.unstable,
-                         base.unstable))
-            print(f"seed {seed:3d}: ours {1000 * ours.wall_time:7.1f} ms J = {ours.value:.5f} "
-                  f"(rho {ours.spectral_radius:.4f}) | baseline {1000 * base.wall_time:8.1f} ms J = {base.value:.5f} "
-                  f"(rho {base.spectral_radius:.4f}) | white noise J = {wn.value:.5f}", flush=True)
+            rows.append((ours.wall_time, base.wall_time, attack_value(ours), attack_value(base), attack_value(wn),
+                         unstable(ours), unstable(base)))
+            print(f"seed {seed:3d}: ours {1000 * ours.wall_time:7.1f} ms J = {attack_value(ours):.5f} "
+                  f"(rho {ours.stats['spectral_radius']:.4f}) | baseline {1000 * base.wall_time:8.1f} ms "
+                  f"J = {attack_value(base):.5f} "
+                  f"(rho {base.stats['spectral_radius']:.4f}) | white noise J = {attack_value(wn):.5f}", flush=True)
         r = np.array(rows, dtype=float)
         t_ours, t_base = np.median(r[:, 0]), np.median(r[:, 1])
         stronger = np.mean(r[:, 2] >= r[:, 3] * (1 - 1e-9))
@@ -57,7 +59,7 @@ def main(instances: int = 20) -> None:
             t = time.perf_counter()
             path = attack_budget_path(atk, EPS_Y, seed=seed)
             path_times.append((time.perf_counter() - t) / len(EPS_Y))
-            path_stronger.append(path[-1].value >= r[seed, 3] * (1 - 1e-9))
+            path_stronger.append(attack_value(path[-1]) >= r[seed, 3] * (1 - 1e-9))
         print(f"  budget path over eps_y = {EPS_Y} (the maxmin-paper-path sweep): median {1000 * np.median(path_times):.1f}"
               f" ms per cell; at 0.057 >= baseline on {100 * np.mean(path_stronger):.0f}% of instances")
         for n in (4096, 65_536):
@@ -68,7 +70,7 @@ def main(instances: int = 20) -> None:
             dt = time.perf_counter() - t
             peak = tracemalloc.get_traced_memory()[1]
             tracemalloc.stop()
-            print(f"N = {n}: {dt:.2f} s, {res.iterations} iterations, peak traced memory {peak / 2**20:.1f} MiB "
+            print(f"N = {n}: {dt:.2f} s, {res.nit} iterations, peak traced memory {peak / 2**20:.1f} MiB "
                   f"({peak / (8 * n):.0f} doubles per sample; a dense N x N matrix would be {8 * n * n / 2**30:.1f} GiB)")
 
 

@@ -15,7 +15,8 @@ import dccp  # noqa: F401  (registers the "dccp" solve method on cvxpy problems)
 import numpy as np
 
 from bilevel.attacks.vrft import VRFTAttack
-from bilevel.attacks.vrft_methods import AttackResult, _result
+from bilevel.attacks.vrft_methods import _result
+from bilevel.result import BilevelResult
 
 
 def dccp_input_step(atk: VRFTAttack, a_y: np.ndarray, seed: int) -> np.ndarray:
@@ -31,7 +32,7 @@ def dccp_input_step(atk: VRFTAttack, a_y: np.ndarray, seed: int) -> np.ndarray:
 
 
 def paper_baseline(atk: VRFTAttack, seed: int = 0, eta: float = 1e-4, pga_steps: int = 10, gamma: float = 0.1,
-                   max_outer: int = 20) -> AttackResult:
+                   max_outer: int = 20) -> BilevelResult:
     """Algorithm 1 as published: alternate a DCCP a_u-step and `pga_steps` fixed-step PGA steps on a_y."""
     if atk.objective != "maxmin" or atk.setting.data != "prefiltered":
         raise ValueError("the paper-style baseline covers the max-min attack on prefiltered data")
@@ -39,7 +40,7 @@ def paper_baseline(atk: VRFTAttack, seed: int = 0, eta: float = 1e-4, pga_steps:
     proj = atk.budget_y.projection(atk.y)
     a_u, a_y = np.zeros(atk.N), np.zeros(atk.N)
     J = atk.value(atk.state(a_u, a_y).theta)
-    history, it = [], 0
+    history, it, converged = [], 0, False
     for it in range(1, max_outer + 1):
         a_u = dccp_input_step(atk, a_y, seed + it)
         for _ in range(pga_steps):
@@ -51,7 +52,7 @@ def paper_baseline(atk: VRFTAttack, seed: int = 0, eta: float = 1e-4, pga_steps:
         J_new = atk.value(atk.state(a_u, a_y).theta)
         history.append({"iter": it, "value": J_new})
         if abs(J_new - J) < eta:
-            J = J_new
+            J, converged = J_new, True
             break
         J = J_new
-    return _result(atk, "paper-baseline", "converged", atk.state(a_u, a_y), t0, it, it * (pga_steps + 1), history)
+    return _result(atk, "paper-baseline", converged, atk.state(a_u, a_y), t0, it, it * (pga_steps + 1), history)

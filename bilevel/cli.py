@@ -47,7 +47,7 @@ def _vrft_params(args: argparse.Namespace) -> dict[str, object]:
 
 def _cmd_attack(args: argparse.Namespace) -> int:
     from .attacks.vrft import attack_instance
-    from .attacks.vrft_methods import ATTACKS, attack_budget_path
+    from .attacks.vrft_methods import ATTACKS, attack_budget_path, attack_summary, save_attack
     from .experiments.vrft import EPS_Y
 
     if args.param or args.option:
@@ -70,18 +70,19 @@ def _cmd_attack(args: argparse.Namespace) -> int:
         result = ATTACKS[method](atk, seed=args.seed)
     else:
         result = ATTACKS[method](atk, seed=args.seed, starts=starts)
-    for key, value in result.summary().items():
+    for key, value in attack_summary(result).items():
         print(f"{key:>22}: {value}")
-    print(f"{'theta_clean':>22}: {np.array2string(result.theta_clean, precision=5)}")
-    print(f"{'theta_poisoned':>22}: {np.array2string(result.theta_poisoned, precision=5)}")
+    print(f"{'theta_clean':>22}: {np.array2string(result.stats['theta_clean'], precision=5)}")
+    print(f"{'theta_poisoned':>22}: {np.array2string(result.y['theta'], precision=5)}")
     if args.save:
-        result.save(args.save, atk)
+        save_attack(result, atk, args.save)
         written = args.save if args.save.endswith(".npz") else args.save + ".npz"  # np.savez appends .npz
         print(f"wrote {written} (clean data, attack signals, clean/poisoned theta, closed-loop poles)")
     if args.json:
-        arrays = {k: getattr(result, k).tolist() for k in ("theta_clean", "theta_poisoned", "a_u", "a_y")}
+        arrays = {"theta_clean": result.stats["theta_clean"].tolist(), "theta_poisoned": result.y["theta"].tolist(),
+                  **{k: v.tolist() for k, v in result.x.items()}}
         with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump({"problem": args.problem, **result.summary(), **arrays}, fh, indent=2)
+            json.dump({"problem": args.problem, **attack_summary(result), **arrays}, fh, indent=2)
         print(f"wrote {args.json}")
     return 0
 

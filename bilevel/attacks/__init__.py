@@ -2,17 +2,20 @@
 
 The public VRFT attack API (docs/own_plant.md): describe the learner with `VRFTSetting`, the instance with
 `VRFTAttack` (budgets as `Budget` or plain numbers), and run `attack_alternating`, `attack_joint`,
-`attack_white_noise` or `attack_budget_path`; each returns an `AttackResult`.
+`attack_white_noise` or `attack_budget_path`; each returns a `bilevel.BilevelResult` of the registered problem
+vrft-<objective> (x: a_u, a_y; y: theta; its certificate; the VRFT quantities in stats, read with
+`attack_summary`, `attack_value`, `unstable`, saved with `save_attack`).
 """
 
 from .budget import Budget
 from .spectral import LoopPolynomial, arx_orders_for, fit_arx
 from .vrft import PAPER_THETA0, VRFTAttack, VRFTSetting, attack_instance, flexible_transmission_setting
-from .vrft_methods import (ATTACKS, AttackResult, attack_alternating, attack_budget_path, attack_joint,
-                           attack_white_noise)
+from .vrft_methods import (ATTACKS, attack_alternating, attack_budget_path, attack_joint, attack_summary,
+                           attack_value, attack_white_noise, save_attack, unstable)
 
 __all__ = [
-    "ATTACKS", "AttackResult", "Budget", "LoopPolynomial", "PAPER_THETA0", "VRFTAttack", "VRFTSetting",
+    "ATTACKS", "Budget", "LoopPolynomial", "PAPER_THETA0", "VRFTAttack", "VRFTSetting",
     "arx_orders_for", "attack_alternating", "attack_budget_path", "attack_instance", "attack_joint",
-    "attack_white_noise", "fit_arx", "flexible_transmission_setting",
+    "attack_summary", "attack_value", "attack_white_noise", "fit_arx", "flexible_transmission_setting",
+    "save_attack", "unstable",
 ]

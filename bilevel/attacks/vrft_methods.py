@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..certificate import DEFAULT_TOL
+from ..certificate import DEFAULT_TOL, Certificate
 from ..errors import ModelError
+from ..result import BilevelResult, Status
 from ..solvers.ascent import budget_direction, projected_ascent
 from ..threads import single_threaded
 from .vrft import State, VRFTAttack
@@ -27,71 +27,82 @@ from .vrft import State, VRFTAttack
 DEFAULT_STEPS = (1.0,)
 
 
-@dataclass
-class AttackResult:
-    """An attack's outcome: the signals, clean and poisoned theta, the objective and the true closed loop."""
-
-    method: str
-    objective: str
-    status: str
-    a_u: np.ndarray
-    a_y: np.ndarray
-    theta_clean: np.ndarray
-    theta_poisoned: np.ndarray
-    value: float
-    value_clean: float
-    learner_loss: float
-    spectral_radius: float
-    spectral_radius_clean: float
-    delta_u: float
-    delta_y: float
-    wall_time: float
-    iterations: int
-    evaluations: int
-    history: list[dict[str, float]] = field(default_factory=list)
-    learner_stationarity: float = float("nan")
-    """Certificate: max |Phi'(t - Phi theta)| at the poisoned data over (1 + |Phi|_F |t|) (the learner's KKT)."""
-    refit_distance: float = float("nan")
-    """Certificate: |theta - theta_ref| / max(1, |theta|), theta_ref an independent SVD least-squares refit."""
-
-    @property
-    def certified(self) -> bool:
-        """The poisoned theta is the learner's answer to the poisoned data (both checks <= DEFAULT_TOL)."""
-        return self.learner_stationarity <= DEFAULT_TOL and self.refit_distance <= DEFAULT_TOL
-
-    @property
-    def unstable(self) -> bool:
-        """The true plant with the poisoned controller has a pole on or outside the unit circle."""
-        return self.spectral_radius >= 1.0
-
-    def summary(self) -> dict[str, Any]:
-        """Scalars only (for CSV rows and printing)."""
-        return {k: v for k, v in asdict(self).items() if not isinstance(v, (np.ndarray, list))} | {
-            "unstable": self.unstable, "certified": self.certified}
-
-    def save(self, path: str, atk: VRFTAttack) -> None:
-        """Write clean data, attack signals, clean/poisoned theta and closed-loop poles to an .npz file."""
-        loop = atk.setting.loop
-        np.savez(path, u=atk.u, y=atk.y, a_u=self.a_u, a_y=self.a_y, theta_clean=self.theta_clean,
-                 theta_poisoned=self.theta_poisoned, poles_clean=loop.poles(self.theta_clean),
-                 poles_poisoned=loop.poles(self.theta_poisoned), delta_u=self.delta_u, delta_y=self.delta_y,
-                 data_convention=atk.setting.data, boundary=atk.setting.boundary, method=self.method,
-                 objective=self.objective, value=self.value)
-
-
-def _result(atk: VRFTAttack, method: str, status: str, s: State, t0: float, iterations: int, evaluations: int,
-            history: list[dict[str, float]]) -> AttackResult:
-    wall_time = time.perf_counter() - t0
-    loop = atk.setting.loop
-    r = atk.t0 - atk.phi0 @ s.theta
+def _certificate(atk: VRFTAttack, s: State, tol: float = DEFAULT_TOL) -> Certificate:
+    """The learner's KKT at the poisoned data (stationarity max |Phi'(t - Phi theta)| over 1 + |Phi|_F |t|), an
+    independent SVD least-squares refit theta_ref (relative distance and loss gap) and the budgets."""
     stationarity = float(np.abs(s.phi.T @ (s.target - s.phi @ s.theta)).max()
                          / (1.0 + np.linalg.norm(s.phi) * np.linalg.norm(s.target)))
     refit = np.linalg.lstsq(s.phi, s.target, rcond=None)[0]  # SVD: independent of the attack's QR path
     distance = float(np.linalg.norm(s.theta - refit) / max(1.0, float(np.linalg.norm(s.theta))))
-    return AttackResult(method, atk.objective, status, s.a_u, s.a_y, atk.theta0, s.theta, atk.value(s.theta),
-                        atk.value(atk.theta0), float(r @ r / atk.n), loop.spectral_radius(s.theta),
-                        loop.spectral_radius(atk.theta0), atk.delta_u, atk.delta_y, wall_time,
-                        iterations, evaluations, history, stationarity, distance)
+    loss = lambda theta: float(np.sum((s.target - s.phi @ theta) ** 2) / atk.n)  # noqa: E731
+    gap = (loss(s.theta) - loss(refit)) / (1.0 + abs(loss(refit)))
+    over = [max(0.0, float(np.linalg.norm(a, b.order)) - r) / (1.0 + r)
+            for a, b, r in ((s.a_u, atk.budget_u, atk.delta_u), (s.a_y, atk.budget_y, atk.delta_y))]
+    checks = {"stationarity": stationarity, "lower_solution": distance, "lower_gap": gap,
+              "upper_feasibility": max(over)}
+    failed = tuple(k for k, v in checks.items() if not v <= tol)
+    return Certificate(stationarity, 0.0, 0.0, 0.0, max(over), gap, loss(refit), refit.tolist(),
+                       "numpy.linalg.lstsq (SVD)", tol, not failed, failed,
+                       "least-squares learner: stationarity of its normal equations at the poisoned data and an "
+                       "independent SVD refit (y_distance: relative distance to it)", lower_unique=True,
+                       y_distance=distance)
+
+
+def _result(atk: VRFTAttack, method: str, converged: bool | None, s: State, t0: float, iterations: int,
+            evaluations: int, history: list[dict[str, float]]) -> BilevelResult:
+    """The attack's outcome as a BilevelResult of its registered problem (vrft-<objective>): x = {a_u, a_y},
+    y = {theta}, objectives in the problem's sense, the certificate, and the VRFT quantities in stats.
+    converged None: a sample, not an optimization (its status is at best INACCURATE)."""
+    wall_time = time.perf_counter() - t0
+    cert = _certificate(atk, s)
+    if converged and cert.passed:
+        status, message = Status.SOLVED, "converged; certificate passed"
+    elif cert.passed:
+        status = Status.INACCURATE
+        message = ("a sample at the budget (a baseline, not an optimizer); certificate passed" if converged is None
+                   else "max_iter reached; certificate passed")
+    else:
+        status = Status.CERTIFICATE_FAILED if converged else Status.MAX_ITERATIONS
+        message = f"certificate failed on {cert.describe_failures()}"
+    loop, value = atk.setting.loop, atk.value(s.theta)
+    r = atk.t0 - atk.phi0 @ s.theta
+    stats = {"objective": atk.objective, "theta_clean": atk.theta0, "value_clean": atk.value(atk.theta0),
+             "spectral_radius": loop.spectral_radius(s.theta),
+             "spectral_radius_clean": loop.spectral_radius(atk.theta0),
+             "delta_u": atk.delta_u, "delta_y": atk.delta_y, "evaluations": evaluations}
+    return BilevelResult(status, message, method, f"vrft-{atk.objective}", {"a_u": s.a_u, "a_y": s.a_y},
+                         {"theta": s.theta}, {}, -value if atk.objective == "targeted" else value, float(r @ r / atk.n),
+                         cert, wall_time, iterations, tuple(history), (), stats)
+
+
+def attack_value(result: BilevelResult) -> float:
+    """The attacker's J at the poisoned theta in the attack's (maximization) sense: -distance for 'targeted'."""
+    return -result.upper_objective if result.stats["objective"] == "targeted" else result.upper_objective
+
+
+def unstable(result: BilevelResult) -> bool:
+    """The true plant with the poisoned controller has a pole on or outside the unit circle."""
+    return result.stats["spectral_radius"] >= 1.0
+
+
+def attack_summary(result: BilevelResult) -> dict[str, Any]:
+    """Scalars of a VRFT attack result, one row of the reproduction's tables and of the CLI's output."""
+    st, cert = result.stats, result.certificate
+    return {"method": result.method, "objective": st["objective"], "status": result.status.value,
+            "value": attack_value(result), "value_clean": st["value_clean"], "learner_loss": result.lower_objective,
+            "spectral_radius": st["spectral_radius"], "spectral_radius_clean": st["spectral_radius_clean"],
+            "delta_u": st["delta_u"], "delta_y": st["delta_y"], "wall_time": result.wall_time,
+            "iterations": result.nit, "evaluations": st["evaluations"], "learner_stationarity": cert.stationarity,
+            "refit_distance": cert.y_distance, "unstable": unstable(result), "certified": cert.passed}
+
+
+def save_attack(result: BilevelResult, atk: VRFTAttack, path: str) -> None:
+    """Write clean data, attack signals, clean/poisoned theta and closed-loop poles to an .npz file."""
+    loop, theta, theta0 = atk.setting.loop, result.y["theta"], result.stats["theta_clean"]
+    np.savez(path, u=atk.u, y=atk.y, a_u=result.x["a_u"], a_y=result.x["a_y"], theta_clean=theta0,
+             theta_poisoned=theta, poles_clean=loop.poles(theta0), poles_poisoned=loop.poles(theta),
+             delta_u=atk.delta_u, delta_y=atk.delta_y, data_convention=atk.setting.data,
+             boundary=atk.setting.boundary, method=result.method, objective=atk.objective, value=attack_value(result))
 
 
 def input_step(atk: VRFTAttack, a_y: np.ndarray, a_u0: np.ndarray | None = None, iters: int = 30) -> tuple[np.ndarray, State]:
@@ -163,7 +174,7 @@ def _start_points(atk: VRFTAttack, starts: int, rng: np.random.Generator, first:
 
 def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int = 60,
                        tol: float = 1e-4, first: str = "conditioning",
-                       steps: tuple[float, ...] = DEFAULT_STEPS, warm_start: np.ndarray | None = None) -> AttackResult:
+                       steps: tuple[float, ...] = DEFAULT_STEPS, warm_start: np.ndarray | None = None) -> BilevelResult:
     """The paper's Algorithm 1 with an exact a_u step and line-searched projected ascent on a_y.
 
     V(a_y) is multimodal: the first start makes the poisoned regressor ill-conditioned (see
@@ -199,10 +210,10 @@ def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter
             if best is None or fx > best[0]:
                 best = (fx, s, history, conv, k)
     fx, s, history, conv, k = best
-    return _result(atk, "alternating", "converged" if conv else "max_iter", s, t0, total_it, total_ev, history)
+    return _result(atk, "alternating", conv, s, t0, total_it, total_ev, history)
 
 
-def attack_budget_path(atk: VRFTAttack, eps_y: Sequence[float], **options: Any) -> list[AttackResult]:
+def attack_budget_path(atk: VRFTAttack, eps_y: Sequence[float], **options: Any) -> list[BilevelResult]:
     """attack_alternating at each output budget eps_y in increasing order (same data and a_u budget).
 
     From the second budget on, the previous budget's best a_y (feasible in the larger ball) is an extra
@@ -211,15 +222,15 @@ def attack_budget_path(atk: VRFTAttack, eps_y: Sequence[float], **options: Any) 
     """
     if atk.objective == "destabilize":
         raise ModelError("the budget path runs the alternating attack; 'destabilize' needs attack_joint")
-    results: list[AttackResult] = []
+    results: list[BilevelResult] = []
     for eps in sorted(eps_y):
         stage = dataclasses.replace(atk, budget_y=dataclasses.replace(atk.budget_y, eps=eps))
-        results.append(attack_alternating(stage, warm_start=results[-1].a_y if results else None, **options))
+        results.append(attack_alternating(stage, warm_start=results[-1].x["a_y"] if results else None, **options))
     return results
 
 
 def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int = 200,
-                 tol: float = 1e-4, first: str = "zero") -> AttackResult:
+                 tol: float = 1e-4, first: str = "zero") -> BilevelResult:
     """Joint projected hypergradient ascent on (a_u, a_y), each block scaled to its budget (multistart)."""
     t0 = time.perf_counter()
     N = atk.N
@@ -247,10 +258,10 @@ def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int 
             if best is None or fx > best[0]:
                 best = (fx, s, history, conv)
     fx, s, history, conv = best
-    return _result(atk, "joint", "converged" if conv else "max_iter", s, t0, total_it, total_ev, history)
+    return _result(atk, "joint", conv, s, t0, total_it, total_ev, history)
 
 
-def attack_white_noise(atk: VRFTAttack, seed: int = 0) -> AttackResult:
+def attack_white_noise(atk: VRFTAttack, seed: int = 0) -> BilevelResult:
     """White-noise poisoning on the budget boundary (the paper's random baseline)."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
@@ -259,10 +270,10 @@ def attack_white_noise(atk: VRFTAttack, seed: int = 0) -> AttackResult:
         z = rng.standard_normal(atk.N)
         signals.append(budget.projection(signal)(z * radius / max(np.linalg.norm(z, budget.order), 1e-300)))
     s = atk.state(*signals)
-    return _result(atk, "white-noise", "sampled", s, t0, 0, 1, [])
+    return _result(atk, "white-noise", None, s, t0, 0, 1, [])
 
 
-ATTACKS: dict[str, Callable[..., AttackResult]] = {
+ATTACKS: dict[str, Callable[..., BilevelResult]] = {
     "alternating": attack_alternating,
     "joint": attack_joint,
     "white-noise": attack_white_noise,

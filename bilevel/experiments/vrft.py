@@ -12,7 +12,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..attacks.vrft import CONVENTIONS, VRFTAttack, attack_instance
-from ..attacks.vrft_methods import ATTACKS, attack_budget_path
+from ..attacks.vrft_methods import ATTACKS, attack_budget_path, attack_summary
 from .stats import mean_interval, wilson_interval
 from .executor import open_executor
 from .sweep import load_timings, record_timing, run_sweep, settings_of, stderr_progress
@@ -44,10 +44,10 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
     """Run one attack (or a budget path: a list of cells in increasing eps_y); rows keep scalars and theta."""
     if task["method"] == "path":
         atk = make_attack({**task, "eps_y": task["eps_y"][0]})
-        return {"cells": [{**r.summary(), "eps_y": eps, "theta_poisoned": r.theta_poisoned.tolist()}
+        return {"cells": [{**attack_summary(r), "eps_y": eps, "theta_poisoned": r.y["theta"].tolist()}
                           for eps, r in zip(task["eps_y"], attack_budget_path(atk, task["eps_y"], seed=task["seed"]))]}
     res = ATTACKS[task["method"]](make_attack(task), seed=task["seed"])
-    return {**res.summary(), "theta_poisoned": res.theta_poisoned.tolist()}
+    return {**attack_summary(res), "theta_poisoned": res.y["theta"].tolist()}
 
 
 def cell_tasks(sims: int, seed: int, convention: str, objective: str, method: str,

@@ -38,7 +38,7 @@ def figure_data(seed: int, out_dir: str) -> str:
     atk, res = _instance("B", "maxmin", seed)
     fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
     t = np.arange(atk.N)
-    for ax, clean, a, name in ((axes[0], atk.u, res.a_u, "u"), (axes[1], atk.y, res.a_y, "y")):
+    for ax, clean, a, name in ((axes[0], atk.u, res.x["a_u"], "u"), (axes[1], atk.y, res.x["a_y"], "y")):
         ax.plot(t, clean, lw=0.8, label=f"{name} (clean)")
         ax.plot(t, clean + a, lw=0.8, alpha=0.8, label=f"{name} + a_{name} (poisoned)")
         ax.set_ylabel(name)
@@ -90,7 +90,7 @@ def figure_steps(seed: int, out_dir: str) -> str:
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, scenario in zip(axes, ("A", "B")):
         atk, res = _instance(scenario, "maxmin", seed)
-        _step_axes(ax, atk, {"clean": atk.theta0, "poisoned": res.theta_poisoned})
+        _step_axes(ax, atk, {"clean": atk.theta0, "poisoned": res.y["theta"]})
         ax.set_title(f"Scenario {scenario}")
     return _save(fig, out_dir, "fig3b_step")
 
@@ -101,7 +101,7 @@ def figure_targeted(seed: int, out_dir: str) -> tuple[str, str]:
     fig_b, axes_b = plt.subplots(1, 2, figsize=(10, 4))
     for ax, axb, scenario in zip(axes, axes_b, ("A", "B")):
         atk, res = _instance(scenario, "targeted", seed)
-        thetas = {"clean": atk.theta0, "poisoned": res.theta_poisoned, "target 3 theta_0": 3 * PAPER_THETA0}
+        thetas = {"clean": atk.theta0, "poisoned": res.y["theta"], "target 3 theta_0": 3 * PAPER_THETA0}
         _step_axes(ax, atk, thetas)
         ax.set_title(f"Targeted, scenario {scenario}")
         setting = atk.setting

@@ -16,8 +16,8 @@ from bilevel.attacks.budget import Budget
 from bilevel.solvers.trust_region import maximize_quadratic_on_ball
 from bilevel.attacks.spectral import arx_orders_for
 from bilevel.attacks.vrft import CONVENTIONS, VRFTAttack, VRFTSetting, attack_instance
-from bilevel.attacks.vrft_methods import (attack_alternating, attack_budget_path, attack_joint, attack_white_noise,
-                                         input_step)
+from bilevel.attacks.vrft_methods import (attack_alternating, attack_budget_path, attack_joint, attack_summary,
+                                         attack_value, attack_white_noise, input_step, unstable)
 from bilevel.solvers.ascent import projected_ascent
 from bilevel.solvers.projections import NormBall
 from bilevel.ddc import pid_basis, simulate, white_noise
@@ -34,10 +34,10 @@ def test_poisoned_theta_equals_independent_vrft_fit(convention: str, objective: 
     atk = attack_instance(objective, "B", 0.1, 0.057, seed=3, N=256, convention=convention)
     res = (attack_joint if objective == "destabilize" else attack_alternating)(atk, max_iter=15)
     s = atk.setting
-    fit = fit_vrft(atk.u + res.a_u, atk.y + res.a_y, s.reference, s.basis,
+    fit = fit_vrft(atk.u + res.x["a_u"], atk.y + res.x["a_y"], s.reference, s.basis,
                    prefilter=None if s.data == "prefiltered" else s.prefilter, boundary=s.boundary)
-    np.testing.assert_allclose(res.theta_poisoned, fit.theta, rtol=1e-9, atol=1e-10)
-    np.testing.assert_allclose(res.theta_clean, fit_vrft(atk.u, atk.y, s.reference, s.basis,
+    np.testing.assert_allclose(res.y["theta"], fit.theta, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(res.stats["theta_clean"], fit_vrft(atk.u, atk.y, s.reference, s.basis,
                                                          prefilter=None if s.data == "prefiltered" else s.prefilter,
                                                          boundary=s.boundary).theta, rtol=1e-9, atol=1e-10)
 
@@ -56,11 +56,11 @@ def test_budgets_are_respected(eps_u, eps_y, norm, rho, seed, method) -> None:
           "white-noise": lambda a: attack_white_noise(a, seed)}[method]
     res = fn(atk)
     order = atk.budget_u.order
-    assert np.linalg.norm(res.a_u, order) <= atk.delta_u + 1e-9
-    assert np.linalg.norm(res.a_y, order) <= atk.delta_y + 1e-9
+    assert np.linalg.norm(res.x["a_u"], order) <= atk.delta_u + 1e-9
+    assert np.linalg.norm(res.x["a_y"], order) <= atk.delta_y + 1e-9
     if rho is not None:
-        assert np.count_nonzero(res.a_u) <= int(np.floor(rho * atk.N))
-        assert np.count_nonzero(res.a_y) <= int(np.floor(rho * atk.N))
+        assert np.count_nonzero(res.x["a_u"]) <= int(np.floor(rho * atk.N))
+        assert np.count_nonzero(res.x["a_y"]) <= int(np.floor(rho * atk.N))
 
 
 @settings(max_examples=200, deadline=None)
@@ -117,12 +117,12 @@ def test_budget_path_is_monotone_and_no_weaker_than_single_attacks(scenario: str
     grid = (0.01, 0.023, 0.037, 0.05, 0.057)
     atk = attack_instance("maxmin", scenario, 0.2, grid[0], seed=0, N=256)
     path = attack_budget_path(atk, grid, max_iter=30)
-    values = [r.value for r in path]
+    values = [attack_value(r) for r in path]
     assert all(b >= a * (1 - 1e-12) for a, b in zip(values, values[1:]))
     for eps, r in zip(grid, path):
         single = attack_alternating(attack_instance("maxmin", scenario, 0.2, eps, seed=0, N=256), max_iter=30)
-        assert r.value >= single.value * (1 - 1e-12)
-        assert np.linalg.norm(r.a_y) <= eps * np.linalg.norm(atk.y) * (1 + 1e-9)
+        assert attack_value(r) >= attack_value(single) * (1 - 1e-12)
+        assert np.linalg.norm(r.x["a_y"]) <= eps * np.linalg.norm(atk.y) * (1 + 1e-9)
 
 
 def test_exact_input_step_beats_random_feasible_inputs() -> None:
@@ -138,14 +138,14 @@ def test_exact_input_step_beats_random_feasible_inputs() -> None:
 def test_attack_is_stronger_than_white_noise() -> None:
     for seed in range(3):
         atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=seed, N=512)
-        assert attack_alternating(atk).value > 2 * attack_white_noise(atk, seed).value
+        assert attack_alternating(atk).upper_objective > 2 * attack_white_noise(atk, seed).upper_objective
 
 
 def test_destabilizing_attack_destabilizes_true_loop() -> None:
     """Measured: the ARX-model attack at (0.2, 0.057) destabilizes the true flexible transmission loop."""
-    unstable = [attack_joint(attack_instance("destabilize", "B", 0.2, 0.057, seed=s, N=512)).unstable
+    verdicts = [unstable(attack_joint(attack_instance("destabilize", "B", 0.2, 0.057, seed=s, N=512)))
                 for s in range(4)]
-    assert sum(unstable) >= 3
+    assert sum(verdicts) >= 3
 
 
 def test_kkt_formulation_certificate_passes() -> None:
@@ -190,7 +190,7 @@ def test_large_attack_runs_in_linear_memory() -> None:
     res = attack_alternating(atk, max_iter=10)
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
-    assert np.isfinite(res.value) and peak < 400 * n * 8  # a dense N x N would need 4000x more
+    assert np.isfinite(res.upper_objective) and peak < 400 * n * 8  # a dense N x N would need 4000x more
 
 
 def test_quick_reproduction_end_to_end_and_resumes(tmp_path) -> None:
@@ -240,11 +240,15 @@ def test_attack_results_carry_a_learner_certificate(objective: str) -> None:
 
     atk = attack_instance(objective, "B", 0.1, 0.057, seed=0, N=256)
     res = (attack_joint if objective == "destabilize" else attack_alternating)(atk)
-    assert res.certified and res.learner_stationarity < 1e-12 and res.refit_distance < 1e-12
-    assert res.summary()["certified"] is True
-    s = atk.state(res.a_u, res.a_y)
-    wrong = _result(atk, "tampered", "converged", dataclasses.replace(s, theta=s.theta + 1e-4), 0.0, 0, 0, [])
-    assert not wrong.certified and wrong.refit_distance > 1e-5 and wrong.learner_stationarity > 1e-7
+    cert = res.certificate
+    assert cert.passed and cert.stationarity < 1e-12 and cert.y_distance < 1e-12 and cert.upper_feasibility < 1e-12
+    assert res.status in (bl.Status.SOLVED, bl.Status.INACCURATE) and attack_summary(res)["certified"] is True
+    np.testing.assert_allclose(cert.lower_reference_y, res.y["theta"], rtol=1e-10)
+    s = atk.state(res.x["a_u"], res.x["a_y"])
+    wrong = _result(atk, "tampered", True, dataclasses.replace(s, theta=s.theta + 1e-4), 0.0, 0, 0, [])
+    assert not wrong.certificate.passed and wrong.status is bl.Status.CERTIFICATE_FAILED
+    assert {"stationarity", "lower_solution"} <= set(wrong.certificate.failed)
+    assert wrong.certificate.y_distance > 1e-5 and wrong.certificate.stationarity > 1e-7
 
 
 def _resonant_attack_data(n: int = 512) -> tuple[VRFTSetting, np.ndarray, np.ndarray]:
@@ -262,7 +266,7 @@ def test_float_budgets_mean_l2_budgets_and_other_types_are_refused() -> None:
     plain = VRFTAttack(atk.setting, atk.u, atk.y, 0.1, 0.057)
     assert plain.budget_u == Budget(0.1) and plain.budget_y == Budget(0.057)
     assert plain.delta_u == atk.delta_u and plain.delta_y == atk.delta_y
-    assert attack_alternating(plain).value == attack_alternating(atk).value
+    assert attack_alternating(plain).upper_objective == attack_alternating(atk).upper_objective
     with pytest.raises(ModelError, match=r"Budget\(eps\)"):
         VRFTAttack(atk.setting, atk.u, atk.y, "0.1", 0.057)
     with pytest.raises(ModelError, match="Budget or a number"):
@@ -278,6 +282,7 @@ def test_destabilize_orders_are_named_in_the_error_and_chosen_from_the_data() ->
     assert arx_orders_for(u, y) == (2, 2, 1)
     atk = VRFTAttack(setting, u, y, 0.1, 0.05, objective="destabilize", arx_orders=(2, 2, 1))
     res = attack_joint(atk)
-    assert res.value > res.value_clean and res.spectral_radius > res.spectral_radius_clean
+    assert attack_value(res) > res.stats["value_clean"]
+    assert res.stats["spectral_radius"] > res.stats["spectral_radius_clean"]
     u_ft = white_noise(512, np.random.default_rng(1))
     assert arx_orders_for(u_ft, simulate(bl.ddc.flexible_transmission(), u_ft)) == (4, 2, 3)

@@ -109,7 +109,7 @@ def _vrft_from_scratch(seed: int, N: int = 64) -> tuple[bl.BilevelProblem, float
     p.upper_constraint(ca.sumsqr(a_y) <= atk.delta_y ** 2)
     p.maximize_upper(ca.sumsqr(ca.DM(atk.t0) - ca.mtimes(ca.DM(atk.phi0), theta)) / rows)
     p.suggest_start(a_y=conditioning_start(atk))
-    return p, attack_alternating(atk).value
+    return p, attack_alternating(atk).upper_objective
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
