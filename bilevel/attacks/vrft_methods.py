@@ -15,6 +15,7 @@ import dataclasses
 import time
 from typing import Any, Callable, Sequence
 
+import casadi as ca
 import numpy as np
 
 from ..certificate import DEFAULT_TOL, Certificate
@@ -66,18 +67,32 @@ def _result(atk: VRFTAttack, method: str, converged: bool | None, s: State, t0: 
         message = f"certificate failed on {cert.describe_failures()}"
     loop, value = atk.setting.loop, atk.value(s.theta)
     r = atk.t0 - atk.phi0 @ s.theta
-    stats = {"objective": atk.objective, "theta_clean": atk.theta0, "value_clean": atk.value(atk.theta0),
+    stats = {"objective": atk.objective, "value": value, "theta_clean": atk.theta0,
+             "value_clean": atk.value(atk.theta0),
              "spectral_radius": loop.spectral_radius(s.theta),
              "spectral_radius_clean": loop.spectral_radius(atk.theta0),
              "delta_u": atk.delta_u, "delta_y": atk.delta_y, "evaluations": evaluations}
     return BilevelResult(status, message, method, f"vrft-{atk.objective}", {"a_u": s.a_u, "a_y": s.a_y},
-                         {"theta": s.theta}, {}, -value if atk.objective == "targeted" else value, float(r @ r / atk.n),
+                         {"theta": s.theta}, {}, _registered_objective(atk, s.theta, value), float(r @ r / atk.n),
                          cert, wall_time, iterations, tuple(history), (), stats)
 
 
+def _registered_objective(atk: VRFTAttack, theta: np.ndarray, value: float) -> float:
+    """F of the registered problem vrft-<objective> at theta (the attack's own criterion is `value`): the same for
+    max-min, its negative for 'targeted' (a minimization there), the Gelfand radius for 'destabilize' (the attack
+    ascends a log-sum-exp of the pole moduli instead)."""
+    if atk.objective == "destabilize":
+        from ..problems.vrft import gelfand_radius  # problems.vrft imports this module
+
+        loop = atk.model_loop
+        return float(gelfand_radius(loop.base, loop.slopes, ca.DM(theta)))
+    return -value if atk.objective == "targeted" else value
+
+
 def attack_value(result: BilevelResult) -> float:
-    """The attacker's J at the poisoned theta in the attack's (maximization) sense: -distance for 'targeted'."""
-    return -result.upper_objective if result.stats["objective"] == "targeted" else result.upper_objective
+    """The attack's own criterion at the poisoned theta (maximized): -distance for 'targeted', the log-sum-exp
+    of the modelled poles for 'destabilize'; upper_objective is the registered problem's F."""
+    return result.stats["value"]
 
 
 def unstable(result: BilevelResult) -> bool:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import tracemalloc
 
+import casadi as ca
 import control
 import numpy as np
 import pytest
@@ -286,3 +287,20 @@ def test_destabilize_orders_are_named_in_the_error_and_chosen_from_the_data() ->
     assert res.stats["spectral_radius"] > res.stats["spectral_radius_clean"]
     u_ft = white_noise(512, np.random.default_rng(1))
     assert arx_orders_for(u_ft, simulate(bl.ddc.flexible_transmission(), u_ft)) == (4, 2, 3)
+
+
+@pytest.mark.parametrize("objective", ["maxmin", "targeted", "destabilize"])
+def test_attack_result_is_the_registered_problems_result(objective: str) -> None:
+    """The structured attack answers the registered vrft-<objective> problem: the same variable names, and its
+    upper_objective is that problem's F at the attack's point (the generic methods' sense), whatever criterion
+    the attack itself ascends (attack_value)."""
+    atk = attack_instance(objective, "B", 0.2, 0.057, seed=1, N=128)
+    res = (attack_joint if objective == "destabilize" else attack_alternating)(atk, max_iter=10)
+    problem = attack_problem(atk)
+    assert res.problem == problem.name and set(res.x) == {"a_u", "a_y"} and set(res.y) == {"theta"}
+    F = problem.upper_objective.expr
+    syms = ca.vertcat(*[v.sym for v in problem.upper_variables], *[v.sym for v in problem.lower_variables],
+                      problem.parameters.sym)
+    at = np.concatenate([res.x["a_u"], res.x["a_y"], res.y["theta"], problem.parameters.value])
+    assert res.upper_objective == pytest.approx(float(ca.evalf(ca.substitute(F, syms, ca.DM(at)))), rel=1e-9)
+    assert attack_value(res) == pytest.approx(atk.value(res.y["theta"]), rel=1e-12)
