@@ -17,7 +17,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from bilevel.attacks.willems import AttackResult, de_attack, hypergradient_attack, kkt_attack
+from bilevel.attacks.outcome import unstable
+from bilevel.attacks.willems import de_attack, hypergradient_attack, kkt_attack
+from bilevel.result import BilevelResult
 from bilevel.experiments.executor import LocalExecutor
 from bilevel.experiments.sweep import run_sweep
 from bilevel.experiments.willems import attack_task, make_plan, paper_tasks, sim_seeds
@@ -30,10 +32,10 @@ PAPER_SIMS = 256
 WORKERS = 2
 
 
-def time_attacks(horizon: int, stop: bool) -> dict[str, list[AttackResult]]:
+def time_attacks(horizon: int, stop: bool) -> dict[str, list[BilevelResult]]:
     """Our attack and DE (sweep settings) on the same INSTANCES instances of length `horizon`."""
-    methods: dict[str, Callable[..., AttackResult]] = {"ours": hypergradient_attack, "de": de_attack}
-    out: dict[str, list[AttackResult]] = {name: [] for name in methods}
+    methods: dict[str, Callable[..., BilevelResult]] = {"ours": hypergradient_attack, "de": de_attack}
+    out: dict[str, list[BilevelResult]] = {name: [] for name in methods}
     for data_seed, attack_seed in sim_seeds(0, INSTANCES):
         attack = build_attack(horizon=horizon, seed=data_seed, delta_u=DELTA_U)
         for name, fn in methods.items():
@@ -50,8 +52,8 @@ def attack_table() -> None:
         for stop in (False, True):
             res = time_attacks(horizon, stop)
             t = {k: statistics.median(r.wall_time for r in v) for k, v in res.items()}
-            crit = {k: float(np.mean([r.objective for r in v])) for k, v in res.items()}
-            unst = {k: sum(r.unstable for r in v) for k, v in res.items()}
+            crit = {k: float(np.mean([r.upper_objective for r in v])) for k, v in res.items()}
+            unst = {k: sum(unstable(r) for r in v) for k, v in res.items()}
             print(f"{horizon:>3} {str(stop):>19} {t['ours']:>9.3f} {t['de']:>8.3f} {t['de'] / t['ours']:>8.1f}"
                   f" {crit['ours']:>10.4f} {crit['de']:>9.4f} {unst['ours']:>9} {unst['de']:>8}")
 
@@ -62,12 +64,13 @@ def kkt_table() -> None:
     attack = build_attack(horizon=15, seed=data_seed, delta_u=DELTA_U)
     ours = hypergradient_attack(attack, seed=attack_seed, stop_when_unstable=False)
     print(f"\nGeneric KKT route at N = 15 (one start) vs ours to convergence ({ours.wall_time:.3f} s, "
-          f"criterion {ours.objective:.6f})")
+          f"criterion {ours.upper_objective:.6f})")
     for method in ("ipopt", "relaxation"):
         res = kkt_attack(attack, method=method, starts=1, seed=attack_seed)
         print(f"  {method:>10}: {res.wall_time:7.2f} s ({res.wall_time / ours.wall_time:6.1f} x ours), status "
-              f"{res.details['status']}, certificate {'passed' if res.details['certificate_passed'] else 'failed'},"
-              f" criterion {res.objective:.6f}")
+              f"{res.stats['details']['status']}, certificate "
+              f"{'passed' if res.stats['details']['certificate_passed'] else 'failed'},"
+              f" criterion {res.upper_objective:.6f}")
 
 
 def sweep_fraction() -> None:

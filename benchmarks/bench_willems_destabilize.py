@@ -94,9 +94,9 @@ def main() -> None:
                 base.append(baseline(attack, attack_seed))
                 t_base += time.perf_counter() - t1
                 t_ours += t1 - t0
-                ours.append(res.spectral_radius)
-                smooth.append(max(r["smooth_radius"] or 0.0 for r in res.details["starts"]))
-                kept.append((attack, res.x))
+                ours.append(res.stats["spectral_radius"])
+                smooth.append(max(r["smooth_radius"] or 0.0 for r in res.stats["details"]["starts"]))
+                kept.append((attack, res.stats["x"]))
             xs[selection, delta] = kept
             o, b, sm = np.array(ours), np.array(base), np.array(smooth)
             print(f"{selection:>9} {delta:>7} {int((o >= 1).sum()):>9} {int((b >= 1).sum()):>9} "

@@ -99,7 +99,7 @@ def _cmd_willems_destabilize(args: argparse.Namespace) -> int:
     """willems-destabilize without a generic --method: the structured attack (largest spectral radius reached)."""
     import dataclasses
 
-    from .attacks.willems import destabilize_attack
+    from .attacks.willems import destabilize_attack, willems_row
     from .problems.willems import WillemsSetting, build_attack
 
     if args.option:
@@ -111,15 +111,16 @@ def _cmd_willems_destabilize(args: argparse.Namespace) -> int:
         raise ModelError(f"--param {', '.join(unknown)}: willems-destabilize takes {', '.join(allowed)}")
     attack = build_attack(WillemsSetting(objective="destabilize", **params))
     result = destabilize_attack(attack, starts=16 if args.starts is None else args.starts, seed=args.seed)
-    summary = {"spectral_radius": result.spectral_radius, "unstable": result.unstable,
-               "identified_radius": result.details["identified_radius"], "wall_time": result.wall_time,
-               "budget_violation": result.budget_violation, "message": result.message}
+    row = willems_row(result)
+    summary = {"status": result.status.value, "spectral_radius": row["spectral_radius"], "unstable": row["unstable"],
+               "identified_radius": result.stats["identified_radius"], "wall_time": result.wall_time,
+               "budget_violation": row["budget_violation"], "message": result.message}
     for key, value in summary.items():
         print(f"{key:>18}: {value}")
-    print(f"{'gain':>18}: {np.array2string(result.gain, precision=5)}")
+    print(f"{'gain':>18}: {np.array2string(result.stats['gain'], precision=5)}")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump({"problem": args.problem, "setting": dataclasses.asdict(attack.setting), **result.to_dict()},
+            json.dump({"problem": args.problem, "setting": dataclasses.asdict(attack.setting), **row},
                       fh, indent=2)
         print(f"wrote {args.json}")
     return 0

@@ -27,6 +27,15 @@ class Status(str, Enum):
     INFEASIBLE = "infeasible"                  # backend found the single-level problem infeasible
     ERROR = "error"                            # backend failed without a usable point
 
+    @classmethod
+    def of_run(cls, converged: bool | None, certified: bool) -> "Status":
+        """A run's status: SOLVED only when it converged and its certificate passed; INACCURATE when certified but
+        stopped short (converged False) or not an optimizer's end point (None: a sample, a heuristic, a stop at
+        the caller's goal); CERTIFICATE_FAILED when it converged uncertified; MAX_ITERATIONS otherwise."""
+        if certified:
+            return cls.SOLVED if converged else cls.INACCURATE
+        return cls.CERTIFICATE_FAILED if converged else cls.MAX_ITERATIONS
+
 
 @dataclass(frozen=True)
 class BilevelResult:

@@ -19,5 +19,6 @@ def run_page(name: str) -> dict:
     with contextlib.redirect_stdout(out):
         exec(compile(code, str(page), "exec"), namespace)
     promised = [line.split("#", 1)[1].strip() for line in code.splitlines() if line.startswith("print(")]
-    assert out.getvalue().splitlines() == promised
+    printed = out.getvalue().splitlines()
+    assert printed == promised, f"{name} printed {printed}, the page promises {promised}"
     return namespace

@@ -10,8 +10,9 @@ vrft-<objective> (x: a_u, a_y; y: theta; its certificate; the VRFT quantities in
 from .budget import Budget
 from .spectral import LoopPolynomial, arx_orders_for, fit_arx
 from .vrft import PAPER_THETA0, VRFTAttack, VRFTSetting, attack_instance, flexible_transmission_setting
+from .outcome import unstable
 from .vrft_methods import (ATTACKS, attack_alternating, attack_budget_path, attack_joint, attack_summary,
-                           attack_value, attack_white_noise, save_attack, unstable)
+                           attack_value, attack_white_noise, save_attack)
 
 __all__ = [
     "ATTACKS", "Budget", "LoopPolynomial", "PAPER_THETA0", "VRFTAttack", "VRFTSetting",

@@ -22,6 +22,7 @@ from ..certificate import DEFAULT_TOL, Certificate
 from ..errors import ModelError
 from ..result import BilevelResult, Status
 from ..solvers.ascent import budget_direction, projected_ascent
+from .outcome import unstable
 from ..threads import single_threaded
 from .vrft import State, VRFTAttack
 
@@ -56,15 +57,10 @@ def _result(atk: VRFTAttack, method: str, converged: bool | None, s: State, t0: 
     converged None: a sample, not an optimization (its status is at best INACCURATE)."""
     wall_time = time.perf_counter() - t0
     cert = _certificate(atk, s)
-    if converged and cert.passed:
-        status, message = Status.SOLVED, "converged; certificate passed"
-    elif cert.passed:
-        status = Status.INACCURATE
-        message = ("a sample at the budget (a baseline, not an optimizer); certificate passed" if converged is None
-                   else "max_iter reached; certificate passed")
-    else:
-        status = Status.CERTIFICATE_FAILED if converged else Status.MAX_ITERATIONS
-        message = f"certificate failed on {cert.describe_failures()}"
+    status = Status.of_run(converged, cert.passed)
+    message = ("a sample at the budget (a baseline, not an optimizer)" if converged is None else
+               "converged" if converged else "max_iter reached")
+    message += "; certificate passed" if cert.passed else f"; certificate failed on {cert.describe_failures()}"
     loop, value = atk.setting.loop, atk.value(s.theta)
     r = atk.t0 - atk.phi0 @ s.theta
     stats = {"objective": atk.objective, "value": value, "theta_clean": atk.theta0,
@@ -93,11 +89,6 @@ def attack_value(result: BilevelResult) -> float:
     """The attack's own criterion at the poisoned theta (maximized): -distance for 'targeted', the log-sum-exp
     of the modelled poles for 'destabilize'; upper_objective is the registered problem's F."""
     return result.stats["value"]
-
-
-def unstable(result: BilevelResult) -> bool:
-    """The true plant with the poisoned controller has a pole on or outside the unit circle."""
-    return result.stats["spectral_radius"] >= 1.0
 
 
 def attack_summary(result: BilevelResult) -> dict[str, Any]:

@@ -37,7 +37,7 @@ from __future__ import annotations
 import dataclasses
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable, Literal
 
 import casadi as ca
@@ -46,18 +46,23 @@ import scipy.optimize
 
 from ..ddc.depersis_tesi import lqr_controller, min_norm_q, stabilizing_controller
 from ..ddc.plants import batch_reactor
+from ..certificate import DEFAULT_TOL, Certificate
 from ..errors import BilevelError, ModelError, SolverFailed
 from ..lower import LowerSolution, build_lower
 from ..lower.sdp import solve_square
 from ..lower.quadratic import clarabel_solution
 from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, WillemsSetting, build_attack, criterion_values
 from ..sampling import sample_in_bounds
+from ..result import BilevelResult, Status
 from ..solvers import solve
 from ..solvers.ascent import budget_direction, projected_ascent
 from ..solvers.projections import Box
 from ..threads import single_threaded_call
+from .outcome import unstable
 
 KKT_TOL = 1e-6
+GOAL = "identified closed loop unstable (the attacker's goal: a stop, not a local maximum)"
+CONVERGED = "relative increase <= ftol, or no ascent along the projection arc"
 TIE_RTOL = 1e-6
 UNSTABLE_PENALTY = 1e12
 """Finite stand-in for phi = +inf handed to differential evolution (which cannot rank infinities)."""
@@ -212,52 +217,66 @@ class SDPHypergradient:
         return criterion_values(at.a_id + at.b_id @ gains, gains, at.setting.objective, at.qx, at.cost_weight)
 
 
-@dataclass
-class AttackResult:
-    """An attack's poisoning and its effect: gain learned from the poisoned data, objective, true closed loop."""
-
-    method: str
-    x: np.ndarray
-    objective: float
-    gain: np.ndarray
-    eigenvalues: np.ndarray
-    wall_time: float
-    evaluations: int
-    iterations: int
-    message: str
-    budget_violation: float
-    kkt_residual: float
-    details: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def spectral_radius(self) -> float:
-        """max |eig(A + B K)| of the true batch reactor under the learned gain."""
-        return float(np.max(np.abs(self.eigenvalues)))
-
-    @property
-    def unstable(self) -> bool:
-        return self.spectral_radius >= 1.0
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready summary (objective inf for an unstable max-min loop; eigenvalues as [re, im]; kkt_residual
-        None for the solver's own selection)."""
-        return {"method": self.method, "objective": self.objective, "spectral_radius": self.spectral_radius,
-                "eig_abs_sum": float(np.sum(np.abs(self.eigenvalues))), "unstable": self.unstable,
-                "gain": self.gain.tolist(), "eigenvalues": [[float(v.real), float(v.imag)] for v in self.eigenvalues],
-                "wall_time": self.wall_time, "evaluations": self.evaluations, "iterations": self.iterations,
-                "message": self.message, "budget_violation": self.budget_violation,
-                "kkt_residual": None if np.isnan(self.kkt_residual) else self.kkt_residual, "x": self.x.tolist(),
-                "details": self.details}
+def _certificate(oracle: SDPHypergradient, x: np.ndarray, ev: Evaluation) -> Certificate:
+    """The learner's KKT residual at the poisoned data (its own solve, Newton-polished; not checked for the solver's
+    own Q, which is by definition that solver's answer) and the budget; no independent re-solve (lower_gap NaN)."""
+    at = oracle.attack
+    own = at.setting.selection in SOLVER_SELECTIONS
+    bound = at.budget()
+    violation = float(np.max(np.maximum(np.abs(x) - bound, 0.0), initial=0.0))
+    failed = tuple(k for k, bad in (("stationarity", not own and not ev.kkt_residual <= KKT_TOL),
+                                    ("upper_feasibility", violation > DEFAULT_TOL)) if bad)
+    note = ("the learner is the SDP solver's own answer (selection " + at.setting.selection + "): no KKT check"
+            if own else "KKT residual of the learner's SDP at the poisoned data (cvxpy + Clarabel, Newton-polished, "
+            f"selection {at.setting.selection}); no independent re-solve")
+    return Certificate(np.nan if own else ev.kkt_residual, 0.0, 0.0, 0.0, violation, np.nan, np.nan,
+                       ev.lower.y.tolist(), "cvxpy + Clarabel", KKT_TOL, not failed, failed, note, y_distance=np.nan)
 
 
 def _result(oracle: SDPHypergradient, method: str, x: np.ndarray, t0: float, evaluations: int, iterations: int,
-            message: str, details: dict[str, Any] | None = None) -> AttackResult:
+            message: str, converged: bool | None, details: dict[str, Any] | None = None) -> BilevelResult:
+    """The attack's outcome as a BilevelResult of its registered problem willems-<objective>: x = {Du, Dx}, the
+    learner's variables in y, upper_objective the criterion (+inf where the identified loop is unstable for the
+    max-min criterion, the paper's convention), the certificate, and the gain and true closed loop in stats.
+    converged: True at a converged ascent, False at max_iter, None for a heuristic, a sample or a stop at the
+    attacker's goal (never SOLVED)."""
+    at = oracle.attack
+    x = np.asarray(x, dtype=float)
     ev = oracle.evaluate(x)
-    plant = batch_reactor()
-    eig = np.linalg.eigvals(plant.A + plant.B @ ev.gain)
-    violation = float(np.max(np.maximum(np.abs(x) - oracle.attack.budget(), 0.0), initial=0.0))
-    return AttackResult(method, np.asarray(x, dtype=float), ev.phi, ev.gain, eig, time.perf_counter() - t0,
-                        evaluations, iterations, message, violation, ev.kkt_residual, dict(details or {}))
+    eig = np.linalg.eigvals(batch_reactor().A + batch_reactor().B @ ev.gain)
+    cert = _certificate(oracle, x, ev)
+    m, t = at.u.shape
+    upper = {"Du": x[: m * t].reshape((m, t), order="F")}
+    if at.dx is not None:
+        upper["Dx"] = x[m * t:].reshape((at.n_states, -1), order="F")
+    lower, start = {}, 0
+    for v in at.problem.lower_variables:
+        size = int(v.sym.numel())
+        lower[v.name] = ev.lower.y[start:start + size].reshape(v.sym.shape, order="F")
+        start += size
+    stats = {"objective": at.setting.objective, "x": x, "gain": ev.gain, "eigenvalues": eig,
+             "spectral_radius": float(np.max(np.abs(eig))), "identified_radius": ev.identified_radius,
+             "evaluations": evaluations, "budget_violation": cert.upper_feasibility, "kkt_residual": ev.kkt_residual,
+             "details": dict(details or {})}
+    status = Status.of_run(converged, cert.passed)
+    message += "; certificate passed" if cert.passed else f"; certificate failed on {cert.describe_failures()}"
+    return BilevelResult(status, message, method, at.problem.name, upper, lower, {}, ev.phi, ev.lower.objective, cert,
+                         time.perf_counter() - t0, iterations, (), (), stats)
+
+
+def willems_row(result: BilevelResult) -> dict[str, Any]:
+    """JSON-ready summary, one row of the reproduction (objective inf for an unstable max-min loop; eigenvalues as
+    [re, im]; kkt_residual None for the solver's own selection)."""
+    st = result.stats
+    eig = st["eigenvalues"]
+    return {"method": result.method, "status": result.status.value, "objective": result.upper_objective,
+            "spectral_radius": st["spectral_radius"], "eig_abs_sum": float(np.sum(np.abs(eig))),
+            "unstable": unstable(result), "gain": st["gain"].tolist(),
+            "eigenvalues": [[float(v.real), float(v.imag)] for v in eig], "wall_time": result.wall_time,
+            "evaluations": st["evaluations"], "iterations": result.nit, "message": result.message,
+            "budget_violation": st["budget_violation"],
+            "kkt_residual": None if np.isnan(st["kkt_residual"]) else st["kkt_residual"], "x": st["x"].tolist(),
+            "details": st["details"]}
 
 
 def _seed(seed: int | np.random.SeedSequence | np.random.Generator | None) -> np.random.Generator:
@@ -277,7 +296,7 @@ def _ascent_setup(attack: WillemsAttack, oracle: "SDPHypergradient | None", seed
 
 def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, max_iter: int = 300,
                          ftol: float = 1e-10, stop_when_unstable: bool = True,
-                         oracle: SDPHypergradient | None = None) -> AttackResult:
+                         oracle: SDPHypergradient | None = None) -> BilevelResult:
     """Multistart projected hypergradient ascent on the poisoning (start 0: clean data; others uniform in the box).
 
     With stop_when_unstable the attacker stops once its identified closed loop is unstable (its goal) and
@@ -297,9 +316,7 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, 
         if ev is None:
             records.append({"start": k, "status": "error", "message": path.error})
             continue
-        reason = ("identified closed loop unstable" if goal(ev) else
-                  "relative increase <= ftol, or no ascent along the projection arc" if converged else
-                  "max_iter reached")
+        reason = GOAL if goal(ev) else CONVERGED if converged else "max_iter reached"
         records.append({"start": k, "objective": ev.phi, "iterations": it, "message": reason,
                         "identified_radius": ev.identified_radius})
         finished.append((ev, k, reason))
@@ -310,6 +327,7 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, 
                            f"({records[-1]['message']})")
     ev, k, reason = _select(finished, stop_when_unstable)
     return _result(oracle, "hypergradient", ev.x, t0, evals, iters, f"start {k} of {len(records)} run ({reason})",
+                   None if reason == GOAL else reason == CONVERGED,
                    {"starts": records, "lower_solves": oracle.lower_solves})
 
 
@@ -328,7 +346,7 @@ def _select(finished: list[tuple[Evaluation, int, str]], stop_when_unstable: boo
 
 @single_threaded_call
 def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize: int = 5, tol: float = 1e-8,
-              stop_when_unstable: bool = True, oracle: SDPHypergradient | None = None) -> AttackResult:
+              stop_when_unstable: bool = True, oracle: SDPHypergradient | None = None) -> BilevelResult:
     """Differential evolution (scipy, best1bin, no gradient polish) on the input poisoning inside the linf box.
 
     With stop_when_unstable it stops once the incumbent's identified closed loop is unstable (as our attack)."""
@@ -358,20 +376,21 @@ def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize:
         rng=_seed(seed), callback=stop, vectorized=oracle.lower_fixed,
         updating="deferred" if oracle.lower_fixed else "immediate")
     return _result(oracle, "differential-evolution", np.clip(out.x, -bound, bound), t0, counter["evaluations"],
-                   int(out.nit), str(out.message), {"lower_solves": oracle.lower_solves})
+                   int(out.nit), f"{out.message} (a heuristic: no optimality claim)", None,
+                   {"lower_solves": oracle.lower_solves})
 
 
 @single_threaded_call
-def random_attack(attack: WillemsAttack, seed: Any = 0) -> AttackResult:
+def random_attack(attack: WillemsAttack, seed: Any = 0) -> BilevelResult:
     """A budget-matched, non-adaptive baseline: every poisoned entry +-budget with a fair random sign."""
     t0 = time.perf_counter()
     bound = attack.budget()
     x = bound * _seed(seed).choice([-1.0, 1.0], size=bound.size)
-    return _result(SDPHypergradient(attack), "random", x, t0, 1, 0, "random signs at the budget")
+    return _result(SDPHypergradient(attack), "random", x, t0, 1, 0, "random signs at the budget (a baseline)", None)
 
 
 @single_threaded_call
-def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> AttackResult:
+def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> BilevelResult:
     """The generic route: bilevel.solve on the registered problem (KKT reformulation, PSD pairs factored).
 
     The returned point is clipped to the budget box and the learner is re-solved there independently,
@@ -392,7 +411,7 @@ def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> 
                "certificate_passed": bool(cert is not None and cert.passed),
                "certificate_failed": list(cert.failed) if cert is not None else [], "solve_time": res.wall_time}
     return _result(oracle, f"kkt-{method}", np.clip(x, -bound, bound), t0, 0, res.nit,
-                   f"{res.status.value}: {res.message}", details)
+                   f"{res.status.value}: {res.message}", res.status is Status.SOLVED and clipped == 0.0, details)
 
 
 def log_radius_gradient(closed_loop: np.ndarray, b: np.ndarray) -> tuple[float, np.ndarray]:
@@ -460,7 +479,7 @@ def _ascent_path(oracle: SDPHypergradient, box: Box, scale: np.ndarray, x0: np.n
 
 @single_threaded_call
 def destabilize_attack(attack: WillemsAttack, starts: int = 16, seed: Any = 0, max_iter: int = 100,
-                       tol: float = 1e-9, oracle: SDPHypergradient | None = None) -> AttackResult:
+                       tol: float = 1e-9, oracle: SDPHypergradient | None = None) -> BilevelResult:
     """Maximize the spectral radius of the attacker's closed loop A_id + B_id K. From each start (0: clean data, then
     uniform in the budget box) two projected ascents (max_iter each): the smooth path, on the Gelfand criterion of
     `attack` (objective "destabilize") and then on log rho, and the direct path, on log rho from the start (the
@@ -489,7 +508,8 @@ def destabilize_attack(attack: WillemsAttack, starts: int = 16, seed: Any = 0, m
                            "starts; lower the budget or raise reg")
     best = overall.ev
     return _result(oracle, "destabilize", best.x, t0, overall.evaluations, iters,
-                   f"largest identified spectral radius {best.identified_radius:.6g} over {len(records)} starts",
+                   f"largest identified spectral radius {best.identified_radius:.6g} over {len(records)} starts (the "
+                   "best evaluated point of its ascents, not a certified local maximum)", None,
                    {"starts": records, "identified_radius": best.identified_radius,
                     "lower_solves": oracle.lower_solves})
 
@@ -516,7 +536,7 @@ def smallest_destabilizing_budget(setting: WillemsSetting, path: tuple[float, ..
 
     def unstable(delta: float) -> bool:
         attack = build_attack(dataclasses.replace(setting, objective="destabilize", delta_u=delta))
-        runs.append((delta, destabilize_attack(attack, **options).spectral_radius))
+        runs.append((delta, destabilize_attack(attack, **options).stats["spectral_radius"]))
         return runs[-1][1] >= 1.0
 
     low = 0.0

@@ -26,7 +26,7 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from ..attacks.willems import (AttackResult, de_attack, destabilize_attack, hypergradient_attack,  # noqa: E402
+from ..attacks.willems import (de_attack, destabilize_attack, hypergradient_attack, willems_row,  # noqa: E402
                                random_attack)
 from ..ddc.data import batch_reactor_data  # noqa: E402
 from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller  # noqa: E402
@@ -162,7 +162,7 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
     try:
         attack = build_attack(setting)
         if task["method"] == "hypergradient":
-            res: AttackResult = hypergradient_attack(attack, starts=task["starts"], seed=task["attack_seed"])
+            res = hypergradient_attack(attack, starts=task["starts"], seed=task["attack_seed"])
         elif task["method"] == "destabilize":
             res = destabilize_attack(attack, starts=task["starts"], seed=task["attack_seed"], max_iter=task["rho_iter"])
         elif task["method"] == "de":
@@ -171,8 +171,8 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
             res = random_attack(attack, seed=task["attack_seed"])
     except BilevelError as exc:
         return {**fields, "error": f"{type(exc).__name__}: {exc}"}
-    du, dx = attack.split(res.x)
-    row = {**fields, **{k: v for k, v in res.to_dict().items()
+    du, dx = attack.split(res.stats["x"])
+    row = {**fields, **{k: v for k, v in willems_row(res).items()
                         if k not in ("method", "x", "details", "gain", "eigenvalues")}}
     with warnings.catch_warnings():  # cvxpy's "solution may be inaccurate" on the badly scaled N = 50 data
         warnings.simplefilter("ignore", UserWarning)
@@ -443,7 +443,7 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
         "## Settings", "",
         "- Plant: batch reactor (Walsh & Ye 2001), Ts = 0.1, n = 4, m = 2; data: u ~ N(0, 1) white, x_0 = 0, "
         "noise free. The attacker uses [B A] = X1 [U0; X0]^+ from the clean data (equal to the plant here).",
-        f"- Learner (paper setting): the appendix SDP min tr(Qx X0 Q) s.t. [[X0 Q - I, X1 Q], [Q' X1', X0 Q]] >= 0, "
+        "- Learner (paper setting): the appendix SDP min tr(Qx X0 Q) s.t. [[X0 Q - I, X1 Q], [Q' X1', X0 Q]] >= 0, "
         + ("Qx = I (no regularization)" if learner in SOLVER_SELECTIONS else
            f"Qx = I, plus reg/2 ||Q||_F^2 with reg = {reg}") + f"; selection `{learner}` of the non-unique Q"
         + LEARNER_TEXT.get(learner, "")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bilevel.attacks.outcome import unstable
 from bilevel.attacks.willems import de_attack, hypergradient_attack, kkt_attack, random_attack
 from bilevel.errors import ModelError
 from bilevel.experiments.willems import sim_seeds
@@ -19,9 +20,9 @@ def test_input_budget_is_respected_exactly(attack_fn) -> None:
     attack = build_attack(horizon=15, seed=1, delta_u=0.35)
     kwargs = {"maxiter": 20} if attack_fn is de_attack else {}
     res = attack_fn(attack, seed=0, **kwargs)
-    du, dx = attack.split(res.x)
+    du, dx = attack.split(res.stats["x"])
     assert np.all(np.abs(du) <= 0.35) and not np.any(dx)
-    assert res.budget_violation == 0.0
+    assert res.stats["budget_violation"] == 0.0
     if attack_fn is not de_attack:  # DE with 20 generations stays inside the box
         assert np.max(np.abs(du)) == pytest.approx(0.35)
 
@@ -31,17 +32,17 @@ def test_state_and_input_budgets_are_respected_exactly() -> None:
     attack = build_attack(horizon=15, seed=2, design="lqr-r", poison="xu", objective="maxmin", delta_u=1e-3,
                           delta_x=1e-4)
     res = hypergradient_attack(attack, starts=2, seed=0, max_iter=30)
-    du, dx = attack.split(res.x)
+    du, dx = attack.split(res.stats["x"])
     assert np.all(np.abs(du) <= 1e-3) and np.all(np.abs(dx) <= 1e-4) and not np.any(dx[:, 0])
-    assert res.budget_violation == 0.0
+    assert res.stats["budget_violation"] == 0.0
 
 
 def test_attacks_are_deterministic_given_the_seed() -> None:
     attack = build_attack(horizon=15, seed=5, delta_u=0.5)
     for fn, kwargs in ((hypergradient_attack, {}), (de_attack, {"maxiter": 15})):
         a, b = fn(attack, seed=3, **kwargs), fn(attack, seed=3, **kwargs)
-        np.testing.assert_array_equal(a.x, b.x)
-        assert a.objective == b.objective
+        np.testing.assert_array_equal(a.stats["x"], b.stats["x"])
+        assert a.upper_objective == b.upper_objective
 
 
 def test_de_refuses_state_poisoning() -> None:
@@ -60,7 +61,7 @@ def test_eigen_attack_destabilizes_no_later_than_de() -> None:
         first = {}
         for name, fn in (("ours", hypergradient_attack), ("de", de_attack)):
             first[name] = next((d for d in SHORT_GRID
-                                if fn(build_attack(horizon=15, seed=data_seed, delta_u=d), seed=attack_seed).unstable),
+                                if unstable(fn(build_attack(horizon=15, seed=data_seed, delta_u=d), seed=attack_seed))),
                                np.inf)
         firsts.append(first)
     print(firsts)
@@ -77,12 +78,13 @@ def test_kkt_route_gives_a_certified_attack(horizon: int) -> None:
     attack = build_attack(horizon=horizon, seed=0, delta_u=0.6)
     ours = hypergradient_attack(attack, seed=0, stop_when_unstable=False)
     kkt = kkt_attack(attack, method="ipopt", starts=1, seed=0)
-    assert kkt.details["certificate_passed"]
-    assert kkt.budget_violation == 0.0 and kkt.details["clipped_by"] < 1e-7
-    assert ours.objective >= kkt.objective - 1e-6 * abs(kkt.objective)
+    assert kkt.stats["details"]["certificate_passed"]
+    assert kkt.stats["budget_violation"] == 0.0 and kkt.stats["details"]["clipped_by"] < 1e-7
+    assert ours.upper_objective >= kkt.upper_objective - 1e-6 * abs(kkt.upper_objective)
     # IPOPT's local point on this non-convex MPCC moves with round-off (3.46080 vs 3.46145 on a loaded machine):
     # either it is the optimum and says so, or the local probe says it is not and our ascent confirms that
-    if kkt.details["status"] == "solved":
-        assert kkt.objective == pytest.approx(ours.objective, rel=1e-6)
+    if kkt.stats["details"]["status"] == "solved":
+        assert kkt.upper_objective == pytest.approx(ours.upper_objective, rel=1e-6)
     else:
-        assert kkt.details["status"] == "not_locally_optimal" and ours.objective > kkt.objective * (1 + 1e-6)
+        assert kkt.stats["details"]["status"] == "not_locally_optimal"
+        assert ours.upper_objective > kkt.upper_objective * (1 + 1e-6)

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from bilevel.attacks.outcome import unstable
 from bilevel.attacks.willems import (SDPHypergradient, destabilize_attack, hypergradient_attack, log_radius_gradient,
                                      smallest_destabilizing_budget)
 from bilevel.cli import main
@@ -56,15 +57,15 @@ def test_attack_reports_the_largest_radius_and_beats_the_eigenvalue_attack() -> 
     (8 starts, with or without stopping at instability) ends at 0.8212."""
     attack = build_attack(objective="destabilize", horizon=15, seed=1, delta_u=0.3)
     res = destabilize_attack(attack, starts=4, seed=0)
-    radii = [r[key] for r in res.details["starts"] for key in ("smooth_radius", "direct_radius")]
-    assert res.details["identified_radius"] == max(radii)
-    assert res.spectral_radius == pytest.approx(res.details["identified_radius"], rel=1e-9)
-    assert res.budget_violation == 0.0 and np.max(np.abs(res.x)) == pytest.approx(0.3)
-    assert res.unstable and res.spectral_radius == pytest.approx(1.0214, abs=1e-3)
+    radii = [r[key] for r in res.stats["details"]["starts"] for key in ("smooth_radius", "direct_radius")]
+    assert res.stats["details"]["identified_radius"] == max(radii)
+    assert res.stats["spectral_radius"] == pytest.approx(res.stats["details"]["identified_radius"], rel=1e-9)
+    assert res.stats["budget_violation"] == 0.0 and np.max(np.abs(res.stats["x"])) == pytest.approx(0.3)
+    assert unstable(res) and res.stats["spectral_radius"] == pytest.approx(1.0214, abs=1e-3)
     eigen = hypergradient_attack(build_attack(objective="eigen", horizon=15, seed=1, delta_u=0.3), seed=0)
-    assert eigen.spectral_radius == pytest.approx(0.8212, abs=1e-3)
+    assert eigen.stats["spectral_radius"] == pytest.approx(0.8212, abs=1e-3)
     again = destabilize_attack(attack, starts=4, seed=0)
-    np.testing.assert_array_equal(again.x, res.x)
+    np.testing.assert_array_equal(again.stats["x"], res.stats["x"])
 
 
 def test_attack_refuses_another_objective() -> None:
@@ -114,9 +115,9 @@ def test_smallest_destabilizing_budget_brackets_the_first_unstable_budget() -> N
     """Seed 1, N = 15 (4 starts): the path 0.1, 0.2, 0.3 finds instability at 0.3, bisection narrows it to 5 %;
     the returned budget is an unstable run and a stable run lies within 5 % below it. Measured: 0.2875."""
     found = smallest_destabilizing_budget(WillemsSetting(horizon=15, seed=1), path=(0.1, 0.2, 0.3), starts=4)
-    unstable = [d for d, rho in found.runs if rho >= 1.0]
+    broke = [d for d, rho in found.runs if rho >= 1.0]
     stable = [d for d, rho in found.runs if rho < 1.0]
-    assert found.delta == min(unstable) == pytest.approx(0.2875)
+    assert found.delta == min(broke) == pytest.approx(0.2875)
     assert found.delta - max(d for d in stable if d < found.delta) <= 0.05 * found.delta
     assert smallest_destabilizing_budget(WillemsSetting(horizon=15, seed=1), path=(0.05,), starts=1).delta == np.inf
     with pytest.raises(ModelError, match="increasing and positive"):
