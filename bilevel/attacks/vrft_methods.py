@@ -53,7 +53,8 @@ def _certificate(atk: VRFTAttack, s: State, tol: float = DEFAULT_TOL) -> Certifi
 def _result(atk: VRFTAttack, method: str, converged: bool | None, s: State, t0: float, iterations: int,
             evaluations: int, history: list[dict[str, float]]) -> BilevelResult:
     """The attack's outcome as a BilevelResult of its registered problem (vrft-<objective>): x = {a_u, a_y},
-    y = {theta}, objectives in the problem's sense, the certificate, and the VRFT quantities in stats.
+    y = {theta}, objectives in the problem's sense (lower_objective: the learner's loss on the poisoned data), the
+    certificate, and the VRFT quantities in stats (learner_loss: its loss on the clean data at the poisoned theta).
     converged None: a sample, not an optimization (its status is at best INACCURATE)."""
     wall_time = time.perf_counter() - t0
     cert = _certificate(atk, s)
@@ -62,14 +63,15 @@ def _result(atk: VRFTAttack, method: str, converged: bool | None, s: State, t0: 
                "converged" if converged else "max_iter reached")
     message += "; certificate passed" if cert.passed else f"; certificate failed on {cert.describe_failures()}"
     loop, value = atk.setting.loop, atk.value(s.theta)
-    r = atk.t0 - atk.phi0 @ s.theta
-    stats = {"objective": atk.objective, "value": value, "theta_clean": atk.theta0,
-             "value_clean": atk.value(atk.theta0),
+    r, poisoned = atk.t0 - atk.phi0 @ s.theta, s.target - s.phi @ s.theta
+    stats = {"objective": atk.objective, "value": value, "learner_loss": float(r @ r / atk.n),
+             "theta_clean": atk.theta0, "value_clean": atk.value(atk.theta0),
              "spectral_radius": loop.spectral_radius(s.theta),
              "spectral_radius_clean": loop.spectral_radius(atk.theta0),
              "delta_u": atk.delta_u, "delta_y": atk.delta_y, "evaluations": evaluations}
     return BilevelResult(status, message, method, f"vrft-{atk.objective}", {"a_u": s.a_u, "a_y": s.a_y},
-                         {"theta": s.theta}, {}, _registered_objective(atk, s.theta, value), float(r @ r / atk.n),
+                         {"theta": s.theta}, {}, _registered_objective(atk, s.theta, value),
+                         float(poisoned @ poisoned / atk.n),
                          cert, wall_time, iterations, tuple(history), (), stats)
 
 
@@ -95,7 +97,7 @@ def attack_summary(result: BilevelResult) -> dict[str, Any]:
     """Scalars of a VRFT attack result, one row of the reproduction's tables and of the CLI's output."""
     st, cert = result.stats, result.certificate
     return {"method": result.method, "objective": st["objective"], "status": result.status.value,
-            "value": attack_value(result), "value_clean": st["value_clean"], "learner_loss": result.lower_objective,
+            "value": attack_value(result), "value_clean": st["value_clean"], "learner_loss": st["learner_loss"],
             "spectral_radius": st["spectral_radius"], "spectral_radius_clean": st["spectral_radius_clean"],
             "delta_u": st["delta_u"], "delta_y": st["delta_y"], "wall_time": result.wall_time,
             "iterations": result.nit, "evaluations": st["evaluations"], "learner_stationarity": cert.stationarity,

@@ -303,4 +303,17 @@ def test_attack_result_is_the_registered_problems_result(objective: str) -> None
                       problem.parameters.sym)
     at = np.concatenate([res.x["a_u"], res.x["a_y"], res.y["theta"], problem.parameters.value])
     assert res.upper_objective == pytest.approx(float(ca.evalf(ca.substitute(F, syms, ca.DM(at)))), rel=1e-9)
+    f = problem.lower_objective.expr
+    assert res.lower_objective == pytest.approx(float(ca.evalf(ca.substitute(f, syms, ca.DM(at)))), rel=1e-9)
     assert attack_value(res) == pytest.approx(atk.value(res.y["theta"]), rel=1e-12)
+
+
+def test_lower_objective_is_the_learners_loss_on_the_poisoned_data() -> None:
+    """lower_objective is f of the registered problem (the fit to the poisoned data); the row's learner_loss is
+    the clean-data loss at the poisoned theta (the paper's Fig. 3a quantity), equal to J for max-min."""
+    atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=2, N=256)
+    res = attack_alternating(atk, max_iter=10)
+    s = atk.state(res.x["a_u"], res.x["a_y"])
+    r = s.target - s.phi @ res.y["theta"]
+    assert res.lower_objective == pytest.approx(float(r @ r) / atk.n, rel=1e-12)
+    assert res.lower_objective < attack_summary(res)["learner_loss"] == pytest.approx(res.upper_objective, rel=1e-12)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from bilevel.attacks.outcome import unstable
+from bilevel.result import Status
 from bilevel.attacks.willems import de_attack, hypergradient_attack, kkt_attack, random_attack
 from bilevel.errors import ModelError
 from bilevel.experiments.willems import sim_seeds
@@ -88,3 +89,24 @@ def test_kkt_route_gives_a_certified_attack(horizon: int) -> None:
     else:
         assert kkt.stats["details"]["status"] == "not_locally_optimal"
         assert ours.upper_objective > kkt.upper_objective * (1 + 1e-6)
+
+
+def test_attack_result_is_the_registered_problems_result() -> None:
+    """An attack answers willems-<objective>: its x and y carry the problem's variable names and shapes, and
+    upper_objective / lower_objective are the problem's F and f at that point; a stop at the goal is not solved."""
+    import casadi as ca
+
+    attack = build_attack(objective="eigen", horizon=15, seed=0, delta_u=0.6)
+    res = hypergradient_attack(attack, starts=2, seed=0, max_iter=20)
+    p = attack.problem
+    assert res.problem == p.name == "willems-eigen" and set(res.x) == {"Du"}
+    assert {v.name for v in p.lower_variables} == set(res.y)
+    syms = ca.vertcat(*[ca.vec(v.sym) for v in p.upper_variables + p.lower_variables], p.parameters.sym)
+    at = np.concatenate([np.ravel(res.x["Du"], order="F")]
+                        + [np.ravel(res.y[v.name], order="F") for v in p.lower_variables] + [p.parameters.value])
+    value = lambda e: float(ca.evalf(ca.substitute(e, syms, ca.DM(at))))  # noqa: E731
+    assert res.upper_objective == pytest.approx(value(p.upper_objective.expr), rel=1e-9)
+    assert res.lower_objective == pytest.approx(value(p.lower_objective.expr), rel=1e-9)
+    assert res.certificate.passed and res.certificate.stationarity <= 1e-6
+    if res.stats["identified_radius"] >= 1.0:  # stopped at the attacker's goal: an answer, not a local maximum
+        assert res.status is Status.INACCURATE
