@@ -192,12 +192,15 @@ def _run_sweeps(args: argparse.Namespace, work: Callable[[], object]) -> int:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from .experiments.compare import compare, markdown_table
+    from .experiments.compare import STRUCTURED, compare, markdown_table
 
     problems = args.problems.split(",") if args.problems else registry.names("textbook")
     if any(":" in name for name in problems) and os.getcwd() not in sys.path:
         sys.path.insert(0, os.getcwd())  # module:function problems may live in the working directory
     methods = args.methods.split(",") if args.methods else sorted(METHODS)
+    if unknown := sorted(set(methods) - set(METHODS) - {STRUCTURED}):
+        raise ModelError(f"--methods {', '.join(unknown)}: unknown; choose from {', '.join(sorted(METHODS))} and "
+                         f"{STRUCTURED} (an attack problem's own attack)")
     params = _pairs(args.param, "--param")
     for name in problems:
         registry.spec(name)  # an unknown name fails here, before any work
@@ -267,7 +270,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_cmp = sub.add_parser("compare", help="run solvers on problems; write CSV and Markdown (resumable)")
     p_cmp.add_argument("--problems", default="", help="comma-separated registered names or module:function "
                        "builders of your own (default: all textbook problems)")
-    p_cmp.add_argument("--methods", default="", help="comma-separated methods (default: all registered)")
+    p_cmp.add_argument("--methods", default="",
+                       help="comma-separated methods (default: all registered); structured: an attack problem's own "
+                            "attack")
     p_cmp.add_argument("--starts", type=int, default=8)
     p_cmp.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                        help="problem parameter, for every selected problem that has it (e.g. N=512)")

@@ -23,6 +23,9 @@ from .sweep import run_sweep, stderr_progress
 NOT_APPLICABLE = "not_applicable"
 """Status of a row whose method rejected the problem as outside its scope (a ModelError, e.g. 'global' on an NLP)."""
 
+STRUCTURED = "structured"
+"""The method name of a registered problem's own structured attack (vrft-*, willems-*) in a comparison."""
+
 COLUMNS = ["problem", "method", "status", "objective", "known_optimum", "relative_gap", "certified",
            "stationarity", "complementarity", "lower_gap", "upper_feasibility", "wall_time", "nit", "starts", "seed"]
 
@@ -83,12 +86,21 @@ def not_applicable(name: str, method: str, starts: int, seed: int) -> CompareRow
 
 def compare_task(task: dict[str, Any]) -> dict[str, Any]:
     """One (problem, method) run described by a sweep task; the CompareRow's fields (not_applicable when the
-    method rejects the problem as outside its scope)."""
-    problem = registry.get(task["problem"], **task["params"])
-    try:
-        result = solve(problem, method=task["method"], starts=task["starts"], seed=task["seed"], **task["options"])
-    except ModelError:
-        return asdict(not_applicable(task["problem"], task["method"], task["starts"], task["seed"]))
+    method rejects the problem as outside its scope). Method STRUCTURED runs the problem's own attack (its
+    registered `attack`, a BilevelResult like any method's), where it has one."""
+    outside = asdict(not_applicable(task["problem"], task["method"], task["starts"], task["seed"]))
+    if task["method"] == STRUCTURED:
+        attack = registry.spec(task["problem"]).attack
+        if attack is None or task["options"]:  # no attack of its own; the attacks take no method options
+            return outside
+        result = attack(starts=task["starts"], seed=task["seed"], **task["params"])
+    else:
+        problem = registry.get(task["problem"], **task["params"])
+        try:
+            result = solve(problem, method=task["method"], starts=task["starts"], seed=task["seed"],
+                           **task["options"])
+        except ModelError:
+            return outside
     return asdict(row_of(task["problem"], task["method"], result, task["starts"], task["seed"]))
 
 

@@ -9,14 +9,17 @@ instances are in bilevel.attacks.vrft_methods; `attack_instance` builds their VR
 
 from __future__ import annotations
 
+from typing import Any, Callable
+
 import casadi as ca
 import numpy as np
 
 from ..attacks.vrft import VRFTAttack, attack_instance
-from ..attacks.vrft_methods import conditioning_start
+from ..attacks.vrft_methods import attack_alternating, attack_joint, conditioning_start
 from ..ddc.operators import LTIOperator
 from ..errors import ModelError
 from ..model import BilevelProblem
+from ..result import BilevelResult
 from .registry import register
 from .surrogates import gelfand_log_radius
 
@@ -113,7 +116,17 @@ def gelfand_radius(base: np.ndarray | ca.SX, slopes: np.ndarray | ca.SX, theta: 
     return gelfand_log_radius(C, power)
 
 
+def _structured(objective: str) -> Callable[..., BilevelResult]:
+    """The structured attack on vrft-<objective>: the alternating attack (its exact input step), joint ascent for
+    'destabilize'."""
+    def attack(starts: int = 1, seed: int = 0, **params: Any) -> BilevelResult:
+        run = attack_joint if objective == "destabilize" else attack_alternating
+        return run(attack_instance(objective, **params), starts=starts, seed=seed)
+    return attack
+
+
 @register("vrft-maxmin", source=SOURCE + "Sec. 4.4, eq. (op_maxmin)", tags=("attack", "vrft"), defaults=DEFAULTS,
+          attack=_structured("maxmin"),
           description="max-min poisoning of VRFT on the flexible transmission (maximize the learner's loss)")
 def vrft_maxmin(**params) -> BilevelProblem:
     """Max-min attack on VRFT: maximize the learner's clean-data loss at the poisoned theta."""
@@ -121,7 +134,7 @@ def vrft_maxmin(**params) -> BilevelProblem:
 
 
 @register("vrft-targeted", source=SOURCE + "appendix A, eq. (op_vrft_targeted), theta_a = 3 theta_0",
-          tags=("attack", "vrft"), defaults=DEFAULTS,
+          tags=("attack", "vrft"), defaults=DEFAULTS, attack=_structured("targeted"),
           description="targeted poisoning of VRFT: drive theta towards theta_a = 3 theta_0")
 def vrft_targeted(**params) -> BilevelProblem:
     """Targeted attack on VRFT: minimize ||theta_a - theta'||^2 / nk."""
@@ -131,7 +144,7 @@ def vrft_targeted(**params) -> BilevelProblem:
 @register("vrft-destabilize", source=SOURCE + "beyond the paper: the attacker fits an ARX model to the clean data "
           "and maximizes a smooth spectral radius of the modelled closed loop", tags=("attack", "vrft"),
           defaults=DEFAULTS, description="destabilizing poisoning of VRFT (maximize the modelled closed-loop "
-          "spectral radius)")
+          "spectral radius)", attack=_structured("destabilize"))
 def vrft_destabilize(**params) -> BilevelProblem:
     """Destabilizing attack: maximize log ||C(theta')^16||_F / 16 for the ARX-modelled closed loop."""
     return attack_problem(attack_instance("destabilize", **params))
