@@ -12,7 +12,7 @@ import numpy as np
 from .errors import InvalidData, ModelError
 from .lower import LowerLevel, LowerSolution, build_lower
 from .lower.matrix import MatrixLower
-from .model import BilevelProblem, LowerQP, Variable
+from .model import BilevelProblem, LowerQP, Variable, unflatten_all
 from .parameters import ParameterSet, scalar
 from .reduction import KKTPoint, Reduction
 from .sampling import default_start, sample_in_bounds
@@ -215,11 +215,8 @@ class Canonicalize(Reduction):
     def invert(self, solution: BilevelSolution, canon: CanonicalBilevel) -> BilevelSolution:
         """Split flat x, y into the declared variables and multipliers into the declared constraints."""
         p = solution.point
-        for vars_, flat, out in ((canon.upper_vars, p.x, solution.x), (canon.lower_vars, p.y, solution.y)):
-            k = 0
-            for v in vars_:
-                out[v.name] = v.unflatten(flat[k:k + v.size])
-                k += v.size
+        solution.x.update(unflatten_all(canon.upper_vars, p.x))
+        solution.y.update(unflatten_all(canon.lower_vars, p.y))
         mult: dict[str, np.ndarray] = {}
         for rows, values in ((canon.g_rows, p.lam), (canon.h_rows, p.mu)):
             for (name, i), value in zip(rows, values):

@@ -72,6 +72,15 @@ class Variable:
         return values.reshape(rows) if cols == 1 else values.reshape((rows, cols), order="F")
 
 
+def unflatten_all(variables: list[Variable], flat: np.ndarray) -> dict[str, np.ndarray]:
+    """A flat vector over `variables` (their flattened values in order) split into each variable's shape."""
+    out, k = {}, 0
+    for v in variables:
+        out[v.name] = v.unflatten(flat[k:k + v.size])
+        k += v.size
+    return out
+
+
 @dataclass(frozen=True)
 class Constraint:
     """`body <= 0` (kind "<=") or `body == 0` (kind "=="), with a name for its multipliers."""

@@ -22,8 +22,8 @@ from ..certificate import DEFAULT_TOL, Certificate
 from ..errors import ModelError
 from ..result import BilevelResult, Status
 from ..solvers.ascent import budget_direction, projected_ascent
-from .outcome import unstable
 from ..threads import single_threaded
+from .outcome import unstable
 from .vrft import State, VRFTAttack
 
 DEFAULT_STEPS = (1.0,)
@@ -37,13 +37,14 @@ def _certificate(atk: VRFTAttack, s: State, tol: float = DEFAULT_TOL) -> Certifi
     refit = np.linalg.lstsq(s.phi, s.target, rcond=None)[0]  # SVD: independent of the attack's QR path
     distance = float(np.linalg.norm(s.theta - refit) / max(1.0, float(np.linalg.norm(s.theta))))
     loss = lambda theta: float(np.sum((s.target - s.phi @ theta) ** 2) / atk.n)  # noqa: E731
-    gap = (loss(s.theta) - loss(refit)) / (1.0 + abs(loss(refit)))
+    best = loss(refit)
+    gap = (loss(s.theta) - best) / (1.0 + abs(best))
     over = [max(0.0, float(np.linalg.norm(a, b.order)) - r) / (1.0 + r)
             for a, b, r in ((s.a_u, atk.budget_u, atk.delta_u), (s.a_y, atk.budget_y, atk.delta_y))]
     checks = {"stationarity": stationarity, "lower_solution": distance, "lower_gap": gap,
               "upper_feasibility": max(over)}
     failed = tuple(k for k, v in checks.items() if not v <= tol)
-    return Certificate(stationarity, 0.0, 0.0, 0.0, max(over), gap, loss(refit), refit.tolist(),
+    return Certificate(stationarity, 0.0, 0.0, 0.0, max(over), gap, best, refit.tolist(),
                        "numpy.linalg.lstsq (SVD)", tol, not failed, failed,
                        "least-squares learner: stationarity of its normal equations at the poisoned data and an "
                        "independent SVD refit (y_distance: relative distance to it)", lower_unique=True,

@@ -51,6 +51,7 @@ from ..errors import BilevelError, ModelError, SolverFailed
 from ..lower import LowerSolution, build_lower
 from ..lower.sdp import solve_square
 from ..lower.quadratic import clarabel_solution
+from ..model import unflatten_all
 from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, WillemsSetting, build_attack, criterion_values
 from ..sampling import sample_in_bounds
 from ..result import BilevelResult, Status
@@ -243,24 +244,18 @@ def _result(oracle: SDPHypergradient, method: str, x: np.ndarray, t0: float, eva
     at = oracle.attack
     x = np.asarray(x, dtype=float)
     ev = oracle.evaluate(x)
-    eig = np.linalg.eigvals(batch_reactor().A + batch_reactor().B @ ev.gain)
+    plant = batch_reactor()
+    eig = np.linalg.eigvals(plant.A + plant.B @ ev.gain)
     cert = _certificate(oracle, x, ev)
-    m, t = at.u.shape
-    upper = {"Du": x[: m * t].reshape((m, t), order="F")}
-    if at.dx is not None:
-        upper["Dx"] = x[m * t:].reshape((at.n_states, -1), order="F")
-    lower, start = {}, 0
-    for v in at.problem.lower_variables:
-        size = int(v.sym.numel())
-        lower[v.name] = ev.lower.y[start:start + size].reshape(v.sym.shape, order="F")
-        start += size
+    p = at.problem
     stats = {"objective": at.setting.objective, "x": x, "gain": ev.gain, "eigenvalues": eig,
              "spectral_radius": float(np.max(np.abs(eig))), "identified_radius": ev.identified_radius,
              "evaluations": evaluations, "budget_violation": cert.upper_feasibility, "kkt_residual": ev.kkt_residual,
              "details": dict(details or {})}
     status = Status.of_run(converged, cert.passed)
     message += "; certificate passed" if cert.passed else f"; certificate failed on {cert.describe_failures()}"
-    return BilevelResult(status, message, method, at.problem.name, upper, lower, {}, ev.phi, ev.lower.objective, cert,
+    return BilevelResult(status, message, method, p.name, unflatten_all(p.upper_variables, x),
+                         unflatten_all(p.lower_variables, ev.lower.y), {}, ev.phi, ev.lower.objective, cert,
                          time.perf_counter() - t0, iterations, (), (), stats)
 
 
