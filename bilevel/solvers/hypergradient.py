@@ -98,7 +98,7 @@ class Hypergradient:
         self._upper = canon.params.function("upper", [x, y], self._upper_outputs)
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
         self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
-        self._fixed: tuple[int, LowerSolution, list[np.ndarray]] | None = None  # (parameter revision, ...)
+        self._fixed: tuple[int, LowerSolution, KKTValues | None] | None = None  # (parameter revision, ...)
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
 
     @cached_property
