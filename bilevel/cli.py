@@ -223,15 +223,27 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
+    unused = [flag for flag, given, used in (("--quick", args.quick, args.target == "willems"),
+                                             ("--selection", args.selection is not None, args.target == "willems"))
+              if given and not used]
+    if unused:
+        raise ModelError(f"{', '.join(unused)}: only `reproduce willems` takes it, not `reproduce {args.target}`"
+                         + (" (which runs the selections min-norm, clarabel and scs)" if args.target == "willems-budget"
+                            else ""))
+    out = args.out or f"out/{args.target}"
     if args.target == "vrft":
         from .experiments.vrft import run_reproduction
 
-        return _run_sweeps(args, lambda: run_reproduction(args.sims, args.out or "out/vrft", args.seed, args.workers,
-                                                          dask=args.dask))
+        return _run_sweeps(args, lambda: run_reproduction(args.sims, out, args.seed, args.workers, dask=args.dask))
+    if args.target == "willems-budget":
+        from .experiments.willems_budget import run_budget
+
+        return _run_sweeps(args, lambda: run_budget(args.sims, out, args.seed, args.workers, args.dask))
     from .experiments.willems import run_reproduction as run_willems
 
-    return _run_sweeps(args, lambda: run_willems(args.sims, args.out or "out/willems", args.quick, args.seed,
-                                                 selection=args.selection, workers=args.workers, dask=args.dask))
+    return _run_sweeps(args, lambda: run_willems(args.sims, out, args.quick, args.seed,
+                                                 selection=args.selection or "min-norm", workers=args.workers,
+                                                 dask=args.dask))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -283,7 +295,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="run on a Dask cluster: tcp://HOST:PORT of its scheduler, or 'local' (docs/clusters.md)")
     p_cmp.set_defaults(run=_cmd_compare)
     p_rep = sub.add_parser("reproduce", help="reproduce the paper's tables and figures (resumable)")
-    p_rep.add_argument("target", choices=["vrft", "willems"])
+    p_rep.add_argument("target", choices=["vrft", "willems", "willems-budget"],
+                       help="willems-budget: delta_u*, the smallest destabilizing input budget, per data set")
     p_rep.add_argument("--sims", type=int, default=32, help="simulations per cell (the paper: 512 vrft, 256 willems)")
     p_rep.add_argument("--out", default=None, help="output directory (default out/<target>)")
     p_rep.add_argument("--seed", type=int, default=0)
@@ -291,9 +304,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_rep.add_argument("--dask", default=None, metavar="ADDRESS",
                        help="run on a Dask cluster: tcp://HOST:PORT of its scheduler, or 'local' (docs/clusters.md)")
     p_rep.add_argument("--quick", action="store_true", help="willems: the small CI-sized grid (4 sims, 3 budgets)")
-    p_rep.add_argument("--selection", choices=WILLEMS_SELECTIONS, default="min-norm",
+    p_rep.add_argument("--selection", choices=WILLEMS_SELECTIONS, default=None,
                        help="willems: the learner's choice among its optimal Q (tikhonov: the session-1 sweep's; "
-                            "clarabel, scs: the solver's own Q, input poisoning only)")
+                            "clarabel, scs: the solver's own Q, input poisoning only; default min-norm)")
     p_rep.set_defaults(run=_cmd_reproduce)
     return parser
 

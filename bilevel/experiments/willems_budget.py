@@ -1,11 +1,13 @@
 """How much input poisoning it takes (issue 12): the distribution over data sets of delta_u*, the smallest linf input
 budget at which the destabilizing attack makes the true closed loop unstable (bilevel.attacks.willems.
-smallest_destabilizing_budget), with its median, quartiles and CDF figure, per horizon and learner selection."""
+smallest_destabilizing_budget: the budget path, then bisection), with its median, quartiles and CDF figure, per
+horizon and learner selection. One resumable sweep task per data set (bilevel.experiments.sweep)."""
 
 from __future__ import annotations
 
 import csv
 import os
+from typing import Any, Callable
 
 import matplotlib
 
@@ -15,24 +17,55 @@ from matplotlib.figure import Figure  # noqa: E402
 
 from ..attacks.willems import smallest_destabilizing_budget  # noqa: E402
 from ..problems.willems import WillemsSetting  # noqa: E402
+from .executor import open_executor  # noqa: E402
+from .sweep import run_sweep, stderr_progress  # noqa: E402
 from .willems import sim_seeds  # noqa: E402
 
+BUDGET_FIELDS = ("horizon", "selection", "data_seed", "delta_star", "attacks")
+HORIZONS = (15, 50)
+SELECTIONS = ("min-norm", "clarabel", "scs")
+"""The learners delta_u* is reported for: the default and the two SDP solvers' own Q (tikhonov is the
+session-1 sweep's selection, kept for reruns of it, not a learner a user would pick)."""
 
-def budget_distribution(horizon: int, sims: int, selection: str = "min-norm", seed: int = 0,
-                        starts: int = 8) -> list[dict[str, float]]:
-    """delta_u* for the data of the reproduction's first `sims` simulations (inf: not destabilized up to 1.0)."""
-    rows = []
-    for data_seed, attack_seed in sim_seeds(seed, sims):
-        setting = WillemsSetting(objective="destabilize", horizon=horizon, seed=data_seed, selection=selection)
-        found = smallest_destabilizing_budget(setting, starts=starts, seed=attack_seed)
-        rows.append({"horizon": horizon, "selection": selection, "data_seed": data_seed, "delta_star": found.delta,
-                     "attacks": len(found.runs)})
-    return rows
+
+def budget_task(task: dict[str, Any]) -> dict[str, Any]:
+    """delta_u* of one data set (task: horizon, selection, seed, attack_seed, starts)."""
+    setting = WillemsSetting(objective="destabilize", horizon=task["horizon"], seed=task["seed"],
+                             selection=task["selection"])
+    found = smallest_destabilizing_budget(setting, starts=task["starts"], seed=task["attack_seed"])
+    return {"horizon": task["horizon"], "selection": task["selection"], "data_seed": task["seed"],
+            "delta_star": found.delta, "attacks": len(found.runs)}
+
+
+def budget_distribution(horizons: tuple[int, ...], selections: tuple[str, ...], sims: int, path: str, seed: int = 0,
+                        starts: int = 8, workers: int | None = None, dask: str | None = None,
+                        progress: Callable[[str], None] | None = stderr_progress) -> list[dict[str, Any]]:
+    """delta_u* (inf: not destabilized up to 1.0) for the data of the reproduction's first `sims` simulations, per
+    horizon and selection; rows are appended to the JSONL file `path` as they finish, so a rerun resumes."""
+    tasks = [{"key": f"budget|N={n}|selection={sel}|sim={i}", "horizon": n, "selection": sel, "seed": data_seed,
+              "attack_seed": attack_seed, "starts": starts, "root_seed": seed}
+             for n in horizons for sel in selections for i, (data_seed, attack_seed) in enumerate(sim_seeds(seed, sims))]
+    with open_executor(workers, dask) as executor:
+        rows = run_sweep(budget_task, tasks, path, executor, progress, "willems-budget")
+    return [{k: r[k] for k in BUDGET_FIELDS} for r in rows]
+
+
+def run_budget(sims: int = 16, out_dir: str = "out/willems-budget", seed: int = 0, workers: int | None = None,
+               dask: str | None = None, progress: Callable[[str], None] | None = stderr_progress) -> str:
+    """`bilevel reproduce willems-budget`: delta_u* for every horizon and selection (resumable, budget.jsonl), then
+    budget.csv, budget.md and the CDF figure; returns the path of budget.md."""
+    rows = budget_distribution(HORIZONS, SELECTIONS, sims, os.path.join(out_dir, "budget.jsonl"), seed, 8, workers,
+                               dask, progress)
+    write_outputs(rows, out_dir)
+    path = os.path.join(out_dir, "budget.md")
+    if progress:
+        progress(f"wrote {path}")
+    return path
 
 
 def summary_markdown(rows: list[dict[str, float]]) -> str:
     """One table line per (horizon, selection): sims, median, quartiles of delta_u*, and how many stayed stable."""
-    lines = ["| N | selection | data sets | median delta_u* | quartiles | not destabilized up to 1.0 |",
+    lines = ["| N | selection | data sets | median delta_u* | quartiles | not destabilized |",
              "|---|---|---|---|---|---|"]
     for key in sorted({(r["horizon"], r["selection"]) for r in rows}):
         d = np.array([r["delta_star"] for r in rows if (r["horizon"], r["selection"]) == key])

@@ -92,3 +92,32 @@ def test_cli_offers_every_learner_selection() -> None:
     from bilevel.problems.willems import SELECTIONS
 
     assert WILLEMS_SELECTIONS == SELECTIONS
+
+
+def test_budget_sweep_is_resumable_and_matches_the_search_per_data_set(tmp_path) -> None:
+    """`reproduce willems-budget`'s sweep: one row per data set, equal to smallest_destabilizing_budget on that data
+    set's seeds; a rerun recomputes nothing."""
+    from bilevel.attacks.willems import smallest_destabilizing_budget
+    from bilevel.experiments.willems_budget import budget_distribution
+    from bilevel.problems.willems import WillemsSetting
+
+    path, lines = str(tmp_path / "budget.jsonl"), []
+    rows = budget_distribution((15,), ("min-norm",), 1, path, starts=1, workers=1, progress=lines.append)
+    data_seed, attack_seed = sim_seeds(0, 1)[0]
+    found = smallest_destabilizing_budget(WillemsSetting(objective="destabilize", horizon=15, seed=data_seed),
+                                          starts=1, seed=attack_seed)
+    assert rows == [{"horizon": 15, "selection": "min-norm", "data_seed": data_seed, "delta_star": found.delta,
+                     "attacks": len(found.runs)}]
+    lines.clear()
+    assert budget_distribution((15,), ("min-norm",), 1, path, starts=1, workers=1, progress=lines.append) == rows
+    assert not any("running" in line for line in lines)
+
+
+def test_reproduce_rejects_the_flags_of_another_target(capsys) -> None:
+    """--quick and --selection belong to `reproduce willems`: elsewhere they are a one-line error, not ignored."""
+    from bilevel.cli import main
+
+    assert main(["reproduce", "vrft", "--quick"]) == 2
+    assert "--quick: only `reproduce willems` takes it" in capsys.readouterr().err
+    assert main(["reproduce", "willems-budget", "--selection", "scs"]) == 2
+    assert "runs the selections min-norm, clarabel and scs" in capsys.readouterr().err
