@@ -22,14 +22,14 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..canonical import CanonicalBilevel
-from ..errors import BilevelError, ModelError
+from ..errors import BilevelError
 from ..lower.base import ExpressionLower, KKTValues, LowerSolution
 from ..lower.least_squares import hessian_factor
 from ..reduction import KKTPoint
 from ..result import Status
 from .ascent import projected_ascent
-from .base import MethodRun, Prepared, check_options
-from .hypergradient import DEFAULT_PENALTY, Evaluation, shared_oracle
+from .base import MethodRun, Prepared
+from .implicit import DEFAULT_PENALTY, Evaluation, shared_oracle
 from .starts import start_points
 from .structure import Ball, budget_scale, depends
 from .trust_region import maximize_quadratic_on_ball
@@ -38,9 +38,14 @@ from .trust_region import maximize_quadratic_on_ball
 def quadratic_block_step(M: np.ndarray, grad: np.ndarray, hess: np.ndarray, radius: float) -> np.ndarray:
     """The global minimizer z of F(y_c + M z) over ||z|| <= radius, F quadratic with gradient `grad` and Hessian
     `hess` at y_c: a trust-region subproblem in the row space of M (dimension <= rows of M)."""
-    U, s, Vt = np.linalg.svd(M, full_matrices=False)
-    keep = s > 1e-12 * max(float(s[0]) if s.size else 0.0, 1e-300)
-    U, s, Vt = U[:, keep], s[keep], Vt[keep]
+    s2, U = np.linalg.eigh(M @ M.T)  # M = U S V' from the small Gram matrix (rows of M << columns here) ...
+    if s2.size and s2[0] > 1e-10 * s2[-1]:
+        s = np.sqrt(s2)
+        Vt = (U.T @ M) / s[:, None]
+    else:  # ... unless it is ill-conditioned: the Gram matrix squares the condition number
+        U, s, Vt = np.linalg.svd(M, full_matrices=False)
+        keep = s > 1e-12 * max(float(s[0]) if s.size else 0.0, 1e-300)
+        U, s, Vt = U[:, keep], s[keep], Vt[keep]
     A = -0.5 * (s[:, None] * (U.T @ hess @ U) * s[None, :])
     return Vt.T @ maximize_quadratic_on_ball(A, -0.5 * s * (U.T @ grad), radius)
 
@@ -51,8 +56,8 @@ class ExactBlock:
 
     ball: Ball
     data: Callable
-    """x -> (P, q, dq/dx_S): the lower Hessian, the lower gradient at y = 0 and its Jacobian in the block."""
-    upper_y: Callable
+    """x -> (P, q, dq/dx_S, g, H): the lower Hessian, the lower gradient at y = 0 and its Jacobian in the block, the
+    upper objective's gradient in y at y = 0 and its (constant in y) Hessian in y."""
 
     def solve(self, x: np.ndarray) -> tuple[np.ndarray, LowerSolution, KKTValues]:
         """x with its block replaced by the global minimizer of F(x, y*(x)) over the ball (other entries fixed),
@@ -61,12 +66,11 @@ class ExactBlock:
         b = self.ball
         x = np.array(x, dtype=float)
         x[b.block] = b.center
-        P, q, jac_q = (np.asarray(v, dtype=float) for v in self.data(x))
+        P, q, jac_q, grad0, hess = self.data(x)
         factor = hessian_factor(P)  # P does not depend on the block: it is P(x) for every z
         y_c = -sla.cho_solve(factor, q.ravel())
         M = -sla.cho_solve(factor, jac_q)
-        _, grad, hess = (np.asarray(v, dtype=float) for v in self.upper_y(x, y_c))
-        z = quadratic_block_step(M, grad.ravel(), hess, b.radius)
+        z = quadratic_block_step(M, grad0.ravel() + hess @ y_c, hess, b.radius)  # F is quadratic in y
         x[b.block] = b.center + z
         y = y_c + M @ z
         sol = LowerSolution(y, np.nan, np.zeros(0), np.zeros(0), [], "optimal", "closed-form (exact block)")
@@ -80,6 +84,8 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
         return None, ["the lower level is given by matrices (lower_qp); the exact block reads expressions"]
     if low.kind != "least-squares":
         return None, [f"the lower level is {low.kind}, not an unconstrained strictly convex quadratic"]
+    if not balls:
+        return None, ["no upper constraint is a Euclidean ball on a block of upper variables"]
     x, y = canon.x, canon.y
     hess_F = ca.hessian(canon.F, y)[0]
     if ca.depends_on(hess_F, y):
@@ -103,31 +109,35 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
             best = ball
     if best is None:
         return None, why or ["no upper constraint is a Euclidean ball on a block of upper variables"]
-    P = ca.substitute(low.hess_f, y, ca.DM.zeros(int(y.numel())))
-    data = canon.params.function("exact_block_data", [x], [P, q, ca.jacobian(q, x[best.block])])
-    upper_y = canon.params.function("upper_y", [x, y], [canon.F, ca.gradient(canon.F, y), hess_F])
-    return ExactBlock(best, data, upper_y), why
+    zero = ca.DM.zeros(int(y.numel()))
+    P = ca.substitute(low.hess_f, y, zero)
+    grad0 = ca.substitute(ca.gradient(canon.F, y), y, zero)
+    data = canon.params.function("exact_block_data", [x], [P, q, ca.jacobian(q, x[best.block]), grad0, hess_F])
+    return ExactBlock(best, data), why
 
 
-def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
-    """Multistart block-exact method (options: starts, seed, scale, penalty, tol, max_iter, verbose)."""
-    check_options("block-exact", options, {"starts", "seed", "scale", "penalty", "tol", "max_iter", "verbose"})
+def exact_block_of(prep: Prepared) -> tuple[ExactBlock | None, list[str]]:
+    """The problem's exact block at the current parameter values (its symbolic set-up kept on `prep`), and why each
+    other candidate is not exact."""
     balls = prep.balls
     exact, why = prep.cached(("block-exact", tuple((b.row, b.block.start, b.block.stop) for b in balls)),
                              lambda: find_exact_block(prep.canon, balls))
     if exact is not None:  # the symbolic set-up is shared; center and radius follow the parameter values
         exact = replace(exact, ball=next(b for b in balls if b.row == exact.ball.row))
-    if exact is None:
-        raise ModelError("method 'block-exact' needs a block of upper variables on which the reduced objective is "
-                         f"a ball-constrained quadratic: {'; '.join(why)}; use method='hypergradient'")
-    starts, tol = int(options.get("starts", 4)), float(options.get("tol", 1e-5))
-    max_iter = int(options.get("max_iter", 500))
-    penalty, projected = float(options.get("penalty", DEFAULT_PENALTY)), tuple(b.row for b in balls)
-    oracle = shared_oracle(prep, penalty, projected_rows=projected)
+    return exact, why
+
+
+def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], starts: int = 4, seed: Any = 0,
+                            scale: float = 10.0, penalty: float = DEFAULT_PENALTY, tol: float = 1e-5,
+                            max_iter: int = 500, verbose: bool = False) -> MethodRun:
+    """Multistart ascent of the other upper variables (the engine's loop, bilevel.solvers.ascent) on phi with the
+    exact block at its global optimum at every evaluation; tol: relative gain over the loop's window."""
+    balls = prep.balls
+    oracle = shared_oracle(prep, penalty, projected_rows=tuple(b.row for b in balls))
     S = exact.ball.block
     rest = np.ones(int(prep.canon.x.numel()), dtype=bool)
     rest[S] = False
-    scale = budget_scale(prep.canon, prep.balls)[rest]
+    weights = budget_scale(prep.canon, balls)[rest]
 
     def full(xr: np.ndarray) -> np.ndarray:
         x = np.empty(rest.size)
@@ -143,21 +153,22 @@ def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
 
     def direction(ev: Evaluation) -> tuple[np.ndarray, np.ndarray]:
         g = -oracle.gradient(ev)[0][rest]  # Danskin: the block is at its optimum
-        unit = float(np.linalg.norm(g * scale))
-        return g, (g * scale ** 2 / unit if unit > 0 else np.zeros_like(g))
+        unit = float(np.linalg.norm(g * weights))
+        return g, (g * weights ** 2 / unit if unit > 0 else np.zeros_like(g))
 
     project = lambda xr: prep.projection(full(xr))[rest]  # noqa: E731  (blocks are disjoint)
-    rng = np.random.default_rng(options.get("seed", 0))
+    rng = np.random.default_rng(seed)
     best, records, nit = None, [], 0
-    for k, x0 in enumerate(start_points(prep, starts, rng, float(options.get("scale", 10.0)))):
+    for k, x0 in enumerate(start_points(prep, starts, rng, scale)):
         t0, history = time.perf_counter(), []
-        xr, fx, ev, it, evals, converged = projected_ascent(value, direction, project, x0[rest], scale, max_iter,
+        xr, fx, ev, it, evals, converged = projected_ascent(value, direction, project, x0[rest], weights, max_iter,
                                                             tol, history)
         nit += it
         records.append({"start": k, "objective": None if ev is None else ev.F, "iterations": it,
                         "evaluations": evals, "converged": converged, "time": time.perf_counter() - t0})
-        if options.get("verbose"):
-            print(f"[block-exact] start {k + 1}/{starts}: phi = {-fx:.8g} after {it} steps", flush=True)
+        if verbose:
+            print(f"[hypergradient, exact block] start {k + 1}/{starts}: phi = {-fx:.8g} after {it} steps",
+                  flush=True)
         if ev is not None and (best is None or fx > best[0]):
             best = (fx, ev, converged, history, k)
     if best is None:
@@ -166,8 +177,9 @@ def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
     fx, ev, converged, history, k = best
     w = prep.pack(KKTPoint(ev.x, ev.lower.y, ev.lower.lam, ev.lower.mu, ev.lower.Z))
     g = oracle.gradient(ev)[0][rest]
-    pg = float(np.linalg.norm(project(ev.x[rest] - g) - ev.x[rest]))  # ||P(x - grad phi) - x||, as hypergradient
+    pg = float(np.linalg.norm(project(ev.x[rest] - g) - ev.x[rest]))  # ||P(x - grad phi) - x||, as the descent
     status = Status.SOLVED if converged else Status.MAX_ITERATIONS
-    return MethodRun(w, status, f"best of {starts} starts: start {k} ({'converged' if converged else 'max_iter'})",
-                     nit, history, records, {"best_start": k, "exact_block": [S.start, S.stop],
-                                             "projected_gradient_norm": pg, "not_exact": why})
+    return MethodRun(w, status, f"exact block x[{S.start}:{S.stop}]; best of {starts} starts: start {k} "
+                     f"({'converged' if converged else 'max_iter'})", nit, history, records,
+                     {"best_start": k, "exact_block": [S.start, S.stop], "projected_gradient_norm": pg,
+                      "not_exact": why})

@@ -77,7 +77,7 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
 def _descent_direction(prep: "Prepared", x: np.ndarray, scale: np.ndarray) -> np.ndarray | None:
     """-grad F(x, y*(x)) in budget units (the hypergradient, balls projected on), or None where it cannot be had:
     a method that stopped short of stationarity (an interior point next to a better vertex) is caught by it."""
-    from .hypergradient import shared_oracle  # hypergradient imports base, which imports this module
+    from .implicit import shared_oracle  # implicit imports base, which imports this module
 
     rows = tuple(b.row for b in prep.balls)
     try:

@@ -16,9 +16,8 @@ from ..model import BilevelProblem
 from ..threads import single_threaded
 from ..result import BilevelResult
 from .base import MethodRun, Prepared, finalize, prepare
-from .block_exact import solve_block_exact
 from .global_method import solve_global
-from .hypergradient import solve_hypergradient
+from .hypergradient import solve_block_exact, solve_hypergradient
 from .ipopt import solve_ipopt
 from .relaxation import solve_relaxation
 

@@ -13,7 +13,7 @@ from bilevel import BilevelProblem
 from bilevel.errors import InvalidData, ModelError
 from bilevel.lower.matrix import MatrixLower
 from bilevel.solvers.base import prepare
-from bilevel.solvers.hypergradient import hypergradient
+from bilevel.solvers.implicit import hypergradient
 
 RNG = np.random.default_rng(1)
 M_LS, N_LS = 30, 8
@@ -63,7 +63,10 @@ def rhs_attack(matrix: bool, upper: str = "maxmin") -> BilevelProblem:
 
 @pytest.mark.parametrize("method", ["hypergradient", "ipopt"])
 def test_matrix_least_squares_equals_expression_declaration(method):
-    a, b = (ridge(m).solve(method=method, starts=2) for m in (False, True))
+    """The same algorithm on both declarations (the exact block reads expressions only, so it is switched off: its
+    global step may pick the other sign of the leading singular direction, an equally optimal point)."""
+    options = {"exact_block": False} if method == "hypergradient" else {}
+    a, b = (ridge(m).solve(method=method, starts=2, **options) for m in (False, True))
     assert a.certificate.passed and b.certificate.passed
     assert b.upper_objective == pytest.approx(a.upper_objective, rel=1e-8)
     assert b.lower_objective == pytest.approx(a.lower_objective, rel=1e-8)

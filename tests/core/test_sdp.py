@@ -116,7 +116,7 @@ def test_nonaffine_lmi_is_rejected() -> None:
 def test_conic_hypergradient_matches_finite_differences(seed: int) -> None:
     """The LMI lower level's implicit derivative (bilevel.lower.sdp.ConicKKT) against 4th-order central differences;
     the LMI is active (lambda_min(M) ~ 1e-16) at seeds 1, 2, 4, 5 and inactive at 0, 3."""
-    from bilevel.solvers.hypergradient import Hypergradient
+    from bilevel.solvers.implicit import Hypergradient
 
     oracle = Hypergradient(prepare(random_sdp_instance(seed)))
     x0 = np.random.default_rng(seed).uniform(-1, 1, 2)

@@ -13,7 +13,7 @@ from bilevel.errors import ModelError
 from bilevel.problems import registry
 from bilevel.solvers.base import prepare
 from bilevel.solvers.block_exact import find_exact_block
-from bilevel.solvers.hypergradient import shared_oracle
+from bilevel.solvers.implicit import shared_oracle
 from bilevel.solvers.structure import find_balls
 
 
@@ -125,14 +125,20 @@ def test_vrft_declared_from_scratch_matches_the_registered_problem(seed: int) ->
 
 
 def test_clean_data_is_never_a_solved_attack() -> None:
-    """Zero poisoning is stationary (the clean learner minimizes the attacker's loss) but is its worst point."""
+    """Zero poisoning is stationary (the clean learner minimizes the attacker's loss) but is its worst point: the
+    descent (exact_block=False) stays there and says so; the default exact-block mode leaves it at the first step
+    (its block step is a global one, not trapped by stationarity)."""
     p, _ = _vrft_from_scratch(0)
     p.starts.clear()  # the declared start only: zero poisoning
-    res = p.solve(method="hypergradient", starts=1)
+    res = p.solve(method="hypergradient", starts=1, exact_block=False)
     assert res.x["a_u"] == pytest.approx(0.0, abs=1e-12) and res.x["a_y"] == pytest.approx(0.0, abs=1e-12)
     assert res.status is bl.Status.NOT_LOCALLY_OPTIMAL and not res.success
     assert res.stats["probe"]["objective"] < -res.upper_objective  # canonical sense: minimize -J
-    assert p.solve(method="hypergradient", starts=2).success  # a start on the budget sphere is not stationary
+    assert p.solve(method="hypergradient", starts=2, exact_block=False).success  # a start on the budget sphere
+    exact = p.solve(method="hypergradient", starts=1)
+    assert exact.success and exact.stats["exact_block"] == [0, 64]
+    budget = attack_instance("maxmin", "B", 0.1, 0.057, 0, 64).delta_u
+    assert np.linalg.norm(exact.x["a_u"]) == pytest.approx(budget, rel=1e-9)  # on the sphere: a convex maximum
 
 
 def test_suggest_start_rejects_unknown_names_and_bad_shapes() -> None:

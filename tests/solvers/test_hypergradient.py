@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 import bilevel as bl
 from bilevel.solvers.base import prepare
-from bilevel.solvers.hypergradient import Hypergradient, hypergradient
+from bilevel.solvers.implicit import Hypergradient, hypergradient
 from bilevel.solvers.projections import NormBall
 
 FD_STEP = 1e-5
