@@ -42,9 +42,10 @@ def budget_distribution(horizons: tuple[int, ...], selections: tuple[str, ...], 
                         progress: Callable[[str], None] | None = stderr_progress) -> list[dict[str, Any]]:
     """delta_u* (inf: not destabilized up to 1.0) for the data of the reproduction's first `sims` simulations, per
     horizon and selection; rows are appended to the JSONL file `path` as they finish, so a rerun resumes."""
+    seeds = list(enumerate(sim_seeds(seed, sims)))
     tasks = [{"key": f"budget|N={n}|selection={sel}|sim={i}", "horizon": n, "selection": sel, "seed": data_seed,
               "attack_seed": attack_seed, "starts": starts, "root_seed": seed}
-             for n in horizons for sel in selections for i, (data_seed, attack_seed) in enumerate(sim_seeds(seed, sims))]
+             for n in horizons for sel in selections for i, (data_seed, attack_seed) in seeds]
     with open_executor(workers, dask) as executor:
         rows = run_sweep(budget_task, tasks, path, executor, progress, "willems-budget")
     return [{k: r[k] for k in BUDGET_FIELDS} for r in rows]
