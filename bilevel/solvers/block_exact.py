@@ -23,8 +23,9 @@ import scipy.linalg as sla
 
 from ..canonical import CanonicalBilevel
 from ..errors import BilevelError
-from ..lower.base import ExpressionLower, KKTValues, LowerSolution
+from ..lower.base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from ..lower.least_squares import hessian_factor
+from ..lower.matrix import MatrixLower
 from ..reduction import KKTPoint
 from ..result import Status
 from .ascent import projected_ascent
@@ -37,8 +38,10 @@ from .trust_region import maximize_quadratic_on_ball
 
 def quadratic_block_step(M: np.ndarray, grad: np.ndarray, hess: np.ndarray, radius: float) -> np.ndarray:
     """The global minimizer z of F(y_c + M z) over ||z|| <= radius, F quadratic with gradient `grad` and Hessian
-    `hess` at y_c: a trust-region subproblem in the row space of M (dimension <= rows of M)."""
-    s2, U = np.linalg.eigh(M @ M.T)  # M = U S V' from the small Gram matrix (rows of M << columns here) ...
+    `hess` at y_c: a trust-region subproblem, in the row space of M when M has far fewer rows than columns."""
+    if 2 * M.shape[0] > M.shape[1]:  # no reduction worth a decomposition: the subproblem in z itself
+        return maximize_quadratic_on_ball(-0.5 * (M.T @ hess @ M), -0.5 * (M.T @ grad), radius)
+    s2, U = np.linalg.eigh(M @ M.T)  # M = U S V' from the small Gram matrix ...
     if s2.size and s2[0] > 1e-10 * s2[-1]:
         s = np.sqrt(s2)
         Vt = (U.T @ M) / s[:, None]
@@ -77,11 +80,25 @@ class ExactBlock:
         return x, sol, KKTValues.unconstrained(P)
 
 
+def _lower_gradient_parts(low: LowerLevel, y: ca.SX) -> tuple[ca.SX, ca.SX, Callable | None]:
+    """(the lower Hessian as an expression, the expressions the lower gradient at y = 0 is affine in, and for the
+    matrix form the map from their values and Jacobians to that gradient's value and Jacobian; None: the gradient
+    itself)."""
+    if isinstance(low, MatrixLower):  # grad f(0) = q - C'd: never build C'd, whose size is that of the data
+        C = low.C
+
+        def assemble(d: np.ndarray, q: np.ndarray, jac_d: np.ndarray, jac_q: np.ndarray) -> tuple:
+            return q.ravel() - C.T @ d.ravel(), jac_q - C.T @ jac_d
+
+        return ca.SX(low.hess.shape[0], low.hess.shape[1]), ca.vertcat(low.d, low.q), assemble
+    return low.hess_f, ca.substitute(ca.gradient(low.f, y), y, ca.DM.zeros(int(y.numel()))), None
+
+
 def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactBlock | None, list[str]]:
     """The largest ball block that is exact (see the module docstring), and why each other one is not."""
     low = canon.lower
-    if not isinstance(low, ExpressionLower):
-        return None, ["the lower level is given by matrices (lower_qp); the exact block reads expressions"]
+    if not isinstance(low, (ExpressionLower, MatrixLower)):
+        return None, [f"the lower level ({type(low).__name__}) is neither declared by expressions nor by lower_qp"]
     if low.kind != "least-squares":
         return None, [f"the lower level is {low.kind}, not an unconstrained strictly convex quadratic"]
     if not balls:
@@ -90,8 +107,8 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
     hess_F = ca.hessian(canon.F, y)[0]
     if ca.depends_on(hess_F, y):
         return None, ["the upper objective is not quadratic in the lower variables"]
-    q = ca.substitute(ca.gradient(low.f, y), y, ca.DM.zeros(int(y.numel())))
-    in_P = depends(low.hess_f, x)
+    hess_f, q, assemble = _lower_gradient_parts(low, y)
+    in_P = depends(hess_f, x)
     in_F = depends(canon.F, x)
     why: list[str] = []
     best: Ball | None = None
@@ -110,9 +127,17 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
     if best is None:
         return None, why or ["no upper constraint is a Euclidean ball on a block of upper variables"]
     zero = ca.DM.zeros(int(y.numel()))
-    P = ca.substitute(low.hess_f, y, zero)
     grad0 = ca.substitute(ca.gradient(canon.F, y), y, zero)
-    data = canon.params.function("exact_block_data", [x], [P, q, ca.jacobian(q, x[best.block]), grad0, hess_F])
+    if assemble is None:
+        P = ca.substitute(low.hess_f, y, zero)
+        data = canon.params.function("exact_block_data", [x], [P, q, ca.jacobian(q, x[best.block]), grad0, hess_F])
+    else:
+        parts = canon.params.function("exact_block_data", [x], [low.d, low.q, ca.jacobian(low.d, x[best.block]),
+                                                                ca.jacobian(low.q, x[best.block]), grad0, hess_F])
+
+        def data(xv: np.ndarray) -> tuple:
+            d, qv, jac_d, jac_q, g0, hF = parts(xv)
+            return (low.hess, *assemble(d, qv, jac_d, jac_q), g0, hF)
     return ExactBlock(best, data), why
 
 

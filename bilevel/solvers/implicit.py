@@ -29,7 +29,7 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from ..errors import ModelError
-from ..lower.base import KKTValues, LowerSolution
+from ..lower.base import ExpressionLower, KKTValues, LowerSolution
 from ..parameters import CompiledFunction
 from .base import Prepared
 
@@ -158,10 +158,12 @@ class Hypergradient:
             sol, vals = self._polish(x, self.low.solve(x))
         if self.low.fixed:  # y* constant in x: solved once, no adjoint
             self._fixed = (revision, sol, vals)
-        if np.isnan(sol.objective):  # F and f share subexpressions: one sweep gives both
+        if np.isnan(sol.objective) and isinstance(self.low, ExpressionLower):  # F and f share subexpressions
             *upper, f = _shaped(self._upper_and_f(x, sol.y), self._upper_shapes + [(1, 1)])
             sol.objective = float(f[0, 0])
         else:
+            if np.isnan(sol.objective):  # the matrix form evaluates f numerically
+                sol.objective = float(self.low.evaluate(x, sol.y)[0])
             upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
         phi = F + self.penalty * (float(np.maximum(G, 0.0).sum()) + float(np.abs(H).sum()))

@@ -63,8 +63,8 @@ def rhs_attack(matrix: bool, upper: str = "maxmin") -> BilevelProblem:
 
 @pytest.mark.parametrize("method", ["hypergradient", "ipopt"])
 def test_matrix_least_squares_equals_expression_declaration(method):
-    """The same algorithm on both declarations (the exact block reads expressions only, so it is switched off: its
-    global step may pick the other sign of the leading singular direction, an equally optimal point)."""
+    """The same algorithm on both declarations; the descent (exact_block=False) for the hypergradient, since the
+    exact block's global step may pick either sign of the leading singular direction, an equally optimal point."""
     options = {"exact_block": False} if method == "hypergradient" else {}
     a, b = (ridge(m).solve(method=method, starts=2, **options) for m in (False, True))
     assert a.certificate.passed and b.certificate.passed
@@ -82,6 +82,28 @@ def test_matrix_least_squares_reaches_trust_region_optimum():
     assert res.certificate.passed
     assert res.upper_objective == pytest.approx(best, rel=1e-6)
     assert prepare(ridge(True)).canon.lower.kind == "least-squares"
+    assert res.stats["exact_block"] == [0, M_LS]  # the matrix form has its exact block too
+
+
+def test_auto_leaves_a_large_exact_block_to_the_descent(monkeypatch) -> None:
+    """exact_block="auto" takes an exact block only while its subproblem is small (a dense eigendecomposition per
+    evaluation); above the bound it runs the descent and says why; exact_block=True still takes it."""
+    import bilevel.solvers.hypergradient as hg
+
+    monkeypatch.setattr(hg, "AUTO_EXACT_DIMENSION", N_LS - 1)
+    res = ridge(True).solve(method="hypergradient", starts=1)
+    assert res.stats["exact_block"] is None and any("the descent is cheaper" in w for w in res.stats["not_exact"])
+    assert ridge(True).solve(method="hypergradient", starts=1, exact_block=True).stats["exact_block"] == [0, M_LS]
+
+
+def test_exact_block_reads_the_matrix_form() -> None:
+    """lower_qp's least squares gets the exact block (its gradient q - C'd assembled from the data, C'd never built
+    as an expression): one start reaches the trust-region optimum as the expression declaration does."""
+    M = np.linalg.solve(C_LS.T @ C_LS + REG * np.eye(N_LS), C_LS.T)
+    best = RADIUS ** 2 * np.linalg.norm(M, 2) ** 2
+    for matrix in (True, False):
+        res = ridge(matrix).solve(method="block-exact", starts=1)
+        assert res.certificate.passed and res.upper_objective == pytest.approx(best, rel=1e-9)
 
 
 def test_matrix_gradient_matches_finite_differences():
