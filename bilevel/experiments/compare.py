@@ -17,6 +17,7 @@ from ..errors import ModelError
 from ..problems import registry
 from ..result import BilevelResult
 from ..solvers import solve
+from ..solvers.registry import METHODS_VERSION
 from .executor import open_executor
 from .sweep import run_sweep, stderr_progress
 
@@ -112,7 +113,8 @@ def compare(problems: Sequence[str], methods: Sequence[str], csv_path: str, star
     override the defaults of each problem that has them."""
     tasks = [{"key": f"{name}/{method}", "problem": name, "method": method,
               "params": registry.params_for(name, params or {}),
-              "options": dict((method_options or {}).get(method, {})), "starts": starts, "seed": seed}
+              "options": dict((method_options or {}).get(method, {})), "starts": starts, "seed": seed,
+              "methods_version": METHODS_VERSION}
              for name in problems for method in methods]
     with open_executor(workers, dask) as executor:
         rows = run_sweep(compare_task, tasks, os.path.splitext(csv_path)[0] + ".jsonl", executor, progress,

@@ -25,6 +25,10 @@ Method = Callable[..., MethodRun]
 SMALL_LOWER = 256
 """Lower levels with at most this many variables are solved with one BLAS thread."""
 
+METHODS_VERSION = "methods-2"
+"""Part of every `bilevel compare` task, so a resumed comparison never reuses a row of an older method: bump it when a
+registered method changes its answers for the same call (methods-2: hypergradient takes the exact block by default)."""
+
 METHODS: dict[str, Method] = {
     "ipopt": solve_ipopt,
     "hypergradient": solve_hypergradient,

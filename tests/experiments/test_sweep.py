@@ -124,6 +124,18 @@ def test_compare_more_starts_never_reuses_a_one_start_row(tmp_path) -> None:
     assert "Settings read from the rows: starts 8; seed 0." in open(os.path.join(out, "compare.md")).read()
 
 
+def test_compare_never_reuses_a_row_of_an_older_method(tmp_path, monkeypatch) -> None:
+    """A row computed before a registered method changed its answers (METHODS_VERSION bumped) is not reused."""
+    import bilevel.experiments.compare as cmp
+
+    path, lines = str(tmp_path / "cmp" / "compare.csv"), []
+    cmp.compare(["bard1998-ex5.1.1"], ["ipopt"], path, starts=1, workers=1, progress=None)
+    monkeypatch.setattr(cmp, "METHODS_VERSION", "methods-test")
+    cmp.compare(["bard1998-ex5.1.1"], ["ipopt"], path, starts=1, workers=1, progress=lines.append)
+    assert any("1 row(s) of other settings not reused" in line for line in lines)
+    assert row_count(str(tmp_path / "cmp" / "compare.jsonl")) == 2
+
+
 def test_malformed_rows_are_reported_set_aside_and_recomputed(tmp_path) -> None:
     """A line that does not parse, a row lacking a result field, one lacking its digest and a truncated last
     line: each is reported, moved to <path>.rejected and recomputed to the same numbers."""
