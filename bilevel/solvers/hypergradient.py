@@ -7,7 +7,8 @@ evaluation and the rest by the engine's spectral projected gradient loop (bileve
 requires such a block (method `block-exact`), exact_block=False never uses one.
 
 Otherwise, projected hypergradient descent: recognized balls (bilevel.solvers.structure) are projected on, other
-upper constraints penalized (bilevel.solvers.implicit). The iteration is x+ = P(x - t grad phi), P the projection
+upper constraints penalized (bilevel.solvers.implicit); a point is reported feasible when max(G, 0) and |H|
+are <= 1e-6. The iteration is x+ = P(x - t grad phi), P the projection
 onto the option `projection` (see projections.py) intersected with the declared box, with a
 Barzilai-Borwein first trial step and Armijo backtracking along the projection arc,
 phi(x+) <= phi(x) - 1e-4 / t * ||x+ - x||^2. A trial point at which the lower level is infeasible is moved to
