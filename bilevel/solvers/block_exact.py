@@ -1,5 +1,6 @@
-"""Block-exact method: one block of upper variables is optimized globally in closed form at every evaluation,
-the others by spectral projected hypergradient steps on the resulting value function (Danskin).
+"""The exact-block mode of `hypergradient` (and method `block-exact`): one block of upper variables is optimized
+globally in closed form at every evaluation, the others by spectral projected hypergradient steps on the resulting
+value function (Danskin).
 
 A block x_S (a recognized ball ||x_S - c|| <= r, no other bound or constraint on it) is exact when
   - the lower level is an unconstrained strictly convex quadratic (least squares): y*(x) = -P(x)^{-1} q(x),
@@ -7,7 +8,8 @@ A block x_S (a recognized ball ||x_S - c|| <= r, no other bound or constraint on
   - F does not depend on x_S and is quadratic in y (any curvature).
 Then min_z F(y_c + M z) over ||z|| <= r is a trust-region subproblem in the row space of M (dimension
 <= n_y), solved globally (More & Sorensen 1983). This is the exact input step of the VRFT attacks
-(the learner's targets are affine in the input poisoning), found from the declared structure.
+(the learner's targets are affine in the input poisoning), found from the declared structure: lower levels
+declared by expressions or by `lower_qp` (whose Hessian C'C + P is numeric and gradient q - C'd affine in d, q).
 """
 
 from __future__ import annotations
