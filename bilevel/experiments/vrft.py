@@ -12,7 +12,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..attacks.vrft import CONVENTIONS, VRFTAttack, attack_instance
-from ..attacks.vrft_methods import ATTACKS, attack_budget_path, attack_summary
+from ..attacks.vrft_methods import ATTACKS, MAX_ITER, attack_budget_path, attack_summary
 from .stats import mean_interval, wilson_interval
 from .executor import open_executor
 from .sweep import load_timings, record_timing, run_sweep, settings_of, stderr_progress
@@ -46,7 +46,8 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
         atk = make_attack({**task, "eps_y": task["eps_y"][0]})
         return {"cells": [{**attack_summary(r), "eps_y": eps, "theta_poisoned": r.y["theta"].tolist()}
                           for eps, r in zip(task["eps_y"], attack_budget_path(atk, task["eps_y"], seed=task["seed"]))]}
-    res = ATTACKS[task["method"]](make_attack(task), seed=task["seed"])
+    limit = {"max_iter": task["max_iter"]} if "max_iter" in task else {}  # part of the task, so of its digest
+    res = ATTACKS[task["method"]](make_attack(task), seed=task["seed"], **limit)
     return {**attack_summary(res), "theta_poisoned": res.y["theta"].tolist()}
 
 
@@ -63,7 +64,8 @@ def cell_tasks(sims: int, seed: int, convention: str, objective: str, method: st
                     tasks.append({"key": f"{convention}/{objective}/{method}/{scenario}/{eu}/{label}/{i}",
                                   "convention": convention, "objective": objective, "method": method,
                                   "scenario": scenario, "eps_u": eu, "eps_y": ey, "sim": i, "seed": s,
-                                  "root_seed": seed, "N": N_SAMPLES, "norm": NORM})
+                                  "root_seed": seed, "N": N_SAMPLES, "norm": NORM,
+                                  **({"max_iter": MAX_ITER[objective]} if objective == "targeted" else {})})
     return tasks
 
 
