@@ -25,9 +25,10 @@ Method = Callable[..., MethodRun]
 SMALL_LOWER = 256
 """Lower levels with at most this many variables are solved with one BLAS thread."""
 
-METHODS_VERSION = "methods-2"
+METHODS_VERSION = "methods-3"
 """Part of every `bilevel compare` task, so a resumed comparison never reuses a row of an older method: bump it when a
-registered method changes its answers for the same call (methods-2: hypergradient takes the exact block by default)."""
+registered method changes its answers for the same call (methods-2: hypergradient takes the exact block by default;
+methods-3: the structured vrft-targeted attack runs to convergence)."""
 
 METHODS: dict[str, Method] = {
     "ipopt": solve_ipopt,
