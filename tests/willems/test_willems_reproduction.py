@@ -121,3 +121,17 @@ def test_reproduce_rejects_the_flags_of_another_target(capsys) -> None:
     assert "--quick: only `reproduce willems` takes it" in capsys.readouterr().err
     assert main(["reproduce", "willems-budget", "--selection", "scs"]) == 2
     assert "runs the selections min-norm, clarabel and scs" in capsys.readouterr().err
+
+
+def test_budget_quantiles_keep_data_sets_never_destabilized() -> None:
+    """A data set that stays stable has delta_u* = inf: the quartiles that reach it are inf, not nan, and the others
+    are np.quantile's (one stable set of four: median 0.25, upper quartile inf)."""
+    import numpy as np
+
+    from bilevel.experiments.willems_budget import quantiles, summary_markdown
+
+    d = np.array([0.1, 0.2, 0.3, np.inf])
+    np.testing.assert_allclose(quantiles(d, (0.25, 0.5, 0.75)), [0.175, 0.25, np.inf], rtol=1e-12)
+    np.testing.assert_array_equal(quantiles(d[:3], (0.5,)), np.quantile(d[:3], [0.5]))
+    rows = [{"horizon": 15, "selection": "min-norm", "delta_star": v} for v in d]
+    assert "| 15 | min-norm | 4 | 0.25 | 0.175 - inf | 1 |" in summary_markdown(rows)
