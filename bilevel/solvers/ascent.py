@@ -1,8 +1,9 @@
 """The one spectral projected gradient loop (Birgin, Martinez & Raydan 2000), in budget units.
 
 Every first-order method maximizes with it: the generic hypergradient's exact-block mode (on the negated
-reduced objective) and the structured attacks; the hypergradient's descent still has its own loop. A value callback may return -inf for a point it
-cannot evaluate (e.g. the lower level is infeasible there); the line search then backtracks.
+reduced objective) and the structured attacks; the hypergradient's descent still has its own loop. A value
+callback may return -inf for a point it cannot evaluate (e.g. the lower level is infeasible there); the line
+search then backtracks.
 """
 
 from __future__ import annotations

@@ -82,18 +82,31 @@ class ExactBlock:
         return x, sol, KKTValues.unconstrained(P)
 
 
-def _lower_gradient_parts(low: LowerLevel, y: ca.SX) -> tuple[ca.SX, ca.SX, Callable | None]:
-    """(the lower Hessian as an expression, the expressions the lower gradient at y = 0 is affine in, and for the
-    matrix form the map from their values and Jacobians to that gradient's value and Jacobian; None: the gradient
-    itself)."""
-    if isinstance(low, MatrixLower):  # grad f(0) = q - C'd: never build C'd, whose size is that of the data
-        C = low.C
+def _lower_gradient_parts(low: LowerLevel, y: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """The lower Hessian as an expression, and the expressions the lower gradient at y = 0 is affine in (for the
+    matrix form d and q: its gradient q - C'd is never built as an expression, its size is that of the data)."""
+    if isinstance(low, MatrixLower):
+        return ca.SX(low.hess.shape[0], low.hess.shape[1]), ca.vertcat(low.d, low.q)
+    return low.hess_f, ca.substitute(ca.gradient(low.f, y), y, ca.DM.zeros(int(y.numel())))
 
-        def assemble(d: np.ndarray, q: np.ndarray, jac_d: np.ndarray, jac_q: np.ndarray) -> tuple:
-            return q.ravel() - C.T @ d.ravel(), jac_q - C.T @ jac_d
 
-        return ca.SX(low.hess.shape[0], low.hess.shape[1]), ca.vertcat(low.d, low.q), assemble
-    return low.hess_f, ca.substitute(ca.gradient(low.f, y), y, ca.DM.zeros(int(y.numel()))), None
+def _block_data(canon: CanonicalBilevel, S: slice, hess_F: ca.SX, q: ca.SX) -> Callable:
+    """ExactBlock.data for block S (q from _lower_gradient_parts): one compiled sweep, plus C'd assembled from the
+    numbers for the matrix form."""
+    low, x, y = canon.lower, canon.x, canon.y
+    zero = ca.DM.zeros(int(y.numel()))
+    grad0 = ca.substitute(ca.gradient(canon.F, y), y, zero)
+    if not isinstance(low, MatrixLower):
+        return canon.params.function("exact_block_data", [x], [ca.substitute(low.hess_f, y, zero), q,
+                                                               ca.jacobian(q, x[S]), grad0, hess_F])
+    parts = canon.params.function("exact_block_data", [x], [low.d, low.q, ca.jacobian(low.d, x[S]),
+                                                            ca.jacobian(low.q, x[S]), grad0, hess_F])
+
+    def data(xv: np.ndarray) -> tuple:
+        d, q, jac_d, jac_q, g0, hF = parts(xv)
+        return low.hess, q.ravel() - low.C.T @ d.ravel(), jac_q - low.C.T @ jac_d, g0, hF
+
+    return data
 
 
 def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactBlock | None, list[str]]:
@@ -109,7 +122,7 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
     hess_F = ca.hessian(canon.F, y)[0]
     if ca.depends_on(hess_F, y):
         return None, ["the upper objective is not quadratic in the lower variables"]
-    hess_f, q, assemble = _lower_gradient_parts(low, y)
+    hess_f, q = _lower_gradient_parts(low, y)
     in_P = depends(hess_f, x)
     in_F = depends(canon.F, x)
     why: list[str] = []
@@ -128,19 +141,7 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
             best = ball
     if best is None:
         return None, why or ["no upper constraint is a Euclidean ball on a block of upper variables"]
-    zero = ca.DM.zeros(int(y.numel()))
-    grad0 = ca.substitute(ca.gradient(canon.F, y), y, zero)
-    if assemble is None:
-        P = ca.substitute(low.hess_f, y, zero)
-        data = canon.params.function("exact_block_data", [x], [P, q, ca.jacobian(q, x[best.block]), grad0, hess_F])
-    else:
-        parts = canon.params.function("exact_block_data", [x], [low.d, low.q, ca.jacobian(low.d, x[best.block]),
-                                                                ca.jacobian(low.q, x[best.block]), grad0, hess_F])
-
-        def data(xv: np.ndarray) -> tuple:
-            d, qv, jac_d, jac_q, g0, hF = parts(xv)
-            return (low.hess, *assemble(d, qv, jac_d, jac_q), g0, hF)
-    return ExactBlock(best, data), why
+    return ExactBlock(best, _block_data(canon, best.block, hess_F, q)), why
 
 
 def exact_block_of(prep: Prepared) -> tuple[ExactBlock | None, list[str]]:
@@ -159,8 +160,9 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], s
                             max_iter: int = 500, verbose: bool = False) -> MethodRun:
     """Multistart ascent of the other upper variables (the engine's loop, bilevel.solvers.ascent) on phi with the
     exact block at its global optimum at every evaluation; tol: relative gain over the loop's window."""
+    starts, scale, tol, max_iter = int(starts), float(scale), float(tol), int(max_iter)
     balls = prep.balls
-    oracle = shared_oracle(prep, penalty, projected_rows=tuple(b.row for b in balls))
+    oracle = shared_oracle(prep, float(penalty), projected_rows=tuple(b.row for b in balls))
     S = exact.ball.block
     rest = np.ones(int(prep.canon.x.numel()), dtype=bool)
     rest[S] = False

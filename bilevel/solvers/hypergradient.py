@@ -35,7 +35,7 @@ from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, check_options
 from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, Hypergradient, shared_oracle
-from .block_exact import ascend_with_exact_block, exact_block_of
+from .block_exact import ExactBlock, ascend_with_exact_block, exact_block_of
 from .ipopt import best_of
 from .starts import start_points
 from .projections import Projection
@@ -178,7 +178,7 @@ def _projection(prep: Prepared, projection: Any) -> Projection:
     return proj
 
 
-EXACT_ONLY_NOT = ("projection", "ftol", "active_tol")
+DESCENT_ONLY = ("projection", "ftol", "active_tol")
 """Options of the descent that the exact-block mode does not take."""
 AUTO_EXACT_DIMENSION = 256
 """exact_block="auto" takes an exact block whose trust-region subproblem has at most this dimension (a dense
@@ -193,6 +193,31 @@ def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
     return solve_hypergradient(prep, exact_block=True, **options)
 
 
+def _chosen_exact_block(prep: Prepared, mode: Any, options: dict[str, Any]) -> tuple[ExactBlock | None, list[str]]:
+    """The exact block this call uses (None: the descent) and why the candidates were not used."""
+    if mode not in ("auto", True, False):
+        raise ModelError(f"option exact_block={mode!r} is invalid: it must be 'auto', True or False")
+    descent_only = sorted(set(options) & set(DESCENT_ONLY))
+    if mode is False or (mode == "auto" and descent_only):
+        return None, []
+    if descent_only:
+        raise ModelError(f"option(s) {', '.join(descent_only)} belong to the descent, not to the exact-block mode; "
+                         "drop them or pass exact_block=False")
+    exact, why = exact_block_of(prep)
+    if exact is None and mode is True:
+        raise ModelError("exact_block=True (method 'block-exact') needs a block of upper variables on which the "
+                         f"reduced objective is a ball-constrained quadratic: {'; '.join(why)}; use "
+                         "method='hypergradient'")
+    if exact is None or mode is True:
+        return exact, why
+    S = exact.ball.block
+    dimension = min(int(prep.canon.y.numel()), S.stop - S.start)
+    if dimension > AUTO_EXACT_DIMENSION:
+        return None, why + [f"x[{S.start}:{S.stop}] is exact, but its subproblem has dimension {dimension} > "
+                            f"{AUTO_EXACT_DIMENSION}: the descent is cheaper (exact_block=True forces it)"]
+    return exact, why
+
+
 def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     """Multistart projected hypergradient ascent (options: starts, seed, scale, penalty, tol, max_iter, verbose,
     exact_block = "auto" | True | False; the descent also projection, ftol, active_tol): with the exact block where
@@ -200,32 +225,9 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     penalized."""
     check_options("hypergradient", options, {"starts", "seed", "scale", "projection", "penalty", "tol", "ftol",
                                              "max_iter", "active_tol", "verbose", "exact_block"})
-    mode = options.pop("exact_block", "auto")
-    if mode not in ("auto", True, False):
-        raise ModelError(f"option exact_block={mode!r} is invalid: it must be 'auto', True or False")
-    why: list[str] = []
-    if mode is True or (mode == "auto" and not set(options) & set(EXACT_ONLY_NOT)):
-        exact, why = exact_block_of(prep)
-        if exact is None and mode is True:
-            raise ModelError("exact_block=True (method 'block-exact') needs a block of upper variables on which the "
-                             f"reduced objective is a ball-constrained quadratic: {'; '.join(why)}; use "
-                             "method='hypergradient'")
-        if exact is not None and mode == "auto":
-            S = exact.ball.block
-            dimension = min(int(prep.canon.y.numel()), S.stop - S.start)
-            if dimension > AUTO_EXACT_DIMENSION:
-                why = why + [f"x[{S.start}:{S.stop}] is exact, but its subproblem has dimension {dimension} > "
-                             f"{AUTO_EXACT_DIMENSION}: the descent is cheaper (exact_block=True forces it)"]
-                exact = None
-        if exact is not None:
-            if given := sorted(set(options) & set(EXACT_ONLY_NOT)):
-                raise ModelError(f"option(s) {', '.join(given)} belong to the descent, not to the exact-block mode; "
-                                 "drop them or pass exact_block=False")
-            return ascend_with_exact_block(prep, exact, why, int(options.get("starts", 4)), options.get("seed", 0),
-                                           float(options.get("scale", 10.0)),
-                                           float(options.get("penalty", DEFAULT_PENALTY)),
-                                           float(options.get("tol", 1e-5)), int(options.get("max_iter", 500)),
-                                           bool(options.get("verbose")))
+    exact, why = _chosen_exact_block(prep, options.pop("exact_block", "auto"), options)
+    if exact is not None:
+        return ascend_with_exact_block(prep, exact, why, **options)
     starts, penalty = int(options.get("starts", 4)), float(options.get("penalty", DEFAULT_PENALTY))
     projected = tuple(b.row for b in prep.balls) if options.get("projection") is None else ()
     active_tol = float(options.get("active_tol", ACTIVE_TOL))
