@@ -56,6 +56,8 @@ class CanonicalBilevel:
     """The declared problem's own independent lower solver, if any (BilevelProblem.lower_reference)."""
     matrices: LowerQP | None = None
     """A lower level given by matrices (lower_qp, bounds of y appended to A and b); f, g, h are then empty."""
+    lifting: Lifting | None = None
+    """The problem's definitions kept as variables, for the KKT reformulation (here they are substituted)."""
 
     @cached_property
     def lower(self) -> LowerLevel:
@@ -92,6 +94,55 @@ class CanonicalBilevel:
     def upper_gradient_y(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """grad_y F at (x, y)."""
         return np.asarray(self._upper(x, y)[5]).ravel()
+
+
+@dataclass
+class Lifting:
+    """Definitions (BilevelProblem.define) as variables z: their values as expressions of x, and the problem over
+    [x; z] with the expressions as declared and the definitions' equations appended to the upper equalities."""
+
+    z: ca.SX
+    value: ca.SX
+    raw: CanonicalBilevel
+
+    @cached_property
+    def values(self) -> ca.Function:
+        """x -> z, at the parameters' current values."""
+        return self.raw.params.function("definitions", [self.raw.x[: self.raw.x.numel() - self.z.numel()]],
+                                        [self.value])
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        """[x; z(x)]."""
+        return np.concatenate([x, np.asarray(self.values(x), dtype=float).ravel()])
+
+
+def _eliminate(canon: CanonicalBilevel, problem: BilevelProblem) -> CanonicalBilevel:
+    """The canonical problem with the problem's definitions substituted, keeping the declared form in its
+    `lifting`."""
+    definitions = problem.definitions
+    z, value = problem.definition_values()
+    equations = ca.vertcat(*[d.equation for d in definitions])
+    check = canon.params.function("definition_check", [canon.x], [ca.substitute(equations, z, value), value])
+    rng = np.random.default_rng(0)
+    for x in [canon.x_start] + [sample_in_bounds(canon.x_lb, canon.x_ub, rng, 1.0) for _ in range(2)]:
+        gap, val = (np.asarray(v, dtype=float).ravel() for v in check(x))
+        if np.abs(gap).max(initial=0.0) > 1e-8 * (1.0 + np.abs(val).max(initial=0.0)):
+            i = int(np.argmax(np.abs(gap)))
+            owner = next(d.name for d, k in zip(definitions, np.cumsum([d.sym.numel() for d in definitions]))
+                         if i < k)
+            raise ModelError(f"define({owner!r}): its equation is {gap[i]:.3g} (not 0) at its value; the equation "
+                             "must vanish exactly where the symbol equals the value")
+    sub = lambda e: ca.substitute(e, z, value)  # noqa: E731
+    n_z = int(z.numel())
+    raw = replace(canon, x=ca.vertcat(canon.x, z), x_lb=np.concatenate([canon.x_lb, np.full(n_z, -np.inf)]),
+                  x_ub=np.concatenate([canon.x_ub, np.full(n_z, np.inf)]),
+                  x_start=np.concatenate([canon.x_start, np.asarray(check(canon.x_start)[1], dtype=float).ravel()]),
+                  H=ca.vertcat(canon.H, equations), x_suggested=[], lower_reference=None)
+    mats = canon.matrices
+    if mats is not None:
+        mats = replace(mats, d=sub(mats.d), q=sub(mats.q), b=sub(mats.b), e=sub(mats.e))
+    return replace(canon, F=sub(canon.F), G=sub(canon.G), H=sub(canon.H), f=sub(canon.f), g=sub(canon.g),
+                   h=sub(canon.h), psd=[sub(m) for m in canon.psd], matrices=mats, lifting=Lifting(z, value, raw))
 
 
 @dataclass
@@ -145,7 +196,8 @@ class Canonicalize(Reduction):
             raise ModelError(f"{problem.name}: no lower variables; declare them with lower_variable")
         ups, lows = problem.upper_variables, problem.lower_variables
         x, y = _flat(ups), _flat(lows)
-        allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(x, y, problem.parameters.sym))}
+        defined = [ca.vec(d.sym) for d in problem.definitions]
+        allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(x, y, *defined, problem.parameters.sym))}
         _check_depends(problem.upper_objective.expr, allowed, "the upper objective")
         mats = problem.lower_matrices
         for what, expr in ([] if mats is None else [("d", mats.d), ("q", mats.q), ("b", mats.b), ("e", mats.e)]):
@@ -210,6 +262,8 @@ class Canonicalize(Reduction):
             assume_convex=mats is None and problem.lower_objective.assume_convex, params=problem.parameters,
             lower_reference=problem.lower_reference, matrices=mats,
         )
+        if problem.definitions:
+            canon = _eliminate(canon, problem)
         return canon, canon
 
     def invert(self, solution: BilevelSolution, canon: CanonicalBilevel) -> BilevelSolution:
@@ -243,6 +297,8 @@ class NormalizeSense(Reduction):
         senses = (canon.upper_sense, canon.lower_sense)
         out = replace(canon, F=-canon.F if senses[0] == "max" else canon.F,
                       f=-canon.f if senses[1] == "max" else canon.f, upper_sense="min", lower_sense="min")
+        if canon.lifting is not None:
+            out.lifting = replace(canon.lifting, raw=self.apply(canon.lifting.raw)[0])
         return out, senses
 
     def invert(self, solution: BilevelSolution, senses: tuple[str, str]) -> BilevelSolution:

@@ -91,6 +91,17 @@ class Constraint:
 
 
 @dataclass(frozen=True)
+class Definition:
+    """A named expression of the upper variables (BilevelProblem.define): its symbol, its value, and the equation
+    (zero exactly where the symbol equals the value) that the KKT reformulation imposes on it."""
+
+    name: str
+    sym: ca.SX
+    value: ca.SX
+    equation: ca.SX
+
+
+@dataclass(frozen=True)
 class PSDConstraint:
     """A linear matrix inequality `matrix >= 0` (positive semidefinite), symmetric by declaration."""
 
@@ -144,6 +155,22 @@ def _bound_array(value: Any, size: int, what: str, symmetric: bool = False) -> n
     return arr
 
 
+def _shape_of(value: Any, where: str) -> tuple[int, int]:
+    try:
+        return tuple(ca.SX(value).shape)
+    except (NotImplementedError, TypeError, RuntimeError):
+        raise ModelError(f"{where}: expected a CasADi expression, got {type(value).__name__}") from None
+
+
+def _check_uses(expr: ca.SX, allowed: ca.SX, where: str) -> None:
+    """Raise if expr uses a symbol outside `allowed` (a lower variable, or something not declared yet)."""
+    known = {s.element_hash() for s in ca.symvar(allowed)}
+    free = [str(s) for s in ca.symvar(expr) if s.element_hash() not in known]
+    if free:
+        raise ModelError(f"{where} uses {', '.join(free[:5])}, which are not upper variables, parameters or earlier "
+                         "definitions of this problem; a definition depends on the leader's choices only")
+
+
 def split_comparison(expr: Any, where: str) -> tuple[ca.SX, Literal["<=", "=="]]:
     """Turn `a <= b`, `a >= b` or `a == b` (CasADi SX) into (`a - b`, kind) so that body <= 0 or == 0."""
     if not isinstance(expr, ca.SX):
@@ -189,6 +216,7 @@ class BilevelProblem:
         self.upper_constraints: list[Constraint] = []
         self.lower_constraints: list[Constraint] = []
         self.lower_psd_constraints: list[PSDConstraint] = []
+        self.definitions: list[Definition] = []
         self.starts: list[dict[str, np.ndarray]] = []
         self.parameters = ParameterSet()
         self.revision = 0
@@ -240,8 +268,10 @@ class BilevelProblem:
     def _check_new_name(self, name: str) -> None:
         if not isinstance(name, str) or not name.isidentifier():
             raise ModelError(f"name {name!r} must be a Python identifier")
-        if any(v.name == name for v in self.variables) or any(p.name == name for p in self.parameters.items):
-            raise ModelError(f"a variable or parameter named {name!r} is already declared; names must be unique")
+        if (any(v.name == name for v in self.variables) or any(p.name == name for p in self.parameters.items)
+                or any(d.name == name for d in getattr(self, "definitions", ()))):
+            raise ModelError(f"a variable, parameter or definition named {name!r} is already declared; names must "
+                             "be unique")
 
     def parameter(self, name: str, shape: int | tuple[int, int] = 1, value: Any = None) -> ca.SX:
         """Declare data that can be re-set without rebuilding (set_value); returns its CasADi symbol.
@@ -273,6 +303,43 @@ class BilevelProblem:
         """
         self._check_lower_open("lower_variable")
         return self._variable("lower", name, shape, lb, ub, start, symmetric)
+
+    def define(self, name: str, value: Any, equation: Callable[[ca.SX], Any] | None = None) -> ca.SX:
+        """Name an expression of the upper variables and parameters (a filtered signal, a regressor); returns its
+        symbol, to write with as with the expression itself.
+
+        Methods that eliminate the lower level substitute `value`. The KKT reformulation (ipopt, relaxation) keeps
+        the symbol z as a variable bound by `equation(z) == 0` (default z - value): given as a recursion (e.g. a
+        difference equation) it keeps the NLP's derivatives sparse where the explicit value would make them dense.
+        """
+        rows, cols = self._new_shape("definition", name, _shape_of(value, f"define({name!r})"))
+        value = ca.SX(value)
+        earlier = [ca.vec(v.sym) for v in self.upper_variables] + [ca.vec(d.sym) for d in self.definitions]
+        _check_uses(value, ca.vertcat(*earlier, self.parameters.sym), f"define({name!r}): the value")
+        sym = ca.SX.sym(name, rows, cols)
+        body = sym - value if equation is None else ca.SX(equation(sym))
+        if body.numel() != sym.numel():
+            raise ModelError(f"define({name!r}): the equation has {body.numel()} entries for {sym.numel()} defined "
+                             "ones; it must give one equation per entry")
+        _check_uses(body, ca.vertcat(*earlier, ca.vec(sym), self.parameters.sym), f"define({name!r}): the equation")
+        self.definitions.append(Definition(name, sym, value, ca.vec(body)))
+        self.revision += 1
+        return sym
+
+    def definition_values(self) -> tuple[ca.SX, ca.SX]:
+        """The definitions' symbols stacked, and their values as expressions of upper variables and parameters only."""
+        syms: list[ca.SX] = []
+        values: list[ca.SX] = []
+        for d in self.definitions:  # a value may use earlier definitions, already explicit
+            values.append(ca.substitute(ca.vec(d.value), ca.vertcat(*syms), ca.vertcat(*values)) if syms
+                          else ca.vec(d.value))
+            syms.append(ca.vec(d.sym))
+        return (ca.vertcat(*syms), ca.vertcat(*values)) if syms else (ca.SX(0, 1), ca.SX(0, 1))
+
+    def explicit(self, expr: Any) -> ca.SX:
+        """expr with every definition replaced by its value (an expression of the declared variables and parameters)."""
+        z, value = self.definition_values()
+        return ca.substitute(ca.SX(expr), z, value) if self.definitions else ca.SX(expr)
 
     def suggest_start(self, **values: Any) -> None:
         """Add an upper-level start for the multistart methods (tried before random ones): values by upper-variable
@@ -442,7 +509,8 @@ class BilevelProblem:
                              "declared; add the variable, objective or constraint to the cvxpy problem instead")
 
     def _all_syms(self) -> ca.SX:
-        return ca.vertcat(*[ca.vec(v.sym) for v in self.variables], self.parameters.sym)
+        return ca.vertcat(*[ca.vec(v.sym) for v in self.variables], *[ca.vec(d.sym) for d in self.definitions],
+                          self.parameters.sym)
 
     def __getstate__(self) -> dict[str, Any]:  # the cached preparation (compiled functions) is not pickled
         return {k: v for k, v in self.__dict__.items() if k != "_prepared"}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
@@ -50,6 +50,9 @@ class KKTInverse:
 
     slices: dict[str, slice]
     psd_sizes: tuple[int, ...]
+    lift: Callable[[np.ndarray], np.ndarray] | None = None
+    """x -> [x; z(x)] when the x block also holds the problem's definitions (Lifting), else None."""
+    n_x: int = 0
 
 
 @dataclass
@@ -68,11 +71,15 @@ class SingleLevelReduction(Reduction):
 
     Variables w = [x, y, lam, mu, vech Z_1, ...]; equalities: upper equalities, stationarity, lower
     equalities; inequalities: upper inequalities; pairs: 0 <= -g ⟂ lam >= 0 and M_k >= 0 ⟂ Z_k >= 0.
+    A problem with definitions is reduced in its lifted form: the x block is [x; z], the definitions'
+    equations are upper equalities, and invert/pack drop and restore z.
     """
 
     @staticmethod
     def layout(canon: Any) -> KKTInverse:
         """Where each block sits in w, from the sizes alone (no expression is built)."""
+        lifting = canon.lifting
+        canon = canon if lifting is None else lifting.raw
         low = canon.lower
         dims = tuple(int(m.size1()) for m in low.psd)
         sizes = [("x", low.n_x), ("y", low.n_y), ("lam", low.n_g), ("mu", low.n_h)]
@@ -81,14 +88,16 @@ class SingleLevelReduction(Reduction):
         for name, size in sizes:
             slices[name] = slice(start, start + size)
             start += size
-        return KKTInverse(slices, dims)
+        n_x = low.n_x - (0 if lifting is None else int(lifting.z.numel()))
+        return KKTInverse(slices, dims, None if lifting is None else lifting.lift, n_x)
 
     def apply(self, canon: Any) -> tuple[MPCC, KKTInverse]:
+        inverse = self.layout(canon)
+        canon = canon if canon.lifting is None else canon.lifting.raw
         low = canon.lower.symbolic()
         kkt = low.kkt()
         blocks = [("x", canon.x), ("y", low.y), ("lam", kkt.lam), ("mu", kkt.mu)]
         blocks += [(f"Z{k}", v) for k, v in enumerate(kkt.Z_vech)]
-        inverse = self.layout(canon)
         w = ca.vertcat(*[sym for _, sym in blocks])
         slices, start = inverse.slices, int(w.numel())
         lbw = np.full(start, -np.inf)
@@ -111,10 +120,13 @@ class SingleLevelReduction(Reduction):
         s = inverse_data.slices
         w = np.asarray(w, dtype=float).ravel()
         zs = [unvech(w[s[f"Z{k}"]], n) for k, n in enumerate(inverse_data.psd_sizes)]
-        return KKTPoint(w[s["x"]], w[s["y"]], w[s["lam"]], w[s["mu"]], zs)
+        x = w[s["x"]]
+        return KKTPoint(x if inverse_data.lift is None else x[: inverse_data.n_x], w[s["y"]], w[s["lam"]],
+                        w[s["mu"]], zs)
 
     @staticmethod
     def pack(point: KKTPoint, inverse_data: KKTInverse) -> np.ndarray:
         """The MPCC vector w of a point (the inverse of invert), e.g. to warm start from a lower solve."""
-        parts = [point.x, point.y, point.lam, point.mu] + [vech(z) for z in point.Z]
+        x = point.x if inverse_data.lift is None else inverse_data.lift(np.asarray(point.x, dtype=float))
+        parts = [x, point.y, point.lam, point.mu] + [vech(z) for z in point.Z]
         return np.concatenate([np.asarray(p, dtype=float).ravel() for p in parts])

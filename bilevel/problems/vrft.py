@@ -2,9 +2,10 @@
 
 Upper variables a_u, a_y (N each) with budgets ||a|| <= eps ||signal||; lower variable theta (nk)
 solving the VRFT least squares on the poisoned data. The regressor Phi(y + a_y) is written as
-filter recursions (O(N) expression nodes per column, no N x N blocks), so IPOPT on the KKT
-reformulation (with a limited-memory Hessian) scales. The fast structured algorithms for the same
-instances are in bilevel.attacks.vrft_methods; `attack_instance` builds their VRFTAttack.
+filter recursions (O(N) expression nodes per column, no N x N blocks), each a definition: the KKT
+reformulation keeps the filtered signals as variables bound by their difference equations, so IPOPT's
+exact Hessian is sparse. The fast structured algorithms for the same instances are in
+bilevel.attacks.vrft_methods; `attack_instance` builds their VRFTAttack.
 """
 
 from __future__ import annotations
@@ -27,19 +28,38 @@ SOURCE = "Russo & Proutiere, Poisoning Attacks against Data-Driven Control Metho
 DEFAULTS = {"scenario": "B", "eps_u": 0.1, "eps_y": 0.057, "seed": 0, "N": 64, "convention": "paper"}
 
 
-def sx_filter(op: LTIOperator, x: ca.SX) -> ca.SX:
-    """The operator's Toeplitz map applied to an SX signal by its difference equation (O(N order) nodes)."""
-    n = int(x.numel())
+def _recursion(op: LTIOperator, x: ca.SX) -> tuple[ca.SX, np.ndarray, np.ndarray]:
+    """x padded with the operator's advance (zero final conditions), and its normalized (b, a)."""
     d = op.advance
-    b = op._b / op.den[0]
-    a = op.den / op.den[0]
-    src = ca.vertcat(x, ca.SX.zeros(d)) if d else x
+    return (ca.vertcat(x, ca.SX.zeros(d)) if d else x), op._b / op.den[0], op.den / op.den[0]
+
+
+def sx_filter(op: LTIOperator, x: ca.SX) -> ca.SX:
+    """The operator's response to an SX signal over the record and its advance, by its difference equation
+    (O(N order) nodes; the first `advance` samples precede the record)."""
+    src, b, a = _recursion(op, x)
     out: list[ca.SX] = []
-    for t in range(n + d):
+    for t in range(int(src.numel())):
         acc = sum(b[j] * src[t - j] for j in range(b.size) if t - j >= 0 and b[j] != 0)
         acc = acc - sum(a[j] * out[t - j] for j in range(1, a.size) if t - j >= 0 and a[j] != 0)
         out.append(ca.SX(acc))
-    return ca.vertcat(*out[d:])
+    return ca.vertcat(*out)
+
+
+def difference_equation(op: LTIOperator, x: ca.SX, z: ca.SX) -> ca.SX:
+    """a(q) z - b(q) x, zero exactly where z = sx_filter(op, x): banded in (x, z)."""
+    src, b, a = _recursion(op, x)
+    rows = [sum(a[j] * z[t - j] for j in range(a.size) if t - j >= 0 and a[j] != 0)
+            - sum(b[j] * src[t - j] for j in range(b.size) if t - j >= 0 and b[j] != 0)
+            for t in range(int(src.numel()))]
+    return ca.vertcat(*[ca.SX(r) for r in rows])
+
+
+def filtered(problem: BilevelProblem, name: str, op: LTIOperator, x: ca.SX) -> ca.SX:
+    """op applied to x, declared as a definition: the KKT reformulation keeps the filter's output as variables bound
+    by the difference equation (sparse), the other methods substitute the recursion."""
+    z = problem.define(name, sx_filter(op, x), lambda z: difference_equation(op, x, z))
+    return z[op.advance:]
 
 
 def attack_problem(atk: VRFTAttack) -> BilevelProblem:
@@ -59,11 +79,11 @@ def attack_problem(atk: VRFTAttack) -> BilevelProblem:
     theta = p.lower_variable("theta", k, start=atk.theta0)
     t0, phi0 = p.parameter("t0", rows), p.parameter("phi0", (rows, k))
     delta_u, delta_y = p.parameter("delta_u"), p.parameter("delta_y")
-    err = sx_filter(reg.error, a_y)
+    err = filtered(p, "e_y", reg.error, a_y)
     if reg.prefilter is not None:
-        err = sx_filter(reg.prefilter, err)
-    phi_a = ca.horzcat(*[sx_filter(beta, err)[:rows] for beta in reg.basis])
-    t_a = a_u if reg.prefilter is None else sx_filter(reg.prefilter, a_u)
+        err = filtered(p, "le_y", reg.prefilter, err)
+    phi_a = ca.horzcat(*[filtered(p, f"phi_{j}", beta, err)[:rows] for j, beta in enumerate(reg.basis)])
+    t_a = a_u if reg.prefilter is None else filtered(p, "lu", reg.prefilter, a_u)
     residual = t0 + t_a[:rows] - ca.mtimes(phi0 + phi_a, theta)
     p.minimize_lower(ca.sumsqr(residual) / rows)
     p.upper_constraint(ca.sumsqr(a_u) <= delta_u ** 2, name="budget_u")

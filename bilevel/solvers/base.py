@@ -192,7 +192,7 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
     sol = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse)
     syms = ca.vertcat(prep.canon.x, prep.canon.y, prep.canon.params.sym)
     values = np.concatenate([point.x, point.y, prep.canon.params.value])
-    evaluate = lambda expr: ca.evalf(ca.substitute(expr, syms, ca.DM(values)))  # noqa: E731
+    evaluate = lambda expr: ca.evalf(ca.substitute(prep.problem.explicit(expr), syms, ca.DM(values)))  # noqa: E731
     return BilevelResult(status, message, method, prep.problem.name, sol.x, sol.y, sol.multipliers,
                          sol.upper_objective, sol.lower_objective, cert, wall_time, run.nit, tuple(run.history),
                          tuple(run.starts), stats, evaluate)

@@ -35,11 +35,9 @@ def _declared(outcome: SearchOutcome, sense: str) -> tuple[float, float]:
 
 def lower_response_guess(prep: Prepared, relax: Relaxation) -> Guess:
     """Guess: solve the lower level at the relaxation's x (independent solver); its KKT point selects a branch."""
-    block = prep.mpcc.blocks["x"]
-
     def guess(w: np.ndarray) -> dict[int, int] | None:
         try:
-            return sides_of(relax, prep.pack(prep.lower_point(w[block])))
+            return sides_of(relax, prep.pack(prep.lower_point(prep.point(w).x)))
         except BilevelError:  # lower level infeasible or failing at this x: no proposal
             return None
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import BilevelError
 from ..mpcc import Branch, ComplementarityMode, NLPForm, Scholtes
+from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, check_options
 from .starts import start_points
@@ -88,11 +89,10 @@ def warm_start(prep: Prepared, x0: np.ndarray) -> np.ndarray:
     try:
         return prep.pack(prep.lower_point(x0))
     except BilevelError:
-        w = np.zeros(prep.mpcc.n_variables)
-        w[prep.mpcc.blocks["x"]] = x0
-        if prep.canon.y_start is not None:
-            w[prep.mpcc.blocks["y"]] = prep.canon.y_start
-        return w
+        size = {name: s.stop - s.start for name, s in prep.layout.slices.items()}
+        y = prep.canon.y_start if prep.canon.y_start is not None else np.zeros(size["y"])
+        return prep.pack(KKTPoint(x0, y, np.zeros(size["lam"]), np.zeros(size["mu"]),
+                                  [np.zeros((n, n)) for n in prep.layout.psd_sizes]))
 
 
 def best_of(candidates: list[tuple[np.ndarray, float, float]]) -> int:
