@@ -9,10 +9,10 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
-from .errors import InvalidData, ModelError
+from .errors import ModelError
 from .lower import LowerLevel, LowerSolution, build_lower
 from .lower.matrix import MatrixLower
-from .model import BilevelProblem, LowerQP, Variable, unflatten_all
+from .model import BilevelProblem, LowerQP, Variable, check_depends, unflatten_all
 from .parameters import ParameterSet, scalar
 from .reduction import KKTPoint, Reduction
 from .sampling import default_start, sample_in_bounds
@@ -162,18 +162,9 @@ def _flat(vars_: list[Variable]) -> ca.SX:
 
 
 def _check_depends(expr: ca.SX, allowed: set[int], where: str) -> None:
-    """Raise if expr uses symbols outside `allowed` (element hashes of the declared variables), or if its
-    data (the constants in it) contain NaN or inf."""
-    free = [s for s in ca.symvar(expr) if s.element_hash() not in allowed]
-    if free:
-        raise ModelError(f"{where} uses symbols {', '.join(str(s) for s in free)} that are not variables "
-                         "declared on this problem; declare them with upper_variable/lower_variable")
-    fun = ca.Function("data", ca.symvar(expr), [expr])
-    bad = [fun.instruction_constant(k) for k in range(fun.n_instructions())
-           if fun.instruction_id(k) == ca.OP_CONST and not np.isfinite(fun.instruction_constant(k))]
-    if bad:
-        raise InvalidData(f"{where} contains the constant {bad[0]} (NaN/inf in the data); "
-                          "clean or impute the data before building the problem")
+    """check_depends for a declared expression: it may use the declared variables, definitions and parameters."""
+    check_depends(expr, allowed, where, "are not variables declared on this problem; declare them with "
+                  "upper_variable/lower_variable")
 
 
 def suggested_starts(problem: BilevelProblem, x_start: np.ndarray, x_lb: np.ndarray,

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any, Callable, Literal
 import casadi as ca
 import numpy as np
 
-from .errors import ModelError
+from .errors import InvalidData, ModelError
 from .parameters import ParameterSet
 from .vech import symmetric_from_vech, unvech, vech
 
@@ -162,13 +162,22 @@ def _shape_of(value: Any, where: str) -> tuple[int, int]:
         raise ModelError(f"{where}: expected a CasADi expression, got {type(value).__name__}") from None
 
 
-def _check_uses(expr: ca.SX, allowed: ca.SX, where: str) -> None:
-    """Raise if expr uses a symbol outside `allowed` (a lower variable, or something not declared yet)."""
-    known = {s.element_hash() for s in ca.symvar(allowed)}
-    free = [str(s) for s in ca.symvar(expr) if s.element_hash() not in known]
+def check_depends(expr: ca.SX, allowed: set[int], where: str, fix: str) -> None:
+    """Raise if expr uses symbols outside `allowed` (element hashes of the symbols it may use; `fix` says which
+    those are and what to do), or if its data (the constants in it) contain NaN or inf."""
+    free = [s for s in ca.symvar(expr) if s.element_hash() not in allowed]
     if free:
-        raise ModelError(f"{where} uses {', '.join(free[:5])}, which are not upper variables, parameters or earlier "
-                         "definitions of this problem; a definition depends on the leader's choices only")
+        raise ModelError(f"{where} uses symbols {', '.join(str(s) for s in free)} that {fix}")
+    fun = ca.Function("data", ca.symvar(expr), [expr])
+    bad = [fun.instruction_constant(k) for k in range(fun.n_instructions())
+           if fun.instruction_id(k) == ca.OP_CONST and not np.isfinite(fun.instruction_constant(k))]
+    if bad:
+        raise InvalidData(f"{where} contains the constant {bad[0]} (NaN/inf in the data); "
+                          "clean or impute the data before building the problem")
+
+
+DEFINITION_USES = ("are not upper variables, parameters or earlier definitions of this problem; a definition "
+                   "depends on the leader's choices only")
 
 
 def split_comparison(expr: Any, where: str) -> tuple[ca.SX, Literal["<=", "=="]]:
@@ -269,7 +278,7 @@ class BilevelProblem:
         if not isinstance(name, str) or not name.isidentifier():
             raise ModelError(f"name {name!r} must be a Python identifier")
         if (any(v.name == name for v in self.variables) or any(p.name == name for p in self.parameters.items)
-                or any(d.name == name for d in getattr(self, "definitions", ()))):
+                or any(d.name == name for d in self.definitions)):
             raise ModelError(f"a variable, parameter or definition named {name!r} is already declared; names must "
                              "be unique")
 
@@ -315,13 +324,15 @@ class BilevelProblem:
         rows, cols = self._new_shape("definition", name, _shape_of(value, f"define({name!r})"))
         value = ca.SX(value)
         earlier = [ca.vec(v.sym) for v in self.upper_variables] + [ca.vec(d.sym) for d in self.definitions]
-        _check_uses(value, ca.vertcat(*earlier, self.parameters.sym), f"define({name!r}): the value")
+        allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(*earlier, self.parameters.sym))}
+        check_depends(value, allowed, f"define({name!r}): the value", DEFINITION_USES)
         sym = ca.SX.sym(name, rows, cols)
         body = sym - value if equation is None else ca.SX(equation(sym))
         if body.numel() != sym.numel():
             raise ModelError(f"define({name!r}): the equation has {body.numel()} entries for {sym.numel()} defined "
                              "ones; it must give one equation per entry")
-        _check_uses(body, ca.vertcat(*earlier, ca.vec(sym), self.parameters.sym), f"define({name!r}): the equation")
+        allowed |= {s.element_hash() for s in ca.symvar(ca.vec(sym))}
+        check_depends(body, allowed, f"define({name!r}): the equation", DEFINITION_USES)
         self.definitions.append(Definition(name, sym, value, ca.vec(body)))
         self.revision += 1
         return sym

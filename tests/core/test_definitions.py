@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 import bilevel as bl
 from bilevel.attacks.vrft import flexible_transmission_setting
-from bilevel.errors import ModelError
+from bilevel.errors import InvalidData, ModelError
 from bilevel.mpcc import Scholtes
 from bilevel.problems import registry
 from bilevel.problems.vrft import difference_equation, sx_filter
@@ -83,6 +83,8 @@ def test_definitions_of_lower_variables_and_reused_names_are_refused() -> None:
         p.define("x", 2 * x)
     with pytest.raises(ModelError, match="one equation per entry"):
         p.define("v", ca.vertcat(x, x), lambda v: v[0] - x)
+    with pytest.raises(InvalidData, match="NaN/inf in the data"):  # the same data check as every declared expression
+        p.define("u", x * float("nan"))
 
 
 @settings(max_examples=25, deadline=None)
