@@ -8,7 +8,7 @@ parameters and moved to each seed's data set by `load_instance` (set_value), sol
 declaration, the first solve of each method (canonicalization, classification, reduction, compiling; seed 0),
 and each seed's `solve` after set_value (method, certificate and local probe; the medians are over these).
 Objectives are ratios to the structured attack's.
-`--kkt S` also runs `ipopt` and `relaxation` (one start) on the first S seeds.
+`--kkt S` also runs `ipopt` and `relaxation` from their default start alone (one start) on the first S seeds.
 Willems (appendix B, N = 15, input poisoning, lqr design): the Willems hypergradient attack (8 starts, no stop at
 instability) against `bilevel.solve(..., method="hypergradient", starts=8)` on the same problem, for the eigenvalue
 criterion at delta_u = 0.6 and the max-min criterion at delta_u = 0.1 (where the loops stay stable: the attack's
@@ -34,10 +34,12 @@ from bilevel.problems.vrft import attack_problem, load_instance
 from bilevel.problems.willems import build_attack
 
 GENERIC = {"hypergradient": ("hypergradient", {}), "hg tol=1e-4": ("hypergradient", {"tol": 1e-4}),
-           "descent": ("hypergradient", {"exact_block": False})}
+           "descent": ("hypergradient", {"exact_block": False}),
+           "ipopt warm": ("ipopt", {"warm": "hypergradient"}), "relax warm": ("relaxation", {"warm": "hypergradient"})}
 """Row label -> (method, options): hypergradient as a user calls it (its default exact_block="auto" takes the exact
 input block it finds in the declared structure; tol 1e-5), the same with the structured attack's stopping tolerance
-(relative gain 1e-4 over 5 steps), and its first-order descent alone (exact_block=False)."""
+(relative gain 1e-4 over 5 steps), its first-order descent alone (exact_block=False), and ipopt / relaxation
+started from hypergradient's answer (warm="hypergradient")."""
 KKT = {m: (m, {}) for m in ("ipopt", "relaxation")}
 
 

@@ -5,6 +5,10 @@ lower-level solution at x0 and its multipliers, so IPOPT starts on the MPCC's fe
 is transcribed with a complementarity mode (default Scholtes with a tiny t); the result is then
 polished on the branch its complementarity pattern selects (G_i = 0 or H_i = 0), a regular NLP whose
 solution satisfies complementarity exactly. The best start is the feasible one with the lowest F.
+
+IPOPT finds a local solution near its start. Option warm="hypergradient" (also for `relaxation`) first runs method
+`hypergradient` over the same starts and hands its answer to one IPOPT solve: a Newton-accurate KKT point at the
+first-order method's (usually better) local solution. Each NLP solve stops after MAX_WALL_TIME seconds by default.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import BilevelError
+from ..errors import BilevelError, ModelError
 from ..mpcc import Branch, ComplementarityMode, NLPForm, Scholtes
 from ..reduction import KKTPoint
 from ..result import Status
@@ -34,6 +38,12 @@ IPOPT_STATUS: dict[str, Status] = {
 """IPOPT return_status -> Status; anything not listed (restoration failure, errors) is Status.ERROR."""
 
 FEASIBILITY_TOL = 1e-6
+MAX_WALL_TIME = 300.0
+"""Default IPOPT max_wall_time (s) per NLP solve: a diverging solve (vrft-maxmin N = 512, seed 21, from its
+conditioning start: objective -2.7e5 at infeasible points) ends as max_iterations instead of running for hours.
+IPOPT checks the limit between iterations, so a solve can overrun it (158 s with a 60 s limit there)."""
+WARM = (None, "hypergradient")
+"""Values of option `warm` of the KKT methods: start from the start points, or from method hypergradient's answer."""
 
 
 @dataclass
@@ -51,7 +61,7 @@ class NLPRun:
 def ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> dict[str, Any]:
     """CasADi nlpsol options for a quiet IPOPT with the given tolerance and iteration limit."""
     ipopt = {"print_level": 0, "sb": "yes", "tol": tol, "max_iter": max_iter, "acceptable_tol": 1e-7,
-             "mu_strategy": "adaptive"}
+             "mu_strategy": "adaptive", "max_wall_time": MAX_WALL_TIME}
     ipopt.update(extra or {})
     return {"print_time": False, "ipopt": ipopt}
 
@@ -95,6 +105,29 @@ def warm_start(prep: Prepared, x0: np.ndarray) -> np.ndarray:
                                   [np.zeros((n, n)) for n in prep.layout.psd_sizes]))
 
 
+def kkt_starts(prep: Prepared, method: str, options: dict[str, Any]) -> tuple[list[np.ndarray], str, dict[str, Any]]:
+    """The MPCC start vectors of a KKT method (options starts, seed, scale, warm), a label for its message, and its
+    stats on the warm phase (if hypergradient returns no point: the start points, stats["warm"]["used"] False)."""
+    starts = int(options.get("starts", 8))
+    warm = options.get("warm")
+    if warm not in WARM:
+        raise ModelError(f"option warm={warm!r} of method {method!r} is invalid: it must be None or 'hypergradient'")
+    rng = np.random.default_rng(options.get("seed", 0))
+    scale = float(options.get("scale", 10.0))
+    if warm is None:
+        return [warm_start(prep, x0) for x0 in start_points(prep, starts, rng, scale)], f"best of {starts} starts", {}
+    from .hypergradient import solve_hypergradient  # the warm phase is a method of its own
+
+    t0 = time.perf_counter()
+    run = solve_hypergradient(prep, starts=starts, seed=options.get("seed", 0), scale=scale)
+    points = [warm_start(prep, x0) for x0 in start_points(prep, starts, np.random.default_rng(options.get("seed", 0)),
+                                                          scale)] if run.w is None else [run.w]
+    info = {"warm": {"method": "hypergradient", "status": run.status.value, "message": run.message,
+                     "objective": None if run.w is None else prep.mpcc.objective_value(run.w), "iterations": run.nit,
+                     "time": time.perf_counter() - t0, "used": run.w is not None}}
+    return points, "from hypergradient's answer" if run.w is not None else f"best of {starts} starts", info
+
+
 def best_of(candidates: list[tuple[np.ndarray, float, float]]) -> int:
     """Index of the feasible candidate (residual <= tol) with the lowest objective, else the least infeasible."""
     feasible = [i for i, (_, _, r) in enumerate(candidates) if r <= FEASIBILITY_TOL]
@@ -110,19 +143,18 @@ def residual(prep: Prepared, w: np.ndarray) -> float:
 
 def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
     """Multistart IPOPT on the KKT reformulation (options: starts, seed, mode, polish, tol, max_iter,
-    ipopt, scale, verbose)."""
+    ipopt, scale, verbose, warm)."""
     check_options("ipopt", options, {"starts", "seed", "mode", "polish", "tol", "max_iter", "ipopt", "scale",
-                                     "verbose"})
-    starts = int(options.get("starts", 8))
-    rng = np.random.default_rng(options.get("seed", 0))
+                                     "verbose", "warm"})
+    points, source, warm = kkt_starts(prep, "ipopt", options)
     mode: ComplementarityMode = options.get("mode") or Scholtes(1e-9)
     nlp_opts = ipopt_options(float(options.get("tol", 1e-10)), int(options.get("max_iter", 3000)),
                              options.get("ipopt"))
     nlp = prep.mpcc.transcribe(mode)
     records, candidates, traces, total_iter = [], [], [], 0
-    for k, x0 in enumerate(start_points(prep, starts, rng, float(options.get("scale", 10.0)))):
+    for k, w0 in enumerate(points):
         t0 = time.perf_counter()
-        run = run_nlp(nlp, warm_start(prep, x0), nlp_opts)
+        run = run_nlp(nlp, w0, nlp_opts)
         total_iter += run.iterations
         final, polished = run, False
         if options.get("polish", True) and prep.mpcc.pairs:
@@ -134,15 +166,15 @@ def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
         res = residual(prep, final.w)
         candidates.append((final.w, final.objective, res))
         traces.append(final)
-        records.append({"start": k, "x0": x0.tolist(), "status": final.raw_status, "objective": final.objective,
-                        "residual": res, "polished": polished, "iterations": final.iterations,
+        records.append({"start": k, "x0": prep.point(w0).x.tolist(), "status": final.raw_status,
+                        "objective": final.objective, "residual": res, "polished": polished, "iterations": final.iterations,
                         "time": time.perf_counter() - t0})
         if options.get("verbose"):
-            print(f"[ipopt] start {k + 1}/{starts}: {final.raw_status}, F = {final.objective:.6g}, "
+            print(f"[ipopt] start {k + 1}/{len(points)}: {final.raw_status}, F = {final.objective:.6g}, "
                   f"residual {res:.1e}{' (polished)' if polished else ''}", flush=True)
     i = best_of(candidates)
     best = traces[i]
     history = [{"iter": j, "objective": o, "inf_pr": p, "inf_du": d}
                for j, (o, p, d) in enumerate(zip(best.trace["obj"], best.trace["inf_pr"], best.trace["inf_du"]))]
-    return MethodRun(best.w, best.status, f"best of {starts} starts: start {i} ({best.raw_status})", total_iter,
-                     history, records, {"mode": repr(mode), "best_start": i})
+    return MethodRun(best.w, best.status, f"{source}, start {i} ({best.raw_status})", total_iter,
+                     history, records, {"mode": repr(mode), "best_start": i, **warm})

@@ -15,8 +15,7 @@ import numpy as np
 from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
 from .base import MethodRun, Prepared, check_options
-from .ipopt import NLPRun, best_of, ipopt_options, polish, residual, run_nlp, warm_start
-from .starts import start_points
+from .ipopt import NLPRun, best_of, ipopt_options, kkt_starts, polish, residual, run_nlp
 
 SCHEMES: dict[str, type[ComplementarityMode]] = {
     "scholtes": Scholtes,
@@ -42,9 +41,9 @@ def relaxation_path(prep: Prepared, nlp: Any, w0: np.ndarray, opts: dict[str, An
 
 def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
     """Multistart relaxation sequence (options: scheme, t0, factor, t_min, comp_tol, starts, seed, polish,
-    tol, max_iter, ipopt, scale, verbose)."""
+    tol, max_iter, ipopt, scale, verbose, warm: None or "hypergradient", as for ipopt)."""
     check_options("relaxation", options, {"scheme", "t0", "factor", "t_min", "comp_tol", "starts", "seed", "polish",
-                                          "tol", "max_iter", "ipopt", "scale", "verbose"})
+                                          "tol", "max_iter", "ipopt", "scale", "verbose", "warm"})
     scheme = options.get("scheme", "scholtes")
     if scheme not in SCHEMES:
         raise ModelError(f"unknown relaxation scheme {scheme!r}; choose one of {', '.join(SCHEMES)}")
@@ -52,14 +51,13 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
     if not 0.0 < factor < 1.0:
         raise ModelError(f"relaxation factor must be in (0, 1), got {factor}")
     mode = SCHEMES[scheme]()
-    starts = int(options.get("starts", 8))
-    rng = np.random.default_rng(options.get("seed", 0))
+    points, source, warm = kkt_starts(prep, "relaxation", options)
     opts = ipopt_options(float(options.get("tol", 1e-10)), int(options.get("max_iter", 3000)), options.get("ipopt"))
     nlp = prep.mpcc.transcribe(mode)
     candidates, finals, paths, records, total = [], [], [], [], 0
-    for k, x0 in enumerate(start_points(prep, starts, rng, float(options.get("scale", 10.0)))):
+    for k, w0 in enumerate(points):
         t_start = time.perf_counter()
-        run, path = relaxation_path(prep, nlp, warm_start(prep, x0), opts, float(options.get("t0", 1.0)), factor,
+        run, path = relaxation_path(prep, nlp, w0, opts, float(options.get("t0", 1.0)), factor,
                                     float(options.get("t_min", 1e-12)), float(options.get("comp_tol", 1e-7)))
         total += sum(p["iterations"] for p in path)
         polished = polish(prep, run.w, opts) if options.get("polish", True) and prep.mpcc.pairs else None
@@ -70,13 +68,13 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
         candidates.append((run.w, run.objective, res))
         finals.append(run)
         paths.append(path)
-        records.append({"start": k, "x0": x0.tolist(), "status": path[-1]["status"], "objective": run.objective,
-                        "residual": res, "polished": polished is not None, "steps": len(path),
-                        "time": time.perf_counter() - t_start})
+        records.append({"start": k, "x0": prep.point(w0).x.tolist(), "status": path[-1]["status"],
+                        "objective": run.objective, "residual": res, "polished": polished is not None,
+                        "steps": len(path), "time": time.perf_counter() - t_start})
         if options.get("verbose"):
-            print(f"[relaxation] start {k + 1}/{starts}: {len(path)} steps, F = {run.objective:.6g}, "
+            print(f"[relaxation] start {k + 1}/{len(points)}: {len(path)} steps, F = {run.objective:.6g}, "
                   f"residual {res:.1e}", flush=True)
     i = best_of(candidates)
-    return MethodRun(finals[i].w, finals[i].status, f"best of {starts} starts: start {i} "
+    return MethodRun(finals[i].w, finals[i].status, f"{source}, start {i} "
                      f"({len(paths[i])} relaxation steps, last t = {paths[i][-1]['t']:.1e})", total, paths[i],
-                     records, {"scheme": scheme, "best_start": i})
+                     records, {"scheme": scheme, "best_start": i, **warm})
