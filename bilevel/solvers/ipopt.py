@@ -108,24 +108,24 @@ def warm_start(prep: Prepared, x0: np.ndarray) -> np.ndarray:
 def kkt_starts(prep: Prepared, method: str, options: dict[str, Any]) -> tuple[list[np.ndarray], str, dict[str, Any]]:
     """The MPCC start vectors of a KKT method (options starts, seed, scale, warm), a label for its message, and its
     stats on the warm phase (if hypergradient returns no point: the start points, stats["warm"]["used"] False)."""
-    starts = int(options.get("starts", 8))
+    starts, seed, scale = int(options.get("starts", 8)), options.get("seed", 0), float(options.get("scale", 10.0))
     warm = options.get("warm")
     if warm not in WARM:
         raise ModelError(f"option warm={warm!r} of method {method!r} is invalid: it must be None or 'hypergradient'")
-    rng = np.random.default_rng(options.get("seed", 0))
-    scale = float(options.get("scale", 10.0))
+    plain = f"best of {starts} starts"
     if warm is None:
-        return [warm_start(prep, x0) for x0 in start_points(prep, starts, rng, scale)], f"best of {starts} starts", {}
-    from .hypergradient import solve_hypergradient  # the warm phase is a method of its own
+        points = start_points(prep, starts, np.random.default_rng(seed), scale)
+        return [warm_start(prep, x0) for x0 in points], plain, {}
+    from .hypergradient import solve_hypergradient  # hypergradient imports this module (best_of)
 
     t0 = time.perf_counter()
-    run = solve_hypergradient(prep, starts=starts, seed=options.get("seed", 0), scale=scale)
-    points = [warm_start(prep, x0) for x0 in start_points(prep, starts, np.random.default_rng(options.get("seed", 0)),
-                                                          scale)] if run.w is None else [run.w]
+    run = solve_hypergradient(prep, starts=starts, seed=seed, scale=scale)
     info = {"warm": {"method": "hypergradient", "status": run.status.value, "message": run.message,
                      "objective": None if run.w is None else prep.mpcc.objective_value(run.w), "iterations": run.nit,
                      "time": time.perf_counter() - t0, "used": run.w is not None}}
-    return points, "from hypergradient's answer" if run.w is not None else f"best of {starts} starts", info
+    if run.w is None:
+        return kkt_starts(prep, method, {**options, "warm": None})[0], plain, info
+    return [run.w], "from hypergradient's answer", info
 
 
 def best_of(candidates: list[tuple[np.ndarray, float, float]]) -> int:
@@ -167,8 +167,8 @@ def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
         candidates.append((final.w, final.objective, res))
         traces.append(final)
         records.append({"start": k, "x0": prep.point(w0).x.tolist(), "status": final.raw_status,
-                        "objective": final.objective, "residual": res, "polished": polished, "iterations": final.iterations,
-                        "time": time.perf_counter() - t0})
+                        "objective": final.objective, "residual": res, "polished": polished,
+                        "iterations": final.iterations, "time": time.perf_counter() - t0})
         if options.get("verbose"):
             print(f"[ipopt] start {k + 1}/{len(points)}: {final.raw_status}, F = {final.objective:.6g}, "
                   f"residual {res:.1e}{' (polished)' if polished else ''}", flush=True)
