@@ -130,6 +130,19 @@ class MethodRun:
     global_bound: GlobalBound | None = None
 
 
+FEASIBILITY_TOL = 1e-6
+"""Largest residual at which a method's candidate counts as feasible when the best start is chosen."""
+
+
+def best_of(candidates: list[tuple[np.ndarray, float, float]]) -> int:
+    """Index of the feasible candidate (residual <= FEASIBILITY_TOL) with the lowest objective, else the least
+    infeasible one."""
+    feasible = [i for i, (_, _, r) in enumerate(candidates) if r <= FEASIBILITY_TOL]
+    if feasible:
+        return min(feasible, key=lambda i: candidates[i][1])
+    return min(range(len(candidates)), key=lambda i: candidates[i][2])
+
+
 def check_options(method: str, given: dict[str, Any], allowed: set[str]) -> None:
     """Raise UnknownOption naming the unknown keys and the accepted ones (typos must not run silently)."""
     unknown = sorted(set(given) - allowed)

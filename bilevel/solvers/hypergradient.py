@@ -33,10 +33,9 @@ import numpy as np
 from ..errors import BilevelError, LowerLevelInfeasible, ModelError
 from ..reduction import KKTPoint
 from ..result import Status
-from .base import MethodRun, Prepared, check_options
+from .base import MethodRun, Prepared, best_of, check_options
 from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, Hypergradient, shared_oracle
 from .block_exact import ExactBlock, ascend_with_exact_block, exact_block_of
-from .ipopt import best_of
 from .starts import start_points
 from .projections import Projection
 
@@ -193,8 +192,9 @@ def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
     return solve_hypergradient(prep, exact_block=True, **options)
 
 
-def _chosen_exact_block(prep: Prepared, mode: Any, options: dict[str, Any]) -> tuple[ExactBlock | None, list[str]]:
-    """The exact block this call uses (None: the descent) and why the candidates were not used."""
+def chosen_exact_block(prep: Prepared, mode: Any, options: dict[str, Any]) -> tuple[ExactBlock | None, list[str]]:
+    """The exact block hypergradient uses with option exact_block=mode and these options (None: the descent), and
+    why the candidates were not used."""
     if mode not in ("auto", True, False):
         raise ModelError(f"option exact_block={mode!r} is invalid: it must be 'auto', True or False")
     descent_only = sorted(set(options) & set(DESCENT_ONLY))
@@ -225,7 +225,7 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     penalized."""
     check_options("hypergradient", options, {"starts", "seed", "scale", "projection", "penalty", "tol", "ftol",
                                              "max_iter", "active_tol", "verbose", "exact_block"})
-    exact, why = _chosen_exact_block(prep, options.pop("exact_block", "auto"), options)
+    exact, why = chosen_exact_block(prep, options.pop("exact_block", "auto"), options)
     if exact is not None:
         return ascend_with_exact_block(prep, exact, why, **options)
     starts, penalty = int(options.get("starts", 4)), float(options.get("penalty", DEFAULT_PENALTY))

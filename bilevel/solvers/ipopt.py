@@ -8,7 +8,9 @@ solution satisfies complementarity exactly. The best start is the feasible one w
 
 IPOPT finds a local solution near its start. Option warm="hypergradient" (also for `relaxation`) first runs method
 `hypergradient` over the same starts and hands its answer to one IPOPT solve: a Newton-accurate KKT point at the
-first-order method's (usually better) local solution. Each NLP solve stops after MAX_WALL_TIME seconds by default.
+first-order method's (usually better) local solution. The default warm="auto" does so where hypergradient has an
+exact block (a block of upper variables it optimizes globally: vrft-maxmin's input poisoning), and starts from the
+start points elsewhere. Each NLP solve stops after MAX_WALL_TIME seconds by default.
 """
 
 from __future__ import annotations
@@ -23,7 +25,8 @@ from ..errors import BilevelError, ModelError
 from ..mpcc import Branch, ComplementarityMode, NLPForm, Scholtes
 from ..reduction import KKTPoint
 from ..result import Status
-from .base import MethodRun, Prepared, check_options
+from .base import MethodRun, Prepared, best_of, check_options
+from .hypergradient import chosen_exact_block, solve_hypergradient
 from .starts import start_points
 
 IPOPT_STATUS: dict[str, Status] = {
@@ -37,13 +40,14 @@ IPOPT_STATUS: dict[str, Status] = {
 }
 """IPOPT return_status -> Status; anything not listed (restoration failure, errors) is Status.ERROR."""
 
-FEASIBILITY_TOL = 1e-6
 MAX_WALL_TIME = 300.0
 """Default IPOPT max_wall_time (s) per NLP solve: a diverging solve (vrft-maxmin N = 512, seed 21, from its
 conditioning start: objective -2.7e5 at infeasible points) ends as max_iterations instead of running for hours.
 IPOPT checks the limit between iterations, so a solve can overrun it (158 s with a 60 s limit there)."""
-WARM = (None, "hypergradient")
-"""Values of option `warm` of the KKT methods: start from the start points, or from method hypergradient's answer."""
+WARM = ("auto", None, "hypergradient")
+"""Values of option `warm` of the KKT methods: start from method hypergradient's answer ("hypergradient"), from the
+start points (None), or "auto" (default): from hypergradient's answer where it has an exact block (a ball of upper
+variables optimized globally in closed form, bilevel.solvers.block_exact), else from the start points."""
 
 
 @dataclass
@@ -58,12 +62,29 @@ class NLPRun:
     trace: dict[str, Any]
 
 
+WARM_LIMITS = {"max_iter": 50, "max_wall_time": 10.0}
+"""IPOPT limits of an NLP started from the warm phase's answer, where options max_iter and ipopt do not set them.
+From that near-KKT point IPOPT converged in 4-20 iterations on vrft-maxmin (N = 512, seeds 0-39) but one, 115 (to a
+point below the warm one); on seed 26 it wandered, at up to 1.5 s per iteration, to the 300 s cap. A stopped NLP
+keeps the warm point (kept_warm_point)."""
+
+
 def ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> dict[str, Any]:
     """CasADi nlpsol options for a quiet IPOPT with the given tolerance and iteration limit."""
     ipopt = {"print_level": 0, "sb": "yes", "tol": tol, "max_iter": max_iter, "acceptable_tol": 1e-7,
              "mu_strategy": "adaptive", "max_wall_time": MAX_WALL_TIME}
     ipopt.update(extra or {})
     return {"print_time": False, "ipopt": ipopt}
+
+
+def kkt_nlp_options(options: dict[str, Any], warm: dict[str, Any]) -> dict[str, Any]:
+    """IPOPT options of a KKT method from its options tol, max_iter and ipopt, with WARM_LIMITS where its NLPs start
+    from the warm phase's answer (stats `warm` from kkt_starts) and the options do not set those limits."""
+    opts = ipopt_options(float(options.get("tol", 1e-10)), int(options.get("max_iter", 3000)), options.get("ipopt"))
+    if warm.get("warm", {}).get("used"):
+        given = set(options.get("ipopt") or {}) | ({"max_iter"} & set(options))
+        opts["ipopt"].update({k: v for k, v in WARM_LIMITS.items() if k not in given})
+    return opts
 
 
 def run_nlp(nlp: NLPForm, w0: np.ndarray, options: dict[str, Any], tau: float | None = None,
@@ -109,15 +130,16 @@ def kkt_starts(prep: Prepared, method: str, options: dict[str, Any]) -> tuple[li
     """The MPCC start vectors of a KKT method (options starts, seed, scale, warm), a label for its message, and its
     stats on the warm phase (if hypergradient returns no point: the start points, stats["warm"]["used"] False)."""
     starts, seed, scale = int(options.get("starts", 8)), options.get("seed", 0), float(options.get("scale", 10.0))
-    warm = options.get("warm")
+    warm = options.get("warm", "auto")
     if warm not in WARM:
-        raise ModelError(f"option warm={warm!r} of method {method!r} is invalid: it must be None or 'hypergradient'")
+        raise ModelError(f"option warm={warm!r} of method {method!r} is invalid: it must be 'auto', None or "
+                         "'hypergradient'")
+    if warm == "auto":
+        warm = "hypergradient" if chosen_exact_block(prep, "auto", {})[0] is not None else None
     plain = f"best of {starts} starts"
     if warm is None:
         points = start_points(prep, starts, np.random.default_rng(seed), scale)
         return [warm_start(prep, x0) for x0 in points], plain, {}
-    from .hypergradient import solve_hypergradient  # hypergradient imports this module (best_of)
-
     t0 = time.perf_counter()
     run = solve_hypergradient(prep, starts=starts, seed=seed, scale=scale)
     info = {"warm": {"method": "hypergradient", "status": run.status.value, "message": run.message,
@@ -128,17 +150,23 @@ def kkt_starts(prep: Prepared, method: str, options: dict[str, Any]) -> tuple[li
     return [run.w], "from hypergradient's answer", info
 
 
-def best_of(candidates: list[tuple[np.ndarray, float, float]]) -> int:
-    """Index of the feasible candidate (residual <= tol) with the lowest objective, else the least infeasible."""
-    feasible = [i for i, (_, _, r) in enumerate(candidates) if r <= FEASIBILITY_TOL]
-    if feasible:
-        return min(feasible, key=lambda i: candidates[i][1])
-    return min(range(len(candidates)), key=lambda i: candidates[i][2])
-
-
 def residual(prep: Prepared, w: np.ndarray) -> float:
     """Largest MPCC violation at w (equalities, inequalities, pair signs, complementarity)."""
     return max(prep.mpcc.residuals(w).values())
+
+
+def kept_warm_point(prep: Prepared, points: list[np.ndarray], warm: dict[str, Any], best: tuple[np.ndarray, float, float],
+                    nlp_outcome: str) -> MethodRun | None:
+    """The warm phase's own point as the method's answer when it beats the NLP's best (w, objective, residual) by
+    best_of (an NLP that fails from it, e.g. a limited-memory IPOPT that leaves the feasible set), else None."""
+    if not warm.get("warm", {}).get("used"):
+        return None
+    own = (points[0], prep.mpcc.objective_value(points[0]), residual(prep, points[0]))
+    if best_of([best, own]) == 0:
+        return None
+    warm["warm"]["kept"] = True
+    return MethodRun(points[0], Status(warm["warm"]["status"]), f"hypergradient's answer kept: the NLP from it ended "
+                     f"{nlp_outcome} (objective {best[1]:.8g}, residual {best[2]:.1e})", 0, [], [], warm)
 
 
 def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
@@ -148,8 +176,7 @@ def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
                                      "verbose", "warm"})
     points, source, warm = kkt_starts(prep, "ipopt", options)
     mode: ComplementarityMode = options.get("mode") or Scholtes(1e-9)
-    nlp_opts = ipopt_options(float(options.get("tol", 1e-10)), int(options.get("max_iter", 3000)),
-                             options.get("ipopt"))
+    nlp_opts = kkt_nlp_options(options, warm)
     nlp = prep.mpcc.transcribe(mode)
     records, candidates, traces, total_iter = [], [], [], 0
     for k, w0 in enumerate(points):
@@ -174,6 +201,9 @@ def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
                   f"residual {res:.1e}{' (polished)' if polished else ''}", flush=True)
     i = best_of(candidates)
     best = traces[i]
+    kept = kept_warm_point(prep, points, warm, candidates[i], best.raw_status)
+    if kept is not None:
+        return MethodRun(kept.w, kept.status, kept.message, total_iter, [], records, {"mode": repr(mode), **warm})
     history = [{"iter": j, "objective": o, "inf_pr": p, "inf_du": d}
                for j, (o, p, d) in enumerate(zip(best.trace["obj"], best.trace["inf_pr"], best.trace["inf_du"]))]
     return MethodRun(best.w, best.status, f"{source}, start {i} ({best.raw_status})", total_iter,

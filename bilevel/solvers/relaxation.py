@@ -14,8 +14,8 @@ import numpy as np
 
 from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
-from .base import MethodRun, Prepared, check_options
-from .ipopt import NLPRun, best_of, ipopt_options, kkt_starts, polish, residual, run_nlp
+from .base import MethodRun, Prepared, best_of, check_options
+from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish, residual, run_nlp
 
 SCHEMES: dict[str, type[ComplementarityMode]] = {
     "scholtes": Scholtes,
@@ -41,7 +41,7 @@ def relaxation_path(prep: Prepared, nlp: Any, w0: np.ndarray, opts: dict[str, An
 
 def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
     """Multistart relaxation sequence (options: scheme, t0, factor, t_min, comp_tol, starts, seed, polish,
-    tol, max_iter, ipopt, scale, verbose, warm: None or "hypergradient", as for ipopt)."""
+    tol, max_iter, ipopt, scale, verbose, warm: "auto", None or "hypergradient", as for ipopt)."""
     check_options("relaxation", options, {"scheme", "t0", "factor", "t_min", "comp_tol", "starts", "seed", "polish",
                                           "tol", "max_iter", "ipopt", "scale", "verbose", "warm"})
     scheme = options.get("scheme", "scholtes")
@@ -52,7 +52,7 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
         raise ModelError(f"relaxation factor must be in (0, 1), got {factor}")
     mode = SCHEMES[scheme]()
     points, source, warm = kkt_starts(prep, "relaxation", options)
-    opts = ipopt_options(float(options.get("tol", 1e-10)), int(options.get("max_iter", 3000)), options.get("ipopt"))
+    opts = kkt_nlp_options(options, warm)
     nlp = prep.mpcc.transcribe(mode)
     candidates, finals, paths, records, total = [], [], [], [], 0
     for k, w0 in enumerate(points):
@@ -75,6 +75,10 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
             print(f"[relaxation] start {k + 1}/{len(points)}: {len(path)} steps, F = {run.objective:.6g}, "
                   f"residual {res:.1e}", flush=True)
     i = best_of(candidates)
+    kept = kept_warm_point(prep, points, warm, candidates[i], f"{finals[i].status.value} after {len(paths[i])} "
+                           "relaxation steps")
+    if kept is not None:
+        return MethodRun(kept.w, kept.status, kept.message, total, [], records, {"scheme": scheme, **warm})
     return MethodRun(finals[i].w, finals[i].status, f"{source}, start {i} "
                      f"({len(paths[i])} relaxation steps, last t = {paths[i][-1]['t']:.1e})", total, paths[i],
                      records, {"scheme": scheme, "best_start": i, **warm})

@@ -160,13 +160,25 @@ def test_kkt_formulation_certificate_passes() -> None:
     assert best.success and res.status is bl.Status.SOLVED and res.certificate.passed
     assert np.linalg.norm(res.x["a_u"]) <= attack_instance("maxmin", N=48, seed=1).delta_u * (1 + 1e-6)
     assert res.upper_objective == pytest.approx(best.upper_objective, rel=1e-5)
-    lbfgs = bl.solve(p, method="ipopt", starts=2, scale=0.01, polish=False,
+    lbfgs = bl.solve(p, method="ipopt", starts=2, scale=0.01, polish=False, warm=None,
                      ipopt={"hessian_approximation": "limited-memory", "max_iter": 500})
     assert lbfgs.certificate.passed
     if lbfgs.status is bl.Status.SOLVED:
         assert lbfgs.upper_objective >= 0.99 * best.upper_objective
     else:
         assert lbfgs.status is bl.Status.NOT_LOCALLY_OPTIMAL and best.upper_objective > lbfgs.upper_objective * 1.01
+
+
+def test_warm_started_nlp_that_fails_keeps_the_first_order_answer() -> None:
+    """With the default warm="auto", a limited-memory IPOPT started at hypergradient's answer on vrft-maxmin
+    (N = 48) leaves the budget and stops at max_iter (measured: F = 156.6 at an upper-infeasible point); the method
+    then returns hypergradient's certified point, says so in stats, and never the failed NLP's."""
+    p = registry.get("vrft-maxmin", N=48, seed=1)
+    hg = bl.solve(p, method="hypergradient", starts=2)
+    res = bl.solve(p, method="ipopt", starts=2, polish=False,
+                   ipopt={"hessian_approximation": "limited-memory", "max_iter": 500})
+    assert res.stats["warm"]["kept"] and res.certificate.passed
+    assert res.status is bl.Status.SOLVED and res.upper_objective == pytest.approx(hg.upper_objective, rel=1e-12)
 
 
 @pytest.mark.parametrize("objective", ["maxmin", "targeted"])

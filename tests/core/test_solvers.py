@@ -53,8 +53,31 @@ def test_warm_start_on_vrft_maxmin_keeps_the_hypergradient_attack() -> None:
     assert res.starts[0]["iterations"] <= 30
 
 
+def test_warm_auto_starts_from_hypergradient_only_where_it_has_an_exact_block() -> None:
+    """The default warm="auto": vrft-maxmin (least-squares learner, l2 input budget: an exact block) gets the warm
+    phase, the same answer as warm="hypergradient"; Bard 5.1.1 (a QP learner: no exact block) gets its 4 starts."""
+    from bilevel.problems import registry
+
+    p = registry.get("vrft-maxmin", N=64)
+    auto, forced = p.solve(method="ipopt", starts=1), p.solve(method="ipopt", starts=1, warm="hypergradient")
+    assert auto.stats["warm"]["used"] and auto.upper_objective == pytest.approx(forced.upper_objective, rel=1e-12)
+    res = bard_511().solve(method="relaxation", starts=4, seed=0)
+    assert "warm" not in res.stats and len(res.starts) == 4
+
+
+def test_warm_phase_without_a_point_falls_back_to_the_start_points(monkeypatch: pytest.MonkeyPatch) -> None:
+    """If hypergradient returns no point, the KKT method runs from its ordinary starts and says so in stats."""
+    from bilevel.solvers import ipopt
+
+    monkeypatch.setattr(ipopt, "solve_hypergradient",
+                        lambda prep, **o: ipopt.MethodRun(None, bl.Status.ERROR, "no start could be solved"))
+    res = bard_511().solve(method="ipopt", starts=3, seed=0, warm="hypergradient")
+    assert res.stats["warm"]["used"] is False and res.stats["warm"]["status"] == "error"
+    assert len(res.starts) == 3 and res.upper_objective == pytest.approx(-12.0, rel=1e-6)
+
+
 def test_warm_option_and_wall_time_are_honest() -> None:
-    with pytest.raises(bl.ModelError, match="warm='hg'.*None or 'hypergradient'"):
+    with pytest.raises(bl.ModelError, match="warm='hg'.*'auto', None or 'hypergradient'"):
         bard_511().solve(method="ipopt", warm="hg")
     # IPOPT stopped by its wall-time limit: a status, never `solved`
     res = bard_511().solve(method="ipopt", starts=1, ipopt={"max_wall_time": 1e-9})
@@ -136,3 +159,16 @@ def test_cli_list_and_solve(capsys, tmp_path) -> None:
     assert main(["solve", "vrft-maxmin", "--n", "256", "--seed", "1", "--starts", "1", "--save", str(save)]) == 0
     data = np.load(save)
     assert data["a_u"].shape == (256,) and data["theta_poisoned"].shape == (6,)
+
+
+def test_nlp_from_the_warm_point_has_short_limits_unless_the_user_sets_them() -> None:
+    """An NLP started at hypergradient's answer is a polish: WARM_LIMITS (50 iterations, 10 s) replace the defaults
+    (3000, 300 s); a user's max_iter or ipopt options win, and plain starts keep the defaults."""
+    from bilevel.solvers.ipopt import MAX_WALL_TIME, WARM_LIMITS, kkt_nlp_options
+
+    used = {"warm": {"used": True}}
+    assert {k: kkt_nlp_options({}, used)["ipopt"][k] for k in WARM_LIMITS} == WARM_LIMITS
+    mine = kkt_nlp_options({"max_iter": 7, "ipopt": {"max_wall_time": 2.0}}, used)["ipopt"]
+    assert mine["max_iter"] == 7 and mine["max_wall_time"] == 2.0
+    plain = kkt_nlp_options({}, {})["ipopt"]
+    assert plain["max_iter"] == 3000 and plain["max_wall_time"] == MAX_WALL_TIME
