@@ -5,22 +5,34 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
+from scipy.linalg.lapack import dpotrf, dpotrs
 
 from ..errors import RankDeficientRegressor
 from .base import LowerSolution
 from .quadratic import QPData, QuadraticLower
 
 
-def hessian_factor(P: np.ndarray) -> tuple[np.ndarray, bool]:
-    """The Cholesky factor of the lower Hessian P; raises RankDeficientRegressor if P is not positive definite."""
-    try:
-        return sla.cho_factor(0.5 * (P + P.T))
-    except np.linalg.LinAlgError as exc:
+def hessian_factor(P: np.ndarray) -> np.ndarray:
+    """The upper Cholesky factor of the lower Hessian P (LAPACK potrf called directly: the hypergradient factors at
+    every evaluation, and scipy's cho_factor wrapper costs ten times the factorization of a small P); raises
+    RankDeficientRegressor if P is not positive definite."""
+    P = np.asarray(P, dtype=float)
+    if not np.all(np.isfinite(P)):
+        raise ValueError("the least-squares lower level's Hessian has NaN or inf entries at this x")
+    factor, info = dpotrf(0.5 * (P + P.T), lower=False, clean=False)
+    if info != 0:
         raise RankDeficientRegressor(
             "the least-squares lower level has a singular Hessian at this x, so its solution is not "
-            "unique; add regularization or declare constraints so that it is solved as a QP"
-        ) from exc
+            "unique; add regularization or declare constraints so that it is solved as a QP")
+    return factor
+
+
+def factor_solve(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """P^{-1} rhs (a vector or the columns of a matrix) from factor = hessian_factor(P)."""
+    solution, info = dpotrs(factor, np.asarray(rhs, dtype=float), lower=False)
+    if info != 0:  # pragma: no cover - potrs fails only on malformed arguments
+        raise ValueError(f"LAPACK potrs failed with info = {info}")
+    return solution
 
 
 @dataclass
@@ -29,18 +41,18 @@ class LeastSquaresLower(QuadraticLower):
 
     kind = "least-squares"
 
-    def factor(self, x: np.ndarray) -> tuple[QPData, tuple[np.ndarray, bool]]:
+    def factor(self, x: np.ndarray) -> tuple[QPData, np.ndarray]:
         """The coefficients at x and the Cholesky factor of P(x); raises if P(x) is not positive definite."""
         d = self.data(x)
         return d, hessian_factor(d.P)
 
     def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
         """K = P(x) is positive definite: P(x)^{-1} rhs by its Cholesky factor, full rank."""
-        return sla.cho_solve(hessian_factor(K), rhs), K.shape[0]
+        return factor_solve(hessian_factor(K), rhs), K.shape[0]
 
     def solve(self, x: np.ndarray) -> LowerSolution:
         """Closed form via a Cholesky factorization; raises if P(x) is not positive definite."""
         d, factor = self.factor(x)
-        y = -sla.cho_solve(factor, d.q)
+        y = -factor_solve(factor, d.q)
         fval = float(0.5 * y @ d.P @ y + d.q @ y + d.r)
         return LowerSolution(y, fval, np.zeros(0), np.zeros(0), [], "optimal", "closed-form")

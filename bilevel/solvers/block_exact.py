@@ -21,12 +21,11 @@ from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
-import scipy.linalg as sla
 
 from ..canonical import CanonicalBilevel
 from ..errors import BilevelError
 from ..lower.base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
-from ..lower.least_squares import hessian_factor
+from ..lower.least_squares import factor_solve, hessian_factor
 from ..lower.matrix import MatrixLower
 from ..reduction import KKTPoint
 from ..result import Status
@@ -73,8 +72,8 @@ class ExactBlock:
         x[b.block] = b.center
         P, q, jac_q, grad0, hess = self.data(x)
         factor = hessian_factor(P)  # P does not depend on the block: it is P(x) for every z
-        y_c = -sla.cho_solve(factor, q.ravel())
-        M = -sla.cho_solve(factor, jac_q)
+        y_c = -factor_solve(factor, q.ravel())
+        M = -factor_solve(factor, jac_q)
         z = quadratic_block_step(M, grad0.ravel() + hess @ y_c, hess, b.radius)  # F is quadratic in y
         x[b.block] = b.center + z
         y = y_c + M @ z

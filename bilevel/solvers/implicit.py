@@ -97,6 +97,8 @@ class Hypergradient:
         """The KKT matrix K of (stationarity, g_A, h) in (y, lam_A, mu)."""
         hyy, jg, jh = vals.hessian, vals.jac_g, vals.jac_h
         na, nh = rows.size, jh.shape[0]
+        if na + nh == 0:  # unconstrained at the solution (least squares, the exact block): K is the Hessian
+            return hyy
         return np.block([[hyy, jg[rows].T, jh.T],
                          [jg[rows], np.zeros((na, na + nh))],
                          [jh, np.zeros((nh, na + nh))]])
