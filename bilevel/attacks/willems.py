@@ -49,7 +49,6 @@ from ..ddc.plants import batch_reactor
 from ..certificate import DEFAULT_TOL, Certificate
 from ..errors import BilevelError, ModelError, SolverFailed
 from ..lower import LowerSolution, build_lower
-from ..lower.sdp import solve_square
 from ..lower.quadratic import clarabel_solution
 from ..model import unflatten_all
 from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, WillemsSetting, build_attack, criterion_values
@@ -195,10 +194,7 @@ class SDPHypergradient:
         """grad_x - (dr/dx)' z with (dr/dw)' z = (grad_y, 0): the implicit derivative through the KKT system."""
         if self.lower_fixed:
             return grad_x
-        jac, jac_x = self.lower_level.jacobians(ev.x, ev.lower)
-        rhs = np.concatenate([grad_y, np.zeros(jac.shape[0] - grad_y.size)])
-        z = solve_square(jac.T, rhs)
-        return grad_x - jac_x.T @ z
+        return grad_x - self.lower_level.adjoint(ev.x, ev.lower, grad_y[:, None])[0].ravel()
 
     def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray]:
         """(phi(x), grad phi(x))."""

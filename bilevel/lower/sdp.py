@@ -122,3 +122,20 @@ class SemidefiniteLower(QuadraticLower):
         """(dr/dw, dr/dx) at a solution: the implicit-derivative system of y*(x)."""
         w = self.pack(sol)
         return np.asarray(self.conic_kkt.residual(x, w)[1]), np.asarray(self.conic_kkt.residual_x(x, w))
+
+    def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
+        """Z with K' Z = rhs for K = dr/dw, by LU (nonsingular at a strictly complementary, nondegenerate
+        solution), else the minimum-norm least-squares solution; and the rank used."""
+        try:
+            return np.linalg.solve(K.T, rhs), K.shape[0]
+        except np.linalg.LinAlgError:
+            return super().kkt_solve(x, K, rhs)
+
+    def adjoint(self, x: np.ndarray, sol: LowerSolution, grad_y: np.ndarray) -> tuple[np.ndarray, bool]:
+        """(dr/dx)' Z with (dr/dw)' Z = (grad_y, 0), one column per column of grad_y: the derivative of functions
+        of (x, y) through y*(x) is their x-gradient minus this (the adjoint method); and whether dr/dw was singular
+        (then one element of a generalized derivative)."""
+        K, R = self.jacobians(x, sol)
+        rhs = np.vstack([grad_y, np.zeros((K.shape[0] - grad_y.shape[0], grad_y.shape[1]))])
+        Z, rank = self.kkt_solve(x, K, rhs)
+        return R.T @ Z, rank < K.shape[0]

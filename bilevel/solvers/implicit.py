@@ -10,8 +10,9 @@ then not differentiable there and the result is one element of a generalized der
 is computed by the adjoint: grad phi = grad_x phi - R' z with K' z = (grad_y phi, 0), K the KKT matrix
 and R its x-derivative, which equals grad_x phi + (dy/dx)' grad_y phi without forming dy/dx.
 A lower level with LMIs is polished and differentiated through its conic KKT system instead (stationarity,
-lam * g, h and vech((M_k Z_k + Z_k M_k) / 2), bilevel.lower.sdp.ConicKKT: the same code as the Willems
-attacks); it needs a unique, strictly complementary lower solution (e.g. a strictly convex objective).
+lam * g, h and vech((M_k Z_k + Z_k M_k) / 2), bilevel.lower.sdp.ConicKKT, and SemidefiniteLower.adjoint: the
+same code as the Willems attacks); it needs a unique, strictly complementary lower solution (e.g. a strictly
+convex objective).
 
 Upper constraints other than the projected ones are handled by an exact penalty: phi = F + penalty *
 (sum max(G, 0) + sum |H|), exact once the penalty exceeds the upper multipliers (default 1e4); where
@@ -180,18 +181,21 @@ class Hypergradient:
         """
         _, G, H, gxF, gyF, Gx, Gy, Hx, Hy = ev.upper
         total = np.hstack([gxF, Gx.T, Hx.T])  # columns: d/dx of F, G_i, H_j along y*(x)
-        weak, rows, rank, size = False, np.zeros(0, dtype=int), 0, 0
+        weak, rows = False, np.zeros(0, dtype=int)
         if not self.low.fixed:  # dy*/dx = 0 otherwise
+            cols = np.hstack([gyF, Gy.T, Hy.T])
             if self.conic:
-                (K, R), rows = self.low.jacobians(ev.x, ev.lower), np.flatnonzero(ev.lower.lam > 0)
+                rows = np.flatnonzero(ev.lower.lam > 0)
+                adjoint, singular = self.low.adjoint(ev.x, ev.lower, cols)
             else:
                 kkt = ev.kkt if ev.kkt is not None else self.low.kkt_values(ev.x, ev.lower)
                 rows, weak = self.active_set(kkt.g, ev.lower.lam)
                 K = self._system(kkt, rows)
-            rhs = np.vstack([np.hstack([gyF, Gy.T, Hy.T]), np.zeros((K.shape[0] - gyF.size, 1 + G.size + H.size))])
-            Z, rank = self.low.kkt_solve(ev.x, K, rhs)
-            total = total - (R.T @ Z if self.conic else self._x_adjoint(ev.x, ev.lower, rows, Z))
-            size = K.shape[0]
+                rhs = np.vstack([cols, np.zeros((K.shape[0] - gyF.size, cols.shape[1]))])
+                Z, rank = self.low.kkt_solve(ev.x, K, rhs)
+                adjoint, singular = self._x_adjoint(ev.x, ev.lower, rows, Z), rank < K.shape[0]
+            total = total - adjoint
+            weak = weak or singular
         values = np.concatenate([G, H]).ravel()
         kink = np.abs(values) <= KINK_TOL
         coef = self.penalty * np.concatenate([(G.ravel() > 0).astype(float), np.sign(H.ravel())])
@@ -200,7 +204,7 @@ class Hypergradient:
             lo = np.where(np.arange(values.size) < G.size, 0.0, -self.penalty)[kink]
             t = lsq_linear(total[:, 1:][:, kink], -grad, bounds=(lo, np.full(lo.size, self.penalty))).x
             grad = grad + total[:, 1:][:, kink] @ t
-        return grad, bool(weak or rank < size), int(rows.size)
+        return grad, bool(weak), int(rows.size)
 
     def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray, LowerSolution]:
         """(phi(x), grad phi(x), lower solution at x)."""
