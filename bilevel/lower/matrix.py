@@ -13,15 +13,15 @@ from functools import cached_property
 
 import casadi as ca
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.optimize import linprog
 
-from ..errors import InvalidData, LowerLevelInfeasible, LowerLevelUnbounded, ModelError, SolverFailed
+from ..errors import (InvalidData, LowerLevelInfeasible, LowerLevelUnbounded, ModelError, RankDeficientRegressor,
+                      SolverFailed)
 from ..model import LowerQP
 from ..parameters import ParameterSet
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
-from .least_squares import LeastSquaresLower
+from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
 from .polish import ACTIVE_TOL
 from .quadratic import LinearLower, QPData, QuadraticLower, clarabel_solution, solve_qp_clarabel
 
@@ -58,16 +58,17 @@ class MatrixLower(LowerLevel):
         self._adjoint = self.params.function("qp_vectors_adjoint", [self.x, *v], [adj])
         self._active: np.ndarray | None = None  # the last solve's active rows (a warm start, verified before use)
         if not self.A.shape[0] and not self.E.shape[0]:
-            self.kind = "least-squares" if self._factor is not None else "qp"
+            self.kind = "least-squares" if self.factor is not None else "qp"
         else:
             self.kind = "qp" if np.any(self.hess) else "lp"
 
     @cached_property
-    def _factor(self) -> tuple[np.ndarray, bool] | None:
-        """Cholesky factor of C'C + P (fixed data: factored once), None if not positive definite."""
+    def factor(self) -> np.ndarray | None:
+        """The upper Cholesky factor of C'C + P (fixed data: factored once; the form of
+        bilevel.lower.least_squares.hessian_factor), None if it is not positive definite."""
         try:
-            return sla.cho_factor(self.hess)
-        except np.linalg.LinAlgError:
+            return hessian_factor(self.hess)
+        except RankDeficientRegressor:
             return None
 
     @property
@@ -119,7 +120,7 @@ class MatrixLower(LowerLevel):
         """Least-squares kind: K = C'C + P, solved by its Cholesky factor (factored once); else the default."""
         if self.kind != "least-squares":
             return super().kkt_solve(x, K, rhs)
-        return sla.cho_solve(self._factor, rhs), K.shape[0]
+        return factor_solve(self.factor, rhs), K.shape[0]
 
     def data(self, x: np.ndarray) -> QPData:
         """The QP coefficients at x in the form of the expression kinds (g = A y - b, h = E y - e)."""
@@ -130,7 +131,7 @@ class MatrixLower(LowerLevel):
         """Closed form (least squares), HiGHS (LP) or Clarabel (QP) at x."""
         x = self.check_point(x)
         if self.kind == "least-squares":  # C'C + P is positive definite: that is what makes the kind
-            y = -sla.cho_solve(self._factor, self.linear_term(x))
+            y = -factor_solve(self.factor, self.linear_term(x))
             return LowerSolution(y, self.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal", "closed-form")
         sol = self._from_active_set(x)
         if sol is None:

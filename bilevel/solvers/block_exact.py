@@ -62,6 +62,8 @@ class ExactBlock:
     data: Callable
     """x -> (P, q, dq/dx_S, g, H): the lower Hessian, the lower gradient at y = 0 and its Jacobian in the block, the
     upper objective's gradient in y at y = 0 and its (constant in y) Hessian in y."""
+    factor: np.ndarray | None = None
+    """hessian_factor(P) when P is constant (the matrix form factors it once), else None: factored per evaluation."""
 
     def solve(self, x: np.ndarray) -> tuple[np.ndarray, LowerSolution, KKTValues]:
         """x with its block replaced by the global minimizer of F(x, y*(x)) over the ball (other entries fixed),
@@ -71,7 +73,7 @@ class ExactBlock:
         x = np.array(x, dtype=float)
         x[b.block] = b.center
         P, q, jac_q, grad0, hess = self.data(x)
-        factor = hessian_factor(P)  # P does not depend on the block: it is P(x) for every z
+        factor = hessian_factor(P) if self.factor is None else self.factor  # P(x) for every z of the block
         y_c = -factor_solve(factor, q.ravel())
         M = -factor_solve(factor, jac_q)
         z = quadratic_block_step(M, grad0.ravel() + hess @ y_c, hess, b.radius)  # F is quadratic in y
@@ -140,7 +142,8 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
             best = ball
     if best is None:
         return None, why or ["no upper constraint is a Euclidean ball on a block of upper variables"]
-    return ExactBlock(best, _block_data(canon, best.block, hess_F, q)), why
+    return ExactBlock(best, _block_data(canon, best.block, hess_F, q),
+                      low.factor if isinstance(low, MatrixLower) else None), why
 
 
 def exact_block_of(prep: Prepared) -> tuple[ExactBlock | None, list[str]]:

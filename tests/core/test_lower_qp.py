@@ -13,6 +13,7 @@ from bilevel import BilevelProblem
 from bilevel.errors import InvalidData, ModelError
 from bilevel.lower.matrix import MatrixLower
 from bilevel.solvers.base import prepare
+from bilevel.solvers.block_exact import exact_block_of
 from bilevel.solvers.implicit import hypergradient
 
 RNG = np.random.default_rng(1)
@@ -104,6 +105,8 @@ def test_exact_block_reads_the_matrix_form() -> None:
     for matrix in (True, False):
         res = ridge(matrix).solve(method="block-exact", starts=1)
         assert res.certificate.passed and res.upper_objective == pytest.approx(best, rel=1e-9)
+        exact, _ = exact_block_of(prepare(ridge(matrix)))  # the constant matrix Hessian is factored once
+        assert (exact.factor is not None) is matrix
 
 
 def test_matrix_gradient_matches_finite_differences():
