@@ -1,7 +1,7 @@
 """The one spectral projected gradient loop (Birgin, Martinez & Raydan 2000), in budget units.
 
-Every first-order method maximizes with it: the generic hypergradient's exact-block mode (on the negated
-reduced objective) and the structured attacks; the hypergradient's descent still has its own loop. A value
+Every first-order method maximizes with it: the generic hypergradient (on the negated reduced objective, with or
+without an exact block) and the structured attacks. A value
 callback may return -inf for a point it cannot evaluate (e.g. the lower level is infeasible there); the line
 search then backtracks.
 """
@@ -27,49 +27,62 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]],
                      project: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, scale: float | np.ndarray,
                      max_iter: int, tol: float, history: list[dict[str, float]], step0: float = 1.0,
                      stop: Callable[[Any], bool] | None = None,
-                     bb: Literal["short", "long"] = "short") -> tuple[np.ndarray, float, Any, int, int, bool]:
+                     bb: Literal["short", "long"] = "short", at: Callable[[Any], np.ndarray] | None = None,
+                     why: dict[str, str] | None = None,
+                     min_step: float = 1e-8) -> tuple[np.ndarray, float, Any, int, int, bool]:
     """Monotone spectral projected gradient ascent (Birgin, Martinez & Raydan 2000) in budget units z = x / scale.
 
     direction(aux) returns (gradient, first direction): the first step is step0 * that direction (about one
     budget radius), later ones P(x + lam * alpha * scale^2 * g) with alpha a Barzilai-Borwein length in z (bb:
     "short" s'y/y'y, suits smooth ball-constrained ascents; "long" s's/s'y, Birgin et al.'s choice, reaches the
     vertices of a box in fewer steps; it grows the last step 4x where the ascent sees no negative curvature),
-    and lam halved until an Armijo increase.
+    and lam halved until an Armijo increase (the line search fails below lam = min_step).
     Stops when the relative gain over the last `WINDOW` accepted steps is below tol, or no step is accepted, or
     the projection holds x still, or stop(aux) holds at the start or at an accepted point (the caller's goal).
+    at(aux), if given, is where f actually evaluated (a callback that moves an unevaluable point, e.g. into the
+    lower level's domain); why, if given, receives the reason under "stop": "window", "line search", "stationary",
+    "stop", "zero step" or "max_iter".
     Returns x, f, aux, iterations, evaluations, converged.
     """
+    why = {} if why is None else why
     x = project(x0)
     fx, aux = f(x)
+    if at is not None:
+        x = at(aux)
     if stop is not None and stop(aux):
+        why["stop"] = "stop"
         return x, fx, aux, 0, 1, True
     g, d = direction(aux)
     metric = np.broadcast_to(np.asarray(scale, dtype=float) ** 2, x.shape)
     evals, converged, it = 1, False, 0
     alpha = None  # BB length; None: use the first direction
+    why["stop"] = "max_iter"
     for it in range(1, max_iter + 1):
         move = d if alpha is None else alpha * (metric * g)
         if not np.any(move):
-            converged = True
+            converged, why["stop"] = True, "zero step"
             break
         lam = step0 if alpha is None else 1.0
         while True:
             xn = project(x + lam * move)
             if np.array_equal(xn, x):  # the projection holds x still: stationary on the feasible set
-                converged = True
+                converged, why["stop"] = True, "stationary"
                 break
             fn, auxn = f(xn)
             evals += 1
+            if at is not None and np.isfinite(fn):
+                xn = at(auxn)
             if fn >= fx + ARMIJO * float(g @ (xn - x)) and fn >= fx:
                 break
             lam *= 0.5
-            if lam < 1e-8:
-                converged = True
+            if lam < min_step:
+                converged, why["stop"] = True, "line search"
                 break
         if converged:
             break
         if stop is not None and stop(auxn):
             history.append({"iter": it, "value": fn, "step": lam})
+            why["stop"] = "stop"
             return xn, fn, auxn, it, evals, True
         gn, dn = direction(auxn)
         s, y = xn - x, gn - g
@@ -83,6 +96,6 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]],
         x, fx, aux, g, d = xn, fn, auxn, gn, dn
         history.append({"iter": it, "value": fx, "step": lam})
         if it >= WINDOW and fx - history[-WINDOW]["value"] <= tol * max(abs(fx), 1e-12):
-            converged = True
+            converged, why["stop"] = True, "window"
             break
     return x, fx, aux, it, evals, converged

@@ -9,14 +9,14 @@ requires such a block (method `block-exact`), exact_block=False never uses one.
 Otherwise, projected hypergradient descent: recognized balls (bilevel.solvers.structure) are projected on, other
 upper constraints penalized (bilevel.solvers.implicit); a point is reported feasible when max(G, 0) and |H|
 are <= 1e-6. The iteration is x+ = P(x - t grad phi), P the projection
-onto the option `projection` (see projections.py) intersected with the declared box, with a
-Barzilai-Borwein first trial step and Armijo backtracking along the projection arc,
-phi(x+) <= phi(x) - 1e-4 / t * ||x+ - x||^2. A trial point at which the lower level is infeasible is moved to
+onto the option `projection` (see projections.py) intersected with the declared box, by the engine's loop
+(bilevel.solvers.ascent, on -phi): long Barzilai-Borwein trial steps and Armijo backtracking along the projection
+arc. A trial point at which the lower level is infeasible is moved to
 the nearest upper point (in the box) where it is feasible, found by IPOPT on
 min ||x - v||^2 s.t. g(x, y) <= 0, h(x, y) = 0, then projected again: with the default box projection
 and jointly convex lower constraints this makes P the projection onto the lower level's domain.
 Stops when ||x - P(x - grad phi)|| <= tol (P without the lower solve of the restoration; with it, asked only
-when the line search fails) or the relative decrease of phi is <= ftol (SOLVED), at
+when the line search fails) or the relative decrease of phi in one step is <= ftol (SOLVED), at
 max_iter (MAX_ITERATIONS), or when backtracking finds no decrease (INACCURATE: x is then typically at a
 kink of y*(x), where the generalized gradient is not a descent direction).
 """
@@ -35,13 +35,15 @@ from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, best_of, check_options
 from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, Hypergradient, shared_oracle
+from .ascent import projected_ascent
 from .block_exact import ExactBlock, ascend_with_exact_block, exact_block_of
 from .starts import start_points
 from .projections import Projection
 
-ARMIJO = 1e-4
-MAX_BACKTRACKS = 60
-STEP_RANGE = (1e-12, 1e12)
+
+MIN_STEP = 2.0 ** -60
+"""The descent's line search fails below this fraction of its trial step (60 halvings): near a stationary point
+tiny steps still decrease phi, and the relative-decrease stop (ftol) then ends the run as solved."""
 
 
 class _Restoration:
@@ -112,20 +114,6 @@ class _Descent:
     history: list[dict[str, Any]]
 
 
-def _backtrack(arc: _Arc, cur: Evaluation, grad: np.ndarray, t: float) -> tuple[Evaluation | None, float]:
-    """Armijo backtracking along the arc from step t: the accepted point and step, or (None, t) if none."""
-    for _ in range(MAX_BACKTRACKS):
-        trial = arc(cur.x - t * grad)
-        if trial is not None:
-            moved = float(np.sum((trial.x - cur.x) ** 2))
-            if moved <= (1e-15 * (1.0 + np.linalg.norm(cur.x))) ** 2:
-                return None, t
-            if trial.phi <= cur.phi - ARMIJO / t * moved:
-                return trial, t
-        t *= 0.5
-    return None, t
-
-
 def _domain_stationary(arc: _Arc, cur: Evaluation, grad: np.ndarray, tol: float) -> bool:
     """Whether the projected gradient step is <= tol once the projection is restored into the lower level's
     domain (the arc's P(x - grad)): asked only when the line search fails, as it costs a lower solve."""
@@ -134,33 +122,60 @@ def _domain_stationary(arc: _Arc, cur: Evaluation, grad: np.ndarray, tol: float)
 
 
 def _descend(arc: _Arc, start: Evaluation, tol: float, ftol: float, max_iter: int) -> _Descent:
-    """Projected gradient with Barzilai-Borwein trial steps and Armijo backtracking along the arc."""
-    cur, history, decrease, it = start, [], np.inf, 0
-    grad, degenerate, n_active = arc.oracle.gradient(cur)
-    alpha = 1.0 / max(1.0, float(np.abs(grad).max(initial=0.0)))
-    while True:
-        pstep = float(np.linalg.norm(arc.project(cur.x - grad) - cur.x))  # no lower solve: see _domain_stationary
-        history.append({"iter": it, "objective": cur.phi, "step": 0.0, "grad_norm": float(np.linalg.norm(grad)),
-                        "projected_step_norm": pstep, "active": n_active, "degenerate": degenerate})
-        if pstep <= tol:
-            return _Descent(cur, Status.SOLVED, f"projected gradient step {pstep:.2e} <= tol", it, history)
-        if decrease <= ftol * max(1.0, abs(cur.phi)):
-            return _Descent(cur, Status.SOLVED, f"relative decrease {decrease:.2e} <= ftol", it, history)
-        if it == max_iter:
-            return _Descent(cur, Status.MAX_ITERATIONS, f"max_iter = {max_iter} reached", it, history)
-        trial, t = _backtrack(arc, cur, grad, alpha)
-        if trial is None and _domain_stationary(arc, cur, grad, tol):
-            return _Descent(cur, Status.SOLVED, "projected gradient step <= tol on the lower level's domain", it,
-                            history)
-        if trial is None:
-            return _Descent(cur, Status.INACCURATE, "line search found no decrease (x is likely at a kink of "
-                            "y*(x), where the generalized gradient is not a descent direction)", it, history)
-        history[-1]["step"] = t
-        new_grad, degenerate, n_active = arc.oracle.gradient(trial)
-        s, dg = trial.x - cur.x, new_grad - grad
-        alpha = float(np.clip(s @ s / (s @ dg), *STEP_RANGE)) if s @ dg > 0 else min(2.0 * t, STEP_RANGE[1])
-        decrease = cur.phi - trial.phi
-        cur, grad, it = trial, new_grad, it + 1
+    """The engine's spectral projected gradient loop (bilevel.solvers.ascent) on -phi along the arc, in x units:
+    long Barzilai-Borwein steps, each trial point restored into the lower level's domain; stops when
+    ||P(x - grad phi) - x|| <= tol or phi's relative decrease in one step is <= ftol."""
+    history: list[dict[str, Any]] = []
+    last: dict[str, Any] = {}
+
+    def gradient(ev: Evaluation) -> tuple[np.ndarray, float]:
+        """grad phi and the projected step at ev, once per evaluated point (recorded in history)."""
+        if last.get("ev") is not ev:
+            grad, degenerate, n_active = arc.oracle.gradient(ev)
+            pstep = float(np.linalg.norm(arc.project(ev.x - grad) - ev.x))  # no lower solve: see _domain_stationary
+            history.append({"iter": len(history), "objective": ev.phi, "step": 0.0,
+                            "grad_norm": float(np.linalg.norm(grad)), "projected_step_norm": pstep,
+                            "active": n_active, "degenerate": degenerate})
+            last.update(ev=ev, grad=grad, pstep=pstep)
+        return last["grad"], last["pstep"]
+
+    def value(x: np.ndarray) -> tuple[float, Evaluation | None]:
+        ev = arc(x)
+        return (-np.inf, None) if ev is None else (-ev.phi, ev)
+
+    def direction(ev: Evaluation) -> tuple[np.ndarray, np.ndarray]:
+        g = -gradient(ev)[0]
+        return g, g / max(1.0, float(np.abs(g).max(initial=0.0)))  # first step: at most 1 in any entry
+
+    def stop(ev: Evaluation) -> bool:
+        """The projected step is <= tol, or phi fell by <= ftol (relative) in the last step."""
+        if gradient(ev)[1] <= tol:
+            last["reason"] = "tol"
+            return True
+        if len(history) > 1 and history[-2]["objective"] - ev.phi <= ftol * max(1.0, abs(ev.phi)):
+            last["reason"] = "ftol"
+            return True
+        return False
+
+    why: dict[str, str] = {}
+    steps: list[dict[str, float]] = []
+    _, _, cur, nit, _, _ = projected_ascent(value, direction, arc.project, start.x, 1.0, max_iter, 0.0, steps,
+                                            stop=stop, bb="long", at=lambda ev: ev.x, why=why,
+                                            min_step=MIN_STEP)
+    for record, step in zip(history[1:], steps):
+        record["step"] = step["step"]
+    grad, pstep = gradient(cur)
+    reason = last.get("reason", why["stop"]) if why["stop"] == "stop" else why["stop"]
+    if reason == "max_iter":
+        return _Descent(cur, Status.MAX_ITERATIONS, f"max_iter = {max_iter} reached", nit, history)
+    # a trial step that rounds to x ("stationary") after many halvings is no proof either: both ask the domain
+    if reason in ("line search", "stationary") and not _domain_stationary(arc, cur, grad, tol):
+        return _Descent(cur, Status.INACCURATE, "line search found no decrease (x is likely at a kink of "
+                        "y*(x), where the generalized gradient is not a descent direction)", nit, history)
+    message = {"tol": f"projected gradient step {pstep:.2e} <= tol",
+               "ftol": "relative decrease in one step <= ftol",
+               "zero step": "zero gradient"}.get(reason, "projected gradient step <= tol on the lower level's domain")
+    return _Descent(cur, Status.SOLVED, message, nit, history)
 
 
 def _projection(prep: Prepared, projection: Any) -> Projection:

@@ -68,3 +68,27 @@ def test_stop_hook_returns_the_first_accepted_point_that_meets_the_goal() -> Non
     _, _, _, it0, evals0, _ = projected_ascent(f, direction, Box(-b, b), x, b, 200, 1e-14, [],
                                                stop=lambda x: f(x)[0] >= goal)
     assert (it0, evals0) == (0, 1)
+
+
+def test_moved_points_and_the_reason_for_stopping_are_reported() -> None:
+    """`at` places the iterate where f evaluated (here f moves every point onto the plane x0 = x1, as the descent's
+    restoration moves a point into the lower level's domain): the loop then ascends on that plane and every iterate
+    lies on it. `why` names the stop: the gain window, the iteration limit, or a failed line search (min_step)."""
+    c, mu, b = np.array([1.0, 3.0]), np.ones(2), np.full(2, 10.0)
+    onto = lambda x: np.full(2, x.mean())  # noqa: E731
+    f = lambda x: (float(c @ onto(x) - 0.5 * onto(x) @ onto(x)), onto(x))  # noqa: E731  (max on the plane at (2, 2): 4)
+    direction = lambda x: (c - x, c - x)  # noqa: E731
+    why: dict[str, str] = {}
+    x, fx, aux, *_, converged = projected_ascent(f, direction, Box(-b, b), np.array([0.0, 1.0]), 1.0, 200, 1e-14,
+                                                  [], at=lambda aux: aux, why=why)
+    assert converged and why["stop"] == "window"
+    np.testing.assert_allclose(x, [2.0, 2.0], atol=1e-6)
+    assert x[0] == x[1] and fx == pytest.approx(4.0)
+    why = {}
+    projected_ascent(f, direction, Box(-b, b), np.array([0.0, 1.0]), 1.0, 1, 1e-14, [], at=lambda aux: aux, why=why)
+    assert why["stop"] == "max_iter"
+    why = {}
+    flat = lambda x: (0.0 if x[0] <= 0.5 else -1.0, x)  # noqa: E731  (every step up decreases f)
+    _, _, _, it, evals, converged = projected_ascent(flat, lambda x: (np.ones(2), np.ones(2)), Box(-b, b),
+                                                     np.full(2, 0.5), 1.0, 10, 1e-14, [], why=why, min_step=0.1)
+    assert converged and why["stop"] == "line search" and it == 1 and evals == 1 + 4  # 1, 1/2, 1/4, 1/8 tried
