@@ -17,12 +17,14 @@ PSD_TOL = 1e-9
 """Relative PSD violation of M_k and Z_k tolerated in a polished iterate."""
 
 
-def solve_square(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """matrix^-1 rhs, or the minimum-norm least-squares solution if matrix is singular (a non-unique solution)."""
+def solve_square(matrix: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
+    """matrix^-1 rhs, or the minimum-norm least-squares solution if matrix is singular (a non-unique solution); and
+    the rank used (full when the LU solve succeeds)."""
     try:
-        return np.linalg.solve(matrix, rhs)
+        return np.linalg.solve(matrix, rhs), matrix.shape[0]
     except np.linalg.LinAlgError:
-        return np.linalg.lstsq(matrix, rhs, rcond=None)[0]
+        solution, _, rank, _ = np.linalg.lstsq(matrix, rhs, rcond=None)
+        return solution, int(rank)
 
 
 @dataclass(frozen=True)
@@ -105,7 +107,7 @@ class SemidefiniteLower(QuadraticLower):
         r, jac = (np.asarray(v) for v in kkt.residual(x, w))
         best = last = float(np.abs(r).max(initial=0.0))
         for _ in range(steps):
-            w = w + solve_square(jac, -r.ravel())
+            w = w + solve_square(jac, -r.ravel())[0]
             r, jac = (np.asarray(v) for v in kkt.residual(x, w))
             value = float(np.abs(r).max(initial=0.0))
             if not value < last:
@@ -126,10 +128,7 @@ class SemidefiniteLower(QuadraticLower):
     def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
         """Z with K' Z = rhs for K = dr/dw, by LU (nonsingular at a strictly complementary, nondegenerate
         solution), else the minimum-norm least-squares solution; and the rank used."""
-        try:
-            return np.linalg.solve(K.T, rhs), K.shape[0]
-        except np.linalg.LinAlgError:
-            return super().kkt_solve(x, K, rhs)
+        return solve_square(K.T, rhs)
 
     def adjoint(self, x: np.ndarray, sol: LowerSolution, grad_y: np.ndarray) -> tuple[np.ndarray, bool]:
         """(dr/dx)' Z with (dr/dw)' Z = (grad_y, 0), one column per column of grad_y: the derivative of functions

@@ -140,7 +140,7 @@ def _descend(arc: _Arc, start: Evaluation, tol: float, ftol: float, max_iter: in
         return last["grad"], last["pstep"]
 
     def value(x: np.ndarray) -> tuple[float, Evaluation | None]:
-        ev = arc(x)
+        ev = start if np.array_equal(x, start.x) else arc(x)  # the loop's first call: the start, already evaluated
         return (-np.inf, None) if ev is None else (-ev.phi, ev)
 
     def direction(ev: Evaluation) -> tuple[np.ndarray, np.ndarray]:
@@ -165,7 +165,7 @@ def _descend(arc: _Arc, start: Evaluation, tol: float, ftol: float, max_iter: in
     for record, step in zip(history[1:], steps):
         record["step"] = step["step"]
     grad, pstep = gradient(cur)
-    reason = last.get("reason", why["stop"]) if why["stop"] == "stop" else why["stop"]
+    reason = last["reason"] if why["stop"] == "stop" else why["stop"]  # the stop hook names its own reason
     if reason == "max_iter":
         return _Descent(cur, Status.MAX_ITERATIONS, f"max_iter = {max_iter} reached", nit, history)
     # a trial step that rounds to x ("stationary") after many halvings is no proof either: both ask the domain

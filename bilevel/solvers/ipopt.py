@@ -48,6 +48,11 @@ WARM = ("auto", None, "hypergradient")
 """Values of option `warm` of the KKT methods: start from method hypergradient's answer ("hypergradient"), from the
 start points (None), or "auto" (default): from hypergradient's answer where it has an exact block (a ball of upper
 variables optimized globally in closed form, bilevel.solvers.block_exact), else from the start points."""
+WARM_LIMITS = {"max_iter": 50, "max_wall_time": 10.0}
+"""IPOPT limits of an NLP started from the warm phase's answer, where options max_iter and ipopt do not set them.
+From that near-KKT point IPOPT converged in 4-20 iterations on vrft-maxmin (N = 512, seeds 0-39) but one, 115 (to a
+point below the warm one); on seed 26 it wandered, at up to 1.5 s per iteration, to the 300 s cap. A stopped NLP
+keeps the warm point (kept_warm_point)."""
 
 
 @dataclass
@@ -60,13 +65,6 @@ class NLPRun:
     raw_status: str
     iterations: int
     trace: dict[str, Any]
-
-
-WARM_LIMITS = {"max_iter": 50, "max_wall_time": 10.0}
-"""IPOPT limits of an NLP started from the warm phase's answer, where options max_iter and ipopt do not set them.
-From that near-KKT point IPOPT converged in 4-20 iterations on vrft-maxmin (N = 512, seeds 0-39) but one, 115 (to a
-point below the warm one); on seed 26 it wandered, at up to 1.5 s per iteration, to the 300 s cap. A stopped NLP
-keeps the warm point (kept_warm_point)."""
 
 
 def ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> dict[str, Any]:
@@ -155,18 +153,20 @@ def residual(prep: Prepared, w: np.ndarray) -> float:
     return max(prep.mpcc.residuals(w).values())
 
 
-def kept_warm_point(prep: Prepared, points: list[np.ndarray], warm: dict[str, Any], best: tuple[np.ndarray, float, float],
-                    nlp_outcome: str) -> MethodRun | None:
-    """The warm phase's own point as the method's answer when it beats the NLP's best (w, objective, residual) by
-    best_of (an NLP that fails from it, e.g. a limited-memory IPOPT that leaves the feasible set), else None."""
-    if not warm.get("warm", {}).get("used"):
+def kept_warm_point(prep: Prepared, points: list[np.ndarray], best: tuple[np.ndarray, float, float], outcome: str,
+                    nit: int, records: list[dict[str, Any]], stats: dict[str, Any]) -> MethodRun | None:
+    """The method's run with the warm phase's own point as its answer when that point beats the NLP's best
+    (w, objective, residual) by best_of (an NLP that fails from it, e.g. a limited-memory IPOPT that leaves the
+    feasible set), else None; stats must hold the warm phase's record ("warm", from kkt_starts)."""
+    warm = stats.get("warm", {})
+    if not warm.get("used"):
         return None
     own = (points[0], prep.mpcc.objective_value(points[0]), residual(prep, points[0]))
     if best_of([best, own]) == 0:
         return None
-    warm["warm"]["kept"] = True
-    return MethodRun(points[0], Status(warm["warm"]["status"]), f"hypergradient's answer kept: the NLP from it ended "
-                     f"{nlp_outcome} (objective {best[1]:.8g}, residual {best[2]:.1e})", 0, [], [], warm)
+    stats["warm"] = {**warm, "kept": True}
+    return MethodRun(points[0], Status(warm["status"]), f"hypergradient's answer kept: the NLP from it ended "
+                     f"{outcome} (objective {best[1]:.8g}, residual {best[2]:.1e})", nit, [], records, stats)
 
 
 def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
@@ -201,9 +201,10 @@ def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
                   f"residual {res:.1e}{' (polished)' if polished else ''}", flush=True)
     i = best_of(candidates)
     best = traces[i]
-    kept = kept_warm_point(prep, points, warm, candidates[i], best.raw_status)
+    kept = kept_warm_point(prep, points, candidates[i], best.raw_status, total_iter, records,
+                           {"mode": repr(mode), **warm})
     if kept is not None:
-        return MethodRun(kept.w, kept.status, kept.message, total_iter, [], records, {"mode": repr(mode), **warm})
+        return kept
     history = [{"iter": j, "objective": o, "inf_pr": p, "inf_du": d}
                for j, (o, p, d) in enumerate(zip(best.trace["obj"], best.trace["inf_pr"], best.trace["inf_du"]))]
     return MethodRun(best.w, best.status, f"{source}, start {i} ({best.raw_status})", total_iter,

@@ -75,10 +75,10 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
             print(f"[relaxation] start {k + 1}/{len(points)}: {len(path)} steps, F = {run.objective:.6g}, "
                   f"residual {res:.1e}", flush=True)
     i = best_of(candidates)
-    kept = kept_warm_point(prep, points, warm, candidates[i], f"{finals[i].status.value} after {len(paths[i])} "
-                           "relaxation steps")
+    kept = kept_warm_point(prep, points, candidates[i], f"{finals[i].status.value} after {len(paths[i])} relaxation "
+                           "steps", total, records, {"scheme": scheme, **warm})
     if kept is not None:
-        return MethodRun(kept.w, kept.status, kept.message, total, [], records, {"scheme": scheme, **warm})
+        return kept
     return MethodRun(finals[i].w, finals[i].status, f"{source}, start {i} "
                      f"({len(paths[i])} relaxation steps, last t = {paths[i][-1]['t']:.1e})", total, paths[i],
                      records, {"scheme": scheme, "best_start": i, **warm})
