@@ -7,9 +7,10 @@ the one implementation the generic hypergradient method uses too)
     r(w; x) = [grad_y L ; h ; vech((M_k Z_k + Z_k M_k) / 2)] = 0,   w = (y, mu, vech Z_k),
 
 with L = f + mu'h - sum_k <Z_k, M_k> (the framework's convention, Z_k >= 0). With the "min-norm"
-selection, Q is then projected onto the row space of the data D(x) the SDP sees (see
-bilevel.problems.willems): this removes the solver's error in Q's null-space directions, which
-only the tiny Tikhonov weight reg pins down, and leaves D Q and every constraint unchanged. At a strictly
+selection, y is then projected onto the directions the SDP sees (SemidefiniteLower.select_min_norm, the generic
+engine's selection; here Q onto the row space of the data D(x), see bilevel.problems.willems): this removes the
+solver's error in Q's null-space directions, which only the tiny Tikhonov weight reg pins down, and leaves D Q and
+every constraint unchanged. At a strictly
 complementary, nondegenerate solution dr/dw is nonsingular (Alizadeh, Haeberly & Overton 1998),
 so y*(x) is differentiable with dw/dx = -(dr/dw)^-1 dr/dx. The gradient of phi(x) = F(x, y*(x))
 comes from the adjoint system (dr/dw)' z = (dF/dy, 0, 0): grad phi = dF/dx - (dr/dx)' z. When the
@@ -44,7 +45,7 @@ import casadi as ca
 import numpy as np
 import scipy.optimize
 
-from ..ddc.depersis_tesi import lqr_controller, min_norm_q, stabilizing_controller
+from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller
 from ..ddc.plants import batch_reactor
 from ..certificate import DEFAULT_TOL, Certificate
 from ..errors import BilevelError, ModelError, SolverFailed
@@ -108,8 +109,6 @@ class SDPHypergradient:
         self._gain_affine = self.lower_fixed and not ca.depends_on(gain_jacobian, x)
         self._gain = ca.Function("gain", [x, y], [attack.gain, gain_jacobian])
         self._gain_y = ca.Function("gain_y", [x, y], [ca.jacobian(ca.vec(attack.gain), y)])
-        self._seen = ca.Function("seen", [x], [attack.seen])
-        self._q_shape = (attack.setting.horizon, attack.n_states)
         self.n_x = int(x.numel())
         self.lower_solves = 0
         self._cache: tuple[np.ndarray, LowerSolution, float] | None = None
@@ -118,16 +117,6 @@ class SDPHypergradient:
     def polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, float]:
         """The lower level's Newton polish on its KKT system (bilevel.lower.sdp), polish_steps steps."""
         return self.lower_level.newton_polish(x, sol, self.polish_steps)
-
-    def project_rowspace(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, float]:
-        """Q projected onto the row space of D(x) (the minimum-norm Q with the same D Q) and the new KKT residual."""
-        size = self._q_shape[0] * self._q_shape[1]
-        q = sol.y[:size].reshape(self._q_shape, order="F")
-        y = sol.y.copy()
-        y[:size] = min_norm_q(np.asarray(self._seen(x), dtype=float), q).ravel(order="F")
-        projected = dataclasses.replace(sol, y=y, objective=float(self.lower_level.evaluate(x, y)[0]),
-                                        solver=f"{sol.solver} + row-space projection")
-        return projected, self.lower_level.kkt_residual(x, projected)
 
     def solver_selection(self) -> LowerSolution:
         """The unregularized learner's Q as its SDP solver returns it (selections "clarabel", "scs"), on the clean
@@ -158,8 +147,9 @@ class SDPHypergradient:
             # generic face polish of the certificate's re-solve would only add ~20 ms per solve
             sol = clarabel_solution(self.lower_level.data(x), "of the learner", self.lower_level.lmi_data(x))
         sol, res = self.polish(x, sol)
-        if self.attack.setting.selection == "min-norm":
-            sol, res = self.project_rowspace(x, sol)
+        if self.attack.setting.selection == "min-norm":  # the engine's selection: Q onto the row space of D
+            sol = self.lower_level.select_min_norm(x, sol)
+            res = self.lower_level.kkt_residual(x, sol)
         self.lower_solves += 1
         if res > KKT_TOL and not self.lower_fixed:  # a fixed response needs no implicit differentiation
             raise SolverFailed(f"the learner's SDP at this poisoning has KKT residual {res:.1e} > {KKT_TOL:g} after "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Callable
@@ -15,6 +16,17 @@ from .quadratic import QuadraticLower, solve_qp_clarabel
 
 PSD_TOL = 1e-9
 """Relative PSD violation of M_k and Z_k tolerated in a polished iterate."""
+FREE_RTOL = 1e-10
+"""Singular values below FREE_RTOL times the largest count as zero when finding the directions the SDP sees."""
+
+
+def range_basis(matrix: np.ndarray, rtol: float) -> np.ndarray:
+    """Orthonormal basis (columns) of the column space of matrix: singular values <= rtol * the largest count as
+    zero."""
+    if not np.any(matrix):
+        return np.zeros((matrix.shape[0], 0))
+    u, sing, _ = np.linalg.svd(matrix, full_matrices=False)
+    return u[:, : int(np.count_nonzero(sing > rtol * sing[0]))]
 
 
 def solve_square(matrix: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
@@ -120,6 +132,35 @@ class SemidefiniteLower(QuadraticLower):
                 break
         return sol, best
 
+    def seen_directions(self, x: np.ndarray) -> np.ndarray:
+        """Orthonormal basis S (n_y x k) of the smallest P-invariant subspace holding the rows of A, E, q' and every
+        LMI coefficient d vec(M_k)/dy: the SDP sees y only through S'y and a ridge on the rest. Along the rest
+        stationarity reads (T'PT) T'y = 0 (T spans the rest), so the exact solution of a ridge-regularized SDP lies
+        in span S, and without a ridge its projection S S'y is the minimum-norm point of the optimal set (singular
+        values below FREE_RTOL times the largest count as zero)."""
+        d = self.data(x)
+        rows = np.vstack([d.A, d.E, d.q[None, :], *(jac for _, jac in self.lmi_data(x))])
+        basis = range_basis(rows.T, FREE_RTOL)
+        p_scale = float(np.abs(d.P).max(initial=0.0))
+        while basis.shape[1] < self.n_y:  # close under P (Krylov): then the rest is P-invariant too
+            moved = d.P @ basis
+            leak = moved - basis @ (basis.T @ moved)
+            if not np.abs(leak).max(initial=0.0) > FREE_RTOL * p_scale:
+                break
+            basis = range_basis(np.hstack([basis, leak / p_scale]), FREE_RTOL)
+        return basis
+
+    def select_min_norm(self, x: np.ndarray, sol: LowerSolution) -> LowerSolution:
+        """sol projected onto the seen directions: the SDP's value, constraints and multipliers stay; it removes the
+        solver's error where only a ridge acts (tiny curvature) or picks the minimum-norm optimum without one."""
+        basis = self.seen_directions(x)
+        if basis.shape[1] == self.n_y:
+            return sol
+        unseen = sol.y - basis @ (basis.T @ sol.y)
+        y = sol.y - (unseen - basis @ (basis.T @ unseen))  # twice: the seen part moves by roundoff of the rest only
+        return dataclasses.replace(sol, y=y, objective=float(self.evaluate(x, y)[0]),
+                                   solver=f"{sol.solver} + minimum-norm selection")
+
     def jacobians(self, x: np.ndarray, sol: LowerSolution) -> tuple[np.ndarray, np.ndarray]:
         """(dr/dw, dr/dx) at a solution: the implicit-derivative system of y*(x)."""
         w = self.pack(sol)
@@ -132,9 +173,16 @@ class SemidefiniteLower(QuadraticLower):
 
     def adjoint(self, x: np.ndarray, sol: LowerSolution, grad_y: np.ndarray) -> tuple[np.ndarray, bool]:
         """(dr/dx)' Z with (dr/dw)' Z = (grad_y, 0), one column per column of grad_y: the derivative of functions
-        of (x, y) through y*(x) is their x-gradient minus this (the adjoint method); and whether dr/dw was singular
-        (then one element of a generalized derivative)."""
+        of (x, y) through y*(x) is their x-gradient minus this (the adjoint method); and whether dr/dw was singular.
+        Singular along the free directions (a non-unique solution), grad_y is first projected off them: the
+        derivative of the minimum-norm selection, exact where the free directions do not move with x; otherwise
+        one element of a generalized derivative."""
         K, R = self.jacobians(x, sol)
         rhs = np.vstack([grad_y, np.zeros((K.shape[0] - grad_y.shape[0], grad_y.shape[1]))])
         Z, rank = self.kkt_solve(x, K, rhs)
+        if rank < K.shape[0]:
+            basis = self.seen_directions(x)
+            if basis.shape[1] < self.n_y:
+                rhs[: self.n_y] = basis @ (basis.T @ grad_y)
+                Z, rank = self.kkt_solve(x, K, rhs)
         return R.T @ Z, rank < K.shape[0]

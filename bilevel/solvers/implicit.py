@@ -11,8 +11,9 @@ is computed by the adjoint: grad phi = grad_x phi - R' z with K' z = (grad_y phi
 and R its x-derivative, which equals grad_x phi + (dy/dx)' grad_y phi without forming dy/dx.
 A lower level with LMIs is polished and differentiated through its conic KKT system instead (stationarity,
 lam * g, h and vech((M_k Z_k + Z_k M_k) / 2), bilevel.lower.sdp.ConicKKT, and SemidefiniteLower.adjoint: the
-same code as the Willems attacks); it needs a unique, strictly complementary lower solution (e.g. a strictly
-convex objective).
+same code as the Willems attacks), after which y is projected off the directions the SDP sees only through a ridge
+(SemidefiniteLower.select_min_norm: the minimum-norm selection of a non-unique solution, or the exact ridge
+solution); it needs a strictly complementary lower solution, unique up to those directions.
 
 Upper constraints other than the projected ones are handled by an exact penalty: phi = F + penalty *
 (sum max(G, 0) + sum |H|), exact once the penalty exceeds the upper multipliers (default 1e4); where
@@ -156,7 +157,7 @@ class Hypergradient:
         elif lower is not None:
             sol, vals = lower, kkt
         elif self.conic:
-            sol, vals = self.low.newton_polish(x, self.low.solve(x))[0], None
+            sol, vals = self.low.select_min_norm(x, self.low.newton_polish(x, self.low.solve(x))[0]), None
         else:
             sol, vals = self._polish(x, self.low.solve(x))
         if self.low.fixed:  # y* constant in x: solved once, no adjoint

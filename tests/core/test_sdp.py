@@ -126,3 +126,31 @@ def test_conic_hypergradient_matches_finite_differences(seed: int) -> None:
     fd = np.array([(-phi(x0 + 2 * h * e) + 8 * phi(x0 + h * e) - 8 * phi(x0 - h * e) + phi(x0 - 2 * h * e)) / (12 * h)
                    for e in np.eye(2)])
     assert np.abs(grad - fd).max() <= 1e-8 * max(1.0, np.abs(grad).max())
+
+
+def _ray_sdp(reg: float) -> bl.BilevelProblem:
+    """The lower level sees y only through s = y0 + 2 y1 >= x^2 (LMI [[s, x], [x, 1]] >= 0), minimizing s plus a ridge
+    reg/2 ||y||^2: its optimal set is the line s = x^2 without the ridge; both select y* = x^2 (1, 2) / 5."""
+    p = bl.BilevelProblem("ray-sdp")
+    x = p.upper_variable("x", lb=-2, ub=2, start=0.7)
+    y = p.lower_variable("y", 2)
+    p.lower_psd_constraint(ca.blockcat([[y[0] + 2 * y[1], x], [x, 1]]), name="ray")
+    p.minimize_lower(y[0] + 2 * y[1] + 0.5 * reg * ca.sumsqr(y))
+    p.minimize_upper(y[0] + (x - 1) ** 2)
+    return p
+
+
+@pytest.mark.parametrize("reg", [0.0, 1e-8])
+def test_non_unique_sdp_gets_the_minimum_norm_selection_and_its_derivative(reg: float) -> None:
+    """Without a ridge the engine returns the minimum-norm point of the optimal line and differentiates that selection
+    (its free direction does not move with x): phi(x) = x^2 / 5 + (x - 1)^2, phi' = 2x / 5 + 2 (x - 1). With a tiny
+    ridge the solver's point is off along the free direction by ~ its tolerance / reg; the selection removes that."""
+    from bilevel.solvers.implicit import Hypergradient
+
+    oracle = Hypergradient(prepare(_ray_sdp(reg)))
+    for x in (0.7, -1.3, 0.0):
+        ev = oracle.evaluate(np.array([x]))
+        np.testing.assert_allclose(ev.lower.y, x ** 2 * np.array([1.0, 2.0]) / 5, rtol=0, atol=1e-9)
+        assert oracle.low.kkt_residual(np.array([x]), ev.lower) <= 1e-9
+        assert abs(oracle.gradient(ev)[0][0] - (2 * x / 5 + 2 * (x - 1))) <= 1e-8
+    assert oracle.low.seen_directions(np.array([0.7])).shape == (2, 1)

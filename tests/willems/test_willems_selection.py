@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import warnings
 
+import casadi as ca
 import numpy as np
 
 from bilevel.ddc.data import batch_reactor_data
-from bilevel.ddc.depersis_tesi import lqr_controller
+from bilevel.ddc.depersis_tesi import lqr_controller, min_norm_q
 from bilevel.attacks.willems import SDPHypergradient
 from bilevel.experiments.willems_selection import input_gains
 from bilevel.lower.quadratic import clarabel_solution, solve_qp_clarabel
@@ -41,7 +42,7 @@ def _learner_from_two_starts(attack: WillemsAttack, x: np.ndarray) -> list[tuple
     face-polished point; for the min-norm selection also checks that the projection keeps D Q and lowers f."""
     oracle = SDPHypergradient(attack)
     level, shape = oracle.lower_level, (attack.setting.horizon, attack.n_states)
-    seen = np.asarray(oracle._seen(x))
+    seen = np.asarray(ca.Function("seen", [attack.upper], [attack.seen])(x))
     out = []
     for start in (clarabel_solution, solve_qp_clarabel):
         with warnings.catch_warnings():
@@ -49,11 +50,14 @@ def _learner_from_two_starts(attack: WillemsAttack, x: np.ndarray) -> list[tuple
             sol = start(level.data(x), "of the learner", level.lmi_data(x))
         sol, res = oracle.polish(x, sol)
         if attack.setting.selection == "min-norm":
-            projected, res = oracle.project_rowspace(x, sol)
+            projected = level.select_min_norm(x, sol)  # the engine's selection, from the SDP's coefficients
+            res = level.kkt_residual(x, projected)
             q = sol.y[: shape[0] * shape[1]].reshape(shape, order="F")
             q_proj = projected.y[: shape[0] * shape[1]].reshape(shape, order="F")
             roundoff = 1e-13 * np.linalg.norm(seen) * np.linalg.norm(q)
             np.testing.assert_allclose(seen @ q_proj, seen @ q, rtol=0, atol=roundoff)
+            # the same point as projecting Q onto the row space of the data D the SDP sees
+            assert np.abs(q_proj - min_norm_q(seen, q)).max() <= 1e-9 * np.abs(q_proj).max()
             assert projected.objective <= sol.objective + 1e-12 * abs(sol.objective)
             sol = projected
         out.append((sol.y[: shape[0] * shape[1]], res))
