@@ -28,7 +28,7 @@ Destabilizing attack (destabilize_attack, issue 12): on the engine's projected a
 (SDPHypergradient.gain_gradient); the answer is the evaluated point with the largest identified rho.
 smallest_destabilizing_budget finds delta_u* along a budget path, then by bisection.
 
-Baselines: differential evolution (scipy) on the input poisoning with the same box, criterion and
+Baselines: differential evolution (bilevel.solvers.evolution) on the input poisoning with the same box, criterion and
 stopping rule; random signs at the budget; and the generic route, bilevel.solve on the registered
 problem (KKT reformulation with the LMI's PSD complementarity pair, IPOPT or the relaxation sequence).
 """
@@ -57,6 +57,7 @@ from ..sampling import sample_in_bounds
 from ..result import BilevelResult, Status
 from ..solvers import solve
 from ..solvers.ascent import budget_direction, projected_ascent
+from ..solvers.evolution import evolve
 from ..solvers.projections import Box
 from ..threads import single_threaded_call
 from .outcome import unstable
@@ -328,7 +329,8 @@ def _select(finished: list[tuple[Evaluation, int, str]], stop_when_unstable: boo
 @single_threaded_call
 def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize: int = 5, tol: float = 1e-8,
               stop_when_unstable: bool = True, oracle: SDPHypergradient | None = None) -> BilevelResult:
-    """Differential evolution (scipy, best1bin, no gradient polish) on the input poisoning inside the linf box.
+    """Differential evolution (the framework's, bilevel.solvers.evolution.evolve) on the input poisoning inside the linf
+    box, batched over the population where the learner ignores the poisoning.
 
     With stop_when_unstable it stops once the incumbent's identified closed loop is unstable (as our attack)."""
     if attack.setting.poison != "u":
@@ -352,10 +354,7 @@ def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize:
             return True
         return stop_when_unstable and oracle.evaluate(intermediate_result.x).identified_radius >= 1.0
 
-    out = scipy.optimize.differential_evolution(
-        loss, list(zip(-bound, bound)), maxiter=int(maxiter), popsize=int(popsize), tol=float(tol), polish=False,
-        rng=_seed(seed), callback=stop, vectorized=oracle.lower_fixed,
-        updating="deferred" if oracle.lower_fixed else "immediate")
+    out = evolve(loss, -bound, bound, _seed(seed), maxiter, popsize, tol, stop=stop, vectorized=oracle.lower_fixed)
     return _result(oracle, "differential-evolution", np.clip(out.x, -bound, bound), t0, counter["evaluations"],
                    int(out.nit), f"{out.message} (a heuristic: no optimality claim)", None,
                    {"lower_solves": oracle.lower_solves})

@@ -76,7 +76,7 @@ class _Restoration:
         return np.asarray(sol["x"]).ravel()[: self._nx]
 
 
-class _Arc:
+class Arc:
     """Points P(v) of the projection arc, evaluated; restored into the lower level's domain when needed."""
 
     def __init__(self, prep: Prepared, oracle: Hypergradient, projection: Projection) -> None:
@@ -104,7 +104,7 @@ class _Arc:
 
 
 @dataclass
-class _Descent:
+class Descent:
     """The outcome of one start: final point, status, message, accepted steps and per-iterate records."""
 
     point: Evaluation
@@ -114,14 +114,14 @@ class _Descent:
     history: list[dict[str, Any]]
 
 
-def _domain_stationary(arc: _Arc, cur: Evaluation, grad: np.ndarray, tol: float) -> bool:
+def _domain_stationary(arc: Arc, cur: Evaluation, grad: np.ndarray, tol: float) -> bool:
     """Whether the projected gradient step is <= tol once the projection is restored into the lower level's
     domain (the arc's P(x - grad)): asked only when the line search fails, as it costs a lower solve."""
     unit = arc(cur.x - grad)
     return unit is not None and float(np.linalg.norm(unit.x - cur.x)) <= tol
 
 
-def _descend(arc: _Arc, start: Evaluation, tol: float, ftol: float, max_iter: int) -> _Descent:
+def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int) -> Descent:
     """The engine's spectral projected gradient loop (bilevel.solvers.ascent) on -phi along the arc, in x units:
     long Barzilai-Borwein steps, each trial point restored into the lower level's domain; stops when
     ||P(x - grad phi) - x|| <= tol or phi's relative decrease in one step is <= ftol."""
@@ -167,15 +167,15 @@ def _descend(arc: _Arc, start: Evaluation, tol: float, ftol: float, max_iter: in
     grad, pstep = gradient(cur)
     reason = last["reason"] if why["stop"] == "stop" else why["stop"]  # the stop hook names its own reason
     if reason == "max_iter":
-        return _Descent(cur, Status.MAX_ITERATIONS, f"max_iter = {max_iter} reached", nit, history)
+        return Descent(cur, Status.MAX_ITERATIONS, f"max_iter = {max_iter} reached", nit, history)
     # a trial step that rounds to x ("stationary") after many halvings is no proof either: both ask the domain
     if reason in ("line search", "stationary") and not _domain_stationary(arc, cur, grad, tol):
-        return _Descent(cur, Status.INACCURATE, "line search found no decrease (x is likely at a kink of "
+        return Descent(cur, Status.INACCURATE, "line search found no decrease (x is likely at a kink of "
                         "y*(x), where the generalized gradient is not a descent direction)", nit, history)
     message = {"tol": f"projected gradient step {pstep:.2e} <= tol",
                "ftol": "relative decrease in one step <= ftol",
                "zero step": "zero gradient"}.get(reason, "projected gradient step <= tol on the lower level's domain")
-    return _Descent(cur, Status.SOLVED, message, nit, history)
+    return Descent(cur, Status.SOLVED, message, nit, history)
 
 
 def _projection(prep: Prepared, projection: Any) -> Projection:
@@ -247,7 +247,7 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     projected = tuple(b.row for b in prep.balls) if options.get("projection") is None else ()
     active_tol = float(options.get("active_tol", ACTIVE_TOL))
     oracle = shared_oracle(prep, penalty, active_tol, projected)
-    arc = _Arc(prep, oracle, _projection(prep, options.get("projection")))
+    arc = Arc(prep, oracle, _projection(prep, options.get("projection")))
     tol, ftol = float(options.get("tol", 1e-7)), float(options.get("ftol", 1e-12))
     max_iter = int(options.get("max_iter", 500))
     rng = np.random.default_rng(options.get("seed", 0))
@@ -260,7 +260,7 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
                             "message": "no upper point near the start where the lower level can be solved",
                             "time": time.perf_counter() - t0})
             continue
-        run = _descend(arc, start, tol, ftol, max_iter)
+        run = descend(arc, start, tol, ftol, max_iter)
         p = run.point
         w = prep.pack(KKTPoint(p.x, p.lower.y, p.lower.lam, p.lower.mu, p.lower.Z))
         runs.append((k, run))

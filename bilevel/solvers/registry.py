@@ -16,6 +16,7 @@ from ..model import BilevelProblem
 from ..threads import single_threaded
 from ..result import BilevelResult
 from .base import MethodRun, Prepared, finalize, prepare
+from .evolution import solve_evolution
 from .global_method import solve_global
 from .hypergradient import solve_block_exact, solve_hypergradient
 from .ipopt import solve_ipopt
@@ -36,6 +37,7 @@ METHODS: dict[str, Method] = {
     "relaxation": solve_relaxation,
     "block-exact": solve_block_exact,
     "global": solve_global,
+    "differential-evolution": solve_evolution,
 }
 """Registered methods: name -> function(prepared, **options) -> MethodRun."""
 

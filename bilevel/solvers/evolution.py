@@ -1,0 +1,105 @@
+"""Method `differential-evolution`: a derivative-free search of the upper box on the implicit map, then the descent.
+
+phi(x) = F(x, y*(x)) + penalty * (upper violation), from the implicit-differentiation engine (exact lower solves,
+the minimum-norm selection of a non-unique SDP solution), is minimized over the declared upper box by scipy's
+differential evolution (best1bin, Storn & Price 1997), the seeded population holding the multistart points
+(bilevel.solvers.starts) and uniform points of the box; a point where the lower level cannot be solved scores
+UNSOLVED. Only a box is searched, so every upper variable needs finite bounds. With polish (default) the engine's
+projected descent (bilevel.solvers.hypergradient.descend) runs from the best member and its verdict is the run's;
+without it the best member is a heuristic's answer, never `solved`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+import scipy.optimize
+
+from ..errors import BilevelError, ModelError
+from ..reduction import KKTPoint
+from ..result import Status
+from .base import MethodRun, Prepared, check_options
+from .hypergradient import Arc, descend
+from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, shared_oracle
+from .starts import start_points
+
+UNSOLVED = 1e20
+"""phi's stand-in where the lower level cannot be solved (differential evolution ranks finite values only)."""
+
+
+def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, rng: np.random.Generator,
+           max_iter: int, popsize: int, tol: float, stop: Callable[[Any], bool] | None = None,
+           vectorized: bool = False, init: str | np.ndarray = "latinhypercube") -> scipy.optimize.OptimizeResult:
+    """scipy's differential evolution (best1bin, no gradient polish) minimizing `values` over the box [lb, ub];
+    vectorized: `values` maps an (n, S) array of S points to S values (the population is then updated per generation).
+    """
+    return scipy.optimize.differential_evolution(
+        values, list(zip(lb, ub)), maxiter=int(max_iter), popsize=int(popsize), tol=float(tol), polish=False, rng=rng,
+        callback=stop, vectorized=vectorized, updating="deferred" if vectorized else "immediate", init=init)
+
+
+def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
+    """Differential evolution over the upper box (options: starts, seed, max_iter generations, popsize, tol, penalty,
+    polish, verbose), then the engine's descent from its best point unless polish=False."""
+    check_options("differential-evolution", options, {"starts", "seed", "max_iter", "popsize", "tol", "penalty",
+                                                      "polish", "verbose"})
+    canon = prep.canon
+    lb, ub = canon.x_lb, canon.x_ub
+    if not (np.all(np.isfinite(lb)) and np.all(np.isfinite(ub))):
+        free = int(np.count_nonzero(~(np.isfinite(lb) & np.isfinite(ub))))
+        raise ModelError(f"differential-evolution searches the upper box, but {free} of the {lb.size} upper entries "
+                         "have no finite bound on some side: declare lb and ub on every upper variable, or use "
+                         "method 'hypergradient'")
+    popsize = int(options.get("popsize", 15))
+    if popsize < 1:
+        raise ModelError(f"option popsize={popsize} is invalid: it must be an integer >= 1 (members per upper entry)")
+    penalty = float(options.get("penalty", DEFAULT_PENALTY))
+    oracle = shared_oracle(prep, penalty)
+    rng = np.random.default_rng(options.get("seed", 0))
+    members = max(5, popsize * lb.size)
+    seeded = [np.clip(x, lb, ub) for x in start_points(prep, int(options.get("starts", 1)), rng, 1.0)][:members]
+    population = np.array(seeded + [rng.uniform(lb, ub) for _ in range(members - len(seeded))])
+    best: dict[str, Evaluation] = {}
+
+    def value(x: np.ndarray) -> float:
+        try:
+            ev = oracle.evaluate(np.asarray(x, dtype=float))
+        except BilevelError:
+            return UNSOLVED
+        if "ev" not in best or ev.phi < best["ev"].phi:
+            best["ev"] = ev
+        return min(ev.phi, UNSOLVED)
+
+    def progress(intermediate_result: scipy.optimize.OptimizeResult) -> bool:  # scipy passes a result by this name
+        if options.get("verbose"):
+            print(f"[differential-evolution] generation {intermediate_result.nit}: phi = "
+                  f"{intermediate_result.fun:.6g}", flush=True)
+        return False
+
+    out = evolve(value, lb, ub, rng, int(options.get("max_iter", 100)), popsize, float(options.get("tol", 1e-8)),
+                 stop=progress, init=population)
+    if "ev" not in best:
+        return MethodRun(None, Status.ERROR, f"the lower level could not be solved at any of the {out.nfev} points "
+                         "differential evolution tried", int(out.nit))
+    found = best["ev"]
+    stats = {"generations": int(out.nit), "evaluations": int(out.nfev), "evolution_objective": found.F,
+             "evolution_message": str(out.message), "penalty": penalty}
+    record = {"start": 0, "objective": found.F, "residual": found.violation, "generations": int(out.nit)}
+    start = None
+    if options.get("polish", True):  # the descent's own oracle: recognized balls projected on, not penalized
+        polish = shared_oracle(prep, penalty, ACTIVE_TOL, tuple(b.row for b in prep.balls))
+        arc = Arc(prep, polish, prep.projection)
+        start = arc(found.x)
+    if start is None:
+        w = prep.pack(KKTPoint(found.x, found.lower.y, found.lower.lam, found.lower.mu, found.lower.Z))
+        message = (f"best of {out.nfev} points of differential evolution ({out.message}); a heuristic: no "
+                   "optimality claim")
+        return MethodRun(w, Status.INACCURATE, message, int(out.nit), [], [record | {"status": "inaccurate"}], stats)
+    run = descend(arc, start, 1e-7, 1e-12, 500)
+    p = run.point
+    w = prep.pack(KKTPoint(p.x, p.lower.y, p.lower.lam, p.lower.mu, p.lower.Z))
+    message = f"descent from the best of {out.nfev} points of differential evolution: {run.message}"
+    return MethodRun(w, run.status, message, int(out.nit) + run.nit, run.history,
+                     [record | {"status": run.status.value, "iterations": run.nit, "objective": p.F,
+                                "residual": p.violation}], stats)
