@@ -57,6 +57,7 @@ from ..sampling import sample_in_bounds
 from ..result import BilevelResult, Status
 from ..solvers import solve
 from ..solvers.ascent import budget_direction, projected_ascent
+from ..solvers.budget_search import BudgetSearch, smallest_budget
 from ..solvers.evolution import evolve
 from ..solvers.projections import Box
 from ..threads import single_threaded_call
@@ -494,39 +495,16 @@ def destabilize_attack(attack: WillemsAttack, starts: int = 16, seed: Any = 0, m
                     "lower_solves": oracle.lower_solves})
 
 
-@dataclass
-class BudgetSearch:
-    """The smallest input budget delta_u at which the destabilizing attack made the true loop unstable (inf if no
-    budget of the path did), and every attack run on the way: (delta_u, true spectral radius) in run order."""
-
-    delta: float
-    runs: list[tuple[float, float]]
-
-
 def smallest_destabilizing_budget(setting: WillemsSetting, path: tuple[float, ...] = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0),
                                   rel_tol: float = 0.05, **options: Any) -> BudgetSearch:
-    """delta_u* of one data set: destabilize_attack (options passed on) along the increasing budget `path` until the
-    true loop is unstable, then bisection between the last stable and the first unstable budget to `rel_tol`."""
-    if list(path) != sorted(path) or not path or path[0] <= 0:
-        raise ModelError(f"smallest_destabilizing_budget: path must be increasing and positive, got {path}")
+    """delta_u* of one data set: the framework's budget search (bilevel.solvers.budget_search) with destabilize_attack
+    (options passed on) as the attack and an unstable true loop (spectral radius >= 1) as the goal."""
     if setting.poison != "u":
         raise ModelError(f"smallest_destabilizing_budget searches delta_u with input poisoning; got poison="
                          f"{setting.poison!r}: use poison='u'")
-    runs: list[tuple[float, float]] = []
 
-    def unstable(delta: float) -> bool:
+    def radius(delta: float) -> float:
         attack = build_attack(dataclasses.replace(setting, objective="destabilize", delta_u=delta))
-        runs.append((delta, destabilize_attack(attack, **options).stats["spectral_radius"]))
-        return runs[-1][1] >= 1.0
+        return destabilize_attack(attack, **options).stats["spectral_radius"]
 
-    low = 0.0
-    for high in path:
-        if unstable(high):
-            break
-        low = high
-    else:
-        return BudgetSearch(float("inf"), runs)
-    while high - low > rel_tol * high:
-        mid = 0.5 * (low + high)
-        low, high = (low, mid) if unstable(mid) else (mid, high)
-    return BudgetSearch(high, runs)
+    return smallest_budget(radius, lambda rho: rho >= 1.0, path, rel_tol)
