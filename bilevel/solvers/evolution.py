@@ -4,7 +4,8 @@ phi(x) = F(x, y*(x)) + penalty * (upper violation), from the implicit-differenti
 the minimum-norm selection of a non-unique SDP solution), is minimized over the declared upper box by scipy's
 differential evolution (best1bin, Storn & Price 1997), the seeded population holding the multistart points
 (bilevel.solvers.starts) and uniform points of the box; a point where the lower level cannot be solved scores
-UNSOLVED. Only a box is searched, so every upper variable needs finite bounds. With polish (default) the engine's
+UNSOLVED; where the lower level ignores x (solved once) the population is scored by one mapped sweep per
+generation. Only a box is searched, so every upper variable needs finite bounds. With polish (default) the engine's
 projected descent (bilevel.solvers.hypergradient.descend) runs from the best member and its verdict is the run's;
 without it the best member is a heuristic's answer, never `solved`.
 """
@@ -71,14 +72,22 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
             best["ev"] = ev
         return min(ev.phi, UNSOLVED)
 
+    def batch(xs: np.ndarray) -> np.ndarray:  # a lower level that ignores x: the population in one mapped sweep
+        phi = oracle.batch_phi(np.asarray(xs, dtype=float))
+        i = int(np.argmin(phi))
+        if "ev" not in best or phi[i] < best["ev"].phi:
+            best["ev"] = oracle.evaluate(np.asarray(xs, dtype=float)[:, i])
+        return np.minimum(phi, UNSOLVED)
+
     def progress(intermediate_result: scipy.optimize.OptimizeResult) -> bool:  # scipy passes a result by this name
         if options.get("verbose"):
             print(f"[differential-evolution] generation {intermediate_result.nit}: phi = "
                   f"{intermediate_result.fun:.6g}", flush=True)
         return False
 
-    out = evolve(value, lb, ub, rng, int(options.get("max_iter", 100)), popsize, float(options.get("tol", 1e-8)),
-                 stop=progress, init=population)
+    fixed = oracle.low.fixed
+    out = evolve(batch if fixed else value, lb, ub, rng, int(options.get("max_iter", 100)), popsize,
+                 float(options.get("tol", 1e-8)), stop=progress, vectorized=fixed, init=population)
     if "ev" not in best:
         return MethodRun(None, Status.ERROR, f"the lower level could not be solved at any of the {out.nfev} points "
                          "differential evolution tried", int(out.nit))

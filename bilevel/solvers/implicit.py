@@ -80,6 +80,7 @@ class Hypergradient:
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
         self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
         self._fixed: tuple[int, LowerSolution, KKTValues | None] | None = None  # (parameter revision, ...)
+        self._batches: dict[int, ca.Function] = {}  # batch_phi's mapped sweeps, by batch size
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
 
     @cached_property
@@ -173,6 +174,21 @@ class Hypergradient:
         phi = F + self.penalty * (float(np.maximum(G, 0.0).sum()) + float(np.abs(H).sum()))
         violation = max([0.0, *np.maximum(G, 0.0), *np.abs(H)])
         return Evaluation(x, phi, F, violation, sol, upper, vals)
+
+    def batch_phi(self, xs: np.ndarray) -> np.ndarray:
+        """phi at each column of xs (n_x x S) by one mapped sweep, for a lower level that ignores x (solved once)."""
+        if not self.low.fixed:
+            raise ModelError("batch_phi needs a lower level that does not depend on the upper variables; evaluate "
+                             "the points one by one")
+        y = self.evaluate(xs[:, 0]).lower.y
+        canon, n = self.canon, xs.shape[1]
+        shared = [canon.params.value] if canon.params.items else []
+        if n not in self._batches:
+            _, G, H = self._upper_outputs[:3]
+            phi = canon.F + self.penalty * (ca.sum1(ca.fmax(G, 0)) + ca.sum1(ca.fabs(H)))
+            args = [canon.x, canon.y] + ([canon.params.sym] if shared else [])
+            self._batches[n] = ca.Function("phi", args, [phi]).map(n, [False] + [True] * (len(args) - 1), [False])
+        return np.asarray(self._batches[n](xs, y, *shared), dtype=float).ravel()
 
     def gradient(self, ev: Evaluation) -> tuple[np.ndarray, bool, int]:
         """grad phi at an evaluated point, whether the active set was degenerate, and its size.

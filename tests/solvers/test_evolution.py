@@ -59,3 +59,19 @@ def test_without_polish_the_answer_is_never_solved_and_unbounded_boxes_are_refus
         bl.solve(p, method="differential-evolution")
     with pytest.raises(bl.UnknownOption, match="popsize"):
         bl.solve(_wavy(0.0), method="differential-evolution", pop_size=3)
+
+
+def test_population_sweep_equals_pointwise_phi_where_the_lower_level_ignores_x() -> None:
+    """willems-eigen with input poisoning (the SDP does not see Du, solved once): the mapped sweep of a population
+    gives the engine's pointwise phi to 1e-12 relative; a lower level that depends on x is refused."""
+    from bilevel.problems.willems import build_attack
+    from bilevel.solvers.base import prepare
+    from bilevel.solvers.implicit import Hypergradient
+
+    attack = build_attack(objective="eigen", horizon=15, seed=0, delta_u=0.6)
+    oracle = Hypergradient(prepare(attack.problem))
+    xs = np.random.default_rng(0).uniform(-0.6, 0.6, (attack.budget().size, 7))
+    pointwise = np.array([oracle.evaluate(x).phi for x in xs.T])
+    np.testing.assert_allclose(oracle.batch_phi(xs), pointwise, rtol=1e-12, atol=0)
+    with pytest.raises(bl.ModelError, match="does not depend"):
+        Hypergradient(prepare(_wavy(0.0))).batch_phi(np.zeros((1, 3)))
