@@ -1,4 +1,4 @@
-"""Method `differential-evolution` (bilevel.solvers.evolution): known optima, a multimodal reduced objective, honesty."""
+"""Method `differential-evolution` (bilevel.solvers.evolution): known optima, a multimodal objective, honesty."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from bilevel.problems import registry
 @pytest.mark.parametrize("name", ["bolib-gumusfloudas2001ex4", "macmpec-ex9.2.5", "macmpec-ex9.2.8",
                                   "bolib-hendersonquandt1958"])
 def test_boxed_textbook_problems_reach_their_known_optimum(name: str) -> None:
-    """Every upper variable bounded: evolution then the descent reach the literature optimum (registry.spec(name).source:
-    Gumus & Floudas 2001 Ex. 4, F* = 9; Clark & Westerberg 1990, F* = 5; Yezza 1996 Ex. 3.1, F* = 1.5; Henderson &
+    """Every upper variable bounded: evolution then the descent reach the literature optimum (see
+    registry.spec(name).source: Gumus & Floudas 2001 Ex. 4, F* = 9; Clark & Westerberg 1990, F* = 5; Yezza 1996 Ex. 3.1, F* = 1.5; Henderson &
     Quandt 1958, F* = -3266.67), solved and certified."""
     res = bl.solve(registry.get(name), method="differential-evolution")
     optimum = registry.spec(name).optimum
