@@ -14,8 +14,8 @@ from bilevel.problems import registry
                                   "bolib-hendersonquandt1958"])
 def test_boxed_textbook_problems_reach_their_known_optimum(name: str) -> None:
     """Every upper variable bounded: evolution then the descent reach the literature optimum (see
-    registry.spec(name).source: Gumus & Floudas 2001 Ex. 4, F* = 9; Clark & Westerberg 1990, F* = 5; Yezza 1996 Ex. 3.1, F* = 1.5; Henderson &
-    Quandt 1958, F* = -3266.67), solved and certified."""
+    registry.spec(name).source: Gumus & Floudas 2001 Ex. 4, F* = 9; Clark & Westerberg 1990, F* = 5; Yezza 1996
+    Ex. 3.1, F* = 1.5; Henderson & Quandt 1958, F* = -3266.67), solved and certified."""
     res = bl.solve(registry.get(name), method="differential-evolution")
     optimum = registry.spec(name).optimum
     assert res.status is bl.Status.SOLVED and res.certificate.passed
