@@ -200,8 +200,8 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
             status = Status.NOT_LOCALLY_OPTIMAL
             sign = -1.0 if prep.problem.upper_objective.sense == "max" else 1.0
             message = (f"not a local solution: a feasible point at relative distance {better.radius:g} has upper "
-                       f"objective {sign * better.objective:.8g} (here {sign * F:.8g}); the method stopped at a "
-                       f"stationary point that is not optimal ({message}); try more starts or another method")
+                       f"objective {sign * better.objective:.8g} (here {sign * F:.8g}), so the method's point is not "
+                       f"optimal ({message}); try more starts or another method")
     sol = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse)
     syms = ca.vertcat(prep.canon.x, prep.canon.y, prep.canon.params.sym)
     values = np.concatenate([point.x, point.y, prep.canon.params.value])
