@@ -26,10 +26,11 @@ Method = Callable[..., MethodRun]
 SMALL_LOWER = 256
 """Lower levels with at most this many variables are solved with one BLAS thread."""
 
-METHODS_VERSION = "methods-3"
+METHODS_VERSION = "methods-4"
 """Part of every `bilevel compare` task, so a resumed comparison never reuses a row of an older method: bump it when a
 registered method changes its answers for the same call (methods-2: hypergradient takes the exact block by default;
-methods-3: the structured vrft-targeted attack runs to convergence)."""
+methods-3: the structured vrft-targeted attack runs to convergence; methods-4: SDP lower levels get the engine's
+minimum-norm selection)."""
 
 METHODS: dict[str, Method] = {
     "ipopt": solve_ipopt,
