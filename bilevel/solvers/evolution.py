@@ -63,21 +63,29 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
     population = np.array(seeded + [rng.uniform(lb, ub) for _ in range(members - len(seeded))])
     best: dict[str, Evaluation] = {}
 
+    def ranked(phi: Any) -> Any:
+        """phi as differential evolution ranks it: NaN and +inf (and anything beyond) as UNSOLVED."""
+        return np.clip(np.nan_to_num(phi, nan=UNSOLVED, posinf=UNSOLVED, neginf=-UNSOLVED), -UNSOLVED, UNSOLVED)
+
     def value(x: np.ndarray) -> float:
         try:
             ev = oracle.evaluate(np.asarray(x, dtype=float))
         except BilevelError:
             return UNSOLVED
-        if "ev" not in best or ev.phi < best["ev"].phi:
+        if ranked(ev.phi) < UNSOLVED and ("ev" not in best or ev.phi < best["ev"].phi):
             best["ev"] = ev
-        return min(ev.phi, UNSOLVED)
+        return float(ranked(ev.phi))
 
     def batch(xs: np.ndarray) -> np.ndarray:  # a lower level that ignores x: the population in one mapped sweep
-        phi = oracle.batch_phi(np.asarray(xs, dtype=float))
+        xs = np.asarray(xs, dtype=float)
+        try:
+            phi = ranked(oracle.batch_phi(xs))
+        except BilevelError:  # the (one) lower solve failed: nowhere to go
+            return np.full(xs.shape[1], UNSOLVED)
         i = int(np.argmin(phi))
-        if "ev" not in best or phi[i] < best["ev"].phi:
-            best["ev"] = oracle.evaluate(np.asarray(xs, dtype=float)[:, i])
-        return np.minimum(phi, UNSOLVED)
+        if phi[i] < UNSOLVED and ("ev" not in best or phi[i] < best["ev"].phi):
+            best["ev"] = oracle.evaluate(xs[:, i])
+        return phi
 
     def progress(intermediate_result: scipy.optimize.OptimizeResult) -> bool:  # scipy passes a result by this name
         if options.get("verbose"):

@@ -75,3 +75,16 @@ def test_population_sweep_equals_pointwise_phi_where_the_lower_level_ignores_x()
     np.testing.assert_allclose(oracle.batch_phi(xs), pointwise, rtol=1e-12, atol=0)
     with pytest.raises(bl.ModelError, match="does not depend"):
         Hypergradient(prepare(_wavy(0.0))).batch_phi(np.zeros((1, 3)))
+
+
+def test_a_lower_level_infeasible_on_the_whole_box_is_an_error_not_an_answer() -> None:
+    """y >= 1 and y <= x with x in [-2, 0]: no point of the box has a lower solution, so there is no answer."""
+    p = bl.BilevelProblem("nowhere")
+    x = p.upper_variable("x", lb=-2, ub=0)
+    y = p.lower_variable("y")
+    p.lower_constraint(y >= 1)
+    p.lower_constraint(y <= x)
+    p.minimize_lower(y ** 2)
+    p.minimize_upper(x ** 2 + y)
+    res = bl.solve(p, method="differential-evolution", max_iter=3, popsize=3)
+    assert res.status is bl.Status.ERROR and "could not be solved" in res.message and res.upper_objective is None
