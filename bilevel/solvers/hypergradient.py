@@ -171,7 +171,7 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int)
     # a trial step that rounds to x ("stationary") after many halvings is no proof either: both ask the domain
     if reason in ("line search", "stationary") and not _domain_stationary(arc, cur, grad, tol):
         return Descent(cur, Status.INACCURATE, "line search found no decrease (x is likely at a kink of "
-                        "y*(x), where the generalized gradient is not a descent direction)", nit, history)
+                       "y*(x), where the generalized gradient is not a descent direction)", nit, history)
     message = {"tol": f"projected gradient step {pstep:.2e} <= tol",
                "ftol": "relative decrease in one step <= ftol",
                "zero step": "zero gradient"}.get(reason, "projected gradient step <= tol on the lower level's domain")
