@@ -14,7 +14,9 @@ Willems (appendix B, N = 15, input poisoning, lqr design): the Willems hypergrad
 instability) against `bilevel.solve(..., method="hypergradient", starts=8)` on the same problem, for the eigenvalue
 criterion at delta_u = 0.6 and the max-min criterion at delta_u = 0.1 (where the loops stay stable: the attack's
 +inf convention for an unstable identified loop has no counterpart in the declared H2 cost).
-Run: python benchmarks/bench_generic.py [seeds] [--kkt S] [--willems W]
+linf budgets (`--linf S`, S seeds): declared as the poisoning's bounds, a fresh declaration per seed; the structured
+attack against hypergradient (the descent: no exact block without an l2 ball) and ipopt, one start each.
+Run: python benchmarks/bench_generic.py [seeds] [--kkt S] [--willems W] [--linf S]
 """
 
 from __future__ import annotations
@@ -61,7 +63,40 @@ def willems(seeds: int) -> None:
                   flush=True)
 
 
-def main(seeds: int = 40, kkt: int = 0, willems_seeds: int = 0) -> None:
+def linf(seeds: int) -> None:
+    """linf budgets (declared as bounds; no exact block, so hypergradient is the descent): the structured attack
+    (alternating, conditional-gradient input step for max-min) against hypergradient and ipopt, one start each,
+    a fresh declaration per seed (bounds are fixed at declaration), N = 512, scenario B, eps = (0.1, 0.057)."""
+    for objective in ("maxmin", "targeted"):
+        better = 1.0 if objective == "maxmin" else -1.0
+        rows: dict[str, list[tuple[float, float, str]]] = {"hypergradient": [], "ipopt": []}
+        t_ref, declare = [], []
+        for seed in range(seeds):
+            atk = attack_instance(objective, "B", 0.1, 0.057, seed=seed, N=512, norm="linf")
+            ref = attack_alternating(atk, seed=seed)
+            t_ref.append(ref.wall_time)
+            t = time.perf_counter()
+            problem = attack_problem(atk)
+            declare.append(time.perf_counter() - t)
+            line = f"linf {objective} seed {seed:2d}: structured {ref.wall_time:6.3f} s J = {ref.upper_objective:.6f}"
+            for m in rows:
+                res = problem.solve(method=m, starts=1)
+                ratio = res.upper_objective / ref.upper_objective
+                rows[m].append((res.wall_time, ratio, res.status.value))
+                line += f" | {m} {res.wall_time:6.2f} s J/J_s = {ratio:.4f} {res.status.value}"
+            print(line, flush=True)
+        print(f"linf {objective}, {seeds} seeds: structured median {np.median(t_ref):.3f} s; declaration median "
+              f"{np.median(declare):.2f} s (not in the solve times)")
+        for m, r in rows.items():
+            t, ratio = np.array([v[0] for v in r]), np.array([v[1] for v in r])
+            stronger = np.mean(better * (ratio - 1.0) >= -1e-6)
+            print(f"  {m:13s}: median solve {np.median(t):.2f} s = {np.median(t) / np.median(t_ref):.1f}x the "
+                  f"structured attack; J/J_s median {np.median(ratio):.3f} (min {ratio.min():.3f}, max "
+                  f"{ratio.max():.3f}); at least as strong on {100 * stronger:.0f}%; solved "
+                  f"{sum(v[2] == 'solved' for v in r)}/{len(r)}", flush=True)
+
+
+def main(seeds: int = 40, kkt: int = 0, willems_seeds: int = 0, linf_seeds: int = 0) -> None:
     print(f"# bench_generic  {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC  {platform.node()}  "
           f"{platform.processor() or platform.machine()}  cores={os.cpu_count()}  python {platform.python_version()}")
     rows = {m: [] for m in ("structured", *GENERIC, *KKT)}
@@ -104,10 +139,13 @@ def main(seeds: int = 40, kkt: int = 0, willems_seeds: int = 0) -> None:
     if willems_seeds:
         print()
         willems(willems_seeds)
+    if linf_seeds:
+        print()
+        linf(linf_seeds)
 
 
 if __name__ == "__main__":
     args = sys.argv[1:]
-    flags = {f: int(args[args.index(f) + 1]) if f in args else 0 for f in ("--kkt", "--willems")}
+    flags = {f: int(args[args.index(f) + 1]) if f in args else 0 for f in ("--kkt", "--willems", "--linf")}
     pos = [a for i, a in enumerate(args) if not a.startswith("--") and (i == 0 or not args[i - 1].startswith("--"))]
-    main(int(pos[0]) if pos else 40, flags["--kkt"], flags["--willems"])
+    main(int(pos[0]) if pos else 40, flags["--kkt"], flags["--willems"], flags["--linf"])

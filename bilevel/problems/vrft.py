@@ -1,6 +1,7 @@
 """VRFT poisoning attacks as registered bilevel problems (paper Sec. 3-4, appendix A).
 
-Upper variables a_u, a_y (N each) with budgets ||a|| <= eps ||signal||; lower variable theta (nk)
+Upper variables a_u, a_y (N each) with budgets ||a|| <= eps ||signal|| (l2: a ball constraint; linf: the
+variables' bounds); lower variable theta (nk)
 solving the VRFT least squares on the poisoned data. The regressor Phi(y + a_y) is written as
 filter recursions (O(N) expression nodes per column, no N x N blocks), each a definition: the KKT
 reformulation keeps the filtered signals as variables bound by their difference equations, so IPOPT's
@@ -63,22 +64,23 @@ def filtered(problem: BilevelProblem, name: str, op: LTIOperator, x: ca.SX) -> c
 
 
 def attack_problem(atk: VRFTAttack) -> BilevelProblem:
-    """The bilevel program of an attack instance (l2 budgets), declared with the generic API.
+    """The bilevel program of an attack instance (l2 budgets as balls, linf budgets as bounds), declared with the
+    generic API.
 
-    The clean data enter as parameters (clean regressor and targets, budget radii, the objective's data), so
+    The clean data enter as parameters (clean regressor and targets, l2 budget radii, the objective's data), so
     `load_instance` re-targets the declared problem to another data set of the same scenario and N without
-    rebuilding it.
+    rebuilding it (with linf budgets only to one with the same radii: bounds are fixed at declaration).
     """
     _check_budgets(atk)
     reg = atk.setting.regressor
     N, k = atk.N, reg.n_params
     rows = reg.rows(N)
     p = BilevelProblem(f"vrft-{atk.objective}")
-    a_u = p.upper_variable("a_u", N)
-    a_y = p.upper_variable("a_y", N)
+    box = atk.budget_u.norm == "linf"  # a linf budget is a box: bounds, projected on by every method
+    a_u = p.upper_variable("a_u", N, **({"lb": -atk.delta_u, "ub": atk.delta_u} if box else {}))
+    a_y = p.upper_variable("a_y", N, **({"lb": -atk.delta_y, "ub": atk.delta_y} if box else {}))
     theta = p.lower_variable("theta", k, start=atk.theta0)
     t0, phi0 = p.parameter("t0", rows), p.parameter("phi0", (rows, k))
-    delta_u, delta_y = p.parameter("delta_u"), p.parameter("delta_y")
     err = filtered(p, "e_y", reg.error, a_y)
     if reg.prefilter is not None:
         err = filtered(p, "le_y", reg.prefilter, err)
@@ -86,8 +88,10 @@ def attack_problem(atk: VRFTAttack) -> BilevelProblem:
     t_a = a_u if reg.prefilter is None else filtered(p, "lu", reg.prefilter, a_u)
     residual = t0 + t_a[:rows] - ca.mtimes(phi0 + phi_a, theta)
     p.minimize_lower(ca.sumsqr(residual) / rows)
-    p.upper_constraint(ca.sumsqr(a_u) <= delta_u ** 2, name="budget_u")
-    p.upper_constraint(ca.sumsqr(a_y) <= delta_y ** 2, name="budget_y")
+    if not box:
+        delta_u, delta_y = p.parameter("delta_u"), p.parameter("delta_y")
+        p.upper_constraint(ca.sumsqr(a_u) <= delta_u ** 2, name="budget_u")
+        p.upper_constraint(ca.sumsqr(a_y) <= delta_y ** 2, name="budget_y")
     if atk.objective == "maxmin":
         p.maximize_upper(ca.sumsqr(t0 - ca.mtimes(phi0, theta)) / rows)
     elif atk.objective == "targeted":
@@ -101,9 +105,11 @@ def attack_problem(atk: VRFTAttack) -> BilevelProblem:
 
 
 def _check_budgets(atk: VRFTAttack) -> None:
-    if atk.budget_u.norm != "l2" or atk.budget_y.norm != "l2" or atk.budget_u.rho or atk.budget_y.rho:
-        raise ModelError("the declared VRFT problem supports plain l2 budgets; use the structured attacks in "
-                         "bilevel.attacks.vrft_methods for linf/l1/sparse budgets")
+    norms = {atk.budget_u.norm, atk.budget_y.norm}
+    if norms not in ({"l2"}, {"linf"}) or atk.budget_u.rho or atk.budget_y.rho:
+        raise ModelError("the declared VRFT problem supports l2 budgets (balls) and linf budgets (bounds), the same "
+                         f"norm on both signals and no sparsity; got {atk.budget_u} and {atk.budget_y}: use the "
+                         "structured attacks in bilevel.attacks.vrft_methods for l1 or sparse budgets")
 
 
 def load_instance(problem: BilevelProblem, atk: VRFTAttack) -> None:
@@ -115,7 +121,18 @@ def load_instance(problem: BilevelProblem, atk: VRFTAttack) -> None:
     if problem.name != f"vrft-{atk.objective}" or rows != atk.t0.size:
         raise ModelError(f"instance ({atk.objective}, N = {atk.N}) does not fit problem {problem.name!r} declared for "
                          f"{rows} regression rows; declare it with attack_problem(atk)")
-    values = {"t0": atk.t0, "phi0": atk.phi0, "delta_u": atk.delta_u, "delta_y": atk.delta_y}
+    if "delta_u" not in declared:  # linf budgets are the variables' bounds, fixed at declaration
+        bounds = {v.name: float(v.ub[0]) for v in problem.variables if v.name in ("a_u", "a_y")}
+        if atk.budget_u.norm != "linf" or not np.allclose([bounds["a_u"], bounds["a_y"]],
+                                                          [atk.delta_u, atk.delta_y], rtol=1e-12, atol=0):
+            raise ModelError(f"instance budgets (delta_u = {atk.delta_u:.6g}, delta_y = {atk.delta_y:.6g}, "
+                             f"{atk.budget_u.norm}) differ from the declared linf bounds ({bounds['a_u']:.6g}, "
+                             f"{bounds['a_y']:.6g}); declare the instance with attack_problem(atk)")
+    elif atk.budget_u.norm != "l2":
+        raise ModelError("this problem was declared with l2 budgets; declare a linf instance with attack_problem(atk)")
+    values = {"t0": atk.t0, "phi0": atk.phi0}
+    if "delta_u" in declared:
+        values |= {"delta_u": atk.delta_u, "delta_y": atk.delta_y}
     if "theta_target" in declared:
         values["theta_target"] = atk.theta_target
     if "loop_base" in declared:
