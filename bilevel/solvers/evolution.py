@@ -21,7 +21,7 @@ from ..errors import BilevelError, ModelError
 from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, check_options
-from .hypergradient import Arc, descend
+from .hypergradient import DESCENT_FTOL, DESCENT_MAX_ITER, DESCENT_TOL, Arc, descend
 from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, shared_oracle
 from .starts import start_points
 
@@ -113,7 +113,7 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
         message = (f"best of {out.nfev} points of differential evolution ({out.message}); a heuristic: no "
                    "optimality claim")
         return MethodRun(w, Status.INACCURATE, message, int(out.nit), [], [record | {"status": "inaccurate"}], stats)
-    run = descend(arc, start, 1e-7, 1e-12, 500)
+    run = descend(arc, start, DESCENT_TOL, DESCENT_FTOL, DESCENT_MAX_ITER)
     p = run.point
     w = prep.pack(KKTPoint(p.x, p.lower.y, p.lower.lam, p.lower.mu, p.lower.Z))
     message = f"descent from the best of {out.nfev} points of differential evolution: {run.message}"

@@ -41,6 +41,8 @@ from .starts import start_points
 from .projections import Projection
 
 
+DESCENT_TOL, DESCENT_FTOL, DESCENT_MAX_ITER = 1e-7, 1e-12, 500
+"""The descent's defaults (options tol, ftol, max_iter): projected step norm, relative decrease in one step, steps."""
 MIN_STEP = 2.0 ** -60
 """The descent's line search fails below this fraction of its trial step (60 halvings): near a stationary point
 tiny steps still decrease phi, and the relative-decrease stop (ftol) then ends the run as solved."""
@@ -248,8 +250,8 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     active_tol = float(options.get("active_tol", ACTIVE_TOL))
     oracle = shared_oracle(prep, penalty, active_tol, projected)
     arc = Arc(prep, oracle, _projection(prep, options.get("projection")))
-    tol, ftol = float(options.get("tol", 1e-7)), float(options.get("ftol", 1e-12))
-    max_iter = int(options.get("max_iter", 500))
+    tol, ftol = float(options.get("tol", DESCENT_TOL)), float(options.get("ftol", DESCENT_FTOL))
+    max_iter = int(options.get("max_iter", DESCENT_MAX_ITER))
     rng = np.random.default_rng(options.get("seed", 0))
     records, runs, candidates = [], [], []
     for k, x0 in enumerate(start_points(prep, starts, rng, float(options.get("scale", 10.0)))):

@@ -171,7 +171,7 @@ class Hypergradient:
                 sol.objective = float(self.low.evaluate(x, sol.y)[0])
             upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
-        phi = F + self.penalty * (float(np.maximum(G, 0.0).sum()) + float(np.abs(H).sum()))
+        phi = float(self.penalized(upper[0], upper[1], upper[2])[0])
         violation = max([0.0, *np.maximum(G, 0.0), *np.abs(H)])
         return Evaluation(x, phi, F, violation, sol, upper, vals)
 
@@ -183,12 +183,16 @@ class Hypergradient:
         y = self.evaluate(xs[:, 0]).lower.y
         canon, n = self.canon, xs.shape[1]
         shared = [canon.params.value] if canon.params.items else []
-        if n not in self._batches:
-            _, G, H = self._upper_outputs[:3]
-            phi = canon.F + self.penalty * (ca.sum1(ca.fmax(G, 0)) + ca.sum1(ca.fabs(H)))
+        if n not in self._batches:  # F, G, H of every column
             args = [canon.x, canon.y] + ([canon.params.sym] if shared else [])
-            self._batches[n] = ca.Function("phi", args, [phi]).map(n, [False] + [True] * (len(args) - 1), [False])
-        return np.asarray(self._batches[n](xs, y, *shared), dtype=float).ravel()
+            sweep = ca.Function("upper_FGH", args, self._upper_outputs[:3])
+            self._batches[n] = sweep.map(n, [False] + [True] * (len(args) - 1), [False] * 3)
+        F, G, H = (np.asarray(v, dtype=float) for v in self._batches[n](xs, y, *shared))
+        return self.penalized(F.reshape(1, n), G.reshape(-1, n), H.reshape(-1, n))
+
+    def penalized(self, F: np.ndarray, G: np.ndarray, H: np.ndarray) -> np.ndarray:
+        """phi = F + penalty * (sum max(G, 0) + sum |H|) per column of (1 x S, nG x S, nH x S) arrays."""
+        return F.ravel() + self.penalty * (np.maximum(G, 0.0).sum(axis=0) + np.abs(H).sum(axis=0))
 
     def gradient(self, ev: Evaluation) -> tuple[np.ndarray, bool, int]:
         """grad phi at an evaluated point, whether the active set was degenerate, and its size.
