@@ -56,9 +56,14 @@ def _learner_from_two_starts(attack: WillemsAttack, x: np.ndarray) -> list[tuple
             q_proj = projected.y[: shape[0] * shape[1]].reshape(shape, order="F")
             roundoff = 1e-13 * np.linalg.norm(seen) * np.linalg.norm(q)
             np.testing.assert_allclose(seen @ q_proj, seen @ q, rtol=0, atol=roundoff)
-            # the same point as projecting Q onto the row space of the data D the SDP sees
-            assert np.abs(q_proj - min_norm_q(seen, q)).max() <= 1e-9 * np.abs(q_proj).max()
-            assert projected.objective <= sol.objective + 1e-12 * abs(sol.objective)
+            # the same point as projecting Q onto the row space of the data D the SDP sees; two projections onto
+            # that space agree to about eps * cond(D) (cond 5.7e6 with states poisoned at N = 50: 1.5e-9 measured)
+            sing = np.linalg.svd(seen, compute_uv=False)
+            cond = sing[0] / sing[sing > 1e-10 * sing[0]][-1]
+            accuracy = max(1e-9, 100 * np.finfo(float).eps * cond)
+            assert np.abs(q_proj - min_norm_q(seen, q)).max() <= accuracy * np.abs(q_proj).max()
+            # the projection moves y by the polish's accuracy only: f may rise by that much (KKT residual <= 1e-9)
+            assert projected.objective <= sol.objective + 1e-9 * (1.0 + abs(sol.objective))
             sol = projected
         out.append((sol.y[: shape[0] * shape[1]], res))
     return out
