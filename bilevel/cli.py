@@ -240,7 +240,7 @@ def _cmd_solve(args: argparse.Namespace) -> int:
 
 INTEGER_FLAGS = {"sims": (1, 10**6), "starts": (1, 10**6), "workers": (1, 1024), "seed": (0, 2**63 - 1),
                  "n": (1, 10**6)}
-"""Integer flags -> their (smallest, largest) accepted value; --sims above a million would not fit in memory."""
+"""Integer flags -> (smallest, largest) accepted value: sane maxima, so that a typo is refused rather than run."""
 
 
 def _check_numbers(args: argparse.Namespace) -> None:
