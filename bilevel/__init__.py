@@ -6,6 +6,7 @@ from .errors import (BilevelError, InvalidData, LowerLevelInfeasible, LowerLevel
                      SolverFailed, UnknownName, UnknownOption, UnsupportedPair)
 from .model import BilevelProblem
 from .mpcc import MPCC, Branch, Exact, FischerBurmeister, KanzowSchwartz, Product, Scholtes
+from .problems.registry import problem_builder
 from .result import BilevelResult, Status
 from .solvers import METHODS, register_method, solve
 
@@ -14,5 +15,5 @@ __all__ = [
     "InvalidData", "KanzowSchwartz", "LowerLevelInfeasible", "LowerLevelUnbounded", "METHODS", "MPCC",
     "ModelError", "NonConvexLowerLevel", "NotPersistentlyExciting", "Product", "RankDeficientRegressor",
     "ReferenceModelError", "Scholtes", "SolverFailed", "Status", "UnknownName", "UnknownOption", "UnsupportedPair",
-    "certify", "register_method", "solve",
+    "certify", "problem_builder", "register_method", "solve",
 ]

@@ -3,14 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
+import math
 import os
 import sys
-from typing import Callable, Sequence
+import tempfile
+import typing
+from importlib import metadata
+from types import UnionType
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .errors import BilevelError, ModelError
+from .errors import BilevelError, InvalidData, ModelError, UnknownName, UnknownOption
 from .problems import registry
 from .solvers import METHODS, solve
 
@@ -33,6 +39,83 @@ def _parse_value(text: str) -> object:
         return json.loads(text)
     except json.JSONDecodeError:
         return text
+
+
+def _pairs(items: list[str], flag: str) -> dict[str, str]:
+    """NAME=VALUE strings to a dict of the raw VALUE texts (each NAME once)."""
+    bad = [kv for kv in items if "=" not in kv or not kv.split("=", 1)[0]]
+    if bad:
+        raise ModelError(f"{flag} {bad[0]!r} is not NAME=VALUE; write e.g. {flag} starts=4")
+    pairs = [kv.split("=", 1) for kv in items]
+    if twice := sorted({k for k, _ in pairs if [n for n, _ in pairs].count(k) > 1}):
+        raise ModelError(f"{flag} {', '.join(twice)} given more than once; give each NAME once")
+    return dict(pairs)
+
+
+EXAMPLES = {bool: ("true or false", "true"), int: ("an integer", "3"), float: ("a finite number", "0.1")}
+
+
+def _convert(flag: str, name: str, text: str, kind: object) -> object:
+    """The --param/--option value `text` as the declared type `kind` (JSON when nothing usable is declared)."""
+    args = typing.get_args(kind)
+    if typing.get_origin(kind) in (typing.Union, UnionType) and type(None) in args:
+        if text.lower() in ("none", "null"):
+            return None
+        rest = [a for a in args if a is not type(None)]
+        kind = rest[0] if len(rest) == 1 else None
+    if typing.get_origin(kind) is typing.Literal:
+        if text not in (allowed := [str(a) for a in typing.get_args(kind)]):
+            raise ModelError(f"{flag} {name}={text!r}: expected one of {', '.join(allowed)}")
+        return typing.get_args(kind)[allowed.index(text)]
+    if kind is str:
+        return text
+    value = _parse_value(text)
+    ok = {bool: isinstance(value, bool), int: isinstance(value, int) and not isinstance(value, bool),
+          float: isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)}
+    if kind in ok and not ok[kind]:
+        what, example = EXAMPLES[kind]
+        raise ModelError(f"{flag} {name}={text!r}: expected {what} ({kind.__name__}), e.g. {flag} {name}={example}")
+    if isinstance(value, float) and math.isnan(value):
+        raise ModelError(f"{flag} {name}={text!r}: NaN is not a value; give a number")
+    return float(value) if kind is float else value
+
+
+def _declared_types(build: Callable[..., object], defaults: dict[str, Any]) -> dict[str, object]:
+    """Each parameter's declared type: the builder's annotation, else the type of its default."""
+    types: dict[str, object] = {k: type(v) for k, v in defaults.items() if v is not None}
+    try:
+        hints = typing.get_type_hints(build)
+        parameters = inspect.signature(build).parameters
+    except Exception:  # annotations that do not resolve: the defaults' types are all there is
+        return types
+    for k, p in parameters.items():
+        if k in hints:
+            types[k] = hints[k]
+        elif p.default is not inspect.Parameter.empty and p.default is not None:
+            types[k] = type(p.default)
+    return types
+
+
+def _problem_params(name: str, raw: dict[str, str]) -> dict[str, object]:
+    """The --param values problem `name` has, typed as its builder declares; a name its builder's signature
+    cannot take is refused before the builder runs."""
+    s = registry.spec(name)
+    types = _declared_types(s.build, s.defaults)
+    parameters = inspect.signature(s.build).parameters.values()
+    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
+        accepted = {p.name for p in parameters if p.kind is not inspect.Parameter.VAR_POSITIONAL}
+        if unknown := sorted(set(raw) - accepted):
+            raise ModelError(f"problem {name!r} rejected its parameters: --param {', '.join(unknown)} is not one of "
+                             f"them ({', '.join(sorted(accepted)) or 'it has none'})")
+    return {k: _convert("--param", k, v, types.get(k)) for k, v in raw.items()}
+
+
+def _method_options(raw: dict[str, str]) -> dict[str, object]:
+    """--option values (JSON where they are JSON); names that are solve()'s own arguments are refused."""
+    if reserved := sorted(set(raw) & {"problem", "method"}):
+        raise ModelError(f"--option {', '.join(reserved)}: a reserved argument, not a method option; name the "
+                         "problem as PROBLEM and the method with --method")
+    return {k: _convert("--option", k, v, None) for k, v in raw.items()}
 
 
 VRFT_FLAGS = {"scenario": ("scenario", "B"), "eps_u": ("eps_u", 0.1), "eps_y": ("eps_y", 0.057),
@@ -87,14 +170,6 @@ def _cmd_attack(args: argparse.Namespace) -> int:
     return 0
 
 
-def _pairs(items: list[str], flag: str) -> dict[str, object]:
-    """NAME=VALUE strings to a dict (values parsed as JSON where they are JSON)."""
-    bad = [kv for kv in items if "=" not in kv or not kv.split("=", 1)[0]]
-    if bad:
-        raise ModelError(f"{flag} {bad[0]!r} is not NAME=VALUE; write e.g. {flag} starts=4")
-    return {k: _parse_value(v) for k, v in (kv.split("=", 1) for kv in items)}
-
-
 def _cmd_willems_destabilize(args: argparse.Namespace) -> int:
     """willems-destabilize without a generic --method: the structured attack (largest spectral radius reached)."""
     import dataclasses
@@ -105,10 +180,12 @@ def _cmd_willems_destabilize(args: argparse.Namespace) -> int:
     if args.option:
         raise ModelError("the willems-destabilize attack takes --starts/--seed and --param NAME=VALUE, not --option; "
                          "name a generic --method to use options")
-    params = _pairs(args.param, "--param")
+    raw = _pairs(args.param, "--param")
     allowed = sorted(f.name for f in dataclasses.fields(WillemsSetting) if f.name != "objective")
-    if unknown := sorted(set(params) - set(allowed)):
+    if unknown := sorted(set(raw) - set(allowed)):
         raise ModelError(f"--param {', '.join(unknown)}: willems-destabilize takes {', '.join(allowed)}")
+    types = typing.get_type_hints(WillemsSetting)
+    params = {k: _convert("--param", k, v, types[k]) for k, v in raw.items()}
     attack = build_attack(WillemsSetting(objective="destabilize", **params))
     result = destabilize_attack(attack, starts=16 if args.starts is None else args.starts, seed=args.seed)
     row = willems_row(result)
@@ -139,8 +216,8 @@ def _cmd_solve(args: argparse.Namespace) -> int:
                          "(use --json to save the result)")
     args.method = args.method or "ipopt"
     args.starts = 8 if args.starts is None else args.starts
-    params = _pairs(args.param, "--param")
-    options = _pairs(args.option, "--option")
+    params = _problem_params(args.problem, _pairs(args.param, "--param"))
+    options = _method_options(_pairs(args.option, "--option"))
     if "vrft" in registry.spec(args.problem).tags:
         flags = _vrft_params(args)
         if clash := sorted(set(flags) & set(params)):
@@ -161,29 +238,35 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     return 0 if result.success else 1
 
 
-def _invalid_numbers(args: argparse.Namespace) -> str | None:
-    """Why the numeric/executor flags of `compare`/`reproduce` are unusable (checked before any work), or None."""
-    from .experiments.executor import check_dask_address
+INTEGER_FLAGS = {"sims": (1, 10**6), "starts": (1, 10**6), "workers": (1, 1024), "seed": (0, 2**63 - 1),
+                 "n": (1, 10**6)}
+"""Integer flags -> (smallest, largest) accepted value: sane maxima, so that a typo is refused rather than run."""
 
-    for flag, low in (("sims", 1), ("starts", 1), ("workers", 1), ("seed", 0)):
+
+def _check_numbers(args: argparse.Namespace) -> None:
+    """Numeric and executor flags of every command, checked before any work."""
+    for flag, (low, high) in INTEGER_FLAGS.items():
         value = getattr(args, flag, None)
-        if value is not None and value < low:
-            return f"--{flag} must be >= {low}, got {value}"
-    if args.dask is not None:
+        if value is not None and not low <= value <= high:
+            raise ModelError(f"--{flag}: {flag}={value} is invalid; give an integer in [{low}, {high}]")
+    for flag in ("eps_u", "eps_y"):
+        value = getattr(args, flag, None)
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            raise ModelError(f"--{flag.replace('_', '-')} {value}: a budget must be a finite number >= 0")
+    if getattr(args, "dask", None) is not None:
+        from .experiments.executor import check_dask_address
+
         if (why := check_dask_address(args.dask)) is not None:
-            return f"--dask: {why}"
+            raise ModelError(f"--dask: {why}")
         if args.dask != "local" and args.workers is not None:
-            return "--workers sizes the local pool or --dask local; a scheduler's cluster has its own workers"
-    return None
+            raise ModelError("--workers sizes the local pool or --dask local; a scheduler's cluster has its own "
+                             "workers")
 
 
-def _run_sweeps(args: argparse.Namespace, work: Callable[[], object]) -> int:
-    """Validate the flags (one-line error, exit 2), then run; an interrupted sweep exits 128 + signal number."""
+def _run_sweeps(work: Callable[[], object]) -> int:
+    """Run a sweep; an interrupted sweep exits 128 + signal number."""
     from .experiments.sweep import SweepInterrupted
 
-    if (why := _invalid_numbers(args)) is not None:
-        print(f"bilevel {args.command}: error: {why}", file=sys.stderr)
-        return 2
     try:
         work()
     except SweepInterrupted as exc:
@@ -191,21 +274,33 @@ def _run_sweeps(args: argparse.Namespace, work: Callable[[], object]) -> int:
     return 0
 
 
+def _names(text: str, flag: str) -> list[str]:
+    """A comma-separated list of names, each once and none empty."""
+    names = [n.strip() for n in text.split(",")]
+    if "" in names:
+        raise ModelError(f"{flag} {text!r} has an empty name; separate names by single commas")
+    if twice := sorted({n for n in names if names.count(n) > 1}):
+        raise ModelError(f"{flag}: {', '.join(twice)} given more than once; name each once")
+    return names
+
+
 def _cmd_compare(args: argparse.Namespace) -> int:
     from .experiments.compare import STRUCTURED, compare, markdown_table
 
-    problems = args.problems.split(",") if args.problems else registry.names("textbook")
-    if any(":" in name for name in problems) and os.getcwd() not in sys.path:
-        sys.path.insert(0, os.getcwd())  # module:function problems may live in the working directory
-    methods = args.methods.split(",") if args.methods else sorted(METHODS)
+    problems = _names(args.problems, "--problems") if args.problems else registry.names("textbook")
+    methods = _names(args.methods, "--methods") if args.methods else sorted(METHODS)
     if unknown := sorted(set(methods) - set(METHODS) - {STRUCTURED}):
         raise ModelError(f"--methods {', '.join(unknown)}: unknown; choose from {', '.join(sorted(METHODS))} and "
                          f"{STRUCTURED} (an attack problem's own attack)")
-    params = _pairs(args.param, "--param")
+    raw = _pairs(args.param, "--param")
     for name in problems:
-        registry.spec(name)  # an unknown name fails here, before any work
-    if unused := sorted(k for k in params if not any(k in registry.spec(n).defaults for n in problems)):
+        registry.spec(name)  # an unknown name or an undeclared builder fails here, before any work
+    if unused := sorted(k for k in raw if not any(k in registry.spec(n).defaults for n in problems)):
         raise ModelError(f"--param {', '.join(unused)}: no selected problem has such a parameter")
+    params: dict[str, object] = {}
+    for name in problems:  # typed as the first problem that has the parameter declares it
+        typed = _problem_params(name, {k: v for k, v in raw.items() if k in registry.spec(name).defaults})
+        params = {**typed, **params}
     for name in problems:  # a user's builder is run once up front, so that a broken one fails before any work
         if ":" in name:
             registry.get(name, **registry.params_for(name, params))
@@ -219,7 +314,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         print(table)
         print(f"wrote {args.out}/compare.csv and {args.out}/compare.md")
 
-    return _run_sweeps(args, work)
+    return _run_sweeps(work)
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
@@ -231,30 +326,47 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
                          + (" (which runs the selections min-norm, clarabel and scs)" if args.target == "willems-budget"
                             else ""))
     out = args.out or f"out/{args.target}"
+    _check_out(out, args.target, args.force)
     if args.target == "vrft":
         from .experiments.vrft import run_reproduction
 
-        return _run_sweeps(args, lambda: run_reproduction(args.sims, out, args.seed, args.workers, dask=args.dask))
+        return _run_sweeps(lambda: run_reproduction(args.sims, out, args.seed, args.workers, dask=args.dask))
     if args.target == "willems-budget":
         from .experiments.willems_budget import run_budget
 
-        return _run_sweeps(args, lambda: run_budget(args.sims, out, args.seed, args.workers, args.dask))
+        return _run_sweeps(lambda: run_budget(args.sims, out, args.seed, args.workers, args.dask))
     from .experiments.willems import run_reproduction as run_willems
 
-    return _run_sweeps(args, lambda: run_willems(args.sims, out, args.quick, args.seed,
-                                                 selection=args.selection or "min-norm", workers=args.workers,
-                                                 dask=args.dask))
+    return _run_sweeps(lambda: run_willems(args.sims, out, args.quick, args.seed,
+                                           selection=args.selection or "min-norm", workers=args.workers,
+                                           dask=args.dask))
+
+
+USER_CODE = ("MODULE:FUNCTION runs your code: MODULE is imported (its top-level code runs), then FUNCTION is called "
+             "only if decorated with @bilevel.problem_builder. MODULE is path/to/file.py (loaded from that file) or a "
+             "dotted name (imported normally; the working directory is searched after the installed packages, so a "
+             "file there never shadows one).")
+
+
+def _version() -> str:
+    """The installed package's version (package metadata)."""
+    try:
+        return metadata.version("bilevel")
+    except metadata.PackageNotFoundError:
+        return "(not installed: no package metadata)"
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The `bilevel` argument parser."""
-    parser = argparse.ArgumentParser(prog="bilevel", description="Bilevel optimization with certified answers.")
+    parser = argparse.ArgumentParser(prog="bilevel", description="Bilevel optimization with certified answers.",
+                                     epilog=USER_CODE)
+    parser.add_argument("--version", action="version", version=f"bilevel {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     p_list = sub.add_parser("list", help="list registered problems")
     p_list.add_argument("--tag", default=None, help="only problems with this tag")
     p_list.set_defaults(run=_cmd_list)
-    p_solve = sub.add_parser("solve", help="solve a registered problem and print its certificate")
-    p_solve.add_argument("problem")
+    p_solve = sub.add_parser("solve", help="solve a registered problem and print its certificate", epilog=USER_CODE)
+    p_solve.add_argument("problem", help="a registered name (bilevel list) or MODULE:FUNCTION, your own builder")
     p_solve.add_argument("--method", default=None,
                          help=f"{', '.join(sorted(METHODS))} (default ipopt); vrft-* and willems-destabilize "
                               "default to their structured attack (vrft: alternating, joint, white-noise) unless a "
@@ -279,8 +391,9 @@ def build_parser() -> argparse.ArgumentParser:
                               "from the last (as the reproduction does)")
     p_solve.add_argument("--save", default=None, metavar="PATH.npz", help="vrft-*: save data, signals, thetas, poles")
     p_solve.set_defaults(run=_cmd_solve)
-    p_cmp = sub.add_parser("compare", help="run solvers on problems; write CSV and Markdown (resumable)")
-    p_cmp.add_argument("--problems", default="", help="comma-separated registered names or module:function "
+    p_cmp = sub.add_parser("compare", help="run solvers on problems; write CSV and Markdown (resumable)",
+                           epilog=USER_CODE)
+    p_cmp.add_argument("--problems", default="", help="comma-separated registered names or MODULE:FUNCTION "
                        "builders of your own (default: all textbook problems)")
     p_cmp.add_argument("--methods", default="",
                        help="comma-separated methods (default: all registered); structured: an attack problem's own "
@@ -298,7 +411,10 @@ def build_parser() -> argparse.ArgumentParser:
     p_rep.add_argument("target", choices=["vrft", "willems", "willems-budget"],
                        help="willems-budget: delta_u*, the smallest destabilizing input budget, per data set")
     p_rep.add_argument("--sims", type=int, default=32, help="simulations per cell (the paper: 512 vrft, 256 willems)")
-    p_rep.add_argument("--out", default=None, help="output directory (default out/<target>)")
+    p_rep.add_argument("--out", default=None, help="output directory (default out/<target>); one holding another "
+                       "target's run is refused")
+    p_rep.add_argument("--force", action="store_true",
+                       help="write into an --out holding another target's run (its report.md is overwritten)")
     p_rep.add_argument("--seed", type=int, default=0)
     p_rep.add_argument("--workers", type=int, default=None, help="local processes (default: all cores)")
     p_rep.add_argument("--dask", default=None, metavar="ADDRESS",
@@ -317,8 +433,32 @@ def _attack_methods() -> list[str]:
     return list(ATTACKS)
 
 
+TARGET_FILES = {"vrft": "maxmin-paper.jsonl", "willems": "paper.jsonl", "willems-budget": "budget.jsonl"}
+"""The sweep file only `bilevel reproduce TARGET` writes: a directory holding another target's is that target's run."""
+
+
+def _check_out(out: str, target: str, force: bool) -> None:
+    """Refuse an --out directory holding another target's run (its report.md would be overwritten) unless --force."""
+    if force:
+        return
+    for other, name in TARGET_FILES.items():
+        if other != target and os.path.exists(os.path.join(out, name)):
+            raise ModelError(f"--out {out!r} holds a `reproduce {other}` run ({name}), whose report.md `reproduce "
+                             f"{target}` would overwrite; give another --out (default out/{target}) or add --force")
+
+
+def _probe_directory(flag: str, path: str, directory: str) -> None:
+    """Create and delete a file in `directory`, so an unwritable output path fails before any work."""
+    try:
+        with tempfile.NamedTemporaryFile(dir=directory, prefix=".bilevel-probe-"):
+            pass
+    except OSError as exc:
+        raise ModelError(f"--{flag} {path!r}: cannot write in {directory!r} ({exc.strerror}); give a writable "
+                         "path") from exc
+
+
 def _check_paths(args: argparse.Namespace) -> None:
-    """Output paths are checked before any work, so a long run never ends in a traceback."""
+    """Output paths are checked (and probed for writing) before any work, so a long run never ends in a traceback."""
     for flag in ("json", "save"):
         path = getattr(args, flag, None)
         if path:
@@ -327,25 +467,45 @@ def _check_paths(args: argparse.Namespace) -> None:
                 raise ModelError(f"--{flag} {path!r} is a directory; give a file name inside it")
             if not os.path.isdir(parent):
                 raise ModelError(f"--{flag} {path!r}: directory {parent!r} does not exist; create it first")
+            _probe_directory(flag, path, parent)
     out = getattr(args, "out", None)
-    if out and os.path.exists(out) and not os.path.isdir(out):
-        raise ModelError(f"--out {out!r} is a file, not a directory; give a directory (it is created if missing)")
+    if out:
+        if os.path.exists(out) and not os.path.isdir(out):
+            raise ModelError(f"--out {out!r} is a file, not a directory; give a directory (it is created if missing)")
+        existing = os.path.abspath(out)
+        while not os.path.exists(existing):
+            existing = os.path.dirname(existing)
+        if not os.path.isdir(existing):
+            raise ModelError(f"--out {out!r}: {existing!r} is a file, not a directory; give a directory")
+        _probe_directory("out", out, existing)
+
+
+USAGE_ERRORS = (ModelError, InvalidData, UnknownName, UnknownOption)
+"""Named errors that are the caller's input (exit 2, as argparse); every other named error is a failure (exit 1)."""
+
+
+def _error_line(exc: BaseException) -> str:
+    """One line describing a named error (an OSError names its path, a MemoryError the flags that size a run)."""
+    if isinstance(exc, MemoryError):
+        return "out of memory; give smaller sizes (--sims, --n, --starts, --param sizes) or fewer --workers"
+    if isinstance(exc, OSError) and exc.filename:
+        return f"{exc.strerror}: {exc.filename!r}; check the path"
+    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `bilevel` console script. Named errors (bad input, unknown names, unusable
-    paths) print one line `bilevel: error: ...` to stderr and exit with status 2, as argparse does."""
+    """Entry point of the `bilevel` console script. Every flag is validated before any work; a named error (bad
+    input, unknown names, unusable paths: exit 2; a failed run, OSError, MemoryError: exit 1) prints one line
+    `bilevel COMMAND: error: ...` to stderr, as argparse does, never a traceback."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        _check_numbers(args)
         _check_paths(args)
         return int(args.run(args))
-    except (BilevelError, OSError) as exc:
-        text = str(exc).replace("\n", " ")
-        if isinstance(exc, OSError) and exc.filename:
-            text = f"{exc.strerror}: {exc.filename!r}; check the path"
-        print(f"bilevel: error: {text}", file=sys.stderr)
-        return 2
+    except (BilevelError, OSError, MemoryError) as exc:
+        print(f"bilevel {args.command}: error: {_error_line(exc)}", file=sys.stderr)
+        return 2 if isinstance(exc, USAGE_ERRORS) else 1
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -167,7 +167,7 @@ def test_cli_named_errors_print_one_line_and_exit_2(case: str, capsys) -> None:
     argv, message = CLI_CASES[case]
     assert main(argv) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith("bilevel: error: ") and message in err, err
+    assert err.count("\n") == 1 and err.startswith("bilevel solve: error: ") and message in err, err
     assert "Traceback" not in err
 
 

@@ -162,9 +162,11 @@ def test_malformed_rows_are_reported_set_aside_and_recomputed(tmp_path) -> None:
 
 
 OWN_PROBLEMS = '''
+import bilevel
 from bilevel.problems import registry
 
 
+@bilevel.problem_builder
 def bard(scale=1.0):
     """Bard's example (optimum -12 at x = y = 4), upper objective times `scale`."""
     p = registry.get("bard1998-ex5.1.1")
@@ -172,6 +174,7 @@ def bard(scale=1.0):
     return p
 
 
+@bilevel.problem_builder
 def not_a_problem():
     return 42
 '''
