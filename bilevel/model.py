@@ -428,20 +428,29 @@ class BilevelProblem:
     def upper_constraint(self, comparison: Any, name: str | None = None) -> None:
         """Add an upper-level constraint `G(x, y) <= 0` / `== 0` (any comparison of expressions)."""
         body, kind = split_comparison(comparison, "upper_constraint")
-        self.upper_constraints.append(Constraint(name or f"G{len(self.upper_constraints)}", body, kind))
+        name = self._constraint_name(name, f"G{len(self.upper_constraints)}", "upper_constraint")
+        self.upper_constraints.append(Constraint(name, body, kind))
         self.revision += 1
 
     def lower_constraint(self, comparison: Any, name: str | None = None) -> None:
         """Add a lower-level constraint `g(x, y) <= 0` (convex in y) or `h(x, y) == 0` (affine in y)."""
         self._check_lower_open("lower_constraint")
         body, kind = split_comparison(comparison, "lower_constraint")
-        self.lower_constraints.append(Constraint(name or f"g{len(self.lower_constraints)}", body, kind))
+        name = self._constraint_name(name, f"g{len(self.lower_constraints)}", "lower_constraint")
+        self.lower_constraints.append(Constraint(name, body, kind))
         self.revision += 1
 
     def lower_psd_constraint(self, matrix: Any, name: str | None = None) -> None:
         """Add a lower-level linear matrix inequality `M(x, y) >= 0` (M symmetric, affine in y)."""
         self._check_lower_open("lower_psd_constraint")
-        matrix = ca.SX(matrix)
+        name = self._constraint_name(name, f"M{len(self.lower_psd_constraints)}", "lower_psd_constraint")
+        try:
+            matrix = ca.SX(matrix)
+        except (NotImplementedError, TypeError, RuntimeError):
+            raise ModelError(f"lower_psd_constraint: expected a square CasADi matrix, got {type(matrix).__name__}") \
+                from None
+        if matrix.numel() == 0:
+            raise ModelError("lower_psd_constraint: the matrix is empty; an LMI needs a square matrix of size >= 1")
         if matrix.size1() != matrix.size2():
             raise ModelError(f"lower_psd_constraint: matrix must be square, got shape {matrix.shape}")
         asym = ca.simplify(matrix - matrix.T)
@@ -450,8 +459,28 @@ class BilevelProblem:
             probe = ca.Function("asym", [syms], [asym])(np.random.default_rng(0).standard_normal(syms.numel()))
             if float(ca.norm_inf(probe)) > 1e-12:
                 raise ModelError("lower_psd_constraint: matrix is not symmetric; pass (M + M.T) / 2 if that is meant")
-        self.lower_psd_constraints.append(PSDConstraint(name or f"M{len(self.lower_psd_constraints)}", matrix))
+        self.lower_psd_constraints.append(PSDConstraint(name, matrix))
         self.revision += 1
+
+    def _constraint_name(self, name: str | None, default: str, where: str) -> str:
+        """A constraint's name: the given one, checked unique among all constraints and LMIs (results report their
+        multipliers by name), else `default` (primed until free); names ending in .lb/.ub are the bounds'."""
+        taken = {c.name: kind for kind, items in (("upper constraint", self.upper_constraints),
+                                                  ("lower constraint", self.lower_constraints),
+                                                  ("LMI", self.lower_psd_constraints)) for c in items}
+        if name is None:
+            while default in taken:
+                default += "_"
+            return default
+        if not isinstance(name, str) or not name:
+            raise ModelError(f"{where}: name {name!r} must be a non-empty string")
+        if name in taken:
+            raise ModelError(f"{where}: name {name!r} is already used by the {taken[name]} {name!r}; constraint names "
+                             "must be unique (multipliers are reported by name): choose another name")
+        if name.endswith((".lb", ".ub")):
+            raise ModelError(f"{where}: name {name!r} ends in {name[-3:]!r}, which names the multipliers of a "
+                             f"variable's bounds (e.g. 'y.lb', 'y.ub'); choose another name")
+        return name
 
     def lower_cvxpy(self, learner: "cp.Problem", parameters: dict[Any, Any] | None = None,
                     name: str = "cvxpy") -> "CvxpyLower":
