@@ -43,13 +43,28 @@ METHODS: dict[str, Method] = {
 """Registered methods: name -> function(prepared, **options) -> MethodRun."""
 
 
-def register_method(name: str, method: Method) -> None:
-    """Make `method` available as solve(..., method=name)."""
-    METHODS[name.lower()] = method
+BUILTIN_METHODS = frozenset(METHODS)
+"""The methods this package registers: register_method replaces one only with replace=True."""
 
 
-def check_common_options(options: dict[str, Any], certificate_tol: Any) -> None:
-    """Validate the options every method shares, once, before dispatch (ModelError naming the option)."""
+def register_method(name: str, method: Method, *, replace: bool = False) -> None:
+    """Make `method` available as solve(..., method=name); replacing a registered name needs replace=True."""
+    if not isinstance(name, str) or not name.strip():
+        raise ModelError(f"register_method: name {name!r} must be a non-empty string")
+    if not callable(method):
+        raise ModelError(f"register_method: method for {name!r} is a {type(method).__name__}, not callable; pass a "
+                         "function(prepared, **options) -> MethodRun")
+    key = name.lower()
+    if key in METHODS and not replace:
+        what = "the built-in method" if key in BUILTIN_METHODS else "the method registered as"
+        raise ModelError(f"register_method: {what} {key!r} is already registered (for every solve in this process); "
+                         "choose another name, or pass replace=True to replace it")
+    METHODS[key] = method
+
+
+def check_common_options(options: dict[str, Any], certificate_tol: Any = DEFAULT_TOL) -> None:
+    """Validate the options every method (and every attack) shares, once, before dispatch (ModelError naming the
+    option): starts, max_iter, tol, scale, seed, certificate_tol."""
     def bad(name: str, value: Any, want: str) -> ModelError:
         return ModelError(f"option {name}={value!r} is invalid: it must be {want}")
 
@@ -63,8 +78,9 @@ def check_common_options(options: dict[str, Any], certificate_tol: Any) -> None:
         raise bad("starts", options["starts"], "an integer >= 1 (the number of multistart starts)")
     if "max_iter" in options and not (integer(options["max_iter"]) and options["max_iter"] >= 0):
         raise bad("max_iter", options["max_iter"], "an integer >= 0")
-    if "tol" in options and not positive_real(options["tol"]):
-        raise bad("tol", options["tol"], "a finite number > 0")
+    for key in ("tol", "scale"):
+        if key in options and not positive_real(options[key]):
+            raise bad(key, options[key], "a finite number > 0")
     if not positive_real(certificate_tol):
         raise bad("certificate_tol", certificate_tol, "a finite number > 0")
     seed = options.get("seed")
@@ -89,4 +105,7 @@ def solve(problem: BilevelProblem, method: str | Method = "ipopt", certificate_t
     small = prep.canon.lower.n_y <= SMALL_LOWER  # dense algebra of lower-level size: one BLAS thread is faster
     with single_threaded() if small else contextlib.nullcontext():
         run = fn(prep, **options)
+        if not isinstance(run, MethodRun):
+            raise ModelError(f"method {name!r} returned {type(run).__name__}, not a MethodRun; a method must return "
+                             "bilevel.solvers.base.MethodRun(w, status, message) (w None when it has no point)")
         return finalize(prep, run, name, time.perf_counter() - t0, certificate_tol)
