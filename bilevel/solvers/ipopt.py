@@ -16,12 +16,12 @@ start points elsewhere. Each NLP solve stops after MAX_WALL_TIME seconds by defa
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from ..errors import BilevelError, ModelError
+from ..errors import BilevelError, LowerLevelUnbounded, ModelError
 from ..mpcc import Branch, ComplementarityMode, NLPForm, Scholtes
 from ..reduction import KKTPoint
 from ..result import Status
@@ -169,6 +169,25 @@ def kept_warm_point(prep: Prepared, points: list[np.ndarray], best: tuple[np.nda
                      f"{outcome} (objective {best[1]:.8g}, residual {best[2]:.1e})", nit, [], records, stats)
 
 
+def settled(prep: Prepared, run: MethodRun) -> MethodRun:
+    """The run with x projected onto the declared box and recognized balls (IPOPT ends up to its tolerance outside
+    them), and, where it ended infeasible because the lower level is unbounded below there, a status saying so."""
+    if run.w is None or not np.all(np.isfinite(run.w)):
+        return run
+    point = prep.point(run.w)
+    run.w = prep.pack(replace(point, x=prep.projection(point.x)))
+    if run.status is Status.INFEASIBLE:
+        try:
+            prep.canon.lower.solve(prep.point(run.w).x)
+        except LowerLevelUnbounded as exc:
+            run.status = Status.ERROR
+            run.message = (f"lower level unbounded, not an infeasible problem: {exc}; the KKT system has no solution "
+                           f"there (bound the lower variables or add lower constraints) ({run.message})")
+        except BilevelError:
+            pass
+    return run
+
+
 def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
     """Multistart IPOPT on the KKT reformulation (options: starts, seed, mode, polish, tol, max_iter,
     ipopt, scale, verbose, warm)."""
@@ -204,8 +223,8 @@ def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
     kept = kept_warm_point(prep, points, candidates[i], best.raw_status, total_iter, records,
                            {"mode": repr(mode), **warm})
     if kept is not None:
-        return kept
+        return settled(prep, kept)
     history = [{"iter": j, "objective": o, "inf_pr": p, "inf_du": d}
                for j, (o, p, d) in enumerate(zip(best.trace["obj"], best.trace["inf_pr"], best.trace["inf_du"]))]
-    return MethodRun(best.w, best.status, f"{source}, start {i} ({best.raw_status})", total_iter,
-                     history, records, {"mode": repr(mode), "best_start": i, **warm})
+    return settled(prep, MethodRun(best.w, best.status, f"{source}, start {i} ({best.raw_status})", total_iter,
+                                   history, records, {"mode": repr(mode), "best_start": i, **warm}))

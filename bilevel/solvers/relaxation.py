@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
 from .base import MethodRun, Prepared, best_of, check_options
-from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish, residual, run_nlp
+from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish, residual, run_nlp, settled
 
 SCHEMES: dict[str, type[ComplementarityMode]] = {
     "scholtes": Scholtes,
@@ -78,7 +78,7 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
     kept = kept_warm_point(prep, points, candidates[i], f"{finals[i].status.value} after {len(paths[i])} relaxation "
                            "steps", total, records, {"scheme": scheme, **warm})
     if kept is not None:
-        return kept
-    return MethodRun(finals[i].w, finals[i].status, f"{source}, start {i} "
-                     f"({len(paths[i])} relaxation steps, last t = {paths[i][-1]['t']:.1e})", total, paths[i],
-                     records, {"scheme": scheme, "best_start": i, **warm})
+        return settled(prep, kept)
+    return settled(prep, MethodRun(finals[i].w, finals[i].status, f"{source}, start {i} ({len(paths[i])} relaxation "
+                                   f"steps, last t = {paths[i][-1]['t']:.1e})", total, paths[i], records,
+                                   {"scheme": scheme, "best_start": i, **warm}))
