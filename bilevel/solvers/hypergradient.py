@@ -138,13 +138,12 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int)
         """grad phi and the projected step at ev, once per evaluated point (recorded in history)."""
         if last.get("ev") is not ev:
             grad, degenerate, n_active = arc.oracle.gradient(ev)
-            finite = bool(np.all(np.isfinite(grad)))  # not at a kink of an upper function (e.g. norm_2 at 0)
-            # no lower solve for the projected step: see _domain_stationary
-            pstep = float(np.linalg.norm(arc.project(ev.x - grad) - ev.x)) if finite else np.nan
+            # NaN at a kink of an upper function (e.g. a norm at 0); no lower solve for the step: _domain_stationary
+            pstep = float(np.linalg.norm(arc.project(ev.x - grad) - ev.x)) if np.all(np.isfinite(grad)) else np.nan
             history.append({"iter": len(history), "objective": ev.phi, "step": 0.0,
                             "grad_norm": float(np.linalg.norm(grad)), "projected_step_norm": pstep,
                             "active": n_active, "degenerate": degenerate})
-            last.update(ev=ev, grad=grad, pstep=pstep, finite=finite)
+            last.update(ev=ev, grad=grad, pstep=pstep)
         return last["grad"], last["pstep"]
 
     def value(x: np.ndarray) -> tuple[float, Evaluation | None]:
@@ -182,8 +181,8 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int)
         return Descent(cur, Status.MAX_ITERATIONS, f"max_iter = {max_iter} reached", nit, history)
     if reason == "non-finite gradient":
         return Descent(cur, Status.ERROR, f"the hypergradient is NaN or inf at x = {cur.x} (an upper objective or "
-                       "constraint is not differentiable there, e.g. norm_2(v) <= r at v = 0: declare it as "
-                       "sumsqr(v) <= r**2, or give a start away from the kink)", nit, history)
+                       "constraint is not differentiable there, e.g. a norm at 0: declare a ball as "
+                       "norm_2(v - c) <= r or sumsqr(v - c) <= r**2, or give a start away from the kink)", nit, history)
     # a trial step that rounds to x ("stationary") after many halvings is no proof either: both ask the domain
     if reason in ("line search", "stationary") and not _domain_stationary(arc, cur, grad, tol):
         return Descent(cur, Status.INACCURATE, "line search found no decrease (x is likely at a kink of "

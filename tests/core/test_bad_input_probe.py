@@ -85,14 +85,15 @@ def _unbounded_nlp() -> bl.BilevelProblem:
     return p
 
 
-def _norm_ball(shift: float = 0.0) -> bl.BilevelProblem:
-    """d in R^2 under norm_2(d - shift) <= 1 (not a recognized ball: not differentiable at its center)."""
+def _norm_ball(tilt: float = 0.1, center: float = 0.0) -> bl.BilevelProblem:
+    """d in R^2 under norm_2(d - center) + tilt d_0 <= 1, F = |y - (3, 1)|^2, y*(d) = d; with tilt != 0 not a
+    recognized ball, and not differentiable at d = center (the declared start for center 0)."""
     p = bl.BilevelProblem("norm2")
     d = p.upper_variable("d", 2, lb=-2, ub=2)
     y = p.lower_variable("y", 2)
     p.minimize_upper(ca.sumsqr(y - ca.DM([3, 1])))
     p.minimize_lower(ca.sumsqr(y - d))
-    p.upper_constraint(ca.norm_2(d - shift) <= 1)
+    p.upper_constraint(ca.norm_2(d - center) + tilt * d[0] <= 1)
     return p
 
 
@@ -286,9 +287,9 @@ CASES: dict[str, tuple[Callable[[], Any], Any, str]] = {
                                            "LowerLevelUnbounded"),
     "unbounded lower NLP (ipopt)": (lambda: _unbounded_nlp().solve("ipopt", starts=1), STATUS,
                                     "lower level unbounded.*Diverging_Iterates"),
-    "norm_2 ball at its kink (hypergradient)": (lambda: _norm_ball().solve("hypergradient", starts=1), STATUS,
+    "tilted norm_2 ball at its kink (hypergradient)": (lambda: _norm_ball().solve("hypergradient", starts=1), STATUS,
                                                 "hypergradient is NaN or inf"),
-    "norm_2 ball at its kink (ipopt)": (lambda: _norm_ball().solve("ipopt", starts=1), STATUS,
+    "tilted norm_2 ball at its kink (ipopt)": (lambda: _norm_ball().solve("ipopt", starts=1), STATUS,
                                         "Invalid_Number_Detected"),
     "max_iter 0 (ipopt)": (_solve({"method": "ipopt", "starts": 1, "max_iter": 0}, projection_qp), STATUS,
                            "Maximum_Iterations_Exceeded"),
@@ -426,6 +427,17 @@ def test_kkt_answers_lie_inside_the_declared_box_and_ball_exactly(method: str, p
     assert np.linalg.norm(res.x["d"]) <= 1.0 * (1 + 1e-12)
     assert -1.0 <= res.x["e"][0] <= 0.5 and np.all(np.abs(res.x["d"]) <= 2.0)
     assert res.x["e"][0] == pytest.approx(0.5, abs=1e-8)
+
+
+@pytest.mark.parametrize("center", [0.0, 0.3])
+def test_a_norm_2_ball_is_projected_on_exactly(center: float) -> None:
+    """norm_2(d - c) <= 1 is read as the ball it is (before: penalized, and NaN at its center): hypergradient ends at
+    the projection of (3, 1) onto it, c + (3 - c, 1 - c) / |(3 - c, 1 - c)|, on the sphere."""
+    res = _norm_ball(tilt=0.0, center=center).solve("hypergradient", starts=2)
+    assert res.status is bl.Status.SOLVED, res.message
+    direction = np.array([3.0, 1.0]) - center
+    np.testing.assert_allclose(res.x["d"], center + direction / np.linalg.norm(direction), atol=1e-7)
+    assert np.linalg.norm(res.x["d"] - center) <= 1.0 * (1 + 1e-12)
 
 
 def test_register_method_replaces_only_when_asked() -> None:
