@@ -37,6 +37,7 @@ from .base import MethodRun, Prepared, best_of, check_options
 from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, Hypergradient, shared_oracle
 from .ascent import projected_ascent
 from .block_exact import ExactBlock, ascend_with_exact_block, exact_block_of
+from .options import check_numbers
 from .starts import start_points
 from .projections import Projection
 
@@ -255,6 +256,7 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     penalized."""
     check_options("hypergradient", options, {"starts", "seed", "scale", "projection", "penalty", "tol", "ftol",
                                              "max_iter", "active_tol", "verbose", "exact_block"})
+    check_numbers(options, positive=("active_tol",), nonnegative=("penalty", "ftol"))
     exact, why = chosen_exact_block(prep, options.pop("exact_block", "auto"), options)
     if exact is not None:
         return ascend_with_exact_block(prep, exact, why, **options)

@@ -78,7 +78,11 @@ def ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> di
 def kkt_nlp_options(options: dict[str, Any], warm: dict[str, Any]) -> dict[str, Any]:
     """IPOPT options of a KKT method from its options tol, max_iter and ipopt, with WARM_LIMITS where its NLPs start
     from the warm phase's answer (stats `warm` from kkt_starts) and the options do not set those limits."""
-    opts = ipopt_options(float(options.get("tol", 1e-10)), int(options.get("max_iter", 3000)), options.get("ipopt"))
+    extra = options.get("ipopt")
+    if extra is not None and not (isinstance(extra, dict) and all(isinstance(k, str) for k in extra)):
+        raise ModelError(f"option ipopt={extra!r} is invalid: it must be a dict of IPOPT options, e.g. "
+                         "{'max_cpu_time': 60}")
+    opts = ipopt_options(float(options.get("tol", 1e-10)), int(options.get("max_iter", 3000)), extra)
     if warm.get("warm", {}).get("used"):
         given = set(options.get("ipopt") or {}) | ({"max_iter"} & set(options))
         opts["ipopt"].update({k: v for k, v in WARM_LIMITS.items() if k not in given})
@@ -88,7 +92,12 @@ def kkt_nlp_options(options: dict[str, Any], warm: dict[str, Any]) -> dict[str, 
 def run_nlp(nlp: NLPForm, w0: np.ndarray, options: dict[str, Any], tau: float | None = None,
             lam_g0: np.ndarray | None = None) -> NLPRun:
     """Solve the transcribed NLP from w0 (tau overrides the mode's relaxation parameter)."""
-    solver = nlp.solver("ipopt", options)
+    try:
+        solver = nlp.solver("ipopt", options)
+    except RuntimeError as exc:  # CasADi refuses an option before any solve
+        reason = str(exc).strip().splitlines()[-1].split(": ", 1)[-1]
+        raise ModelError(f"IPOPT did not accept its options ({reason}); check the names and types in option "
+                         "ipopt={...} against the IPOPT options reference") from None
     args = dict(x0=nlp.start(w0[: nlp.n_w]), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg,
                 p=np.concatenate([nlp.p_value if tau is None else [tau], nlp.params.value]))
     if lam_g0 is not None:
@@ -193,8 +202,11 @@ def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
     ipopt, scale, verbose, warm)."""
     check_options("ipopt", options, {"starts", "seed", "mode", "polish", "tol", "max_iter", "ipopt", "scale",
                                      "verbose", "warm"})
-    points, source, warm = kkt_starts(prep, "ipopt", options)
     mode: ComplementarityMode = options.get("mode") or Scholtes(1e-9)
+    if not isinstance(mode, ComplementarityMode):
+        raise ModelError(f"option mode={mode!r} is invalid: it must be a complementarity mode such as "
+                         "bilevel.Scholtes(1e-9), bilevel.Product() or bilevel.Branch(...)")
+    points, source, warm = kkt_starts(prep, "ipopt", options)
     nlp_opts = kkt_nlp_options(options, warm)
     nlp = prep.mpcc.transcribe(mode)
     records, candidates, traces, total_iter = [], [], [], 0

@@ -3,12 +3,8 @@
 from __future__ import annotations
 
 import contextlib
-import math
 import time
-from numbers import Integral, Real
 from typing import Any, Callable
-
-import numpy as np
 
 from ..certificate import DEFAULT_TOL
 from ..errors import ModelError
@@ -20,6 +16,7 @@ from .evolution import solve_evolution
 from .global_method import solve_global
 from .hypergradient import solve_block_exact, solve_hypergradient
 from .ipopt import solve_ipopt
+from .options import check_common_options
 from .relaxation import solve_relaxation
 
 Method = Callable[..., MethodRun]
@@ -62,36 +59,12 @@ def register_method(name: str, method: Method, *, replace: bool = False) -> None
     METHODS[key] = method
 
 
-def check_common_options(options: dict[str, Any], certificate_tol: Any = DEFAULT_TOL) -> None:
-    """Validate the options every method (and every attack) shares, once, before dispatch (ModelError naming the
-    option): starts, max_iter, tol, scale, seed, certificate_tol."""
-    def bad(name: str, value: Any, want: str) -> ModelError:
-        return ModelError(f"option {name}={value!r} is invalid: it must be {want}")
-
-    def integer(v: Any) -> bool:
-        return isinstance(v, Integral) and not isinstance(v, bool)
-
-    def positive_real(v: Any) -> bool:
-        return isinstance(v, Real) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-
-    if "starts" in options and not (integer(options["starts"]) and options["starts"] >= 1):
-        raise bad("starts", options["starts"], "an integer >= 1 (the number of multistart starts)")
-    if "max_iter" in options and not (integer(options["max_iter"]) and options["max_iter"] >= 0):
-        raise bad("max_iter", options["max_iter"], "an integer >= 0")
-    for key in ("tol", "scale"):
-        if key in options and not positive_real(options[key]):
-            raise bad(key, options[key], "a finite number > 0")
-    if not positive_real(certificate_tol):
-        raise bad("certificate_tol", certificate_tol, "a finite number > 0")
-    seed = options.get("seed")
-    if not (seed is None or isinstance(seed, (np.random.Generator, np.random.SeedSequence))
-            or (integer(seed) and seed >= 0)):
-        raise bad("seed", seed, "None, an integer >= 0, or a numpy Generator / SeedSequence")
-
-
 def solve(problem: BilevelProblem, method: str | Method = "ipopt", certificate_tol: float = DEFAULT_TOL,
           **options: Any) -> BilevelResult:
     """Solve a bilevel problem with a registered method name or a callable(prepared, **options) -> MethodRun."""
+    if not isinstance(problem, BilevelProblem):
+        raise ModelError(f"solve: expected a BilevelProblem, got {type(problem).__name__}; declare one with "
+                         "bilevel.BilevelProblem(...) or build a registered one with bilevel.problems.registry.get")
     if callable(method):
         fn, name = method, getattr(method, "__name__", "custom")
     else:

@@ -15,6 +15,7 @@ import numpy as np
 from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
 from .base import MethodRun, Prepared, best_of, check_options
+from .options import check_numbers
 from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish, residual, run_nlp, settled
 
 SCHEMES: dict[str, type[ComplementarityMode]] = {
@@ -44,6 +45,7 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
     tol, max_iter, ipopt, scale, verbose, warm: "auto", None or "hypergradient", as for ipopt)."""
     check_options("relaxation", options, {"scheme", "t0", "factor", "t_min", "comp_tol", "starts", "seed", "polish",
                                           "tol", "max_iter", "ipopt", "scale", "verbose", "warm"})
+    check_numbers(options, positive=("t0", "factor", "t_min", "comp_tol"))
     scheme = options.get("scheme", "scholtes")
     if scheme not in SCHEMES:
         raise ModelError(f"unknown relaxation scheme {scheme!r}; choose one of {', '.join(SCHEMES)}")
