@@ -162,6 +162,14 @@ def _shape_of(value: Any, where: str) -> tuple[int, int]:
         raise ModelError(f"{where}: expected a CasADi expression, got {type(value).__name__}") from None
 
 
+def _expression(value: Any, where: str) -> ca.SX:
+    """value (a CasADi expression, a number or an array of numbers) as an SX; ModelError naming `where` otherwise."""
+    try:
+        return value if isinstance(value, ca.SX) else ca.SX(value)
+    except (NotImplementedError, TypeError, RuntimeError):
+        raise ModelError(f"{where}: expected a CasADi expression or numbers, got {type(value).__name__}") from None
+
+
 def check_depends(expr: ca.SX, allowed: set[int], where: str, fix: str) -> None:
     """Raise if expr uses symbols outside `allowed` (element hashes of the symbols it may use; `fix` says which
     those are and what to do), or if its data (the constants in it) contain NaN or inf."""
@@ -218,6 +226,8 @@ class BilevelProblem:
     """
 
     def __init__(self, name: str = "bilevel") -> None:
+        if not isinstance(name, str):
+            raise ModelError(f"BilevelProblem: name {name!r} must be a string")
         self.name = name
         self.variables: list[Variable] = []
         self.upper_objective: Objective | None = None
@@ -327,7 +337,7 @@ class BilevelProblem:
         allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(*earlier, self.parameters.sym))}
         check_depends(value, allowed, f"define({name!r}): the value", DEFINITION_USES)
         sym = ca.SX.sym(name, rows, cols)
-        body = sym - value if equation is None else ca.SX(equation(sym))
+        body = sym - value if equation is None else _expression(equation(sym), f"define({name!r}): the equation")
         if body.numel() != sym.numel():
             raise ModelError(f"define({name!r}): the equation has {body.numel()} entries for {sym.numel()} defined "
                              "ones; it must give one equation per entry")
@@ -529,8 +539,7 @@ class BilevelProblem:
         sizes = {"d": mats["C"].shape[0], "q": n, "b": mats["A"].shape[0], "e": mats["E"].shape[0]}
         vecs = {}
         for k, v in (("d", d), ("q", q), ("b", b), ("e", e)):
-            expr = ca.SX.zeros(sizes[k]) if v is None else ca.SX(v) if isinstance(v, ca.SX) else \
-                ca.SX(ca.DM(np.asarray(v, dtype=float).reshape(-1, 1)))
+            expr = ca.SX.zeros(sizes[k]) if v is None else _expression(v, f"lower_qp: {k}")
             if expr.numel() != sizes[k] or min(expr.shape) > 1:
                 raise ModelError(f"lower_qp: {k} has {expr.numel()} entries; it needs {sizes[k]} "
                                  f"(rows of {dict(d='C', q='y', b='A', e='E')[k]})")

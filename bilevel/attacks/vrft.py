@@ -30,6 +30,7 @@ from ..errors import InvalidData, ModelError, RankDeficientRegressor
 from .budget import Budget
 from .spectral import LoopPolynomial, arx_orders_for, fit_arx
 from ..solvers.block_exact import quadratic_block_step
+from ..solvers.options import check_common_options
 
 Objective = Literal["maxmin", "targeted", "destabilize"]
 DataConvention = Literal["prefiltered", "raw"]
@@ -277,6 +278,7 @@ def attack_instance(objective: Objective, scenario: Literal["A", "B"] = "B", eps
     """The paper's flexible-transmission attack instance (data drawn with default_rng(seed))."""
     if convention not in CONVENTIONS:
         raise ModelError(f"convention {convention!r} is not one of {', '.join(CONVENTIONS)}")
+    check_common_options({"seed": seed})
     setting = flexible_transmission_setting(*CONVENTIONS[convention])
     reg = setting.regressor
     if not isinstance(N, (int, np.integer)) or isinstance(N, bool) or reg.rows(int(N)) <= reg.n_params:

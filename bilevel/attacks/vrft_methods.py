@@ -23,7 +23,7 @@ from ..certificate import DEFAULT_TOL, Certificate
 from ..errors import ModelError
 from ..result import BilevelResult, Status
 from ..solvers.ascent import budget_direction, projected_ascent
-from ..solvers.registry import check_common_options
+from ..solvers.options import check_common_options
 from ..threads import single_threaded
 from .outcome import attack_stat, unstable
 from .vrft import State, VRFTAttack

@@ -60,9 +60,9 @@ from ..solvers.ascent import budget_direction, projected_ascent
 from ..solvers.budget_search import BudgetSearch, smallest_budget
 from ..solvers.evolution import evolve
 from ..solvers.projections import Box
-from ..solvers.registry import check_common_options
+from ..solvers.options import check_common_options, check_numbers
 from ..threads import single_threaded_call
-from .outcome import unstable
+from .outcome import attack_stat, unstable
 
 KKT_TOL = 1e-6
 GOAL = "identified closed loop unstable (the attacker's goal: a stop, not a local maximum)"
@@ -251,6 +251,7 @@ def _result(oracle: SDPHypergradient, method: str, x: np.ndarray, t0: float, eva
 def willems_row(result: BilevelResult) -> dict[str, Any]:
     """JSON-ready summary, one row of the reproduction (objective inf for an unstable max-min loop; eigenvalues as
     [re, im]; kkt_residual None for the solver's own selection)."""
+    attack_stat(result, "eigenvalues")
     st = result.stats
     eig = st["eigenvalues"]
     return {"method": result.method, "status": result.status.value, "objective": result.upper_objective,
@@ -285,7 +286,8 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, 
 
     With stop_when_unstable the attacker stops once its identified closed loop is unstable (its goal) and
     returns that point; otherwise (and when no start gets there) the best objective over the starts."""
-    check_common_options({"starts": starts, "seed": seed, "max_iter": max_iter, "tol": ftol})
+    check_common_options({"starts": starts, "seed": seed, "max_iter": max_iter})
+    check_numbers({"ftol": ftol}, nonnegative=("ftol",))
     t0 = time.perf_counter()
     oracle, rng, bound, box = _ascent_setup(attack, oracle, seed, "hypergradient_attack")
     finished, records, evals, iters = [], [], 0, 0
