@@ -17,6 +17,7 @@ import pytest
 
 import bilevel as bl
 from bilevel import attacks as atk
+from bilevel.attacks import willems
 from bilevel.errors import (BilevelError, InvalidData, ModelError, RankDeficientRegressor, UnknownName,
                             UnknownOption)
 from bilevel.problems import registry
@@ -268,6 +269,48 @@ CASES: dict[str, tuple[Callable[[], Any], Any, str]] = {
                             "exact_block='yes' is invalid"),
     "projection of a wrong type": (_solve({"method": "hypergradient", "projection": "ball"}), ModelError,
                                    "must be a Projection"),
+    "relaxation t0 negative": (_solve({"method": "relaxation", "t0": -1.0}), ModelError, "t0=-1.0 is invalid"),
+    "relaxation comp_tol string": (_solve({"method": "relaxation", "comp_tol": "tight"}), ModelError,
+                                   "comp_tol='tight' is invalid"),
+    "relaxation t_min zero": (_solve({"method": "relaxation", "t_min": 0.0}), ModelError, "t_min=0.0 is invalid"),
+    "hypergradient penalty string": (_solve({"method": "hypergradient", "penalty": "big"}), ModelError,
+                                     "penalty='big' is invalid"),
+    "hypergradient ftol negative": (_solve({"method": "hypergradient", "ftol": -1.0}), ModelError,
+                                    "ftol=-1.0 is invalid"),
+    "hypergradient active_tol zero": (_solve({"method": "hypergradient", "active_tol": 0.0}), ModelError,
+                                      "active_tol=0.0 is invalid"),
+    "ipopt mode by name": (_solve({"method": "ipopt", "mode": "scholtes"}), ModelError,
+                           "mode='scholtes' is invalid: it must be a complementarity mode"),
+    "ipopt options not a dict": (_solve({"method": "ipopt", "ipopt": "quiet"}), ModelError,
+                                 "ipopt='quiet' is invalid: it must be a dict"),
+    "unknown IPOPT option": (_solve({"method": "ipopt", "starts": 1, "ipopt": {"nonsense": 1}}), ModelError,
+                             "No such IPOPT option: nonsense"),
+    "IPOPT option of a wrong type": (_solve({"method": "ipopt", "starts": 1, "ipopt": {"max_iter": "many"}}),
+                                     ModelError, "IPOPT did not accept its options \\(type mismatch\\)"),
+    # -- entry points given the wrong type -------------------------------------------------------------------------
+    "solve of a string": (lambda: bl.solve("bard1998-ex5.1.1"), ModelError, "expected a BilevelProblem, got str"),
+    "solve of None": (lambda: bl.solve(None), ModelError, "expected a BilevelProblem, got NoneType"),
+    "problem named by a number": (lambda: bl.BilevelProblem(3), ModelError, "name 3 must be a string"),
+    "registered problem by a number": (lambda: registry.get(123), UnknownName, "a problem name is a string"),
+    "definition equation of a string": (_decl(lambda p, x, y: p.define("z", x, equation=lambda z: "z = 0")),
+                                        ModelError, "the equation: expected a CasADi expression or numbers"),
+    "definition of a string": (_decl(lambda p, x, y: p.define("z", "2 x")), ModelError,
+                               "expected a CasADi expression, got str"),
+    "lower_qp q of a string": (lambda: _lower_qp(C=np.eye(2), q="zero"), ModelError,
+                               "lower_qp: q: expected a CasADi expression or numbers"),
+    "Willems unknown setting": (lambda: build_attack(horizn=10), ModelError,
+                                "the parameters horizn include an unknown one.*horizon"),
+    "Willems attack starts 0": (lambda: willems.hypergradient_attack(build_attack(), starts=0), ModelError,
+                                "starts=0 is invalid"),
+    "Willems destabilize max_iter negative": (lambda: willems.destabilize_attack(
+        build_attack(objective="destabilize"), max_iter=-1), ModelError, "max_iter=-1 is invalid"),
+    "Willems random seed string": (lambda: willems.random_attack(build_attack(), seed="x"), ModelError,
+                                   "seed='x' is invalid"),
+    "registered VRFT problem with a negative seed": (lambda: registry.get("vrft-maxmin", seed=-1), ModelError,
+                                                     "seed=-1 is invalid"),
+    "registered Willems problem with a negative seed": (lambda: registry.get("willems-eigen", seed=-2), ModelError,
+                                                        "seed=-2 is invalid"),
+    "Willems row of None": (lambda: willems.willems_row(None), ModelError, "stats\\['eigenvalues'\\]"),
     # -- methods ---------------------------------------------------------------------------------------------------
     "replace a built-in method": (_register("ipopt", lambda prep, **o: None), ModelError,
                                   "built-in method 'ipopt' is already registered.*replace=True"),
