@@ -162,6 +162,14 @@ def _shape_of(value: Any, where: str) -> tuple[int, int]:
         raise ModelError(f"{where}: expected a CasADi expression, got {type(value).__name__}") from None
 
 
+def _expression(value: Any, where: str) -> ca.SX:
+    """value (a CasADi expression, a number or an array of numbers) as an SX; ModelError naming `where` otherwise."""
+    try:
+        return value if isinstance(value, ca.SX) else ca.SX(value)
+    except (NotImplementedError, TypeError, RuntimeError):
+        raise ModelError(f"{where}: expected a CasADi expression or numbers, got {type(value).__name__}") from None
+
+
 def check_depends(expr: ca.SX, allowed: set[int], where: str, fix: str) -> None:
     """Raise if expr uses symbols outside `allowed` (element hashes of the symbols it may use; `fix` says which
     those are and what to do), or if its data (the constants in it) contain NaN or inf."""
@@ -218,6 +226,8 @@ class BilevelProblem:
     """
 
     def __init__(self, name: str = "bilevel") -> None:
+        if not isinstance(name, str):
+            raise ModelError(f"BilevelProblem: name {name!r} must be a string")
         self.name = name
         self.variables: list[Variable] = []
         self.upper_objective: Objective | None = None
@@ -327,7 +337,7 @@ class BilevelProblem:
         allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(*earlier, self.parameters.sym))}
         check_depends(value, allowed, f"define({name!r}): the value", DEFINITION_USES)
         sym = ca.SX.sym(name, rows, cols)
-        body = sym - value if equation is None else ca.SX(equation(sym))
+        body = sym - value if equation is None else _expression(equation(sym), f"define({name!r}): the equation")
         if body.numel() != sym.numel():
             raise ModelError(f"define({name!r}): the equation has {body.numel()} entries for {sym.numel()} defined "
                              "ones; it must give one equation per entry")
@@ -428,20 +438,29 @@ class BilevelProblem:
     def upper_constraint(self, comparison: Any, name: str | None = None) -> None:
         """Add an upper-level constraint `G(x, y) <= 0` / `== 0` (any comparison of expressions)."""
         body, kind = split_comparison(comparison, "upper_constraint")
-        self.upper_constraints.append(Constraint(name or f"G{len(self.upper_constraints)}", body, kind))
+        name = self._constraint_name(name, f"G{len(self.upper_constraints)}", "upper_constraint")
+        self.upper_constraints.append(Constraint(name, body, kind))
         self.revision += 1
 
     def lower_constraint(self, comparison: Any, name: str | None = None) -> None:
         """Add a lower-level constraint `g(x, y) <= 0` (convex in y) or `h(x, y) == 0` (affine in y)."""
         self._check_lower_open("lower_constraint")
         body, kind = split_comparison(comparison, "lower_constraint")
-        self.lower_constraints.append(Constraint(name or f"g{len(self.lower_constraints)}", body, kind))
+        name = self._constraint_name(name, f"g{len(self.lower_constraints)}", "lower_constraint")
+        self.lower_constraints.append(Constraint(name, body, kind))
         self.revision += 1
 
     def lower_psd_constraint(self, matrix: Any, name: str | None = None) -> None:
         """Add a lower-level linear matrix inequality `M(x, y) >= 0` (M symmetric, affine in y)."""
         self._check_lower_open("lower_psd_constraint")
-        matrix = ca.SX(matrix)
+        name = self._constraint_name(name, f"M{len(self.lower_psd_constraints)}", "lower_psd_constraint")
+        try:
+            matrix = ca.SX(matrix)
+        except (NotImplementedError, TypeError, RuntimeError):
+            raise ModelError(f"lower_psd_constraint: expected a square CasADi matrix, got {type(matrix).__name__}") \
+                from None
+        if matrix.numel() == 0:
+            raise ModelError("lower_psd_constraint: the matrix is empty; an LMI needs a square matrix of size >= 1")
         if matrix.size1() != matrix.size2():
             raise ModelError(f"lower_psd_constraint: matrix must be square, got shape {matrix.shape}")
         asym = ca.simplify(matrix - matrix.T)
@@ -450,8 +469,28 @@ class BilevelProblem:
             probe = ca.Function("asym", [syms], [asym])(np.random.default_rng(0).standard_normal(syms.numel()))
             if float(ca.norm_inf(probe)) > 1e-12:
                 raise ModelError("lower_psd_constraint: matrix is not symmetric; pass (M + M.T) / 2 if that is meant")
-        self.lower_psd_constraints.append(PSDConstraint(name or f"M{len(self.lower_psd_constraints)}", matrix))
+        self.lower_psd_constraints.append(PSDConstraint(name, matrix))
         self.revision += 1
+
+    def _constraint_name(self, name: str | None, default: str, where: str) -> str:
+        """A constraint's name: the given one, checked unique among all constraints and LMIs (results report their
+        multipliers by name), else `default` (primed until free); names ending in .lb/.ub are the bounds'."""
+        taken = {c.name: kind for kind, items in (("upper constraint", self.upper_constraints),
+                                                  ("lower constraint", self.lower_constraints),
+                                                  ("LMI", self.lower_psd_constraints)) for c in items}
+        if name is None:
+            while default in taken:
+                default += "_"
+            return default
+        if not isinstance(name, str) or not name:
+            raise ModelError(f"{where}: name {name!r} must be a non-empty string")
+        if name in taken:
+            raise ModelError(f"{where}: name {name!r} is already used by the {taken[name]} {name!r}; constraint names "
+                             "must be unique (multipliers are reported by name): choose another name")
+        if name.endswith((".lb", ".ub")):
+            raise ModelError(f"{where}: name {name!r} ends in {name[-3:]!r}, which names the multipliers of a "
+                             f"variable's bounds (e.g. 'y.lb', 'y.ub'); choose another name")
+        return name
 
     def lower_cvxpy(self, learner: "cp.Problem", parameters: dict[Any, Any] | None = None,
                     name: str = "cvxpy") -> "CvxpyLower":
@@ -500,8 +539,7 @@ class BilevelProblem:
         sizes = {"d": mats["C"].shape[0], "q": n, "b": mats["A"].shape[0], "e": mats["E"].shape[0]}
         vecs = {}
         for k, v in (("d", d), ("q", q), ("b", b), ("e", e)):
-            expr = ca.SX.zeros(sizes[k]) if v is None else ca.SX(v) if isinstance(v, ca.SX) else \
-                ca.SX(ca.DM(np.asarray(v, dtype=float).reshape(-1, 1)))
+            expr = ca.SX.zeros(sizes[k]) if v is None else _expression(v, f"lower_qp: {k}")
             if expr.numel() != sizes[k] or min(expr.shape) > 1:
                 raise ModelError(f"lower_qp: {k} has {expr.numel()} entries; it needs {sizes[k]} "
                                  f"(rows of {dict(d='C', q='y', b='A', e='E')[k]})")

@@ -137,9 +137,16 @@ class ParameterSet:
             names = ", ".join(p.name for p in self.items) or "none"
             raise ModelError(f"no parameter named {name!r}; parameters: {names}")
         try:
-            arr = np.asarray(value, dtype=float)
-        except (TypeError, ValueError):
-            raise ModelError(f"value of parameter {name!r} must be numbers, got {type(value).__name__}") from None
+            raw = np.asarray(value)
+        except (TypeError, ValueError):  # e.g. a ragged list
+            raw = np.asarray(None)
+        if np.iscomplexobj(raw):
+            raise InvalidData(f"value of parameter {name!r} is complex; parameters take real numbers: pass its real "
+                              "part (np.real), or the real and imaginary parts as two parameters")
+        if raw.dtype.kind not in "biuf":
+            raise InvalidData(f"value of parameter {name!r} must be real numbers, got {type(value).__name__}"
+                              f"{f' of dtype {raw.dtype}' if raw.dtype.kind != 'O' else ''}; pass a float array")
+        arr = raw.astype(float)
         shape = (int(param.sym.size1()), int(param.sym.size2()))
         if arr.shape not in (shape, (param.size,)) and not (arr.ndim == 0 and param.size == 1):
             raise ModelError(f"value of parameter {name!r} has shape {arr.shape}; the parameter has shape {shape} "

@@ -74,9 +74,15 @@ def fit_arx(u: np.ndarray, y: np.ndarray, na: int, nb: int, delay: int) -> tuple
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
     if u.shape != y.shape or u.ndim != 1:
         raise InvalidData(f"ARX data must be two 1-D signals of equal length, got {u.shape} and {y.shape}")
+    if not all(isinstance(k, (int, np.integer)) and not isinstance(k, bool) for k in (na, nb, delay)) \
+            or na < 0 or nb < 1 or delay < 0:
+        raise InvalidData(f"ARX orders must be integers na >= 0, nb >= 1, delay >= 0, got {(na, nb, delay)}")
     if na < delay + nb - 1:
         raise InvalidData(f"ARX orders give an improper model: need na >= delay + nb - 1, got na={na}")
     n = u.size
+    if n < na + nb or n <= delay + nb - 1:
+        raise RankDeficientRegressor(f"{n} samples are too few for an ARX model with na={na}, nb={nb}, "
+                                     f"delay={delay} ({na + nb} parameters); record a longer experiment")
     shift = lambda x, k: np.concatenate([np.zeros(k), x[: n - k]])  # noqa: E731
     cols = [-shift(y, i) for i in range(1, na + 1)] + [shift(u, delay + j) for j in range(nb)]
     X = np.column_stack(cols)

@@ -30,6 +30,7 @@ from ..errors import InvalidData, ModelError, RankDeficientRegressor
 from .budget import Budget
 from .spectral import LoopPolynomial, arx_orders_for, fit_arx
 from ..solvers.block_exact import quadratic_block_step
+from ..solvers.options import check_common_options
 
 Objective = Literal["maxmin", "targeted", "destabilize"]
 DataConvention = Literal["prefiltered", "raw"]
@@ -129,8 +130,11 @@ class VRFTAttack:
     surrogate_beta: float = 50.0
 
     def __post_init__(self) -> None:
-        self.u = np.asarray(self.u, dtype=float)
-        self.y = np.asarray(self.y, dtype=float)
+        try:
+            self.u = np.asarray(self.u, dtype=float)
+            self.y = np.asarray(self.y, dtype=float)
+        except (TypeError, ValueError):
+            raise InvalidData("attack data u and y must be arrays of real numbers") from None
         if self.u.shape != self.y.shape or self.u.ndim != 1:
             raise InvalidData(f"u and y must be 1-D of equal length, got {self.u.shape} and {self.y.shape}")
         if not (np.all(np.isfinite(self.u)) and np.all(np.isfinite(self.y))):
@@ -139,6 +143,10 @@ class VRFTAttack:
         if self.objective not in ("maxmin", "targeted", "destabilize"):
             raise ModelError(f"objective {self.objective!r} is not maxmin, targeted or destabilize")
         reg = self.setting.regressor
+        if reg.rows(self.u.size) <= reg.n_params:
+            raise InvalidData(f"{self.u.size} samples give {max(reg.rows(self.u.size), 0)} regression rows for "
+                              f"{reg.n_params} controller parameters; the learner needs more rows than parameters: "
+                              "record a longer experiment")
         self.phi0 = reg(self.y)
         self.t0 = reg.targets(self.u)
         self.n = self.t0.size
@@ -147,7 +155,13 @@ class VRFTAttack:
         if self.objective == "targeted":
             if self.theta_target is None:
                 raise ModelError("the targeted attack needs theta_target (the paper uses 3 * theta_0)")
-            self.theta_target = np.asarray(self.theta_target, dtype=float)
+            try:
+                self.theta_target = np.asarray(self.theta_target, dtype=float)
+            except (TypeError, ValueError):
+                raise InvalidData("theta_target must be an array of real numbers") from None
+            if self.theta_target.shape != (reg.n_params,) or not np.all(np.isfinite(self.theta_target)):
+                raise InvalidData(f"theta_target must be {reg.n_params} finite numbers (one per basis function), "
+                                  f"got shape {self.theta_target.shape}; e.g. 3 * PAPER_THETA0")
         self.delta_u = self.budget_u.radius(self.u)
         self.delta_y = self.budget_y.radius(self.y)
         if self.objective == "destabilize":
@@ -264,7 +278,12 @@ def attack_instance(objective: Objective, scenario: Literal["A", "B"] = "B", eps
     """The paper's flexible-transmission attack instance (data drawn with default_rng(seed))."""
     if convention not in CONVENTIONS:
         raise ModelError(f"convention {convention!r} is not one of {', '.join(CONVENTIONS)}")
+    check_common_options({"seed": seed})
     setting = flexible_transmission_setting(*CONVENTIONS[convention])
+    reg = setting.regressor
+    if not isinstance(N, (int, np.integer)) or isinstance(N, bool) or reg.rows(int(N)) <= reg.n_params:
+        raise InvalidData(f"N={N!r} samples: the learner needs more regression rows than its {reg.n_params} "
+                          "parameters; pass an integer N of at least a few dozen (the paper uses 512)")
     u, y = scenario_data(setting, scenario, N, np.random.default_rng(seed))
     target = 3 * PAPER_THETA0 if objective == "targeted" else None
     return VRFTAttack(setting, u, y, Budget(eps_u, norm), Budget(eps_y, norm), objective, target)

@@ -12,6 +12,7 @@ joint: spectral projected gradient ascent on (a_u, a_y) together, each block mea
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from typing import Any, Callable, Sequence
 
@@ -22,8 +23,9 @@ from ..certificate import DEFAULT_TOL, Certificate
 from ..errors import ModelError
 from ..result import BilevelResult, Status
 from ..solvers.ascent import budget_direction, projected_ascent
+from ..solvers.options import check_common_options
 from ..threads import single_threaded
-from .outcome import unstable
+from .outcome import attack_stat, unstable
 from .vrft import State, VRFTAttack
 
 DEFAULT_STEPS = (1.0,)
@@ -95,11 +97,12 @@ def _registered_objective(atk: VRFTAttack, theta: np.ndarray, value: float) -> f
 def attack_value(result: BilevelResult) -> float:
     """The attack's own criterion at the poisoned theta (maximized): -distance for 'targeted', the log-sum-exp
     of the modelled poles for 'destabilize'; upper_objective is the registered problem's F."""
-    return result.stats["value"]
+    return attack_stat(result, "value")
 
 
 def attack_summary(result: BilevelResult) -> dict[str, Any]:
     """Scalars of a VRFT attack result, one row of the reproduction's tables and of the CLI's output."""
+    attack_stat(result, "learner_loss")
     st, cert = result.stats, result.certificate
     return {"method": result.method, "objective": st["objective"], "status": result.status.value,
             "value": attack_value(result), "value_clean": st["value_clean"], "learner_loss": st["learner_loss"],
@@ -111,6 +114,10 @@ def attack_summary(result: BilevelResult) -> dict[str, Any]:
 
 def save_attack(result: BilevelResult, atk: VRFTAttack, path: str) -> None:
     """Write clean data, attack signals, clean/poisoned theta and closed-loop poles to an .npz file."""
+    attack_stat(result, "theta_clean")
+    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+    if not os.path.isdir(folder):
+        raise ModelError(f"save_attack: directory {folder!r} of {path!r} does not exist; create it first")
     loop, theta, theta0 = atk.setting.loop, result.y["theta"], result.stats["theta_clean"]
     np.savez(path, u=atk.u, y=atk.y, a_u=result.x["a_u"], a_y=result.x["a_y"], theta_clean=theta0,
              theta_poisoned=theta, poles_clean=loop.poles(theta0), poles_poisoned=loop.poles(theta),
@@ -198,6 +205,10 @@ def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter
     if atk.objective == "destabilize":
         raise ModelError("the alternating attack needs a quadratic objective; use attack_joint for 'destabilize'")
     max_iter = MAX_ITER[atk.objective] if max_iter is None else max_iter
+    check_common_options({"starts": starts, "seed": seed, "max_iter": max_iter, "tol": tol})
+    if not steps or not all(isinstance(v, (int, float)) and 0 < v < np.inf for v in steps):
+        raise ModelError(f"steps={steps!r} is invalid: it must be a non-empty tuple of initial steps > 0 (fractions "
+                         "of the budget radius), e.g. (1.0,)")
     t0 = time.perf_counter()
     proj_y = atk.budget_y.projection(atk.y)
     order = atk.budget_y.order
@@ -236,6 +247,8 @@ def attack_budget_path(atk: VRFTAttack, eps_y: Sequence[float], **options: Any) 
     """
     if atk.objective == "destabilize":
         raise ModelError("the budget path runs the alternating attack; 'destabilize' needs attack_joint")
+    if len(eps_y) == 0:
+        raise ModelError("attack_budget_path needs at least one output budget eps_y, e.g. [0.02, 0.05, 0.1]")
     results: list[BilevelResult] = []
     for eps in sorted(eps_y):
         stage = dataclasses.replace(atk, budget_y=dataclasses.replace(atk.budget_y, eps=eps))
@@ -246,6 +259,7 @@ def attack_budget_path(atk: VRFTAttack, eps_y: Sequence[float], **options: Any) 
 def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int = 200,
                  tol: float = 1e-4, first: str = "zero") -> BilevelResult:
     """Joint projected hypergradient ascent on (a_u, a_y), each block scaled to its budget (multistart)."""
+    check_common_options({"starts": starts, "seed": seed, "max_iter": max_iter, "tol": tol})
     t0 = time.perf_counter()
     N = atk.N
     pu, py = atk.budget_u.projection(atk.u), atk.budget_y.projection(atk.y)
@@ -277,6 +291,7 @@ def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int 
 
 def attack_white_noise(atk: VRFTAttack, seed: int = 0) -> BilevelResult:
     """White-noise poisoning on the budget boundary (the paper's random baseline)."""
+    check_common_options({"seed": seed})
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     signals = []

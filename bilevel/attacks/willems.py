@@ -60,8 +60,9 @@ from ..solvers.ascent import budget_direction, projected_ascent
 from ..solvers.budget_search import BudgetSearch, smallest_budget
 from ..solvers.evolution import evolve
 from ..solvers.projections import Box
+from ..solvers.options import check_common_options, check_numbers
 from ..threads import single_threaded_call
-from .outcome import unstable
+from .outcome import attack_stat, unstable
 
 KKT_TOL = 1e-6
 GOAL = "identified closed loop unstable (the attacker's goal: a stop, not a local maximum)"
@@ -250,6 +251,7 @@ def _result(oracle: SDPHypergradient, method: str, x: np.ndarray, t0: float, eva
 def willems_row(result: BilevelResult) -> dict[str, Any]:
     """JSON-ready summary, one row of the reproduction (objective inf for an unstable max-min loop; eigenvalues as
     [re, im]; kkt_residual None for the solver's own selection)."""
+    attack_stat(result, "eigenvalues")
     st = result.stats
     eig = st["eigenvalues"]
     return {"method": result.method, "status": result.status.value, "objective": result.upper_objective,
@@ -284,6 +286,8 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, 
 
     With stop_when_unstable the attacker stops once its identified closed loop is unstable (its goal) and
     returns that point; otherwise (and when no start gets there) the best objective over the starts."""
+    check_common_options({"starts": starts, "seed": seed, "max_iter": max_iter})
+    check_numbers({"ftol": ftol}, nonnegative=("ftol",))
     t0 = time.perf_counter()
     oracle, rng, bound, box = _ascent_setup(attack, oracle, seed, "hypergradient_attack")
     finished, records, evals, iters = [], [], 0, 0
@@ -291,7 +295,7 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, 
     def goal(ev: Evaluation | None) -> bool:
         return ev is not None and (ev.phi == np.inf or (stop_when_unstable and ev.identified_radius >= 1.0))
 
-    for k in range(max(int(starts), 1)):
+    for k in range(starts):
         x0 = np.zeros(bound.size) if k == 0 else rng.uniform(-bound, bound)
         path = _Best()
         _, ev, it, converged = _ascent_path(oracle, box, bound, x0, True, max_iter, ftol, path, goal, "long")
@@ -339,6 +343,7 @@ def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize:
                          f"{attack.setting.poison!r}: build the attack with poison='u'")
     if attack.setting.delta_u <= 0:
         raise ModelError("de_attack: delta_u = 0 leaves nothing to search; use delta_u > 0")
+    check_common_options({"seed": seed, "tol": tol})
     t0 = time.perf_counter()
     oracle = oracle or SDPHypergradient(attack)
     bound = attack.budget()
@@ -364,6 +369,7 @@ def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize:
 @single_threaded_call
 def random_attack(attack: WillemsAttack, seed: Any = 0) -> BilevelResult:
     """A budget-matched, non-adaptive baseline: every poisoned entry +-budget with a fair random sign."""
+    check_common_options({"seed": seed})
     t0 = time.perf_counter()
     bound = attack.budget()
     x = bound * _seed(seed).choice([-1.0, 1.0], size=bound.size)
@@ -469,10 +475,11 @@ def destabilize_attack(attack: WillemsAttack, starts: int = 16, seed: Any = 0, m
     if attack.setting.objective != "destabilize":
         raise ModelError(f"destabilize_attack maximizes the Gelfand criterion; got objective="
                          f"{attack.setting.objective!r}: build the attack with objective='destabilize'")
+    check_common_options({"starts": starts, "seed": seed, "max_iter": max_iter, "tol": tol})
     t0 = time.perf_counter()
     oracle, rng, bound, box = _ascent_setup(attack, oracle, seed, "destabilize_attack")
     overall, records, iters = _Best(), [], 0
-    for k in range(max(int(starts), 1)):
+    for k in range(starts):
         x0 = np.zeros(bound.size) if k == 0 else sample_in_bounds(-bound, bound, rng)
         smooth, direct = _Best(), _Best()
         x, _, it, _ = _ascent_path(oracle, box, bound, x0, True, max_iter, tol, smooth)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from ..errors import LowerLevelInfeasible, SolverFailed
+from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
 from .base import ExpressionLower, LowerSolution
 
 
@@ -35,6 +35,8 @@ class ConvexNLPLower(ExpressionLower):
         status = self._solver.stats()["return_status"]
         if status == "Infeasible_Problem_Detected":
             raise LowerLevelInfeasible(f"the lower level is infeasible at x = {x}")
+        if status == "Diverging_Iterates":
+            raise LowerLevelUnbounded(f"the lower level is unbounded below at x = {x} (IPOPT: Diverging_Iterates)")
         if status not in ("Solve_Succeeded", "Solved_To_Acceptable_Level"):
             raise SolverFailed(f"IPOPT did not solve the lower level at x = {x}: {status}")
         lam_g = np.asarray(sol["lam_g"]).ravel()

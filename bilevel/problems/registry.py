@@ -128,6 +128,9 @@ def spec(name: str) -> ProblemSpec:
     """The spec of `name`: a registered problem, or `module:function` building one (registered on first use);
     raises UnknownName (a KeyError) listing the known names otherwise."""
     _load_builtin()
+    if not isinstance(name, str):
+        raise UnknownName(f"a problem name is a string, got {type(name).__name__} {name!r}; `bilevel list` shows the "
+                          "known ones")
     if name not in _REGISTRY and ":" in name:
         _register_reference(name)
     if name not in _REGISTRY:

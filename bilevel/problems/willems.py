@@ -31,7 +31,7 @@ poisoning (poison="u", designs lqr and stabilizing), so Q is fixed and K is affi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Callable
 
 import casadi as ca
@@ -43,6 +43,7 @@ from ..ddc.depersis_tesi import check_persistency, state_data
 from ..errors import InvalidData, ModelError
 from ..model import BilevelProblem
 from ..result import BilevelResult
+from ..solvers.options import check_common_options
 from ..vech import symmetric_sx
 from .registry import register
 from .surrogates import gelfand_log_radius
@@ -89,6 +90,7 @@ class WillemsSetting:
                              f"delta_x={self.delta_x}")
         if self.reg < 0:
             raise ModelError(f"willems: reg must be >= 0, got {self.reg}")
+        check_common_options({"seed": self.seed})
         if "u" not in self.poison and self.delta_u > 0:
             raise ModelError(f"willems: poison={self.poison!r} leaves U clean but delta_u={self.delta_u}; "
                              "set delta_u=0 or poison='u'/'xu'")
@@ -217,7 +219,12 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
     """Draw the batch-reactor data of `setting` (or of keyword parameters) and declare the attack problem."""
     if setting is not None and params:
         raise ModelError("build_attack: pass either a WillemsSetting or keyword parameters, not both")
-    s = setting if setting is not None else WillemsSetting(**params)
+    try:
+        s = setting if setting is not None else WillemsSetting(**params)
+    except TypeError:
+        known = ", ".join(f.name for f in fields(WillemsSetting))
+        raise ModelError(f"build_attack: the parameters {', '.join(sorted(params))} include an unknown one; a "
+                         f"WillemsSetting takes {known}") from None
     if s.horizon < 6:
         raise InvalidData(f"willems: horizon T={s.horizon} is too short; the batch reactor needs T >= n + m = 6 "
                           "samples for [U0; X0] to have full row rank")

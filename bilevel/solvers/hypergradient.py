@@ -37,6 +37,7 @@ from .base import MethodRun, Prepared, best_of, check_options
 from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, Hypergradient, shared_oracle
 from .ascent import projected_ascent
 from .block_exact import ExactBlock, ascend_with_exact_block, exact_block_of
+from .options import check_numbers
 from .starts import start_points
 from .projections import Projection
 
@@ -84,15 +85,18 @@ class Arc:
     def __init__(self, prep: Prepared, oracle: Hypergradient, projection: Projection) -> None:
         self.prep, self.oracle, self.project = prep, oracle, projection
         self._restoration: _Restoration | None = None
+        self.error: BilevelError | None = None
+        """Why the last point that could not be evaluated could not be (for the message when no start can be)."""
 
     def __call__(self, v: np.ndarray) -> Evaluation | None:
         """The evaluated point P(v), or None if no lower-feasible point was found near it."""
         x = self.project(v)
         try:
             return self.oracle.evaluate(x)
-        except LowerLevelInfeasible:
-            pass
-        except BilevelError:
+        except LowerLevelInfeasible as exc:
+            self.error = exc
+        except BilevelError as exc:
+            self.error = exc
             return None
         if self._restoration is None:
             self._restoration = _Restoration(self.prep)
@@ -101,7 +105,8 @@ class Arc:
             return None
         try:
             return self.oracle.evaluate(self.project(restored))
-        except BilevelError:
+        except BilevelError as exc:
+            self.error = exc
             return None
 
 
@@ -134,7 +139,8 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int)
         """grad phi and the projected step at ev, once per evaluated point (recorded in history)."""
         if last.get("ev") is not ev:
             grad, degenerate, n_active = arc.oracle.gradient(ev)
-            pstep = float(np.linalg.norm(arc.project(ev.x - grad) - ev.x))  # no lower solve: see _domain_stationary
+            # NaN at a kink of an upper function (e.g. a norm at 0); no lower solve for the step: _domain_stationary
+            pstep = float(np.linalg.norm(arc.project(ev.x - grad) - ev.x)) if np.all(np.isfinite(grad)) else np.nan
             history.append({"iter": len(history), "objective": ev.phi, "step": 0.0,
                             "grad_norm": float(np.linalg.norm(grad)), "projected_step_norm": pstep,
                             "active": n_active, "degenerate": degenerate})
@@ -150,7 +156,11 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int)
         return g, g / max(1.0, float(np.abs(g).max(initial=0.0)))  # first step: at most 1 in any entry
 
     def stop(ev: Evaluation) -> bool:
-        """The projected step is <= tol, or phi fell by <= ftol (relative) in the last step."""
+        """The gradient is not finite, the projected step is <= tol, or phi fell by <= ftol (relative) in the last
+        step."""
+        if not np.isfinite(gradient(ev)[1]):
+            last["reason"] = "non-finite gradient"
+            return True
         if gradient(ev)[1] <= tol:
             last["reason"] = "tol"
             return True
@@ -170,6 +180,10 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int)
     reason = last["reason"] if why["stop"] == "stop" else why["stop"]  # the stop hook names its own reason
     if reason == "max_iter":
         return Descent(cur, Status.MAX_ITERATIONS, f"max_iter = {max_iter} reached", nit, history)
+    if reason == "non-finite gradient":
+        return Descent(cur, Status.ERROR, f"the hypergradient is NaN or inf at x = {cur.x} (an upper objective or "
+                       "constraint is not differentiable there, e.g. a norm at 0: declare a ball as "
+                       "norm_2(v - c) <= r or sumsqr(v - c) <= r**2, or give a start away from the kink)", nit, history)
     # a trial step that rounds to x ("stationary") after many halvings is no proof either: both ask the domain
     if reason in ("line search", "stationary") and not _domain_stationary(arc, cur, grad, tol):
         return Descent(cur, Status.INACCURATE, "line search found no decrease (x is likely at a kink of "
@@ -242,6 +256,7 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     penalized."""
     check_options("hypergradient", options, {"starts", "seed", "scale", "projection", "penalty", "tol", "ftol",
                                              "max_iter", "active_tol", "verbose", "exact_block"})
+    check_numbers(options, positive=("active_tol",), nonnegative=("penalty", "ftol"))
     exact, why = chosen_exact_block(prep, options.pop("exact_block", "auto"), options)
     if exact is not None:
         return ascend_with_exact_block(prep, exact, why, **options)
@@ -276,7 +291,7 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     nit = sum(r["iterations"] for r in records)
     if not runs:
         return MethodRun(None, Status.ERROR, f"all {starts} starts failed: the lower level could not be solved "
-                         "near any start", nit, [], records)
+                         f"near any start ({type(arc.error).__name__}: {arc.error})", nit, [], records)
     i = best_of(candidates)
     k, best = runs[i]
     return MethodRun(candidates[i][0], best.status, f"best of {starts} starts: start {k} ({best.message})", nit,

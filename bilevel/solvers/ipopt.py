@@ -16,12 +16,12 @@ start points elsewhere. Each NLP solve stops after MAX_WALL_TIME seconds by defa
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from ..errors import BilevelError, ModelError
+from ..errors import BilevelError, LowerLevelUnbounded, ModelError
 from ..mpcc import Branch, ComplementarityMode, NLPForm, Scholtes
 from ..reduction import KKTPoint
 from ..result import Status
@@ -78,7 +78,11 @@ def ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> di
 def kkt_nlp_options(options: dict[str, Any], warm: dict[str, Any]) -> dict[str, Any]:
     """IPOPT options of a KKT method from its options tol, max_iter and ipopt, with WARM_LIMITS where its NLPs start
     from the warm phase's answer (stats `warm` from kkt_starts) and the options do not set those limits."""
-    opts = ipopt_options(float(options.get("tol", 1e-10)), int(options.get("max_iter", 3000)), options.get("ipopt"))
+    extra = options.get("ipopt")
+    if extra is not None and not (isinstance(extra, dict) and all(isinstance(k, str) for k in extra)):
+        raise ModelError(f"option ipopt={extra!r} is invalid: it must be a dict of IPOPT options, e.g. "
+                         "{'max_cpu_time': 60}")
+    opts = ipopt_options(float(options.get("tol", 1e-10)), int(options.get("max_iter", 3000)), extra)
     if warm.get("warm", {}).get("used"):
         given = set(options.get("ipopt") or {}) | ({"max_iter"} & set(options))
         opts["ipopt"].update({k: v for k, v in WARM_LIMITS.items() if k not in given})
@@ -88,7 +92,12 @@ def kkt_nlp_options(options: dict[str, Any], warm: dict[str, Any]) -> dict[str, 
 def run_nlp(nlp: NLPForm, w0: np.ndarray, options: dict[str, Any], tau: float | None = None,
             lam_g0: np.ndarray | None = None) -> NLPRun:
     """Solve the transcribed NLP from w0 (tau overrides the mode's relaxation parameter)."""
-    solver = nlp.solver("ipopt", options)
+    try:
+        solver = nlp.solver("ipopt", options)
+    except RuntimeError as exc:  # CasADi refuses an option before any solve
+        reason = str(exc).strip().splitlines()[-1].split(": ", 1)[-1]
+        raise ModelError(f"IPOPT did not accept its options ({reason}); check the names and types in option "
+                         "ipopt={...} against the IPOPT options reference") from None
     args = dict(x0=nlp.start(w0[: nlp.n_w]), lbx=nlp.lbx, ubx=nlp.ubx, lbg=nlp.lbg, ubg=nlp.ubg,
                 p=np.concatenate([nlp.p_value if tau is None else [tau], nlp.params.value]))
     if lam_g0 is not None:
@@ -169,13 +178,35 @@ def kept_warm_point(prep: Prepared, points: list[np.ndarray], best: tuple[np.nda
                      f"{outcome} (objective {best[1]:.8g}, residual {best[2]:.1e})", nit, [], records, stats)
 
 
+def settled(prep: Prepared, run: MethodRun) -> MethodRun:
+    """The run with x projected onto the declared box and recognized balls (IPOPT ends up to its tolerance outside
+    them), and, where it ended infeasible because the lower level is unbounded below there, a status saying so."""
+    if run.w is None or not np.all(np.isfinite(run.w)):
+        return run
+    point = prep.point(run.w)
+    run.w = prep.pack(replace(point, x=prep.projection(point.x)))
+    if run.status is Status.INFEASIBLE:
+        try:
+            prep.canon.lower.solve(prep.point(run.w).x)
+        except LowerLevelUnbounded as exc:
+            run.status = Status.ERROR
+            run.message = (f"lower level unbounded, not an infeasible problem: {exc}; the KKT system has no solution "
+                           f"there (bound the lower variables or add lower constraints) ({run.message})")
+        except BilevelError:
+            pass
+    return run
+
+
 def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
     """Multistart IPOPT on the KKT reformulation (options: starts, seed, mode, polish, tol, max_iter,
     ipopt, scale, verbose, warm)."""
     check_options("ipopt", options, {"starts", "seed", "mode", "polish", "tol", "max_iter", "ipopt", "scale",
                                      "verbose", "warm"})
-    points, source, warm = kkt_starts(prep, "ipopt", options)
     mode: ComplementarityMode = options.get("mode") or Scholtes(1e-9)
+    if not isinstance(mode, ComplementarityMode):
+        raise ModelError(f"option mode={mode!r} is invalid: it must be a complementarity mode such as "
+                         "bilevel.Scholtes(1e-9), bilevel.Product() or bilevel.Branch(...)")
+    points, source, warm = kkt_starts(prep, "ipopt", options)
     nlp_opts = kkt_nlp_options(options, warm)
     nlp = prep.mpcc.transcribe(mode)
     records, candidates, traces, total_iter = [], [], [], 0
@@ -204,8 +235,8 @@ def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
     kept = kept_warm_point(prep, points, candidates[i], best.raw_status, total_iter, records,
                            {"mode": repr(mode), **warm})
     if kept is not None:
-        return kept
+        return settled(prep, kept)
     history = [{"iter": j, "objective": o, "inf_pr": p, "inf_du": d}
                for j, (o, p, d) in enumerate(zip(best.trace["obj"], best.trace["inf_pr"], best.trace["inf_du"]))]
-    return MethodRun(best.w, best.status, f"{source}, start {i} ({best.raw_status})", total_iter,
-                     history, records, {"mode": repr(mode), "best_start": i, **warm})
+    return settled(prep, MethodRun(best.w, best.status, f"{source}, start {i} ({best.raw_status})", total_iter,
+                                   history, records, {"mode": repr(mode), "best_start": i, **warm}))

@@ -3,12 +3,8 @@
 from __future__ import annotations
 
 import contextlib
-import math
 import time
-from numbers import Integral, Real
 from typing import Any, Callable
-
-import numpy as np
 
 from ..certificate import DEFAULT_TOL
 from ..errors import ModelError
@@ -20,6 +16,7 @@ from .evolution import solve_evolution
 from .global_method import solve_global
 from .hypergradient import solve_block_exact, solve_hypergradient
 from .ipopt import solve_ipopt
+from .options import check_common_options
 from .relaxation import solve_relaxation
 
 Method = Callable[..., MethodRun]
@@ -43,39 +40,31 @@ METHODS: dict[str, Method] = {
 """Registered methods: name -> function(prepared, **options) -> MethodRun."""
 
 
-def register_method(name: str, method: Method) -> None:
-    """Make `method` available as solve(..., method=name)."""
-    METHODS[name.lower()] = method
+BUILTIN_METHODS = frozenset(METHODS)
+"""The methods this package registers: register_method replaces one only with replace=True."""
 
 
-def check_common_options(options: dict[str, Any], certificate_tol: Any) -> None:
-    """Validate the options every method shares, once, before dispatch (ModelError naming the option)."""
-    def bad(name: str, value: Any, want: str) -> ModelError:
-        return ModelError(f"option {name}={value!r} is invalid: it must be {want}")
-
-    def integer(v: Any) -> bool:
-        return isinstance(v, Integral) and not isinstance(v, bool)
-
-    def positive_real(v: Any) -> bool:
-        return isinstance(v, Real) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-
-    if "starts" in options and not (integer(options["starts"]) and options["starts"] >= 1):
-        raise bad("starts", options["starts"], "an integer >= 1 (the number of multistart starts)")
-    if "max_iter" in options and not (integer(options["max_iter"]) and options["max_iter"] >= 0):
-        raise bad("max_iter", options["max_iter"], "an integer >= 0")
-    if "tol" in options and not positive_real(options["tol"]):
-        raise bad("tol", options["tol"], "a finite number > 0")
-    if not positive_real(certificate_tol):
-        raise bad("certificate_tol", certificate_tol, "a finite number > 0")
-    seed = options.get("seed")
-    if not (seed is None or isinstance(seed, (np.random.Generator, np.random.SeedSequence))
-            or (integer(seed) and seed >= 0)):
-        raise bad("seed", seed, "None, an integer >= 0, or a numpy Generator / SeedSequence")
+def register_method(name: str, method: Method, *, replace: bool = False) -> None:
+    """Make `method` available as solve(..., method=name); replacing a registered name needs replace=True."""
+    if not isinstance(name, str) or not name.strip():
+        raise ModelError(f"register_method: name {name!r} must be a non-empty string")
+    if not callable(method):
+        raise ModelError(f"register_method: method for {name!r} is a {type(method).__name__}, not callable; pass a "
+                         "function(prepared, **options) -> MethodRun")
+    key = name.lower()
+    if key in METHODS and not replace:
+        what = "the built-in method" if key in BUILTIN_METHODS else "the method registered as"
+        raise ModelError(f"register_method: {what} {key!r} is already registered (for every solve in this process); "
+                         "choose another name, or pass replace=True to replace it")
+    METHODS[key] = method
 
 
 def solve(problem: BilevelProblem, method: str | Method = "ipopt", certificate_tol: float = DEFAULT_TOL,
           **options: Any) -> BilevelResult:
     """Solve a bilevel problem with a registered method name or a callable(prepared, **options) -> MethodRun."""
+    if not isinstance(problem, BilevelProblem):
+        raise ModelError(f"solve: expected a BilevelProblem, got {type(problem).__name__}; declare one with "
+                         "bilevel.BilevelProblem(...) or build a registered one with bilevel.problems.registry.get")
     if callable(method):
         fn, name = method, getattr(method, "__name__", "custom")
     else:
@@ -89,4 +78,7 @@ def solve(problem: BilevelProblem, method: str | Method = "ipopt", certificate_t
     small = prep.canon.lower.n_y <= SMALL_LOWER  # dense algebra of lower-level size: one BLAS thread is faster
     with single_threaded() if small else contextlib.nullcontext():
         run = fn(prep, **options)
+        if not isinstance(run, MethodRun):
+            raise ModelError(f"method {name!r} returned {type(run).__name__}, not a MethodRun; a method must return "
+                             "bilevel.solvers.base.MethodRun(w, status, message) (w None when it has no point)")
         return finalize(prep, run, name, time.perf_counter() - t0, certificate_tol)

@@ -15,7 +15,8 @@ import numpy as np
 from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
 from .base import MethodRun, Prepared, best_of, check_options
-from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish, residual, run_nlp
+from .options import check_numbers
+from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish, residual, run_nlp, settled
 
 SCHEMES: dict[str, type[ComplementarityMode]] = {
     "scholtes": Scholtes,
@@ -44,6 +45,7 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
     tol, max_iter, ipopt, scale, verbose, warm: "auto", None or "hypergradient", as for ipopt)."""
     check_options("relaxation", options, {"scheme", "t0", "factor", "t_min", "comp_tol", "starts", "seed", "polish",
                                           "tol", "max_iter", "ipopt", "scale", "verbose", "warm"})
+    check_numbers(options, positive=("t0", "factor", "t_min", "comp_tol"))
     scheme = options.get("scheme", "scholtes")
     if scheme not in SCHEMES:
         raise ModelError(f"unknown relaxation scheme {scheme!r}; choose one of {', '.join(SCHEMES)}")
@@ -78,7 +80,7 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
     kept = kept_warm_point(prep, points, candidates[i], f"{finals[i].status.value} after {len(paths[i])} relaxation "
                            "steps", total, records, {"scheme": scheme, **warm})
     if kept is not None:
-        return kept
-    return MethodRun(finals[i].w, finals[i].status, f"{source}, start {i} "
-                     f"({len(paths[i])} relaxation steps, last t = {paths[i][-1]['t']:.1e})", total, paths[i],
-                     records, {"scheme": scheme, "best_start": i, **warm})
+        return settled(prep, kept)
+    return settled(prep, MethodRun(finals[i].w, finals[i].status, f"{source}, start {i} ({len(paths[i])} relaxation "
+                                   f"steps, last t = {paths[i][-1]['t']:.1e})", total, paths[i], records,
+                                   {"scheme": scheme, "best_start": i, **warm}))

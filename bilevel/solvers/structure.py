@@ -3,7 +3,8 @@ constraints (projected onto exactly instead of penalized) and the projections th
 
 A row G_i(x) <= 0 of the upper constraints is a ball when it depends on one contiguous block x_S of upper
 variables only, with a constant Hessian 2 a I (a > 0) on that block: G_i = a ||x_S - c||^2 - a r^2. Such rows
-are what `sumsqr(v - c) <= r**2` declares; `norm_2(v) <= r` is not recognized (write its square).
+are what `sumsqr(v - c) <= r**2` declares; `norm_2(v - c) <= r` (sqrt(q) - r with r free of x) is read as its
+square q - r^2 where r >= 0.
 """
 
 from __future__ import annotations
@@ -57,13 +58,13 @@ class BallForm:
 
     row: int
     block: slice
-    values: Callable  # x -> (diag of the Hessian, G_row, gradient on the block), at x = 0
+    values: Callable  # x -> (diag of the Hessian, G_row, gradient on the block, radius of a norm row or 0), at x = 0
 
     def ball(self, n_x: int) -> Ball | None:
         """The ball at the current parameter values, or None if the row is not one there."""
-        diag, value, grad = (np.asarray(v, dtype=float).ravel() for v in self.values(np.zeros(n_x)))
+        diag, value, grad, radius = (np.asarray(v, dtype=float).ravel() for v in self.values(np.zeros(n_x)))
         a = 0.5 * float(diag[0])
-        if a <= 0 or np.max(np.abs(diag - diag[0])) > _REL * abs(diag[0]):
+        if a <= 0 or np.max(np.abs(diag - diag[0])) > _REL * abs(diag[0]) or radius[0] < 0:
             return None
         center = -grad / (2 * a)
         r2 = float(center @ center) - scalar(value) / a
@@ -71,9 +72,12 @@ class BallForm:
 
 
 def _ball_form(canon: CanonicalBilevel, row: int) -> BallForm | None:
-    g = canon.G[row]
+    g, radius = canon.G[row], ca.SX(0)
     if ca.depends_on(g, canon.y):
         return None
+    if g.is_op(ca.OP_SUB) and g.dep(0).is_op(ca.OP_SQRT) and not ca.depends_on(g.dep(1), canon.x):
+        radius = g.dep(1)  # norm_2(v - c) <= r: sqrt(q) <= r is q <= r^2 where r >= 0 (else no point)
+        g = g.dep(0).dep(0) - radius ** 2
     block = _contiguous(depends(g, canon.x))
     if block is None:
         return None
@@ -84,7 +88,8 @@ def _ball_form(canon: CanonicalBilevel, row: int) -> BallForm | None:
     n = block.stop - block.start
     if hess.nnz() != n or not all(i == j for i, j in zip(*hess.sparsity().get_triplet())):
         return None
-    return BallForm(row, block, canon.params.function("ball", [canon.x], [ca.diag(hess), g, ca.gradient(g, xs)]))
+    return BallForm(row, block, canon.params.function("ball", [canon.x], [ca.diag(hess), g, ca.gradient(g, xs),
+                                                                          radius]))
 
 
 def ball_forms(canon: CanonicalBilevel) -> list[BallForm]:

@@ -255,9 +255,12 @@ def test_json_is_strict_and_round_trips() -> None:
 
 
 def test_lyapunov_from_an_unstable_start_is_an_honest_status() -> None:
-    """K = 0 leaves A + BK unstable (spectral radius 1.1) and only 6% of K in [-3, 3]^3 stabilize, so the
-    lower level is infeasible at almost every start: a status, with the point kept, never an exception."""
+    """K = 0 leaves A + BK unstable (spectral radius 1.1) and only 6% of K in [-3, 3]^3 stabilize; at an unstable
+    gain an indefinite P satisfies the LMI and trace(P) is unbounded below, so the KKT system has no solution: a
+    status naming the unbounded lower level (not `infeasible`), with the point kept, never an exception."""
     assert max(abs(np.linalg.eigvals(A3))) == pytest.approx(1.1, abs=1e-9)
     res = lyapunov3().solve("ipopt", starts=2)
-    assert res.status is bl.Status.INFEASIBLE and not res.success
+    assert res.status is bl.Status.ERROR and not res.success
+    assert res.message.startswith("lower level unbounded, not an infeasible problem")
+    assert max(abs(np.linalg.eigvals(A3 + B3 @ res.x["K"]))) > 1.0
     assert "lower_gap" in res.certificate.failed and res.x["K"].shape == (1, 3)

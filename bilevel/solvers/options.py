@@ -1,0 +1,50 @@
+"""Validation of solver and attack options, in one place: a bad value is a ModelError naming the option and what it
+must be, raised before any work (never a float() ValueError or a silent clamp deep inside a method)."""
+
+from __future__ import annotations
+
+import math
+from numbers import Integral, Real
+from typing import Any, Iterable
+
+import numpy as np
+
+from ..certificate import DEFAULT_TOL
+from ..errors import ModelError
+
+
+def _bad(name: str, value: Any, want: str) -> ModelError:
+    return ModelError(f"option {name}={value!r} is invalid: it must be {want}")
+
+
+def _integer(v: Any) -> bool:
+    return isinstance(v, Integral) and not isinstance(v, bool)
+
+
+def _real(v: Any) -> bool:
+    return isinstance(v, Real) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def check_numbers(options: dict[str, Any], positive: Iterable[str] = (), nonnegative: Iterable[str] = ()) -> None:
+    """Each named option that is given must be a finite number, > 0 (positive) or >= 0 (nonnegative)."""
+    for name in positive:
+        if name in options and not (_real(options[name]) and options[name] > 0):
+            raise _bad(name, options[name], "a finite number > 0")
+    for name in nonnegative:
+        if name in options and not (_real(options[name]) and options[name] >= 0):
+            raise _bad(name, options[name], "a finite number >= 0")
+
+
+def check_common_options(options: dict[str, Any], certificate_tol: Any = DEFAULT_TOL) -> None:
+    """Validate the options every method (and every attack) shares, once, before dispatch: starts, max_iter, tol,
+    scale, seed, certificate_tol."""
+    if "starts" in options and not (_integer(options["starts"]) and options["starts"] >= 1):
+        raise _bad("starts", options["starts"], "an integer >= 1 (the number of multistart starts)")
+    if "max_iter" in options and not (_integer(options["max_iter"]) and options["max_iter"] >= 0):
+        raise _bad("max_iter", options["max_iter"], "an integer >= 0")
+    check_numbers(options, positive=("tol", "scale"))
+    check_numbers({"certificate_tol": certificate_tol}, positive=("certificate_tol",))
+    seed = options.get("seed")
+    if not (seed is None or isinstance(seed, (np.random.Generator, np.random.SeedSequence))
+            or (_integer(seed) and seed >= 0)):
+        raise _bad("seed", seed, "None, an integer >= 0, or a numpy Generator / SeedSequence")
