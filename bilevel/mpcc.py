@@ -73,6 +73,13 @@ class ComplementarityMode(ABC):
 
     tau: float = 0.0
 
+    def __post_init__(self) -> None:
+        """A relaxation parameter is a finite number >= 0 (a negative one makes the relaxed set empty)."""
+        tau = getattr(self, "tau", 0.0)
+        if isinstance(tau, bool) or not isinstance(tau, (int, float, np.integer, np.floating)) \
+                or not np.isfinite(tau) or tau < 0:
+            raise ModelError(f"{type(self).__name__}(tau={tau!r}) is invalid: tau must be a finite number >= 0")
+
     def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
         raise UnsupportedPair(self, "scalar")
 

@@ -60,7 +60,7 @@ from ..solvers.ascent import budget_direction, projected_ascent
 from ..solvers.budget_search import BudgetSearch, smallest_budget
 from ..solvers.evolution import evolve
 from ..solvers.projections import Box
-from ..solvers.options import check_common_options, check_numbers
+from ..solvers.options import check_common_options, check_counts, check_numbers
 from ..threads import single_threaded_call
 from .outcome import attack_stat, unstable
 
@@ -343,7 +343,8 @@ def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize:
                          f"{attack.setting.poison!r}: build the attack with poison='u'")
     if attack.setting.delta_u <= 0:
         raise ModelError("de_attack: delta_u = 0 leaves nothing to search; use delta_u > 0")
-    check_common_options({"seed": seed, "tol": tol})
+    check_common_options({"seed": seed, "tol": tol, "max_iter": maxiter})
+    check_counts({"popsize": popsize}, ("popsize",))
     t0 = time.perf_counter()
     oracle = oracle or SDPHypergradient(attack)
     bound = attack.budget()

@@ -23,6 +23,7 @@ from ..result import Status
 from .base import MethodRun, Prepared, check_options
 from .hypergradient import DESCENT_FTOL, DESCENT_MAX_ITER, DESCENT_TOL, Arc, descend
 from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, shared_oracle
+from .options import check_counts
 from .starts import start_points
 
 UNSOLVED = 1e20
@@ -52,9 +53,8 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
         raise ModelError(f"differential-evolution searches the upper box, but {free} of the {lb.size} upper entries "
                          "have no finite bound on some side: declare lb and ub on every upper variable, or use "
                          "method 'hypergradient'")
-    popsize = int(options.get("popsize", 15))
-    if popsize < 1:
-        raise ModelError(f"option popsize={popsize} is invalid: it must be an integer >= 1 (members per upper entry)")
+    check_counts(options, ("popsize",))
+    popsize = options.get("popsize", 15)
     penalty = float(options.get("penalty", DEFAULT_PENALTY))
     oracle = shared_oracle(prep, penalty)
     rng = np.random.default_rng(options.get("seed", 0))

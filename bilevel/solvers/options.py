@@ -35,14 +35,29 @@ def check_numbers(options: dict[str, Any], positive: Iterable[str] = (), nonnega
             raise _bad(name, options[name], "a finite number >= 0")
 
 
+def check_counts(options: dict[str, Any], names: Iterable[str]) -> None:
+    """Each named option that is given must be an integer >= 1 (a count: starts, population size)."""
+    for name in names:
+        if name in options and not (_integer(options[name]) and options[name] >= 1):
+            raise _bad(name, options[name], "an integer >= 1")
+
+
+def check_flags(options: dict[str, Any], names: Iterable[str]) -> None:
+    """Each named option that is given must be True or False (a string such as "no" is not taken as true)."""
+    for name in names:
+        if name in options and not isinstance(options[name], (bool, np.bool_)):
+            raise _bad(name, options[name], "True or False")
+
+
 def check_common_options(options: dict[str, Any], certificate_tol: Any = DEFAULT_TOL) -> None:
     """Validate the options every method (and every attack) shares, once, before dispatch: starts, max_iter, tol,
-    scale, seed, certificate_tol."""
+    scale, seed, certificate_tol, and the switches polish and verbose."""
     if "starts" in options and not (_integer(options["starts"]) and options["starts"] >= 1):
         raise _bad("starts", options["starts"], "an integer >= 1 (the number of multistart starts)")
     if "max_iter" in options and not (_integer(options["max_iter"]) and options["max_iter"] >= 0):
         raise _bad("max_iter", options["max_iter"], "an integer >= 0")
     check_numbers(options, positive=("tol", "scale"))
+    check_flags(options, ("polish", "verbose"))
     check_numbers({"certificate_tol": certificate_tol}, positive=("certificate_tol",))
     seed = options.get("seed")
     if not (seed is None or isinstance(seed, (np.random.Generator, np.random.SeedSequence))
