@@ -227,7 +227,7 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
     report_every = max(1, len(todo) // 20)
     try:
         with _signals_raise(), open(path, "a", encoding="utf-8") as fh:
-            for task, result in executor.imap_unordered(fn, todo):
+            for task, result in executor.imap_unordered(fn, todo, progress):
                 row = {**result, "key": task["key"], "digest": digests[task["key"]], "version": ALGORITHM_VERSION,
                        "task": {k: v for k, v in task.items() if k != "key"}}
                 fh.write(json.dumps(row) + "\n")
