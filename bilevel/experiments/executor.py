@@ -10,6 +10,7 @@ process, even when it is killed with SIGKILL.
 from __future__ import annotations
 
 import ctypes
+import glob
 import logging
 import os
 import re
@@ -35,6 +36,7 @@ WORKER_DEATHS = 2
 """A task whose worker process dies this many times stops the sweep (WorkerLost) instead of being retried."""
 _PR_SET_PDEATHSIG = 1
 _MARKS: str = ""
+MARKS_PREFIX = "bilevel-workers-"
 """In a local worker: the directory where it notes which task it is running (file named by its pid)."""
 
 
@@ -108,6 +110,18 @@ def _run_marked(fn: Callable[[Task], Row], index: int, task: Task) -> Row:
         os.remove(mark)
 
 
+def _remove_stale_marks() -> None:
+    """Remove the marks directories of main processes that were killed (they could not clean up)."""
+    for path in glob.glob(os.path.join(tempfile.gettempdir(), f"{MARKS_PREFIX}*-*")):
+        pid = os.path.basename(path)[len(MARKS_PREFIX):].split("-")[0]
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(path, ignore_errors=True)
+        except (ValueError, PermissionError):  # not ours, or another user's live process
+            pass
+
+
 def _name(task: Task, index: int) -> str:
     return str(task.get("key", f"#{index}"))
 
@@ -123,7 +137,8 @@ class LocalExecutor(Executor):
 
     def _start(self) -> ProcessPoolExecutor:
         if self._pool is None:
-            self._marks = tempfile.mkdtemp(prefix="bilevel-workers-")
+            _remove_stale_marks()
+            self._marks = tempfile.mkdtemp(prefix=f"{MARKS_PREFIX}{os.getpid()}-")
             self._pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_worker_init,
                                              initargs=(os.getpid(), self._marks))
         return self._pool

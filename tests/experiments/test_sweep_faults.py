@@ -4,12 +4,14 @@ table equals an uninterrupted run's, time columns aside, and no process is left 
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 
 import matplotlib.image
@@ -20,6 +22,7 @@ import pytest
 from bilevel.cli import main
 from bilevel.errors import WorkerLost
 from bilevel.experiments import willems
+from bilevel.experiments.executor import MARKS_PREFIX
 from bilevel.files import atomic_open
 
 from . import faulty
@@ -112,7 +115,8 @@ def test_task_killing_its_worker_twice_stops_with_one_line_and_keeps_rows(tmp_pa
 
 def test_main_process_killed_takes_its_workers_and_resume_matches(tmp_path, toy_reference) -> None:
     """SIGKILL of the main process (nothing can run in it): its two workers are gone within 3 s (they die with
-    their parent), and the resumed run's outputs equal the uninterrupted run's."""
+    their parent), the resumed run's outputs equal the uninterrupted run's, and it removes the killed run's
+    temporary directory."""
     out = str(tmp_path / "run")
     proc = subprocess.Popen([sys.executable, "-m", "tests.experiments.faulty", out, str(TOY_TASKS), "0.3"], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
@@ -127,9 +131,11 @@ def test_main_process_killed_takes_its_workers_and_resume_matches(tmp_path, toy_
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
+    stale = os.path.join(tempfile.gettempdir(), f"{MARKS_PREFIX}{proc.pid}-*")
+    assert len(glob.glob(stale)) == 1  # the killed run's marks of running tasks
     lines: list[str] = []
     faulty.reproduce(out, TOY_TASKS, sleep=0.3, progress=lines.append)
-    assert any("already done" in ln for ln in lines)
+    assert any("already done" in ln for ln in lines) and not glob.glob(stale)
     assert _outputs(out) == toy_reference["outputs"]
     _no_strays(out)
 
