@@ -134,7 +134,10 @@ def load_rows(path: str, valid: Validator | None = None,
             good.append(line)
     if bad:
         rejected = path + ".rejected"
-        before = open(rejected, "rb").read() if os.path.exists(rejected) else b""
+        before = b""
+        if os.path.exists(rejected):
+            with open(rejected, "rb") as fh:
+                before = fh.read()
         with atomic_open(rejected, "wb") as fh:
             fh.write(before + b"".join(line for _, _, line in bad))
         with atomic_open(path, "wb") as fh:
