@@ -21,8 +21,9 @@ import pytest
 
 from bilevel.cli import main
 from bilevel.errors import WorkerLost
-from bilevel.experiments import willems
-from bilevel.experiments.executor import MARKS_PREFIX
+from bilevel.experiments import vrft, willems
+from bilevel.experiments.executor import MARKS_PREFIX, LocalExecutor
+from bilevel.experiments.sweep import run_sweep
 from bilevel.files import atomic_open
 
 from . import faulty
@@ -111,6 +112,34 @@ def test_task_killing_its_worker_twice_stops_with_one_line_and_keeps_rows(tmp_pa
     faulty.reproduce(out, TOY_TASKS, sleep=0.02, progress=lines.append, die={3: 2})
     assert any(f"{len(kept)} of {TOY_TASKS} already done" in ln for ln in lines)
     assert _outputs(out) == toy_reference["outputs"]
+
+
+def test_real_vrft_sweep_survives_a_worker_killed_from_outside(tmp_path) -> None:
+    """VRFT max-min attacks (24 tasks) on two workers, one worker SIGKILLed from outside (as the OOM killer does)
+    after the third row: the sweep reports it, reruns what was lost, and its rows and Table-1 cells equal a
+    one-process run's."""
+    tasks = vrft.cell_tasks(2, 0, "paper", "maxmin", "alternating", eps_u=(0.1, 0.2), eps_y=(0.01, 0.037, 0.057))
+    ref = run_sweep(vrft.attack_task, tasks, str(tmp_path / "ref.jsonl"), LocalExecutor(1), None, "ref",
+                    valid=vrft.valid_row)
+    lines, killed = [], []
+
+    def progress(text: str) -> None:
+        lines.append(text)
+        if text.startswith("\r") and len([ln for ln in lines if ln.startswith("\r")]) == 3:
+            killed.append(psutil.Process().children()[0].pid)
+            os.kill(killed[0], signal.SIGKILL)
+
+    with LocalExecutor(2) as executor:
+        rows = run_sweep(vrft.attack_task, tasks, str(tmp_path / "run.jsonl"), executor, progress, "t",
+                         valid=vrft.valid_row)
+    assert len(killed) == 1 and len([ln for ln in lines if "a worker process died" in ln]) == 1
+    strip = lambda rs: [{k: v for k, v in r.items() if k != "wall_time"} for r in rs]  # noqa: E731
+    assert strip(rows) == strip(ref)
+    summary, ref_summary = vrft.summarize(rows), vrft.summarize(ref)
+    assert vrft.table_markdown(summary, "t") == vrft.table_markdown(ref_summary, "t")
+    assert [{k: v for k, v in c.items() if k != "time_ms"} for c in summary.values()] == [
+        {k: v for k, v in c.items() if k != "time_ms"} for c in ref_summary.values()]
+    assert _alive(psutil.Process().children(recursive=True), 5.0) == []
 
 
 def test_main_process_killed_takes_its_workers_and_resume_matches(tmp_path, toy_reference) -> None:
