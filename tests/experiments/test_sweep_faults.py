@@ -13,6 +13,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 
 import matplotlib.image
 import numpy as np
@@ -59,10 +60,17 @@ def _alive(procs: list[psutil.Process], timeout: float) -> list[int]:
         time.sleep(0.05)
 
 
-def _no_strays(out: str) -> None:
-    """No temporary file of an atomic write is left in `out`, and this process has no worker left."""
+def _no_temporaries(out: str) -> None:
+    """No temporary file of an atomic write is left in `out`."""
     assert not [f for f in os.listdir(out) if f.startswith(".")]
-    assert _alive(psutil.Process().children(recursive=True), 5.0) == []
+
+
+@pytest.fixture(autouse=True)
+def no_process_left_behind() -> Iterator[None]:
+    """Every process a test starts (workers, pools' helpers) is gone within 5 s of its end."""
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+    yield
+    assert _alive([p for p in psutil.Process().children(recursive=True) if p.pid not in before], 5.0) == []
 
 
 @pytest.fixture(scope="module")
@@ -94,7 +102,7 @@ def test_worker_killed_mid_run_is_replaced_and_its_task_rerun(tmp_path, marks, t
     with open(os.path.join(out, "rows.jsonl"), encoding="utf-8") as fh:
         assert sorted(json.loads(line)["key"] for line in fh) == sorted(r["key"] for r in rows)
     assert _outputs(out) == toy_reference["outputs"]
-    _no_strays(out)
+    _no_temporaries(out)
 
 
 def test_task_killing_its_worker_twice_stops_with_one_line_and_keeps_rows(tmp_path, marks, toy_reference) -> None:
@@ -104,7 +112,7 @@ def test_task_killing_its_worker_twice_stops_with_one_line_and_keeps_rows(tmp_pa
     out = str(tmp_path / "run")
     with pytest.raises(WorkerLost, match=r"^task x=3 lost its worker process 2 times \(SIGKILL\); finished rows"):
         faulty.reproduce(out, TOY_TASKS, sleep=0.02, die={3: 1000})
-    _no_strays(out)
+    _no_temporaries(out)
     with open(os.path.join(out, "rows.jsonl"), encoding="utf-8") as fh:
         kept = [json.loads(line)["key"] for line in fh]
     assert "x=3" not in kept and len(kept) == len(set(kept)) >= 1
@@ -121,12 +129,12 @@ def test_real_vrft_sweep_survives_a_worker_killed_from_outside(tmp_path) -> None
     tasks = vrft.cell_tasks(2, 0, "paper", "maxmin", "alternating", eps_u=(0.1, 0.2), eps_y=(0.01, 0.037, 0.057))
     ref = run_sweep(vrft.attack_task, tasks, str(tmp_path / "ref.jsonl"), LocalExecutor(1), None, "ref",
                     valid=vrft.valid_row)
-    lines, killed = [], []
+    lines, killed, before = [], [], {p.pid for p in psutil.Process().children()}
 
     def progress(text: str) -> None:
         lines.append(text)
         if text.startswith("\r") and len([ln for ln in lines if ln.startswith("\r")]) == 3:
-            killed.append(psutil.Process().children()[0].pid)
+            killed.append(next(p.pid for p in psutil.Process().children() if p.pid not in before))
             os.kill(killed[0], signal.SIGKILL)
 
     with LocalExecutor(2) as executor:
@@ -139,7 +147,6 @@ def test_real_vrft_sweep_survives_a_worker_killed_from_outside(tmp_path) -> None
     assert vrft.table_markdown(summary, "t") == vrft.table_markdown(ref_summary, "t")
     assert [{k: v for k, v in c.items() if k != "time_ms"} for c in summary.values()] == [
         {k: v for k, v in c.items() if k != "time_ms"} for c in ref_summary.values()]
-    assert _alive(psutil.Process().children(recursive=True), 5.0) == []
 
 
 def test_main_process_killed_takes_its_workers_and_resume_matches(tmp_path, toy_reference) -> None:
@@ -166,7 +173,7 @@ def test_main_process_killed_takes_its_workers_and_resume_matches(tmp_path, toy_
     faulty.reproduce(out, TOY_TASKS, sleep=0.3, progress=lines.append)
     assert any("already done" in ln for ln in lines) and not glob.glob(stale)
     assert _outputs(out) == toy_reference["outputs"]
-    _no_strays(out)
+    _no_temporaries(out)
 
 
 @pytest.mark.parametrize("name", ["rows.jsonl", "timings.json", "table_toy.csv", "report.md", "best.json",
@@ -192,7 +199,7 @@ def test_every_written_file_truncated_anywhere_resumes_to_the_same_outputs(tmp_p
             assert any("set aside 1 malformed row(s)" in ln and "truncated line" in ln for ln in lines) == torn
         with open(os.path.join(out, "rows.jsonl"), encoding="utf-8") as fh:
             assert len(fh.readlines()) == TOY_TASKS
-        _no_strays(out)
+        _no_temporaries(out)
 
 
 def test_corrupt_rows_are_set_aside_by_schema_and_recomputed(tmp_path, toy_reference) -> None:
