@@ -68,3 +68,7 @@ class UnsupportedPair(BilevelError):
 
 class SolverFailed(BilevelError):
     """A backend failed in a way that leaves no usable point; `result` holds what there is."""
+
+
+class WorkerLost(BilevelError):
+    """A sweep task's worker process died (killed, out of memory, a crash in native code) on every retry."""

@@ -11,6 +11,7 @@ import casadi as ca
 import numpy as np
 
 from .certificate import Certificate, GlobalBound
+from .files import atomic_open
 
 _CERT_FLOATS = ("stationarity", "lower_feasibility", "dual_feasibility", "complementarity", "upper_feasibility",
                 "lower_gap", "lower_reference", "tolerance", "y_distance")
@@ -101,7 +102,7 @@ class BilevelResult:
         """Serialize to strict JSON (NaN and inf become null); also write it to `path` when given."""
         text = json.dumps(self.to_dict(), indent=indent, allow_nan=False)
         if path is not None:
-            with open(path, "w", encoding="utf-8") as fh:
+            with atomic_open(path) as fh:
                 fh.write(text)
         return text
 

@@ -10,16 +10,17 @@ from __future__ import annotations
 import csv
 import math
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import Any, Callable, Sequence
 
 from ..errors import ModelError
+from ..files import atomic_open
 from ..problems import registry
 from ..result import BilevelResult
 from ..solvers import solve
 from ..solvers.registry import METHODS_VERSION
 from .executor import open_executor
-from .sweep import run_sweep, stderr_progress
+from .sweep import NUMBER, check_fields, run_sweep, stderr_progress
 
 NOT_APPLICABLE = "not_applicable"
 """Status of a row whose method rejected the problem as outside its scope (a ModelError, e.g. 'global' on an NLP)."""
@@ -55,6 +56,10 @@ class CompareRow:
     def reached(self) -> bool:
         """Known optimum reached to 1e-4 relative with a passing certificate."""
         return self.certified and math.isfinite(self.relative_gap) and self.relative_gap <= 1e-4
+
+
+ROW_SCHEMA = {f.name: {"str": str, "float": NUMBER, "bool": bool, "int": int}[f.type] for f in fields(CompareRow)}
+"""Each CSV column's kind in a row (NaN allowed where a number is unknown)."""
 
 
 def relative_gap(value: float | None, known: float | None) -> float:
@@ -118,10 +123,10 @@ def compare(problems: Sequence[str], methods: Sequence[str], csv_path: str, star
              for name in problems for method in methods]
     with open_executor(workers, dask) as executor:
         rows = run_sweep(compare_task, tasks, os.path.splitext(csv_path)[0] + ".jsonl", executor, progress,
-                         "compare", valid=lambda r: set(COLUMNS) <= r.keys())
+                         "compare", valid=lambda r: check_fields(r, ROW_SCHEMA))
     out = [CompareRow(**{c: r[c] for c in COLUMNS}) for r in rows]
     os.makedirs(os.path.dirname(os.path.abspath(csv_path)), exist_ok=True)
-    with open(csv_path, "w", newline="", encoding="utf-8") as fh:
+    with atomic_open(csv_path, newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(COLUMNS)
         writer.writerows([getattr(r, c) for c in COLUMNS] for r in out)

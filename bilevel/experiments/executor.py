@@ -2,24 +2,42 @@
 
 Both yield finished rows in completion order; the sweep writes them and orders results by task key, so
 the numbers never depend on the executor, the worker count or which worker ran what. `abort` stops
-every worker at once (used on SIGINT/SIGTERM) instead of waiting for running tasks.
+every worker at once (used on SIGINT/SIGTERM) instead of waiting for running tasks. A local worker that dies
+(SIGKILL, the OOM killer) costs a new pool and a rerun of the unfinished tasks; local workers die with the main
+process, even when it is killed with SIGKILL.
 """
 
 from __future__ import annotations
 
+import ctypes
+import glob
 import logging
 import os
 import re
+import shutil
 import signal
+import sys
+import tempfile
+import threading
+import time
 from abc import ABC, abstractmethod
+from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable, Iterator
 
+from ..errors import WorkerLost
 from ..threads import single_threaded
 
 Task = dict[str, Any]
 Row = dict[str, Any]
 DASK_ADDRESS = re.compile(r"^(local|(tcp|tls|ucx|inproc)://\S+)$")
+WORKER_DEATHS = 2
+"""A task whose worker process dies this many times stops the sweep (WorkerLost) instead of being retried."""
+_PR_SET_PDEATHSIG = 1
+_MARKS: str = ""
+MARKS_PREFIX = "bilevel-workers-"
+"""In a local worker: the directory where it notes which task it is running (file named by its pid)."""
 
 
 def run_task(fn: Callable[[Task], Row], task: Task) -> Row:
@@ -34,8 +52,9 @@ class Executor(ABC):
     description: str
 
     @abstractmethod
-    def imap_unordered(self, fn: Callable[[Task], Row], tasks: list[Task]) -> Iterator[tuple[Task, Row]]:
-        """(task, fn(task)) for every task, in completion order."""
+    def imap_unordered(self, fn: Callable[[Task], Row], tasks: list[Task],
+                       report: Callable[[str], None] | None = None) -> Iterator[tuple[Task, Row]]:
+        """(task, fn(task)) for every task, in completion order; `report` hears of workers lost and replaced."""
 
     @abstractmethod
     def abort(self) -> None:
@@ -54,11 +73,57 @@ class Executor(ABC):
             self.abort()
 
 
-def _worker_signals() -> None:
-    """Worker initializer: a Ctrl-C on the process group is the main process's to handle (it stops us), and
-    SIGTERM just ends the worker (a forked worker would otherwise inherit the sweep's raising handler)."""
+def _die_with(parent: int) -> None:
+    """End this process when `parent` ends, however it ends (Linux: PR_SET_PDEATHSIG; elsewhere a watchdog)."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    else:  # pragma: no cover - not Linux
+        def watch() -> None:
+            while os.getppid() == parent:
+                time.sleep(0.5)
+            os._exit(1)
+
+        threading.Thread(target=watch, daemon=True).start()
+    if os.getppid() != parent:  # the parent died before the above took effect
+        os._exit(1)
+
+
+def _worker_init(parent: int, marks: str) -> None:
+    """Worker initializer: a Ctrl-C on the process group is the main process's to handle (it stops us), SIGTERM
+    just ends the worker (a forked worker would otherwise inherit the sweep's raising handler), the worker dies
+    with its parent, and it notes its running task in `marks`."""
+    global _MARKS
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _die_with(parent)
+    _MARKS = marks
+
+
+def _run_marked(fn: Callable[[Task], Row], index: int, task: Task) -> Row:
+    """run_task in a local worker, with `index` noted in the marks directory while it runs."""
+    mark = os.path.join(_MARKS, str(os.getpid()))
+    with open(mark, "w", encoding="utf-8") as fh:
+        fh.write(str(index))
+    try:
+        return run_task(fn, task)
+    finally:
+        os.remove(mark)
+
+
+def _remove_stale_marks() -> None:
+    """Remove the marks directories of main processes that were killed (they could not clean up)."""
+    for path in glob.glob(os.path.join(tempfile.gettempdir(), f"{MARKS_PREFIX}*-*")):
+        pid = os.path.basename(path)[len(MARKS_PREFIX):].split("-")[0]
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(path, ignore_errors=True)
+        except (ValueError, PermissionError):  # not ours, or another user's live process
+            pass
+
+
+def _name(task: Task, index: int) -> str:
+    return str(task.get("key", f"#{index}"))
 
 
 class LocalExecutor(Executor):
@@ -68,32 +133,85 @@ class LocalExecutor(Executor):
         self.workers = workers or os.cpu_count() or 1
         self.description = f"{self.workers} local worker process{'es' if self.workers > 1 else ''}"
         self._pool: ProcessPoolExecutor | None = None
+        self._marks = ""
 
-    def imap_unordered(self, fn: Callable[[Task], Row], tasks: list[Task]) -> Iterator[tuple[Task, Row]]:
+    def _start(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            _remove_stale_marks()
+            self._marks = tempfile.mkdtemp(prefix=f"{MARKS_PREFIX}{os.getpid()}-")
+            self._pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_worker_init,
+                                             initargs=(os.getpid(), self._marks))
+        return self._pool
+
+    def imap_unordered(self, fn: Callable[[Task], Row], tasks: list[Task],
+                       report: Callable[[str], None] | None = None) -> Iterator[tuple[Task, Row]]:
         if self.workers == 1:
             for task in tasks:
                 yield task, run_task(fn, task)
             return
-        if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_worker_signals)
-        futures = {self._pool.submit(run_task, fn, t): t for t in tasks}
-        for fut in as_completed(futures):
-            yield futures[fut], fut.result()
+        left, deaths = dict(enumerate(tasks)), Counter[int]()
+        while left:
+            pool = self._start()
+            try:
+                futures = {pool.submit(_run_marked, fn, i, t): i for i, t in left.items()}
+                for fut in as_completed(futures):
+                    row = fut.result()
+                    i = futures[fut]
+                    del left[i]
+                    yield tasks[i], row
+            except BrokenProcessPool:
+                lost = self._lost()
+                self.abort()
+                deaths.update(lost.keys() or [-1])  # -1: deaths outside any task (a worker failed to start)
+                if deaths[-1] >= WORKER_DEATHS:
+                    raise WorkerLost(f"worker processes died {deaths[-1]} times outside any task; check that "
+                                     "`python -c 'import bilevel'` works and memory is free, then rerun") from None
+                named = ", ".join(f"{_name(tasks[i], i)} ({why})" for i, why in lost.items()) or "no task"
+                if worst := [i for i in lost if deaths[i] >= WORKER_DEATHS]:
+                    raise WorkerLost(f"task {_name(tasks[worst[0]], worst[0])} lost its worker process "
+                                     f"{deaths[worst[0]]} times ({lost[worst[0]]}); finished rows are kept: free "
+                                     "memory or use fewer workers, then rerun the same command to resume") from None
+                if report:
+                    report(f"a worker process died running {named}: new pool, rerunning {len(left)} unfinished "
+                           "task(s)")
+
+    def _lost(self) -> dict[int, str]:
+        """Index -> how its worker died, for the tasks whose worker died (not those the broken pool stopped)."""
+        manager = getattr(self._pool, "_executor_manager_thread", None)
+        if manager is not None:
+            manager.join(5)  # it stops and reaps every worker of the broken pool: exit codes are final after this
+        running: dict[int, str] = {}
+        for proc in list((self._pool._processes or {}).values()) if self._pool else []:
+            try:
+                with open(os.path.join(self._marks, str(proc.pid)), encoding="utf-8") as fh:
+                    index = int(fh.read())
+            except (OSError, ValueError):
+                continue
+            code = proc.exitcode
+            running[index] = "exit code None" if code is None else (
+                signal.Signals(-code).name if code < 0 and -code in signal.valid_signals() else f"exit code {code}")
+        died = {i: why for i, why in running.items() if why not in ("exit code None", "SIGTERM")}
+        return died or running  # SIGTERM from outside looks like the pool's own clean-up: suspect every one
 
     def abort(self) -> None:
         if self._pool is None:
             return
         # ProcessPoolExecutor has no terminate() before Python 3.14 and shutdown alone waits for running tasks;
         # queued futures are not cancelled first (3.11 then fails to mark them broken, with a traceback)
-        for proc in list((self._pool._processes or {}).values()):
+        procs = list((self._pool._processes or {}).values())
+        for proc in procs:
             proc.terminate()
         self._pool.shutdown(wait=False)
+        for proc in procs:
+            proc.join(5)
         self._pool = None
+        shutil.rmtree(self._marks, ignore_errors=True)
 
     def close(self) -> None:
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
+            shutil.rmtree(self._marks, ignore_errors=True)
 
 
 class DaskExecutor(Executor):
@@ -116,7 +234,8 @@ class DaskExecutor(Executor):
         self.description = f"Dask cluster {address} ({n} worker{'s' if n != 1 else ''} at start)"
         self._futures: list[Any] = []
 
-    def imap_unordered(self, fn: Callable[[Task], Row], tasks: list[Task]) -> Iterator[tuple[Task, Row]]:
+    def imap_unordered(self, fn: Callable[[Task], Row], tasks: list[Task],
+                       report: Callable[[str], None] | None = None) -> Iterator[tuple[Task, Row]]:
         from distributed import as_completed as dask_completed
 
         # pure=False: a fresh Dask key per submission, never a result cached from another run

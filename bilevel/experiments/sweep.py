@@ -3,14 +3,17 @@
 A task is a JSON-serializable dict with a unique "key"; fn(task) may depend on nothing else. A row
 stores the task and its digest (every task field plus ALGORITHM_VERSION), and a rerun reuses a row
 only when key and digest both match, so a row computed under other settings is never reused (it stays
-in the file, unused). A row that does not parse or lacks fields is reported, set aside in
-`<path>.rejected` and recomputed. SIGINT/SIGTERM stop the workers at once and keep every finished row.
+in the file, unused). A row that is not UTF-8 or JSON, was torn by a kill mid-write, or fails the sweep's
+schema (check_fields: each field's kind; "false" is no bool) is reported, set aside in `<path>.rejected` and
+recomputed. Every other file is written atomically (bilevel.files). SIGINT/SIGTERM stop the workers at once and
+keep every finished row.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import signal
 import sys
@@ -20,6 +23,7 @@ from contextlib import contextmanager
 from importlib import metadata
 from typing import Any, Callable, Iterable, Iterator
 
+from ..files import atomic_open
 from .executor import Executor, LocalExecutor
 
 try:
@@ -28,7 +32,6 @@ except metadata.PackageNotFoundError:  # pragma: no cover - running from a sourc
     _PACKAGE = "unknown"
 ALGORITHM_VERSION = f"bilevel-{_PACKAGE}/sweep-2"
 """Part of every row's digest: bump the suffix when an attack changes its numbers for the same task."""
-ROW_FIELDS = ("key", "digest", "version", "task")
 
 
 class SweepInterrupted(KeyboardInterrupt):
@@ -55,48 +58,92 @@ def stderr_progress(text: str) -> None:
     sys.stderr.flush()
 
 
-def _malformed(line: str, valid: Callable[[dict[str, Any]], bool] | None) -> tuple[dict[str, Any] | None, str]:
+Kind = Any
+"""A field's kind in a row schema: bool, int, str, list, dict, None, FINITE, NUMBER, or a tuple of kinds."""
+FINITE = "finite number"
+NUMBER = "number (inf and nan allowed)"
+ROW_SCHEMA: dict[str, Kind] = {"key": str, "digest": str, "version": str, "task": dict}
+"""Fields every row has, whatever the sweep."""
+Validator = Callable[[dict[str, Any]], str]
+"""A sweep's row check: "" for a usable row, else why not (check_fields with the sweep's schema)."""
+
+
+def _is(value: Any, kind: Kind) -> bool:
+    if isinstance(kind, tuple):
+        return any(_is(value, k) for k in kind)
+    if kind is None:
+        return value is None
+    if kind in (FINITE, NUMBER):
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        return number and (kind == NUMBER or math.isfinite(value))
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, kind)  # bool is exact: the string "false" is no bool
+
+
+def _kind_name(kind: Kind) -> str:
+    if isinstance(kind, tuple):
+        return " or ".join(map(_kind_name, kind))
+    return "null" if kind is None else kind if isinstance(kind, str) else kind.__name__
+
+
+def check_fields(row: dict[str, Any], schema: dict[str, Kind], what: str = "result field") -> str:
+    """"" if `row` has every field of `schema` with its kind, else the problems ("lacks result fields (value)",
+    "unstable: 'false' is not bool")."""
+    missing = [f for f in schema if f not in row]
+    if missing:
+        return f"lacks {what}s ({', '.join(missing)})"
+    wrong = [f"{f}: {row[f]!r:.30} is not {_kind_name(k)}" for f, k in schema.items() if not _is(row[f], k)]
+    return "; ".join(wrong)
+
+
+def _malformed(line: bytes, valid: Validator | None) -> tuple[dict[str, Any] | None, str]:
     """(row, "") for a usable row, else (None, why not)."""
-    if not line.endswith("\n"):
+    if not line.endswith(b"\n"):
         return None, "truncated line"
     try:
-        row = json.loads(line)
+        row = json.loads(line.decode("utf-8"))
+    except UnicodeDecodeError:
+        return None, "not UTF-8"
     except json.JSONDecodeError as exc:
         return None, f"not JSON ({exc.msg})"
     if not isinstance(row, dict):
         return None, "not a JSON object"
-    missing = [f for f in ROW_FIELDS if f not in row]
+    missing = [f for f in ROW_SCHEMA if f not in row]
     if missing:
         return None, f"lacks {', '.join(missing)}"
-    if valid is not None and not valid(row):
-        return None, "lacks result fields"
-    return row, ""
+    why = check_fields(row, ROW_SCHEMA, "row field") or (valid(row) if valid is not None else "")
+    return (None, why) if why else (row, "")
 
 
-def load_rows(path: str, valid: Callable[[dict[str, Any]], bool] | None = None,
+def load_rows(path: str, valid: Validator | None = None,
               report: Callable[[str], None] | None = None) -> list[dict[str, Any]]:
-    """The usable rows of a JSONL results file; malformed lines are moved to `<path>.rejected` and reported."""
+    """The usable rows of a JSONL results file; malformed lines (bad UTF-8 or JSON, a torn last line, a field
+    missing or of the wrong kind) are moved to `<path>.rejected` and reported in one line."""
     if not os.path.exists(path):
         return []
-    with open(path, encoding="utf-8") as fh:
+    with open(path, "rb") as fh:
         lines = [line for line in fh if line.strip()]
     rows, good, bad = [], [], []
     for i, line in enumerate(lines, 1):
         row, why = _malformed(line, valid)
         if row is None:
-            bad.append((i, why, line if line.endswith("\n") else line + "\n"))
+            bad.append((i, why, line if line.endswith(b"\n") else line + b"\n"))
         else:
             rows.append(row)
             good.append(line)
     if bad:
-        with open(path + ".rejected", "a", encoding="utf-8") as fh:
-            fh.writelines(line for _, _, line in bad)
-        tmp = path + ".tmp"
-        with open(tmp, "w", encoding="utf-8") as fh:
+        rejected = path + ".rejected"
+        before = b""
+        if os.path.exists(rejected):
+            with open(rejected, "rb") as fh:
+                before = fh.read()
+        with atomic_open(rejected, "wb") as fh:
+            fh.write(before + b"".join(line for _, _, line in bad))
+        with atomic_open(path, "wb") as fh:
             fh.writelines(good)
-        os.replace(tmp, path)
         if report:
-            report(f"{path}: set aside {len(bad)} malformed row(s) in {path}.rejected, to be recomputed: "
+            report(f"{path}: set aside {len(bad)} malformed row(s) in {rejected}, to be recomputed: "
                    + "; ".join(f"line {i}: {why}" for i, why, _ in bad[:5]) + (" ..." if len(bad) > 5 else ""))
     return rows
 
@@ -111,18 +158,26 @@ def settings_of(rows: Iterable[dict[str, Any]], *fields: str) -> dict[str, list[
     return {f: sorted((json.loads(v) for v in vs), key=str) for f, vs in out.items()}
 
 
-def load_timings(path: str) -> dict[str, tuple[int, float]]:
-    """Sweep name -> (attacks run, wall seconds) recorded by earlier invocations in a timings.json file."""
+def load_timings(path: str, report: Callable[[str], None] | None = None) -> dict[str, tuple[int, float]]:
+    """Sweep name -> (attacks run, wall seconds) recorded by earlier invocations in a timings.json file; an
+    unreadable one (e.g. cut by a run killed before writes were atomic) is reported and rewritten empty."""
     if not os.path.exists(path):
         return {}
-    with open(path, encoding="utf-8") as fh:
-        return {k: (int(v[0]), float(v[1])) for k, v in json.load(fh).items()}
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return {str(k): (int(v[0]), float(v[1])) for k, v in json.load(fh).items()}
+    except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
+        if report:
+            report(f"{path}: unreadable ({type(exc).__name__}); the wall times it held are lost, it now starts empty")
+        with atomic_open(path) as fh:
+            fh.write("{}")
+        return {}
 
 
 def record_timing(path: str, timings: dict[str, tuple[int, float]], name: str, count: int, seconds: float) -> None:
-    """Store one sweep's (attacks run, wall seconds) in `timings` and rewrite timings.json (kept across resumes)."""
+    """Store one sweep's (attacks run, wall seconds) in `timings` and rewrite timings.json atomically."""
     timings[name] = (int(count), float(seconds))
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_open(path) as fh:
         json.dump(timings, fh, indent=1)
 
 
@@ -147,7 +202,7 @@ def _signals_raise() -> Iterator[None]:
 def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[dict[str, Any]], path: str,
               executor: Executor | None = None, progress: Callable[[str], None] | None = stderr_progress,
               label: str = "sweep", timed: Callable[[list[dict[str, Any]], float], None] | None = None,
-              valid: Callable[[dict[str, Any]], bool] | None = None) -> list[dict[str, Any]]:
+              valid: Validator | None = None) -> list[dict[str, Any]]:
     """Run fn on every task without a matching row in `path` (on `executor`, default all local cores), appending
     rows as they finish; rows come back in task order. timed(tasks run, wall seconds) follows the last one."""
     tasks = list(tasks)
@@ -175,7 +230,7 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
     report_every = max(1, len(todo) // 20)
     try:
         with _signals_raise(), open(path, "a", encoding="utf-8") as fh:
-            for task, result in executor.imap_unordered(fn, todo):
+            for task, result in executor.imap_unordered(fn, todo, progress):
                 row = {**result, "key": task["key"], "digest": digests[task["key"]], "version": ALGORITHM_VERSION,
                        "task": {k: v for k, v in task.items() if k != "key"}}
                 fh.write(json.dumps(row) + "\n")

@@ -13,9 +13,11 @@ import numpy as np
 
 from ..attacks.vrft import CONVENTIONS, VRFTAttack, attack_instance
 from ..attacks.vrft_methods import ATTACKS, MAX_ITER, attack_budget_path, attack_summary
+from ..files import atomic_open
 from .stats import mean_interval, wilson_interval
 from .executor import open_executor
-from .sweep import load_timings, record_timing, run_sweep, settings_of, stderr_progress
+from .sweep import (FINITE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of,
+                    stderr_progress)
 
 EPS_U = (0.0, 0.1, 0.2)
 EPS_Y = (0.01, 0.023, 0.037, 0.05, 0.057)
@@ -27,7 +29,8 @@ PAPER_TABLE1 = {
 }
 """The paper's Table 1: % unstable closed loops out of 512 simulations (rows eps_u, columns eps_y)."""
 N_SAMPLES, NORM = 512, "l2"
-ROW_FIELDS = {"value", "unstable", "learner_loss", "wall_time", "theta_poisoned"}
+ROW_SCHEMA = {"value": NUMBER, "unstable": bool, "learner_loss": NUMBER, "wall_time": FINITE, "theta_poisoned": list}
+"""The fields of a row (of each cell of a budget-path row) that the summaries read."""
 
 def sim_seeds(seed: int, sims: int) -> list[int]:
     """One integer seed per simulation, from SeedSequence(seed).spawn(sims)."""
@@ -69,11 +72,15 @@ def cell_tasks(sims: int, seed: int, convention: str, objective: str, method: st
     return tasks
 
 
-def valid_row(row: dict[str, Any]) -> bool:
-    """A row has every field the summaries read (each cell of a budget-path row too)."""
-    cells = row.get("cells", [row])
-    return isinstance(cells, list) and all(isinstance(c, dict) and ROW_FIELDS <= c.keys() for c in cells) and (
-        "cells" not in row or all("eps_y" in c for c in cells))
+def valid_row(row: dict[str, Any]) -> str:
+    """"" if a row has every field the summaries read, of its kind (each cell of a budget-path row too)."""
+    if "cells" not in row:
+        return check_fields(row, ROW_SCHEMA)
+    cells = row["cells"]
+    if not isinstance(cells, list) or not all(isinstance(c, dict) for c in cells):
+        return "cells: not a list of objects"
+    return next((f"cell {i}: {why}" for i, c in enumerate(cells)
+                 if (why := check_fields(c, {**ROW_SCHEMA, "eps_y": FINITE}))), "")
 
 
 def cell_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -137,7 +144,7 @@ def write_csv(summary: dict, path: str) -> None:
     """One row per cell."""
     import csv
 
-    with open(path, "w", newline="", encoding="utf-8") as fh:
+    with atomic_open(path, newline="") as fh:
         w = csv.writer(fh)
         cols = ["n", "unstable", "rate", "rate_lo", "rate_hi", "value", "value_lo", "value_hi", "loss", "loss_lo",
                 "loss_hi", "time_ms"]
@@ -167,7 +174,7 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
              ("destabilize-paper", side, "paper", "destabilize", "joint"),
              ("targeted-paper", side, "paper", "targeted", "alternating")]
     timings_path = os.path.join(out_dir, "timings.json")
-    timings = load_timings(timings_path)
+    timings = load_timings(timings_path, progress)
     with open_executor(workers, dask) as executor:
         for name, n, convention, objective, method in plan:
             tasks = cell_tasks(n, seed, convention, objective, method)
@@ -181,7 +188,7 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
         write_csv(s, os.path.join(out_dir, f"table_{name}.csv"))
     figures = vrft_figures.make_all(summaries, out_dir, seed)
     path = os.path.join(out_dir, "report.md")
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_open(path) as fh:
         fh.write(vrft_figures.report(summaries, figures, sims, side, timings, executor.description,
                                      settings_of([r for rs in runs.values() for r in rs], "root_seed", "N", "norm")
                                      | {"version": sorted({r["version"] for rs in runs.values() for r in rs})}))

@@ -15,12 +15,14 @@ from ..ddc.analysis import closed_loop_bode, closed_loop_step  # noqa: E402
 from ..ddc.bases import controller_tf  # noqa: E402
 from ..ddc.data import simulate  # noqa: E402
 from ..attacks.vrft import CONVENTIONS, PAPER_THETA0  # noqa: E402
+from ..files import atomic_path  # noqa: E402
 from .vrft import EPS_U, EPS_Y, PAPER_TABLE1, make_attack, sim_seeds, table_markdown  # noqa: E402
 
 
 def _save(fig: plt.Figure, out_dir: str, name: str) -> str:
     for ext in ("png", "pdf"):
-        fig.savefig(os.path.join(out_dir, f"{name}.{ext}"), dpi=130, bbox_inches="tight")
+        with atomic_path(os.path.join(out_dir, f"{name}.{ext}")) as tmp:
+            fig.savefig(tmp, dpi=130, bbox_inches="tight")
     plt.close(fig)
     return f"{name}.png"
 

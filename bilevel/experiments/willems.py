@@ -32,11 +32,13 @@ from ..ddc.data import batch_reactor_data  # noqa: E402
 from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller  # noqa: E402
 from ..ddc.plants import batch_reactor  # noqa: E402
 from ..errors import BilevelError  # noqa: E402
+from ..files import atomic_open, atomic_path  # noqa: E402
 from ..problems.willems import (DEFAULT_REG, SOLVER_SELECTIONS, WillemsSetting, build_attack,  # noqa: E402
                                 selection_applies)
 from .stats import mean_interval, wilson_interval  # noqa: E402
 from .executor import open_executor  # noqa: E402
-from .sweep import load_timings, record_timing, run_sweep, settings_of, stderr_progress  # noqa: E402
+from .sweep import (FINITE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of,  # noqa: E402
+                    stderr_progress)
 from .willems_selection import selection_table  # noqa: E402
 
 DELTA_Y = 1e-3
@@ -95,14 +97,18 @@ LEARNER_TEXT = {
 NOT_DEFINED = ("Not run for the `{learner}` selection: the solver's own Q is defined (and differentiable) only where "
                "the SDP ignores the poisoning, i.e. input poisoning without an input cost; rerun with "
                "`--selection min-norm` or `tikhonov` for state poisoning and the lqr-r design.")
-ROW_FIELDS = {"horizon", "method", "delta_u", "criterion", "design", "poison", "seed", "unstable", "wall_time",
-              "reference_radius", "spectral_radius", "eig_abs_sum", "objective"}
+SETTING_SCHEMA = {"experiment": str, "horizon": int, "method": str, "delta_u": FINITE, "criterion": str, "design": str,
+                  "poison": str, "seed": int, "selection": str}
+ROW_SCHEMA = {**SETTING_SCHEMA, "unstable": bool, "wall_time": FINITE, "reference_radius": NUMBER,
+              "spectral_radius": NUMBER, "eig_abs_sum": NUMBER, "objective": (NUMBER, None)}
+"""The fields of a row that the summaries and figures read (an error row: its settings and the error)."""
 
 
-def valid_row(row: dict[str, Any]) -> bool:
-    """A row has every field the summaries and figures read (an error row: its settings and the error)."""
-    need = {"horizon", "method", "delta_u", "criterion", "design", "poison", "error"} if "error" in row else ROW_FIELDS
-    return need <= row.keys() and (row.get("experiment") != "paper" or "error" in row or "du" in row)
+def valid_row(row: dict[str, Any]) -> str:
+    """"" if a row has every field the summaries and figures read, of its kind; else why not."""
+    if "error" in row:
+        return check_fields(row, {**SETTING_SCHEMA, "error": str})
+    return check_fields(row, {**ROW_SCHEMA, **({"du": list} if row.get("experiment") == "paper" else {})})
 
 
 def _task(plan: Plan, root_seed: int, experiment: str, i: int, seeds: tuple[int, int], method: str,
@@ -217,7 +223,7 @@ def _rate(c: dict[str, float] | None) -> str:
 def write_csv(summary: dict[tuple, dict[str, float]], fields: tuple[str, ...], path: str) -> str:
     """One CSV row per summary cell."""
     cols = list(next(iter(summary.values())).keys()) if summary else []
-    with open(path, "w", newline="", encoding="utf-8") as fh:
+    with atomic_open(path, newline="") as fh:
         w = csv.writer(fh)
         w.writerow(list(fields) + cols)
         for key, cell in summary.items():
@@ -290,7 +296,8 @@ def path_thresholds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 # -- figures --------------------------------------------------------------------------------------------------
 def _save(fig: Figure, out_dir: str, name: str) -> str:
     for ext in ("png", "pdf"):
-        fig.savefig(os.path.join(out_dir, f"{name}.{ext}"), dpi=130, bbox_inches="tight")
+        with atomic_path(os.path.join(out_dir, f"{name}.{ext}")) as tmp:
+            fig.savefig(tmp, dpi=130, bbox_inches="tight")
     return f"{name}.png"
 
 
@@ -499,7 +506,7 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
         "De Persis–Tesi Thm 4 (Qx = I, R = I), stabilizing is Thm 3. CSV: `table_designs.csv`.", "",
     ]
     path = os.path.join(out_dir, "report.md")
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_open(path) as fh:
         fh.write("\n".join(lines))
     return path
 
@@ -524,7 +531,7 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
     sweeps = {name: ([t for t in tasks if selection_applies(selection, t["poison"], t["design"])], fields)
               for name, (tasks, fields) in sweeps.items()}
     timings_path = os.path.join(out_dir, "timings.json")
-    rows, summaries, wall = {}, {}, load_timings(timings_path)
+    rows, summaries, wall = {}, {}, load_timings(timings_path, progress)
     with open_executor(workers, dask) as executor:
         for name, (tasks, fields) in sweeps.items():
             rows[name] = run_sweep(attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress,
@@ -535,15 +542,15 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
             write_csv(summaries[name], fields, os.path.join(out_dir, f"table_{name}.csv"))
     tables = {"paper": paper_table, "remark": remark_table, "designs": design_table}
     for name, fn in tables.items():
-        with open(os.path.join(out_dir, f"table_{name}.md"), "w", encoding="utf-8") as fh:
+        with atomic_open(os.path.join(out_dir, f"table_{name}.md")) as fh:
             fh.write(fn(summaries[name], plan))
     fig9, signals = figure_signals(rows["paper"], summaries["paper"], plan, out_dir)
     figures = {"fig7": figure_eigenvalues(summaries["paper"], plan, out_dir),
                "fig8": figure_objective(summaries["paper"], plan, out_dir), "fig9": fig9}
-    with open(os.path.join(out_dir, "plan.json"), "w", encoding="utf-8") as fh:
+    with atomic_open(os.path.join(out_dir, "plan.json")) as fh:
         json.dump({**asdict(plan), "seed": seed, "reg": DEFAULT_REG, "selection": selection}, fh, indent=2)
     selection_md = selection_table(plan.horizons, [s for s, _ in sim_seeds(seed, min(plan.sims, 64))], out_dir)
-    with open(os.path.join(out_dir, "table_selection.md"), "w", encoding="utf-8") as fh:
+    with atomic_open(os.path.join(out_dir, "table_selection.md")) as fh:
         fh.write(selection_md)
     every = [r for rs in rows.values() for r in rs]
     settings = settings_of(every, "root_seed", "selection", "reg") | {"version": sorted({r["version"] for r in every})}

@@ -16,12 +16,14 @@ import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from ..attacks.willems import smallest_destabilizing_budget  # noqa: E402
+from ..files import atomic_open, atomic_path  # noqa: E402
 from ..problems.willems import WillemsSetting  # noqa: E402
 from .executor import open_executor  # noqa: E402
-from .sweep import run_sweep, stderr_progress  # noqa: E402
+from .sweep import NUMBER, check_fields, run_sweep, stderr_progress  # noqa: E402
 from .willems import sim_seeds  # noqa: E402
 
-BUDGET_FIELDS = ("horizon", "selection", "data_seed", "delta_star", "attacks")
+BUDGET_SCHEMA = {"horizon": int, "selection": str, "data_seed": int, "delta_star": NUMBER, "attacks": int}
+"""A row's fields and kinds (delta_star inf: not destabilized up to 1.0)."""
 HORIZONS = (15, 50)
 SELECTIONS = ("min-norm", "clarabel", "scs")
 """The learners delta_u* is reported for: the default and the two SDP solvers' own Q (tikhonov is the
@@ -47,8 +49,9 @@ def budget_distribution(horizons: tuple[int, ...], selections: tuple[str, ...], 
               "attack_seed": attack_seed, "starts": starts, "root_seed": seed}
              for n in horizons for sel in selections for i, (data_seed, attack_seed) in seeds]
     with open_executor(workers, dask) as executor:
-        rows = run_sweep(budget_task, tasks, path, executor, progress, "willems-budget")
-    return [{k: r[k] for k in BUDGET_FIELDS} for r in rows]
+        rows = run_sweep(budget_task, tasks, path, executor, progress, "willems-budget",
+                         valid=lambda r: check_fields(r, BUDGET_SCHEMA))
+    return [{k: r[k] for k in BUDGET_SCHEMA} for r in rows]
 
 
 def run_budget(sims: int = 16, out_dir: str = "out/willems-budget", seed: int = 0, workers: int | None = None,
@@ -86,7 +89,7 @@ def summary_markdown(rows: list[dict[str, float]]) -> str:
 def write_outputs(rows: list[dict[str, float]], out_dir: str) -> str:
     """budget.csv, budget.md (summary_markdown) and fig_budget_cdf.png (empirical CDF per horizon and selection)."""
     os.makedirs(out_dir, exist_ok=True)
-    with open(os.path.join(out_dir, "budget.csv"), "w", newline="", encoding="utf-8") as fh:
+    with atomic_open(os.path.join(out_dir, "budget.csv"), newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
@@ -102,8 +105,9 @@ def write_outputs(rows: list[dict[str, float]], out_dir: str) -> str:
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(os.path.join(out_dir, "fig_budget_cdf.png"), dpi=150)
+    with atomic_path(os.path.join(out_dir, "fig_budget_cdf.png")) as tmp:
+        fig.savefig(tmp, dpi=150)
     table = summary_markdown(rows)
-    with open(os.path.join(out_dir, "budget.md"), "w", encoding="utf-8") as fh:
+    with atomic_open(os.path.join(out_dir, "budget.md")) as fh:
         fh.write(table)
     return table

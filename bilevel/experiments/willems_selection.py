@@ -17,6 +17,7 @@ import numpy as np
 
 from ..ddc.data import batch_reactor_data
 from ..ddc.depersis_tesi import lqr_controller, min_norm_q
+from ..files import atomic_open
 
 SELECTIONS = ("min-norm", "clarabel")
 
@@ -43,7 +44,7 @@ def selection_table(horizons: tuple[int, ...], seeds: list[int], out_dir: str) -
         gains = [input_gains(*batch_reactor_data(n, np.random.default_rng(s))) for s in seeds]
         rows.append({"horizon": n, "sims": len(seeds), **{k: float(np.median([g[k] for g in gains]))
                                                           for k in (*SELECTIONS, "null_share")}})
-    with open(os.path.join(out_dir, "table_selection.csv"), "w", newline="", encoding="utf-8") as fh:
+    with atomic_open(os.path.join(out_dir, "table_selection.csv"), newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)

@@ -28,14 +28,6 @@ def _strip_times(rows: list[dict]) -> list[dict]:
     return [{k: v for k, v in r.items() if k != "wall_time"} for r in rows]
 
 
-@pytest.fixture(scope="module")
-def willems_seed0(tmp_path_factory) -> str:
-    """An uninterrupted quick Willems reproduction (1 sim, seed 0, 2 workers): the reference tables."""
-    out = str(tmp_path_factory.mktemp("willems") / "seed0")
-    willems.run_reproduction(sims=1, out_dir=out, quick=True, seed=0, progress=None, workers=2)
-    return out
-
-
 @pytest.mark.parametrize("signum,executor", [(signal.SIGINT, []), (signal.SIGTERM, []),
                                              (signal.SIGINT, ["--dask", "local"])])
 def test_signal_to_main_process_only_stops_within_5s_and_resume_matches(tmp_path, willems_seed0, signum,

@@ -1,0 +1,48 @@
+"""Whole-file writes that are never seen half-done: write a temporary file beside the target, fsync, os.replace.
+
+A run killed mid-write leaves the previous file (or none) and at most a hidden temporary `.<name>.<tag><ext>`;
+readers never meet a truncated table, report, figure or timings.json.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from contextlib import contextmanager
+from typing import IO, Iterator
+
+
+@contextmanager
+def atomic_path(path: str) -> Iterator[str]:
+    """A temporary name beside `path` (same extension, so savefig and np.savez keep the format) to write to;
+    on normal exit it is fsynced and renamed over `path`, on an exception removed."""
+    directory, name = os.path.split(os.path.abspath(path))
+    ext = os.path.splitext(name)[1]
+    tmp = os.path.join(directory, f".{name}.{os.getpid()}-{uuid.uuid4().hex[:8]}{ext}")
+    try:
+        yield tmp
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    if hasattr(os, "O_DIRECTORY"):  # make the rename itself durable (POSIX)
+        fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+@contextmanager
+def atomic_open(path: str, mode: str = "w", encoding: str | None = "utf-8", newline: str | None = None) -> Iterator[IO]:
+    """open(path, mode) whose content replaces `path` only once the block finished (see atomic_path)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, mode, encoding=None if "b" in mode else encoding, newline=newline) as fh:
+            yield fh
+            fh.flush()
