@@ -17,6 +17,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from .errors import BilevelError, InvalidData, ModelError, UnknownName, UnknownOption
+from .files import atomic_open
 from .problems import registry
 from .solvers import METHODS, solve
 
@@ -164,7 +165,7 @@ def _cmd_attack(args: argparse.Namespace) -> int:
     if args.json:
         arrays = {"theta_clean": result.stats["theta_clean"].tolist(), "theta_poisoned": result.y["theta"].tolist(),
                   **{k: v.tolist() for k, v in result.x.items()}}
-        with open(args.json, "w", encoding="utf-8") as fh:
+        with atomic_open(args.json) as fh:
             json.dump({"problem": args.problem, **attack_summary(result), **arrays}, fh, indent=2)
         print(f"wrote {args.json}")
     return 0
@@ -196,7 +197,7 @@ def _cmd_willems_destabilize(args: argparse.Namespace) -> int:
         print(f"{key:>18}: {value}")
     print(f"{'gain':>18}: {np.array2string(result.stats['gain'], precision=5)}")
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
+        with atomic_open(args.json) as fh:
             json.dump({"problem": args.problem, "setting": dataclasses.asdict(attack.setting), **row},
                       fh, indent=2)
         print(f"wrote {args.json}")
@@ -309,7 +310,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         rows = compare(problems, methods, os.path.join(args.out, "compare.csv"), starts=args.starts, seed=args.seed,
                        workers=args.workers, dask=args.dask, params=params)
         table = markdown_table(rows, params)
-        with open(os.path.join(args.out, "compare.md"), "w", encoding="utf-8") as fh:
+        with atomic_open(os.path.join(args.out, "compare.md")) as fh:
             fh.write(table)
         print(table)
         print(f"wrote {args.out}/compare.csv and {args.out}/compare.md")

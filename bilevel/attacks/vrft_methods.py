@@ -21,6 +21,7 @@ import numpy as np
 
 from ..certificate import DEFAULT_TOL, Certificate
 from ..errors import ModelError
+from ..files import atomic_path
 from ..result import BilevelResult, Status
 from ..solvers.ascent import budget_direction, projected_ascent
 from ..solvers.options import check_common_options
@@ -119,10 +120,13 @@ def save_attack(result: BilevelResult, atk: VRFTAttack, path: str) -> None:
     if not os.path.isdir(folder):
         raise ModelError(f"save_attack: directory {folder!r} of {path!r} does not exist; create it first")
     loop, theta, theta0 = atk.setting.loop, result.y["theta"], result.stats["theta_clean"]
-    np.savez(path, u=atk.u, y=atk.y, a_u=result.x["a_u"], a_y=result.x["a_y"], theta_clean=theta0,
-             theta_poisoned=theta, poles_clean=loop.poles(theta0), poles_poisoned=loop.poles(theta),
-             delta_u=atk.delta_u, delta_y=atk.delta_y, data_convention=atk.setting.data,
-             boundary=atk.setting.boundary, method=result.method, objective=atk.objective, value=attack_value(result))
+    target = os.fspath(path) if os.fspath(path).endswith(".npz") else os.fspath(path) + ".npz"  # as np.savez names it
+    with atomic_path(target) as tmp:
+        np.savez(tmp, u=atk.u, y=atk.y, a_u=result.x["a_u"], a_y=result.x["a_y"], theta_clean=theta0,
+                 theta_poisoned=theta, poles_clean=loop.poles(theta0), poles_poisoned=loop.poles(theta),
+                 delta_u=atk.delta_u, delta_y=atk.delta_y, data_convention=atk.setting.data,
+                 boundary=atk.setting.boundary, method=result.method, objective=atk.objective,
+                 value=attack_value(result))
 
 
 def input_step(atk: VRFTAttack, a_y: np.ndarray, a_u0: np.ndarray | None = None, iters: int = 30) -> tuple[np.ndarray, State]:
