@@ -33,6 +33,7 @@ import numpy as np
 
 from .errors import BilevelError
 from .lower.base import psd_violation
+from .lower.convexity import convexity_violation
 from .sampling import sample_in_bounds
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -201,6 +202,7 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_T
     comp += [_worst(np.array([abs(float(np.sum(z * m)))]), np.array([np.linalg.norm(z) * np.linalg.norm(m)]), [n])
              for z, m, n in zip(point.Z, mats, low.psd_names)]
     checks["complementarity"] = max(comp, key=lambda t: t[0])
+    checks["lower_convexity"] = convexity_violation(low, x, y)
     F, G, H, jG, jH = canon.upper_values(x, y)
     xy = np.concatenate([x, y])
     upper = [_worst(np.maximum(G, 0.0), _row_scale(jG, xy), canon.G_names or [f"G[{i}]" for i in range(G.size)]),
@@ -216,8 +218,9 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_T
         f_ref, y_ref, solver = ref.objective, ref.y, ref.solver
     except BilevelError as exc:
         f_ref, y_ref, solver, note = np.nan, np.full(low.n_y, np.nan), "none", f"independent lower solve failed: {exc}"
-    gap = f - f_ref if np.isfinite(f_ref) else np.inf
-    checks["lower_gap"] = (gap / (1.0 + abs(f_ref)) if np.isfinite(gap) else np.inf, "")
+    gap = (f - f_ref) / (1.0 + abs(f_ref)) if np.isfinite(f_ref) and np.isfinite(f) else np.inf
+    checks["lower_gap"] = (abs(gap), "" if gap >= -tol else "f(x, y) is below the re-solved optimum f*(x): the "
+                           "re-solve is wrong or y is infeasible")
     y_distance = float(np.max(np.abs(y - y_ref), initial=0.0)) if np.all(np.isfinite(y_ref)) else np.inf
     if unique and np.isfinite(y_distance):
         F_ref = float(canon.upper_values(x, y_ref)[0])
@@ -229,6 +232,6 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_T
     failed = tuple(k for k, (v, _) in checks.items() if not v <= tol)
     values = {k: v for k, (v, _) in checks.items()}
     return Certificate(values["stationarity"], values["lower_feasibility"], values["dual_feasibility"],
-                       values["complementarity"], values["upper_feasibility"], float(values["lower_gap"]),
+                       values["complementarity"], values["upper_feasibility"], float(gap),
                        float(f_ref), [float(v) for v in y_ref], solver, tol, not failed, failed, note,
                        {k: name for k, (_, name) in checks.items() if name}, unique, y_distance, F_ref)

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
 from .base import ExpressionLower, LowerSolution
+from .convexity import require_psd
 from .polish import Lmi, polish
 
 
@@ -61,8 +62,8 @@ def clarabel_solution(d: QPData, context: str, lmis: tuple[Lmi, ...] = ()) -> Lo
     n = d.q.size
     y = cp.Variable(n)
     objective = d.q @ y + d.r
-    if np.any(d.P):
-        objective = objective + 0.5 * cp.quad_form(y, cp.psd_wrap(0.5 * (d.P + d.P.T)))
+    if np.any(d.P):  # psd_wrap only of a matrix verified PSD here (clipped at rounding level), never on trust
+        objective = objective + 0.5 * cp.quad_form(y, cp.psd_wrap(require_psd(d.P, "the lower objective", context)))
     cons = []
     if d.b.size:
         cons.append(d.A @ y + d.b <= 0)

@@ -48,6 +48,7 @@ class Prepared:
         canon = self.canon
         canon.x_suggested = suggested_starts(self.problem, canon.x_start, canon.x_lb, canon.x_ub)
         if canon.params.revision != self.values_revision:
+            canon.lower.check_convexity()  # the declaration's convexity check, on the new values
             for name in ("balls", "projection"):
                 self.__dict__.pop(name, None)
             self.values_revision = canon.params.revision
