@@ -33,7 +33,7 @@ import numpy as np
 
 from .errors import BilevelError
 from .lower.base import psd_violation
-from .lower.convexity import convexity_violation
+from .lower.convexity import convexity_violation, proven_convex
 from .sampling import sample_in_bounds
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -41,6 +41,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .reduction import KKTPoint
 
 DEFAULT_TOL = 1e-6
+LOCAL_EVIDENCE = "lower-level optimality is local evidence (convexity not proven)"
 NLP_STARTS = 8
 """Starts of the independent re-solve of a nonlinear lower level (the point's y, the default, and random)."""
 
@@ -87,6 +88,10 @@ class Certificate:
     y_distance: float = 0.0
     upper_at_reference: float | None = None
     global_bound: GlobalBound | None = None
+    convexity_proven: bool = True
+    """False for a nonlinear lower level whose convexity in y (at this x, on the declared bounds of y) interval
+    bounds could not prove: lower-level optimality is then local evidence, and a method's SOLVED becomes
+    INACCURATE."""
 
     def describe_failures(self) -> str:
         """'check (row name), ...' for the failed checks."""
@@ -152,6 +157,13 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
     note = (f"nonlinear lower level: re-solved by IPOPT from {len(starts)} starts ({len(sols)} converged), "
             "local evidence, not a proof of lower-level optimality")
     return best, spread, unique, note
+
+
+def _y_box(canon: "CanonicalBilevel") -> tuple[np.ndarray, np.ndarray]:
+    """The declared bounds of y (infinite where none)."""
+    n = int(canon.y.numel())
+    return (np.full(n, -np.inf) if canon.y_lb is None else canon.y_lb,
+            np.full(n, np.inf) if canon.y_ub is None else canon.y_ub)
 
 
 def _reduced_hessian_unique(low, x: np.ndarray, ref, tol: float) -> bool | None:
@@ -228,10 +240,13 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_T
         slack = tol * (1.0 + abs(F_ref)) + float(grad_F @ np.full(low.n_y, spread + tol * (1.0 + np.abs(y_ref).max())))
         checks["lower_solution"] = (abs(F - F_ref) / (slack / tol) if np.isfinite(F) else np.inf,
                                     f"y is {y_distance:.2e} from the unique re-solved y; F there = {F_ref:.10g}")
+    proven = low.kind != "nlp" or proven_convex(low, x, *_y_box(canon))
+    if not proven:
+        note = "; ".join(filter(None, [note, LOCAL_EVIDENCE]))
     checks["upper_objective"] = (0.0 if np.isfinite(F) else np.inf, "" if np.isfinite(F) else f"F = {F}")
     failed = tuple(k for k, (v, _) in checks.items() if not v <= tol)
     values = {k: v for k, (v, _) in checks.items()}
     return Certificate(values["stationarity"], values["lower_feasibility"], values["dual_feasibility"],
                        values["complementarity"], values["upper_feasibility"], float(gap),
                        float(f_ref), [float(v) for v in y_ref], solver, tol, not failed, failed, note,
-                       {k: name for k, (_, name) in checks.items() if name}, unique, y_distance, F_ref)
+                       {k: name for k, (_, name) in checks.items() if name}, unique, y_distance, F_ref, None, proven)

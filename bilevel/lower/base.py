@@ -135,6 +135,11 @@ class LowerLevel(ABC):
         """The Hessians in y that must be PSD for the lower level to be convex at (x, y), with what they are of."""
         return [("the lower objective", self.hessian(x, y))]
 
+    def curvature_functions(self) -> list[CompiledFunction]:
+        """(x, y) -> the Hessians of `curvatures`, as compiled SX functions (for interval bounds); [] when the
+        kind has none (its Hessian is then numeric data)."""
+        return []
+
     def stationarity(self, x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarray,
                      Z: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """The Lagrangian gradient in y at (x, y, multipliers), and grad_y f (for scaling)."""
@@ -260,6 +265,11 @@ class ExpressionLower(LowerLevel):
         out = [] if fun is None else fun(x, y)
         out = [out] if len(names) == 1 else list(out)
         return super().curvatures(x, y) + [(f"lower constraint {n!r}", np.asarray(h)) for n, h in zip(names, out)]
+
+    def curvature_functions(self) -> list[CompiledFunction]:
+        """The Hessian of f and, if any, those of the rows of g nonlinear in y."""
+        fun = self._curved_constraints[1]
+        return [self._hess] + ([] if fun is None else [fun])
 
     @cached_property
     def _kkt_functions(self) -> tuple:

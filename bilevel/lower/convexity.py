@@ -7,9 +7,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
+import casadi as ca
 import numpy as np
 
 from ..errors import NonConvexLowerLevel
+from .interval import enclose
 
 if TYPE_CHECKING:  # pragma: no cover
     from .base import LowerLevel
@@ -91,3 +93,37 @@ def require_convex_everywhere(low: "LowerLevel", x: np.ndarray) -> None:
     if value > PSD_TOL:
         raise NonConvexLowerLevel(f"the lower level is not convex at the parameters' current values ({text}, the "
                                   f"same at every upper point); method 'global' proves nothing for it; {CONVEX_FIX}")
+
+
+def _dense(fun: ca.Function, k: int, nonzeros: np.ndarray) -> np.ndarray:
+    sp = fun.sparsity_out(k)
+    out = np.zeros((sp.size1(), sp.size2()))
+    rows, cols = sp.get_triplet()
+    out[np.asarray(rows, dtype=int), np.asarray(cols, dtype=int)] = nonzeros
+    return out
+
+
+def _gershgorin_psd(lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Every symmetric matrix with entries in [lo, hi] is PSD (up to PSD_TOL): each diagonal lower bound covers the
+    row's largest possible off-diagonal sum."""
+    size = np.maximum(np.abs(lo), np.abs(hi))
+    off = np.where(np.eye(size.shape[0], dtype=bool), 0.0, size).sum(axis=1)
+    finite = size[np.isfinite(size)]
+    scale = max(1.0, float(finite.max(initial=0.0)))
+    return bool(np.all(np.diag(lo) - off >= -PSD_TOL * scale))
+
+
+def proven_convex(low: "LowerLevel", x: np.ndarray, y_lb: np.ndarray, y_ub: np.ndarray) -> bool:
+    """True when interval bounds (interval.py) prove every lower Hessian PSD at upper point x for all y in the box
+    [y_lb, y_ub]: then the lower level at x is convex on a convex set containing its feasible set, and a local
+    lower solution is global. False means not proven (not that it is non-convex)."""
+    for compiled in low.curvature_functions():
+        fun = compiled.fun
+        boxes = [(x, x), (y_lb, y_ub)] + ([(compiled.params.value,) * 2] if compiled.params is not None else [])
+        enclosures = enclose(fun, boxes)
+        if enclosures is None:
+            return False
+        for k, (lo, hi) in enumerate(enclosures):
+            if not _gershgorin_psd(_dense(fun, k, lo), _dense(fun, k, hi)):
+                return False
+    return True
