@@ -16,6 +16,14 @@ of what the row balances:
 form) for LP/QP/LS/SDP lower levels, a global optimum; a nonlinear lower level is re-solved by IPOPT
 from several starts inside the declared bounds, which is local evidence, not a proof.
 
+Convexity of the lower level is checked at the certified point ("lower_convexity": the Hessians of f and of the
+constraints nonlinear in y, scaled smallest eigenvalue, the worst named); the LP/QP re-solve also refuses a Hessian
+that is not PSD. For LP/QP/SDP lower levels this is exact at x. For a nonlinear one it is local, so interval bounds
+on its Hessians over the declared bounds of y try to prove convexity at x (`convexity_proven`); when they cannot,
+the note says that lower-level optimality is local evidence and the method's SOLVED is reported as INACCURATE
+(solvers/base.py). The lower_gap check is two-sided: f(x, y) below the re-solved optimum by more than tol means
+the re-solve is wrong or y infeasible, and fails.
+
 When the re-solve says the lower solution is unique (reduced Hessian positive definite at it, or, for a
 nonlinear lower level, every start reaching the same y), y is compared with the re-solved y through
 the upper objective: `upper_at_reference` = F(x, y_ref) is the bilevel-feasible value at x, and the
