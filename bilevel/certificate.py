@@ -16,6 +16,14 @@ of what the row balances:
 form) for LP/QP/LS/SDP lower levels, a global optimum; a nonlinear lower level is re-solved by IPOPT
 from several starts inside the declared bounds, which is local evidence, not a proof.
 
+Convexity of the lower level is checked at the certified point ("lower_convexity": the Hessians of f and of the
+constraints nonlinear in y, scaled smallest eigenvalue, the worst named); the LP/QP re-solve also refuses a Hessian
+that is not PSD. For LP/QP/SDP lower levels this is exact at x. For a nonlinear one it is local, so interval bounds
+on its Hessians over the declared bounds of y try to prove convexity at x (`convexity_proven`); when they cannot,
+the note says that lower-level optimality is local evidence and the method's SOLVED is reported as INACCURATE
+(solvers/base.py). The lower_gap check is two-sided: f(x, y) below the re-solved optimum by more than tol means
+the re-solve is wrong or y infeasible, and fails.
+
 When the re-solve says the lower solution is unique (reduced Hessian positive definite at it, or, for a
 nonlinear lower level, every start reaching the same y), y is compared with the re-solved y through
 the upper objective: `upper_at_reference` = F(x, y_ref) is the bilevel-feasible value at x, and the
@@ -33,6 +41,7 @@ import numpy as np
 
 from .errors import BilevelError
 from .lower.base import psd_violation
+from .lower.convexity import convexity_violation, proven_convex
 from .sampling import sample_in_bounds
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -40,6 +49,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .reduction import KKTPoint
 
 DEFAULT_TOL = 1e-6
+LOCAL_EVIDENCE = "lower-level optimality is local evidence (convexity not proven)"
 NLP_STARTS = 8
 """Starts of the independent re-solve of a nonlinear lower level (the point's y, the default, and random)."""
 
@@ -86,6 +96,10 @@ class Certificate:
     y_distance: float = 0.0
     upper_at_reference: float | None = None
     global_bound: GlobalBound | None = None
+    convexity_proven: bool = True
+    """False for a nonlinear lower level whose convexity in y (at this x, on the declared bounds of y) interval
+    bounds could not prove: lower-level optimality is then local evidence, and a method's SOLVED becomes
+    INACCURATE."""
 
     def describe_failures(self) -> str:
         """'check (row name), ...' for the failed checks."""
@@ -153,6 +167,13 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
     return best, spread, unique, note
 
 
+def _y_box(canon: "CanonicalBilevel") -> tuple[np.ndarray, np.ndarray]:
+    """The declared bounds of y (infinite where none)."""
+    n = int(canon.y.numel())
+    return (np.full(n, -np.inf) if canon.y_lb is None else canon.y_lb,
+            np.full(n, np.inf) if canon.y_ub is None else canon.y_ub)
+
+
 def _reduced_hessian_unique(low, x: np.ndarray, ref, tol: float) -> bool | None:
     """Unique if the Hessian of f is positive definite on the null space of the equalities and the
     strongly active inequalities at the re-solved point (sufficient for a convex program); None with LMIs."""
@@ -201,6 +222,7 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_T
     comp += [_worst(np.array([abs(float(np.sum(z * m)))]), np.array([np.linalg.norm(z) * np.linalg.norm(m)]), [n])
              for z, m, n in zip(point.Z, mats, low.psd_names)]
     checks["complementarity"] = max(comp, key=lambda t: t[0])
+    checks["lower_convexity"] = convexity_violation(low, x, y)
     F, G, H, jG, jH = canon.upper_values(x, y)
     xy = np.concatenate([x, y])
     upper = [_worst(np.maximum(G, 0.0), _row_scale(jG, xy), canon.G_names or [f"G[{i}]" for i in range(G.size)]),
@@ -216,8 +238,9 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_T
         f_ref, y_ref, solver = ref.objective, ref.y, ref.solver
     except BilevelError as exc:
         f_ref, y_ref, solver, note = np.nan, np.full(low.n_y, np.nan), "none", f"independent lower solve failed: {exc}"
-    gap = f - f_ref if np.isfinite(f_ref) else np.inf
-    checks["lower_gap"] = (gap / (1.0 + abs(f_ref)) if np.isfinite(gap) else np.inf, "")
+    gap = (f - f_ref) / (1.0 + abs(f_ref)) if np.isfinite(f_ref) and np.isfinite(f) else np.inf
+    checks["lower_gap"] = (abs(gap), "" if gap >= -tol else "f(x, y) is below the re-solved optimum f*(x): the "
+                           "re-solve is wrong or y is infeasible")
     y_distance = float(np.max(np.abs(y - y_ref), initial=0.0)) if np.all(np.isfinite(y_ref)) else np.inf
     if unique and np.isfinite(y_distance):
         F_ref = float(canon.upper_values(x, y_ref)[0])
@@ -225,10 +248,13 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_T
         slack = tol * (1.0 + abs(F_ref)) + float(grad_F @ np.full(low.n_y, spread + tol * (1.0 + np.abs(y_ref).max())))
         checks["lower_solution"] = (abs(F - F_ref) / (slack / tol) if np.isfinite(F) else np.inf,
                                     f"y is {y_distance:.2e} from the unique re-solved y; F there = {F_ref:.10g}")
+    proven = low.kind != "nlp" or proven_convex(low, x, *_y_box(canon))
+    if not proven:
+        note = "; ".join(filter(None, [note, LOCAL_EVIDENCE]))
     checks["upper_objective"] = (0.0 if np.isfinite(F) else np.inf, "" if np.isfinite(F) else f"F = {F}")
     failed = tuple(k for k, (v, _) in checks.items() if not v <= tol)
     values = {k: v for k, (v, _) in checks.items()}
     return Certificate(values["stationarity"], values["lower_feasibility"], values["dual_feasibility"],
-                       values["complementarity"], values["upper_feasibility"], float(values["lower_gap"]),
+                       values["complementarity"], values["upper_feasibility"], float(gap),
                        float(f_ref), [float(v) for v in y_ref], solver, tol, not failed, failed, note,
-                       {k: name for k, (_, name) in checks.items() if name}, unique, y_distance, F_ref)
+                       {k: name for k, (_, name) in checks.items() if name}, unique, y_distance, F_ref, None, proven)

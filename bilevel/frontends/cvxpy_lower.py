@@ -17,10 +17,11 @@ import cvxpy as cp
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import ModelError
+from ..errors import InvalidData, ModelError
 from ..lower.base import LowerSolution
 from ..lower.quadratic import solve_clarabel
 from .conic import ConicForm, conic_form
+from .cvxpy_domains import constrain_domain, in_domain
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..model import BilevelProblem
@@ -95,6 +96,8 @@ class CvxpyLower:
         self._problem = problem
         self._bound = {p.id: (p, parameters[p]) for p in parameters}
         values, self._model_names = _bind(problem, learner, parameters, name)
+        for param, _ in self._bound.values():
+            constrain_domain(problem, param, values[param.id], _label(param), name)
         self._unbound = {p.id: p for p in learner.parameters() if p.id in self._model_names}
         form = conic_form(learner, values)
         keep, E, e, used_rows = self._eliminate(form)
@@ -237,8 +240,11 @@ class CvxpyLower:
         old = [p.value for p in params]
         try:
             for p, value in zip(params, values):
-                v = np.asarray(value, dtype=float).reshape(p.shape, order="F")
-                p.value = np.maximum(v, 0.0) if p.is_nonneg() else np.minimum(v, 0.0) if p.is_nonpos() else v
+                v = in_domain(p, np.asarray(value, dtype=float).reshape(p.shape, order="F"), _label(p))
+                try:
+                    p.value = v
+                except ValueError as exc:  # e.g. 0 for a pos Parameter: outside the domain cvxpy accepts
+                    raise InvalidData(f"{_label(p)} cannot take its value here: {exc}") from exc
             solve_clarabel(self.learner, "the cvxpy lower level (independent re-solve)")
             w_ref = np.concatenate([np.asarray(self._variables[vid].value, dtype=float).reshape(-1, order="F")
                                     for vid in self._user])

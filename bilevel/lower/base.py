@@ -11,8 +11,9 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InvalidData
-from ..parameters import ParameterSet, scalar
+from ..parameters import CompiledFunction, ParameterSet, scalar
 from ..vech import symmetric_from_vech
+from .convexity import ConvexityProbe
 
 
 def psd_violation(m: np.ndarray) -> float:
@@ -78,6 +79,13 @@ class LowerLevel(ABC):
     g_names: list[str]
     h_names: list[str]
     psd_names: list[str]
+    convexity_probe: ConvexityProbe | None = None
+    """The declaration's sampled convexity check (set by build_lower; None where nothing is sampled)."""
+
+    def check_convexity(self) -> None:
+        """Re-run the declaration's convexity check at the parameters' current values (after set_value)."""
+        if self.convexity_probe is not None:
+            self.convexity_probe.run()
 
     @property
     @abstractmethod
@@ -122,6 +130,15 @@ class LowerLevel(ABC):
     @abstractmethod
     def hessian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Hessian of f in y at (x, y)."""
+
+    def curvatures(self, x: np.ndarray, y: np.ndarray) -> list[tuple[str, np.ndarray]]:
+        """The Hessians in y that must be PSD for the lower level to be convex at (x, y), with what they are of."""
+        return [("the lower objective", self.hessian(x, y))]
+
+    def curvature_functions(self) -> list[CompiledFunction]:
+        """(x, y) -> the Hessians of `curvatures`, as compiled SX functions (for interval bounds); [] when the
+        kind has none (its Hessian is then numeric data)."""
+        return []
 
     def stationarity(self, x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarray,
                      Z: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -232,6 +249,27 @@ class ExpressionLower(LowerLevel):
     def hessian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Hessian of f in y at (x, y)."""
         return np.asarray(self._hess(x, y))
+
+    @cached_property
+    def _curved_constraints(self) -> tuple[list[str], CompiledFunction | None]:
+        """Names of the rows of g that are nonlinear in y, and (x, y) -> their Hessians in y (None if none)."""
+        rows = [i for i in range(self.n_g) if ca.depends_on(ca.jacobian(self.g[i], self.y), self.y)]
+        if not rows:
+            return [], None
+        hessians = [ca.hessian(self.g[i], self.y)[0] for i in rows]
+        return [self.g_names[i] for i in rows], self.params.function("lower_hess_g", [self.x, self.y], hessians)
+
+    def curvatures(self, x: np.ndarray, y: np.ndarray) -> list[tuple[str, np.ndarray]]:
+        """The Hessians of f and of the rows of g nonlinear in y at (x, y)."""
+        names, fun = self._curved_constraints
+        out = [] if fun is None else fun(x, y)
+        out = [out] if len(names) == 1 else list(out)
+        return super().curvatures(x, y) + [(f"lower constraint {n!r}", np.asarray(h)) for n, h in zip(names, out)]
+
+    def curvature_functions(self) -> list[CompiledFunction]:
+        """The Hessian of f and, if any, those of the rows of g nonlinear in y."""
+        fun = self._curved_constraints[1]
+        return [self._hess] + ([] if fun is None else [fun])
 
     @cached_property
     def _kkt_functions(self) -> tuple:

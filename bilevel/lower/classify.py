@@ -2,49 +2,31 @@
 
 from __future__ import annotations
 
-from typing import Callable
-
 import casadi as ca
 import numpy as np
 
 from ..errors import ModelError, NonConvexLowerLevel
-from ..parameters import ParameterSet
+from ..parameters import CompiledFunction, ParameterSet
 from ..sampling import sample_in_bounds
 from .base import LowerLevel
+from .convexity import PSD_TOL, ConvexityProbe
 from .least_squares import LeastSquaresLower
 from .nlp import ConvexNLPLower
 from .quadratic import LinearLower, QuadraticLower
 from .sdp import SemidefiniteLower
 
-_PSD_TOL = 1e-9
 Y_PROBES = 16
 """Lower points drawn (inside the declared bounds of y) per upper sample when a Hessian depends on y."""
 
 
-def _min_eig(matrix: np.ndarray) -> float:
-    matrix = np.atleast_2d(matrix)
-    return float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min()) if matrix.size else 0.0
-
-
-def _check_psd(fun: Callable, points: list[tuple[np.ndarray, np.ndarray]], what: str) -> float:
-    """Smallest eigenvalue of fun(x, y) over the sample points; raise NonConvexLowerLevel if negative."""
-    worst = np.inf
-    if not fun.sparsity_out(0).nnz() or not ca.depends_on(fun.sx_out(0), fun.sx_in(1)):
-        points = list({id(xs): (xs, ys) for xs, ys in points}.values())  # constant in y: one y per x
-    for xs, ys in points:
-        hess = np.asarray(fun(xs, ys))
-        lam = _min_eig(hess)
-        scale = max(1.0, float(np.abs(hess).max()))
-        if lam < -_PSD_TOL * scale:
-            raise NonConvexLowerLevel(
-                f"the lower level is not convex in the lower variables: the Hessian of {what} has eigenvalue "
-                f"{lam:.3g} at x = {np.array2string(xs, precision=3)}, y = {np.array2string(ys, precision=3)} "
-                "(inside the declared bounds of y); a convex lower level is required (minimize a convex "
-                "function, or maximize a concave one, over a convex set); if it is convex on a domain that "
-                "constraints rather than bounds define, pass assume_convex=True (the certificate still checks)"
-            )
-        worst = min(worst, lam)
-    return worst
+def _probe(hessians: list[tuple[CompiledFunction, str]],
+           points: list[tuple[np.ndarray, np.ndarray]]) -> tuple[ConvexityProbe, float]:
+    """The sampled check of these Hessians (one y per x when they are constant in y), and its smallest eigenvalue
+    now (NonConvexLowerLevel if negative)."""
+    distinct_x = tuple({id(xs): (xs, ys) for xs, ys in points}.values())
+    varies = any(fun.sparsity_out(0).nnz() and ca.depends_on(fun.sx_out(0), fun.sx_in(1)) for fun, _ in hessians)
+    probe = ConvexityProbe(tuple(hessians), tuple(points) if varies else distinct_x)
+    return probe, probe.run()
 
 
 def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.SX], g_names: list[str],
@@ -74,6 +56,7 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
     hess_f = ca.hessian(f, y)[0]
     nonlinear_f = np.asarray(ca.which_depends(f, y, 2, False), dtype=bool)  # sparsity propagation, no simplify
     affine_g = not (g.numel() and any(ca.which_depends(g, y, 2, False)))
+    objective = [(function("hf", [x, y], [hess_f]), "the lower objective")]
     if psd:
         for name, m in zip(psd_names, psd):
             if ca.depends_on(ca.jacobian(ca.vec(m), y), y):
@@ -82,20 +65,22 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
         if not affine_g or ca.depends_on(hess_f, y):  # hess_f is small (n_y x n_y) next to f
             raise ModelError("a lower level with LMIs must have a linear or convex quadratic objective and affine "
                              "scalar constraints in y (a conic program)")
-        _check_psd(function("hf", [x, y], [hess_f]), points, "the lower objective")
-        return SemidefiniteLower(*args, hess_f=hess_f, params=params)
+        return _with_probe(SemidefiniteLower(*args, hess_f=hess_f, params=params), _probe(objective, points)[0])
     if affine_g and not ca.depends_on(hess_f, y):
         if not nonlinear_f.any():
             return LinearLower(*args, hess_f=hess_f, params=params)
-        worst = _check_psd(function("hf", [x, y], [hess_f]), points, "the lower objective")
-        if not g.numel() and not h.numel() and worst > _PSD_TOL:
-            return LeastSquaresLower(*args, hess_f=hess_f, params=params)
-        return QuadraticLower(*args, hess_f=hess_f, params=params)
+        probe, worst = _probe(objective, points)
+        if not g.numel() and not h.numel() and worst > PSD_TOL:
+            return _with_probe(LeastSquaresLower(*args, hess_f=hess_f, params=params), probe)
+        return _with_probe(QuadraticLower(*args, hess_f=hess_f, params=params), probe)
     if assume_convex:  # a Hessian that varies with y: convexity is the user's claim, checked by the certificate
         return ConvexNLPLower(*args, hess_f=hess_f, params=params)
-    _check_psd(function("hf", [x, y], [hess_f]), points, "the lower objective")
-    for i in range(int(g.numel())):
-        if ca.depends_on(ca.jacobian(g[i], y), y):
-            _check_psd(function("hg", [x, y], [ca.hessian(g[i], y)[0]]), points,
-                       f"lower constraint {g_names[i]!r}")
-    return ConvexNLPLower(*args, hess_f=hess_f, params=params)
+    curved = [(function("hg", [x, y], [ca.hessian(g[i], y)[0]]), f"lower constraint {g_names[i]!r}")
+              for i in range(int(g.numel())) if ca.depends_on(ca.jacobian(g[i], y), y)]
+    return _with_probe(ConvexNLPLower(*args, hess_f=hess_f, params=params), _probe(objective + curved, points)[0])
+
+
+def _with_probe(low: LowerLevel, probe: ConvexityProbe) -> LowerLevel:
+    """low, carrying the declaration's convexity check so that a set_value re-runs it."""
+    low.convexity_probe = probe
+    return low

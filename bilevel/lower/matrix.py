@@ -104,6 +104,11 @@ class MatrixLower(LowerLevel):
     def hessian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return self.hess
 
+    def curvatures(self, x: np.ndarray, y: np.ndarray) -> list[tuple[str, np.ndarray]]:
+        """None to test: C'C + P is fixed data, P checked PSD at declaration (lower_qp); an eigendecomposition of a
+        large dense Hessian per certificate would cost more than the solve."""
+        return []
+
     def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> KKTValues:
         S = self.stationarity(x, sol.y, sol.lam, sol.mu, [])[0]
         _, _, b, e = self.vectors(x)
@@ -135,7 +140,8 @@ class MatrixLower(LowerLevel):
             return LowerSolution(y, self.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal", "closed-form")
         sol = self._from_active_set(x)
         if sol is None:
-            sol = self._solve_highs(x) if self.kind == "lp" else solve_qp_clarabel(self.data(x), "(a matrix QP)")
+            sol = (self._solve_highs(x) if self.kind == "lp"
+                   else solve_qp_clarabel(self.data(x), "(a matrix QP)", psd_verified=True))
             self._active = np.flatnonzero(sol.lam > ACTIVE_TOL)
         return sol
 
@@ -186,7 +192,7 @@ class MatrixLower(LowerLevel):
         if self.kind == "least-squares":
             y = np.linalg.solve(self.hess, -self.linear_term(x))
             return LowerSolution(y, self.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal", "LU solve")
-        return clarabel_solution(self.data(x), "(a matrix QP, independent re-solve)")
+        return clarabel_solution(self.data(x), "(a matrix QP, independent re-solve)", psd_verified=True)
 
     def symbolic(self) -> ExpressionLower:
         """The same QP as CasADi expressions, for the KKT reduction (ipopt, relaxation, global).

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
 from .base import ExpressionLower, LowerSolution
+from .convexity import require_psd
 from .polish import Lmi, polish
 
 
@@ -47,22 +48,27 @@ def solve_clarabel(problem: cp.Problem, what: str, infeasible_hint: str = "",
         raise SolverFailed(f"Clarabel returned status {problem.status!r} on {what}, no usable point")
 
 
-def solve_qp_clarabel(d: QPData, context: str, lmis: tuple[Lmi, ...] = ()) -> LowerSolution:
+def solve_qp_clarabel(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
+                      psd_verified: bool = False) -> LowerSolution:
     """clarabel_solution polished onto its optimal face (solver "cvxpy+clarabel+polish") where that lowers
     its KKT residual, else unchanged (see polish.py)."""
-    return polish(d, lmis, clarabel_solution(d, context, lmis))
+    return polish(d, lmis, clarabel_solution(d, context, lmis, psd_verified))
 
 
-def clarabel_solution(d: QPData, context: str, lmis: tuple[Lmi, ...] = ()) -> LowerSolution:
+def clarabel_solution(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
+                      psd_verified: bool = False) -> LowerSolution:
     """Solve a convex QP/LP (with LMIs M0 + sum_j y_j M_j >= 0 given as (M0, d vec(M)/dy)) by cvxpy + Clarabel.
 
-    Raises on infeasible/unbounded and fails loudly on any other non-optimal status.
+    P is verified PSD first (NonConvexLowerLevel naming its eigenvalue otherwise) unless psd_verified says the
+    caller checked this same fixed matrix already (lower_qp's data, checked at declaration). Raises on
+    infeasible/unbounded and fails loudly on any other non-optimal status.
     """
     n = d.q.size
     y = cp.Variable(n)
     objective = d.q @ y + d.r
-    if np.any(d.P):
-        objective = objective + 0.5 * cp.quad_form(y, cp.psd_wrap(0.5 * (d.P + d.P.T)))
+    if np.any(d.P):  # psd_wrap only of a matrix verified PSD (clipped at rounding level), never on trust
+        P = 0.5 * (d.P + d.P.T) if psd_verified else require_psd(d.P, "the lower objective", context)
+        objective = objective + 0.5 * cp.quad_form(y, cp.psd_wrap(P))
     cons = []
     if d.b.size:
         cons.append(d.A @ y + d.b <= 0)

@@ -10,7 +10,7 @@ import casadi as ca
 import numpy as np
 
 from ..canonical import CanonicalBilevel, Canonicalize, NormalizeSense, kkt_solution, objectives, suggested_starts
-from ..certificate import DEFAULT_TOL, GlobalBound, certify
+from ..certificate import DEFAULT_TOL, LOCAL_EVIDENCE, GlobalBound, certify
 from ..errors import BilevelError, UnknownOption
 from ..model import BilevelProblem
 from ..mpcc import MPCC
@@ -48,6 +48,7 @@ class Prepared:
         canon = self.canon
         canon.x_suggested = suggested_starts(self.problem, canon.x_start, canon.x_lb, canon.x_ub)
         if canon.params.revision != self.values_revision:
+            canon.lower.check_convexity()  # the declaration's convexity check, on the new values
             for name in ("balls", "projection"):
                 self.__dict__.pop(name, None)
             self.values_revision = canon.params.revision
@@ -179,6 +180,8 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
         run = MethodRun(run.w, Status.ERROR, f"certificate could not be computed: {exc}", run.nit, run.history,
                         run.starts, run.stats)
     status, message = _final_status(run, cert is not None and cert.passed)
+    if status is Status.SOLVED and cert is not None and not cert.convexity_proven:
+        status, message = Status.INACCURATE, f"{message}; {LOCAL_EVIDENCE}"
     if cert is not None and not cert.passed:
         message += f"; certificate failed on {cert.describe_failures()}"
     stats = dict(run.stats)

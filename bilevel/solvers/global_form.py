@@ -14,6 +14,7 @@ import casadi as ca
 import numpy as np
 
 from ..errors import ModelError
+from ..lower.convexity import require_convex_everywhere
 from ..mpcc import ScalarPair
 from ..parameters import ParameterSet, scalar
 from .base import Prepared
@@ -106,6 +107,7 @@ def linear_mpcc(prep: Prepared) -> LinearMPCC:
     A_s, r_s = _affine(eq[n_H:n_H + n_y], w, "the lower-level KKT stationarity",
                        "the lower objective's Hessian in y and the constraint matrices in y must not depend on x "
                        "(an x*y term in a lower constraint or an x-dependent quadratic term breaks this)", mpcc.params)
+    require_convex_everywhere(low, np.clip(np.zeros(low.n_x), canon.x_lb, canon.x_ub))  # after the affinity check
     A_h, r_h = _affine(eq[n_H + n_y:], w, "the lower equality constraints", "they must be affine in (x, y)",
                        mpcc.params)
     A_in, r_in = _affine(mpcc.inequalities, w, "the upper inequality constraints", "they must be linear in (x, y)",
