@@ -37,11 +37,13 @@ from .structure import Ball, budget_scale, depends
 from .trust_region import maximize_quadratic_on_ball
 
 
-def quadratic_block_step(M: np.ndarray, grad: np.ndarray, hess: np.ndarray, radius: float) -> np.ndarray:
+def quadratic_block_step(M: np.ndarray, grad: np.ndarray, hess: np.ndarray, radius: float,
+                         prefer: np.ndarray | None = None) -> np.ndarray:
     """The global minimizer z of F(y_c + M z) over ||z|| <= radius, F quadratic with gradient `grad` and Hessian
-    `hess` at y_c: a trust-region subproblem, in the row space of M when M has far fewer rows than columns."""
+    `hess` at y_c: a trust-region subproblem, in the row space of M when M has far fewer rows than columns.
+    Where several z tie (the hard case, e.g. +-z at a stationary centre) the one closest to `prefer` is returned."""
     if 2 * M.shape[0] > M.shape[1]:  # no reduction worth a decomposition: the subproblem in z itself
-        return maximize_quadratic_on_ball(-0.5 * (M.T @ hess @ M), -0.5 * (M.T @ grad), radius)
+        return maximize_quadratic_on_ball(-0.5 * (M.T @ hess @ M), -0.5 * (M.T @ grad), radius, prefer)
     s2, U = np.linalg.eigh(M @ M.T)  # M = U S V' from the small Gram matrix ...
     if s2.size and s2[0] > 1e-10 * s2[-1]:
         s = np.sqrt(s2)
@@ -51,7 +53,8 @@ def quadratic_block_step(M: np.ndarray, grad: np.ndarray, hess: np.ndarray, radi
         keep = s > 1e-12 * max(float(s[0]) if s.size else 0.0, 1e-300)
         U, s, Vt = U[:, keep], s[keep], Vt[keep]
     A = -0.5 * (s[:, None] * (U.T @ hess @ U) * s[None, :])
-    return Vt.T @ maximize_quadratic_on_ball(A, -0.5 * s * (U.T @ grad), radius)
+    reduced = None if prefer is None else Vt @ prefer  # z . prefer = v . (Vt prefer) for z = Vt' v
+    return Vt.T @ maximize_quadratic_on_ball(A, -0.5 * s * (U.T @ grad), radius, reduced)
 
 
 @dataclass
@@ -71,12 +74,14 @@ class ExactBlock:
         hypergradient oracle) and its KKT values (an unconstrained minimizer with Hessian P)."""
         b = self.ball
         x = np.array(x, dtype=float)
+        here = x[b.block] - b.center  # ties between optimal z are broken towards the block's current point
+        prefer = here if np.any(here) else np.ones_like(here)
         x[b.block] = b.center
         P, q, jac_q, grad0, hess = self.data(x)
         factor = hessian_factor(P) if self.factor is None else self.factor  # P(x) for every z of the block
         y_c = -factor_solve(factor, q.ravel())
         M = -factor_solve(factor, jac_q)
-        z = quadratic_block_step(M, grad0.ravel() + hess @ y_c, hess, b.radius)  # F is quadratic in y
+        z = quadratic_block_step(M, grad0.ravel() + hess @ y_c, hess, b.radius, prefer)  # F is quadratic in y
         x[b.block] = b.center + z
         y = y_c + M @ z
         sol = LowerSolution(y, np.nan, np.zeros(0), np.zeros(0), [], "optimal", "closed-form (exact block)")

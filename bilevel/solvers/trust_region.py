@@ -12,8 +12,11 @@ import math
 import numpy as np
 
 
-def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, delta: float) -> np.ndarray:
-    """Global maximizer of v'Av + 2b'v over ||v|| <= delta."""
+def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, delta: float,
+                               prefer: np.ndarray | None = None) -> np.ndarray:
+    """Global maximizer of v'Av + 2b'v over ||v|| <= delta. In the hard case the maximizers are v_hat + t q for
+    every unit q of A's top eigenspace: the one along prefer's part in that space is returned (the eigensolver's
+    own choice only where prefer has none), so the answer does not depend on the sign a LAPACK kernel picks."""
     A = 0.5 * (np.asarray(A, dtype=float) + np.asarray(A, dtype=float).T)
     b = np.asarray(b, dtype=float)
     if delta <= 0:
@@ -38,7 +41,12 @@ def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, delta: float) -> np
         v_hat = Q[:, rest] @ (beta[rest] / (lo - lam[rest])) if np.any(rest) else np.zeros_like(b)
         slack = delta ** 2 - float(v_hat @ v_hat)
         if slack >= 0 and top >= 0:
-            return v_hat + np.sqrt(slack) * Q[:, -1]
+            q = Q[:, -1]
+            if prefer is not None:
+                along = Q[:, on_top] @ (Q[:, on_top].T @ np.asarray(prefer, dtype=float))
+                if np.linalg.norm(along) > 1e-8 * np.linalg.norm(prefer):
+                    q = along / np.linalg.norm(along)
+            return v_hat + np.sqrt(slack) * q
     # Newton on psi(mu) = 1/delta - 1/||v(mu)||, concave and increasing on (lo, inf): from a point left of
     # the root the iterates increase monotonically to it (More & Sorensen 1983).
     c2 = beta ** 2

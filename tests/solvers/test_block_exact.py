@@ -15,6 +15,7 @@ from bilevel.solvers.base import prepare
 from bilevel.solvers.block_exact import find_exact_block
 from bilevel.solvers.implicit import shared_oracle
 from bilevel.solvers.structure import find_balls
+from bilevel.solvers.trust_region import maximize_quadratic_on_ball
 
 
 def test_balls_are_read_from_squared_norm_constraints() -> None:
@@ -50,6 +51,19 @@ def _ridge(radius: float = 0.7) -> tuple[bl.BilevelProblem, np.ndarray, np.ndarr
     p.maximize_upper(ca.sumsqr(y - ca.DM(y0)))
     M = np.linalg.solve(A.T @ A + np.eye(3), A.T)
     return p, M @ b - y0, M @ B
+
+
+def test_hard_case_ties_are_broken_towards_the_preferred_point_not_by_the_eigensolver() -> None:
+    """max v'Av over ||v|| <= 1 with b = 0 (a stationary centre): +-q_top tie. The returned one is the one along
+    prefer, whatever sign the eigensolver gave q_top (which changes with the BLAS kernel); with a two-dimensional top
+    eigenspace it is prefer's direction in that space."""
+    A = np.diag([3.0, 1.0, -2.0])
+    for prefer, expected in (([1.0, 0.5, 0.0], [1.0, 0.0, 0.0]), ([-1.0, 3.0, 2.0], [-1.0, 0.0, 0.0])):
+        np.testing.assert_allclose(maximize_quadratic_on_ball(A, np.zeros(3), 1.0, np.array(prefer)), expected,
+                                   atol=1e-12)
+    double = np.diag([2.0, 2.0, -1.0])
+    v = maximize_quadratic_on_ball(double, np.zeros(3), 2.0, np.array([3.0, 4.0, 7.0]))
+    np.testing.assert_allclose(v, [1.2, 1.6, 0.0], atol=1e-12)
 
 
 def test_block_exact_step_is_global_on_a_convex_maximization() -> None:
