@@ -399,7 +399,8 @@ def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> 
                "certificate_passed": bool(cert is not None and cert.passed),
                "certificate_failed": list(cert.failed) if cert is not None else [], "solve_time": res.wall_time}
     return _result(oracle, f"kkt-{method}", np.clip(x, -bound, bound), t0, 0, res.nit,
-                   f"{res.status.value}: {res.message}", res.status is Status.SOLVED and clipped == 0.0, details)
+                   f"{method} on the KKT reformulation: {res.status.value} ({res.message}); the learner re-solved at "
+                   "that point clipped to the budget", res.status is Status.SOLVED and clipped == 0.0, details)
 
 
 def log_radius_gradient(closed_loop: np.ndarray, b: np.ndarray) -> tuple[float, np.ndarray]:
