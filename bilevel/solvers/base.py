@@ -171,7 +171,7 @@ def _local_verdict(prep: Prepared, run: MethodRun, point: KKTPoint, cert: Certif
     F = objectives(prep.canon, point)[0]
     sign = -1.0 if prep.problem.upper_objective.sense == "max" else 1.0
     # the lower solution set at x may hold better responses (LMI lower levels: not checked, IPOPT cannot take them)
-    ambiguous = cert.lower_unique is not True and not prep.canon.lower.psd
+    ambiguous = not cert.lower_unique and not prep.canon.lower.psd
     if ambiguous:
         starts = [point.y] + ([np.asarray(cert.lower_reference_y)] if np.all(np.isfinite(cert.lower_reference_y))
                               else [])

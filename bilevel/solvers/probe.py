@@ -64,9 +64,10 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
         fixed_y = low.solve(x).y if low.fixed and not optimistic else None  # a lower level that ignores x: once
     except BilevelError:
         return None
-    baseline = _feasible_objective(prep, x, fixed_y, optimistic)
+    baseline, verified = _feasible_objective(prep, x, fixed_y, optimistic)
     if baseline is None:
         return None
+    optimistic = optimistic and verified  # where IPOPT verifies no selection at x, it is not asked at the probes
     reference = min(objective, baseline)
     second, first = (reference - tol * max(1.0, abs(reference)) for tol in (REL_TOL, DESCENT_REL_TOL))
     rng = np.random.default_rng(seed)
@@ -85,7 +86,7 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
             xp = projection(x + h * d)
             key = xp.tobytes()
             if key not in values:
-                values[key] = _feasible_objective(prep, xp, fixed_y, optimistic)
+                values[key] = _feasible_objective(prep, xp, fixed_y, optimistic)[0]
             F = values[key]
             if F is not None and F < bar and (best is None or F < best.objective):
                 best = Probe(xp, F, h)
@@ -95,10 +96,11 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
 def _first_order_directions(prep: "Prepared", x: np.ndarray, scale: np.ndarray,
                             projection: Projection) -> list[np.ndarray]:
     """-grad F(x, y*(x)) in budget units (the hypergradient, balls projected on); for at most COORDINATES upper
-    variables also +/- each coordinate, and at a kink of y*(x) (a degenerate active set) the descent direction of
-    each adjacent piece: -g for the hypergradients g sampled at x +/- RADII[-1] along each coordinate, and the
-    steepest descent direction -(least-norm element of their convex hull), which follows a kink where F
-    decreases along it. A method that stopped at a kink or short of stationarity is caught by them."""
+    variables also +/- each coordinate and, at a kink of y*(x), the descent direction of each adjacent piece.
+    The hypergradient is sampled at x +/- RADII[-1] along each coordinate; x is at a kink when its lower active
+    set is degenerate or a sample's active set differs (two LP vertices that tie, an edge between them). Then -g
+    for each piece's g, and the steepest descent direction -(least-norm element of their convex hull), which
+    follows a kink along which F decreases. A method that stopped at a kink or short of stationarity is caught."""
     from .implicit import shared_oracle  # implicit imports base, which imports this module
 
     oracle = shared_oracle(prep, projected_rows=tuple(b.row for b in prep.balls))
@@ -108,11 +110,14 @@ def _first_order_directions(prep: "Prepared", x: np.ndarray, scale: np.ndarray,
         return out
     steps = [sign * scale[i] * np.eye(x.size)[i] for i in range(x.size) for sign in (1.0, -1.0)]
     out += steps
-    if here is None or not here[1]:  # no kink at x: one piece, its descent direction is already there
+    if here is None:
         return out
-    grads = [here[0]] + [g for g, _ in filter(None, (_gradient(oracle, projection(x + RADII[-1] * s))
-                                                     for s in steps))]
-    pieces = np.unique(np.round(np.array(grads) * scale, 12), axis=0)  # in budget units, one per piece
+    samples = [g for g in (_gradient(oracle, projection(x + RADII[-1] * s)) for s in steps) if g is not None]
+    if not here[1] and all(active == here[2] for _, _, active in samples):  # one piece: its direction is there
+        return out
+    G = np.array([here[0]] + [g for g, _, _ in samples]) * scale  # budget units
+    size = max(1.0, float(np.abs(G).max()))
+    pieces = np.unique(np.round(G / size, 8), axis=0) * size  # gradients equal up to the solves' noise: one piece
     out += [-g * scale for g in pieces if np.any(g)]
     if len(pieces) > 1:
         steepest = _least_norm_combination(pieces.T)
@@ -121,14 +126,15 @@ def _first_order_directions(prep: "Prepared", x: np.ndarray, scale: np.ndarray,
     return out
 
 
-def _gradient(oracle: "Hypergradient", x: np.ndarray) -> tuple[np.ndarray, bool] | None:
-    """(grad phi(x), whether the lower active set is degenerate there), or None where it cannot be had."""
+def _gradient(oracle: "Hypergradient", x: np.ndarray) -> tuple[np.ndarray, bool, bytes] | None:
+    """(grad phi(x), whether the lower active set is degenerate there, that active set), or None where it cannot
+    be had."""
     try:
         ev = oracle.evaluate(x)
         grad, weak, _ = oracle.gradient(ev)
     except (BilevelError, np.linalg.LinAlgError, ValueError):
         return None
-    return (grad, weak) if np.all(np.isfinite(grad)) else None
+    return (grad, weak, (ev.lower.lam > oracle.active_tol).tobytes()) if np.all(np.isfinite(grad)) else None
 
 
 def _least_norm_combination(G: np.ndarray) -> np.ndarray:
@@ -140,14 +146,14 @@ def _least_norm_combination(G: np.ndarray) -> np.ndarray:
 
 
 def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = None,
-                        optimistic: bool = False) -> float | None:
+                        optimistic: bool = False) -> tuple[float | None, bool]:
     """F(x, y), y from the lower level's own solver unless given (with `optimistic`, also the best verified lower
-    solution there found from that one, the better of the two); None if the solve fails or (x, y) is
-    upper-infeasible."""
+    solution there found from that one, the better of the two), and whether such a selection was verified;
+    F is None if the solve fails or (x, y) is upper-infeasible."""
     try:
         sol = None if y is not None else prep.canon.lower.solve(x)
     except BilevelError:
-        return None
+        return None, False
     ys = [y if sol is None else sol.y]
     if optimistic and sol is not None:
         sel = optimistic_selection(prep, x, float(prep.canon.lower.evaluate(x, sol.y)[0]), [sol.y])
@@ -157,4 +163,4 @@ def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = 
         F, G, H = (np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, yv))
         if not (np.any(G > FEAS_TOL) or np.any(np.abs(H) > FEAS_TOL) or not np.isfinite(F[0])):
             values.append(float(F[0]))
-    return min(values, default=None)
+    return min(values, default=None), len(ys) > 1

@@ -46,6 +46,18 @@ def ridge(K: float = 100.0) -> bl.BilevelProblem:
     return p
 
 
+def tie(K: float = 100.0) -> bl.BilevelProblem:
+    """Follower min (x0 - x1) y on [0, 1]: vertex y = 1 for x0 < x1, y = 0 for x0 > x1, and at the tie x0 = x1
+    every y (the solver's is the edge's midpoint). F = K (x1 - x0)(2y - 1) - x0 = K |x0 - x1| - x0 off the tie,
+    -x0 on it for every y: F* = -1 at (1, 1)."""
+    p = bl.BilevelProblem("tie")
+    x = p.upper_variable("x", 2, lb=0, ub=1)
+    y = p.lower_variable("y", lb=0, ub=1)
+    p.minimize_upper(K * (x[1] - x[0]) * (2 * y - 1) - x[0])
+    p.minimize_lower((x[0] - x[1]) * y)
+    return p
+
+
 def axis_kink() -> bl.BilevelProblem:
     """F = 100 |x0 - 0.5| + x0 - x1 + y^2, y*(x) = x0 - 0.5 (smooth; the kink is F's own), on [0, 1]^2: F* = -0.5
     at (0.5, 1)."""
@@ -111,12 +123,22 @@ def test_probe_follows_the_kink() -> None:
     assert best.status is Status.SOLVED and best.upper_objective == pytest.approx(-1.0, abs=1e-6)
 
 
+def test_probe_follows_a_tie_between_vertices() -> None:
+    """At (0.5, 0.5) the lower solution is an edge (not unique, not degenerate): the kink shows as the different
+    active sets of the samples next to x, and the pieces' steepest descent direction follows the tie."""
+    prep = prepare(tie())
+    better = improving_neighbour(prep, np.array([0.5, 0.5]), -0.5, prep.projection, optimistic=True)
+    assert better is not None
+    assert better.x == pytest.approx([0.5 + 0.1 / np.sqrt(2.0)] * 2, abs=1e-9)
+    assert better.objective == pytest.approx(-0.5 - 0.1 / np.sqrt(2.0), abs=1e-6)
+
+
 def test_probe_passes_a_kink_minimum() -> None:
-    """At kinks that are local minima no neighbour is better: the ridge's optimum (1, 1), F = -1, and
-    axis_kink's (0.5, 1), F = -0.5 (a kink in x0, the bound in x1)."""
-    for problem, x, F in ((ridge(), [1.0, 1.0], -1.0), (axis_kink(), [0.5, 1.0], -0.5)):
+    """At kinks that are local minima no neighbour is better, F taken optimistically: the ridge's and the tie's
+    optimum (1, 1), F = -1, and axis_kink's (0.5, 1), F = -0.5 (a kink in x0, the bound in x1)."""
+    for problem, x, F in ((ridge(), [1.0, 1.0], -1.0), (tie(), [1.0, 1.0], -1.0), (axis_kink(), [0.5, 1.0], -0.5)):
         prep = prepare(problem)
-        assert improving_neighbour(prep, np.array(x), F, prep.projection) is None
+        assert improving_neighbour(prep, np.array(x), F, prep.projection, optimistic=True) is None
 
 
 def test_probe_tries_each_coordinate() -> None:
