@@ -74,11 +74,12 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
     scale = budget_scale(prep.canon, prep.balls)
     directions = [(rng.standard_normal(x.size) * scale, second) for _ in range(DIRECTIONS)]
     directions += [(d, first) for d in _first_order_directions(prep, x, scale, projection)]
-    bars: dict[bytes, tuple[np.ndarray, float]] = {}  # one entry per direction (the laxer bar wins)
+    # one entry per direction; one that is also a first-order direction (in 1-D every one is) is judged as one
+    bars: dict[bytes, tuple[np.ndarray, float]] = {}
     for d, bar in directions:
         d = d / max(float(np.linalg.norm(d / scale)), 1e-300)
         key = np.round(d / scale, 12).tobytes()
-        bars[key] = (d, max(bar, bars.get(key, (d, -np.inf))[1]))
+        bars[key] = (d, min(bar, bars.get(key, (d, np.inf))[1]))
     values: dict[bytes, float | None] = {x.tobytes(): baseline}  # projections of several probes may coincide
     best: Probe | None = None
     for d, bar in bars.values():
