@@ -4,7 +4,7 @@ Where the lower solution is not unique, the bilevel problem's value at x is min 
 (the optimistic convention; the leader picks among the follower's optimal responses); a method's y is one of them
 and need not be that one. IPOPT (CasADi; independent of the methods' lower solves and of the MPCC) solves
 min_y F(x, y) s.t. g <= 0, h = 0, the upper rows that involve y, and f(x, y) <= f*(x) + SLACK (1 + |f*|) from
-the given starts; an answer counts only once verified at its y (rows within FEAS_TOL, lower gap within
+the given starts; an answer counts only once verified at its y (rows within ROW_TOL, lower gap within
 10 SLACK). Lower levels with LMIs are not handled (IPOPT does not take them): the caller gets None.
 """
 
@@ -22,7 +22,7 @@ if TYPE_CHECKING:  # pragma: no cover
 SLACK = 1e-9
 """Relative slack on the lower optimality row: the accuracy of the independent re-solves (Clarabel at 1e-10), far
 below the certificate's gap tolerance, so the slack alone buys at most (that row's multiplier) * SLACK in F."""
-FEAS_TOL = 1e-8
+ROW_TOL = 1e-8
 """Largest row violation, relative to 1 + max |y|, at which a selection counts as lower- and upper-feasible."""
 IMPROVE_REL_TOL = 1e-5
 """F must drop by more than this (relative to max(1, |F|)), plus what the slack can buy, for a better selection:
@@ -80,7 +80,7 @@ def optimistic_selection(prep: "Prepared", x: np.ndarray, f_star: float,
             continue
         y = np.asarray(sol["x"], dtype=float).ravel()
         F, g, h, f = (np.asarray(v, dtype=float).ravel() for v in nlp.check(x, y))
-        feas = FEAS_TOL * (1.0 + float(np.max(np.abs(y), initial=0.0)))
+        feas = ROW_TOL * (1.0 + float(np.max(np.abs(y), initial=0.0)))
         if (np.any(g > feas) or np.any(np.abs(h) > feas) or f[0] - f_star > 10.0 * slack
                 or not np.isfinite(F[0])):
             continue
