@@ -10,12 +10,13 @@ import casadi as ca
 import numpy as np
 
 from ..canonical import CanonicalBilevel, Canonicalize, NormalizeSense, kkt_solution, objectives, suggested_starts
-from ..certificate import DEFAULT_TOL, LOCAL_EVIDENCE, GlobalBound, certify
+from ..certificate import DEFAULT_TOL, LOCAL_EVIDENCE, Certificate, GlobalBound, certify
 from ..errors import BilevelError, UnknownOption
 from ..model import BilevelProblem
 from ..mpcc import MPCC
 from ..reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
 from ..result import BilevelResult, Status
+from .optimistic import optimistic_selection
 from .probe import improving_neighbour
 from .projections import Projection
 from .structure import Ball, ball_forms, find_balls, upper_projection
@@ -164,6 +165,35 @@ def _final_status(run: MethodRun, passed: bool) -> tuple[Status, str]:
     return run.status, run.message
 
 
+def _local_verdict(prep: Prepared, run: MethodRun, point: KKTPoint, cert: Certificate, stats: dict[str, Any],
+                   status: Status, message: str) -> tuple[Status, str]:
+    """NOT_LOCALLY_OPTIMAL when a lower solution at x gives a lower F than the method's (a non-unique lower
+    level: the optimistic selection) or the probe finds a better feasible neighbour; else the status as is."""
+    F = objectives(prep.canon, point)[0]
+    sign = -1.0 if prep.problem.upper_objective.sense == "max" else 1.0
+    # the lower solution set at x may hold better responses (LMI lower levels: not checked, IPOPT cannot take them)
+    ambiguous = not cert.lower_unique and not prep.canon.lower.psd
+    if ambiguous:
+        starts = [point.y] + ([np.asarray(cert.lower_reference_y)] if np.all(np.isfinite(cert.lower_reference_y))
+                              else [])
+        sel = optimistic_selection(prep, point.x, cert.lower_reference, starts)
+        stats["optimistic"] = None if sel is None else {"y": sel.y, "objective": sign * sel.objective}
+        if sel is not None and sel.improves(F):
+            return Status.NOT_LOCALLY_OPTIMAL, (
+                f"not a local solution of the optimistic bilevel problem: the lower solution is not unique at x and "
+                f"the method's selection is not the optimistic one; the lower solution in stats['optimistic'] gives "
+                f"upper objective {sign * sel.objective:.8g} (here {sign * F:.8g}) ({message})")
+    better = improving_neighbour(prep, point.x, F, run.feasible_set or prep.projection, optimistic=ambiguous)
+    stats["probe"] = None if better is None else {"x": better.x, "objective": better.objective,
+                                                  "radius": better.radius}
+    if better is None:
+        return status, message
+    return Status.NOT_LOCALLY_OPTIMAL, (
+        f"not a local solution: a feasible point at relative distance {better.radius:g} has upper objective "
+        f"{sign * better.objective:.8g} (here {sign * F:.8g}), so the method's point is not optimal ({message}); "
+        "try more starts or another method")
+
+
 def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol: float = DEFAULT_TOL) -> BilevelResult:
     """Certify the run's point, map it back to declared names and senses, and decide the status."""
     if run.w is None or not np.all(np.isfinite(run.w)):
@@ -195,16 +225,7 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
                     "multipliers zeroed; the method's y is in stats['method_y']")
     proven = run.global_bound is not None and run.global_bound.proven  # a global proof needs no local probe
     if status in (Status.SOLVED, Status.INACCURATE) and not proven:
-        F = objectives(prep.canon, point)[0]
-        better = improving_neighbour(prep, point.x, F, run.feasible_set or prep.projection)
-        stats["probe"] = None if better is None else {"x": better.x, "objective": better.objective,
-                                                      "radius": better.radius}
-        if better is not None:
-            status = Status.NOT_LOCALLY_OPTIMAL
-            sign = -1.0 if prep.problem.upper_objective.sense == "max" else 1.0
-            message = (f"not a local solution: a feasible point at relative distance {better.radius:g} has upper "
-                       f"objective {sign * better.objective:.8g} (here {sign * F:.8g}), so the method's point is not "
-                       f"optimal ({message}); try more starts or another method")
+        status, message = _local_verdict(prep, run, point, cert, stats, status, message)
     sol = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse)
     syms = ca.vertcat(prep.canon.x, prep.canon.y, prep.canon.params.sym)
     values = np.concatenate([point.x, point.y, prep.canon.params.value])

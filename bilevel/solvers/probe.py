@@ -1,14 +1,18 @@
 """Local evidence that a returned point is a local solution: feasible points around it, none better.
 
 A stationary point of the reduced objective need not be a minimum: zero poisoning is stationary for every
-attack (the clean learner minimizes the attacker's loss) and is its *worst* point; and a method may stop short
-of stationarity (IPOPT on the Willems KKT route, 1.6e-4 below the vertex next to it). Around x the probe tries
-seeded random directions and the negative hypergradient, scaled per entry (a recognized ball's radius on its
-block, else 1), projects x + h d onto the box and balls for a few radii h, solves the lower level there
-independently (and at x itself, the baseline: with a non-unique lower solution F depends on the solver's
-choice), and reports the best upper-feasible point whose upper objective is lower than both F at x and the
-baseline by more than REL_TOL (relative; DESCENT_REL_TOL along the hypergradient): at a stationary point the
-change is second order, so the tolerance sits at the lower solves' noise, not above it.
+attack (the clean learner minimizes the attacker's loss) and is its *worst* point; a method may stop short
+of stationarity (IPOPT on the Willems KKT route, 1.6e-4 below the vertex next to it), or at a kink of y*(x) where
+two LP vertices tie and F still decreases along the kink, in a cone that random directions miss. Around x the
+probe tries seeded random directions, the negative hypergradient, +/- each coordinate (up to COORDINATES upper
+variables) and, at a kink (a degenerate lower active set), the descent directions of the adjacent pieces; each is
+scaled per entry (a recognized ball's radius on its block, else 1). It projects x + h d onto the box and balls
+for a few radii h, solves the lower level there independently (and at x itself, the baseline: with a non-unique
+lower solution F depends on the solver's choice; with `optimistic`, F is taken at the best lower solution, as
+in bilevel.solvers.optimistic), and reports the best upper-feasible point whose upper objective is lower than
+both F at x and the baseline by more than REL_TOL (relative) along random directions, where at a stationary
+point the change is second order (the tolerance sits at the lower solves' noise, not above it), and by more
+than DESCENT_REL_TOL along the first-order ones.
 """
 
 from __future__ import annotations
@@ -17,21 +21,28 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.optimize import nnls
 
 from ..errors import BilevelError
+from .optimistic import optimistic_selection
 from .projections import Projection
 from .structure import budget_scale
 
 if TYPE_CHECKING:  # pragma: no cover
     from .base import Prepared
+    from .implicit import Hypergradient
 
 DIRECTIONS = 4
 RADII = (1e-1, 1e-2, 1e-3)
 REL_TOL = 1e-8
 FEAS_TOL = 1e-9
 DESCENT_REL_TOL = 1e-5
-"""Along the descent direction the change is first order: a point counts as better only by more than this
-(relative), the scale of the methods' default stopping tolerances, so a point solved to tolerance passes."""
+"""Along a first-order direction (the descent direction, a coordinate, an adjacent piece's descent direction) the
+change is first order: a point counts as better only by more than this (relative), the scale of the methods'
+default stopping tolerances, so a point solved to tolerance passes."""
+COORDINATES = 16
+"""Up to this many upper variables, +/- each coordinate direction is probed, and at a kink of y*(x) the
+hypergradients of the adjacent pieces are sampled there (beyond it only random and descent directions)."""
 
 
 @dataclass(frozen=True)
@@ -44,57 +55,113 @@ class Probe:
 
 
 def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, projection: Projection,
-                        seed: int = 0) -> Probe | None:
+                        seed: int = 0, optimistic: bool = False) -> Probe | None:
     """The best neighbour of x in `projection`'s set, upper-feasible, with upper objective
-    < objective - REL_TOL max(1, |objective|); None if the probe finds none."""
+    < objective - REL_TOL max(1, |objective|) (DESCENT_REL_TOL along first-order directions); None if the probe
+    finds none. optimistic: F at each point with the optimistic selection among the lower solutions there."""
     low = prep.canon.lower
     try:  # the same lower solver as at the probes: a non-unique lower solution must not pass for a better point
-        fixed_y = low.solve(x).y if low.fixed else None  # a lower level that ignores x is solved once
+        fixed_y = low.solve(x).y if low.fixed and not optimistic else None  # a lower level that ignores x: once
     except BilevelError:
         return None
-    baseline = _feasible_objective(prep, x, fixed_y)
+    baseline, verified = _feasible_objective(prep, x, fixed_y, optimistic)
     if baseline is None:
         return None
+    optimistic = optimistic and verified  # where IPOPT verifies no selection at x, it is not asked at the probes
     reference = min(objective, baseline)
-    threshold = reference - REL_TOL * max(1.0, abs(reference))
+    second, first = (reference - tol * max(1.0, abs(reference)) for tol in (REL_TOL, DESCENT_REL_TOL))
     rng = np.random.default_rng(seed)
     scale = budget_scale(prep.canon, prep.balls)
-    best: Probe | None = None
-    directions = [(rng.standard_normal(x.size) * scale, threshold) for _ in range(DIRECTIONS)]
-    descent = _descent_direction(prep, x, scale)
-    if descent is not None:
-        directions.append((descent, reference - DESCENT_REL_TOL * max(1.0, abs(reference))))
+    directions = [(rng.standard_normal(x.size) * scale, second) for _ in range(DIRECTIONS)]
+    directions += [(d, first) for d in _first_order_directions(prep, x, scale, projection)]
+    # one entry per direction; one that is also a first-order direction (in 1-D every one is) is judged as one
+    bars: dict[bytes, tuple[np.ndarray, float]] = {}
     for d, bar in directions:
-        d /= max(float(np.linalg.norm(d / scale)), 1e-300)
+        d = d / max(float(np.linalg.norm(d / scale)), 1e-300)
+        key = np.round(d / scale, 12).tobytes()
+        bars[key] = (d, min(bar, bars.get(key, (d, np.inf))[1]))
+    values: dict[bytes, float | None] = {x.tobytes(): baseline}  # projections of several probes may coincide
+    best: Probe | None = None
+    for d, bar in bars.values():
         for h in RADII:
             xp = projection(x + h * d)
-            F = _feasible_objective(prep, xp, fixed_y)
+            key = xp.tobytes()
+            if key not in values:
+                values[key] = _feasible_objective(prep, xp, fixed_y, optimistic)[0]
+            F = values[key]
             if F is not None and F < bar and (best is None or F < best.objective):
                 best = Probe(xp, F, h)
     return best
 
 
-def _descent_direction(prep: "Prepared", x: np.ndarray, scale: np.ndarray) -> np.ndarray | None:
-    """-grad F(x, y*(x)) in budget units (the hypergradient, balls projected on), or None where it cannot be had:
-    a method that stopped short of stationarity (an interior point next to a better vertex) is caught by it."""
+def _first_order_directions(prep: "Prepared", x: np.ndarray, scale: np.ndarray,
+                            projection: Projection) -> list[np.ndarray]:
+    """-grad F(x, y*(x)) in budget units (the hypergradient, balls projected on); for at most COORDINATES upper
+    variables also +/- each coordinate and, at a kink of y*(x), the descent direction of each adjacent piece.
+    The hypergradient is sampled at x +/- RADII[-1] along each coordinate; x is at a kink when its lower active
+    set is degenerate or a sample's active set differs (two LP vertices that tie, an edge between them). Then -g
+    for each piece's g, and the steepest descent direction -(least-norm element of their convex hull), which
+    follows a kink along which F decreases. A method that stopped at a kink or short of stationarity is caught."""
     from .implicit import shared_oracle  # implicit imports base, which imports this module
 
-    rows = tuple(b.row for b in prep.balls)
+    oracle = shared_oracle(prep, projected_rows=tuple(b.row for b in prep.balls))
+    here = _gradient(oracle, x)
+    out = [] if here is None or not np.any(here[0]) else [-here[0] * scale ** 2]
+    if x.size > COORDINATES:
+        return out
+    steps = [sign * scale[i] * np.eye(x.size)[i] for i in range(x.size) for sign in (1.0, -1.0)]
+    out += steps
+    if here is None:
+        return out
+    samples = [g for g in (_gradient(oracle, projection(x + RADII[-1] * s)) for s in steps) if g is not None]
+    if not here[1] and all(active == here[2] for _, _, active in samples):  # one piece: its direction is there
+        return out
+    G = np.array([here[0]] + [g for g, _, _ in samples]) * scale  # budget units
+    size = max(1.0, float(np.abs(G).max()))
+    pieces = np.unique(np.round(G / size, 8), axis=0) * size  # gradients equal up to the solves' noise: one piece
+    out += [-g * scale for g in pieces if np.any(g)]
+    if len(pieces) > 1:
+        steepest = _least_norm_combination(pieces.T)
+        if np.any(steepest):
+            out.append(-steepest * scale)
+    return out
+
+
+def _gradient(oracle: "Hypergradient", x: np.ndarray) -> tuple[np.ndarray, bool, bytes] | None:
+    """(grad phi(x), whether the lower active set is degenerate there, that active set), or None where it cannot
+    be had."""
     try:
-        grad = shared_oracle(prep, projected_rows=rows)(x)[1]
+        ev = oracle.evaluate(x)
+        grad, weak, _ = oracle.gradient(ev)
     except (BilevelError, np.linalg.LinAlgError, ValueError):
         return None
-    return -grad * scale ** 2 if np.all(np.isfinite(grad)) and np.any(grad) else None
+    return (grad, weak, (ev.lower.lam > oracle.active_tol).tobytes()) if np.all(np.isfinite(grad)) else None
 
 
-def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = None) -> float | None:
-    """F(x, y), y from the lower level's own solver unless given; None if that fails or (x, y) is
-    upper-infeasible."""
+def _least_norm_combination(G: np.ndarray) -> np.ndarray:
+    """The least-norm point of the convex hull of G's columns (nonnegative least squares with the weights' sum
+    held at 1 by a heavy row)."""
+    weight = 1e3 * max(1.0, float(np.abs(G).max()))
+    lam = nnls(np.vstack([G, np.full((1, G.shape[1]), weight)]), np.concatenate([np.zeros(G.shape[0]), [weight]]))[0]
+    return G @ (lam / max(float(lam.sum()), 1e-300))
+
+
+def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = None,
+                        optimistic: bool = False) -> tuple[float | None, bool]:
+    """F(x, y), y from the lower level's own solver unless given (with `optimistic`, also the best verified lower
+    solution there found from that one, the better of the two), and whether such a selection was verified;
+    F is None if the solve fails or (x, y) is upper-infeasible."""
     try:
-        y = prep.canon.lower.solve(x).y if y is None else y
+        sol = None if y is not None else prep.canon.lower.solve(x)
     except BilevelError:
-        return None
-    F, G, H = (np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, y))
-    if np.any(G > FEAS_TOL) or np.any(np.abs(H) > FEAS_TOL) or not np.isfinite(F[0]):
-        return None
-    return float(F[0])
+        return None, False
+    ys = [y if sol is None else sol.y]
+    if optimistic and sol is not None:
+        sel = optimistic_selection(prep, x, float(prep.canon.lower.evaluate(x, sol.y)[0]), [sol.y])
+        ys += [] if sel is None else [sel.y]
+    values = []
+    for yv in ys:
+        F, G, H = (np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, yv))
+        if not (np.any(G > FEAS_TOL) or np.any(np.abs(H) > FEAS_TOL) or not np.isfinite(F[0])):
+            values.append(float(F[0]))
+    return min(values, default=None), len(ys) > 1
