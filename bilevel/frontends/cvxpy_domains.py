@@ -58,11 +58,11 @@ def constrain_domain(problem: "BilevelProblem", param: cp.Parameter, expr: ca.SX
                          "integrality or structure constraint), so the leader could leave the set on which the "
                          "learner is convex; bind a Parameter without the attribute (and state what is needed as "
                          "upper constraints), or bind a constant")
-    rows = [(np.isfinite(lo), lambda e, b: e >= b, "lb"), (np.isfinite(hi), lambda e, b: e <= b, "ub")]
+    rows = [(np.isfinite(lo), lambda e, b: e >= b, "min"), (np.isfinite(hi), lambda e, b: e <= b, "max")]
     for mask, compare, side in rows:
         idx = np.flatnonzero(mask).tolist()
         if idx:
-            bound = lo if side == "lb" else hi
+            bound = lo if side == "min" else hi
             problem.upper_constraint(compare(flat[idx], ca.DM(bound[idx])), name=f"{name}.{param.name()}.{side}")
 
 

@@ -34,7 +34,7 @@ def test_nonneg_parameter_bound_to_an_expression_that_goes_negative_is_kept_nonn
     """p = 1 - x is negative for x > 1, where the learner is not DCP (cvxpy refuses the value); unconstrained the
     leader drove p to -1 (z* = 5, F = 25). With p >= 0 enforced: x = 1, p = 0, z* = 1, F = 1."""
     prob, _, param = _leader(lambda x: 1 - x)
-    assert [c.name for c in prob.upper_constraints] == [f"cvxpy.{param.name()}.lb"]
+    assert [c.name for c in prob.upper_constraints] == [f"cvxpy.{param.name()}.min"]
     res = prob.solve(method)
     assert res.status is bl.Status.SOLVED, res.message
     assert res.x["x"][0] == pytest.approx(1.0, abs=1e-5)
