@@ -11,7 +11,7 @@ import numpy as np
 
 from ..canonical import CanonicalBilevel, Canonicalize, NormalizeSense, kkt_solution, objectives, suggested_starts
 from ..certificate import DEFAULT_TOL, LOCAL_EVIDENCE, Certificate, GlobalBound, certify
-from ..errors import BilevelError, UnknownOption
+from ..errors import BilevelError, LowerLevelUnbounded, UnknownOption
 from ..model import BilevelProblem
 from ..mpcc import MPCC
 from ..reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
@@ -130,6 +130,19 @@ class MethodRun:
     feasible_set: Projection | None = None
     """The upper set the method searched when narrower than the declared one (a `projection` option)."""
     global_bound: GlobalBound | None = None
+
+
+def unbounded_lower(prep: Prepared, x: np.ndarray) -> str | None:
+    """Why a method found no KKT point, where the reason is that the lower level is unbounded below at x (its KKT
+    system then has no solution, which is not an infeasible problem); None otherwise."""
+    try:
+        prep.canon.lower.solve(x)
+    except LowerLevelUnbounded as exc:
+        return (f"lower level unbounded, not an infeasible problem: {exc}; the KKT system has no solution there "
+                "(bound the lower variables or add lower constraints)")
+    except BilevelError:
+        pass
+    return None
 
 
 FEASIBILITY_TOL = 1e-6

@@ -16,7 +16,7 @@ import numpy as np
 from ..certificate import GlobalBound
 from ..errors import BilevelError, ModelError
 from ..result import Status
-from .base import MethodRun, Prepared, check_options
+from .base import MethodRun, Prepared, check_options, unbounded_lower
 from .global_bb import Guess, SearchOutcome, branch_and_bound, relative_gap, sides_of
 from .global_bigm import derive_big_m
 from .global_form import linear_mpcc
@@ -81,6 +81,8 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     form = linear_mpcc(prep)
     base = Relaxation(form)
     if base.solve({}).status == "infeasible":
+        if (why := unbounded_lower(prep, prep.projection(prep.canon.x_start))) is not None:
+            return MethodRun(None, Status.ERROR, why)
         return MethodRun(None, Status.INFEASIBLE, "the KKT reformulation is infeasible even without complementarity: "
                          "no upper point has a feasible lower level satisfying the upper constraints")
     big_m = derive_big_m(base)

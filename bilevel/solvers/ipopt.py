@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import BilevelError, LowerLevelUnbounded, ModelError
+from ..errors import BilevelError, ModelError
 from ..mpcc import Branch, ComplementarityMode, NLPForm, Scholtes
 from ..reduction import KKTPoint
 from ..result import Status
-from .base import MethodRun, Prepared, best_of, check_options
+from .base import MethodRun, Prepared, best_of, check_options, unbounded_lower
 from .hypergradient import chosen_exact_block, solve_hypergradient
 from .starts import start_points
 
@@ -185,15 +185,8 @@ def settled(prep: Prepared, run: MethodRun) -> MethodRun:
         return run
     point = prep.point(run.w)
     run.w = prep.pack(replace(point, x=prep.projection(point.x)))
-    if run.status is Status.INFEASIBLE:
-        try:
-            prep.canon.lower.solve(prep.point(run.w).x)
-        except LowerLevelUnbounded as exc:
-            run.status = Status.ERROR
-            run.message = (f"lower level unbounded, not an infeasible problem: {exc}; the KKT system has no solution "
-                           f"there (bound the lower variables or add lower constraints) ({run.message})")
-        except BilevelError:
-            pass
+    if run.status is Status.INFEASIBLE and (why := unbounded_lower(prep, prep.point(run.w).x)) is not None:
+        run.status, run.message = Status.ERROR, f"{why} ({run.message})"
     return run
 
 

@@ -330,6 +330,8 @@ CASES: dict[str, tuple[Callable[[], Any], Any, str]] = {
                                    "lower level unbounded, not an infeasible problem"),
     "unbounded lower LP (relaxation)": (lambda: _unbounded_lp().solve("relaxation", starts=1), STATUS,
                                         "lower level unbounded"),
+    "unbounded lower LP (global)": (lambda: _unbounded_lp().solve("global"), STATUS,
+                                    "lower level unbounded, not an infeasible problem"),
     "unbounded lower LP (hypergradient)": (lambda: _unbounded_lp().solve("hypergradient", starts=1), STATUS,
                                            "LowerLevelUnbounded"),
     "unbounded lower NLP (ipopt)": (lambda: _unbounded_nlp().solve("ipopt", starts=1), STATUS,
