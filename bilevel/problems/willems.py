@@ -43,7 +43,7 @@ from ..ddc.depersis_tesi import check_persistency, state_data
 from ..errors import InvalidData, ModelError
 from ..model import BilevelProblem
 from ..result import BilevelResult
-from ..solvers.options import check_common_options
+from ..solvers.options import check_common_options, check_counts, check_flags, check_numbers
 from ..vech import symmetric_sx
 from .registry import register
 from .surrogates import gelfand_log_radius
@@ -85,11 +85,10 @@ class WillemsSetting:
                                      ("poison", self.poison, POISONS), ("selection", self.selection, SELECTIONS)):
             if value not in allowed:
                 raise ModelError(f"willems: {name}={value!r} is not one of {', '.join(allowed)}")
-        if self.delta_u < 0 or self.delta_x < 0 or not np.isfinite(self.delta_u + self.delta_x):
-            raise ModelError(f"willems: budgets must be finite and >= 0, got delta_u={self.delta_u}, "
-                             f"delta_x={self.delta_x}")
-        if self.reg < 0:
-            raise ModelError(f"willems: reg must be >= 0, got {self.reg}")
+        check_numbers({"delta_u": self.delta_u, "delta_x": self.delta_x, "reg": self.reg},
+                      nonnegative=("delta_u", "delta_x", "reg"))
+        check_counts({"horizon": self.horizon}, ("horizon",))
+        check_flags({"poison_x0": self.poison_x0}, ("poison_x0",))
         check_common_options({"seed": self.seed})
         if "u" not in self.poison and self.delta_u > 0:
             raise ModelError(f"willems: poison={self.poison!r} leaves U clean but delta_u={self.delta_u}; "
