@@ -11,6 +11,7 @@ import casadi as ca
 import numpy as np
 
 from .certificate import Certificate, GlobalBound
+from .errors import InvalidData
 from .files import atomic_open
 
 _CERT_FLOATS = ("stationarity", "lower_feasibility", "dual_feasibility", "complementarity", "upper_feasibility",
@@ -131,12 +132,18 @@ class BilevelResult:
 
     @classmethod
     def from_json(cls, source: str) -> "BilevelResult":
-        """Read a result written by to_json: `source` is a JSON text or the path of a file holding one."""
+        """Read a result written by to_json: `source` is a JSON text or the path of a file holding one; a text that
+        is not such a result raises InvalidData naming what is wrong."""
         text = source
         if not source.lstrip().startswith("{"):
             with open(source, encoding="utf-8") as fh:
                 text = fh.read()
-        return cls.from_dict(json.loads(text))
+        try:
+            d = json.loads(text)
+            return cls.from_dict(d)
+        except (ValueError, KeyError, TypeError) as exc:  # JSONDecodeError is a ValueError
+            raise InvalidData(f"not a result written by BilevelResult.to_json ({type(exc).__name__}: {exc}); pass "
+                              "the text or the path of a file that to_json wrote") from exc
 
     def __repr__(self) -> str:
         def fmt(v: Any) -> str:
