@@ -122,8 +122,9 @@ class Hypergradient:
         parts = [np.abs(S), np.maximum(g, 0.0), np.abs(h), np.abs(lam * g)]
         return max((float(p.max()) for p in parts if p.size), default=0.0)
 
-    def _polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, KKTValues | None]:
-        """One Newton step on the active-set KKT equations; kept if it keeps lam >= 0 and lowers the residual."""
+    def polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, KKTValues | None]:
+        """One Newton step on the active-set KKT equations at x from sol; kept if it keeps lam >= 0 and lowers the
+        residual."""
         if self.low.kind == "least-squares":  # a closed form: nothing to polish; KKT values wait for a gradient
             return sol, None
         vals = self.low.kkt_values(x, sol)
@@ -160,7 +161,7 @@ class Hypergradient:
         elif self.conic:
             sol, vals = self.low.select_min_norm(x, self.low.newton_polish(x, self.low.solve(x))[0]), None
         else:
-            sol, vals = self._polish(x, self.low.solve(x))
+            sol, vals = self.polish(x, self.low.solve(x))
         if self.low.fixed:  # y* constant in x: solved once, no adjoint
             self._fixed = (revision, sol, vals)
         if np.isnan(sol.objective) and isinstance(self.low, ExpressionLower):  # F and f share subexpressions

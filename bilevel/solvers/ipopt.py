@@ -22,11 +22,13 @@ from typing import Any
 import numpy as np
 
 from ..errors import BilevelError, ModelError
+from ..lower.base import LowerSolution
 from ..mpcc import Branch, ComplementarityMode, NLPForm, Scholtes
 from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, best_of, check_options, unbounded_lower
 from .hypergradient import chosen_exact_block, solve_hypergradient
+from .implicit import shared_oracle
 from .starts import start_points
 
 IPOPT_STATUS: dict[str, Status] = {
@@ -184,10 +186,33 @@ def settled(prep: Prepared, run: MethodRun) -> MethodRun:
     if run.w is None or not np.all(np.isfinite(run.w)):
         return run
     point = prep.point(run.w)
-    run.w = prep.pack(replace(point, x=prep.projection(point.x)))
+    x = prep.projection(point.x)
+    if not np.array_equal(x, point.x):
+        run.w = prep.pack(_lower_moved_to(prep, point, x))
     if run.status is Status.INFEASIBLE and (why := unbounded_lower(prep, prep.point(run.w).x)) is not None:
         run.status, run.message = Status.ERROR, f"{why} ({run.message})"
     return run
+
+
+def _lower_moved_to(prep: Prepared, point: KKTPoint, x: np.ndarray) -> KKTPoint:
+    """The method's KKT point with x moved to `x` (a projection by rounding-sized steps) and its lower part corrected
+    there: Newton on the lower KKT system from the method's y and multipliers (same active set, so the method's
+    choice among non-unique lower solutions is kept), or the closed form of a least-squares lower level. Without
+    the correction y is stationary only at the old x (2e-6 off after a 1e-8 move of a 200-sample budget)."""
+    low = prep.canon.lower
+    sol = LowerSolution(point.y, np.nan, point.lam, point.mu, list(point.Z), "optimal", "the method's point")
+    try:
+        if low.kind == "least-squares":
+            sol = low.solve(x)
+        elif low.psd:
+            sol = low.newton_polish(x, sol)[0]
+        else:
+            oracle = shared_oracle(prep)
+            for _ in range(2):  # exact in one step for LP/QP on the same face; NLP converges quadratically
+                sol = oracle.polish(x, sol)[0]
+    except (BilevelError, np.linalg.LinAlgError):  # keep the method's lower part; the certificate judges it
+        pass
+    return KKTPoint(x, sol.y, sol.lam, sol.mu, list(sol.Z))
 
 
 def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
