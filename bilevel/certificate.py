@@ -40,8 +40,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import BilevelError
-from .lower.base import psd_violation
-from .lower.convexity import convexity_violation, proven_convex
+from .lower.convexity import convexity_violation, proven_convex, psd_violation
 from .sampling import sample_in_bounds
 
 if TYPE_CHECKING:  # pragma: no cover

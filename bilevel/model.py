@@ -162,12 +162,12 @@ def _shape_of(value: Any, where: str) -> tuple[int, int]:
         raise ModelError(f"{where}: expected a CasADi expression, got {type(value).__name__}") from None
 
 
-def _expression(value: Any, where: str) -> ca.SX:
+def _expression(value: Any, where: str, want: str = "a CasADi expression or numbers") -> ca.SX:
     """value (a CasADi expression, a number or an array of numbers) as an SX; ModelError naming `where` otherwise."""
     try:
         return value if isinstance(value, ca.SX) else ca.SX(value)
     except (NotImplementedError, TypeError, RuntimeError):
-        raise ModelError(f"{where}: expected a CasADi expression or numbers, got {type(value).__name__}") from None
+        raise ModelError(f"{where}: expected {want}, got {type(value).__name__}") from None
 
 
 def check_depends(expr: ca.SX, allowed: set[int], where: str, fix: str) -> None:
@@ -454,11 +454,7 @@ class BilevelProblem:
         """Add a lower-level linear matrix inequality `M(x, y) >= 0` (M symmetric, affine in y)."""
         self._check_lower_open("lower_psd_constraint")
         name = self._constraint_name(name, f"M{len(self.lower_psd_constraints)}", "lower_psd_constraint")
-        try:
-            matrix = ca.SX(matrix)
-        except (NotImplementedError, TypeError, RuntimeError):
-            raise ModelError(f"lower_psd_constraint: expected a square CasADi matrix, got {type(matrix).__name__}") \
-                from None
+        matrix = _expression(matrix, "lower_psd_constraint", "a square CasADi matrix")
         if matrix.numel() == 0:
             raise ModelError("lower_psd_constraint: the matrix is empty; an LMI needs a square matrix of size >= 1")
         if matrix.size1() != matrix.size2():

@@ -16,11 +16,6 @@ from ..vech import symmetric_from_vech
 from .convexity import ConvexityProbe
 
 
-def psd_violation(m: np.ndarray) -> float:
-    """How far the symmetric part of m is from PSD: max(-lambda_min, 0), 0 for an empty matrix."""
-    return max(-float(np.linalg.eigvalsh(0.5 * (m + m.T)).min()), 0.0) if m.size else 0.0
-
-
 @dataclass
 class LowerSolution:
     """A lower-level solution at a fixed upper point, with multipliers in our sign convention.

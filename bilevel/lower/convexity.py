@@ -29,8 +29,13 @@ def min_eigenvalue(matrix: np.ndarray) -> float:
     return float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min()) if matrix.size else 0.0
 
 
+def psd_violation(matrix: np.ndarray) -> float:
+    """How far the symmetric part of matrix is from PSD: max(-lambda_min, 0), 0 for an empty matrix."""
+    return max(-min_eigenvalue(matrix), 0.0)
+
+
 def scaled_violation(matrix: np.ndarray) -> tuple[float, float]:
-    """(max(-lambda_min, 0) / max(1, max |entry|), lambda_min): the relative distance from PSD, and the eigenvalue."""
+    """(psd_violation / max(1, max |entry|), lambda_min): the relative distance from PSD, and the eigenvalue."""
     matrix = np.atleast_2d(np.asarray(matrix, dtype=float))
     lam = min_eigenvalue(matrix)
     return max(-lam, 0.0) / max(1.0, float(np.abs(matrix).max(initial=0.0))), lam

@@ -16,7 +16,8 @@ import numpy as np
 
 from ..threads import single_threaded_call
 from ..vech import smat, svec
-from .base import LowerSolution, psd_violation
+from .base import LowerSolution
+from .convexity import psd_violation
 
 if TYPE_CHECKING:  # pragma: no cover
     from .quadratic import QPData

@@ -11,7 +11,8 @@ import casadi as ca
 import numpy as np
 
 from ..vech import unvech, vech, vech_sx
-from .base import LowerSolution, psd_violation
+from .base import LowerSolution
+from .convexity import psd_violation
 from .quadratic import QuadraticLower, solve_qp_clarabel
 
 PSD_TOL = 1e-9

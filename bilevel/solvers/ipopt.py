@@ -16,7 +16,7 @@ start points elsewhere. Each NLP solve stops after MAX_WALL_TIME seconds by defa
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
