@@ -11,6 +11,8 @@ import numpy as np
 
 from .errors import ModelError
 from .lower import LowerLevel, LowerSolution, build_lower
+from .linear_maps import Images
+from .lower.images import ImageLower, Lift
 from .lower.matrix import MatrixLower
 from .model import BilevelProblem, LowerQP, Variable, check_depends, unflatten_all
 from .parameters import ParameterSet, scalar
@@ -58,6 +60,8 @@ class CanonicalBilevel:
     """A lower level given by matrices (lower_qp, bounds of y appended to A and b); f, g, h are then empty."""
     lifting: Lifting | None = None
     """The problem's definitions kept as variables, for the KKT reformulation (here they are substituted)."""
+    images: Images | None = None
+    """Products of linear maps (BilevelProblem.linear_map) used in the lower level: symbols z = A arg(x)."""
 
     @cached_property
     def lower(self) -> LowerLevel:
@@ -69,9 +73,14 @@ class CanonicalBilevel:
                                [f"{n}[{i}]" for n, i in self.h_rows], self.params)
         rng = np.random.default_rng(0)
         samples = [self.x_start] + [sample_in_bounds(self.x_lb, self.x_ub, rng, 3.0) for _ in range(5)]
-        return build_lower(self.x, self.y, self.f, self.g, self.h, self.psd,
-                           [f"{n}[{i}]" for n, i in self.g_rows], [f"{n}[{i}]" for n, i in self.h_rows],
-                           self.psd_names, samples, self.y_lb, self.y_ub, self.assume_convex, self.params)
+        x, lift = self.x, None
+        if self.images is not None:  # the kind over [x; z]; ImageLower lifts x at every call
+            lift = Lift(self.x, self.images, self.params)
+            x, samples = ca.vertcat(self.x, self.images.sym), [lift(s) for s in samples]
+        low = build_lower(x, self.y, self.f, self.g, self.h, self.psd,
+                          [f"{n}[{i}]" for n, i in self.g_rows], [f"{n}[{i}]" for n, i in self.h_rows],
+                          self.psd_names, samples, self.y_lb, self.y_ub, self.assume_convex, self.params)
+        return low if lift is None else ImageLower(low, lift, self.x, self.params)
 
     @cached_property
     def functions(self) -> ca.Function:
@@ -162,9 +171,11 @@ def _flat(vars_: list[Variable]) -> ca.SX:
 
 
 def _check_depends(expr: ca.SX, allowed: set[int], where: str) -> None:
-    """check_depends for a declared expression: it may use the declared variables, definitions and parameters."""
-    check_depends(expr, allowed, where, "are not variables declared on this problem; declare them with "
-                  "upper_variable/lower_variable")
+    """check_depends for a declared expression: it may use the declared variables, definitions and parameters (and,
+    in the lower level, products of linear maps)."""
+    check_depends(expr, allowed, where, "are not variables declared on this problem (declare them with "
+                  "upper_variable/lower_variable), or are products of a linear map outside the lower level (they "
+                  "stand for data of the lower level: in the upper level write the product as an expression)")
 
 
 def suggested_starts(problem: BilevelProblem, x_start: np.ndarray, x_lb: np.ndarray,
@@ -188,11 +199,15 @@ class Canonicalize(Reduction):
         ups, lows = problem.upper_variables, problem.lower_variables
         x, y = _flat(ups), _flat(lows)
         defined = [ca.vec(d.sym) for d in problem.definitions]
+        images = Images(tuple(problem.images)) if problem.images else None
         allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(x, y, *defined, problem.parameters.sym))}
-        _check_depends(problem.upper_objective.expr, allowed, "the upper objective")
+        upper_allowed = set(allowed)
+        if images is not None:
+            allowed |= {s.element_hash() for s in ca.symvar(images.sym)}
+        _check_depends(problem.upper_objective.expr, upper_allowed, "the upper objective")
         mats = problem.lower_matrices
         for what, expr in ([] if mats is None else [("d", mats.d), ("q", mats.q), ("b", mats.b), ("e", mats.e)]):
-            _check_depends(expr, allowed, f"lower_qp's {what}")
+            _check_depends(expr, upper_allowed, f"lower_qp's {what}")
             if ca.depends_on(expr, y):
                 raise ModelError(f"lower_qp's {what} depends on the lower variable; d, q, b, e are data: expressions "
                                  "of upper variables and parameters only")
@@ -200,7 +215,7 @@ class Canonicalize(Reduction):
             _check_depends(problem.lower_objective.expr, allowed, "the lower objective")
         G, H, G_names = [], [], []
         for c in problem.upper_constraints:
-            _check_depends(c.body, allowed, f"upper constraint {c.name!r}")
+            _check_depends(c.body, upper_allowed, f"upper constraint {c.name!r}")
             (G if c.kind == "<=" else H).append(c.body)
             if c.kind == "<=":
                 G_names += [f"{c.name}[{i}]" for i in range(int(c.body.numel()))]
@@ -251,7 +266,7 @@ class Canonicalize(Reduction):
             y_start=y_start,
             G_names=G_names, x_suggested=suggested_starts(problem, x_start, x_lb, x_ub), y_lb=y_lb, y_ub=y_ub,
             assume_convex=mats is None and problem.lower_objective.assume_convex, params=problem.parameters,
-            lower_reference=problem.lower_reference, matrices=mats,
+            lower_reference=problem.lower_reference, matrices=mats, images=images,
         )
         if problem.definitions:
             canon = _eliminate(canon, problem)

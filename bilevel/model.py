@@ -20,6 +20,7 @@ import casadi as ca
 import numpy as np
 
 from .errors import InvalidData, ModelError
+from .linear_maps import Image, LinearMap, Operator
 from .parameters import ParameterSet
 from .vech import symmetric_from_vech, unvech, vech
 
@@ -176,7 +177,7 @@ def check_depends(expr: ca.SX, allowed: set[int], where: str, fix: str) -> None:
     free = [s for s in ca.symvar(expr) if s.element_hash() not in allowed]
     if free:
         raise ModelError(f"{where} uses symbols {', '.join(str(s) for s in free)} that {fix}")
-    fun = ca.Function("data", ca.symvar(expr), [expr])
+    fun = ca.Function("data", [ca.vertcat(*ca.symvar(expr))], [expr])
     bad = [fun.instruction_constant(k) for k in range(fun.n_instructions())
            if fun.instruction_id(k) == ca.OP_CONST and not np.isfinite(fun.instruction_constant(k))]
     if bad:
@@ -243,6 +244,8 @@ class BilevelProblem:
         while it is unchanged."""
         self.lower_matrices: LowerQP | None = None
         """The lower level given by matrices (lower_qp), if it was declared that way."""
+        self.images: list[Image] = []
+        """Products `T @ expr` of declared linear maps (linear_map), kept as symbols."""
         self.lower_reference: Callable[[ca.SX, np.ndarray, np.ndarray], LowerSolution] | None = None
         """An independent solver of the lower level that the certificate re-solves with instead of the engine's,
         (x symbols, x, y) -> LowerSolution; set by a front end that has the user's own model (lower_cvxpy)."""
@@ -287,10 +290,14 @@ class BilevelProblem:
     def _check_new_name(self, name: str) -> None:
         if not isinstance(name, str) or not name.isidentifier():
             raise ModelError(f"name {name!r} must be a Python identifier")
-        if (any(v.name == name for v in self.variables) or any(p.name == name for p in self.parameters.items)
-                or any(d.name == name for d in self.definitions)):
+        if self._taken(name):
             raise ModelError(f"a variable, parameter or definition named {name!r} is already declared; names must "
                              "be unique")
+
+    def _taken(self, name: str) -> bool:
+        """Whether a variable, parameter, definition or linear-map product already has this name."""
+        return (any(v.name == name for v in self.variables) or any(p.name == name for p in self.parameters.items)
+                or any(d.name == name for d in self.definitions) or any(i.name == name for i in self.images))
 
     def parameter(self, name: str, shape: int | tuple[int, int] = 1, value: Any = None) -> ca.SX:
         """Declare data that can be re-set without rebuilding (set_value); returns its CasADi symbol.
@@ -344,6 +351,28 @@ class BilevelProblem:
         allowed |= {s.element_hash() for s in ca.symvar(ca.vec(sym))}
         check_depends(body, allowed, f"define({name!r}): the equation", DEFINITION_USES)
         self.definitions.append(Definition(name, sym, value, ca.vec(body)))
+        self.revision += 1
+        return sym
+
+    def linear_map(self, matrix: Any, name: str = "A") -> LinearMap:
+        """A numeric matrix (numpy, scipy.sparse) or scipy LinearOperator kept as data: `T @ expr` (expr an expression
+        of the upper variables and parameters) is a symbol for the product, to use in the lower level; the engine
+        computes the product and its adjoint numerically instead of expanding the matrix into the expressions."""
+        if not isinstance(name, str) or not name.isidentifier():
+            raise ModelError(f"linear_map: name {name!r} must be a Python identifier")
+        return LinearMap(self, matrix, name)
+
+    def _image(self, name: str, operator: Operator, arg: ca.SX) -> ca.SX:
+        """Register the product operator @ arg (LinearMap.__matmul__) and return its symbol."""
+        while self._taken(name):
+            name += "_"
+        allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(*[ca.vec(v.sym) for v in self.upper_variables],
+                                                                  self.parameters.sym))}
+        check_depends(arg, allowed, f"{name} = linear map @ expression: the expression",
+                      "are not upper variables or parameters of this problem; a linear map applies to what the "
+                      "leader chooses (declare the upper variables first)")
+        sym = ca.SX.sym(name, operator.shape[0], int(arg.size2()))
+        self.images.append(Image(name, sym, operator, arg))
         self.revision += 1
         return sym
 
@@ -555,7 +584,7 @@ class BilevelProblem:
 
     def _all_syms(self) -> ca.SX:
         return ca.vertcat(*[ca.vec(v.sym) for v in self.variables], *[ca.vec(d.sym) for d in self.definitions],
-                          self.parameters.sym)
+                          *[ca.vec(i.sym) for i in self.images], self.parameters.sym)
 
     def __getstate__(self) -> dict[str, Any]:  # the cached preparation (compiled functions) is not pickled
         return {k: v for k, v in self.__dict__.items() if k != "_prepared"}

@@ -13,6 +13,7 @@ from .convexity import PSD_TOL, ConvexityProbe
 from .least_squares import LeastSquaresLower
 from .nlp import ConvexNLPLower
 from .quadratic import LinearLower, QuadraticLower
+from .residual import ResidualLeastSquares
 from .sdp import SemidefiniteLower
 
 Y_PROBES = 16
@@ -51,6 +52,10 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
     ny = int(y.numel())
     y_lb = np.full(ny, -np.inf) if y_lb is None else y_lb
     y_ub = np.full(ny, np.inf) if y_ub is None else y_ub
+    if not g.numel() and not h.numel() and not psd and np.all(np.isinf(y_lb)) and np.all(np.isinf(y_ub)):
+        residual = ResidualLeastSquares.recognize(x, y, f, x_samples, params)
+        if residual is not None:  # a large least squares: its Hessian C'C formed numerically, never symbolically
+            return residual
     rng = np.random.default_rng(0)
     points = [(xs, sample_in_bounds(y_lb, y_ub, rng, 3.0)) for xs in x_samples for _ in range(Y_PROBES)]
     hess_f = ca.hessian(f, y)[0]

@@ -25,6 +25,7 @@ import numpy as np
 from ..canonical import CanonicalBilevel
 from ..errors import BilevelError
 from ..lower.base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
+from ..lower.images import ImageLower
 from ..lower.least_squares import factor_solve, hessian_factor
 from ..lower.matrix import MatrixLower
 from ..reduction import KKTPoint
@@ -93,6 +94,7 @@ def _lower_gradient_parts(low: LowerLevel, y: ca.SX) -> tuple[ca.SX, ca.SX]:
     matrix form d and q: its gradient q - C'd is never built as an expression, its size is that of the data)."""
     if isinstance(low, MatrixLower):
         return ca.SX(low.hess.shape[0], low.hess.shape[1]), ca.vertcat(low.d, low.q)
+    low = low.inner if isinstance(low, ImageLower) else low  # expressions of [x; z]
     return low.hess_f, ca.substitute(ca.gradient(low.f, y), y, ca.DM.zeros(int(y.numel())))
 
 
@@ -102,6 +104,10 @@ def _block_data(canon: CanonicalBilevel, S: slice, hess_F: ca.SX, q: ca.SX) -> C
     low, x, y = canon.lower, canon.x, canon.y
     zero = ca.DM.zeros(int(y.numel()))
     grad0 = ca.substitute(ca.gradient(canon.F, y), y, zero)
+    if isinstance(low, ImageLower):  # the block does not reach the maps (find_exact_block): data of [x; z] at lift(x)
+        fun = canon.params.function("exact_block_data", [low.inner.x], [ca.substitute(low.inner.hess_f, y, zero), q,
+                                                                        ca.jacobian(q, x[S]), grad0, hess_F])
+        return lambda xv: fun(low.lift(xv))
     if not isinstance(low, MatrixLower):
         return canon.params.function("exact_block_data", [x], [ca.substitute(low.hess_f, y, zero), q,
                                                                ca.jacobian(q, x[S]), grad0, hess_F])
@@ -118,7 +124,7 @@ def _block_data(canon: CanonicalBilevel, S: slice, hess_F: ca.SX, q: ca.SX) -> C
 def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactBlock | None, list[str]]:
     """The largest ball block that is exact (see the module docstring), and why each other one is not."""
     low = canon.lower
-    if not isinstance(low, (ExpressionLower, MatrixLower)):
+    if not isinstance(low, (ExpressionLower, MatrixLower, ImageLower)):
         return None, [f"the lower level ({type(low).__name__}) is neither declared by expressions nor by lower_qp"]
     if low.kind != "least-squares":
         return None, [f"the lower level is {low.kind}, not an unconstrained strictly convex quadratic"]
@@ -130,6 +136,9 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
         return None, ["the upper objective is not quadratic in the lower variables"]
     hess_f, q = _lower_gradient_parts(low, y)
     in_P = depends(hess_f, x)
+    mapped = np.zeros(int(x.numel()), dtype=bool)  # entries of x that reach the lower level through linear maps
+    if isinstance(low, ImageLower):
+        mapped = depends(ca.vertcat(*[ca.vec(i.arg) for i in low.lift.images.items]), x)
     in_F = depends(canon.F, x)
     why: list[str] = []
     best: Ball | None = None
@@ -139,6 +148,7 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
         reason = ("has finite bounds" if np.isfinite(canon.x_lb[S]).any() or np.isfinite(canon.x_ub[S]).any()
                   else "enters the upper objective" if in_F[S].any()
                   else "enters another upper constraint" if depends(ca.vertcat(*others), x)[S].any()
+                  else "enters the lower level through a linear map" if mapped[S].any()
                   else "enters the lower Hessian" if in_P[S].any()
                   else "enters the lower gradient nonlinearly" if depends(q, x[S], 2).any() else "")
         if reason:

@@ -1,0 +1,127 @@
+"""Numeric linear maps in a declaration: `T = p.linear_map(matrix)`, then `T @ expr` is a symbol standing for the
+product, and the matrix stays data.
+
+Written into a CasADi expression (`ca.mtimes(ca.DM(T), x)`), a numeric N x N matrix becomes N^2 scalar nodes that
+every derivative and every evaluation walks. A linear map keeps it a matrix (numpy, scipy.sparse or a scipy
+LinearOperator): the engine computes `T @ arg(x)` and the adjoint products `T' v` with BLAS or the operator's own
+code, and the expressions stay as small as the symbols they are written with.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import casadi as ca
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import LinearOperator
+
+from .errors import InvalidData, ModelError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .model import BilevelProblem
+
+DENSE_LIMIT = 25_000_000
+"""Entries up to which an operator given only by its products is formed as a matrix (for the KKT reformulation)."""
+
+
+class Operator:
+    """A numeric matrix or linear operator with products by columns: apply (A X) and adjoint (A' Y)."""
+
+    def __init__(self, matrix: Any, what: str) -> None:
+        if isinstance(matrix, LinearOperator):
+            self.kind, self.data = "operator", matrix
+        elif sp.issparse(matrix):
+            self.kind, self.data = "sparse", sp.csr_matrix(matrix, dtype=float)
+        else:
+            try:
+                arr = np.asarray(matrix, dtype=float)
+            except (TypeError, ValueError):
+                raise ModelError(f"{what}: expected a numeric matrix (numpy, scipy.sparse) or a scipy LinearOperator, "
+                                 f"got {type(matrix).__name__}") from None
+            if arr.ndim != 2:
+                raise ModelError(f"{what}: expected a 2-D matrix, got an array of shape {arr.shape}")
+            self.kind, self.data = "dense", np.ascontiguousarray(arr)
+        self.shape = tuple(int(n) for n in self.data.shape)
+        if min(self.shape) < 1:
+            raise ModelError(f"{what}: the matrix has shape {self.shape}; it needs at least one row and column")
+        values = self.data.data if self.kind == "sparse" else self.data if self.kind == "dense" else np.zeros(0)
+        if not np.all(np.isfinite(values)):
+            raise InvalidData(f"{what}: the matrix contains NaN or inf; clean the data first")
+
+    def apply(self, X: np.ndarray) -> np.ndarray:
+        """A X (X of shape (n,) or (n, k))."""
+        return self.data.matmat(X) if self.kind == "operator" and X.ndim == 2 else self.data @ X
+
+    def adjoint(self, Y: np.ndarray) -> np.ndarray:
+        """A' Y (Y of shape (m,) or (m, k))."""
+        if self.kind == "operator":
+            return self.data.rmatmat(Y) if Y.ndim == 2 else self.data.rmatvec(Y)
+        return self.data.T @ Y
+
+    def dense(self, what: str) -> np.ndarray:
+        """The matrix as a dense array (an operator is applied to the identity, up to DENSE_LIMIT entries)."""
+        if self.kind == "dense":
+            return self.data
+        if self.kind == "sparse":
+            return self.data.toarray()
+        if self.shape[0] * self.shape[1] > DENSE_LIMIT:
+            raise ModelError(f"{what} is a LinearOperator of shape {self.shape}, too large to form as a matrix for the "
+                             "KKT reformulation; use method='hypergradient', which applies it by its products")
+        return np.asarray(self.data.matmat(np.eye(self.shape[1])), dtype=float)
+
+    def casadi(self, what: str) -> ca.DM:
+        """The matrix as a CasADi DM with its structural zeros (for the expanded, KKT form)."""
+        return ca.DM(sp.csc_matrix(self.data) if self.kind == "sparse" else sp.csc_matrix(self.dense(what)))
+
+
+@dataclass(frozen=True)
+class Image:
+    """z = A @ arg: a linear map applied to an expression of the upper variables and parameters; z is a symbol of
+    the shape of the product, arg the expression (columns mapped one by one)."""
+
+    name: str
+    sym: ca.SX
+    operator: Operator
+    arg: ca.SX
+
+
+class LinearMap:
+    """A numeric matrix or linear operator declared on a problem (BilevelProblem.linear_map): `T @ expr` returns a
+    symbol for the product, to write with; the product is computed numerically, never expanded into the graph."""
+
+    def __init__(self, problem: "BilevelProblem", matrix: Any, name: str) -> None:
+        self.problem, self.name = problem, name
+        self.operator = Operator(matrix, f"linear_map({name!r})")
+        self.shape = self.operator.shape
+        self._count = 0
+
+    def __matmul__(self, expr: Any) -> ca.SX:
+        from .model import _expression
+
+        arg = _expression(expr, f"linear_map({self.name!r}) @ ...", "a CasADi expression of upper variables")
+        if arg.size1() != self.shape[1]:
+            raise ModelError(f"linear_map({self.name!r}) has {self.shape[1]} columns but the expression has "
+                             f"{arg.size1()} rows; the product needs equal sizes")
+        name = f"{self.name}_{self._count}"
+        self._count += 1
+        return self.problem._image(name, self.operator, arg)
+
+    def __repr__(self) -> str:
+        return f"LinearMap({self.name!r}, shape={self.shape}, {self.operator.kind})"
+
+
+@dataclass(frozen=True)
+class Images:
+    """A problem's images stacked: z (column-major, image by image), and z(x) = [A_i arg_i(x)] with its adjoint."""
+
+    items: tuple[Image, ...]
+
+    @property
+    def sym(self) -> ca.SX:
+        return ca.vertcat(*[ca.vec(i.sym) for i in self.items])
+
+    @property
+    def size(self) -> int:
+        return sum(int(i.sym.numel()) for i in self.items)

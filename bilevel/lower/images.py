@@ -1,0 +1,145 @@
+"""A lower level written with products of linear maps (BilevelProblem.linear_map): the kind is built over the lifted
+upper vector [x; z], z = [A_i arg_i(x)], and every call at x lifts x numerically and pulls x-derivatives back
+through the maps' adjoints. Expressions stay the size of what they are written with; the matrices are applied by
+BLAS (or the operator's code) only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import casadi as ca
+import numpy as np
+
+from ..errors import ModelError
+from ..linear_maps import Images
+from ..parameters import ParameterSet
+from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
+
+
+class Lift:
+    """x -> [x; z(x)] and the pull-back of [x; z]-gradients to x: g_x + J_arg(x)' A' g_z."""
+
+    def __init__(self, x: ca.SX, images: Images, params: ParameterSet) -> None:
+        self.images, self.n_x, self.n_z = images, int(x.numel()), images.size
+        args = ca.vertcat(*[ca.vec(i.arg) for i in images.items])
+        v = ca.SX.sym("v", int(args.numel()))
+        self._args = params.function("image_args", [x], [args])
+        self._args_adjoint = params.function("image_args_adjoint", [x, v], [ca.jtimes(args, x, v, True)])
+        self._cuts = np.cumsum([0] + [int(i.arg.numel()) for i in images.items])
+        self._zcuts = np.cumsum([0] + [int(i.sym.numel()) for i in images.items])
+        self._last: tuple[bytes, np.ndarray] | None = None
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """[x; z(x)] (the last one is kept: the kinds' calls at one point lift it once)."""
+        x = np.asarray(x, dtype=float).ravel()
+        key = x.tobytes()
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
+        args = np.asarray(self._args(x), dtype=float).ravel()
+        parts = [x]
+        for k, img in enumerate(self.images.items):
+            a = args[self._cuts[k]:self._cuts[k + 1]].reshape(img.arg.shape, order="F")
+            parts.append(np.asarray(img.operator.apply(a if a.shape[1] > 1 else a[:, 0]), dtype=float)
+                         .reshape(-1, order="F"))
+        lifted = np.concatenate(parts)
+        self._last = (key, lifted)
+        return lifted
+
+    def pullback(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """d/dx of <g, [x; z(x)]> for g over [x; z] (a vector, or columns of a matrix)."""
+        g = np.asarray(g, dtype=float)
+        cols = g.reshape(g.shape[0], -1)
+        out = cols[:self.n_x].copy()
+        for j in range(cols.shape[1]):
+            gz = cols[self.n_x:, j]
+            back = []
+            for k, img in enumerate(self.images.items):
+                part = gz[self._zcuts[k]:self._zcuts[k + 1]].reshape(img.sym.shape, order="F")
+                back.append(np.asarray(img.operator.adjoint(part if part.shape[1] > 1 else part[:, 0]),
+                                       dtype=float).reshape(-1, order="F"))
+            out[:, j] += np.asarray(self._args_adjoint(x, np.concatenate(back)), dtype=float).ravel()
+        return out.reshape((self.n_x,) + g.shape[1:])
+
+    def expanded(self) -> ca.SX:
+        """z as expressions of x (the matrices written into the graph): for the KKT reformulation only."""
+        return ca.vertcat(*[ca.vec(ca.mtimes(i.operator.casadi(f"the linear map of {i.name!r}"), i.arg))
+                            for i in self.images.items])
+
+
+@dataclass
+class ImageLower(LowerLevel):
+    """The lower level of a problem with linear-map products: `inner` is the kind over [x; z], called at lift(x)."""
+
+    inner: LowerLevel
+    lift: Lift
+    x: ca.SX
+    params: ParameterSet = field(default_factory=ParameterSet, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.inner.psd:
+            raise ModelError("a lower level with LMIs cannot use linear-map products yet; write the LMI's data as "
+                             "expressions (ca.mtimes) or as cvxpy Parameters (lower_cvxpy)")
+        self.kind = self.inner.kind
+        self.psd, self.psd_names = [], []
+        self.g_names, self.h_names = self.inner.g_names, self.inner.h_names
+        self.convexity_probe = self.inner.convexity_probe
+
+    @property
+    def n_x(self) -> int:
+        return self.lift.n_x
+
+    @property
+    def n_y(self) -> int:
+        return self.inner.n_y
+
+    @property
+    def fixed(self) -> bool:
+        return self.inner.fixed
+
+    @property
+    def y(self) -> ca.SX:
+        return self.inner.y
+
+    def evaluate(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, list[np.ndarray]]:
+        return self.inner.evaluate(self.lift(x), y)
+
+    def derivatives(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+        return self.inner.derivatives(self.lift(x), y)
+
+    def hessian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return self.inner.hessian(self.lift(x), y)
+
+    def curvatures(self, x: np.ndarray, y: np.ndarray) -> list[tuple[str, np.ndarray]]:
+        return self.inner.curvatures(self.lift(x), y)
+
+    def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> KKTValues:
+        return self.inner.kkt_values(self.lift(x), sol)
+
+    def kkt_x_adjoint(self, x: np.ndarray, sol: LowerSolution, v_s: np.ndarray, v_g: np.ndarray,
+                      v_h: np.ndarray) -> np.ndarray:
+        return self.lift.pullback(x, self.inner.kkt_x_adjoint(self.lift(x), sol, v_s, v_g, v_h))
+
+    def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
+        return self.inner.kkt_solve(self.lift(x), K, rhs)
+
+    def solve(self, x: np.ndarray) -> LowerSolution:
+        return self.inner.solve(self.lift(self.check_point(x)))
+
+    def reference_solve(self, x: np.ndarray) -> LowerSolution:
+        return self.inner.reference_solve(self.lift(self.check_point(x)))
+
+    def symbolic(self) -> ExpressionLower:
+        """The lower level in x with the matrices written into the expressions (the KKT reformulation's form: its
+        size is that of the matrices)."""
+        return self._symbolic
+
+    @cached_property
+    def _symbolic(self) -> ExpressionLower:
+        inner = self.inner.symbolic()
+        z = self.lift.images.sym
+        value = self.lift.expanded()
+        sub = lambda e: ca.substitute(e, z, value)  # noqa: E731
+        return type(inner)(self.x, inner.y, sub(inner.f), sub(inner.g), sub(inner.h), [], inner.g_names,
+                           inner.h_names, [], sub(inner.hess_f), self.params)

@@ -1,0 +1,186 @@
+"""A large least squares kept in residual form: f = 1/2 ||r(x, y)||^2 + c(x), r = C(x) y - d(x) affine in y.
+
+Written as a sum of squares (`ca.sumsqr(target - ca.mtimes(Phi, theta))`, ridge terms included), a learner with
+many rows has a symbolic Hessian C'C of rows x n_y^2 nodes: building and differentiating it dominated the solve of
+identification problems (T = 10,000 rows, 64 Hessian entries). This kind evaluates C(x) and d(x) (one sweep of the
+size of r) and forms C'C by BLAS; the implicit derivative's x-adjoint is one reverse sweep through r and C v.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import casadi as ca
+import numpy as np
+
+from ..errors import BilevelError
+from ..parameters import ParameterSet
+from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
+from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
+
+RESIDUAL_FORM_SIZE = 100_000
+"""Least squares whose symbolic Hessian would have more than rows x n_y^2 = this many terms use the residual form."""
+
+
+def sum_of_squares(f: ca.SX, y: ca.SX) -> tuple[ca.SX, ca.SX] | None:
+    """(r, c) with f = 1/2 ||r||^2 + c, c free of y, read from f's top-level sum of weighted squares; None if f is
+    not of that form (a term with y that is not a square, or a square with a negative weight)."""
+    rows, rest, stack = [], [], [(f, 1.0)]
+    while stack:
+        e, w = stack.pop()
+        if e.is_constant():
+            rest.append(w * e)
+        elif e.is_op(ca.OP_ADD) or e.is_op(ca.OP_SUB):
+            stack += [(e.dep(0), w), (e.dep(1), w if e.is_op(ca.OP_ADD) else -w)]
+        elif e.is_op(ca.OP_NEG):
+            stack.append((e.dep(0), -w))
+        elif e.is_op(ca.OP_MUL) and (e.dep(0).is_constant() or e.dep(1).is_constant()):
+            const, other = (e.dep(0), e.dep(1)) if e.dep(0).is_constant() else (e.dep(1), e.dep(0))
+            stack.append((other, w * float(ca.evalf(const))))
+        elif e.is_op(ca.OP_DIV) and e.dep(1).is_constant():
+            stack.append((e.dep(0), w / float(ca.evalf(e.dep(1)))))
+        elif e.is_op(ca.OP_SQ) or (e.is_op(ca.OP_MUL) and ca.is_equal(e.dep(0), e.dep(1), 1)):
+            if w < 0:
+                return None
+            if w > 0:
+                rows.append(np.sqrt(2.0 * w) * e.dep(0))
+        elif ca.depends_on(e, y):
+            return None
+        else:
+            rest.append(w * e)
+    if not rows:
+        return None
+    return ca.vertcat(*rows), (ca.sum1(ca.vertcat(*rest)) if rest else ca.SX(0.0))
+
+
+@dataclass
+class ResidualLeastSquares(LowerLevel):
+    """min_y 1/2 ||C(x) y - d(x)||^2 + c(x), C(x)'C(x) positive definite; y* by Cholesky of C'C (a QR solve in the
+    independent re-solve)."""
+
+    x: ca.SX
+    y: ca.SX
+    f: ca.SX
+    r: ca.SX
+    c: ca.SX
+    params: ParameterSet = field(default_factory=ParameterSet, repr=False)
+    psd: list = field(default_factory=list)
+    g_names: list[str] = field(default_factory=list)
+    h_names: list[str] = field(default_factory=list)
+    psd_names: list[str] = field(default_factory=list)
+    kind = "least-squares"
+
+    @classmethod
+    def recognize(cls, x: ca.SX, y: ca.SX, f: ca.SX, x_samples: list[np.ndarray],
+                  params: ParameterSet) -> "ResidualLeastSquares | None":
+        """The residual form of an unconstrained lower objective when f is a sum of squares of expressions affine in
+        y with more than RESIDUAL_FORM_SIZE Hessian terms and C'C positive definite at the samples; else None."""
+        form = sum_of_squares(f, y)
+        if form is None or int(form[0].numel()) * int(y.numel()) ** 2 <= RESIDUAL_FORM_SIZE:
+            return None
+        if any(ca.which_depends(form[0], y, 2, False)):
+            return None
+        low = cls(x, y, f, *form, params=params)
+        check = params.function("residual_check", [x, y], [f])
+        rng = np.random.default_rng(0)
+        for xs in x_samples:
+            ys = rng.standard_normal(low.n_y)
+            value = float(np.asarray(check(xs, ys)).ravel()[0])
+            if not np.isclose(low.evaluate(xs, ys)[0], value, rtol=1e-9, atol=1e-12 * (1 + abs(value))):
+                return None  # the decomposition does not reproduce f: leave it to the expression kinds
+            try:
+                hessian_factor(low.gram(xs))
+            except (ValueError, np.linalg.LinAlgError, BilevelError):
+                return None
+        return low
+
+    def __post_init__(self) -> None:
+        zero = ca.DM.zeros(self.n_y)
+        C = ca.jacobian(self.r, self.y)
+        d = -ca.substitute(self.r, self.y, zero)
+        self._data = self.params.function("residual_data", [self.x], [C, d, self.c])
+        v, a, b = ca.SX.sym("v", self.n_y), ca.SX.sym("a", int(self.r.numel())), ca.SX.sym("b", int(self.r.numel()))
+        self._adjoint = self.params.function(
+            "residual_adjoint", [self.x, self.y, v, a, b],
+            [ca.jtimes(ca.mtimes(C, v), self.x, a, True) + ca.jtimes(self.r, self.x, b, True)])
+        self._last: tuple[bytes, tuple[np.ndarray, np.ndarray, float]] | None = None
+
+    @property
+    def n_x(self) -> int:
+        return int(self.x.numel())
+
+    @property
+    def n_y(self) -> int:
+        return int(self.y.numel())
+
+    @cached_property
+    def fixed(self) -> bool:
+        return not ca.depends_on(self.r, self.x) and not ca.depends_on(self.c, self.x)
+
+    def data(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """C(x), d(x) and c(x) (the last point's are kept: one sweep serves the calls at a point)."""
+        x = np.asarray(x, dtype=float).ravel()
+        if self._last is None or self._last[0] != x.tobytes():
+            C, d, c = self._data(x)
+            self._last = (x.tobytes(), (np.asarray(C, dtype=float).reshape(-1, self.n_y),
+                                        np.asarray(d, dtype=float).ravel(), float(np.asarray(c).ravel()[0])))
+        return self._last[1]
+
+    def gram(self, x: np.ndarray) -> np.ndarray:
+        """The Hessian C(x)'C(x)."""
+        C = self.data(x)[0]
+        return C.T @ C
+
+    def gram_adjoint(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """d(v'C(x)'C(x)v)/dx = 2 (d(C v)/dx)'(C v)."""
+        Cv = self.data(x)[0] @ v
+        return 2.0 * np.asarray(self._adjoint(x, np.zeros(self.n_y), v, Cv, np.zeros_like(Cv)), dtype=float).ravel()
+
+    def evaluate(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, list[np.ndarray]]:
+        C, d, c = self.data(x)
+        r = C @ y - d
+        return 0.5 * float(r @ r) + c, np.zeros(0), np.zeros(0), []
+
+    def derivatives(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+        C, d, _ = self.data(x)
+        return C.T @ (C @ y - d), np.zeros((0, self.n_y)), np.zeros((0, self.n_y)), []
+
+    def hessian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return self.gram(x)
+
+    def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> KKTValues:
+        S = self.derivatives(x, sol.y)[0]
+        values = KKTValues.unconstrained(self.gram(x))
+        return values._replace(stationarity=S[:, None])
+
+    def kkt_x_adjoint(self, x: np.ndarray, sol: LowerSolution, v_s: np.ndarray, v_g: np.ndarray,
+                      v_h: np.ndarray) -> np.ndarray:
+        """d/dx of v'C'(C y - d) = (d(C v)/dx)'r + (dr/dx)'(C v), one reverse sweep."""
+        C, d, _ = self.data(x)
+        return np.asarray(self._adjoint(x, sol.y, v_s, C @ sol.y - d, C @ v_s), dtype=float).ravel()
+
+    def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
+        return factor_solve(hessian_factor(K), rhs), K.shape[0]
+
+    def solve(self, x: np.ndarray) -> LowerSolution:
+        """Closed form by a Cholesky factorization of C'C; raises if it is not positive definite."""
+        x = self.check_point(x)
+        C, d, c = self.data(x)
+        y = factor_solve(hessian_factor(C.T @ C), C.T @ d)
+        return LowerSolution(y, self.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal", "closed-form")
+
+    def reference_solve(self, x: np.ndarray) -> LowerSolution:
+        """The certificate's re-solve: least squares by LAPACK's SVD-based lstsq on C, d (not the normal equations)."""
+        x = self.check_point(x)
+        C, d, _ = self.data(x)
+        y = np.linalg.lstsq(C, d, rcond=None)[0]
+        return LowerSolution(y, self.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal", "lstsq (SVD)")
+
+    def symbolic(self) -> ExpressionLower:
+        """The expression form (its Hessian built symbolically), for the KKT reformulation."""
+        return self._symbolic
+
+    @cached_property
+    def _symbolic(self) -> ExpressionLower:
+        return LeastSquaresLower(self.x, self.y, self.f, ca.SX(0, 1), ca.SX(0, 1), [], [], [], [], None, self.params)
