@@ -14,6 +14,7 @@ from .lower import LowerLevel, LowerSolution, build_lower
 from .linear_maps import Images
 from .lower.images import ImageLower, Lift
 from .lower.matrix import MatrixLower
+from .lower.residual import sum_of_squares
 from .model import BilevelProblem, LowerQP, Variable, check_depends, unflatten_all
 from .parameters import ParameterSet, scalar
 from .reduction import KKTPoint, Reduction
@@ -186,6 +187,54 @@ def suggested_starts(problem: BilevelProblem, x_start: np.ndarray, x_lb: np.ndar
                     x_lb, x_ub) for s in problem.starts]
 
 
+def _least_squares_matrices(problem: BilevelProblem, allowed: set[int]) -> LowerQP:
+    """A lower level written with linear maps of the lower variable, min_y sum_i w_i r_i(x, y, z)^2 with z = A_j L_j y
+    and r affine in (y, z) with constant coefficients, as the matrix form 1/2 ||C y - d(x)||^2 (lower_qp's)."""
+    where = "a lower level with products of linear maps of the lower variable"
+    lows = problem.lower_variables
+    if len(lows) != 1 or lows[0].matrix is not None or lows[0].shape[1] != 1:
+        raise ModelError(f"{where} must have one vector lower variable (y = p.lower_variable('y', n)); got "
+                         f"{', '.join(v.name for v in lows)}")
+    if problem.lower_constraints or problem.lower_psd_constraints or problem.lower_objective.sense != "min":
+        raise ModelError(f"{where} is a least squares: minimize a sum of squares, with bounds on the variable only "
+                         "(for constraints use lower_qp with numeric matrices)")
+    if any(i.level == "upper" for i in problem.images):
+        raise ModelError(f"{where} cannot also use linear maps of upper variables; write one of them as an expression")
+    y, imgs = lows[0].sym, [i for i in problem.images if i.level == "lower"]
+    expr = problem.lower_objective.expr
+    _check_depends(expr, allowed | {s.element_hash() for i in imgs for s in ca.symvar(ca.vec(i.sym))},
+                   "the lower objective")
+    yz = ca.vertcat(y, *[ca.vec(i.sym) for i in imgs])
+    form = sum_of_squares(expr, yz)
+    if form is None or ca.depends_on(form[1], yz) or any(ca.which_depends(form[0], yz, 2, False)):
+        raise ModelError(f"{where} must be a least squares: a sum of squares of expressions affine in the lower "
+                         "variable and the products (e.g. ca.sumsqr(A @ y - b)); use lower_qp for other quadratics")
+    if not ca.simplify(form[1]).is_zero():
+        raise ModelError(f"{where}: the objective has terms without the lower variable ({form[1]}); drop them "
+                         "(they do not change the learner's solution)")
+    r = form[0]
+    jac = ca.jacobian(r, yz)
+    if ca.depends_on(jac, ca.vertcat(*[ca.vec(v.sym) for v in problem.upper_variables], problem.parameters.sym)):
+        raise ModelError(f"{where}: the coefficients of the lower variable and the products depend on upper "
+                         "variables or parameters; with a linear map of the lower variable they must be numbers")
+    jac = ca.evalf(jac).sparse()  # scipy.sparse: a residual r = A y - b has the identity in z
+    n = y.numel()
+    C, k = jac[:, :n].toarray(), n
+    for img in imgs:
+        offset = ca.substitute(img.arg, y, ca.DM.zeros(n))
+        if img.arg.size2() != 1 or not offset.is_constant() or np.any(np.asarray(ca.evalf(offset))) or \
+                any(ca.which_depends(img.arg, y, 2, False)):
+            raise ModelError(f"{where}: {img.name} maps an expression that is not a linear function of the lower "
+                             "variable alone; apply the map to the variable itself (A @ y)")
+        L = np.asarray(ca.evalf(ca.jacobian(img.arg, y)), dtype=float)
+        m = int(img.sym.numel())
+        C += np.asarray(jac[:, k:k + m] @ np.asarray(img.operator.apply(L), dtype=float))
+        k += m
+    d = -ca.substitute(r, yz, ca.DM.zeros(int(yz.numel())))
+    zeros = np.zeros((0, n))
+    return LowerQP(lows[0], C, np.zeros((n, n)), zeros, zeros, d, ca.SX.zeros(n), ca.SX(0, 1), ca.SX(0, 1))
+
+
 class Canonicalize(Reduction):
     """BilevelProblem -> CanonicalBilevel: flatten variables, split constraints, move lower bounds into g."""
 
@@ -199,13 +248,16 @@ class Canonicalize(Reduction):
         ups, lows = problem.upper_variables, problem.lower_variables
         x, y = _flat(ups), _flat(lows)
         defined = [ca.vec(d.sym) for d in problem.definitions]
-        images = Images(tuple(problem.images)) if problem.images else None
+        upper_images = tuple(i for i in problem.images if i.level == "upper")
+        images = Images(upper_images) if upper_images else None
         allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(x, y, *defined, problem.parameters.sym))}
         upper_allowed = set(allowed)
         if images is not None:
             allowed |= {s.element_hash() for s in ca.symvar(images.sym)}
         _check_depends(problem.upper_objective.expr, upper_allowed, "the upper objective")
         mats = problem.lower_matrices
+        if any(i.level == "lower" for i in problem.images):
+            mats = _least_squares_matrices(problem, allowed)
         for what, expr in ([] if mats is None else [("d", mats.d), ("q", mats.q), ("b", mats.b), ("e", mats.e)]):
             _check_depends(expr, upper_allowed, f"lower_qp's {what}")
             if ca.depends_on(expr, y):

@@ -191,8 +191,13 @@ def _reduced_hessian_unique(low, x: np.ndarray, ref, tol: float) -> bool | None:
     if null.shape[1] == 0:
         return True
     hess = low.hessian(x, ref.y)
-    reduced = null.T @ hess @ null
-    return bool(np.linalg.eigvalsh(0.5 * (reduced + reduced.T)).min() > 1e-9 * max(1.0, float(np.abs(hess).max())))
+    reduced = hess if rows.size == 0 else null.T @ hess @ null
+    shift = 1e-9 * max(1.0, float(np.abs(hess).max()))
+    try:  # smallest eigenvalue > shift, by a Cholesky factorization of the shifted matrix
+        np.linalg.cholesky(0.5 * (reduced + reduced.T) - shift * np.eye(reduced.shape[0]))
+    except np.linalg.LinAlgError:
+        return False
+    return True
 
 
 def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_TOL) -> Certificate:

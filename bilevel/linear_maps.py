@@ -78,13 +78,15 @@ class Operator:
 
 @dataclass(frozen=True)
 class Image:
-    """z = A @ arg: a linear map applied to an expression of the upper variables and parameters; z is a symbol of
-    the shape of the product, arg the expression (columns mapped one by one)."""
+    """z = A @ arg: a linear map applied to an expression of the upper variables and parameters (level "upper": data
+    the leader moves) or to a linear expression of the lower variables (level "lower": a least-squares learner's
+    regressor); z is a symbol of the shape of the product, arg the expression (columns mapped one by one)."""
 
     name: str
     sym: ca.SX
     operator: Operator
     arg: ca.SX
+    level: str = "upper"
 
 
 class LinearMap:

@@ -176,7 +176,8 @@ def check_depends(expr: ca.SX, allowed: set[int], where: str, fix: str) -> None:
     those are and what to do), or if its data (the constants in it) contain NaN or inf."""
     free = [s for s in ca.symvar(expr) if s.element_hash() not in allowed]
     if free:
-        raise ModelError(f"{where} uses symbols {', '.join(str(s) for s in free)} that {fix}")
+        names = ", ".join(str(s) for s in free[:5]) + (f", ... ({len(free)} in all)" if len(free) > 5 else "")
+        raise ModelError(f"{where} uses symbols {names} that {fix}")
     fun = ca.Function("data", [ca.vertcat(*ca.symvar(expr))], [expr])
     bad = [fun.instruction_constant(k) for k in range(fun.n_instructions())
            if fun.instruction_id(k) == ca.OP_CONST and not np.isfinite(fun.instruction_constant(k))]
@@ -355,9 +356,10 @@ class BilevelProblem:
         return sym
 
     def linear_map(self, matrix: Any, name: str = "A") -> LinearMap:
-        """A numeric matrix (numpy, scipy.sparse) or scipy LinearOperator kept as data: `T @ expr` (expr an expression
-        of the upper variables and parameters) is a symbol for the product, to use in the lower level; the engine
-        computes the product and its adjoint numerically instead of expanding the matrix into the expressions."""
+        """A numeric matrix (numpy, scipy.sparse) or scipy LinearOperator kept as data: `T @ expr` is a symbol for the
+        product, to use in the lower level, with expr an expression of the upper variables (data the attacker moves)
+        or a linear one of the lower variables (a least squares min ||T @ y - d(x)||^2); the engine computes products
+        numerically instead of expanding the matrix into the expressions."""
         if not isinstance(name, str) or not name.isidentifier():
             raise ModelError(f"linear_map: name {name!r} must be a Python identifier")
         return LinearMap(self, matrix, name)
@@ -366,13 +368,17 @@ class BilevelProblem:
         """Register the product operator @ arg (LinearMap.__matmul__) and return its symbol."""
         while self._taken(name):
             name += "_"
-        allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(*[ca.vec(v.sym) for v in self.upper_variables],
-                                                                  self.parameters.sym))}
+        syms = {s.element_hash() for s in ca.symvar(arg)}
+        lower = {s.element_hash() for v in self.lower_variables for s in ca.symvar(ca.vec(v.sym))}
+        level = "lower" if syms & lower else "upper"
+        allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(*[ca.vec(v.sym) for v in self.variables
+                                                                    if v.level == level], self.parameters.sym))}
         check_depends(arg, allowed, f"{name} = linear map @ expression: the expression",
-                      "are not upper variables or parameters of this problem; a linear map applies to what the "
-                      "leader chooses (declare the upper variables first)")
+                      "are not variables or parameters of this problem, or mix upper and lower variables: a linear "
+                      "map applies to an expression of the upper variables (data the leader moves) or to a linear "
+                      "one of the lower variables (a learner's regressor)")
         sym = ca.SX.sym(name, operator.shape[0], int(arg.size2()))
-        self.images.append(Image(name, sym, operator, arg))
+        self.images.append(Image(name, sym, operator, arg, level))
         self.revision += 1
         return sym
 

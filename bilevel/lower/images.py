@@ -64,8 +64,8 @@ class Lift:
 
     def expanded(self) -> ca.SX:
         """z as expressions of x (the matrices written into the graph): for the KKT reformulation only."""
-        return ca.vertcat(*[ca.vec(ca.mtimes(i.operator.casadi(f"the linear map of {i.name!r}"), i.arg))
-                            for i in self.images.items])
+        return ca.densify(ca.vertcat(*[ca.vec(ca.mtimes(i.operator.casadi(f"the linear map of {i.name!r}"), i.arg))
+                                       for i in self.images.items]))
 
 
 @dataclass

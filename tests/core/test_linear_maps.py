@@ -1,0 +1,195 @@
+"""Linear maps in declarations (BilevelProblem.linear_map) and the residual form of large least squares: the same
+problem declared with the matrix written into the expressions gives the same values and hypergradients, and the
+answers are re-checked by independent numpy fits."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.sparse.linalg import aslinearoperator
+
+import bilevel as bl
+import bilevel.linear_maps as linear_maps
+import bilevel.lower.residual as residual
+from bilevel.attacks.vrft import attack_instance
+from bilevel.attacks.vrft_methods import attack_alternating
+from bilevel.errors import ModelError
+from bilevel.lower.images import ImageLower
+from bilevel.lower.residual import ResidualLeastSquares, sum_of_squares
+from bilevel.solvers.base import prepare
+from bilevel.solvers.implicit import Hypergradient
+
+
+def _vrft(seed: int, N: int, wrap=None) -> bl.BilevelProblem:
+    """The paper's VRFT max-min attack (Sec. 4.4) with the regressor's Toeplitz maps T_k: as linear maps (wrap
+    turns each dense matrix into the form to declare), or written into the expressions (wrap None)."""
+    atk = attack_instance("maxmin", "B", 0.1, 0.057, seed, N)
+    rows, T = atk.t0.size, atk.setting.regressor.dense(N)
+    p = bl.BilevelProblem("vrft")
+    a_u = p.upper_variable("a_u", N)
+    a_y = p.upper_variable("a_y", N)
+    theta = p.lower_variable("theta", T.shape[0])
+    if wrap is None:
+        phi = ca.horzcat(*[ca.mtimes(ca.DM(Tk), atk.y + a_y) for Tk in T])
+    else:
+        phi = ca.horzcat(*[p.linear_map(wrap(Tk), f"T{k}") @ (atk.y + a_y) for k, Tk in enumerate(T)])
+    p.minimize_lower(ca.sumsqr(atk.t0 + a_u[:rows] - ca.mtimes(phi, theta)) / rows)
+    p.upper_constraint(ca.sumsqr(a_u) <= atk.delta_u ** 2)
+    p.upper_constraint(ca.sumsqr(a_y) <= atk.delta_y ** 2)
+    p.maximize_upper(ca.sumsqr(atk.t0 - ca.mtimes(ca.DM(atk.phi0), theta)) / rows)
+    return p
+
+
+def _phi_and_gradient(p: bl.BilevelProblem, x: np.ndarray) -> tuple[float, np.ndarray]:
+    oracle = Hypergradient(prepare(p))
+    ev = oracle.evaluate(x)
+    return ev.phi, oracle.gradient(ev)[0]
+
+
+@pytest.mark.parametrize("wrap", [np.asarray, sp.csr_matrix, aslinearoperator], ids=["dense", "sparse", "operator"])
+def test_linear_maps_give_the_expanded_declarations_values_and_hypergradients(wrap) -> None:
+    N = 48
+    x = np.random.default_rng(3).standard_normal(2 * N) * 0.05
+    phi0, g0 = _phi_and_gradient(_vrft(0, N), x)
+    p = _vrft(0, N, wrap)
+    phi, g = _phi_and_gradient(p, x)
+    assert isinstance(prepare(p).canon.lower, ImageLower)
+    assert phi == pytest.approx(phi0, rel=1e-10)
+    assert np.abs(g - g0).max() <= 1e-9 * np.abs(g0).max()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_vrft_declared_with_maps_reaches_the_structured_attack(seed: int) -> None:
+    """One start (the conditioning start of the least-squares learner) reaches the structured attack's objective
+    (attack_alternating, from its own conditioning start); the answer is re-checked by a numpy refit."""
+    N = 64
+    p = _vrft(seed, N, np.asarray)
+    res = p.solve("hypergradient", starts=1)
+    atk = attack_instance("maxmin", "B", 0.1, 0.057, seed, N)
+    assert res.success and res.certificate.passed
+    assert res.upper_objective >= 0.98 * attack_alternating(atk, seed=seed).upper_objective
+    phi = atk.setting.regressor(atk.y + res.x["a_y"])
+    theta = np.linalg.lstsq(phi, atk.t0 + res.x["a_u"][:atk.t0.size], rcond=None)[0]
+    assert np.abs(theta - res.y["theta"]).max() <= 1e-8 * (1 + np.abs(theta).max())
+    assert np.linalg.norm(res.x["a_u"]) <= atk.delta_u * (1 + 1e-9)
+
+
+def test_the_kkt_route_expands_the_maps_and_agrees() -> None:
+    N = 24
+    p = _vrft(0, N, np.asarray)
+    low = prepare(p).canon.lower
+    rng = np.random.default_rng(0)
+    x, y = 0.05 * rng.standard_normal(2 * N), rng.standard_normal(low.n_y)
+    assert low.symbolic().evaluate(x, y)[0] == pytest.approx(low.evaluate(x, y)[0], rel=1e-12)
+    res = p.solve("ipopt")
+    assert res.certificate.passed and res.upper_objective > 0
+
+
+def test_linear_map_errors_name_the_fix(monkeypatch) -> None:
+    p = bl.BilevelProblem("bad")
+    x = p.upper_variable("x", 3)
+    y = p.lower_variable("y", 2)
+    A = p.linear_map(np.ones((2, 3)), "A")
+    with pytest.raises(ModelError, match="3 columns but the expression has 2 rows"):
+        A @ y
+    with pytest.raises(ModelError, match="mix upper and lower"):
+        A @ (x + ca.vertcat(y, 0))
+    with pytest.raises(ModelError, match="expected a numeric matrix"):
+        p.linear_map("not a matrix")
+    z = A @ x
+    p.minimize_lower(ca.sumsqr(y - z))
+    p.minimize_upper(ca.sumsqr(z))
+    with pytest.raises(ModelError, match="products of a linear map outside the lower level"):
+        p.solve("hypergradient")
+    p.minimize_upper(ca.sumsqr(y))
+    assert p.solve("hypergradient").certificate.passed
+    monkeypatch.setattr(linear_maps, "DENSE_LIMIT", 1)
+    q = bl.BilevelProblem("operator")
+    x = q.upper_variable("x", 3, lb=-1, ub=1)
+    y = q.lower_variable("y", 2)
+    q.minimize_lower(ca.sumsqr(y - q.linear_map(aslinearoperator(np.ones((2, 3)))) @ x))
+    q.minimize_upper(ca.sumsqr(y - 1))
+    with pytest.raises(ModelError, match="use method='hypergradient'"):
+        q.solve("ipopt")
+
+
+def test_least_squares_with_a_map_of_the_lower_variable_is_the_matrix_form() -> None:
+    """min ||A w - b - db||^2 declared with A as a linear map gives lower_qp's problem: same answer, and the lower
+    solution is numpy's least-squares fit of the poisoned data."""
+    rng = np.random.default_rng(1)
+    A, b = rng.standard_normal((60, 40)), rng.standard_normal(60)
+    w0 = np.linalg.lstsq(A, b, rcond=None)[0]
+    answers = []
+    for how in ("map", "lower_qp"):
+        p = bl.BilevelProblem(how)
+        db = p.upper_variable("db", 60)
+        w = p.lower_variable("w", 40)
+        if how == "map":
+            p.minimize_lower(0.5 * ca.sumsqr(p.linear_map(A) @ w - b - db))
+        else:
+            p.lower_qp(w, C=A, d=b + db)
+        p.upper_constraint(ca.sumsqr(db) <= 0.1 ** 2)
+        p.maximize_upper(ca.sumsqr(w - w0))
+        answers.append(p.solve("hypergradient", starts=2))
+    mine, theirs = answers
+    assert mine.success and mine.certificate.passed
+    assert mine.upper_objective == pytest.approx(theirs.upper_objective, rel=1e-8)
+    refit = np.linalg.lstsq(A, b + mine.x["db"], rcond=None)[0]
+    assert np.abs(refit - mine.y["w"]).max() <= 1e-9 * (1 + np.abs(refit).max())
+    p = bl.BilevelProblem("not least squares")
+    p.upper_variable("x")
+    w = p.lower_variable("w", 2)
+    p.minimize_lower(ca.sumsqr(p.linear_map(np.eye(2)) @ w) + w[0])
+    p.minimize_upper(ca.sumsqr(w))
+    with pytest.raises(ModelError, match="must be a least squares"):
+        p.solve("hypergradient")
+
+
+def test_sum_of_squares_reads_weights_and_refuses_other_forms() -> None:
+    x, y = ca.SX.sym("x", 2), ca.SX.sym("y", 2)
+    r, c = sum_of_squares(3 * ca.sumsqr(y - x) / 2 + ca.dot(y, y) - 4 * x[0], y)
+    point = {"x": np.array([0.3, -1.2]), "y": np.array([0.7, 2.0])}
+    value = ca.Function("f", [x, y], [0.5 * ca.sumsqr(r) + c])(point["x"], point["y"])
+    assert float(value) == pytest.approx(3 * np.sum((point["y"] - point["x"]) ** 2) / 2 + point["y"] @ point["y"]
+                                         - 4 * point["x"][0], rel=1e-14)
+    assert sum_of_squares(ca.sumsqr(y) - ca.sumsqr(y - x), y) is None  # a negative weight: not a least squares
+    assert sum_of_squares(ca.sumsqr(y) + y[0] * x[1], y) is None  # a term with y that is no square
+
+
+def test_residual_form_matches_the_expression_form(monkeypatch) -> None:
+    """An ARX(2, 2) identification attack: the residual kind (forced on a small instance) and the expression kind
+    give the same hypergradient; the attack's answer is numpy's refit of the poisoned data."""
+    rng = np.random.default_rng(0)
+    T = 200
+    u = rng.standard_normal(T)
+    y = np.zeros(T)
+    for t in range(2, T):
+        y[t] = 0.5 * y[t - 1] - 0.2 * y[t - 2] + u[t - 1] + 0.3 * u[t - 2] + 0.1 * rng.standard_normal()
+
+    def declare() -> bl.BilevelProblem:
+        p = bl.BilevelProblem("arx")
+        dy = p.upper_variable("dy", T)
+        theta = p.lower_variable("theta", 4)
+        yp = y + dy
+        reg = ca.horzcat(-yp[1:T - 1], -yp[0:T - 2], ca.DM(u[1:T - 1]), ca.DM(u[0:T - 2]))
+        p.minimize_lower(ca.sumsqr(yp[2:] - ca.mtimes(reg, theta)))
+        p.upper_constraint(ca.sumsqr(dy) <= (0.05 * np.linalg.norm(y)) ** 2)
+        p.maximize_upper(ca.sumsqr(theta))
+        return p
+
+    x = 0.01 * rng.standard_normal(T)
+    phi0, g0 = _phi_and_gradient(declare(), x)
+    monkeypatch.setattr(residual, "RESIDUAL_FORM_SIZE", 0)
+    p = declare()
+    assert isinstance(prepare(p).canon.lower, ResidualLeastSquares)
+    phi, g = _phi_and_gradient(p, x)
+    assert phi == pytest.approx(phi0, rel=1e-10)
+    assert np.abs(g - g0).max() <= 1e-9 * np.abs(g0).max()
+    res = p.solve("hypergradient", starts=1)
+    assert res.success and res.certificate.passed
+    yp = y + res.x["dy"]
+    reg = np.column_stack([-yp[1:T - 1], -yp[0:T - 2], u[1:T - 1], u[0:T - 2]])
+    refit = np.linalg.lstsq(reg, yp[2:], rcond=None)[0]
+    assert np.abs(refit - res.y["theta"]).max() <= 1e-9 * (1 + np.abs(refit).max())
