@@ -544,9 +544,10 @@ class BilevelProblem:
                  b: Any = None, E: Any = None, e: Any = None) -> None:
         """Declare the whole lower level as min_y 1/2 ||C y - d||^2 + 1/2 y'Py + q'y s.t. A y <= b, E y = e.
 
-        y is one declared lower variable (its bounds are kept); C, P, A, E are numeric matrices (numpy or
-        scipy.sparse), d, q, b, e numbers or CasADi expressions of upper variables and parameters. Nothing of size
-        C x y is built symbolically, so large dense learners (e.g. least squares on 2,000 features) stay fast.
+        y is one declared lower variable (its bounds are kept); P, A, E are numeric matrices (numpy or scipy.sparse),
+        d, q, b, e numbers or CasADi expressions of upper variables and parameters. A numeric C is kept as a matrix
+        (nothing of size C x y is built symbolically: least squares on 2,000 features stay fast); C may also be an
+        expression of the upper variables (a regressor the leader moves, e.g. built with linear_map products).
         """
         from .lower.matrix import as_dense
 
@@ -560,6 +561,9 @@ class BilevelProblem:
             raise ModelError(f"lower_qp: it declares the whole lower level of {self.name!r} (objective and "
                              "constraints) over one lower variable; declare nothing else on the lower level")
         n = var.size
+        if isinstance(C, ca.SX) and not C.is_constant():  # a regressor the leader moves: declared as expressions
+            self._lower_qp_expressions(var, _expression(C, "lower_qp: C"), d, P, q, A, b, E, e)
+            return
         mats = {k: as_dense(m, n, k) for k, m in (("C", C), ("P", P), ("A", A), ("E", E))}
         if P is None:
             mats["P"] = np.zeros((n, n))
@@ -579,6 +583,33 @@ class BilevelProblem:
             raise ModelError("lower_qp: no objective; give C (least squares), P or q")
         self.lower_matrices = LowerQP(var, mats["C"], mats["P"], mats["A"], mats["E"], **vecs)
         self.revision += 1
+
+    def _lower_qp_expressions(self, var: Variable, C: ca.SX, d: Any, P: Any, q: Any, A: Any, b: Any, E: Any,
+                              e: Any) -> None:
+        """lower_qp with C an expression of the upper variables (or of linear-map products): the same objective and
+        constraints declared as expressions, so the lower level is classified (and kept in residual form when large)
+        like any least squares or QP."""
+        from .lower.matrix import as_dense
+
+        y, n = var.sym, var.size
+        if C.size2() != n:
+            raise ModelError(f"lower_qp: C has {C.size2()} columns; it needs {n} (one per lower variable)")
+        rows = {"d": C.size1(), "q": n}
+        vec = {}
+        for k, v in (("d", d), ("q", q)):
+            vec[k] = ca.SX.zeros(rows[k]) if v is None else ca.vec(_expression(v, f"lower_qp: {k}"))
+            if vec[k].numel() != rows[k]:
+                raise ModelError(f"lower_qp: {k} has {vec[k].numel()} entries; it needs {rows[k]}")
+        objective = 0.5 * ca.sumsqr(ca.mtimes(C, y) - vec["d"]) + ca.dot(vec["q"], y)
+        if P is not None:
+            objective += 0.5 * ca.mtimes([y.T, ca.DM(as_dense(P, n, "P")), y])
+        self.minimize_lower(objective)
+        for name, M, rhs, kind in (("A", A, b, "<="), ("E", E, e, "==")):
+            if M is None:
+                continue
+            lhs = ca.mtimes(ca.DM(as_dense(M, n, name)), y)
+            rhs = ca.SX.zeros(lhs.numel()) if rhs is None else ca.vec(_expression(rhs, f"lower_qp: {name.lower()}"))
+            self.lower_constraint(lhs <= rhs if kind == "<=" else lhs == rhs, name=name)
 
     def _check_lower_open(self, where: str) -> None:
         if self.lower_matrices is not None:

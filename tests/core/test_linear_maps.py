@@ -193,3 +193,27 @@ def test_residual_form_matches_the_expression_form(monkeypatch) -> None:
     reg = np.column_stack([-yp[1:T - 1], -yp[0:T - 2], u[1:T - 1], u[0:T - 2]])
     refit = np.linalg.lstsq(reg, yp[2:], rcond=None)[0]
     assert np.abs(refit - res.y["theta"]).max() <= 1e-9 * (1 + np.abs(refit).max())
+
+
+def test_lower_qp_takes_a_regressor_the_leader_moves() -> None:
+    """lower_qp(C=expression) is the least squares written out: same values at a point, and a certified attack."""
+    rng = np.random.default_rng(2)
+    Phi, t = rng.standard_normal((30, 3)), rng.standard_normal(30)
+    solutions = []
+    for how in ("lower_qp", "expressions"):
+        p = bl.BilevelProblem(how)
+        dphi = p.upper_variable("dphi", (30, 3))
+        theta = p.lower_variable("theta", 3)
+        C = ca.DM(Phi) + dphi
+        if how == "lower_qp":
+            p.lower_qp(theta, C=C, d=t, P=0.1 * np.eye(3))
+        else:
+            p.minimize_lower(0.5 * ca.sumsqr(ca.mtimes(C, theta) - t) + 0.05 * ca.sumsqr(theta))
+        p.upper_constraint(ca.sumsqr(dphi) <= 0.5 ** 2)
+        p.maximize_upper(ca.sumsqr(theta))
+        solutions.append(p.solve("hypergradient", starts=1))
+    mine, theirs = solutions
+    assert mine.certificate.passed and mine.upper_objective == pytest.approx(theirs.upper_objective, rel=1e-8)
+    Cp = Phi + mine.x["dphi"]
+    refit = np.linalg.solve(Cp.T @ Cp + 0.1 * np.eye(3), Cp.T @ t)
+    assert np.abs(refit - mine.y["theta"]).max() <= 1e-9 * (1 + np.abs(refit).max())
