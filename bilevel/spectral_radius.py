@@ -38,8 +38,12 @@ def spectral_radius(m: np.ndarray) -> SpectralRadius:
     modulus = np.abs(lam)
     rho = modulus.max(axis=-1)
     top = modulus == rho[..., None]
-    cond = np.linalg.cond(v)
-    w = np.linalg.inv(np.where((cond <= DEFECTIVE_COND)[..., None, None], v, np.eye(m.shape[-1])))
+    try:
+        w = np.linalg.inv(v)
+        cond = np.linalg.norm(v, axis=(-2, -1)) * np.linalg.norm(w, axis=(-2, -1))  # Frobenius: >= the 2-norm's
+    except np.linalg.LinAlgError:  # some V exactly singular: invert the others one by one
+        cond = np.linalg.cond(v)
+        w = np.linalg.inv(np.where((cond <= DEFECTIVE_COND)[..., None, None], v, np.eye(m.shape[-1])))
     # branch i: d|lambda_i|/dM_jk = Re(conj(lambda_i)/|lambda_i| * w_ij v_ki), w = V^-1 (rows: left vectors)
     phase = np.where(top, np.conj(lam) / np.where(modulus > 0, modulus, 1.0), 0.0)
     grad = np.real(np.einsum("...i,...ij,...ki->...jk", phase, w, v))

@@ -53,7 +53,6 @@ from ..lower import LowerSolution, build_lower
 from ..lower.quadratic import clarabel_solution
 from ..model import unflatten_all
 from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, WillemsSetting, build_attack, criterion_values
-from ..sampling import sample_in_bounds
 from ..result import BilevelResult, Status
 from ..solvers import solve
 from ..solvers.ascent import budget_direction, projected_ascent
@@ -490,21 +489,27 @@ def batched_radius_ascent(engine: Hypergradient, bound: np.ndarray, starts: np.n
 
 
 @single_threaded_call
-def destabilize_attack(attack: WillemsAttack, starts: int = 64, seed: Any = 0, max_iter: int = 100,
+def destabilize_attack(attack: WillemsAttack, starts: int = 64, seed: Any = 0, max_iter: int = 100, pool: int = 512,
                        oracle: SDPHypergradient | None = None) -> BilevelResult:
     """Maximize the spectral radius of the attacker's closed loop A_id + B_id K over the input poisoning, exactly
     (eigenvector derivatives of rho) on the generic engine: the learner is solved once, K is affine in the poisoning,
-    and all starts (0: clean data, then uniform in the box) ascend together (batched_radius_ascent). Returns the
-    point with the largest identified rho."""
+    and `starts` points ascend together (batched_radius_ascent): the clean data and the largest-rho points of a
+    pool of `pool` random ones (half uniform in the box, half its vertices). Returns the point with the largest
+    identified rho."""
     if attack.setting.objective != "destabilize":
         raise ModelError(f"destabilize_attack maximizes the spectral radius; got objective="
                          f"{attack.setting.objective!r}: build the attack with objective='destabilize'")
     check_common_options({"starts": starts, "seed": seed, "max_iter": max_iter})
+    check_counts({"pool": pool}, ("pool",))
     t0 = time.perf_counter()
     oracle, rng, bound, _ = _ascent_setup(attack, oracle, seed, "destabilize_attack")
     engine = radius_engine(attack, oracle)
-    x0 = np.array([np.zeros(bound.size)] + [sample_in_bounds(-bound, bound, rng) for _ in range(starts - 1)])
+    candidates = rng.uniform(-1.0, 1.0, (max(pool, starts - 1), bound.size)) * bound
+    candidates[: candidates.shape[0] // 2] = np.sign(candidates[: candidates.shape[0] // 2]) * bound
+    screened = np.argsort(engine.spectral_batch(candidates.T)[0], kind="stable")[: starts - 1]  # F = -rho
+    x0 = np.vstack([np.zeros(bound.size), candidates[screened]])
     xs, rho, iters, evaluations = batched_radius_ascent(engine, bound, x0, max_iter)
+    evaluations += candidates.shape[0]
     best = int(np.nanargmax(rho))
     return _result(oracle, "destabilize", xs[best], t0, evaluations, iters,
                    f"largest identified spectral radius {rho[best]:.6g} over {starts} starts (the best point of "
