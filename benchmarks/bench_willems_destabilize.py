@@ -1,16 +1,13 @@
-"""willems-destabilize against the issue's baseline: a 16-start projected ascent directly on the true rho(A + B K).
+"""willems-destabilize against an independent baseline: a 64-start numpy projected ascent on the true rho(A + B K).
 
-Setting of issue 12: batch reactor, N = 15, the appendix SDP (design lqr), input poisoning in an linf box of
-radius delta_u in {0.2, 0.3, 0.5}, DATASETS data sets (the Willems reproduction's data seeds), for each learner
-selection (min-norm, clarabel, scs): our attack (bilevel.attacks.willems.destabilize_attack, 16 starts) and the
-baseline, both white box against that selection, run in this process on the same instances and starts. Baseline:
-the engine's projected ascent (bilevel.solvers.ascent) on log rho of the TRUE plant's closed loop, through the same
-learner (SDPHypergradient.gain_gradient), from the clean data and 15 uniform points of the box (the same starts as
-ours), max_iter as ours per path; its reported point is the evaluated one with the largest true rho (as ours).
-Our attack's direct path is this ascent on the identified plant (= the true one to ~1e-12 on noise-free data), so
-ours >= baseline is by construction; the columns "smooth" show what the Gelfand path alone reaches.
-Then the transfer: our poisoning computed against one selection, handed to each learner. Asserts nothing.
-Usage: bench_willems_destabilize.py [DATASETS] [SELECTIONS comma-separated].
+Setting of issue 32: batch reactor, design lqr, the min-norm learner, input poisoning in an linf box of radius
+delta_u in {0.1, 0.2, 0.3, 0.5}; 48 data sets at N = 15 and 16 at N = 50 (the Willems reproduction's seeds).
+Ours: bilevel.attacks.willems.destabilize_attack with its defaults, timed whole (learner build and solve, engine
+set-up, ascent, result) and given the learner already solved (engine set-up, ascent, result). Baseline (shares nothing with the attack code but the data and the
+learner's Q): K(dU) = K0 + dU G with G = Q S^-1 by hand, the true plant's (A, B), 64 starts (clean data + uniform
+in the box, its own rng), per start projected gradient ascent on rho with d rho / dK = B' Re(conj(l)/|l| u' v')
+(u, v the top eigenvalue's left/right vectors, here from scipy.linalg.eig), Armijo backtracking, 100 iterations.
+Its time excludes the learner solve. Asserts nothing. Usage: bench_willems_destabilize.py [SETS_N15] [SETS_N50].
 """
 
 from __future__ import annotations
@@ -21,93 +18,93 @@ import sys
 import time
 
 import numpy as np
+import scipy.linalg
 
-from bilevel.attacks.willems import SDPHypergradient, destabilize_attack, log_radius_gradient
+from bilevel.attacks.willems import SDPHypergradient, destabilize_attack
 from bilevel.ddc.plants import batch_reactor
 from bilevel.experiments.willems import sim_seeds
 from bilevel.problems.willems import build_attack
-from bilevel.sampling import sample_in_bounds
-from bilevel.solvers.ascent import budget_direction, projected_ascent
-from bilevel.solvers.projections import Box
+from bilevel.threads import single_threaded
 
-DATASETS = int(sys.argv[1]) if len(sys.argv) > 1 else 48
-DELTAS = (0.2, 0.3, 0.5)
-SELECTIONS = tuple(sys.argv[2].split(",")) if len(sys.argv) > 2 else ("min-norm", "clarabel", "scs")
-STARTS = 16
-MAX_ITER = 100
+SETS = {15: int(sys.argv[1]) if len(sys.argv) > 1 else 48, 50: int(sys.argv[2]) if len(sys.argv) > 2 else 16}
+DELTAS = (0.1, 0.2, 0.3, 0.5)
+BASE_STARTS, BASE_ITER = 64, 100
 PLANT = batch_reactor()
 
 
-def true_radius(gain: np.ndarray) -> float:
-    return float(np.max(np.abs(np.linalg.eigvals(PLANT.A + PLANT.B @ gain))))
+def rho_and_grad(k: np.ndarray) -> tuple[float, np.ndarray]:
+    """rho(A + B K) and d rho / dK (top eigenvalue; a conjugate pair gives the same gradient from either member)."""
+    lam, left, right = scipy.linalg.eig(PLANT.A + PLANT.B @ k, left=True, right=True)
+    i = int(np.argmax(np.abs(lam)))
+    u, v = np.conj(left[:, i]), right[:, i]
+    dm = np.real(np.conj(lam[i]) / abs(lam[i]) * np.outer(u, v) / (u @ v))
+    return float(abs(lam[i])), PLANT.B.T @ dm
 
 
-def baseline(attack, seed: int) -> float:
-    """Largest true rho over every point a 16-start projected ascent on log rho(A + B K) evaluates."""
-    oracle = SDPHypergradient(attack)
-    bound = attack.budget()
+def baseline(k0: np.ndarray, g: np.ndarray, delta: float, seed: int) -> float:
+    """Largest true rho reached by 64 projected ascents on rho(A + B (K0 + dU G)) over |dU| <= delta."""
     rng = np.random.default_rng(seed)
-    best = [0.0]
-
-    def value(x):
-        ev = oracle.evaluate(x)
-        rho = true_radius(ev.gain)
-        best[0] = max(best[0], rho)
-        return float(np.log(rho)), ev
-
-    def direction(ev):
-        g = oracle.gain_gradient(ev, log_radius_gradient(PLANT.A + PLANT.B @ ev.gain, PLANT.B)[1])
-        return g, bound * budget_direction(bound * g, 1.0, np.inf)
-
-    for k in range(STARTS):
-        x0 = np.zeros(bound.size) if k == 0 else sample_in_bounds(-bound, bound, rng)
-        projected_ascent(value, direction, Box(-bound, bound), x0, bound, MAX_ITER, 1e-9, [])
-    return best[0]
-
-
-def transferred(attack, x: np.ndarray, selection: str) -> float:
-    """True rho when the learner with `selection` learns from the poisoning x (computed against another one)."""
-    target = build_attack(objective="destabilize", horizon=attack.setting.horizon, seed=attack.setting.seed,
-                          delta_u=attack.setting.delta_u, selection=selection)
-    return true_radius(SDPHypergradient(target).evaluate(x).gain)
+    m, t = PLANT.B.shape[1], g.shape[0]
+    best = 0.0
+    for s in range(BASE_STARTS):
+        du = np.zeros((m, t)) if s == 0 else rng.uniform(-delta, delta, (m, t))
+        rho, dk = rho_and_grad(k0 + du @ g)
+        step = delta
+        for _ in range(BASE_ITER):
+            grad = dk @ g.T
+            scale = np.abs(grad).max()
+            if scale == 0:
+                break
+            while step > 1e-8 * delta:
+                trial = np.clip(du + step * grad / scale, -delta, delta)
+                rho_t, dk_t = rho_and_grad(k0 + trial @ g)
+                if rho_t >= rho + 1e-4 * float(np.sum(grad * (trial - du))) and rho_t > rho:
+                    du, rho, dk = trial, rho_t, dk_t
+                    step = min(2 * step, 2 * delta)
+                    break
+                step /= 2
+            else:
+                break
+        best = max(best, rho)
+    return best
 
 
 def main() -> None:
-    seeds = sim_seeds(0, DATASETS)
     print(f"# {' '.join(sys.argv)} -- {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}, "
           f"{platform.node()} {platform.machine()}, nproc {os.cpu_count()}, load average "
           f"{' '.join(f'{v:.2f}' for v in os.getloadavg())} at start")
-    print(f"N = 15, design lqr, U poisoned (linf), {DATASETS} data sets (sim_seeds(0, {DATASETS})), {STARTS} starts")
-    print(f"{'selection':>9} {'delta_u':>7} {'ours unst':>9} {'base unst':>9} {'smooth unst':>11} "
-          f"{'ours mean rho':>13} {'base mean rho':>13} {'smooth mean':>11} {'smooth > base':>13} "
-          f"{'ours [s]':>8} {'base [s]':>8}")
-    xs: dict[tuple[str, float], list[tuple[object, np.ndarray]]] = {}
-    for selection in SELECTIONS:
+    print("design lqr, min-norm learner, U poisoned (linf); ours: destabilize_attack defaults; baseline: 64-start "
+          "numpy projected ascent on the true rho (time without the learner solve)")
+    print(f"{'N':>3} {'delta_u':>7} {'sets':>4} {'ours unst':>9} {'base unst':>9} {'ours mean rho':>13} "
+          f"{'base mean rho':>13} {'ours>=base':>10} {'ours med [s]':>12} {'given Q med [s]':>15} "
+          f"{'base med [s]':>12} {'base/given':>11}")
+    for n, sets in SETS.items():
         for delta in DELTAS:
-            ours, base, smooth, t_ours, t_base, kept = [], [], [], 0.0, 0.0, []
-            for data_seed, attack_seed in seeds:
-                attack = build_attack(objective="destabilize", horizon=15, seed=data_seed, delta_u=delta,
-                                      selection=selection)
+            ours, base, t_ours, t_ascent, t_base = [], [], [], [], []
+            for data_seed, attack_seed in sim_seeds(0, sets):
+                attack = build_attack(objective="destabilize", horizon=n, seed=data_seed, delta_u=delta)
                 t0 = time.perf_counter()
-                res = destabilize_attack(attack, starts=STARTS, seed=attack_seed, max_iter=MAX_ITER)
-                t1 = time.perf_counter()
-                base.append(baseline(attack, attack_seed))
-                t_base += time.perf_counter() - t1
-                t_ours += t1 - t0
+                res = destabilize_attack(attack, seed=attack_seed)
+                t_ours.append(time.perf_counter() - t0)
                 ours.append(res.stats["spectral_radius"])
-                smooth.append(max(r["smooth_radius"] or 0.0 for r in res.stats["details"]["starts"]))
-                kept.append((attack, res.stats["x"]))
-            xs[selection, delta] = kept
-            o, b, sm = np.array(ours), np.array(base), np.array(smooth)
-            print(f"{selection:>9} {delta:>7} {int((o >= 1).sum()):>9} {int((b >= 1).sum()):>9} "
-                  f"{int((sm >= 1).sum()):>11} {o.mean():>13.4f} {b.mean():>13.4f} {sm.mean():>11.4f} "
-                  f"{int((sm > b * (1 + 1e-6)).sum()):>8} / "
-                  f"{len(o):<3} {t_ours:>8.1f} {t_base:>8.1f}", flush=True)
-    print("\nTransfer (unstable loops of the target learner under our poisoning computed against the source):")
-    print(f"{'source':>9} {'delta_u':>7} " + " ".join(f"{'-> ' + s:>12}" for s in SELECTIONS))
-    for (source, delta), kept in xs.items():
-        counts = [sum(transferred(a, x, target) >= 1 for a, x in kept) for target in SELECTIONS]
-        print(f"{source:>9} {delta:>7} " + " ".join(f"{c:>12}" for c in counts), flush=True)
+                oracle = SDPHypergradient(attack)  # the learner's Q, for the given-learner timing and the baseline
+                oracle.lower_solution(np.zeros(oracle.n_x))
+                with single_threaded():
+                    t0 = time.perf_counter()
+                    destabilize_attack(attack, seed=attack_seed, oracle=oracle)  # engine set-up + ascent + result
+                    t_ascent.append(time.perf_counter() - t0)
+                    q = oracle.lower_solution(np.zeros(oracle.n_x))[0].y.reshape(n, -1, order="F")
+                    s_mat = attack.x[:, :n] @ q  # S = X0 Q, symmetric at the learner's solution
+                    g = q @ np.linalg.inv(0.5 * (s_mat + s_mat.T))
+                    k0 = attack.u @ g
+                    t0 = time.perf_counter()
+                    base.append(baseline(k0, g, delta, attack_seed + 1))
+                    t_base.append(time.perf_counter() - t0)
+            o, b = np.array(ours), np.array(base)
+            print(f"{n:>3} {delta:>7} {sets:>4} {int((o >= 1).sum()):>9} {int((b >= 1).sum()):>9} {o.mean():>13.4f} "
+                  f"{b.mean():>13.4f} {int((o >= b - 1e-9).sum()):>6} / {sets:<3}{np.median(t_ours):>12.3f} "
+                  f"{np.median(t_ascent):>15.3f} {np.median(t_base):>12.3f} "
+                  f"{np.median(t_base) / np.median(t_ascent):>11.1f}", flush=True)
 
 
 if __name__ == "__main__":

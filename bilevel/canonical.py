@@ -19,6 +19,7 @@ from .model import BilevelProblem, LowerQP, Variable, check_depends, unflatten_a
 from .parameters import ParameterSet, scalar
 from .reduction import KKTPoint, Reduction
 from .sampling import default_start, sample_in_bounds
+from .spectral_radius import spectral_radius
 
 
 @dataclass
@@ -63,6 +64,9 @@ class CanonicalBilevel:
     """The problem's definitions kept as variables, for the KKT reformulation (here they are substituted)."""
     images: Images | None = None
     """Products of linear maps (BilevelProblem.linear_map) used in the lower level: symbols z = A arg(x)."""
+    spectral: ca.SX | None = None
+    """A spectral-radius upper objective's matrix M(x, y): F = spectral_sign * rho(M), and the expression F is NaN."""
+    spectral_sign: float = 1.0
 
     @cached_property
     def lower(self) -> LowerLevel:
@@ -94,11 +98,21 @@ class CanonicalBilevel:
         return self.params.function("upper", [self.x, self.y], [self.F, self.G, self.H, ca.jacobian(self.G, xy),
                                                                 ca.jacobian(self.H, xy), ca.gradient(self.F, self.y)])
 
+    @cached_property
+    def _spectral_matrix(self) -> ca.Function:
+        return self.params.function("spectral", [self.x, self.y], [self.spectral])
+
+    def upper_F(self, x: np.ndarray, y: np.ndarray, F: ca.DM) -> float:
+        """F at (x, y) from the sweep's value F, or the spectral radius for a spectral objective."""
+        if self.spectral is None:
+            return scalar(F)
+        return self.spectral_sign * float(spectral_radius(np.asarray(self._spectral_matrix(x, y), dtype=float)).value)
+
     def upper_values(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray,
                                                                   np.ndarray]:
         """F, G, H and the Jacobians of G and H in (x, y) at (x, y)."""
         out = self._upper(x, y)
-        return (scalar(out[0]), np.asarray(out[1]).ravel(), np.asarray(out[2]).ravel(), np.asarray(out[3]),
+        return (self.upper_F(x, y, out[0]), np.asarray(out[1]).ravel(), np.asarray(out[2]).ravel(), np.asarray(out[3]),
                 np.asarray(out[4]))
 
     def upper_gradient_y(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -152,7 +166,8 @@ def _eliminate(canon: CanonicalBilevel, problem: BilevelProblem) -> CanonicalBil
     if mats is not None:
         mats = replace(mats, d=sub(mats.d), q=sub(mats.q), b=sub(mats.b), e=sub(mats.e))
     return replace(canon, F=sub(canon.F), G=sub(canon.G), H=sub(canon.H), f=sub(canon.f), g=sub(canon.g),
-                   h=sub(canon.h), psd=[sub(m) for m in canon.psd], matrices=mats, lifting=Lifting(z, value, raw))
+                   h=sub(canon.h), psd=[sub(m) for m in canon.psd], matrices=mats, lifting=Lifting(z, value, raw),
+                   spectral=None if canon.spectral is None else sub(canon.spectral))
 
 
 @dataclass
@@ -254,7 +269,11 @@ class Canonicalize(Reduction):
         upper_allowed = set(allowed)
         if images is not None:
             allowed |= {s.element_hash() for s in ca.symvar(images.sym)}
-        _check_depends(problem.upper_objective.expr, upper_allowed, "the upper objective")
+        spectral = problem.upper_objective.matrix  # F is then NaN: the objective is rho(matrix)
+        if spectral is None:
+            _check_depends(problem.upper_objective.expr, upper_allowed, "the upper objective")
+        else:
+            _check_depends(spectral, upper_allowed, "the spectral radius's matrix")
         mats = problem.lower_matrices
         if any(i.level == "lower" for i in problem.images):
             mats = _least_squares_matrices(problem, allowed)
@@ -318,7 +337,7 @@ class Canonicalize(Reduction):
             y_start=y_start,
             G_names=G_names, x_suggested=suggested_starts(problem, x_start, x_lb, x_ub), y_lb=y_lb, y_ub=y_ub,
             assume_convex=mats is None and problem.lower_objective.assume_convex, params=problem.parameters,
-            lower_reference=problem.lower_reference, matrices=mats, images=images,
+            lower_reference=problem.lower_reference, matrices=mats, images=images, spectral=spectral,
         )
         if problem.definitions:
             canon = _eliminate(canon, problem)
@@ -354,6 +373,7 @@ class NormalizeSense(Reduction):
     def apply(self, canon: CanonicalBilevel) -> tuple[CanonicalBilevel, tuple[str, str]]:
         senses = (canon.upper_sense, canon.lower_sense)
         out = replace(canon, F=-canon.F if senses[0] == "max" else canon.F,
+                      spectral_sign=-canon.spectral_sign if senses[0] == "max" else canon.spectral_sign,
                       f=-canon.f if senses[1] == "max" else canon.f, upper_sense="min", lower_sense="min")
         if canon.lifting is not None:
             out.lifting = replace(canon.lifting, raw=self.apply(canon.lifting.raw)[0])
@@ -369,7 +389,8 @@ class NormalizeSense(Reduction):
 
 def objectives(canon: CanonicalBilevel, point: KKTPoint) -> tuple[float, float]:
     """(F, f) at a point, in the canonical problem's senses."""
-    return scalar(canon.functions(point.x, point.y)[0]), canon.lower.evaluate(point.x, point.y)[0]
+    return (canon.upper_F(point.x, point.y, canon.functions(point.x, point.y)[0]),
+            canon.lower.evaluate(point.x, point.y)[0])
 
 
 def kkt_solution(canon: CanonicalBilevel, point: KKTPoint) -> BilevelSolution:

@@ -128,11 +128,13 @@ class LowerQP:
 
 @dataclass
 class Objective:
-    """An objective and its sense; assume_convex (lower level only) skips the convexity probe."""
+    """An objective and its sense; assume_convex (lower level only) skips the convexity probe. An upper objective
+    with a `matrix` is the spectral radius of that matrix (expr is then NaN: it has no CasADi expression)."""
 
     expr: ca.SX
     sense: Sense
     assume_convex: bool = False
+    matrix: ca.SX | None = None
 
 
 def _bound_array(value: Any, size: int, what: str, symmetric: bool = False) -> np.ndarray:
@@ -449,6 +451,15 @@ class BilevelProblem:
     def maximize_upper(self, expr: Any) -> None:
         """Set the upper-level objective F(x, y) to maximize."""
         self.upper_objective = self._objective(expr, "max", "maximize_upper")
+        self.revision += 1
+
+    def maximize_spectral_radius(self, matrix: Any) -> None:
+        """Set the upper objective to rho(M) = max |eig(M)| of a square matrix expression M(x, y), evaluated and
+        differentiated exactly (eigenvectors); methods hypergradient and differential-evolution solve it."""
+        matrix = _expression(matrix, "maximize_spectral_radius", "a square CasADi matrix expression")
+        if matrix.size1() != matrix.size2() or matrix.numel() == 0:
+            raise ModelError(f"maximize_spectral_radius: the matrix must be square, got shape {matrix.shape}")
+        self.upper_objective = Objective(ca.SX(np.nan), "max", matrix=matrix)
         self.revision += 1
 
     def minimize_lower(self, expr: Any, assume_convex: bool = False) -> None:

@@ -31,6 +31,7 @@ poisoning (poison="u", designs lqr and stabilizing), so Q is fixed and K is affi
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, fields
 from typing import Any, Callable
 
@@ -204,6 +205,14 @@ class WillemsAttack:
             dx = np.zeros_like(self.x) if dx is None else np.asarray(dx, dtype=float)
             parts.append(dx[:, self.x_offset:].reshape(-1, order="F"))
         return np.concatenate(parts)
+
+    def radius_problem(self) -> BilevelProblem:
+        """The attack's problem with the upper objective rho(A_id + B_id K), declared by maximize_spectral_radius
+        (solved by the generic engine exactly; the registered problem keeps its CasADi criterion)."""
+        p = copy.copy(self.problem)
+        p.name = f"{p.name}-radius"
+        p.maximize_spectral_radius(self.closed_loop)
+        return p
 
     def budget(self) -> np.ndarray:
         """Upper bounds of |x| entrywise (the linf budgets of each upper entry)."""

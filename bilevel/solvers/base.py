@@ -11,7 +11,7 @@ import numpy as np
 
 from ..canonical import CanonicalBilevel, Canonicalize, NormalizeSense, kkt_solution, objectives, suggested_starts
 from ..certificate import DEFAULT_TOL, LOCAL_EVIDENCE, Certificate, GlobalBound, certify
-from ..errors import BilevelError, LowerLevelUnbounded, UnknownOption
+from ..errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption
 from ..model import BilevelProblem
 from ..mpcc import MPCC
 from ..reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
@@ -66,6 +66,10 @@ class Prepared:
 
     @cached_property
     def reduction(self) -> tuple[MPCC, KKTInverse]:
+        if self.canon.spectral is not None:
+            raise ModelError(f"{self.problem.name}: a spectral-radius objective (maximize_spectral_radius) has no "
+                             "CasADi expression for the KKT reformulation of methods ipopt, relaxation and global; "
+                             "use method 'hypergradient' or 'differential-evolution'")
         return SingleLevelReduction().apply(self.canon)
 
     @property

@@ -164,6 +164,8 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
 def exact_block_of(prep: Prepared) -> tuple[ExactBlock | None, list[str]]:
     """The problem's exact block at the current parameter values (its symbolic set-up kept on `prep`), and why each
     other candidate is not exact."""
+    if prep.canon.spectral is not None:
+        return None, ["a spectral-radius objective is no quadratic of any block"]
     balls = prep.balls
     exact, why = prep.cached(("block-exact", tuple((b.row, b.block.start, b.block.stop) for b in balls)),
                              lambda: find_exact_block(prep.canon, balls))

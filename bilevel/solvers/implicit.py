@@ -15,6 +15,11 @@ same code as the Willems attacks), after which y is projected off the directions
 (SemidefiniteLower.select_min_norm: the minimum-norm selection of a non-unique solution, or the exact ridge
 solution); it needs a strictly complementary lower solution, unique up to those directions.
 
+A spectral-radius upper objective (BilevelProblem.maximize_spectral_radius) is evaluated and differentiated
+numerically, F = sign * rho(M(x, y)) with d rho / dM from the top eigenvectors (bilevel.spectral_radius), chained
+through the Jacobians of M; where the lower level ignores x and M is affine in x, spectral_batch evaluates many
+points by one matrix product and one stacked eigendecomposition.
+
 Upper constraints other than the projected ones are handled by an exact penalty: phi = F + penalty *
 (sum max(G, 0) + sum |H|), exact once the penalty exceeds the upper multipliers (default 1e4); where
 some |G_i| or |H_j| <= 1e-9 the least-norm subgradient of the penalty is used. The methods built on it:
@@ -33,6 +38,7 @@ from scipy.optimize import lsq_linear
 from ..errors import ModelError
 from ..lower.base import ExpressionLower, KKTValues, LowerSolution
 from ..parameters import CompiledFunction
+from ..spectral_radius import spectral_radius
 from .base import Prepared
 
 DEFAULT_PENALTY = 1e4
@@ -82,6 +88,13 @@ class Hypergradient:
         self._fixed: tuple[int, LowerSolution, KKTValues | None] | None = None  # (parameter revision, ...)
         self._batches: dict[int, ca.Function] = {}  # batch_phi's mapped sweeps, by batch size
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
+        self._spectral: CompiledFunction | None = None  # a spectral objective's M, dM/dx, dM/dy (vec M rows)
+        self._affine: tuple[int, np.ndarray, np.ndarray] | None = None  # (revision, M(0, y*), dM/dx) when fixed
+        if canon.spectral is not None:
+            m = ca.vec(canon.spectral)
+            jx = ca.jacobian(m, x)
+            self._spectral = canon.params.function("spectral", [x, y], [m, jx, ca.jacobian(m, y)])
+            self.spectral_affine = low.fixed and not ca.depends_on(jx, x)
 
     @cached_property
     def _upper_and_f(self) -> CompiledFunction:
@@ -171,10 +184,44 @@ class Hypergradient:
             if np.isnan(sol.objective):  # the matrix form evaluates f numerically
                 sol.objective = float(self.low.evaluate(x, sol.y)[0])
             upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
+        if self._spectral is not None:
+            upper = self._with_spectral(x, sol.y, upper)
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
         phi = float(self.penalized(upper[0], upper[1], upper[2])[0])
         violation = max([0.0, *np.maximum(G, 0.0), *np.abs(H)])
         return Evaluation(x, phi, F, violation, sol, upper, vals)
+
+    def _with_spectral(self, x: np.ndarray, y: np.ndarray, upper: list[np.ndarray]) -> list[np.ndarray]:
+        """The upper sweep with F, dF/dx and dF/dy of the spectral objective in place of the NaN expression's."""
+        m, jx, jy = (np.asarray(v, dtype=float) for v in self._spectral(x, y))
+        n = int(self.canon.spectral.size1())
+        r = spectral_radius(m.reshape(n, n, order="F"))
+        sign = self.canon.spectral_sign
+        g = sign * r.gradient.ravel(order="F")
+        return [np.array([[sign * float(r.value)]]), upper[1], upper[2], (jx.T @ g)[:, None], (jy.T @ g)[:, None],
+                *upper[5:]]
+
+    def spectral_batch(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """F = sign * rho(M), dF/dx (n_x x S) and the tie counts at each column of xs (n_x x S), for a spectral
+        objective on a lower level that ignores x; M affine in x: one product and one stacked eigendecomposition."""
+        if self._spectral is None or not self.low.fixed:
+            raise ModelError("spectral_batch needs a spectral-radius upper objective (maximize_spectral_radius) and a "
+                             "lower level that does not depend on the upper variables; use evaluate and gradient")
+        xs = np.asarray(xs, dtype=float)
+        n, sign = int(self.canon.spectral.size1()), self.canon.spectral_sign
+        if not self.spectral_affine:
+            evs = [self.evaluate(x) for x in xs.T]
+            return (np.array([ev.F for ev in evs]), np.column_stack([self.gradient(ev)[0] for ev in evs]),
+                    np.ones(len(evs), dtype=int))
+        revision = self.low.params.revision
+        if self._affine is None or self._affine[0] != revision:
+            zero = np.zeros(self.low.n_x)
+            m0, jx, _ = (np.asarray(v, dtype=float) for v in self._spectral(zero, self.evaluate(zero).lower.y))
+            self._affine = (revision, m0.ravel(), jx)
+        _, m0, jx = self._affine
+        r = spectral_radius((m0[:, None] + jx @ xs).T.reshape(-1, n, n).transpose(0, 2, 1))
+        grads = r.gradient.transpose(0, 2, 1).reshape(-1, n * n)
+        return sign * r.value, sign * (jx.T @ grads.T), r.ties
 
     def batch_phi(self, xs: np.ndarray) -> np.ndarray:
         """phi at each column of xs (n_x x S) by one mapped sweep, for a lower level that ignores x (solved once)."""
@@ -189,6 +236,8 @@ class Hypergradient:
             sweep = ca.Function("upper_FGH", args, self._upper_outputs[:3])
             self._batches[n] = sweep.map(n, [False] + [True] * (len(args) - 1), [False] * 3)
         F, G, H = (np.asarray(v, dtype=float) for v in self._batches[n](xs, y, *shared))
+        if self._spectral is not None:
+            F = self.spectral_batch(xs)[0]
         return self.penalized(F.reshape(1, n), G.reshape(-1, n), H.reshape(-1, n))
 
     def penalized(self, F: np.ndarray, G: np.ndarray, H: np.ndarray) -> np.ndarray:

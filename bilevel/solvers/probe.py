@@ -162,6 +162,7 @@ def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = 
     values = []
     for yv in ys:
         F, G, H = (np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, yv))
+        F = np.array([prep.canon.upper_F(x, yv, F[0])])
         if not (np.any(G > FEAS_TOL) or np.any(np.abs(H) > FEAS_TOL) or not np.isfinite(F[0])):
             values.append(float(F[0]))
     return min(values, default=None), len(ys) > 1
