@@ -13,8 +13,8 @@ Default budget, for n upper entries: min(15 n, MEMBERS) members (scipy's popsize
 bounded number of lower solves on 80-1,000 upper variables) and min(100, max(20, EVALUATIONS // members))
 generations (100 up to 30 members, as scipy's default), so a default run costs at most about EVALUATIONS + 2 MEMBERS
 lower solves whatever n is (then the descent). Option popsize sets popsize * n members (scipy's meaning), max_iter
-the generations. Option time_limit stops the search between evaluations (the members left in that generation score
-UNSOLVED) and bounds the descent; verbose reports each generation.
+the generations. Option time_limit stops the search between evaluations once one point has been scored (the members left in that
+generation score UNSOLVED) and bounds the descent; verbose reports each generation.
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
         return np.clip(np.nan_to_num(phi, nan=UNSOLVED, posinf=UNSOLVED, neginf=-UNSOLVED), -UNSOLVED, UNSOLVED)
 
     def value(x: np.ndarray) -> float:
-        if limit.expired():  # the rest of this generation is not evaluated; the callback then stops the search
+        if "ev" in best and limit.expired():  # the rest of this generation is not evaluated; the callback then stops
             return UNSOLVED
         try:
             ev = oracle.evaluate(np.asarray(x, dtype=float))
@@ -100,7 +100,7 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
 
     def batch(xs: np.ndarray) -> np.ndarray:  # a lower level that ignores x: the population in one mapped sweep
         xs = np.asarray(xs, dtype=float)
-        if limit.expired():
+        if "ev" in best and limit.expired():
             return np.full(xs.shape[1], UNSOLVED)
         try:
             phi = ranked(oracle.batch_phi(xs))
