@@ -638,8 +638,9 @@ class BilevelProblem:
         return {k: v for k, v in self.__dict__.items() if k != "_prepared"}
 
     # -- solving ---------------------------------------------------------------------------------
-    def solve(self, method: Any = "ipopt", **options: Any) -> "BilevelResult":
-        """Solve with a registered method ("ipopt", "relaxation", "hypergradient") or a callable."""
+    def solve(self, method: Any = "auto", **options: Any) -> "BilevelResult":
+        """Solve with a method chosen by structure ("auto", bilevel.solvers.registry.choose_method), a registered
+        method ("ipopt", "relaxation", "hypergradient", ...) or a callable."""
         from .solvers.registry import solve
 
         return solve(self, method=method, **options)

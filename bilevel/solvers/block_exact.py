@@ -33,6 +33,7 @@ from ..result import Status
 from .ascent import projected_ascent
 from .base import MethodRun, Prepared
 from .implicit import DEFAULT_PENALTY, Evaluation, shared_oracle
+from .limits import Deadline, progress
 from .starts import start_points
 from .structure import Ball, budget_scale, depends
 from .trust_region import maximize_quadratic_on_ball
@@ -176,9 +177,10 @@ def exact_block_of(prep: Prepared) -> tuple[ExactBlock | None, list[str]]:
 
 def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], starts: int = 4, seed: Any = 0,
                             scale: float = 10.0, penalty: float = DEFAULT_PENALTY, tol: float = 1e-5,
-                            max_iter: int = 500, verbose: bool = False) -> MethodRun:
+                            max_iter: int = 500, verbose: bool = False, time_limit: float | None = None) -> MethodRun:
     """Multistart ascent of the other upper variables (the engine's loop, bilevel.solvers.ascent) on phi with the
-    exact block at its global optimum at every evaluation; tol: relative gain over the loop's window."""
+    exact block at its global optimum at every evaluation; tol: relative gain over the loop's window; at time_limit
+    (seconds) the best point so far, status MAX_ITERATIONS."""
     starts, scale, tol, max_iter = int(starts), float(scale), float(tol), int(max_iter)
     balls = prep.balls
     oracle = shared_oracle(prep, float(penalty), projected_rows=tuple(b.row for b in balls))
@@ -206,17 +208,26 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], s
 
     project = lambda xr: prep.projection(full(xr))[rest]  # noqa: E731  (blocks are disjoint)
     rng = np.random.default_rng(seed)
+    limit, label = Deadline(time_limit), "hypergradient, exact block"
     best, records, nit = None, [], 0
     for k, x0 in enumerate(start_points(prep, starts, rng, scale)):
-        t0, history = time.perf_counter(), []
+        if k and limit.expired():
+            break
+        t0, history, why, calls = time.perf_counter(), [], {}, [0]
+
+        def stop(ev: Evaluation, k: int = k, calls: list[int] = calls) -> bool:
+            """Progress at the start and each accepted point; the deadline."""
+            progress(verbose, label, f"start {k + 1}/{starts}, iteration {calls[0]}: phi = {ev.phi:.8g}")
+            calls[0] += 1
+            return limit.expired()
+
         xr, fx, ev, it, evals, converged = projected_ascent(value, direction, project, x0[rest], weights, max_iter,
-                                                            tol, history)
+                                                            tol, history, stop=stop, why=why)
+        converged = converged and why["stop"] != "stop"  # stop() holds only at the deadline
         nit += it
         records.append({"start": k, "objective": None if ev is None else ev.F, "iterations": it,
                         "evaluations": evals, "converged": converged, "time": time.perf_counter() - t0})
-        if verbose:
-            print(f"[hypergradient, exact block] start {k + 1}/{starts}: phi = {-fx:.8g} after {it} steps",
-                  flush=True)
+        progress(verbose, label, f"start {k + 1}/{starts}: phi = {-fx:.8g} after {it} steps")
         if ev is not None and (best is None or fx > best[0]):
             best = (fx, ev, converged, history, k)
     if best is None:
@@ -226,8 +237,9 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], s
     w = prep.pack(KKTPoint(ev.x, ev.lower.y, ev.lower.lam, ev.lower.mu, ev.lower.Z))
     g = oracle.gradient(ev)[0][rest]
     pg = float(np.linalg.norm(project(ev.x[rest] - g) - ev.x[rest]))  # ||P(x - grad phi) - x||, as the descent
-    status = Status.SOLVED if converged else Status.MAX_ITERATIONS
-    return MethodRun(w, status, f"exact block x[{S.start}:{S.stop}]; best of {starts} starts: start {k} "
-                     f"({'converged' if converged else 'max_iter'})", nit, history, records,
+    status = Status.SOLVED if converged and not limit.hit else Status.MAX_ITERATIONS
+    ended = limit.reached() if limit.hit else "converged" if converged else "max_iter"
+    return MethodRun(w, status, f"exact block x[{S.start}:{S.stop}]; best of {starts} starts ({len(records)} run): "
+                     f"start {k} ({ended})", nit, history, records,
                      {"best_start": k, "exact_block": [S.start, S.stop], "projected_gradient_norm": pg,
                       "not_exact": why})

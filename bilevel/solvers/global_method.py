@@ -22,6 +22,7 @@ from .global_bigm import derive_big_m
 from .global_form import linear_mpcc
 from .global_milp import solve_milp
 from .global_nodes import G_SIDE, Relaxation
+from .limits import progress
 
 ALGORITHMS = ("auto", "milp", "branch-and-bound")
 
@@ -46,7 +47,7 @@ def lower_response_guess(prep: Prepared, relax: Relaxation) -> Guess:
 
 def _options(options: dict[str, Any]) -> tuple[float, int, float, str]:
     """(time_limit, node_limit, gap, algorithm), checked."""
-    check_options("global", options, {"time_limit", "node_limit", "gap", "algorithm", "starts", "seed"})
+    check_options("global", options, {"time_limit", "node_limit", "gap", "algorithm", "starts", "seed", "verbose"})
     time_limit = float(options.get("time_limit", 60.0))
     node_limit = int(options.get("node_limit", 100_000))
     gap_tol = float(options.get("gap", 1e-6))
@@ -75,7 +76,8 @@ def _verdict(outcome: SearchOutcome, name: str, summary: str, proven: bool) -> t
 
 def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     """Global optimum with a proof (options: time_limit [s, 60], node_limit [100000], gap [1e-6 relative],
-    algorithm [auto | milp | branch-and-bound]; starts and seed are accepted and unused: it is deterministic)."""
+    algorithm [auto | milp | branch-and-bound], verbose: a line per phase; starts and seed are accepted and unused:
+    it is deterministic)."""
     time_limit, node_limit, gap_tol, algorithm = _options(options)
     t0 = time.perf_counter()
     form = linear_mpcc(prep)
@@ -90,6 +92,8 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
         return MethodRun(None, Status.INFEASIBLE, "the KKT reformulation is infeasible: some pair has both its slack "
                          "and its multiplier bounded away from zero on the relaxed KKT polyhedron")
     relax = Relaxation(form, big_m.slack, big_m.multiplier)
+    progress(options.get("verbose"), "global", f"big-M bounds derived for {form.n_pairs} pairs "
+             f"({time.perf_counter() - t0:.1f} s)")
     use_milp = form.linear and big_m.finite and form.n_pairs > 0
     if algorithm == "milp" and not use_milp:
         raise ModelError("algorithm 'milp' needs a linear upper objective and a finite derived big-M for every pair "
@@ -120,5 +124,6 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
                for h in outcome.history]  # the bounds' trajectory, in the declared sense like the bounds
     summary = f"{name}: bounds [{low:.10g}, {high:.10g}], relative gap {gap:.2e}, {outcome.nodes} nodes"
     status, message = _verdict(outcome, name, summary, proven)
+    progress(options.get("verbose"), "global", f"{summary} ({outcome.ended}, {time.perf_counter() - t0:.1f} s)")
     w = None if outcome.w is None or status is Status.INFEASIBLE else np.asarray(outcome.w, dtype=float)
     return MethodRun(w, status, message, outcome.nodes, history, [], stats, global_bound=bound)

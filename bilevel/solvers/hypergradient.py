@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
@@ -38,6 +38,7 @@ from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, Hypergradient, sh
 from .ascent import projected_ascent
 from .block_exact import ExactBlock, ascend_with_exact_block, exact_block_of
 from .options import check_numbers
+from .limits import Deadline, deadline, progress
 from .starts import start_points
 from .projections import Projection
 
@@ -128,10 +129,12 @@ def _domain_stationary(arc: Arc, cur: Evaluation, grad: np.ndarray, tol: float) 
     return unit is not None and float(np.linalg.norm(unit.x - cur.x)) <= tol
 
 
-def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int) -> Descent:
+def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int, limit: Deadline | None = None,
+            report: Callable[[dict[str, Any]], None] | None = None) -> Descent:
     """The engine's spectral projected gradient loop (bilevel.solvers.ascent) on -phi along the arc, in x units:
     long Barzilai-Borwein steps, each trial point restored into the lower level's domain; stops when
-    ||P(x - grad phi) - x|| <= tol or phi's relative decrease in one step is <= ftol."""
+    ||P(x - grad phi) - x|| <= tol or phi's relative decrease in one step is <= ftol, or at the deadline `limit`
+    (MAX_ITERATIONS); report, if given, receives each iterate's record."""
     history: list[dict[str, Any]] = []
     last: dict[str, Any] = {}
 
@@ -145,6 +148,8 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int)
                             "grad_norm": float(np.linalg.norm(grad)), "projected_step_norm": pstep,
                             "active": n_active, "degenerate": degenerate})
             last.update(ev=ev, grad=grad, pstep=pstep)
+            if report is not None:
+                report(history[-1])
         return last["grad"], last["pstep"]
 
     def value(x: np.ndarray) -> tuple[float, Evaluation | None]:
@@ -167,6 +172,9 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int)
         if len(history) > 1 and history[-2]["objective"] - ev.phi <= ftol * max(1.0, abs(ev.phi)):
             last["reason"] = "ftol"
             return True
+        if limit is not None and limit.expired():
+            last["reason"] = "time_limit"
+            return True
         return False
 
     why: dict[str, str] = {}
@@ -180,6 +188,8 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int)
     reason = last["reason"] if why["stop"] == "stop" else why["stop"]  # the stop hook names its own reason
     if reason == "max_iter":
         return Descent(cur, Status.MAX_ITERATIONS, f"max_iter = {max_iter} reached", nit, history)
+    if reason == "time_limit":
+        return Descent(cur, Status.MAX_ITERATIONS, limit.reached(), nit, history)
     if reason == "non-finite gradient":
         return Descent(cur, Status.ERROR, f"the hypergradient is NaN or inf at x = {cur.x} (an upper objective or "
                        "constraint is not differentiable there, e.g. a norm at 0: declare a ball as "
@@ -208,6 +218,9 @@ def _projection(prep: Prepared, projection: Any) -> Projection:
     return proj
 
 
+HYPERGRADIENT_OPTIONS = frozenset({"starts", "seed", "scale", "projection", "penalty", "tol", "ftol", "max_iter",
+                                   "active_tol", "time_limit", "verbose", "exact_block"})
+"""The options method `hypergradient` accepts."""
 DESCENT_ONLY = ("projection", "ftol", "active_tol")
 """Options of the descent that the exact-block mode does not take."""
 AUTO_EXACT_DIMENSION = 256
@@ -250,12 +263,11 @@ def chosen_exact_block(prep: Prepared, mode: Any, options: dict[str, Any]) -> tu
 
 
 def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
-    """Multistart projected hypergradient ascent (options: starts, seed, scale, penalty, tol, max_iter, verbose,
-    exact_block = "auto" | True | False; the descent also projection, ftol, active_tol): with the exact block where
-    the declared structure has one, else descent with recognized balls projected on, other upper constraints
-    penalized."""
-    check_options("hypergradient", options, {"starts", "seed", "scale", "projection", "penalty", "tol", "ftol",
-                                             "max_iter", "active_tol", "verbose", "exact_block"})
+    """Multistart projected hypergradient ascent (options: starts, seed, scale, penalty, tol, max_iter, time_limit,
+    verbose, exact_block = "auto" | True | False; the descent also projection, ftol, active_tol): with the exact
+    block where the declared structure has one, else descent with recognized balls projected on, other upper
+    constraints penalized. At time_limit the starts not begun are skipped and the status is MAX_ITERATIONS."""
+    check_options("hypergradient", options, HYPERGRADIENT_OPTIONS)
     check_numbers(options, positive=("active_tol",), nonnegative=("penalty", "ftol"))
     exact, why = chosen_exact_block(prep, options.pop("exact_block", "auto"), options)
     if exact is not None:
@@ -268,16 +280,24 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     tol, ftol = float(options.get("tol", DESCENT_TOL)), float(options.get("ftol", DESCENT_FTOL))
     max_iter = int(options.get("max_iter", DESCENT_MAX_ITER))
     rng = np.random.default_rng(options.get("seed", 0))
+    limit, verbose = deadline(options), options.get("verbose")
     records, runs, candidates = [], [], []
     for k, x0 in enumerate(start_points(prep, starts, rng, float(options.get("scale", 10.0)))):
+        if k and limit.expired():
+            break
         t0 = time.perf_counter()
+
+        def report(record: dict[str, Any], k: int = k) -> None:
+            progress(verbose, "hypergradient", f"start {k + 1}/{starts}, iteration {record['iter']}: phi = "
+                     f"{record['objective']:.8g}, projected step {record['projected_step_norm']:.2e}")
+
         start = arc(x0)
         if start is None:
             records.append({"start": k, "x0": x0.tolist(), "status": Status.ERROR.value, "iterations": 0,
                             "message": "no upper point near the start where the lower level can be solved",
                             "time": time.perf_counter() - t0})
             continue
-        run = descend(arc, start, tol, ftol, max_iter)
+        run = descend(arc, start, tol, ftol, max_iter, limit, report if verbose else None)
         p = run.point
         w = prep.pack(KKTPoint(p.x, p.lower.y, p.lower.lam, p.lower.mu, p.lower.Z))
         runs.append((k, run))
@@ -285,16 +305,19 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
         records.append({"start": k, "x0": x0.tolist(), "status": run.status.value, "message": run.message,
                         "objective": p.F, "residual": p.violation, "iterations": run.nit,
                         "time": time.perf_counter() - t0})
-        if options.get("verbose"):
-            print(f"[hypergradient] start {k + 1}/{starts}: {run.status.value}, F = {p.F:.6g}, "
-                  f"upper violation {p.violation:.1e} ({run.message})", flush=True)
+        progress(verbose, "hypergradient", f"start {k + 1}/{starts}: {run.status.value}, F = {p.F:.6g}, upper "
+                 f"violation {p.violation:.1e} ({run.message})")
     nit = sum(r["iterations"] for r in records)
     if not runs:
         return MethodRun(None, Status.ERROR, f"all {starts} starts failed: the lower level could not be solved "
                          f"near any start ({type(arc.error).__name__}: {arc.error})", nit, [], records)
     i = best_of(candidates)
     k, best = runs[i]
-    return MethodRun(candidates[i][0], best.status, f"best of {starts} starts: start {k} ({best.message})", nit,
+    status, message = best.status, f"best of {starts} starts: start {k} ({best.message})"
+    if limit.hit:
+        status, message = Status.MAX_ITERATIONS, (f"{limit.reached()} after {len(records)} of {starts} starts; best: "
+                                                  f"start {k} ({best.message})")
+    return MethodRun(candidates[i][0], status, message, nit,
                      best.history, records, {"best_start": k, "penalty": penalty, "exact_block": None,
                                              "not_exact": why,
                                              "projected_gradient_norm": best.history[-1]["projected_step_norm"]},

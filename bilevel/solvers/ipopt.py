@@ -29,6 +29,7 @@ from ..result import Status
 from .base import MethodRun, Prepared, best_of, check_options, unbounded_lower
 from .hypergradient import chosen_exact_block, solve_hypergradient
 from .implicit import shared_oracle
+from .limits import Deadline, deadline, progress
 from .starts import start_points
 
 IPOPT_STATUS: dict[str, Status] = {
@@ -91,9 +92,21 @@ def kkt_nlp_options(options: dict[str, Any], warm: dict[str, Any]) -> dict[str, 
     return opts
 
 
+def within(options: dict[str, Any], limit: Deadline) -> dict[str, Any]:
+    """nlpsol options with IPOPT's max_wall_time cut to the time left before `limit` (at least 1 ms: IPOPT then stops
+    after its first iteration, Maximum_WallTime_Exceeded)."""
+    if limit.seconds is None:
+        return options
+    wall = min(float(options["ipopt"].get("max_wall_time", MAX_WALL_TIME)), max(limit.remaining(), 1e-3))
+    return {**options, "ipopt": {**options["ipopt"], "max_wall_time": wall}}
+
+
 def run_nlp(nlp: NLPForm, w0: np.ndarray, options: dict[str, Any], tau: float | None = None,
-            lam_g0: np.ndarray | None = None) -> NLPRun:
-    """Solve the transcribed NLP from w0 (tau overrides the mode's relaxation parameter)."""
+            lam_g0: np.ndarray | None = None, limit: Deadline | None = None) -> NLPRun:
+    """Solve the transcribed NLP from w0 (tau overrides the mode's relaxation parameter), within the deadline `limit`
+    if given (a solve it stops marks it hit)."""
+    if limit is not None:
+        options = within(options, limit)
     try:
         solver = nlp.solver("ipopt", options)
     except RuntimeError as exc:  # CasADi refuses an option before any solve
@@ -108,17 +121,22 @@ def run_nlp(nlp: NLPForm, w0: np.ndarray, options: dict[str, Any], tau: float | 
     stats = solver.stats()
     raw = str(stats.get("return_status", "unknown"))
     trace = {k: list(stats.get("iterations", {}).get(k, [])) for k in ("obj", "inf_pr", "inf_du")}
+    if limit is not None and raw == "Maximum_WallTime_Exceeded":
+        limit.expired()
     return NLPRun(np.asarray(sol["x"]).ravel()[: nlp.n_w], float(sol["f"]), IPOPT_STATUS.get(raw, Status.ERROR),
                   raw, int(stats.get("iter_count", 0)), trace)
 
 
-def polish(prep: Prepared, w: np.ndarray, options: dict[str, Any]) -> NLPRun | None:
-    """Re-solve on the MPCC branch selected by w (G_i = 0 where G_i <= H_i); None if it fails."""
+def polish(prep: Prepared, w: np.ndarray, options: dict[str, Any], limit: Deadline | None = None) -> NLPRun | None:
+    """Re-solve on the MPCC branch selected by w (G_i = 0 where G_i <= H_i), within the deadline `limit`; None if it
+    fails or the deadline has passed."""
+    if limit is not None and limit.expired():
+        return None
     mpcc = prep.mpcc
     sides = {name: G <= H for name, (G, H) in mpcc.pair_values(w).items()}
     exact = {**options, "ipopt": {**options["ipopt"], "bound_relax_factor": 0.0}}
     try:
-        run = run_nlp(mpcc.transcribe(Branch(sides=sides)), w, exact)
+        run = run_nlp(mpcc.transcribe(Branch(sides=sides)), w, exact, limit=limit)
     except (RuntimeError, BilevelError):
         return None
     return run if run.status is Status.SOLVED else None
@@ -135,9 +153,11 @@ def warm_start(prep: Prepared, x0: np.ndarray) -> np.ndarray:
                                   [np.zeros((n, n)) for n in prep.layout.psd_sizes]))
 
 
-def kkt_starts(prep: Prepared, method: str, options: dict[str, Any]) -> tuple[list[np.ndarray], str, dict[str, Any]]:
-    """The MPCC start vectors of a KKT method (options starts, seed, scale, warm), a label for its message, and its
-    stats on the warm phase (if hypergradient returns no point: the start points, stats["warm"]["used"] False)."""
+def kkt_starts(prep: Prepared, method: str, options: dict[str, Any],
+               limit: Deadline | None = None) -> tuple[list[np.ndarray], str, dict[str, Any]]:
+    """The MPCC start vectors of a KKT method (options starts, seed, scale, warm, verbose), a label for its message,
+    and its stats on the warm phase (if hypergradient returns no point: the start points, stats["warm"]["used"]
+    False); the warm phase stops at the deadline `limit`."""
     starts, seed, scale = int(options.get("starts", 8)), options.get("seed", 0), float(options.get("scale", 10.0))
     warm = options.get("warm", "auto")
     if warm not in WARM:
@@ -150,12 +170,14 @@ def kkt_starts(prep: Prepared, method: str, options: dict[str, Any]) -> tuple[li
         points = start_points(prep, starts, np.random.default_rng(seed), scale)
         return [warm_start(prep, x0) for x0 in points], plain, {}
     t0 = time.perf_counter()
-    run = solve_hypergradient(prep, starts=starts, seed=seed, scale=scale)
+    budget = {} if limit is None or limit.seconds is None else {"time_limit": max(limit.remaining(), 1e-3)}
+    run = solve_hypergradient(prep, starts=starts, seed=seed, scale=scale, verbose=bool(options.get("verbose")),
+                              **budget)
     info = {"warm": {"method": "hypergradient", "status": run.status.value, "message": run.message,
                      "objective": None if run.w is None else prep.mpcc.objective_value(run.w), "iterations": run.nit,
                      "time": time.perf_counter() - t0, "used": run.w is not None}}
     if run.w is None:
-        return kkt_starts(prep, method, {**options, "warm": None})[0], plain, info
+        return kkt_starts(prep, method, {**options, "warm": None}, limit)[0], plain, info
     return [run.w], "from hypergradient's answer", info
 
 
@@ -215,26 +237,43 @@ def _lower_moved_to(prep: Prepared, point: KKTPoint, x: np.ndarray) -> KKTPoint:
     return KKTPoint(x, sol.y, sol.lam, sol.mu, list(sol.Z))
 
 
+IPOPT_OPTIONS = frozenset({"starts", "seed", "mode", "polish", "tol", "max_iter", "ipopt", "scale", "time_limit",
+                           "verbose", "warm"})
+"""The options method `ipopt` accepts."""
+
+
+def stopped(run: MethodRun, limit: Deadline, done: int, total: int) -> MethodRun:
+    """A KKT method's run, as MAX_ITERATIONS with a message saying so where the deadline stopped it (after `done` of
+    `total` starts)."""
+    if limit.hit:
+        run.status = Status.MAX_ITERATIONS
+        run.message = f"{limit.reached()} after {done} of {total} starts; {run.message}"
+    return run
+
+
 def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
     """Multistart IPOPT on the KKT reformulation (options: starts, seed, mode, polish, tol, max_iter,
-    ipopt, scale, verbose, warm)."""
-    check_options("ipopt", options, {"starts", "seed", "mode", "polish", "tol", "max_iter", "ipopt", "scale",
-                                     "verbose", "warm"})
+    ipopt, scale, time_limit, verbose, warm). At time_limit each NLP is stopped by IPOPT's max_wall_time, the starts
+    not begun are skipped, and the status is MAX_ITERATIONS."""
+    check_options("ipopt", options, IPOPT_OPTIONS)
     mode: ComplementarityMode = options.get("mode") or Scholtes(1e-9)
     if not isinstance(mode, ComplementarityMode):
         raise ModelError(f"option mode={mode!r} is invalid: it must be a complementarity mode such as "
                          "bilevel.Scholtes(1e-9), bilevel.Product() or bilevel.Branch(...)")
-    points, source, warm = kkt_starts(prep, "ipopt", options)
+    limit = deadline(options)
+    points, source, warm = kkt_starts(prep, "ipopt", options, limit)
     nlp_opts = kkt_nlp_options(options, warm)
     nlp = prep.mpcc.transcribe(mode)
     records, candidates, traces, total_iter = [], [], [], 0
     for k, w0 in enumerate(points):
+        if k and limit.expired():
+            break
         t0 = time.perf_counter()
-        run = run_nlp(nlp, w0, nlp_opts)
+        run = run_nlp(nlp, w0, nlp_opts, limit=limit)
         total_iter += run.iterations
         final, polished = run, False
         if options.get("polish", True) and prep.mpcc.pairs:
-            pol = polish(prep, run.w, nlp_opts)
+            pol = polish(prep, run.w, nlp_opts, limit)
             if pol is not None:
                 total_iter += pol.iterations
                 final, polished = NLPRun(pol.w, pol.objective, pol.status, f"{run.raw_status}, polished",
@@ -245,16 +284,17 @@ def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
         records.append({"start": k, "x0": prep.point(w0).x.tolist(), "status": final.raw_status,
                         "objective": final.objective, "residual": res, "polished": polished,
                         "iterations": final.iterations, "time": time.perf_counter() - t0})
-        if options.get("verbose"):
-            print(f"[ipopt] start {k + 1}/{len(points)}: {final.raw_status}, F = {final.objective:.6g}, "
-                  f"residual {res:.1e}{' (polished)' if polished else ''}", flush=True)
+        progress(options.get("verbose"), "ipopt", f"start {k + 1}/{len(points)}: {final.raw_status}, F = "
+                 f"{final.objective:.6g}, residual {res:.1e}{' (polished)' if polished else ''}, "
+                 f"{final.iterations} iterations")
     i = best_of(candidates)
     best = traces[i]
     kept = kept_warm_point(prep, points, candidates[i], best.raw_status, total_iter, records,
                            {"mode": repr(mode), **warm})
     if kept is not None:
-        return settled(prep, kept)
+        return settled(prep, stopped(kept, limit, len(records), len(points)))
     history = [{"iter": j, "objective": o, "inf_pr": p, "inf_du": d}
                for j, (o, p, d) in enumerate(zip(best.trace["obj"], best.trace["inf_pr"], best.trace["inf_du"]))]
-    return settled(prep, MethodRun(best.w, best.status, f"{source}, start {i} ({best.raw_status})", total_iter,
-                                   history, records, {"mode": repr(mode), "best_start": i, **warm}))
+    run = MethodRun(best.w, best.status, f"{source}, start {i} ({best.raw_status})", total_iter, history, records,
+                    {"mode": repr(mode), "best_start": i, **warm})
+    return settled(prep, stopped(run, limit, len(records), len(points)))

@@ -51,12 +51,12 @@ def check_flags(options: dict[str, Any], names: Iterable[str]) -> None:
 
 def check_common_options(options: dict[str, Any], certificate_tol: Any = DEFAULT_TOL) -> None:
     """Validate the options every method (and every attack) shares, once, before dispatch: starts, max_iter, tol,
-    scale, seed, certificate_tol, and the switches polish and verbose."""
+    scale, time_limit (seconds), seed, certificate_tol, and the switches polish and verbose."""
     if "starts" in options and not (_integer(options["starts"]) and options["starts"] >= 1):
         raise _bad("starts", options["starts"], "an integer >= 1 (the number of multistart starts)")
     if "max_iter" in options and not (_integer(options["max_iter"]) and options["max_iter"] >= 0):
         raise _bad("max_iter", options["max_iter"], "an integer >= 0")
-    check_numbers(options, positive=("tol", "scale"))
+    check_numbers(options, positive=("tol", "scale", "time_limit"))
     check_flags(options, ("polish", "verbose"))
     check_numbers({"certificate_tol": certificate_tol}, positive=("certificate_tol",))
     seed = options.get("seed")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from typing import Any, Callable
 
@@ -14,8 +15,8 @@ from ..result import BilevelResult
 from .base import MethodRun, Prepared, finalize, prepare
 from .evolution import solve_evolution
 from .global_method import solve_global
-from .hypergradient import solve_block_exact, solve_hypergradient
-from .ipopt import solve_ipopt
+from .hypergradient import HYPERGRADIENT_OPTIONS, solve_block_exact, solve_hypergradient
+from .ipopt import IPOPT_OPTIONS, solve_ipopt
 from .options import check_common_options
 from .relaxation import solve_relaxation
 
@@ -60,26 +61,64 @@ def register_method(name: str, method: Method, *, replace: bool = False) -> None
     METHODS[key] = method
 
 
-def solve(problem: BilevelProblem, method: str | Method = "ipopt", certificate_tol: float = DEFAULT_TOL,
+AUTO = "auto"
+"""The default method name: a registered method chosen by the problem's structure (choose_method)."""
+AUTO_MIN_UPPER = 20
+"""choose_method takes `hypergradient` from this many upper entries on (with a closed-form or x-independent lower
+level); below it IPOPT's Newton steps on the KKT system cost less than the first-order iterations."""
+
+
+def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
+    """The method "auto" runs, and why: `hypergradient` where the lower level is least squares (solved in closed
+    form, y*(x) smooth) or does not depend on x (solved once), with at least AUTO_MIN_UPPER upper entries; `ipopt`
+    otherwise (constrained lower levels whose solution depends on x: its KKT system is solved with the upper level in
+    one NLP). Options only one of the two accepts decide for it."""
+    low, n = prep.canon.lower, int(prep.canon.x.numel())
+    given = set(options)
+    if not given <= HYPERGRADIENT_OPTIONS:
+        return "ipopt", f"option(s) {', '.join(sorted(given - HYPERGRADIENT_OPTIONS))} belong to ipopt"
+    if not given <= IPOPT_OPTIONS:
+        return "hypergradient", f"option(s) {', '.join(sorted(given - IPOPT_OPTIONS))} belong to hypergradient"
+    closed = "a least-squares lower level" if low.kind == "least-squares" else (
+        "a lower level independent of x" if low.fixed else "")
+    if closed and n >= AUTO_MIN_UPPER:
+        return "hypergradient", f"{closed} and {n} upper entries (>= {AUTO_MIN_UPPER})"
+    if closed:
+        return "ipopt", f"{closed} but only {n} upper entries (< {AUTO_MIN_UPPER})"
+    return "ipopt", f"a {low.kind} lower level whose solution depends on x"
+
+
+def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol: float = DEFAULT_TOL,
           **options: Any) -> BilevelResult:
-    """Solve a bilevel problem with a registered method name or a callable(prepared, **options) -> MethodRun."""
+    """Solve a bilevel problem with a registered method name, "auto" (default: chosen by structure, see
+    choose_method; the result's method is the one that ran, its message and stats["auto"] say why) or a
+    callable(prepared, **options) -> MethodRun."""
     if not isinstance(problem, BilevelProblem):
         raise ModelError(f"solve: expected a BilevelProblem, got {type(problem).__name__}; declare one with "
                          "bilevel.BilevelProblem(...) or build a registered one with bilevel.problems.registry.get")
+    auto = not callable(method) and str(method).lower() == AUTO
     if callable(method):
         fn, name = method, getattr(method, "__name__", "custom")
-    else:
+    elif not auto:
         name = str(method).lower()
         if name not in METHODS:
-            raise ModelError(f"unknown method {method!r}; registered methods: {', '.join(sorted(METHODS))}")
+            raise ModelError(f"unknown method {method!r}; choose {AUTO!r} or a registered method: "
+                             f"{', '.join(sorted(METHODS))}")
         fn = METHODS[name]
     check_common_options(options, certificate_tol)
     t0 = time.perf_counter()
     prep: Prepared = prepare(problem)
+    if auto:
+        name, why = choose_method(prep, options)
+        fn = METHODS[name]
     small = prep.canon.lower.n_y <= SMALL_LOWER  # dense algebra of lower-level size: one BLAS thread is faster
     with single_threaded() if small else contextlib.nullcontext():
         run = fn(prep, **options)
         if not isinstance(run, MethodRun):
             raise ModelError(f"method {name!r} returned {type(run).__name__}, not a MethodRun; a method must return "
                              "bilevel.solvers.base.MethodRun(w, status, message) (w None when it has no point)")
-        return finalize(prep, run, name, time.perf_counter() - t0, certificate_tol)
+        result = finalize(prep, run, name, time.perf_counter() - t0, certificate_tol)
+    if not auto:
+        return result
+    return dataclasses.replace(result, message=f"auto: {name}, for {why}; {result.message}",
+                               stats={**result.stats, "auto": {"method": name, "reason": why}})

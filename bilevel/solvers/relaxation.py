@@ -16,7 +16,9 @@ from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
 from .base import MethodRun, Prepared, best_of, check_options
 from .options import check_numbers
-from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish, residual, run_nlp, settled
+from .ipopt import (NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish, residual, run_nlp, settled,
+                    stopped)
+from .limits import Deadline, deadline, progress
 
 SCHEMES: dict[str, type[ComplementarityMode]] = {
     "scholtes": Scholtes,
@@ -25,26 +27,31 @@ SCHEMES: dict[str, type[ComplementarityMode]] = {
 
 
 def relaxation_path(prep: Prepared, nlp: Any, w0: np.ndarray, opts: dict[str, Any], t0: float, factor: float,
-                    t_min: float, comp_tol: float) -> tuple[NLPRun, list[dict[str, Any]]]:
-    """Follow t_k = t0 * factor^k, warm starting each solve; return the last run and the path."""
+                    t_min: float, comp_tol: float, limit: Deadline | None = None,
+                    verbose: bool = False) -> tuple[NLPRun, list[dict[str, Any]]]:
+    """Follow t_k = t0 * factor^k, warm starting each solve, until the deadline `limit` at the latest; return the
+    last run and the path (one progress line per step when verbose)."""
     path, t, lam_g, run = [], t0, None, None
     w = w0
     while True:
-        run = run_nlp(nlp, w, opts, tau=t, lam_g0=lam_g)
+        run = run_nlp(nlp, w, opts, tau=t, lam_g0=lam_g, limit=limit)
         comp = prep.mpcc.residuals(run.w)["complementarity"]
         path.append({"t": t, "objective": run.objective, "complementarity": comp, "status": run.raw_status,
                      "iterations": run.iterations})
         w = run.w
-        if comp <= comp_tol or t * factor < t_min:
+        progress(verbose, "relaxation", f"t = {t:.1e}: {run.raw_status}, F = {run.objective:.6g}, complementarity "
+                 f"{comp:.1e}")
+        if comp <= comp_tol or t * factor < t_min or (limit is not None and limit.expired()):
             return run, path
         t *= factor
 
 
 def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
     """Multistart relaxation sequence (options: scheme, t0, factor, t_min, comp_tol, starts, seed, polish,
-    tol, max_iter, ipopt, scale, verbose, warm: "auto", None or "hypergradient", as for ipopt)."""
+    tol, max_iter, ipopt, scale, time_limit, verbose, warm: "auto", None or "hypergradient", as for ipopt). At
+    time_limit the sequence and the starts stop, status MAX_ITERATIONS."""
     check_options("relaxation", options, {"scheme", "t0", "factor", "t_min", "comp_tol", "starts", "seed", "polish",
-                                          "tol", "max_iter", "ipopt", "scale", "verbose", "warm"})
+                                          "tol", "max_iter", "ipopt", "scale", "time_limit", "verbose", "warm"})
     check_numbers(options, positive=("t0", "factor", "t_min", "comp_tol"))
     scheme = options.get("scheme", "scholtes")
     if scheme not in SCHEMES:
@@ -53,16 +60,20 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
     if not 0.0 < factor < 1.0:
         raise ModelError(f"relaxation factor must be in (0, 1), got {factor}")
     mode = SCHEMES[scheme]()
-    points, source, warm = kkt_starts(prep, "relaxation", options)
+    limit, verbose = deadline(options), bool(options.get("verbose"))
+    points, source, warm = kkt_starts(prep, "relaxation", options, limit)
     opts = kkt_nlp_options(options, warm)
     nlp = prep.mpcc.transcribe(mode)
     candidates, finals, paths, records, total = [], [], [], [], 0
     for k, w0 in enumerate(points):
+        if k and limit.expired():
+            break
         t_start = time.perf_counter()
         run, path = relaxation_path(prep, nlp, w0, opts, float(options.get("t0", 1.0)), factor,
-                                    float(options.get("t_min", 1e-12)), float(options.get("comp_tol", 1e-7)))
+                                    float(options.get("t_min", 1e-12)), float(options.get("comp_tol", 1e-7)), limit,
+                                    verbose)
         total += sum(p["iterations"] for p in path)
-        polished = polish(prep, run.w, opts) if options.get("polish", True) and prep.mpcc.pairs else None
+        polished = polish(prep, run.w, opts, limit) if options.get("polish", True) and prep.mpcc.pairs else None
         if polished is not None:
             total += polished.iterations
             run = polished
@@ -73,14 +84,12 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
         records.append({"start": k, "x0": prep.point(w0).x.tolist(), "status": path[-1]["status"],
                         "objective": run.objective, "residual": res, "polished": polished is not None,
                         "steps": len(path), "time": time.perf_counter() - t_start})
-        if options.get("verbose"):
-            print(f"[relaxation] start {k + 1}/{len(points)}: {len(path)} steps, F = {run.objective:.6g}, "
-                  f"residual {res:.1e}", flush=True)
+        progress(verbose, "relaxation", f"start {k + 1}/{len(points)}: {len(path)} steps, F = {run.objective:.6g}, "
+                 f"residual {res:.1e}")
     i = best_of(candidates)
     kept = kept_warm_point(prep, points, candidates[i], f"{finals[i].status.value} after {len(paths[i])} relaxation "
                            "steps", total, records, {"scheme": scheme, **warm})
-    if kept is not None:
-        return settled(prep, kept)
-    return settled(prep, MethodRun(finals[i].w, finals[i].status, f"{source}, start {i} ({len(paths[i])} relaxation "
-                                   f"steps, last t = {paths[i][-1]['t']:.1e})", total, paths[i], records,
-                                   {"scheme": scheme, "best_start": i, **warm}))
+    run = kept if kept is not None else MethodRun(
+        finals[i].w, finals[i].status, f"{source}, start {i} ({len(paths[i])} relaxation steps, last t = "
+        f"{paths[i][-1]['t']:.1e})", total, paths[i], records, {"scheme": scheme, "best_start": i, **warm})
+    return settled(prep, stopped(run, limit, len(records), len(points)))

@@ -1,0 +1,101 @@
+"""Options time_limit and verbose of every method (bilevel.solvers.limits), the default budget of
+differential-evolution, and the default method "auto" (bilevel.solvers.registry.choose_method)."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import bilevel as bl
+from bilevel.problems import registry
+from bilevel.solvers.base import prepare
+from bilevel.solvers.evolution import default_budget
+from bilevel.solvers.registry import AUTO_MIN_UPPER, choose_method
+
+
+def _least_squares(n: int, seed: int = 0) -> bl.BilevelProblem:
+    """Targets of a 30 x 6 least-squares fit shifted by B x, |x| <= 0.1; the attacker maximizes the fit's deviation."""
+    rng = np.random.default_rng(seed)
+    A, B, b = rng.standard_normal((30, 6)), rng.standard_normal((30, n)), rng.standard_normal(30)
+    p = bl.BilevelProblem(f"ls{n}")
+    x = p.upper_variable("x", n, lb=-0.1, ub=0.1)
+    y = p.lower_variable("y", 6)
+    p.minimize_lower(ca.sumsqr(ca.mtimes(ca.DM(A), y) - ca.DM(b) - ca.mtimes(ca.DM(B), x)))
+    p.maximize_upper(ca.sumsqr(y))
+    return p
+
+
+@pytest.mark.parametrize("method", ["ipopt", "relaxation", "hypergradient", "differential-evolution"])
+def test_a_method_stopped_by_time_limit_keeps_its_best_point_and_says_so(method: str) -> None:
+    """A limit that has passed before the second start (or generation) stops the method: it returns a point, its
+    status is not solved, its message names the limit, and the point is bilevel feasible (certificate re-solve)."""
+    res = bl.solve(_least_squares(3), method=method, starts=2, time_limit=1e-6)
+    assert res.status is not bl.Status.SOLVED
+    assert "time_limit = 1e-06 s reached" in res.message
+    x = res.x["x"]
+    assert np.all(np.isfinite(x)) and np.all(np.abs(x) <= 0.1 + 1e-9)
+    assert res.certificate is not None and res.certificate.lower_feasibility <= 1e-6
+
+
+def test_block_exact_stops_at_the_time_limit() -> None:
+    res = bl.solve(registry.get("vrft-maxmin"), method="block-exact", starts=2, time_limit=1e-6)
+    assert res.status is not bl.Status.SOLVED and "time_limit = 1e-06 s reached" in res.message
+
+
+def test_a_generous_time_limit_changes_nothing() -> None:
+    """The limit only stops work: well inside it, the answer is the unlimited one."""
+    p = _least_squares(3)
+    free, limited = bl.solve(p, method="hypergradient"), bl.solve(p, method="hypergradient", time_limit=600)
+    assert limited.status is free.status is bl.Status.SOLVED
+    assert limited.upper_objective == pytest.approx(free.upper_objective, rel=1e-12)
+
+
+@pytest.mark.parametrize("bad", [0, -1.0, float("inf"), "5", True])
+def test_time_limit_must_be_a_positive_number(bad: object) -> None:
+    with pytest.raises(bl.ModelError, match="time_limit"):
+        bl.solve(_least_squares(2), method="ipopt", time_limit=bad)
+
+
+@pytest.mark.parametrize("method, line", [("hypergradient", "[hypergradient] start 1/1, iteration 0: phi = "),
+                                          ("ipopt", "[ipopt] start 1/1: "),
+                                          ("relaxation", "[relaxation] t = 1.0e+00: "),
+                                          ("differential-evolution", "[differential-evolution] generation 1/3: ")])
+def test_verbose_reports_progress_on_stderr(method: str, line: str, capsys) -> None:
+    options = {"max_iter": 3} if method == "differential-evolution" else {}
+    bl.solve(_least_squares(2), method=method, starts=1, verbose=True, **options)
+    out, err = capsys.readouterr()
+    assert line in err and out == ""
+
+
+def test_evolution_default_budget_is_bounded_in_the_dimension() -> None:
+    """scipy's 15 n members up to 64, generations sized to about 3,000 evaluations (100 up to 30 members)."""
+    assert default_budget(1) == (15, 100) and default_budget(2) == (30, 100)
+    assert default_budget(4) == (60, 50)
+    for n in (80, 1000):
+        members, generations = default_budget(n)
+        assert (members, generations) == (64, 46) and members * (generations + 1) <= 3100
+
+
+def test_auto_takes_hypergradient_on_a_least_squares_lower_level_with_many_upper_entries() -> None:
+    """From AUTO_MIN_UPPER upper entries on; the result names the method that ran and why, and equals that method's
+    own result."""
+    p = _least_squares(AUTO_MIN_UPPER)
+    res = p.solve()
+    assert res.method == "hypergradient" and res.stats["auto"]["method"] == "hypergradient"
+    assert res.message.startswith("auto: hypergradient, for a least-squares lower level")
+    direct = bl.solve(_least_squares(AUTO_MIN_UPPER), method="hypergradient")
+    assert res.upper_objective == pytest.approx(direct.upper_objective, rel=1e-12)
+    assert choose_method(prepare(_least_squares(AUTO_MIN_UPPER - 1)), {})[0] == "ipopt"
+
+
+def test_auto_takes_ipopt_on_constrained_lower_levels_and_follows_the_options() -> None:
+    """A textbook LP lower level: ipopt, as its literature optimum confirms; an option only one method takes
+    decides for it."""
+    p = registry.get("bard1998-ex5.1.1")
+    res = p.solve()
+    assert res.method == "ipopt" and "whose solution depends on x" in res.message
+    assert res.upper_objective == pytest.approx(registry.spec("bard1998-ex5.1.1").optimum, abs=1e-6)
+    ls = prepare(_least_squares(AUTO_MIN_UPPER))
+    assert choose_method(ls, {"mode": bl.Scholtes(1e-9)}) == ("ipopt", "option(s) mode belong to ipopt")
+    assert choose_method(prepare(registry.get("macmpec-bard1")), {"exact_block": False})[0] == "hypergradient"
