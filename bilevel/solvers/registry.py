@@ -70,7 +70,8 @@ level); below it IPOPT's Newton steps on the KKT system cost less than the first
 
 def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
     """The method "auto" runs, and why: `hypergradient` where the lower level is least squares (solved in closed
-    form, y*(x) smooth) or does not depend on x (solved once), with at least AUTO_MIN_UPPER upper entries; `ipopt`
+    form, y*(x) smooth) or does not depend on x (solved once), with at least AUTO_MIN_UPPER upper entries, or where the
+    upper objective is a spectral radius; `ipopt`
     otherwise (constrained lower levels whose solution depends on x: its KKT system is solved with the upper level in
     one NLP). Options only one of the two accepts decide for it."""
     low, n = prep.canon.lower, int(prep.canon.x.numel())
@@ -79,6 +80,8 @@ def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
         return "ipopt", f"option(s) {', '.join(sorted(given - HYPERGRADIENT_OPTIONS))} belong to ipopt"
     if not given <= IPOPT_OPTIONS:
         return "hypergradient", f"option(s) {', '.join(sorted(given - IPOPT_OPTIONS))} belong to hypergradient"
+    if prep.canon.spectral is not None:
+        return "hypergradient", "a spectral-radius objective (the KKT methods cannot use it)"
     closed = "a least-squares lower level" if low.kind == "least-squares" else (
         "a lower level independent of x" if low.fixed else "")
     if closed and n >= AUTO_MIN_UPPER:
