@@ -5,7 +5,7 @@
    attacked output through `p.linear_map`; N = 512, 20 seeds: declaration + first solve, re-solve, objective, against
    the structured attack (bilevel.attacks.vrft_methods.attack_alternating) on the same instance.
 2. Growth with the declared data: dense maps (N = 512, 1,024, 2,048: N^2 entries per map) and maps given as scipy
-   LinearOperators that filter (N = 512 ... 65,536: O(N) per product).
+   one LinearOperator that filters (N = 512 ... 65,536: O(N) per product).
 3. Identification with an attacked regressor: ARX(4, 4) from T = 10,000 samples (l2 budget on the outputs) and
    state-space [A B] (n = 4, m = 1) from T = 5,000 poisoned states and inputs, written with slices of the signals.
 4. A dense 2,010 x 2,000 least squares whose right-hand side is poisoned, A declared as a linear map of w.
@@ -29,14 +29,19 @@ from bilevel.attacks.vrft import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating, attack_value
 
 
-def vrft_declaration(atk, maps: list) -> BilevelProblem:
-    """The max-min VRFT attack on instance atk, declared with linear maps (numpy matrices or LinearOperators)."""
+def vrft_declaration(atk, maps: list | LinearOperator) -> BilevelProblem:
+    """The max-min VRFT attack on instance atk, declared with linear maps: one numpy matrix per regressor column, or
+    one LinearOperator y -> vec(Phi(y)) for the whole filter bank."""
     N, rows = atk.N, atk.t0.size
+    k = atk.setting.regressor.n_params
     p = BilevelProblem("vrft-natural")
     a_u = p.upper_variable("a_u", N)
     a_y = p.upper_variable("a_y", N)
-    theta = p.lower_variable("theta", len(maps))
-    phi = ca.horzcat(*[p.linear_map(T, f"T{k}") @ (atk.y + a_y) for k, T in enumerate(maps)])
+    theta = p.lower_variable("theta", k)
+    if isinstance(maps, LinearOperator):
+        phi = ca.reshape(p.linear_map(maps, "Phi") @ (atk.y + a_y), rows, k)
+    else:
+        phi = ca.horzcat(*[p.linear_map(T, f"T{j}") @ (atk.y + a_y) for j, T in enumerate(maps)])
     p.minimize_lower(ca.sumsqr(atk.t0 + a_u[:rows] - ca.mtimes(phi, theta)) / rows)
     p.upper_constraint(ca.sumsqr(a_u) <= atk.delta_u ** 2)
     p.upper_constraint(ca.sumsqr(a_y) <= atk.delta_y ** 2)
@@ -44,23 +49,13 @@ def vrft_declaration(atk, maps: list) -> BilevelProblem:
     return p
 
 
-def filter_maps(atk) -> list[LinearOperator]:
-    """Phi's columns as LinearOperators (each column of the regressor is a filter of y: O(N) per product)."""
+def filter_bank(atk) -> LinearOperator:
+    """y -> vec(Phi(y)) as a LinearOperator: the regressor's filters (bilevel.ddc.VRFTRegressor), O(N) per product."""
     reg, N, rows = atk.setting.regressor, atk.N, atk.t0.size
     k = reg.n_params
-
-    def column(j: int) -> LinearOperator:
-        def mv(v):
-            return reg(np.asarray(v).ravel())[:, j]
-
-        def rmv(g):
-            G = np.zeros((rows, k))
-            G[:, j] = np.asarray(g).ravel()
-            return reg.adjoint(G)
-
-        return LinearOperator((rows, N), matvec=mv, rmatvec=rmv, dtype=float)
-
-    return [column(j) for j in range(k)]
+    return LinearOperator((rows * k, N), dtype=float,
+                          matvec=lambda v: reg(np.asarray(v).ravel()).reshape(-1, order="F"),
+                          rmatvec=lambda g: reg.adjoint(np.asarray(g).reshape(rows, k, order="F")))
 
 
 def timed(fn):
@@ -108,19 +103,22 @@ def growth() -> None:
         p = vrft_declaration(atk, dense)
         res = p.solve("hypergradient", starts=1)
         first = time.perf_counter() - t0
-        _, again = timed(lambda: p.solve("hypergradient", starts=1))
-        print(f"dense maps   N = {N:6d} ({len(dense)} x {N * N:,} entries): {first:.3f} s, re-solve {again:.3f} s, "
-              f"J {res.upper_objective:.5f} [{res.status.value}]", flush=True)
+        again_res, again = timed(lambda: p.solve("hypergradient", starts=1))
+        print(f"dense maps   N = {N:6d} ({len(dense)} x {N * N:,} entries): {first:.3f} s, re-solve {again:.3f} s "
+              f"({again_res.nit} steps, {1e3 * again / max(again_res.nit, 1):.2f} ms/step), J {res.upper_objective:.5f} "
+              f"[{res.status.value}]", flush=True)
     for N in (512, 2048, 8192, 32768, 65536):
         atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=0, N=N)
         t0 = time.perf_counter()
-        p = vrft_declaration(atk, filter_maps(atk))
+        p = vrft_declaration(atk, filter_bank(atk))
         res = p.solve("hypergradient", starts=1)
         first = time.perf_counter() - t0
-        _, again = timed(lambda: p.solve("hypergradient", starts=1))
+        again_res, again = timed(lambda: p.solve("hypergradient", starts=1))
         ref = attack_alternating(atk, seed=0)
-        print(f"filter maps  N = {N:6d}: {first:.3f} s, re-solve {again:.3f} s, J {res.upper_objective:.5f} "
-              f"[{res.status.value}]; structured {ref.wall_time:.3f} s J {attack_value(ref):.5f}", flush=True)
+        print(f"filter bank  N = {N:6d}: {first:.3f} s, re-solve {again:.3f} s ({again_res.nit} steps, "
+              f"{1e3 * again / max(again_res.nit, 1):.2f} ms/step), J {res.upper_objective:.5f} [{res.status.value}]; "
+              f"structured {ref.wall_time:.3f} s ({ref.nit} steps, {1e3 * ref.wall_time / max(ref.nit, 1):.2f} ms/step) "
+              f"J {attack_value(ref):.5f}", flush=True)
 
 
 def arx(T: int = 10_000, na: int = 4, nb: int = 4, eps: float = 0.05, seed: int = 0) -> None:

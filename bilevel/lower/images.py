@@ -32,20 +32,19 @@ class Lift:
         self._last: tuple[bytes, np.ndarray] | None = None
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        """[x; z(x)] (the last one is kept: the kinds' calls at one point lift it once)."""
+        """[x; z(x)]; z is kept for the last arguments of the maps (a step that moves only entries the maps do not
+        read, e.g. an exact block, costs no product)."""
         x = np.asarray(x, dtype=float).ravel()
-        key = x.tobytes()
-        if self._last is not None and self._last[0] == key:
-            return self._last[1]
         args = np.asarray(self._args(x), dtype=float).ravel()
-        parts = [x]
-        for k, img in enumerate(self.images.items):
-            a = args[self._cuts[k]:self._cuts[k + 1]].reshape(img.arg.shape, order="F")
-            parts.append(np.asarray(img.operator.apply(a if a.shape[1] > 1 else a[:, 0]), dtype=float)
-                         .reshape(-1, order="F"))
-        lifted = np.concatenate(parts)
-        self._last = (key, lifted)
-        return lifted
+        key = args.tobytes()
+        if self._last is None or self._last[0] != key:
+            parts = []
+            for k, img in enumerate(self.images.items):
+                a = args[self._cuts[k]:self._cuts[k + 1]].reshape(img.arg.shape, order="F")
+                parts.append(np.asarray(img.operator.apply(a if a.shape[1] > 1 else a[:, 0]), dtype=float)
+                             .reshape(-1, order="F"))
+            self._last = (key, np.concatenate(parts))
+        return np.concatenate([x, self._last[1]])
 
     def pullback(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
         """d/dx of <g, [x; z(x)]> for g over [x; z] (a vector, or columns of a matrix)."""

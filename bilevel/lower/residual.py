@@ -97,8 +97,8 @@ class ResidualLeastSquares(LowerLevel):
 
     def __post_init__(self) -> None:
         zero = ca.DM.zeros(self.n_y)
-        C = ca.jacobian(self.r, self.y)
-        d = -ca.substitute(self.r, self.y, zero)
+        self.C_expr = C = ca.jacobian(self.r, self.y)
+        self.d_expr = d = -ca.substitute(self.r, self.y, zero)
         self._data = self.params.function("residual_data", [self.x], [C, d, self.c])
         v, a, b = ca.SX.sym("v", self.n_y), ca.SX.sym("a", int(self.r.numel())), ca.SX.sym("b", int(self.r.numel()))
         self._adjoint = self.params.function(

@@ -26,6 +26,7 @@ from ..canonical import CanonicalBilevel
 from ..errors import BilevelError
 from ..lower.base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from ..lower.images import ImageLower
+from ..lower.residual import ResidualLeastSquares
 from ..lower.least_squares import factor_solve, hessian_factor
 from ..lower.matrix import MatrixLower
 from ..reduction import KKTPoint
@@ -96,6 +97,8 @@ def _lower_gradient_parts(low: LowerLevel, y: ca.SX) -> tuple[ca.SX, ca.SX]:
     if isinstance(low, MatrixLower):
         return ca.SX(low.hess.shape[0], low.hess.shape[1]), ca.vertcat(low.d, low.q)
     low = low.inner if isinstance(low, ImageLower) else low  # expressions of [x; z]
+    if isinstance(low, ResidualLeastSquares):  # P = C'C moves with x where C does; q = -C'd is affine where d is
+        return low.C_expr, low.d_expr
     return low.hess_f, ca.substitute(ca.gradient(low.f, y), y, ca.DM.zeros(int(y.numel())))
 
 
@@ -105,6 +108,20 @@ def _block_data(canon: CanonicalBilevel, S: slice, hess_F: ca.SX, q: ca.SX) -> C
     low, x, y = canon.lower, canon.x, canon.y
     zero = ca.DM.zeros(int(y.numel()))
     grad0 = ca.substitute(ca.gradient(canon.F, y), y, zero)
+    inner = low.inner if isinstance(low, ImageLower) else low
+    if isinstance(inner, ResidualLeastSquares):  # dq/dx_S = -C' dd/dx_S by a reverse sweep seeded with C's columns
+        lift = low.lift if isinstance(low, ImageLower) else (lambda xv: xv)
+        V = ca.SX.sym("V", int(inner.d_expr.numel()), inner.n_y)
+        sweep = canon.params.function("exact_block_data", [inner.x, V], [ca.jtimes(inner.d_expr, x[S], V, True),
+                                                                         grad0, hess_F])
+
+        def residual_data(xv: np.ndarray) -> tuple:
+            xt = lift(xv)
+            C, d, _ = inner.data(xt)
+            jd, g0, hF = sweep(xt, C)
+            return C.T @ C, -(C.T @ d), -np.asarray(jd).T, g0, hF
+
+        return residual_data
     if isinstance(low, ImageLower):  # the block does not reach the maps (find_exact_block): data of [x; z] at lift(x)
         fun = canon.params.function("exact_block_data", [low.inner.x], [ca.substitute(low.inner.hess_f, y, zero), q,
                                                                         ca.jacobian(q, x[S]), grad0, hess_F])
@@ -125,7 +142,7 @@ def _block_data(canon: CanonicalBilevel, S: slice, hess_F: ca.SX, q: ca.SX) -> C
 def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactBlock | None, list[str]]:
     """The largest ball block that is exact (see the module docstring), and why each other one is not."""
     low = canon.lower
-    if not isinstance(low, (ExpressionLower, MatrixLower, ImageLower)):
+    if not isinstance(low, (ExpressionLower, MatrixLower, ImageLower, ResidualLeastSquares)):
         return None, [f"the lower level ({type(low).__name__}) is neither declared by expressions nor by lower_qp"]
     if low.kind != "least-squares":
         return None, [f"the lower level is {low.kind}, not an unconstrained strictly convex quadratic"]
