@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import casadi as ca
+import clarabel
 import cvxpy as cp
 import numpy as np
+import scipy.sparse as sp
 
 from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
 from .base import ExpressionLower, LowerSolution
@@ -50,9 +53,42 @@ def solve_clarabel(problem: cp.Problem, what: str, infeasible_hint: str = "",
 
 def solve_qp_clarabel(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
                       psd_verified: bool = False) -> LowerSolution:
-    """clarabel_solution polished onto its optimal face (solver "cvxpy+clarabel+polish") where that lowers
-    its KKT residual, else unchanged (see polish.py)."""
-    return polish(d, lmis, clarabel_solution(d, context, lmis, psd_verified))
+    """The QP's solution (clarabel_direct without LMIs, else clarabel_solution) polished onto its optimal face where
+    that lowers its KKT residual, else unchanged (see polish.py)."""
+    solve = clarabel_solution if lmis else clarabel_direct
+    return polish(d, lmis, solve(d, context, lmis, psd_verified))
+
+
+def clarabel_direct(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
+                    psd_verified: bool = False) -> LowerSolution:
+    """A QP/LP without LMIs handed to Clarabel's own interface (no cvxpy canonicalization per solve: the methods solve
+    at every upper point): A y + s = -b, s >= 0 and E y + s = -e, s = 0; its duals are lam and mu directly."""
+    if lmis:
+        raise ValueError("clarabel_direct takes no LMIs; use clarabel_solution")
+    n = d.q.size
+    P = (0.5 * (d.P + d.P.T) if psd_verified else require_psd(d.P, "the lower objective", context)) if np.any(d.P) \
+        else np.zeros((n, n))
+    A = sp.csc_matrix(np.vstack([d.E, d.A])) if d.b.size + d.e.size else sp.csc_matrix((0, n))
+    cones = ([clarabel.ZeroConeT(d.e.size)] if d.e.size else []) + \
+        ([clarabel.NonnegativeConeT(d.b.size)] if d.b.size else [])
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    for name, value in CLARABEL_TOLERANCES.items():
+        setattr(settings, name, value)
+    out = clarabel.DefaultSolver(sp.triu(sp.csc_matrix(P), format="csc"), d.q, A, -np.concatenate([d.e, d.b]), cones,
+                                 settings).solve()
+    status = str(out.status)
+    where = f"the lower level {context}"
+    if status in ("PrimalInfeasible", "AlmostPrimalInfeasible"):
+        raise LowerLevelInfeasible(f"{where} is infeasible (Clarabel: {status})")
+    if status in ("DualInfeasible", "AlmostDualInfeasible"):
+        raise LowerLevelUnbounded(f"{where} is unbounded below (Clarabel: {status})")
+    if status not in ("Solved", "AlmostSolved"):
+        raise SolverFailed(f"Clarabel returned status {status!r} on {where}, no usable point; rescale the data")
+    y, z = np.asarray(out.x, dtype=float), np.asarray(out.z, dtype=float)
+    fval = float(0.5 * y @ d.P @ y + d.q @ y + d.r)
+    return LowerSolution(y, fval, np.maximum(z[d.e.size:], 0.0), z[:d.e.size], [],
+                         "optimal" if status == "Solved" else "optimal_inaccurate", "clarabel")
 
 
 def clarabel_solution(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
@@ -110,9 +146,21 @@ class QuadraticLower(ExpressionLower):
         return QPData(np.atleast_2d(P).reshape(self.n_y, self.n_y), q.ravel(), float(np.asarray(r).ravel()[0]),
                       A.reshape(-1, self.n_y), b.ravel(), E.reshape(-1, self.n_y), e.ravel())
 
+    @cached_property
+    def constant_hessian(self) -> bool:
+        """Whether the Hessian does not depend on x: the declaration's convexity check (re-run after set_value) then
+        covers every x, and the solves skip the per-point PSD test."""
+        return not ca.depends_on(self.hess_f, self.x)
+
     def solve(self, x: np.ndarray) -> LowerSolution:
-        """Solve at x with cvxpy + Clarabel (independent of the reduction)."""
-        return solve_qp_clarabel(self.data(x), f"at x = {np.array2string(np.asarray(x), precision=4)}")
+        """Solve at x with Clarabel (independent of the reduction)."""
+        return solve_qp_clarabel(self.data(x), f"at x = {np.array2string(np.asarray(x), precision=4)}",
+                                 psd_verified=self.constant_hessian and self.convexity_probe is not None)
+
+    def reference_solve(self, x: np.ndarray) -> LowerSolution:
+        """The certificate's re-solve: the QP stated through cvxpy (its own canonicalization) and solved by Clarabel."""
+        data = self.data(x)
+        return polish(data, (), clarabel_solution(data, "(independent re-solve)"))
 
 
 @dataclass

@@ -74,6 +74,10 @@ class SemidefiniteLower(QuadraticLower):
         return tuple((np.asarray(out[2 * k]), np.asarray(out[2 * k + 1]).reshape(-1, self.n_y))
                      for k in range(len(self.psd)))
 
+    def reference_solve(self, x: np.ndarray) -> LowerSolution:
+        """The kind's own conic solve (cvxpy + Clarabel with the LMIs)."""
+        return self.solve(x)
+
     def solve(self, x: np.ndarray) -> LowerSolution:
         """Solve the SDP at x with cvxpy + Clarabel; Z_k are the LMI multipliers (L = f - sum <Z_k, M_k>)."""
         return solve_qp_clarabel(self.data(x), f"at x = {np.array2string(np.asarray(x), precision=4)}",
