@@ -20,6 +20,7 @@ from .errors import BilevelError, InvalidData, ModelError, UnknownName, UnknownO
 from .files import atomic_open
 from .problems import registry
 from .solvers import METHODS, solve
+from .solvers.registry import AUTO
 
 WILLEMS_SELECTIONS = ("min-norm", "tikhonov", "clarabel", "scs")
 """bilevel.problems.willems.SELECTIONS, spelled out so the parser does not import the Willems problems (~1 s)."""
@@ -207,7 +208,7 @@ def _cmd_willems_destabilize(args: argparse.Namespace) -> int:
 def _cmd_solve(args: argparse.Namespace) -> int:
     if args.problem == "willems-destabilize" and args.method in (None, "destabilize"):
         return _cmd_willems_destabilize(args)
-    if "vrft" in registry.spec(args.problem).tags and args.method not in METHODS:
+    if "vrft" in registry.spec(args.problem).tags and args.method not in (*METHODS, AUTO):
         if args.method is not None and args.method not in _attack_methods():
             raise ModelError(f"unknown method {args.method!r} for {args.problem}; choose one of "
                              f"{', '.join(sorted(set(METHODS) | set(_attack_methods())))}")
@@ -215,7 +216,7 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     if args.save:
         raise ModelError(f"--save writes a VRFT attack's signals; {args.problem} is not a vrft-* problem "
                          "(use --json to save the result)")
-    args.method = args.method or "ipopt"
+    args.method = args.method or AUTO
     args.starts = 8 if args.starts is None else args.starts
     params = _problem_params(args.problem, _pairs(args.param, "--param"))
     options = _method_options(_pairs(args.option, "--option"))
@@ -369,7 +370,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_solve = sub.add_parser("solve", help="solve a registered problem and print its certificate", epilog=USER_CODE)
     p_solve.add_argument("problem", help="a registered name (bilevel list) or MODULE:FUNCTION, your own builder")
     p_solve.add_argument("--method", default=None,
-                         help=f"{', '.join(sorted(METHODS))} (default ipopt); vrft-* and willems-destabilize "
+                         help=f"{', '.join([AUTO, *sorted(METHODS)])} (default {AUTO}: chosen by structure); vrft-* "
+                              "and willems-destabilize "
                               "default to their structured attack (vrft: alternating, joint, white-noise) unless a "
                               "generic method is named")
     p_solve.add_argument("--starts", type=int, default=None,
