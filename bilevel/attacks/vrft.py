@@ -13,7 +13,7 @@ Everything is O(N nk) per evaluation: Phi by filtering, theta by a thin QR, grad
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cache, cached_property
 from typing import Literal
 
 import numpy as np
@@ -272,6 +272,12 @@ class VRFTAttack:
         return a_u, State(a_u, a_y, s0.phi, target, s0.theta + S @ v, s0.R, s0.Q)
 
 
+@cache
+def _convention_setting(convention: str) -> VRFTSetting:
+    """flexible_transmission_setting of a convention, built once per process (its regressor and loop with it)."""
+    return flexible_transmission_setting(*CONVENTIONS[convention])
+
+
 def attack_instance(objective: Objective, scenario: Literal["A", "B"] = "B", eps_u: float = 0.1,
                     eps_y: float = 0.057, seed: int = 0, N: int = 512, convention: str = "paper",
                     norm: str = "l2") -> VRFTAttack:
@@ -279,7 +285,7 @@ def attack_instance(objective: Objective, scenario: Literal["A", "B"] = "B", eps
     if convention not in CONVENTIONS:
         raise ModelError(f"convention {convention!r} is not one of {', '.join(CONVENTIONS)}")
     check_common_options({"seed": seed})
-    setting = flexible_transmission_setting(*CONVENTIONS[convention])
+    setting = _convention_setting(convention)
     reg = setting.regressor
     if not isinstance(N, (int, np.integer)) or isinstance(N, bool) or reg.rows(int(N)) <= reg.n_params:
         raise InvalidData(f"N={N!r} samples: the learner needs more regression rows than its {reg.n_params} "
