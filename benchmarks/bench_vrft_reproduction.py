@@ -4,7 +4,8 @@ For each sweep of `bilevel.experiments.vrft.sweep_plan` asked for, and each roun
 tree's code and once with this tree's (alternating, so that load from other jobs hits both alike), each in a fresh
 child process (PYTHONPATH = the tree) and a fresh output directory, on a 2-process local pool. Prints per run: wall
 seconds, CPU seconds of the child and its workers (getrusage), rows, attacks computed, CPU ms per row and per
-computed attack; then the ratios baseline / this tree of the medians. Asserts nothing. The baseline tree is a
+computed attack; then the ratios baseline / this tree of the medians. With --attacks K, instead: CPU ms per attack
+over the first K scenario-B tasks of each sweep, one after another in one process (no pool). Asserts nothing. The baseline tree is a
 checkout of an earlier commit, e.g. `git archive COMMIT | tar -x -C /tmp/base`.
 
 Run: python benchmarks/bench_vrft_reproduction.py --baseline /tmp/base --sims 512 --sweeps maxmin-paper
@@ -47,11 +48,26 @@ def child(spec: list, out: str) -> None:
     print(json.dumps({"wall": wall, "cpu": cpu, "rows": len(rows), "computed": computed[0]}))
 
 
-def run(tree: str, spec: list, out: str) -> dict:
-    """child() in a fresh interpreter importing bilevel from `tree`."""
+def per_attack(spec: list, count: int) -> None:
+    """CPU ms per attack of the first `count` scenario-B tasks of a sweep, one after another in this process (after
+    one warm-up task): the attack alone, no pool, no rows written."""
+    from bilevel.experiments import vrft
+    from bilevel.experiments.executor import run_task
+
+    name, n, convention, objective, method = spec
+    tasks = [t for t in vrft.cell_tasks(n, 0, convention, objective, method) if t["scenario"] == "B"][:count]
+    run_task(vrft.attack_task, tasks[0])
+    c0 = time.process_time()
+    for t in tasks:
+        run_task(vrft.attack_task, t)
+    print(json.dumps({"cpu_ms": 1e3 * (time.process_time() - c0) / len(tasks), "tasks": len(tasks)}))
+
+
+def run(tree: str, spec: list, out: str, attacks: int = 0) -> dict:
+    """child() (or per_attack() for `attacks` > 0) in a fresh interpreter importing bilevel from `tree`."""
     env = {**os.environ, "PYTHONPATH": tree}
-    done = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", json.dumps(spec), "--out", out],
-                          env=env, check=True, capture_output=True, text=True)
+    done = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", json.dumps(spec), "--out", out,
+                           "--attacks", str(attacks)], env=env, check=True, capture_output=True, text=True)
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
@@ -62,11 +78,13 @@ def main() -> None:
     parser.add_argument("--sims", type=int, default=512, help="Table 1's simulations per cell (default 512)")
     parser.add_argument("--sweeps", default="maxmin-paper", help="comma-separated sweep names, or 'all'")
     parser.add_argument("--rounds", type=int, default=1)
+    parser.add_argument("--attacks", type=int, default=0,
+                        help="instead of the sweeps: CPU ms per attack over this many scenario-B tasks, one process")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     parser.add_argument("--out", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        child(json.loads(args.child), args.out)
+        (per_attack(json.loads(args.child), args.attacks) if args.attacks else child(json.loads(args.child), args.out))
         return
     sys.path.insert(0, TREE)
     from bilevel.experiments.vrft import side_default, sweep_plan
@@ -79,6 +97,18 @@ def main() -> None:
           f"{os.getloadavg()[0]:.2f}")
     print(f"# sims {args.sims} (side sweeps {side_default(args.sims)}), rounds {args.rounds}, 2 local workers; "
           f"baseline {trees['baseline']}")
+    if args.attacks:
+        for name in names:
+            got = {k: [] for k in trees}
+            for r in range(args.rounds):
+                for label, tree in trees.items():
+                    got[label].append(run(tree, plan[name], "", args.attacks)["cpu_ms"])
+            med = {k: statistics.median(v) for k, v in got.items()}
+            print(f"{name:>24} per attack, one process, {args.attacks} scenario-B tasks, CPU ms (rounds): baseline "
+                  f"{med['baseline']:.2f} ({', '.join(f'{v:.2f}' for v in got['baseline'])}), this tree "
+                  f"{med['this tree']:.2f} ({', '.join(f'{v:.2f}' for v in got['this tree'])}); ratio "
+                  f"{med['baseline'] / med['this tree']:.2f}x", flush=True)
+        return
     totals = {k: [0.0, 0.0] for k in trees}
     for name in names:
         got: dict[str, list[dict]] = {k: [] for k in trees}

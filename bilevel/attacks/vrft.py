@@ -25,8 +25,9 @@ from ..ddc.data import paper_input, simulate
 from ..ddc.operators import LTIOperator
 from ..ddc.plants import flexible_transmission, flexible_transmission_prefilter, flexible_transmission_reference
 from ..ddc.systems import SystemLike
-from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
+from ..ddc.vrft import VRFTRegressor, least_squares, thin_qr, vrft_regressor
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
+from ..lower.least_squares import factor_solve
 from .budget import Budget
 from .spectral import LoopPolynomial, arx_orders_for, fit_arx
 from ..solvers.block_exact import quadratic_block_step
@@ -189,8 +190,11 @@ class VRFTAttack:
     def _fit(self, a_u: np.ndarray, a_y: np.ndarray, target: np.ndarray) -> State:
         """Thin QR of Phi(y + a_y) and theta' for the given targets."""
         phi = self.phi0 + self.setting.regressor(a_y) if np.any(a_y) else self.phi0
-        Q, R = np.linalg.qr(phi)
-        theta = scipy.linalg.solve_triangular(R, Q.T @ target, check_finite=False)
+        Q, R = thin_qr(phi)
+        theta, info = scipy.linalg.lapack.dtrtrs(R, Q.T @ target)  # R theta = Q't (LAPACK directly: once per step)
+        if info != 0:
+            raise RankDeficientRegressor(f"the poisoned regressor Phi' has rank below {R.shape[1]} (R[{info - 1}, "
+                                         f"{info - 1}] = 0): the learner's least squares has no unique solution")
         return State(a_u, a_y, phi, target, theta, R, Q)
 
     def targets_adjoint(self, g: np.ndarray) -> np.ndarray:
@@ -224,7 +228,7 @@ class VRFTAttack:
         With w = (Phi'^T Phi')^{-1} dJ/dtheta and r' = t' - Phi' theta':
         dJ/da_u = targets^T (Phi' w),  dJ/da_y = sum_i T_i^T (w_i r' - theta'_i Phi' w).
         """
-        w = scipy.linalg.cho_solve((s.R, False), self.grad_theta(s.theta), check_finite=False)  # (R'R)^{-1} g, R'R = Phi'^T Phi'
+        w = factor_solve(s.R, self.grad_theta(s.theta))  # (R'R)^{-1} g, R'R = Phi'^T Phi'
         pw = s.phi @ w
         residual = s.target - s.phi @ s.theta
         g_y = self.setting.regressor.adjoint(residual[:, None] * w - pw[:, None] * s.theta)
