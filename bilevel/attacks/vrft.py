@@ -24,7 +24,7 @@ from ..ddc.bases import Basis, flexible_transmission_basis
 from ..ddc.data import paper_input, simulate
 from ..ddc.operators import LTIOperator
 from ..ddc.plants import flexible_transmission, flexible_transmission_prefilter, flexible_transmission_reference
-from ..ddc.systems import SystemLike
+from ..ddc.systems import SystemLike, num_den
 from ..ddc.vrft import VRFTRegressor, least_squares, thin_qr, vrft_regressor
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
 from ..lower.least_squares import factor_solve
@@ -66,12 +66,17 @@ class VRFTSetting:
         """Closed loop of the true plant (used to judge stability, never by the attacker)."""
         return LoopPolynomial.of(self.plant, self.basis)
 
+    @cached_property
+    def _filters(self) -> tuple[tuple[np.ndarray, np.ndarray], LTIOperator]:
+        """The plant's (num, den) and L's filter, read once: a setting records many data sets."""
+        return num_den(self.plant), LTIOperator(self.prefilter)
+
     def recorded(self, u_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The data set the learner receives for plant input u_raw (filtered by L if prefiltered)."""
-        y_raw = simulate(self.plant, u_raw)
+        plant, pre = self._filters
+        y_raw = simulate(plant, u_raw)
         if self.data == "raw":
             return np.asarray(u_raw, dtype=float), y_raw
-        pre = LTIOperator(self.prefilter)
         return pre.apply(u_raw), pre.apply(y_raw)
 
 
