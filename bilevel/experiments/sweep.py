@@ -236,8 +236,8 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
                  + (f" ({stale} row(s) of other settings not reused)" if stale else "")
                  + f"; running {len(todo)}" + (f" ({len(computed)} distinct)" if len(computed) < len(todo) else "")
                  + f" on {executor.description} -> {path}")
-    t0, finished = time.perf_counter(), 0
-    report_every = max(1, len(todo) // 20)
+    t0, ran = time.perf_counter(), 0
+    report_every = max(1, len(computed) // 20)
     try:
         with _signals_raise(), open(path, "a", encoding="utf-8") as fh:
             for first, result in executor.imap_unordered(fn, computed, progress):
@@ -247,13 +247,11 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
                     fh.write(json.dumps(row) + "\n")
                     done[task["key"]] = row
                 fh.flush()
-                finished += len(same[first["key"]])
-                if progress and (finished // report_every > (finished - len(same[first["key"]])) // report_every
-                                 or finished == len(todo)):
-                    elapsed = time.perf_counter() - t0
-                    rate = finished / elapsed
+                ran += 1
+                if progress and (ran % report_every == 0 or ran == len(computed)):
+                    rate = ran / (time.perf_counter() - t0)
                     progress(f"\r[{label}] {len(done)}/{len(tasks)} done, {rate:.2f} tasks/s, "
-                             f"ETA {(len(todo) - finished) / rate:.0f} s")
+                             f"ETA {(len(computed) - ran) / rate:.0f} s")
     except SweepInterrupted as exc:
         executor.abort()
         if progress:
