@@ -5,8 +5,8 @@ tree's code and once with this tree's (alternating, so that load from other jobs
 child process (PYTHONPATH = the tree) and a fresh output directory, on a 2-process local pool. Prints per run: wall
 seconds, CPU seconds of the child and its workers (getrusage), rows, attacks computed, CPU ms per row and per
 computed attack; then the ratios baseline / this tree of the medians. With --attacks K, instead: CPU ms per attack
-over the first K scenario-B tasks of each sweep, one after another in one process (no pool). Asserts nothing. The baseline tree is a
-checkout of an earlier commit, e.g. `git archive COMMIT | tar -x -C /tmp/base`.
+over the first K scenario-B tasks of each sweep, one after another in one process (no pool). Asserts nothing.
+The baseline tree is a checkout of an earlier commit, e.g. `git archive COMMIT | tar -x -C /tmp/base`.
 
 Run: python benchmarks/bench_vrft_reproduction.py --baseline /tmp/base --sims 512 --sweeps maxmin-paper
 """
@@ -54,7 +54,7 @@ def per_attack(spec: list, count: int) -> None:
     from bilevel.experiments import vrft
     from bilevel.experiments.executor import run_task
 
-    name, n, convention, objective, method = spec
+    _, n, convention, objective, method = spec
     tasks = [t for t in vrft.cell_tasks(n, 0, convention, objective, method) if t["scenario"] == "B"][:count]
     run_task(vrft.attack_task, tasks[0])
     c0 = time.process_time()
