@@ -54,15 +54,20 @@ class LoopPolynomial:
         w = np.exp(beta * (mod - mod.max()))
         value = float(mod.max() + np.log(w.sum()) / beta)
         w /= w.sum()
-        dp = np.polyder(c)
-        grad = np.zeros(self.slopes.shape[0])
-        for li, mi, wi in zip(lam, mod, w):
-            denom = np.polyval(dp, li)
-            if abs(denom) < 1e-14 or mi == 0:
-                continue
-            dlam = -np.array([np.polyval(s, li) for s in self.slopes]) / denom  # d lambda / d theta
-            grad += wi * np.real(np.conj(li) * dlam) / mi
-        return value, grad
+        denom = _horner(np.polyder(c)[None, :], lam)[0]
+        keep = (np.abs(denom) >= 1e-14) & (mod != 0)  # a multiple or zero root: no derivative, left out
+        lam, mod, w, denom = lam[keep], mod[keep], w[keep], denom[keep]
+        dlam = -_horner(self.slopes, lam) / denom  # d lambda_j / d theta_i, shape (n_theta, roots)
+        return value, (np.real(np.conj(lam) * dlam) / mod) @ w
+
+
+def _horner(polys: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Every row of `polys` (coefficients, highest power first) at every point of x, shape (rows, points): Horner's
+    rule as np.polyval evaluates it."""
+    out = np.zeros((polys.shape[0], x.size), dtype=np.result_type(polys, x))
+    for k in range(polys.shape[1]):
+        out = out * x + polys[:, k:k + 1]
+    return out
 
 
 def fit_arx(u: np.ndarray, y: np.ndarray, na: int, nb: int, delay: int) -> tuple[np.ndarray, np.ndarray]:

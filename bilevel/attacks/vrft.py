@@ -13,7 +13,7 @@ Everything is O(N nk) per evaluation: Phi by filtering, theta by a thin QR, grad
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cache, cached_property
 from typing import Literal
 
 import numpy as np
@@ -24,9 +24,10 @@ from ..ddc.bases import Basis, flexible_transmission_basis
 from ..ddc.data import paper_input, simulate
 from ..ddc.operators import LTIOperator
 from ..ddc.plants import flexible_transmission, flexible_transmission_prefilter, flexible_transmission_reference
-from ..ddc.systems import SystemLike
-from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
+from ..ddc.systems import SystemLike, num_den
+from ..ddc.vrft import VRFTRegressor, least_squares, thin_qr, vrft_regressor
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
+from ..lower.least_squares import factor_solve
 from .budget import Budget
 from .spectral import LoopPolynomial, arx_orders_for, fit_arx
 from ..solvers.block_exact import quadratic_block_step
@@ -65,12 +66,17 @@ class VRFTSetting:
         """Closed loop of the true plant (used to judge stability, never by the attacker)."""
         return LoopPolynomial.of(self.plant, self.basis)
 
+    @cached_property
+    def _filters(self) -> tuple[tuple[np.ndarray, np.ndarray], LTIOperator]:
+        """The plant's (num, den) and L's filter, read once: a setting records many data sets."""
+        return num_den(self.plant), LTIOperator(self.prefilter)
+
     def recorded(self, u_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The data set the learner receives for plant input u_raw (filtered by L if prefiltered)."""
-        y_raw = simulate(self.plant, u_raw)
+        plant, pre = self._filters
+        y_raw = simulate(plant, u_raw)
         if self.data == "raw":
             return np.asarray(u_raw, dtype=float), y_raw
-        pre = LTIOperator(self.prefilter)
         return pre.apply(u_raw), pre.apply(y_raw)
 
 
@@ -189,8 +195,11 @@ class VRFTAttack:
     def _fit(self, a_u: np.ndarray, a_y: np.ndarray, target: np.ndarray) -> State:
         """Thin QR of Phi(y + a_y) and theta' for the given targets."""
         phi = self.phi0 + self.setting.regressor(a_y) if np.any(a_y) else self.phi0
-        Q, R = np.linalg.qr(phi)
-        theta = scipy.linalg.solve_triangular(R, Q.T @ target, check_finite=False)
+        Q, R = thin_qr(phi)
+        theta, info = scipy.linalg.lapack.dtrtrs(R, Q.T @ target)  # R theta = Q't (LAPACK directly: once per step)
+        if info != 0:
+            raise RankDeficientRegressor(f"the poisoned regressor Phi' has rank below {R.shape[1]} (R[{info - 1}, "
+                                         f"{info - 1}] = 0): the learner's least squares has no unique solution")
         return State(a_u, a_y, phi, target, theta, R, Q)
 
     def targets_adjoint(self, g: np.ndarray) -> np.ndarray:
@@ -224,7 +233,7 @@ class VRFTAttack:
         With w = (Phi'^T Phi')^{-1} dJ/dtheta and r' = t' - Phi' theta':
         dJ/da_u = targets^T (Phi' w),  dJ/da_y = sum_i T_i^T (w_i r' - theta'_i Phi' w).
         """
-        w = scipy.linalg.cho_solve((s.R, False), self.grad_theta(s.theta), check_finite=False)  # (R'R)^{-1} g, R'R = Phi'^T Phi'
+        w = factor_solve(s.R, self.grad_theta(s.theta))  # (R'R)^{-1} g, R'R = Phi'^T Phi'
         pw = s.phi @ w
         residual = s.target - s.phi @ s.theta
         g_y = self.setting.regressor.adjoint(residual[:, None] * w - pw[:, None] * s.theta)
@@ -272,6 +281,12 @@ class VRFTAttack:
         return a_u, State(a_u, a_y, s0.phi, target, s0.theta + S @ v, s0.R, s0.Q)
 
 
+@cache
+def _convention_setting(convention: str) -> VRFTSetting:
+    """flexible_transmission_setting of a convention, built once per process (its regressor and loop with it)."""
+    return flexible_transmission_setting(*CONVENTIONS[convention])
+
+
 def attack_instance(objective: Objective, scenario: Literal["A", "B"] = "B", eps_u: float = 0.1,
                     eps_y: float = 0.057, seed: int = 0, N: int = 512, convention: str = "paper",
                     norm: str = "l2") -> VRFTAttack:
@@ -279,7 +294,7 @@ def attack_instance(objective: Objective, scenario: Literal["A", "B"] = "B", eps
     if convention not in CONVENTIONS:
         raise ModelError(f"convention {convention!r} is not one of {', '.join(CONVENTIONS)}")
     check_common_options({"seed": seed})
-    setting = flexible_transmission_setting(*CONVENTIONS[convention])
+    setting = _convention_setting(convention)
     reg = setting.regressor
     if not isinstance(N, (int, np.integer)) or isinstance(N, bool) or reg.rows(int(N)) <= reg.n_params:
         raise InvalidData(f"N={N!r} samples: the learner needs more regression rows than its {reg.n_params} "

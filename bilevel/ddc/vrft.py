@@ -21,6 +21,7 @@ from typing import Literal
 import control
 import numpy as np
 import scipy.linalg
+import scipy.linalg.lapack
 import scipy.signal
 from numpy.typing import ArrayLike
 
@@ -183,12 +184,25 @@ def _rank_check(what: str, singular_values: np.ndarray, rows: int, rcond: float 
     return cond
 
 
+def thin_qr(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Q, R) with phi = Q R, Q (rows x cols) orthonormal, R upper triangular, for a tall phi: LAPACK geqrf and orgqr
+    called directly (what np.linalg.qr computes, without its per-call overhead, which the attacks pay per step)."""
+    qr, tau, _, info = scipy.linalg.lapack.dgeqrf(phi)
+    if info != 0:  # pragma: no cover - geqrf fails only on malformed arguments
+        raise ValueError(f"LAPACK geqrf failed with info = {info}")
+    r = np.triu(qr[: phi.shape[1]])
+    q, _, info = scipy.linalg.lapack.dorgqr(qr, tau, overwrite_a=True)
+    if info != 0:  # pragma: no cover
+        raise ValueError(f"LAPACK orgqr failed with info = {info}")
+    return q, r
+
+
 def least_squares(
     phi: ArrayLike, target: ArrayLike, rcond: float | None = None
 ) -> tuple[np.ndarray, float]:
     """(theta, cond(Phi)): min ||target - Phi theta|| by QR; raises RankDeficientRegressor if rank < nk."""
     phi, target = np.asarray(phi, dtype=float), np.asarray(target, dtype=float)
-    q, r = np.linalg.qr(phi)
+    q, r = thin_qr(phi)
     cond = _rank_check("VRFT regressor Phi", np.linalg.svd(r, compute_uv=False), phi.shape[0], rcond)
     return scipy.linalg.solve_triangular(r, q.T @ target), cond
 

@@ -1,6 +1,8 @@
 """Resumable sweeps: each finished task is appended to a JSONL file as it completes, on any executor.
 
-A task is a JSON-serializable dict with a unique "key"; fn(task) may depend on nothing else. A row
+A task is a JSON-serializable dict with a unique "key"; fn(task) may depend on nothing else. Tasks that a
+sweep's `shared` function maps to one value compute the same row: one of them runs and the row is written for each
+(with its own key, task and digest). A row
 stores the task and its digest (every task field plus ALGORITHM_VERSION), and a rerun reuses a row
 only when key and digest both match, so a row computed under other settings is never reused (it stays
 in the file, unused). A row that is not UTF-8 or JSON, was torn by a kill mid-write, or fails the sweep's
@@ -21,7 +23,7 @@ import threading
 import time
 from contextlib import contextmanager
 from importlib import metadata
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any, Callable, Hashable, Iterable, Iterator
 
 from ..files import atomic_open
 from .executor import Executor, LocalExecutor
@@ -202,9 +204,11 @@ def _signals_raise() -> Iterator[None]:
 def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[dict[str, Any]], path: str,
               executor: Executor | None = None, progress: Callable[[str], None] | None = stderr_progress,
               label: str = "sweep", timed: Callable[[list[dict[str, Any]], float], None] | None = None,
-              valid: Validator | None = None) -> list[dict[str, Any]]:
+              valid: Validator | None = None,
+              shared: Callable[[dict[str, Any]], Hashable] | None = None) -> list[dict[str, Any]]:
     """Run fn on every task without a matching row in `path` (on `executor`, default all local cores), appending
-    rows as they finish; rows come back in task order. timed(tasks run, wall seconds) follows the last one."""
+    rows as they finish; rows come back in task order. Tasks with equal shared(task) are computed once (the first of
+    them). timed(tasks computed, wall seconds) follows the last one."""
     tasks = list(tasks)
     keys = [t["key"] for t in tasks]
     if len(set(keys)) != len(keys):
@@ -219,29 +223,35 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
     stale = sum(r["key"] in digests and r["digest"] != digests[r["key"]] for r in rows)
     if not todo:
         return [done[k] for k in keys]
+    groups: dict[Hashable, list[dict[str, Any]]] = {}
+    for t in todo:
+        groups.setdefault(t["key"] if shared is None else shared(t), []).append(t)
+    computed = [g[0] for g in groups.values()]
+    same = {g[0]["key"]: g for g in groups.values()}
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     own = executor is None
     executor = executor or LocalExecutor()
     if progress:
         progress(f"[{label}] {len(done)} of {len(tasks)} already done"
                  + (f" ({stale} row(s) of other settings not reused)" if stale else "")
-                 + f"; running {len(todo)} on {executor.description} -> {path}")
-    t0, finished = time.perf_counter(), 0
-    report_every = max(1, len(todo) // 20)
+                 + f"; running {len(todo)}" + (f" ({len(computed)} distinct)" if len(computed) < len(todo) else "")
+                 + f" on {executor.description} -> {path}")
+    t0, ran = time.perf_counter(), 0
+    report_every = max(1, len(computed) // 20)
     try:
         with _signals_raise(), open(path, "a", encoding="utf-8") as fh:
-            for task, result in executor.imap_unordered(fn, todo, progress):
-                row = {**result, "key": task["key"], "digest": digests[task["key"]], "version": ALGORITHM_VERSION,
-                       "task": {k: v for k, v in task.items() if k != "key"}}
-                fh.write(json.dumps(row) + "\n")
+            for first, result in executor.imap_unordered(fn, computed, progress):
+                for task in same[first["key"]]:
+                    row = {**result, "key": task["key"], "digest": digests[task["key"]], "version": ALGORITHM_VERSION,
+                           "task": {k: v for k, v in task.items() if k != "key"}}
+                    fh.write(json.dumps(row) + "\n")
+                    done[task["key"]] = row
                 fh.flush()
-                done[task["key"]] = row
-                finished += 1
-                if progress and (finished % report_every == 0 or finished == len(todo)):
-                    elapsed = time.perf_counter() - t0
-                    rate = finished / elapsed
+                ran += 1
+                if progress and (ran % report_every == 0 or ran == len(computed)):
+                    rate = ran / (time.perf_counter() - t0)
                     progress(f"\r[{label}] {len(done)}/{len(tasks)} done, {rate:.2f} tasks/s, "
-                             f"ETA {(len(todo) - finished) / rate:.0f} s")
+                             f"ETA {(len(computed) - ran) / rate:.0f} s")
     except SweepInterrupted as exc:
         executor.abort()
         if progress:
@@ -254,5 +264,5 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
     if own:
         executor.close()
     if timed is not None:
-        timed(todo, time.perf_counter() - t0)
+        timed(computed, time.perf_counter() - t0)
     return [done[k] for k in keys]

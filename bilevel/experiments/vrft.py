@@ -6,6 +6,7 @@ and sim i uses the same data in every (eps_u, eps_y) cell (common random numbers
 
 from __future__ import annotations
 
+import json
 import os
 from typing import Any, Callable
 
@@ -70,6 +71,19 @@ def cell_tasks(sims: int, seed: int, convention: str, objective: str, method: st
                                   "root_seed": seed, "N": N_SAMPLES, "norm": NORM,
                                   **({"max_iter": MAX_ITER[objective]} if objective == "targeted" else {})})
     return tasks
+
+
+SEEDLESS = ("alternating", "path", "joint")
+"""Methods whose attack draws nothing from the task's seed (one start, a deterministic first one: attack_task passes
+the defaults); white noise draws its signals from it."""
+
+
+def same_attack(task: dict[str, Any]) -> str:
+    """A value shared by the tasks that run the same attack (run_sweep's `shared`): scenario A's data are a step
+    pulse whatever the seed, so with a seedless method every simulation of a scenario-A cell is one attack."""
+    if task["scenario"] != "A" or task["method"] not in SEEDLESS:
+        return task["key"]
+    return json.dumps({k: v for k, v in task.items() if k not in ("key", "sim", "seed")}, sort_keys=True)
 
 
 def valid_row(row: dict[str, Any]) -> str:
@@ -153,6 +167,21 @@ def write_csv(summary: dict, path: str) -> None:
             w.writerow([sc, eu, ey] + [c[k] for k in cols])
 
 
+def side_default(sims: int) -> int:
+    """Simulations per cell of the side sweeps for `sims` in Table 1's: a quarter, at least 8."""
+    return max(8, sims // 4)
+
+
+def sweep_plan(sims: int, side: int) -> list[tuple[str, int, str, str, str]]:
+    """The eight sweeps of the reproduction: (name, simulations per cell, convention, objective, method)."""
+    plan = [("maxmin-paper", sims, "paper", "maxmin", "alternating"),
+            ("maxmin-paper-path", sims, "paper", "maxmin", "path")]
+    plan += [(f"maxmin-{c}", side, c, "maxmin", "alternating") for c in CONVENTIONS if c != "paper"]
+    return plan + [("white-noise-paper", side, "paper", "maxmin", "white-noise"),
+                   ("destabilize-paper", side, "paper", "destabilize", "joint"),
+                   ("targeted-paper", side, "paper", "targeted", "alternating")]
+
+
 def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, workers: int | None = None,
                      side_sims: int | None = None, progress: Callable[[str], None] | None = stderr_progress,
                      dask: str | None = None) -> str:
@@ -164,15 +193,10 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
     if sims < 1 or (side_sims is not None and side_sims < 1) or seed < 0:
         raise ValueError(f"vrft reproduction: sims and side_sims must be >= 1 and seed >= 0, got sims={sims}, "
                          f"side_sims={side_sims}, seed={seed}")
-    side = side_sims or max(8, sims // 4)
+    side = side_sims or side_default(sims)
     os.makedirs(out_dir, exist_ok=True)
     runs: dict[str, list[dict[str, Any]]] = {}
-    plan = [("maxmin-paper", sims, "paper", "maxmin", "alternating"),
-            ("maxmin-paper-path", sims, "paper", "maxmin", "path")]
-    plan += [(f"maxmin-{c}", side, c, "maxmin", "alternating") for c in CONVENTIONS if c != "paper"]
-    plan += [("white-noise-paper", side, "paper", "maxmin", "white-noise"),
-             ("destabilize-paper", side, "paper", "destabilize", "joint"),
-             ("targeted-paper", side, "paper", "targeted", "alternating")]
+    plan = sweep_plan(sims, side)
     timings_path = os.path.join(out_dir, "timings.json")
     timings = load_timings(timings_path, progress)
     with open_executor(workers, dask) as executor:
@@ -182,7 +206,7 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
                 attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress, name,
                 lambda ran, seconds: record_timing(timings_path, timings, name,
                                                    sum(len(t["eps_y"]) if t["method"] == "path" else 1 for t in ran),
-                                                   seconds), valid_row)
+                                                   seconds), valid_row, same_attack)
     summaries = {name: summarize(rows) for name, rows in runs.items()}
     for name, s in summaries.items():
         write_csv(s, os.path.join(out_dir, f"table_{name}.csv"))

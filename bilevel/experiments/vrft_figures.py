@@ -204,7 +204,7 @@ def report(summaries: dict, figures: dict[str, str], sims: int, side: int,
                                                           for k, v in settings.items()) + ".", "",
         f"Median time per max-min attack: {np.median(times):.1f} ms (one core per worker, {executor}).", "",
         "Wall time of the attacks (when each sweep's rows were computed; `timings.json`; a resumed sweep "
-        "records only the rows it added): "
+        "records only the rows it added; the simulations of a scenario-A cell are one attack, run once): "
         + ("; ".join(f"{k}: {n} attacks in {t:.0f} s" for k, (n, t) in timings.items()) or "none recorded")
         + ".", "",
         "## Summary", "",

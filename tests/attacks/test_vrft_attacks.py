@@ -16,7 +16,7 @@ import bilevel as bl
 from bilevel.attacks.budget import Budget
 from bilevel.solvers.trust_region import maximize_quadratic_on_ball
 from bilevel.attacks.spectral import arx_orders_for
-from bilevel.attacks.vrft import CONVENTIONS, VRFTAttack, VRFTSetting, attack_instance
+from bilevel.attacks.vrft import CONVENTIONS, PAPER_THETA0, VRFTAttack, VRFTSetting, attack_instance
 from bilevel.attacks.vrft_methods import (attack_alternating, attack_budget_path, attack_joint, attack_summary,
                                          attack_value, attack_white_noise, input_step, unstable)
 from bilevel.solvers.ascent import projected_ascent
@@ -94,6 +94,22 @@ def test_hypergradient_matches_central_differences() -> None:
         e[i] = 1e-6
         assert (J(a_u + e, a_y) - J(a_u - e, a_y)) / 2e-6 == pytest.approx(g_u[i], rel=1e-5, abs=1e-10)
         assert (J(a_u, a_y + e) - J(a_u, a_y - e)) / 2e-6 == pytest.approx(g_y[i], rel=1e-5, abs=1e-10)
+
+
+def test_destabilize_surrogate_gradient_matches_central_differences() -> None:
+    """The log-sum-exp of the modelled pole moduli and its theta-gradient (all roots at once) agree with central
+    differences, and the value is the spectral radius within log(poles) / beta."""
+    loop = attack_instance("destabilize", "B", 0.1, 0.057, seed=3, N=256).model_loop
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        theta = PAPER_THETA0 * (1 + 0.3 * rng.standard_normal(6))
+        value, grad = loop.surrogate(theta)
+        assert loop.spectral_radius(theta) <= value <= loop.spectral_radius(theta) + np.log(9) / 50 + 1e-12
+        for i in range(6):
+            e = np.zeros(6)
+            e[i] = 1e-6
+            diff = (loop.surrogate(theta + e)[0] - loop.surrogate(theta - e)[0]) / 2e-6
+            assert diff == pytest.approx(grad[i], rel=1e-5, abs=1e-8)
 
 
 @settings(max_examples=40, deadline=None)

@@ -25,7 +25,8 @@ WILLEMS = ["reproduce", "willems", "--quick", "--sims", "1", "--workers", "2"]
 
 
 def _strip_times(rows: list[dict]) -> list[dict]:
-    return [{k: v for k, v in r.items() if k != "wall_time"} for r in rows]
+    """Rows without their wall times (a budget-path row's cells too)."""
+    return [{k: _strip_times(v) if k == "cells" else v for k, v in r.items() if k != "wall_time"} for r in rows]
 
 
 @pytest.mark.parametrize("signum,executor", [(signal.SIGINT, []), (signal.SIGTERM, []),
@@ -221,3 +222,25 @@ def test_compare_runs_the_structured_attack_beside_the_generic_methods(tmp_path)
     assert rows[("bard1998-ex5.1.1", "structured")]["status"] == "not_applicable"
     assert main(["compare", "--methods", "structured,foo", "--out", str(tmp_path / "bad")]) == 2
     assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.parametrize("objective,method", [("maxmin", "alternating"), ("maxmin", "path"),
+                                              ("destabilize", "joint"), ("targeted", "alternating")])
+def test_scenario_a_simulations_are_one_attack_run_once(tmp_path, objective, method) -> None:
+    """same_attack groups a scenario-A cell's simulations only where they compute the same row: run separately, two
+    of its seeds give equal rows; in a sweep, the cell's attack runs once and every simulation gets its row, while
+    scenario B's simulations (and white noise's) run one by one."""
+    tasks = vrft.cell_tasks(2, 0, "paper", objective, method, eps_u=(0.1,), eps_y=(0.05,))
+    a = [t for t in tasks if t["scenario"] == "A"]
+    assert a[0]["seed"] != a[1]["seed"] and vrft.same_attack(a[0]) == vrft.same_attack(a[1])
+    separately = [_strip_times([vrft.attack_task(t)]) for t in a]
+    assert separately[0] == separately[1]
+    ran: list[str] = []
+    rows = run_sweep(lambda t: ran.append(t["key"]) or vrft.attack_task(t), tasks, str(tmp_path / "s.jsonl"),
+                     LocalExecutor(1), None, "t", valid=vrft.valid_row, shared=vrft.same_attack)
+    assert [r["key"] for r in rows] == [t["key"] for t in tasks]
+    assert ran == [a[0]["key"]] + [t["key"] for t in tasks if t["scenario"] == "B"]
+    assert [r["task"]["seed"] for r in rows] == [t["seed"] for t in tasks]
+    assert _strip_times([{k: v for k, v in r.items() if k in separately[0][0]} for r in rows[:2]]) == separately[0] * 2
+    noise = vrft.cell_tasks(2, 0, "paper", "maxmin", "white-noise", eps_u=(0.1,), eps_y=(0.05,))
+    assert len({vrft.same_attack(t) for t in noise}) == len(noise)
