@@ -171,7 +171,7 @@ def auto_section() -> None:
 def main() -> None:
     print(f"bench_deepc: {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.node()}, "
           f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, python {platform.python_version()}")
-    print("Times are wall clock in one process on a shared machine: compare ratios (/auto: seconds over the default's "
+    print("Times are wall clock in one process: compare ratios (/auto: seconds over the default's "
           "seconds in the same table), not absolute seconds; gap: relative to the best objective in the table.\n")
     deepc_section()
     evaluation_cost()

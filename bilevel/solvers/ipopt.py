@@ -15,6 +15,7 @@ start points elsewhere. Each NLP solve stops after MAX_WALL_TIME seconds by defa
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -93,11 +94,15 @@ def kkt_nlp_options(options: dict[str, Any], warm: dict[str, Any]) -> dict[str, 
 
 
 def within(options: dict[str, Any], limit: Deadline) -> dict[str, Any]:
-    """nlpsol options with IPOPT's max_wall_time cut to the time left before `limit` (at least 1 ms: IPOPT then stops
-    after its first iteration, Maximum_WallTime_Exceeded)."""
+    """nlpsol options with IPOPT's max_wall_time cut to time_limit / 2^k, the largest such level within the time left
+    before `limit` (at least 1 ms: IPOPT then stops after its first iteration, Maximum_WallTime_Exceeded). The levels
+    keep the options, hence the compiled solver (cached per options), the same over most of a run."""
     if limit.seconds is None:
         return options
-    wall = min(float(options["ipopt"].get("max_wall_time", MAX_WALL_TIME)), max(limit.remaining(), 1e-3))
+    left = max(limit.remaining(), 1e-3)
+    level = limit.seconds * 2.0 ** -math.ceil(max(math.log2(limit.seconds / left), 0.0)) if left < limit.seconds \
+        else limit.seconds
+    wall = min(float(options["ipopt"].get("max_wall_time", MAX_WALL_TIME)), max(level, 1e-3))
     return {**options, "ipopt": {**options["ipopt"], "max_wall_time": wall}}
 
 
