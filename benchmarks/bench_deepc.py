@@ -141,7 +141,7 @@ def evaluation_cost() -> None:
         oracle.gradient(oracle.evaluate(x))
     total = (time.perf_counter() - t0) / len(points)
     print(f"  hypergradient on DeePC, per point: evaluation + gradient {1e3 * total:.1f} ms, of which the lower QP "
-          f"solve (cvxpy + Clarabel + face polish, {prep.canon.lower.n_y} variables) {1e3 * solve:.1f} ms "
+          f"solve (Clarabel + face polish, {prep.canon.lower.n_y} variables) {1e3 * solve:.1f} ms "
           f"({solve / total:.0%})")
 
 
