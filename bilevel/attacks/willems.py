@@ -22,10 +22,10 @@ points of the box. For the max-min criterion a point whose identified
 closed loop is unstable has phi = +inf (the paper's convention): the ascent stops there; with
 stop_when_unstable (default) the eigenvalue attack stops there too, since instability is its goal.
 
-Destabilizing attack (destabilize_attack, issue 12): on the engine's projected ascent
-(bilevel.solvers.ascent), per start a smooth path (the Gelfand criterion, then log rho) and a direct path
-(log rho), with d log rho / dK from the top eigenvalue's eigenvectors chained through the learner
-(SDPHypergradient.gain_gradient); the answer is the evaluated point with the largest identified rho.
+Destabilizing attack (destabilize_attack): the exact spectral radius of the identified loop on the generic engine
+(WillemsAttack.radius_problem, BilevelProblem.maximize_spectral_radius) for a learner that ignores the poisoning:
+the learner is solved once, a pool of points is screened and the best ascend together (batched_radius_ascent); the
+answer is the evaluated point with the largest identified rho.
 smallest_destabilizing_budget finds delta_u* along a budget path, then by bisection.
 
 Baselines: differential evolution (bilevel.solvers.evolution) on the input poisoning with the same box, criterion and
@@ -112,7 +112,6 @@ class SDPHypergradient:
         gain_jacobian = ca.jacobian(ca.vec(attack.gain), x)
         self._gain_affine = self.lower_fixed and not ca.depends_on(gain_jacobian, x)
         self._gain = ca.Function("gain", [x, y], [attack.gain, gain_jacobian])
-        self._gain_y = ca.Function("gain_y", [x, y], [ca.jacobian(ca.vec(attack.gain), y)])
         self.n_x = int(x.numel())
         self.lower_solves = 0
         self._cache: tuple[np.ndarray, LowerSolution, float] | None = None
@@ -176,13 +175,6 @@ class SDPHypergradient:
     def gradient(self, ev: Evaluation) -> np.ndarray:
         """d phi / dx at an evaluated point: direct part plus the adjoint of the KKT system."""
         return self._total(ev, ev.grad_x, ev.grad_y)
-
-    def gain_gradient(self, ev: Evaluation, dk: np.ndarray) -> np.ndarray:
-        """d/dx of a function of the learned gain whose gradient in K at ev is dk (m x n), through the SDP."""
-        g = np.asarray(dk, dtype=float).ravel(order="F")
-        jx = np.asarray(self._gain(ev.x, ev.lower.y)[1], dtype=float)
-        jy = np.asarray(self._gain_y(ev.x, ev.lower.y), dtype=float)
-        return self._total(ev, jx.T @ g, jy.T @ g)
 
     def _total(self, ev: Evaluation, grad_x: np.ndarray, grad_y: np.ndarray) -> np.ndarray:
         """grad_x - (dr/dx)' z with (dr/dw)' z = (grad_y, 0): the implicit derivative through the KKT system."""
@@ -453,8 +445,9 @@ def radius_engine(attack: WillemsAttack, oracle: SDPHypergradient) -> Hypergradi
     """The generic engine (bilevel.solvers.implicit) on the attack's spectral-radius problem, its fixed lower level
     given the learner's solution of `oracle` (any selection): it never solves the SDP again."""
     if not oracle.lower_fixed:
-        raise ModelError("the spectral-radius engine needs a learner that ignores the poisoning: use poison='u' with "
-                         "design 'lqr' or 'stabilizing'")
+        raise ModelError("destabilize_attack needs a learner that ignores the poisoning (poison='u' with design 'lqr' "
+                         "or 'stabilizing'); for state or joint poisoning solve attack.radius_problem() with "
+                         "method='hypergradient', which re-solves the SDP at every point")
     engine = Hypergradient(prepare(attack.radius_problem()))
     zero = np.zeros(oracle.n_x)
     engine.evaluate(zero, lower=oracle.lower_solution(zero)[0])
