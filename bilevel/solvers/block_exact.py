@@ -34,7 +34,7 @@ from ..result import Status
 from .ascent import projected_ascent
 from .base import MethodRun, Prepared
 from .implicit import DEFAULT_PENALTY, Evaluation, shared_oracle
-from .limits import Deadline, progress
+from .limits import Deadline, progress, stopped
 from .starts import start_points
 from .structure import Ball, budget_scale, depends
 from .trust_region import maximize_quadratic_on_ball
@@ -254,9 +254,8 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], s
     w = prep.pack(KKTPoint(ev.x, ev.lower.y, ev.lower.lam, ev.lower.mu, ev.lower.Z))
     g = oracle.gradient(ev)[0][rest]
     pg = float(np.linalg.norm(project(ev.x[rest] - g) - ev.x[rest]))  # ||P(x - grad phi) - x||, as the descent
-    status = Status.SOLVED if converged and not limit.hit else Status.MAX_ITERATIONS
-    ended = limit.reached() if limit.hit else "converged" if converged else "max_iter"
-    return MethodRun(w, status, f"exact block x[{S.start}:{S.stop}]; best of {starts} starts ({len(records)} run): "
-                     f"start {k} ({ended})", nit, history, records,
-                     {"best_start": k, "exact_block": [S.start, S.stop], "projected_gradient_norm": pg,
-                      "not_exact": why})
+    run = MethodRun(w, Status.SOLVED if converged else Status.MAX_ITERATIONS, f"exact block x[{S.start}:{S.stop}]; "
+                    f"best of {starts} starts: start {k} ({'converged' if converged else 'max_iter'})", nit, history,
+                    records, {"best_start": k, "exact_block": [S.start, S.stop], "projected_gradient_norm": pg,
+                              "not_exact": why})
+    return stopped(run, limit, len(records), starts)

@@ -38,7 +38,7 @@ from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, Hypergradient, sh
 from .ascent import projected_ascent
 from .block_exact import ExactBlock, ascend_with_exact_block, exact_block_of
 from .options import check_numbers
-from .limits import Deadline, deadline, progress
+from .limits import Deadline, deadline, progress, stopped
 from .starts import start_points
 from .projections import Projection
 
@@ -313,12 +313,9 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
                          f"near any start ({type(arc.error).__name__}: {arc.error})", nit, [], records)
     i = best_of(candidates)
     k, best = runs[i]
-    status, message = best.status, f"best of {starts} starts: start {k} ({best.message})"
-    if limit.hit:
-        status, message = Status.MAX_ITERATIONS, (f"{limit.reached()} after {len(records)} of {starts} starts; best: "
-                                                  f"start {k} ({best.message})")
-    return MethodRun(candidates[i][0], status, message, nit,
-                     best.history, records, {"best_start": k, "penalty": penalty, "exact_block": None,
-                                             "not_exact": why,
-                                             "projected_gradient_norm": best.history[-1]["projected_step_norm"]},
-                     feasible_set=None if options.get("projection") is None else arc.project)
+    run = MethodRun(candidates[i][0], best.status, f"best of {starts} starts: start {k} ({best.message})", nit,
+                    best.history, records, {"best_start": k, "penalty": penalty, "exact_block": None,
+                                            "not_exact": why,
+                                            "projected_gradient_norm": best.history[-1]["projected_step_norm"]},
+                    feasible_set=None if options.get("projection") is None else arc.project)
+    return stopped(run, limit, len(records), starts)

@@ -30,7 +30,7 @@ from ..result import Status
 from .base import MethodRun, Prepared, best_of, check_options, unbounded_lower
 from .hypergradient import chosen_exact_block, solve_hypergradient
 from .implicit import shared_oracle
-from .limits import Deadline, deadline, progress
+from .limits import Deadline, deadline, progress, stopped
 from .starts import start_points
 
 IPOPT_STATUS: dict[str, Status] = {
@@ -245,15 +245,6 @@ def _lower_moved_to(prep: Prepared, point: KKTPoint, x: np.ndarray) -> KKTPoint:
 IPOPT_OPTIONS = frozenset({"starts", "seed", "mode", "polish", "tol", "max_iter", "ipopt", "scale", "time_limit",
                            "verbose", "warm"})
 """The options method `ipopt` accepts."""
-
-
-def stopped(run: MethodRun, limit: Deadline, done: int, total: int) -> MethodRun:
-    """A KKT method's run, as MAX_ITERATIONS with a message saying so where the deadline stopped it (after `done` of
-    `total` starts)."""
-    if limit.hit:
-        run.status = Status.MAX_ITERATIONS
-        run.message = f"{limit.reached()} after {done} of {total} starts; {run.message}"
-    return run
 
 
 def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:

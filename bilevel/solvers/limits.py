@@ -11,7 +11,12 @@ from __future__ import annotations
 import math
 import sys
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from ..result import Status
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .base import MethodRun
 
 
 class Deadline:
@@ -46,3 +51,12 @@ def progress(verbose: Any, method: str, text: str) -> None:
     """One progress line "[method] text" on stderr when verbose."""
     if verbose:
         print(f"[{method}] {text}", file=sys.stderr, flush=True)
+
+
+def stopped(run: "MethodRun", limit: Deadline, done: int, total: int) -> "MethodRun":
+    """A multistart method's run, as MAX_ITERATIONS with a message saying so where the deadline stopped it (after
+    `done` of `total` starts)."""
+    if limit.hit:
+        run.status = Status.MAX_ITERATIONS
+        run.message = f"{limit.reached()} after {done} of {total} starts; {run.message}"
+    return run

@@ -16,9 +16,8 @@ from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
 from .base import MethodRun, Prepared, best_of, check_options
 from .options import check_numbers
-from .ipopt import (NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish, residual, run_nlp, settled,
-                    stopped)
-from .limits import Deadline, deadline, progress
+from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish, residual, run_nlp, settled
+from .limits import Deadline, deadline, progress, stopped
 
 SCHEMES: dict[str, type[ComplementarityMode]] = {
     "scholtes": Scholtes,
