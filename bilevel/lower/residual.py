@@ -24,8 +24,9 @@ RESIDUAL_FORM_SIZE = 100_000
 
 
 def sum_of_squares(f: ca.SX, y: ca.SX) -> tuple[ca.SX, ca.SX] | None:
-    """(r, c) with f = 1/2 ||r||^2 + c, c free of y, read from f's top-level sum of weighted squares; None if f is
-    not of that form (a term with y that is not a square, or a square with a negative weight)."""
+    """(r, c) with f = 1/2 ||r||^2 + c, r affine in y and c free of y, read from f's top-level sum of weighted squares
+    (a least squares); None if f is not of that form (a term with y that is not a square, a square with a negative
+    weight, or a squared expression nonlinear in y)."""
     rows, rest, stack = [], [], [(f, 1.0)]
     while stack:
         e, w = stack.pop()
@@ -49,7 +50,7 @@ def sum_of_squares(f: ca.SX, y: ca.SX) -> tuple[ca.SX, ca.SX] | None:
             return None
         else:
             rest.append(w * e)
-    if not rows:
+    if not rows or any(ca.which_depends(ca.vertcat(*rows), y, 2, False)):
         return None
     return ca.vertcat(*rows), (ca.sum1(ca.vertcat(*rest)) if rest else ca.SX(0.0))
 
@@ -78,8 +79,6 @@ class ResidualLeastSquares(LowerLevel):
         y with more than RESIDUAL_FORM_SIZE Hessian terms and C'C positive definite at the samples; else None."""
         form = sum_of_squares(f, y)
         if form is None or int(form[0].numel()) * int(y.numel()) ** 2 <= RESIDUAL_FORM_SIZE:
-            return None
-        if any(ca.which_depends(form[0], y, 2, False)):
             return None
         low = cls(x, y, f, *form, params=params)
         check = params.function("residual_check", [x, y], [f])

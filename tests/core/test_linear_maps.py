@@ -156,6 +156,7 @@ def test_sum_of_squares_reads_weights_and_refuses_other_forms() -> None:
                                          - 4 * point["x"][0], rel=1e-14)
     assert sum_of_squares(ca.sumsqr(y) - ca.sumsqr(y - x), y) is None  # a negative weight: not a least squares
     assert sum_of_squares(ca.sumsqr(y) + y[0] * x[1], y) is None  # a term with y that is no square
+    assert sum_of_squares(ca.sumsqr(y ** 2 - x), y) is None  # squares of expressions nonlinear in y
 
 
 def test_residual_form_matches_the_expression_form(monkeypatch) -> None:
