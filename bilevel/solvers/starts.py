@@ -23,35 +23,36 @@ from ..lower.images import ImageLower
 from ..lower.residual import ResidualLeastSquares
 from ..sampling import sample_in_bounds
 from .base import Prepared
-from .structure import budget_scale, depends
+from .structure import depends
 
 CONDITIONING_STEPS = 10
 
 
 def _hessian_and_adjoint(prep: Prepared) -> tuple[Callable, Callable] | None:
-    """(x -> P(x), (x, v) -> d(v'P(x)v)/dx) for a least-squares lower level whose Hessian P depends on x, else None."""
+    """(x -> P(x), (x, v) -> d(v'P(x)v)/dx) for a least-squares lower level whose Hessian P depends on x, else None;
+    a lower level with linear maps is differentiated over [x; z] and pulled back to x."""
     low = prep.canon.lower
     inner = low.inner if isinstance(low, ImageLower) else low
-    if isinstance(inner, ResidualLeastSquares) and not inner.fixed:
-        if isinstance(low, ImageLower):
-            return (lambda x: inner.gram(low.lift(x)),
-                    lambda x, v: low.lift.pullback(x, inner.gram_adjoint(low.lift(x), v)))
-        return inner.gram, inner.gram_adjoint
-    if low.kind != "least-squares" or not isinstance(inner, ExpressionLower):
+    if isinstance(inner, ResidualLeastSquares):  # P = C'C, formed numerically
+        if not depends(inner.C_expr, inner.x).any():
+            return None
+        hessian, adjoint = inner.gram, inner.gram_adjoint
+    elif low.kind == "least-squares" and isinstance(inner, ExpressionLower):
+        P = ca.substitute(inner.hess_f, inner.y, ca.DM.zeros(inner.n_y))
+        if not depends(P, inner.x).any():
+            return None
+        V = ca.SX.sym("V", inner.n_y, inner.n_y)
+        hess_fun = prep.canon.params.function("conditioning_P", [inner.x], [P])
+        adj_fun = prep.canon.params.function("conditioning_adjoint", [inner.x, V],
+                                             [ca.jtimes(ca.vec(P), inner.x, ca.vec(V), True)])
+        hessian = lambda xt: np.asarray(hess_fun(xt), dtype=float)  # noqa: E731
+        adjoint = lambda xt, v: np.asarray(adj_fun(xt, np.outer(v, v)), dtype=float).ravel()  # noqa: E731
+    else:
         return None
-    P = ca.substitute(inner.hess_f, inner.y, ca.DM.zeros(inner.n_y))
-    if not depends(P, inner.x).any():
-        return None
-    V = ca.SX.sym("V", inner.n_y, inner.n_y)
-    hessian = prep.canon.params.function("conditioning_P", [inner.x], [P])
-    adjoint = prep.canon.params.function("conditioning_adjoint", [inner.x, V],
-                                         [ca.jtimes(ca.vec(P), inner.x, ca.vec(V), True)])
-    if isinstance(low, ImageLower):
-        lift = low.lift
-        return (lambda x: np.asarray(hessian(lift(x)), dtype=float),
-                lambda x, v: lift.pullback(x, np.asarray(adjoint(lift(x), np.outer(v, v)), dtype=float).ravel()))
-    return (lambda x: np.asarray(hessian(x), dtype=float),
-            lambda x, v: np.asarray(adjoint(x, np.outer(v, v)), dtype=float).ravel())
+    if not isinstance(low, ImageLower):
+        return hessian, adjoint
+    lift = low.lift
+    return lambda x: hessian(lift(x)), lambda x, v: lift.pullback(x, adjoint(lift(x), v))
 
 
 def conditioning_start(prep: Prepared) -> np.ndarray | None:
@@ -61,11 +62,9 @@ def conditioning_start(prep: Prepared) -> np.ndarray | None:
         return None
     hessian, adjoint = parts
     canon = prep.canon
-    balls = budget_scale(canon, prep.balls)
-    half = np.where(np.isfinite(canon.x_ub - canon.x_lb), 0.5 * (canon.x_ub - canon.x_lb), 1.0)
-    scale = np.where(np.isin(np.arange(balls.size), [i for b in prep.balls for i in range(b.block.start,
-                                                                                          b.block.stop)]),
-                     balls, half)
+    scale = np.where(np.isfinite(canon.x_ub - canon.x_lb), 0.5 * (canon.x_ub - canon.x_lb), 1.0)
+    for ball in prep.balls:
+        scale[ball.block] = max(ball.radius, 1e-300)
     x = prep.projection(canon.x_start)
     for _ in range(CONDITIONING_STEPS):
         P = hessian(x)
