@@ -54,8 +54,7 @@ class LeastSquaresLower(QuadraticLower):
         """Closed form via a Cholesky factorization; raises if P(x) is not positive definite."""
         d, factor = self.factor(x)
         y = -factor_solve(factor, d.q)
-        fval = float(0.5 * y @ d.P @ y + d.q @ y + d.r)
-        return LowerSolution(y, fval, np.zeros(0), np.zeros(0), [], "optimal", "closed-form")
+        return LowerSolution(y, d.objective(y), np.zeros(0), np.zeros(0), [], "optimal", "closed-form")
 
     def reference_solve(self, x: np.ndarray) -> LowerSolution:
         """The closed form (the QP route of QuadraticLower would state a dense least squares through cvxpy)."""

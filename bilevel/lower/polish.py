@@ -105,7 +105,7 @@ def _face(d: QPData, mats: list[tuple[np.ndarray, np.ndarray]], sol: LowerSoluti
             break
     lam = np.zeros_like(sol.lam)
     lam[rows] = lam_a
-    return replace(sol, y=y, objective=float(0.5 * y @ d.P @ y + d.q @ y + d.r), lam=lam, mu=mu, Z=zs,
+    return replace(sol, y=y, objective=d.objective(y), lam=lam, mu=mu, Z=zs,
                    solver=sol.solver + "+polish")
 
 

@@ -34,6 +34,10 @@ class QPData:
     E: np.ndarray
     e: np.ndarray
 
+    def objective(self, y: np.ndarray) -> float:
+        """f(y) = 1/2 y'Py + q'y + r."""
+        return float(0.5 * y @ self.P @ y + self.q @ y + self.r)
+
 
 def solve_clarabel(problem: cp.Problem, what: str, infeasible_hint: str = "",
                    options: dict[str, Any] | None = None) -> None:
@@ -55,19 +59,24 @@ def solve_qp_clarabel(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
                       psd_verified: bool = False) -> LowerSolution:
     """The QP's solution (clarabel_direct without LMIs, else clarabel_solution) polished onto its optimal face where
     that lowers its KKT residual, else unchanged (see polish.py)."""
-    solve = clarabel_solution if lmis else clarabel_direct
-    return polish(d, lmis, solve(d, context, lmis, psd_verified))
+    sol = clarabel_solution(d, context, lmis, psd_verified) if lmis else clarabel_direct(d, context, psd_verified)
+    return polish(d, lmis, sol)
 
 
-def clarabel_direct(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
-                    psd_verified: bool = False) -> LowerSolution:
+def _convex_hessian(d: QPData, context: str, psd_verified: bool) -> np.ndarray | None:
+    """P symmetrized, verified PSD first (NonConvexLowerLevel naming its eigenvalue otherwise) unless psd_verified
+    says the caller checked this matrix already; None where the objective is linear."""
+    if not np.any(d.P):
+        return None
+    return 0.5 * (d.P + d.P.T) if psd_verified else require_psd(d.P, "the lower objective", context)
+
+
+def clarabel_direct(d: QPData, context: str, psd_verified: bool = False) -> LowerSolution:
     """A QP/LP without LMIs handed to Clarabel's own interface (no cvxpy canonicalization per solve: the methods solve
     at every upper point): A y + s = -b, s >= 0 and E y + s = -e, s = 0; its duals are lam and mu directly."""
-    if lmis:
-        raise ValueError("clarabel_direct takes no LMIs; use clarabel_solution")
     n = d.q.size
-    P = (0.5 * (d.P + d.P.T) if psd_verified else require_psd(d.P, "the lower objective", context)) if np.any(d.P) \
-        else np.zeros((n, n))
+    P = _convex_hessian(d, context, psd_verified)
+    P = sp.csc_matrix((n, n)) if P is None else sp.triu(sp.csc_matrix(P), format="csc")
     A = sp.csc_matrix(np.vstack([d.E, d.A])) if d.b.size + d.e.size else sp.csc_matrix((0, n))
     cones = ([clarabel.ZeroConeT(d.e.size)] if d.e.size else []) + \
         ([clarabel.NonnegativeConeT(d.b.size)] if d.b.size else [])
@@ -75,8 +84,7 @@ def clarabel_direct(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
     settings.verbose = False
     for name, value in CLARABEL_TOLERANCES.items():
         setattr(settings, name, value)
-    out = clarabel.DefaultSolver(sp.triu(sp.csc_matrix(P), format="csc"), d.q, A, -np.concatenate([d.e, d.b]), cones,
-                                 settings).solve()
+    out = clarabel.DefaultSolver(P, d.q, A, -np.concatenate([d.e, d.b]), cones, settings).solve()
     status = str(out.status)
     where = f"the lower level {context}"
     if status in ("PrimalInfeasible", "AlmostPrimalInfeasible"):
@@ -86,8 +94,7 @@ def clarabel_direct(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
     if status not in ("Solved", "AlmostSolved"):
         raise SolverFailed(f"Clarabel returned status {status!r} on {where}, no usable point; rescale the data")
     y, z = np.asarray(out.x, dtype=float), np.asarray(out.z, dtype=float)
-    fval = float(0.5 * y @ d.P @ y + d.q @ y + d.r)
-    return LowerSolution(y, fval, np.maximum(z[d.e.size:], 0.0), z[:d.e.size], [],
+    return LowerSolution(y, d.objective(y), np.maximum(z[d.e.size:], 0.0), z[:d.e.size], [],
                          "optimal" if status == "Solved" else "optimal_inaccurate", "clarabel")
 
 
@@ -102,8 +109,8 @@ def clarabel_solution(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
     n = d.q.size
     y = cp.Variable(n)
     objective = d.q @ y + d.r
-    if np.any(d.P):  # psd_wrap only of a matrix verified PSD (clipped at rounding level), never on trust
-        P = 0.5 * (d.P + d.P.T) if psd_verified else require_psd(d.P, "the lower objective", context)
+    P = _convex_hessian(d, context, psd_verified)
+    if P is not None:  # psd_wrap only of a matrix verified PSD (clipped at rounding level), never on trust
         objective = objective + 0.5 * cp.quad_form(y, cp.psd_wrap(P))
     cons = []
     if d.b.size:
@@ -121,8 +128,7 @@ def clarabel_solution(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
     mu = np.asarray(cons[n_lin - 1].dual_value).ravel() if d.e.size else np.zeros(0)
     zs = [np.asarray(c.dual_value) for c in cons[n_lin:]]
     yv = np.asarray(y.value).ravel()
-    fval = float(0.5 * yv @ d.P @ yv + d.q @ yv + d.r)
-    return LowerSolution(yv, fval, lam, mu, zs, prob.status, "cvxpy+clarabel")
+    return LowerSolution(yv, d.objective(yv), lam, mu, zs, prob.status, "cvxpy+clarabel")
 
 
 @dataclass
