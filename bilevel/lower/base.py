@@ -82,15 +82,20 @@ class LowerLevel(ABC):
         if self.convexity_probe is not None:
             self.convexity_probe.run()
 
-    @property
-    @abstractmethod
-    def n_x(self) -> int:
-        """Number of upper variables."""
+    x: ca.SX
+    """The upper variables' symbols (every kind's functions take x as their first input)."""
+    y: ca.SX
+    """The lower variables' symbols."""
 
     @property
-    @abstractmethod
+    def n_x(self) -> int:
+        """Number of upper variables."""
+        return int(self.x.numel())
+
+    @property
     def n_y(self) -> int:
         """Number of lower variables."""
+        return int(self.y.numel())
 
     @property
     def n_g(self) -> int:
@@ -207,14 +212,6 @@ class ExpressionLower(LowerLevel):
     def fixed(self) -> bool:
         """True when f, g, h and the LMIs do not depend on x: y*(x) is then one point, solved once."""
         return not ca.depends_on(ca.vertcat(self.f, self.g, self.h, *[ca.vec(m) for m in self.psd]), self.x)
-
-    @property
-    def n_x(self) -> int:
-        return int(self.x.numel())
-
-    @property
-    def n_y(self) -> int:
-        return int(self.y.numel())
 
     def kkt(self) -> KKTSystem:
         """Multiplier symbols and stationarity grad_y f + J_g' lam + J_h' mu - grad_y sum <Z_k, M_k>."""

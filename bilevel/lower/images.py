@@ -86,14 +86,6 @@ class ImageLower(LowerLevel):
         self.convexity_probe = self.inner.convexity_probe
 
     @property
-    def n_x(self) -> int:
-        return self.lift.n_x
-
-    @property
-    def n_y(self) -> int:
-        return self.inner.n_y
-
-    @property
     def fixed(self) -> bool:
         return self.inner.fixed
 

@@ -71,14 +71,6 @@ class MatrixLower(LowerLevel):
         except RankDeficientRegressor:
             return None
 
-    @property
-    def n_x(self) -> int:
-        return int(self.x.numel())
-
-    @property
-    def n_y(self) -> int:
-        return int(self.hess.shape[0])
-
     @cached_property
     def fixed(self) -> bool:
         return not ca.depends_on(ca.vertcat(self.d, self.q, self.b, self.e), self.x)

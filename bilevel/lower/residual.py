@@ -105,14 +105,6 @@ class ResidualLeastSquares(LowerLevel):
             [ca.jtimes(ca.mtimes(C, v), self.x, a, True) + ca.jtimes(self.r, self.x, b, True)])
         self._last: tuple[bytes, tuple[np.ndarray, np.ndarray, float]] | None = None
 
-    @property
-    def n_x(self) -> int:
-        return int(self.x.numel())
-
-    @property
-    def n_y(self) -> int:
-        return int(self.y.numel())
-
     @cached_property
     def fixed(self) -> bool:
         return not ca.depends_on(self.r, self.x) and not ca.depends_on(self.c, self.x)
