@@ -24,7 +24,7 @@ stop_when_unstable (default) the eigenvalue attack stops there too, since instab
 
 Destabilizing attack (destabilize_attack): the exact spectral radius of the identified loop on the generic engine
 (WillemsAttack.radius_problem, BilevelProblem.maximize_spectral_radius) for a learner that ignores the poisoning:
-the learner is solved once, a pool of points is screened and the best ascend together (batched_radius_ascent); the
+the learner is solved once, a pool of points is screened and the best ascend together (batched_box_ascent); the
 answer is the evaluated point with the largest identified rho.
 smallest_destabilizing_budget finds delta_u* along a budget path, then by bisection.
 
@@ -55,7 +55,7 @@ from ..model import unflatten_all
 from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, WillemsSetting, build_attack, criterion_values
 from ..result import BilevelResult, Status
 from ..solvers import solve
-from ..solvers.ascent import budget_direction, projected_ascent
+from ..solvers.ascent import batched_box_ascent, budget_direction, projected_ascent
 from ..solvers.budget_search import BudgetSearch, smallest_budget
 from ..solvers.base import prepare
 from ..solvers.evolution import evolve
@@ -454,39 +454,12 @@ def radius_engine(attack: WillemsAttack, oracle: SDPHypergradient) -> Hypergradi
     return engine
 
 
-def batched_radius_ascent(engine: Hypergradient, bound: np.ndarray, starts: np.ndarray, max_iter: int,
-                          min_step: float = 1e-6) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Maximize rho over the box |x| <= bound from every row of `starts` at once: per start, a step along the
-    gradient scaled to the box (t in budget units along its largest entry), kept where rho grows (t doubled, at
-    most 2), else halved; a start stops below min_step. Returns each start's best x and rho, iterations, evaluations."""
-    x = np.clip(np.asarray(starts, dtype=float), -bound, bound)
-    f, g, _ = engine.spectral_batch(x.T)  # F = -rho (the canonical minimization)
-    rho, grad = -f, -g.T
-    step = np.ones(x.shape[0])
-    it, evaluations = 0, x.shape[0]
-    for it in range(1, max_iter + 1):
-        live = np.flatnonzero(step >= min_step)
-        if live.size == 0:
-            break
-        z = grad[live] * bound
-        size = np.abs(z).max(axis=1, keepdims=True)
-        trial = np.clip(x[live] + step[live, None] * bound * np.divide(z, size, out=np.zeros_like(z),
-                                                                        where=size > 0), -bound, bound)
-        f, g, _ = engine.spectral_batch(trial.T)
-        evaluations += live.size
-        better = -f > rho[live]  # NaN (a defective top eigenvalue) never counts as better
-        kept = live[better]
-        x[kept], rho[kept], grad[kept] = trial[better], -f[better], -g.T[better]
-        step[live] = np.where(better, np.minimum(2.0 * step[live], 2.0), 0.5 * step[live])
-    return x, rho, it, evaluations
-
-
 @single_threaded_call
 def destabilize_attack(attack: WillemsAttack, starts: int = 64, seed: Any = 0, max_iter: int = 100, pool: int = 512,
                        oracle: SDPHypergradient | None = None) -> BilevelResult:
     """Maximize the spectral radius of the attacker's closed loop A_id + B_id K over the input poisoning, exactly
     (eigenvector derivatives of rho) on the generic engine: the learner is solved once, K is affine in the poisoning,
-    and `starts` points ascend together (batched_radius_ascent): the clean data and the largest-rho points of a
+    and `starts` points ascend together (bilevel.solvers.ascent.batched_box_ascent): the clean data and the largest-rho points of a
     pool of `pool` random ones (half uniform in the box, half its vertices). Returns the point with the largest
     identified rho."""
     if attack.setting.objective != "destabilize":
@@ -501,7 +474,11 @@ def destabilize_attack(attack: WillemsAttack, starts: int = 64, seed: Any = 0, m
     candidates[: candidates.shape[0] // 2] = np.sign(candidates[: candidates.shape[0] // 2]) * bound
     screened = np.argsort(engine.spectral_batch(candidates.T)[0], kind="stable")[: starts - 1]  # F = -rho
     x0 = np.vstack([np.zeros(bound.size), candidates[screened]])
-    xs, rho, iters, evaluations = batched_radius_ascent(engine, bound, x0, max_iter)
+    def radius(xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # rows of xs; the engine's F is -rho (minimized)
+        f, g, _ = engine.spectral_batch(xs.T)
+        return -f, -g.T
+
+    xs, rho, iters, evaluations = batched_box_ascent(radius, bound, x0, max_iter)
     evaluations += candidates.shape[0]
     best = int(np.nanargmax(rho))
     return _result(oracle, "destabilize", xs[best], t0, evaluations, iters,

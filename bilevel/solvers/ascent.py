@@ -3,7 +3,8 @@
 Every first-order method maximizes with it: the generic hypergradient (on the negated reduced objective, with or
 without an exact block) and the structured attacks. A value
 callback may return -inf for a point it cannot evaluate (e.g. the lower level is infeasible there); the line
-search then backtracks.
+search then backtracks. batched_box_ascent climbs many starts at once where values and gradients come in batches
+(one stacked evaluation per step).
 """
 
 from __future__ import annotations
@@ -99,3 +100,31 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]],
             converged, why["stop"] = True, "window"
             break
     return x, fx, aux, it, evals, converged
+
+
+def batched_box_ascent(values: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], bound: np.ndarray,
+                       starts: np.ndarray, max_iter: int,
+                       min_step: float = 1e-6) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Maximize f over the box |x| <= bound from every row of `starts` at once, values(X) giving f and its gradient
+    at the rows of X: per start, a step along the gradient scaled to the box (t in budget units along its largest
+    entry), kept where f grows (t doubled, at most 2), else halved; a start stops below min_step. Returns each
+    start's best x and f, the iterations and the evaluations."""
+    x = np.clip(np.asarray(starts, dtype=float), -bound, bound)
+    f, grad = values(x)
+    step = np.ones(x.shape[0])
+    it, evaluations = 0, x.shape[0]
+    for it in range(1, max_iter + 1):
+        live = np.flatnonzero(step >= min_step)
+        if live.size == 0:
+            break
+        z = grad[live] * bound
+        size = np.abs(z).max(axis=1, keepdims=True)
+        trial = np.clip(x[live] + step[live, None] * bound * np.divide(z, size, out=np.zeros_like(z),
+                                                                        where=size > 0), -bound, bound)
+        f_trial, g_trial = values(trial)
+        evaluations += live.size
+        better = f_trial > f[live]  # NaN never counts as better
+        kept = live[better]
+        x[kept], f[kept], grad[kept] = trial[better], f_trial[better], g_trial[better]
+        step[live] = np.where(better, np.minimum(2.0 * step[live], 2.0), 0.5 * step[live])
+    return x, f, it, evaluations
