@@ -46,7 +46,7 @@ class Relaxation:
         self.cuts = (np.vstack(rows), np.concatenate(rhs))
         self.A_ub = np.vstack([self.cuts[0], -form.G, -form.H])
         self.b_ub = np.concatenate([self.cuts[1], form.g, form.h])
-        self._highs: highspy.Highs | None = None
+        self._highs: highspy._Highs | None = None
 
     def _fixed_rows(self, fixed: dict[int, int]) -> tuple[np.ndarray, np.ndarray]:
         f = self.form
@@ -64,10 +64,12 @@ class Relaxation:
         A_eq, b_eq = self._fixed_rows(fixed)
         return self._lp(A_eq, b_eq) if self.form.linear else self._qp(A_eq, b_eq)
 
-    def _highs_model(self) -> highspy.Highs:
+    def _highs_model(self) -> highspy._Highs:
         """min c'w s.t. A_eq w = b_eq, cuts, G w >= -g, H w >= -h, bounds; pair rows come last."""
         f = self.form
-        h = highspy.Highs()
+        # highspy's core class, silenced first: highspy.Highs() registers callbacks in its constructor, a call that
+        # prints HiGHS's banner on stdout before output_flag can be set
+        h = highspy._Highs()
         h.setOptionValue("output_flag", False)
         h.setOptionValue("presolve", "off")  # keep the basis between nodes
         inf = highspy.kHighsInf
