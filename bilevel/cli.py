@@ -16,7 +16,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .errors import BilevelError, InvalidData, ModelError, UnknownName, UnknownOption
+from .errors import BilevelError, InvalidData, ModelError, UnknownName, UnknownOption, did_you_mean
 from .files import atomic_open
 from .problems import registry
 from .solvers import METHODS, solve
@@ -27,12 +27,55 @@ WILLEMS_SELECTIONS = ("min-norm", "tikhonov", "clarabel", "scs")
 
 
 def _cmd_list(args: argparse.Namespace) -> int:
+    if args.params is not None:
+        if args.tag is not None:
+            raise ModelError("--params NAME lists one problem's parameters and --tag filters the list; give one")
+        return _list_params(args.params)
+    if args.tag is not None and args.tag not in (tags := {t for n in registry.names() for t in registry.spec(n).tags}):
+        raise UnknownName(f"--tag {args.tag!r}: no problem carries it; {did_you_mean(args.tag, tags)}known tags: "
+                          f"{', '.join(sorted(tags))}")
     rows = [registry.spec(n) for n in registry.names(args.tag)]
     width = max((len(s.name) for s in rows), default=4)
     for s in rows:
         opt = "-" if s.optimum is None else f"{s.optimum:.6g}"
         print(f"{s.name.ljust(width)}  optimum {opt:>10}  [{', '.join(s.tags)}]  {s.description}")
-    print(f"{len(rows)} problems; methods: {', '.join(sorted(METHODS))}")
+    print(f"{len(rows)} problems; methods: {', '.join(sorted(METHODS))}; `bilevel list --params NAME` lists a "
+          "problem's parameters")
+    return 0
+
+
+def _type_name(kind: object) -> str:
+    """A declared parameter type as the user writes its value: int, float, one of a, b, ... (optional: or none)."""
+    args = typing.get_args(kind)
+    if typing.get_origin(kind) in (typing.Union, UnionType) and type(None) in args:
+        rest = [a for a in args if a is not type(None)]
+        return (_type_name(rest[0]) if len(rest) == 1 else " | ".join(map(_type_name, rest))) + " or none"
+    if typing.get_origin(kind) is typing.Literal:
+        return "one of " + ", ".join(map(str, args))
+    return getattr(kind, "__name__", None) or str(kind or "JSON")
+
+
+def _list_params(name: str) -> int:
+    """Print problem `name`'s parameters (--param NAME=VALUE): the registry's defaults and the builder's signature."""
+    s = registry.spec(name)
+    types = _declared_types(s.build, s.defaults)
+    parameters = inspect.signature(s.build).parameters
+    required = [k for k, p in parameters.items() if p.default is inspect.Parameter.empty
+                and p.kind not in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)]
+    print(f"{name}: {s.description}")
+    text = lambda v: v if isinstance(v, str) else json.dumps(v)  # noqa: E731  (as --param takes it)
+    rows = [(k, _type_name(types.get(k)), "(required)" if k in required else text(s.defaults[k]))
+            for k in [*required, *s.defaults]]
+    widths = [max((len(r[i]) for r in rows), default=0) for i in range(2)]
+    for k, kind, default in rows:
+        print(f"  {k.ljust(widths[0])}  {kind.ljust(widths[1])}  {default}")
+    forwards = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
+    if not rows:
+        print("no parameters" + (" listed; its builder takes keyword parameters (see its documentation)" if forwards
+                                 else ""))
+        return 0
+    print(f"give them as --param NAME=VALUE, e.g. bilevel solve {name} --param {rows[0][0]}={rows[0][2]}"
+          + ("; its builder may take further keyword parameters (see its documentation)" if forwards else ""))
     return 0
 
 
@@ -366,6 +409,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     p_list = sub.add_parser("list", help="list registered problems")
     p_list.add_argument("--tag", default=None, help="only problems with this tag")
+    p_list.add_argument("--params", default=None, metavar="NAME",
+                        help="list problem NAME's parameters (--param NAME=VALUE), their types and defaults")
     p_list.set_defaults(run=_cmd_list)
     p_solve = sub.add_parser("solve", help="solve a registered problem and print its certificate", epilog=USER_CODE)
     p_solve.add_argument("problem", help="a registered name (bilevel list) or MODULE:FUNCTION, your own builder")

@@ -1,8 +1,10 @@
-"""Exceptions of `bilevel`: one narrow class per broken contract, all under `BilevelError`."""
+"""Exceptions of `bilevel`: one narrow class per broken contract, all under `BilevelError`; the "did you mean"
+their messages offer for a misspelt name."""
 
 from __future__ import annotations
 
-from typing import Any
+import difflib
+from typing import Any, Iterable
 
 
 class BilevelError(Exception):
@@ -72,3 +74,10 @@ class SolverFailed(BilevelError):
 
 class WorkerLost(BilevelError):
     """A sweep task's worker process died (killed, out of memory, a crash in native code) on every retry."""
+
+
+def did_you_mean(name: str, choices: Iterable[str]) -> str:
+    """"did you mean 'a' or 'b'? " naming the choices closest to a misspelt `name` (those it begins first), or ""."""
+    close = difflib.get_close_matches(name, sorted(choices), n=3, cutoff=0.6)
+    close.sort(key=lambda c: not c.startswith(name))
+    return f"did you mean {' or '.join(map(repr, close))}? " if close else ""

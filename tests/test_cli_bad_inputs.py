@@ -5,6 +5,7 @@ marked @bilevel.problem_builder are ever called; a file in the working directory
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from importlib import metadata
@@ -129,6 +130,11 @@ CASES: dict[str, tuple[list[str], str]] = {
                                          "holds a `reproduce willems` run"),
     # names and flags
     "unknown problem": (["solve", "nosuch"], "no registered problem 'nosuch'"),
+    "misspelt problem": (["solve", "bard1998-ex5.1"], "did you mean 'bard1998-ex5.1.1'"),
+    "misspelt problem in list --params": (["list", "--params", "vrft-maxmni"], "did you mean 'vrft-maxmin'?"),
+    "unknown tag": (["list", "--tag", "nosuch"], "--tag 'nosuch': no problem carries it; known tags: attack, "),
+    "misspelt tag": (["list", "--tag", "textbok"], "did you mean 'textbook'?"),
+    "list --params with --tag": (["list", "--params", "vrft-maxmin", "--tag", "vrft"], "give one"),
     "unknown method": (["solve", "macmpec-bard1", "--method", "newton"], "unknown method 'newton'"),
     "vrft flag on a textbook problem": (["solve", "macmpec-bard1", "--eps-u", "0.1"], "only apply to vrft-*"),
     "--quick on vrft": (["reproduce", "vrft", "--quick"], "only `reproduce willems` takes it"),
@@ -217,6 +223,32 @@ def test_a_declared_builder_runs_with_typed_parameters(workdir: Path, capsys) ->
                      "--param", "mode=b", "--starts", "4"]) == 0
         out = capsys.readouterr().out
         assert "-24" in out and "solved" in out.lower()
+
+
+def test_an_unknown_name_is_answered_by_the_closest_names_not_by_every_name(capsys) -> None:
+    assert main(["solve", "bard1998-ex5.1"]) == 2
+    err = capsys.readouterr().err
+    assert "macmpec" not in err and "vrft" not in err and err.count("\n") == 1, err
+    assert main(["solve", "zzzz"]) == 2
+    assert capsys.readouterr().err == ("bilevel solve: error: no registered problem 'zzzz'; `bilevel list` shows the "
+                                       "known ones\n")
+
+
+def test_list_params_reads_the_registry_and_the_builders_signature(workdir: Path, capsys) -> None:
+    """A registered problem's defaults with their types; a builder's annotations (Literal: its values); none."""
+    from bilevel.problems import registry
+
+    assert main(["list", "--params", "vrft-maxmin"]) == 0
+    rows = {line.split()[0]: line.split()[1:] for line in capsys.readouterr().out.splitlines()[1:-1]}
+    defaults = registry.spec("vrft-maxmin").defaults
+    assert set(rows) == set(defaults) and rows["N"] == ["int", str(defaults["N"])]
+    assert rows["eps_y"] == ["float", str(defaults["eps_y"])] and rows["scenario"] == ["str", defaults["scenario"]]
+    assert main(["list", "--params", f"{OWN_REF}:bard"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert [re.split(r"\s{2,}", line.strip()) for line in out[1:5]] == [
+        ["scale", "float", "1.0"], ["n", "int", "2"], ["flag", "bool", "false"], ["mode", "one of a, b", "a"]], out
+    assert main(["list", "--params", "bard1998-ex5.1.1"]) == 0
+    assert capsys.readouterr().out.splitlines()[1] == "no parameters"
 
 
 def test_force_writes_into_another_targets_run(workdir: Path) -> None:

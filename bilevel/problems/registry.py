@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Any, Callable
 
-from ..errors import BilevelError, ModelError, UnknownName
+from ..errors import BilevelError, ModelError, UnknownName, did_you_mean
 from ..model import BilevelProblem
 from ..result import BilevelResult
 
@@ -126,7 +126,7 @@ def _register_reference(ref: str) -> None:
 
 def spec(name: str) -> ProblemSpec:
     """The spec of `name`: a registered problem, or `module:function` building one (registered on first use);
-    raises UnknownName (a KeyError) listing the known names otherwise."""
+    raises UnknownName (a KeyError) naming the closest known names otherwise."""
     _load_builtin()
     if not isinstance(name, str):
         raise UnknownName(f"a problem name is a string, got {type(name).__name__} {name!r}; `bilevel list` shows the "
@@ -134,8 +134,8 @@ def spec(name: str) -> ProblemSpec:
     if name not in _REGISTRY and ":" in name:
         _register_reference(name)
     if name not in _REGISTRY:
-        raise UnknownName(f"no registered problem {name!r}; `bilevel list` shows the known ones: "
-                          f"{', '.join(sorted(_REGISTRY))}")
+        raise UnknownName(f"no registered problem {name!r}; {did_you_mean(name, _REGISTRY)}`bilevel list` shows the "
+                          "known ones")
     return _REGISTRY[name]
 
 
