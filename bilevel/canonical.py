@@ -365,6 +365,11 @@ class Canonicalize(Reduction):
         return out
 
 
+def in_sense(value: float, sense: str) -> float:
+    """A value of a normalized (minimized) objective in its declared sense: negated where it was maximized."""
+    return -value if sense == "max" else value
+
+
 class NormalizeSense(Reduction):
     """max F -> min -F and max f -> min -f, so nothing downstream reasons about signs; invert restores them.
 
@@ -381,10 +386,8 @@ class NormalizeSense(Reduction):
         return out, senses
 
     def invert(self, solution: BilevelSolution, senses: tuple[str, str]) -> BilevelSolution:
-        if senses[0] == "max":
-            solution.upper_objective = -solution.upper_objective
-        if senses[1] == "max":
-            solution.lower_objective = -solution.lower_objective
+        solution.upper_objective = in_sense(solution.upper_objective, senses[0])
+        solution.lower_objective = in_sense(solution.lower_objective, senses[1])
         return solution
 
 

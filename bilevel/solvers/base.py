@@ -9,7 +9,8 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from ..canonical import CanonicalBilevel, Canonicalize, NormalizeSense, kkt_solution, objectives, suggested_starts
+from ..canonical import (CanonicalBilevel, Canonicalize, NormalizeSense, in_sense, kkt_solution, objectives,
+                         suggested_starts)
 from ..certificate import DEFAULT_TOL, LOCAL_EVIDENCE, Certificate, GlobalBound, certify
 from ..errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption
 from ..model import BilevelProblem
@@ -80,6 +81,10 @@ class Prepared:
     def layout(self) -> KKTInverse:
         """Where x, y and the multipliers sit in the MPCC vector (known without building the MPCC)."""
         return SingleLevelReduction.layout(self.canon)
+
+    def declared(self, F: float) -> float:
+        """A canonical (minimized) upper objective value in the problem's declared sense, as results report it."""
+        return in_sense(F, self.problem.upper_objective.sense)
 
     def point(self, w: np.ndarray) -> KKTPoint:
         """The canonical point of an MPCC vector."""
@@ -187,32 +192,39 @@ def _local_verdict(prep: Prepared, run: MethodRun, point: KKTPoint, cert: Certif
     """NOT_LOCALLY_OPTIMAL when a lower solution at x gives a lower F than the method's (a non-unique lower
     level: the optimistic selection) or the probe finds a better feasible neighbour; else the status as is."""
     F = objectives(prep.canon, point)[0]
-    sign = -1.0 if prep.problem.upper_objective.sense == "max" else 1.0
     # the lower solution set at x may hold better responses (LMI lower levels: not checked, IPOPT cannot take them)
     ambiguous = not cert.lower_unique and not prep.canon.lower.psd
     if ambiguous:
         starts = [point.y] + ([np.asarray(cert.lower_reference_y)] if np.all(np.isfinite(cert.lower_reference_y))
                               else [])
         sel = optimistic_selection(prep, point.x, cert.lower_reference, starts)
-        stats["optimistic"] = None if sel is None else {"y": sel.y, "objective": sign * sel.objective}
+        stats["optimistic"] = None if sel is None else {"y": sel.y, "objective": prep.declared(sel.objective)}
         if sel is not None and sel.improves(F):
             return Status.NOT_LOCALLY_OPTIMAL, (
                 f"not a local solution of the optimistic bilevel problem: the lower solution is not unique at x and "
                 f"the method's selection is not the optimistic one; the lower solution in stats['optimistic'] gives "
-                f"upper objective {sign * sel.objective:.8g} (here {sign * F:.8g}) ({message})")
+                f"upper objective {prep.declared(sel.objective):.8g} (here {prep.declared(F):.8g}) ({message})")
     better = improving_neighbour(prep, point.x, F, run.feasible_set or prep.projection, optimistic=ambiguous)
-    stats["probe"] = None if better is None else {"x": better.x, "objective": better.objective,
+    stats["probe"] = None if better is None else {"x": better.x, "objective": prep.declared(better.objective),
                                                   "radius": better.radius}
     if better is None:
         return status, message
     return Status.NOT_LOCALLY_OPTIMAL, (
         f"not a local solution: a feasible point at relative distance {better.radius:g} has upper objective "
-        f"{sign * better.objective:.8g} (here {sign * F:.8g}), so the method's point is not optimal ({message}); "
-        "try more starts or another method")
+        f"{prep.declared(better.objective):.8g} (here {prep.declared(F):.8g}), so the method's point is not optimal "
+        f"({message}); try more starts or another method")
+
+
+def _declared_records(prep: Prepared, records: list[dict[str, Any]]) -> tuple[dict[str, Any], ...]:
+    """A run's per-start or per-iteration records with their upper "objective" in the declared sense."""
+    return tuple(r | {"objective": prep.declared(r["objective"])} if r.get("objective") is not None else r
+                 for r in records)
 
 
 def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol: float = DEFAULT_TOL) -> BilevelResult:
     """Certify the run's point, map it back to declared names and senses, and decide the status."""
+    run = replace(run, history=list(_declared_records(prep, run.history)),
+                  starts=list(_declared_records(prep, run.starts)))
     if run.w is None or not np.all(np.isfinite(run.w)):
         return BilevelResult(run.status if run.status is not Status.SOLVED else Status.ERROR, run.message, method,
                              prep.problem.name, {}, {}, {}, None, None, None, wall_time, run.nit,

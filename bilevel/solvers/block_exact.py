@@ -234,7 +234,7 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], s
 
         def stop(ev: Evaluation, k: int = k, calls: list[int] = calls) -> bool:
             """Progress at the start and each accepted point; the deadline."""
-            progress(verbose, label, f"start {k + 1}/{starts}, iteration {calls[0]}: phi = {ev.phi:.8g}")
+            progress(verbose, label, f"start {k + 1}/{starts}, iteration {calls[0]}: phi = {prep.declared(ev.phi):.8g}")
             calls[0] += 1
             return limit.expired()
 
@@ -244,7 +244,7 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], s
         nit += it
         records.append({"start": k, "objective": None if ev is None else ev.F, "iterations": it,
                         "evaluations": evals, "converged": converged, "time": time.perf_counter() - t0})
-        progress(verbose, label, f"start {k + 1}/{starts}: phi = {-fx:.8g} after {it} steps")
+        progress(verbose, label, f"start {k + 1}/{starts}: phi = {prep.declared(-fx):.8g} after {it} steps")
         if ev is not None and (best is None or fx > best[0]):
             best = (fx, ev, converged, history, k)
     if best is None:

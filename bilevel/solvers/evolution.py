@@ -114,7 +114,7 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
     def generation(intermediate_result: scipy.optimize.OptimizeResult) -> bool:  # scipy passes it by this name
         """One progress line per generation; True (stop) at the deadline."""
         progress(verbose, "differential-evolution", f"generation {intermediate_result.nit}/{generations}: best phi = "
-                 f"{intermediate_result.fun:.6g} ({intermediate_result.nfev} evaluations)")
+                 f"{prep.declared(intermediate_result.fun):.6g} ({intermediate_result.nfev} evaluations)")
         return limit.expired()
 
     fixed = oracle.low.fixed
@@ -142,8 +142,8 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
         return MethodRun(w, status, message, int(out.nit), [], [record | {"status": status.value}], stats)
 
     def report(rec: dict[str, Any]) -> None:
-        progress(verbose, "differential-evolution", f"descent iteration {rec['iter']}: phi = {rec['objective']:.8g}, "
-                 f"projected step {rec['projected_step_norm']:.2e}")
+        progress(verbose, "differential-evolution", f"descent iteration {rec['iter']}: phi = "
+                 f"{prep.declared(rec['objective']):.8g}, projected step {rec['projected_step_norm']:.2e}")
 
     run = descend(arc, start, DESCENT_TOL, DESCENT_FTOL, DESCENT_MAX_ITER, limit, report if verbose else None)
     p = run.point

@@ -289,7 +289,7 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
 
         def report(record: dict[str, Any], k: int = k) -> None:
             progress(verbose, "hypergradient", f"start {k + 1}/{starts}, iteration {record['iter']}: phi = "
-                     f"{record['objective']:.8g}, projected step {record['projected_step_norm']:.2e}")
+                     f"{prep.declared(record['objective']):.8g}, projected step {record['projected_step_norm']:.2e}")
 
         start = arc(x0)
         if start is None:
@@ -305,8 +305,8 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
         records.append({"start": k, "x0": x0.tolist(), "status": run.status.value, "message": run.message,
                         "objective": p.F, "residual": p.violation, "iterations": run.nit,
                         "time": time.perf_counter() - t0})
-        progress(verbose, "hypergradient", f"start {k + 1}/{starts}: {run.status.value}, F = {p.F:.6g}, upper "
-                 f"violation {p.violation:.1e} ({run.message})")
+        progress(verbose, "hypergradient", f"start {k + 1}/{starts}: {run.status.value}, F = "
+                 f"{prep.declared(p.F):.6g}, upper violation {p.violation:.1e} ({run.message})")
     nit = sum(r["iterations"] for r in records)
     if not runs:
         return MethodRun(None, Status.ERROR, f"all {starts} starts failed: the lower level could not be solved "

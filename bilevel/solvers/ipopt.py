@@ -179,7 +179,8 @@ def kkt_starts(prep: Prepared, method: str, options: dict[str, Any],
     run = solve_hypergradient(prep, starts=starts, seed=seed, scale=scale, verbose=bool(options.get("verbose")),
                               **budget)
     info = {"warm": {"method": "hypergradient", "status": run.status.value, "message": run.message,
-                     "objective": None if run.w is None else prep.mpcc.objective_value(run.w), "iterations": run.nit,
+                     "objective": None if run.w is None else prep.declared(prep.mpcc.objective_value(run.w)),
+                     "iterations": run.nit,
                      "time": time.perf_counter() - t0, "used": run.w is not None}}
     if run.w is None:
         return kkt_starts(prep, method, {**options, "warm": None}, limit)[0], plain, info
@@ -281,7 +282,7 @@ def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
                         "objective": final.objective, "residual": res, "polished": polished,
                         "iterations": final.iterations, "time": time.perf_counter() - t0})
         progress(options.get("verbose"), "ipopt", f"start {k + 1}/{len(points)}: {final.raw_status}, F = "
-                 f"{final.objective:.6g}, residual {res:.1e}{' (polished)' if polished else ''}, "
+                 f"{prep.declared(final.objective):.6g}, residual {res:.1e}{' (polished)' if polished else ''}, "
                  f"{final.iterations} iterations")
     i = best_of(candidates)
     best = traces[i]

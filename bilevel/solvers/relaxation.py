@@ -38,8 +38,8 @@ def relaxation_path(prep: Prepared, nlp: Any, w0: np.ndarray, opts: dict[str, An
         path.append({"t": t, "objective": run.objective, "complementarity": comp, "status": run.raw_status,
                      "iterations": run.iterations})
         w = run.w
-        progress(verbose, "relaxation", f"t = {t:.1e}: {run.raw_status}, F = {run.objective:.6g}, complementarity "
-                 f"{comp:.1e}")
+        progress(verbose, "relaxation", f"t = {t:.1e}: {run.raw_status}, F = {prep.declared(run.objective):.6g}, "
+                 f"complementarity {comp:.1e}")
         if comp <= comp_tol or t * factor < t_min or (limit is not None and limit.expired()):
             return run, path
         t *= factor
@@ -83,8 +83,8 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
         records.append({"start": k, "x0": prep.point(w0).x.tolist(), "status": path[-1]["status"],
                         "objective": run.objective, "residual": res, "polished": polished is not None,
                         "steps": len(path), "time": time.perf_counter() - t_start})
-        progress(verbose, "relaxation", f"start {k + 1}/{len(points)}: {len(path)} steps, F = {run.objective:.6g}, "
-                 f"residual {res:.1e}")
+        progress(verbose, "relaxation", f"start {k + 1}/{len(points)}: {len(path)} steps, "
+                 f"F = {prep.declared(run.objective):.6g}, residual {res:.1e}")
     i = best_of(candidates)
     kept = kept_warm_point(prep, points, candidates[i], f"{finals[i].status.value} after {len(paths[i])} relaxation "
                            "steps", total, records, {"scheme": scheme, **warm})
