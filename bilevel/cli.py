@@ -19,6 +19,7 @@ import numpy as np
 from .errors import BilevelError, InvalidData, ModelError, UnknownName, UnknownOption, did_you_mean
 from .files import atomic_open
 from .problems import registry
+from .result import SHOWN
 from .solvers import METHODS, solve
 from .solvers.registry import AUTO
 
@@ -273,6 +274,8 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     problem = registry.get(args.problem, **params)
     result = solve(problem, method=args.method, **{"starts": args.starts, "seed": args.seed, **options})
     print(result)
+    if not args.json and any(np.size(v) > SHOWN for v in (*result.x.values(), *result.y.values())):
+        print(f"(arrays of more than {SHOWN} entries are summarized; --json PATH writes every value)")
     known = registry.spec(args.problem).optimum
     if known is not None and result.upper_objective is not None:
         gap = abs(result.upper_objective - known) / max(1.0, abs(known))

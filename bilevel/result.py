@@ -14,6 +14,9 @@ from .certificate import Certificate, GlobalBound
 from .errors import InvalidData
 from .files import atomic_open
 
+SHOWN = 12
+"""Arrays with more entries than this print as a summary (size, norm, first and last entries)."""
+
 _CERT_FLOATS = ("stationarity", "lower_feasibility", "dual_feasibility", "complementarity", "upper_feasibility",
                 "lower_gap", "lower_reference", "tolerance", "y_distance")
 
@@ -146,9 +149,16 @@ class BilevelResult:
                               "the text or the path of a file that to_json wrote") from exc
 
     def __repr__(self) -> str:
+        def array(a: np.ndarray) -> str:
+            if a.size <= SHOWN:
+                return np.array2string(a, precision=6)
+            size = f"{a.size}" if a.ndim == 1 else "x".join(map(str, a.shape))
+            return (f"{size} entries, norm {np.linalg.norm(a):.6g}, "
+                    f"{np.array2string(a.ravel(), precision=6, threshold=0, edgeitems=3)}")
+
         def fmt(v: Any) -> str:
             if isinstance(v, dict):
-                return "{" + ", ".join(f"{k}: {np.array2string(np.asarray(a), precision=6)}" for k, a in v.items()) + "}"
+                return "{" + ", ".join(f"{k}: {array(np.asarray(a))}" for k, a in v.items()) + "}"
             return repr(v)
 
         keys = [("status", self.status.value), ("success", self.success), ("message", self.message),

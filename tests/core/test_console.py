@@ -1,6 +1,8 @@
 """What a solve prints on the console: nothing from its backends unless asked (verbose=True), and results that
 summarize long arrays."""
 
+import re
+
 import numpy as np
 
 import bilevel as bl
@@ -13,3 +15,24 @@ def test_global_method_prints_nothing_on_stdout(capfd) -> None:
     out, _ = capfd.readouterr()
     assert res.status is bl.Status.SOLVED and abs(res.upper_objective - -12.0) < 1e-6
     assert out == "", out
+
+
+def test_a_result_summarizes_long_arrays_in_one_line() -> None:
+    """An array of more than SHOWN entries prints as its size, norm and first and last entries; short ones in full."""
+    res = bl.BilevelResult(bl.Status.SOLVED, "", "ipopt", "p", {"a": np.arange(1024.0), "b": np.array([4.0])},
+                           {"y": np.ones((40, 40))}, {}, 1.0, 0.0, None, 0.0, 1)
+    lines = {line.split(":", 1)[0].strip(): line.split(":", 1)[1] for line in repr(res).splitlines()}
+    norm = np.sqrt(sum(k * k for k in range(1024)))
+    head, entries, tail = re.fullmatch(r" \{(a: 1024 entries, norm [^,]+), \[(.*)\], (b: \[4\.\])\}", lines["x"]).groups()
+    assert head == f"a: 1024 entries, norm {norm:.6g}" and tail == "b: [4.]"
+    assert [float(e) for e in entries.replace("...", "").split()] == [0, 1, 2, 1021, 1022, 1023]
+    assert lines["y"] == " {y: 40x40 entries, norm 40, [1. 1. 1. ... 1. 1. 1.]}"
+
+
+def test_cli_solve_prints_a_summary_and_says_where_the_full_values_go(capsys) -> None:
+    from bilevel.cli import main
+
+    assert main(["solve", "vrft-maxmin", "--method", "ipopt", "--starts", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "a_u: 64 entries, norm" in out and len(out.splitlines()) < 20, out
+    assert "--json PATH writes every value" in out
