@@ -306,7 +306,8 @@ class MPCC:
                        np.array([mode.tau]), self.n_variables, init, self.params)
 
     def residuals(self, w: np.ndarray) -> dict[str, float]:
-        """Max violations at w: equality, inequality (incl. bounds), pair sign, complementarity."""
+        """Max violations at w: equality, inequality (incl. bounds), pair sign, complementarity; a NaN (a function
+        outside its domain) is an infinite violation."""
         out = self._eval(np.asarray(w, dtype=float))
         eq = np.abs(np.asarray(out[1]).ravel())
         ineq = np.maximum(np.asarray(out[2]).ravel(), 0.0)
@@ -319,7 +320,7 @@ class MPCC:
             sign = np.concatenate([sign, [max(-np.linalg.eigvalsh(S).min(), 0.0),
                                           max(-np.linalg.eigvalsh(L).min(), 0.0)]])
             comp = np.concatenate([comp, [abs(float(np.sum(S * L)))]])
-        top = lambda a: float(a.max()) if a.size else 0.0  # noqa: E731
+        top = lambda a: float(np.nan_to_num(a, nan=np.inf).max()) if a.size else 0.0  # noqa: E731
         return {"equality": top(eq), "inequality": max(top(ineq), top(bounds)), "pair_sign": top(sign),
                 "complementarity": top(comp)}
 

@@ -11,6 +11,12 @@ from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
 from .base import ExpressionLower, LowerSolution
 
 
+NLPSOL_QUIET = {"print_time": False, "show_eval_warnings": False}
+"""CasADi nlpsol options of every IPOPT solve: no timing report, and no console warning when a function evaluation
+gives NaN or inf (outside its domain). IPOPT handles such a point (it shortens the step) or stops with status
+Invalid_Number_Detected, which the caller's status and message carry."""
+
+
 @dataclass
 class ConvexNLPLower(ExpressionLower):
     """Convex f and g in y, affine h in y; any local solution is global."""
@@ -20,8 +26,8 @@ class ConvexNLPLower(ExpressionLower):
     def __post_init__(self) -> None:
         super().__post_init__()
         nlp = {"x": self.y, "p": ca.vertcat(self.x, self.params.sym), "f": self.f, "g": ca.vertcat(self.g, self.h)}
-        opts = {"print_time": False, "ipopt": {"print_level": 0, "tol": 1e-12, "acceptable_tol": 1e-9,
-                                               "max_iter": 3000, "sb": "yes"}}
+        opts = {**NLPSOL_QUIET, "ipopt": {"print_level": 0, "tol": 1e-12, "acceptable_tol": 1e-9, "max_iter": 3000,
+                                          "sb": "yes"}}
         self._solver = ca.nlpsol("lower_nlp", "ipopt", nlp, opts)
         self._ng = int(self.g.numel())
 

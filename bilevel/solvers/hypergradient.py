@@ -31,6 +31,7 @@ import casadi as ca
 import numpy as np
 
 from ..errors import BilevelError, LowerLevelInfeasible, ModelError
+from ..lower.nlp import NLPSOL_QUIET
 from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, best_of, check_options
@@ -59,8 +60,8 @@ class _Restoration:
         nlp = {"x": ca.vertcat(canon.x, canon.y), "p": ca.vertcat(v, canon.params.sym),
                "f": 0.5 * ca.sumsqr(canon.x - v),
                "g": ca.vertcat(low.g, low.h)}
-        opts = {"print_time": False, "ipopt": {"print_level": 0, "sb": "yes", "tol": 1e-12,
-                                               "bound_relax_factor": 0.0, "max_iter": 500}}
+        opts = {**NLPSOL_QUIET, "ipopt": {"print_level": 0, "sb": "yes", "tol": 1e-12, "bound_relax_factor": 0.0,
+                                          "max_iter": 500}}
         self._solver = ca.nlpsol("restoration", "ipopt", nlp, opts)
         ng, nh = low.n_g, low.n_h
         ny = int(canon.y.numel())

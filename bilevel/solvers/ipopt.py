@@ -24,6 +24,7 @@ import numpy as np
 
 from ..errors import BilevelError, ModelError
 from ..lower.base import LowerSolution
+from ..lower.nlp import NLPSOL_QUIET
 from ..mpcc import Branch, ComplementarityMode, NLPForm, Scholtes
 from ..reduction import KKTPoint
 from ..result import Status
@@ -76,7 +77,7 @@ def ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> di
     ipopt = {"print_level": 0, "sb": "yes", "tol": tol, "max_iter": max_iter, "acceptable_tol": 1e-7,
              "mu_strategy": "adaptive", "max_wall_time": MAX_WALL_TIME}
     ipopt.update(extra or {})
-    return {"print_time": False, "ipopt": ipopt}
+    return {**NLPSOL_QUIET, "ipopt": ipopt}
 
 
 def kkt_nlp_options(options: dict[str, Any], warm: dict[str, Any]) -> dict[str, Any]:

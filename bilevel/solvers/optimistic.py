@@ -16,6 +16,8 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
+from ..lower.nlp import NLPSOL_QUIET
+
 if TYPE_CHECKING:  # pragma: no cover
     from .base import Prepared
 
@@ -53,8 +55,8 @@ class _SelectionNLP:
         bound = ca.SX.sym("bound")
         rows = ca.vertcat(low.g, *G, low.h, *H, low.f - bound)
         nlp = {"x": canon.y, "p": ca.vertcat(canon.x, bound, canon.params.sym), "f": canon.F, "g": rows}
-        opts = {"print_time": False, "ipopt": {"print_level": 0, "sb": "yes", "tol": 1e-10, "max_iter": 500,
-                                               "constr_viol_tol": 1e-10}}
+        opts = {**NLPSOL_QUIET, "ipopt": {"print_level": 0, "sb": "yes", "tol": 1e-10, "max_iter": 500,
+                                          "constr_viol_tol": 1e-10}}
         self.solver = ca.nlpsol("optimistic", "ipopt", nlp, opts)
         n_ineq, n_eq = int(low.g.numel()) + len(G), int(low.h.numel()) + len(H)
         self.lbg = np.concatenate([np.full(n_ineq, -np.inf), np.zeros(n_eq), [-np.inf]])
