@@ -17,7 +17,7 @@ import scipy.linalg
 from numpy.typing import ArrayLike
 
 from bilevel.errors import InvalidData, ModelError, NotPersistentlyExciting, SolverFailed
-from bilevel.lower.quadratic import solve_clarabel
+from bilevel.lower.quadratic import solve_clarabel, solve_quietly
 
 # Clarabel's defaults (1e-8) leave ~1e-4 error in K (the SDP value is flat around the optimal gain), so the
 # learner uses (through solve_clarabel) the same tightened tolerances as the lower-level certificates.
@@ -112,7 +112,7 @@ def _solve(problem: cp.Problem, solver: str, what: str, options: dict[str, Any])
     if solver != "scs":
         raise ModelError(f"solver={solver!r} is not one of {', '.join(SOLVERS)}")
     try:
-        problem.solve(solver=cp.SCS, **{**SCS_TOLERANCES, **options})
+        solve_quietly(problem, solver=cp.SCS, **{**SCS_TOLERANCES, **options})
     except cp.error.SolverError as exc:
         raise SolverFailed(f"SCS failed on {what} ({exc}); rescale the data or use solver='clarabel'") from exc
     if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or _missing_values(problem):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -39,12 +40,20 @@ class QPData:
         return float(0.5 * y @ self.P @ y + self.q @ y + self.r)
 
 
+def solve_quietly(problem: cp.Problem, **options: Any) -> None:
+    """problem.solve(**options) without cvxpy's "Solution may be inaccurate" warning: callers read the status, accept
+    OPTIMAL_INACCURATE and carry it into their result, whose residuals are checked."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Solution may be inaccurate")
+        problem.solve(**options)
+
+
 def solve_clarabel(problem: cp.Problem, what: str, infeasible_hint: str = "",
                    options: dict[str, Any] | None = None) -> None:
     """Solve a cvxpy problem with Clarabel at CLARABEL_TOLERANCES (overridable); map every non-optimal status
     to a named error: LowerLevelInfeasible, LowerLevelUnbounded or SolverFailed."""
     try:
-        problem.solve(solver=cp.CLARABEL, **{**CLARABEL_TOLERANCES, **(options or {})})
+        solve_quietly(problem, solver=cp.CLARABEL, **{**CLARABEL_TOLERANCES, **(options or {})})
     except cp.error.SolverError as exc:
         raise SolverFailed(f"Clarabel failed on {what} ({exc}); rescale the data or loosen tolerances") from exc
     if problem.status in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):

@@ -54,3 +54,18 @@ def test_a_function_outside_its_domain_prints_nothing_and_never_wins(capfd) -> N
     assert res.status is bl.Status.SOLVED and abs(res.x["x"][0] - 1.0) < 1e-6, res.message
     out, err = capfd.readouterr()
     assert out == "" and err == "", err
+
+
+def test_an_inaccurate_conic_solve_is_a_status_not_a_warning() -> None:
+    """SCS stopped after 50 iterations: the learner's status says optimal_inaccurate; cvxpy's warning is not shown."""
+    import warnings
+
+    from bilevel.ddc.data import batch_reactor_data
+    from bilevel.ddc.depersis_tesi import lqr_controller
+
+    x, u = batch_reactor_data(20, np.random.default_rng(0))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        controller = lqr_controller(x, u, solver="scs", solver_options={"max_iters": 50})
+    assert controller.status == "optimal_inaccurate"
+    assert not [w for w in caught if "inaccurate" in str(w.message)], [str(w.message) for w in caught]
