@@ -9,6 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
 
 from ..attacks.vrft_methods import ATTACKS  # noqa: E402
 from ..ddc.analysis import closed_loop_bode, closed_loop_step  # noqa: E402
@@ -27,7 +28,23 @@ def _save(fig: plt.Figure, out_dir: str, name: str) -> str:
     return f"{name}.png"
 
 
-def _instance(scenario: str, objective: str, seed: int, eps_u: float = 0.1, eps_y: float = 0.057):
+BUDGET = (0.1, 0.057)
+"""(eps_u, eps_y) of the single-instance figures 2, 3b, 4 and 5."""
+
+
+def _budget_text() -> str:
+    return f"eps_u = {BUDGET[0]}, eps_y = {BUDGET[1]}"
+
+
+def _band_legend(ax: plt.Axes, n: int) -> None:
+    """The axes' legend, with the shaded bands named: each line's 95% t-interval of the mean (stats.mean_interval)."""
+    handles, labels = ax.get_legend_handles_labels()
+    band = Patch(color="grey", alpha=0.2)
+    ax.legend([*handles, band], [*labels, f"shaded: 95% confidence interval of the mean over {n} simulations"],
+              fontsize=7)
+
+
+def _instance(scenario: str, objective: str, seed: int, eps_u: float = BUDGET[0], eps_y: float = BUDGET[1]):
     task = {"convention": "paper", "objective": objective, "scenario": scenario, "eps_u": eps_u, "eps_y": eps_y,
             "seed": sim_seeds(seed, 1)[0]}
     atk = make_attack(task)
@@ -36,7 +53,7 @@ def _instance(scenario: str, objective: str, seed: int, eps_u: float = 0.1, eps_
 
 
 def figure_data(seed: int, out_dir: str) -> str:
-    """Fig. 2: recorded u, y of scenario B before and after the max-min attack (eps = 0.1, 0.057)."""
+    """Fig. 2: recorded u, y of scenario B before and after the max-min attack at BUDGET."""
     atk, res = _instance("B", "maxmin", seed)
     fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
     t = np.arange(atk.N)
@@ -46,12 +63,12 @@ def figure_data(seed: int, out_dir: str) -> str:
         ax.set_ylabel(name)
         ax.legend(loc="upper right", fontsize=8)
     axes[1].set_xlabel("t")
-    fig.suptitle("Scenario B, eps_u = 0.1, eps_y = 0.057 (max-min attack)")
+    fig.suptitle(f"Scenario B, {_budget_text()} (max-min attack)")
     return _save(fig, out_dir, "fig2_data")
 
 
 def figure_loss(summaries: dict, out_dir: str) -> str:
-    """Fig. 3a: learner's loss on clean data vs eps_y (mean, 95% CI), dotted along the budget path, and the
+    """Fig. 3a: learner's loss on clean data vs eps_y (mean, shaded 95% CI), dotted along the budget path, and the
     white-noise baseline."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     main, wn = summaries["maxmin-paper"], summaries.get("white-noise-paper", {})
@@ -71,7 +88,7 @@ def figure_loss(summaries: dict, out_dir: str) -> str:
         ax.set_title(f"Scenario {scenario}")
         ax.set_xlabel("eps_y")
         ax.set_ylabel("learner's loss L(u, y, theta')")
-        ax.legend(fontsize=7)
+        _band_legend(ax, main[(scenario, EPS_U[0], EPS_Y[0])]["n"])
     return _save(fig, out_dir, "fig3a_loss")
 
 
@@ -83,29 +100,30 @@ def _step_axes(ax: plt.Axes, atk, thetas: dict[str, np.ndarray], n: int = 150) -
         ax.plot(resp.time, np.clip(resp.outputs, -3, 3), label=f"{label} (rho = {rho:.3f})")
     ax.plot(np.arange(n) * setting.plant.dt, simulate(setting.reference, np.ones(n)), "k--", label="M_r")
     ax.set_xlabel("time (s)")
+    ax.set_ylabel("closed-loop output y (unit step reference)")
     ax.set_ylim(-1.5, 2.5)
     ax.legend(fontsize=7)
 
 
 def figure_steps(seed: int, out_dir: str) -> str:
-    """Fig. 3b: closed-loop step responses, clean vs max-min-poisoned controller, eps = (0.1, 0.057)."""
+    """Fig. 3b: closed-loop step responses, clean vs max-min-poisoned controller at BUDGET."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, scenario in zip(axes, ("A", "B")):
         atk, res = _instance(scenario, "maxmin", seed)
         _step_axes(ax, atk, {"clean": atk.theta0, "poisoned": res.y["theta"]})
-        ax.set_title(f"Scenario {scenario}")
+        ax.set_title(f"Max-min attack, scenario {scenario}\n{_budget_text()}")
     return _save(fig, out_dir, "fig3b_step")
 
 
 def figure_targeted(seed: int, out_dir: str) -> tuple[str, str]:
-    """Figs. 4-5: targeted attack (theta_a = 3 theta_0): step responses and Bode magnitudes."""
+    """Figs. 4-5: targeted attack (theta_a = 3 theta_0) at BUDGET: step responses and Bode magnitudes."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     fig_b, axes_b = plt.subplots(1, 2, figsize=(10, 4))
     for ax, axb, scenario in zip(axes, axes_b, ("A", "B")):
         atk, res = _instance(scenario, "targeted", seed)
         thetas = {"clean": atk.theta0, "poisoned": res.y["theta"], "target 3 theta_0": 3 * PAPER_THETA0}
         _step_axes(ax, atk, thetas)
-        ax.set_title(f"Targeted, scenario {scenario}")
+        ax.set_title(f"Targeted, scenario {scenario}\n{_budget_text()}")
         setting = atk.setting
         omega = np.logspace(-1, np.log10(np.pi / setting.plant.dt), 300)
         ref = setting.reference(np.exp(1j * omega * setting.plant.dt))
@@ -115,13 +133,14 @@ def figure_targeted(seed: int, out_dir: str) -> tuple[str, str]:
             axb.semilogx(fr.omega, 20 * np.log10(np.abs(fr.magnitude.squeeze())), label=label)
         axb.set_xlabel("omega (rad/s)")
         axb.set_ylabel("|T| (dB)")
-        axb.set_title(f"Targeted, scenario {scenario}")
+        axb.set_title(f"Targeted, scenario {scenario}\n{_budget_text()}")
         axb.legend(fontsize=7)
     return _save(fig, out_dir, "fig4_targeted_step"), _save(fig_b, out_dir, "fig5_targeted_bode")
 
 
 def figure_targeted_losses(summaries: dict, out_dir: str) -> str:
-    """Fig. 6: learner's loss (top) and attacker's loss ||theta_a - theta'||^2 / nk (bottom) vs eps_y."""
+    """Fig. 6: learner's loss (top) and attacker's loss ||theta_a - theta'||^2 / nk (bottom) vs eps_y (means, shaded
+    95% CI)."""
     tg = summaries["targeted-paper"]
     fig, axes = plt.subplots(2, 2, figsize=(10, 6), sharex=True)
     for j, scenario in enumerate(("A", "B")):
@@ -135,7 +154,8 @@ def figure_targeted_losses(summaries: dict, out_dir: str) -> str:
         axes[0, j].set_ylabel("learner's loss")
         axes[1, j].set_ylabel("attacker's loss")
         axes[1, j].set_xlabel("eps_y")
-        axes[0, j].legend(fontsize=7)
+        for ax in axes[:, j]:
+            _band_legend(ax, tg[(scenario, EPS_U[0], EPS_Y[0])]["n"])
     return _save(fig, out_dir, "fig6_targeted_losses")
 
 
