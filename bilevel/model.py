@@ -640,7 +640,16 @@ class BilevelProblem:
     # -- solving ---------------------------------------------------------------------------------
     def solve(self, method: Any = "auto", **options: Any) -> "BilevelResult":
         """Solve with a method chosen by structure ("auto", bilevel.solvers.registry.choose_method), a registered
-        method ("ipopt", "relaxation", "hypergradient", ...) or a callable."""
+        method (bilevel.METHODS) or a callable(prepared, **options) -> MethodRun. The registered methods:
+
+        - "ipopt": IPOPT on the KKT reformulation (an MPCC), multistart, polished on the active branch;
+        - "relaxation": the same MPCC along a relaxation path t -> 0 (Scholtes, Kanzow-Schwartz), warm started;
+        - "hypergradient": projected descent on F(x, y*(x)), the lower level re-solved exactly at every step;
+        - "block-exact": hypergradient that optimizes a ball-constrained block globally at every step;
+        - "global": a proven global optimum (bounds and gap) for LP and convex-QP lower levels;
+        - "differential-evolution": a search of the boxed upper level on the same implicit map, then descent.
+
+        Options are the method's keywords; a misspelt one raises UnknownOption naming the accepted ones."""
         from .solvers.registry import solve
 
         return solve(self, method=method, **options)

@@ -150,3 +150,8 @@ def test_willems_page_builds_and_attacks_up_to_the_generic_route() -> None:
 def test_willems_page_runs_whole() -> None:
     namespace = run_page("willems.md")
     assert namespace["kkt"].problem == "willems-eigen"
+
+
+def test_solve_docstring_names_every_method() -> None:
+    doc = bl.BilevelProblem.solve.__doc__
+    assert all(f'- "{name}": ' in doc for name in bl.METHODS), doc
