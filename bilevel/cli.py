@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import inspect
 import json
 import math
@@ -554,6 +555,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         _check_numbers(args)
         _check_paths(args)
         return int(args.run(args))
+    except BrokenPipeError:  # the reader left (`bilevel list | head`): stop quietly, and let exit flush nothing
+        with contextlib.suppress(OSError, ValueError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     except (BilevelError, OSError, MemoryError) as exc:
         print(f"bilevel {args.command}: error: {_error_line(exc)}", file=sys.stderr)
         return 2 if isinstance(exc, USAGE_ERRORS) else 1

@@ -281,6 +281,17 @@ def test_console_prints_one_line_and_no_traceback(case: str, workdir: Path) -> N
     assert not (workdir / "made").exists()
 
 
+def test_a_reader_that_leaves_early_gets_no_error(workdir: Path) -> None:
+    """`bilevel list | head -1`: the pipe is closed before the list is written; no error line, no traceback."""
+    env = {**os.environ, "PYTHONPATH": ROOT}
+    run = subprocess.Popen([sys.executable, "-P", "-m", "bilevel.cli", "list"], cwd=workdir, env=env,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    run.stdout.close()
+    err = run.stderr.read()
+    run.wait(timeout=300)
+    assert err == "", err
+
+
 def test_a_stray_package_name_in_the_working_directory_is_not_imported(workdir: Path) -> None:
     """A matplotlib.py beside the user's module: solve and compare import the real matplotlib (the user's module
     imports it, and compare uses it), the working directory only finding the user's module."""
