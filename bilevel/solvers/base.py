@@ -127,7 +127,8 @@ def prepare(problem: BilevelProblem) -> Prepared:
 
 @dataclass
 class MethodRun:
-    """A method's raw outcome: its best MPCC vector (or None) and its own view of convergence."""
+    """A method's raw outcome: its best MPCC vector (or None) and its own view of convergence. The "objective" of its
+    history and starts records is the canonical (minimized) upper objective; finalize reports it declared."""
 
     w: np.ndarray | None
     status: Status
