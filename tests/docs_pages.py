@@ -14,9 +14,9 @@ ROOT = Path(__file__).resolve().parents[1]
 PAGES = ("README.md", *sorted(p.name for p in (ROOT / "docs").glob("*.md")))
 """Every page whose code blocks the tests run or check: the README and docs/*.md."""
 
-KINDS = {"python": "python", "text": "text", "": "shell", "sh": "shell", "shell": "shell"}
-"""A fenced block's language -> its kind; an indented block is shell. Text is a display (a formula, a signature, a
-printed output), never run."""
+KINDS = {"python": "python", "text": "text", "": "shell"}
+"""A fenced block's language -> its kind (``` alone: shell commands); an indented block is shell. Text is a display
+(a formula, a signature, a printed output), never run."""
 
 SHELL_REASON = re.compile(r"<!--\s*shell:\s*(.*?)\s*-->")
 """`<!-- shell: REASON -->` on the line before a shell block: why its commands other than `bilevel ...` are not run."""
@@ -54,7 +54,7 @@ def _path(name: str) -> Path:
 
 
 def code_blocks(name: str) -> list[Block]:
-    """Every fenced block (```python, ```text, ``` or ```sh) and indented block (4 spaces after a blank line) of a
+    """Every fenced block (```python, ```text or ``` for shell) and indented block (4 spaces after a blank line) of a
     page; a fence with another language fails, so that no block goes unclassified."""
     lines = _path(name).read_text().splitlines()
     blocks, i = [], 0
@@ -67,7 +67,7 @@ def code_blocks(name: str) -> list[Block]:
     while i < len(lines):
         if lines[i].startswith("```"):
             language = lines[i][3:].strip()
-            assert language in KINDS, f"{name} line {i + 1}: a ```{language} block; use one of ```python, ```text, ```sh"
+            assert language in KINDS, f"{name} line {i + 1}: a ```{language} block; use ```python, ```text or ```"
             end = next(j for j in range(i + 1, len(lines)) if lines[j].startswith("```"))
             blocks.append(Block(name, i + 2, KINDS[language], tuple(lines[i + 1:end]), reason(i)))
             i = end + 1
