@@ -76,7 +76,8 @@ def _list_params(name: str) -> int:
         print("no parameters" + (" listed; its builder takes keyword parameters (see its documentation)" if forwards
                                  else ""))
         return 0
-    print(f"give them as --param NAME=VALUE, e.g. bilevel solve {name} --param {rows[0][0]}={rows[0][2]}"
+    example = "VALUE" if rows[0][0] in required else rows[0][2]
+    print(f"give them as --param NAME=VALUE, e.g. bilevel solve {name} --param {rows[0][0]}={example}"
           + ("; its builder may take further keyword parameters (see its documentation)" if forwards else ""))
     return 0
 

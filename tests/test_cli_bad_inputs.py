@@ -40,6 +40,12 @@ def plain():
 
 
 @bilevel.problem_builder
+def needs(n: int, scale: float = 1.0):
+    """Bard's example with a required parameter."""
+    return bard(scale, n)
+
+
+@bilevel.problem_builder
 def raises():
     raise ZeroDivisionError("boom")
 
@@ -247,6 +253,11 @@ def test_list_params_reads_the_registry_and_the_builders_signature(workdir: Path
     out = capsys.readouterr().out.splitlines()
     assert [re.split(r"\s{2,}", line.strip()) for line in out[1:5]] == [
         ["scale", "float", "1.0"], ["n", "int", "2"], ["flag", "bool", "false"], ["mode", "one of a, b", "a"]], out
+    assert main(["list", "--params", f"{OWN_REF}:needs"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert [re.split(r"\s{2,}", line.strip()) for line in out[1:3]] == [["n", "int", "(required)"],
+                                                                        ["scale", "float", "1.0"]], out
+    assert out[3].startswith(f"give them as --param NAME=VALUE, e.g. bilevel solve {OWN_REF}:needs --param n=VALUE")
     assert main(["list", "--params", "bard1998-ex5.1.1"]) == 0
     assert capsys.readouterr().out.splitlines()[1] == "no parameters"
 
