@@ -49,14 +49,14 @@ class Block:
         return out
 
 
-def _path(name: str) -> Path:
+def page_path(name: str) -> Path:
     return ROOT / name if name == "README.md" else ROOT / "docs" / name
 
 
 def code_blocks(name: str) -> list[Block]:
     """Every fenced block (```python, ```text or ``` for shell) and indented block (4 spaces after a blank line) of a
     page; a fence with another language fails, so that no block goes unclassified."""
-    lines = _path(name).read_text().splitlines()
+    lines = page_path(name).read_text().splitlines()
     blocks, i = [], 0
 
     def reason(before: int) -> str | None:
@@ -99,7 +99,7 @@ def run_page(name: str, namespace: dict | None = None, until: str | None = None)
 
     Each line that starts with `print(` must print one line, the text after its `#`; a print line whose comment
     is `# ...` runs without comparison (for long output the page shows below). Nothing else may print."""
-    page = _path(name)
+    page = page_path(name)
     code, inside = [], False
     for line in page.read_text().splitlines():  # non-code lines become blank, so line numbers are the page's
         inside = line.strip() == "```python" or (inside and line.strip() != "```")

@@ -17,7 +17,7 @@ import pytest
 import bilevel as bl
 from bilevel.cli import _check_numbers, _check_paths, _names, build_parser, main
 from bilevel.problems import registry
-from tests.docs_pages import PAGES, ROOT, SHELL_REASON, Block, _path, code_blocks, run_page
+from tests.docs_pages import PAGES, ROOT, SHELL_REASON, Block, code_blocks, page_path, run_page
 
 BLOCKS = [b for page in PAGES for b in code_blocks(page)]
 RUN = ("list", "solve")
@@ -51,7 +51,7 @@ def test_every_page_with_python_is_executed_by_a_test() -> None:
 def test_shell_blocks_hold_bilevel_commands_or_say_why_not() -> None:
     assert len(COMMANDS) >= 15
     for page in PAGES:  # a marker must be the last non-blank line before its block
-        markers = len(SHELL_REASON.findall(_path(page).read_text()))
+        markers = len(SHELL_REASON.findall(page_path(page).read_text()))
         assert markers == sum(b.reason is not None for b in code_blocks(page)), f"{page}: a shell marker marks no block"
     for b in BLOCKS:
         if b.kind == "shell":
