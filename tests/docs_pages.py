@@ -50,6 +50,7 @@ class Block:
 
 
 def page_path(name: str) -> Path:
+    """The file of a page: README.md at the repository root, any other in docs/."""
     return ROOT / name if name == "README.md" else ROOT / "docs" / name
 
 
