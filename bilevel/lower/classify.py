@@ -25,8 +25,8 @@ def _probe(hessians: list[tuple[CompiledFunction, str]],
     """The sampled check of these Hessians (one y per x when they are constant in y, one point when constant in x and
     y), and its smallest eigenvalue now (NonConvexLowerLevel if negative)."""
     distinct_x = tuple({id(xs): (xs, ys) for xs, ys in points}.values())
-    on = lambda k: any(fun.sparsity_out(0).nnz() and ca.depends_on(fun.sx_out(0), fun.sx_in(k))  # noqa: E731
-                       for fun, _ in hessians)
+    outputs = [(fun.call([fun.sx_in(i) for i in range(fun.n_in())])[0], fun) for fun, _ in hessians]
+    on = lambda k: any(out.nnz() and ca.depends_on(out, fun.sx_in(k)) for out, fun in outputs)  # noqa: E731
     probe = ConvexityProbe(tuple(hessians), tuple(points) if on(1) else distinct_x if on(0) else distinct_x[:1])
     return probe, probe.run()
 
