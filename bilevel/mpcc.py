@@ -86,6 +86,11 @@ class ComplementarityMode(ABC):
     def psd_pair(self, pair: PSDPair, tau: ca.SX) -> tuple[list[Row], PSDFactors]:
         raise UnsupportedPair(self, "PSD")
 
+    def scalar_upper(self, pair: ScalarPair) -> np.ndarray | None:
+        """Upper bounds of a scalar pair's rows where they are solve-time data (one compiled NLP serves every value),
+        None where the structure fixes them."""
+        return None
+
     @staticmethod
     def _psd_factored(pair: PSDPair, bound: ca.SX | float) -> tuple[list[Row], PSDFactors]:
         """S = P P', L = W W' (P, W lower triangular, new variables) and ||P' W||_F^2 <= bound."""
@@ -177,25 +182,28 @@ class FischerBurmeister(ComplementarityMode):
 
 @dataclass(repr=False)
 class Branch(ComplementarityMode):
-    """One piece of the MPCC: G_i = 0, H_i >= 0 where side_i is True, else H_i = 0, G_i >= 0 (a regular NLP)."""
+    """One piece of the MPCC: G_i = 0, H_i >= 0 where side_i is True, else H_i = 0, G_i >= 0 (a regular NLP).
+
+    The sides are row bounds, not structure: every branch of an MPCC is solved by one compiled NLP."""
 
     sides: dict[str, np.ndarray] = field(default_factory=dict)
     psd_tol: float = 1e-14
 
     def structure_key(self) -> tuple:
-        sides = tuple((k, np.asarray(v, dtype=bool).tobytes()) for k, v in sorted(self.sides.items()))
-        return ("Branch", self.psd_tol, sides)
+        return ("Branch", self.psd_tol)
 
     def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
-        side = np.asarray(self.sides[pair.name], dtype=bool)
+        n = int(pair.G.numel())
+        upper = self.scalar_upper(pair)
+        return [(pair.G, np.zeros(n), upper[:n]), (pair.H, np.zeros(n), upper[n:])]
+
+    def scalar_upper(self, pair: ScalarPair) -> np.ndarray:
+        """[ub of G; ub of H]: 0 on the side held at zero, inf on the free one."""
+        side = np.asarray(self.sides.get(pair.name, ()), dtype=bool)
         n = int(pair.G.numel())
         if side.shape != (n,):
             raise ModelError(f"Branch: pair {pair.name!r} has {n} entries, got {side.size} sides")
-        rows: list[Row] = []
-        for i in range(n):
-            zero, free = (pair.G[i], pair.H[i]) if side[i] else (pair.H[i], pair.G[i])
-            rows += [(zero, 0.0, 0.0), (free, 0.0, np.inf)]
-        return rows
+        return np.concatenate([np.where(side, 0.0, np.inf), np.where(side, np.inf, 0.0)])
 
     def psd_pair(self, pair: PSDPair, tau: ca.SX) -> tuple[list[Row], PSDFactors]:
         """PSD pairs have no finite branch structure: polish them with <S, L> <= psd_tol in factored form
@@ -268,6 +276,8 @@ class MPCC:
         self._eval = self.params.function("mpcc_eval", [self.w], outs)
         self._n_psd = len(psd)
         self._nlps: dict[tuple, NLPForm] = {}
+        self._pair_rows: dict[tuple, dict[str, int]] = {}
+        """Per transcription (structure key): the offset in g of each scalar pair's rows."""
 
     @property
     def n_variables(self) -> int:
@@ -275,13 +285,20 @@ class MPCC:
 
     def transcribe(self, mode: ComplementarityMode) -> NLPForm:
         """The NLP obtained by writing every pair with `mode` (tau becomes the NLP parameter); kept per structure, so
-        its compiled solvers serve later solves (other tau, other parameter values)."""
+        its compiled solvers serve later solves (other tau, other parameter values, other branches)."""
         key = mode.structure_key() if self.pairs else ("no pairs",)
         if key not in self._nlps:
-            self._nlps[key] = self._transcribe(mode)
-        return replace(self._nlps[key], p_value=np.array([mode.tau]))
+            self._pair_rows[key] = {}
+            self._nlps[key] = self._transcribe(mode, self._pair_rows[key])
+        form = replace(self._nlps[key], p_value=np.array([mode.tau]))
+        ubg, start = form.ubg, self._pair_rows[key]
+        for pair in self.pairs:
+            if isinstance(pair, ScalarPair) and (upper := mode.scalar_upper(pair)) is not None:
+                ubg = ubg.copy() if ubg is form.ubg else ubg
+                ubg[start[pair.name]:start[pair.name] + upper.size] = upper
+        return replace(form, ubg=ubg)
 
-    def _transcribe(self, mode: ComplementarityMode) -> NLPForm:
+    def _transcribe(self, mode: ComplementarityMode, offsets: dict[str, int]) -> NLPForm:
         tau = ca.SX.sym("tau")
         n_eq, n_in = int(self.equalities.numel()), int(self.inequalities.numel())
         rows: list[Row] = [(self.equalities, np.zeros(n_eq), np.zeros(n_eq)),
@@ -289,6 +306,7 @@ class MPCC:
         factors: list[PSDFactors] = []
         for pair in self.pairs:
             if isinstance(pair, ScalarPair):
+                offsets[pair.name] = sum(int(r[0].numel()) for r in rows)
                 rows += mode.scalar_pair(pair, tau)
             else:
                 pair_rows, aux = mode.psd_pair(pair, tau)

@@ -22,11 +22,12 @@ Y_PROBES = 16
 
 def _probe(hessians: list[tuple[CompiledFunction, str]],
            points: list[tuple[np.ndarray, np.ndarray]]) -> tuple[ConvexityProbe, float]:
-    """The sampled check of these Hessians (one y per x when they are constant in y), and its smallest eigenvalue
-    now (NonConvexLowerLevel if negative)."""
+    """The sampled check of these Hessians (one y per x when they are constant in y, one point when constant in x and
+    y), and its smallest eigenvalue now (NonConvexLowerLevel if negative)."""
     distinct_x = tuple({id(xs): (xs, ys) for xs, ys in points}.values())
-    varies = any(fun.sparsity_out(0).nnz() and ca.depends_on(fun.sx_out(0), fun.sx_in(1)) for fun, _ in hessians)
-    probe = ConvexityProbe(tuple(hessians), tuple(points) if varies else distinct_x)
+    outputs = [(fun.call([fun.sx_in(i) for i in range(fun.n_in())])[0], fun) for fun, _ in hessians]
+    on = lambda k: any(out.nnz() and ca.depends_on(out, fun.sx_in(k)) for out, fun in outputs)  # noqa: E731
+    probe = ConvexityProbe(tuple(hessians), tuple(points) if on(1) else distinct_x if on(0) else distinct_x[:1])
     return probe, probe.run()
 
 

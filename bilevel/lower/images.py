@@ -19,32 +19,68 @@ from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 
 
 class Lift:
-    """x -> [x; z(x)] and the pull-back of [x; z]-gradients to x: g_x + J_arg(x)' A' g_z."""
+    """x -> [x; z(x)] and the pull-back of [x; z]-gradients to x: g_x + J_arg(x)' A' g_z.
+
+    Images of the same argument (a filter bank applied to one attacked signal) share it: the argument is evaluated
+    and pulled back once, and their dense matrices are stacked into one, so the bank costs one BLAS product each way.
+    """
 
     def __init__(self, x: ca.SX, images: Images, params: ParameterSet) -> None:
         self.images, self.n_x, self.n_z = images, int(x.numel()), images.size
-        args = ca.vertcat(*[ca.vec(i.arg) for i in images.items])
-        v = ca.SX.sym("v", int(args.numel()))
-        self._args = params.function("image_args", [x], [args])
-        self._args_adjoint = params.function("image_args_adjoint", [x, v], [ca.jtimes(args, x, v, True)])
-        self._cuts = np.cumsum([0] + [int(i.arg.numel()) for i in images.items])
+        args: list[ca.SX] = []
+        self._groups: list[list[int]] = []
+        for k, img in enumerate(images.items):
+            same = next((g for g, a in enumerate(args) if a.shape == img.arg.shape and ca.is_equal(a, img.arg, 3)),
+                        None)
+            if same is None:
+                args.append(img.arg)
+                self._groups.append([k])
+            else:
+                self._groups[same].append(k)
+        self._stacked = [self._stack(group) for group in self._groups]
+        flat = ca.vertcat(*[ca.vec(a) for a in args])
+        v = ca.SX.sym("v", int(flat.numel()))
+        self._args = params.function("image_args", [x], [flat])
+        self._args_adjoint = params.function("image_args_adjoint", [x, v], [ca.jtimes(flat, x, v, True)])
+        self._arg_shapes = [a.shape for a in args]
+        self._cuts = np.cumsum([0] + [int(a.numel()) for a in args])
         self._zcuts = np.cumsum([0] + [int(i.sym.numel()) for i in images.items])
         self._last: tuple[bytes, np.ndarray] | None = None
+        self._point: tuple[tuple[bytes, int], np.ndarray] | None = None
+        self._params = params
+
+    def _stack(self, group: list[int]) -> np.ndarray | None:
+        """The group's dense matrices stacked (one product for all), None unless every one is dense and the shared
+        argument is a single column."""
+        items = [self.images.items[k] for k in group]
+        if len(items) < 2 or any(i.operator.kind != "dense" or i.arg.shape[1] != 1 for i in items):
+            return None
+        return np.vstack([i.operator.data for i in items])
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """[x; z(x)]; z is kept for the last arguments of the maps (a step that moves only entries the maps do not
         read, e.g. an exact block, costs no product)."""
         x = np.asarray(x, dtype=float).ravel()
+        point = (x.tobytes(), self._params.revision)  # the arguments may read parameters too
+        if self._point is not None and self._point[0] == point:
+            return self._point[1].copy()
         args = np.asarray(self._args(x), dtype=float).ravel()
         key = args.tobytes()
         if self._last is None or self._last[0] != key:
-            parts = []
-            for k, img in enumerate(self.images.items):
-                a = args[self._cuts[k]:self._cuts[k + 1]].reshape(img.arg.shape, order="F")
-                parts.append(np.asarray(img.operator.apply(a if a.shape[1] > 1 else a[:, 0]), dtype=float)
-                             .reshape(-1, order="F"))
-            self._last = (key, np.concatenate(parts))
-        return np.concatenate([x, self._last[1]])
+            z = np.empty(self.n_z)
+            for g, group in enumerate(self._groups):
+                a = args[self._cuts[g]:self._cuts[g + 1]].reshape(self._arg_shapes[g], order="F")
+                a = a if a.shape[1] > 1 else a[:, 0]
+                if self._stacked[g] is not None:  # the images of one argument: one product
+                    products = np.split(self._stacked[g] @ a, np.cumsum(
+                        [self.images.items[k].operator.shape[0] for k in group])[:-1])
+                else:
+                    products = [self.images.items[k].operator.apply(a) for k in group]
+                for k, prod in zip(group, products):
+                    z[self._zcuts[k]:self._zcuts[k + 1]] = np.asarray(prod, dtype=float).reshape(-1, order="F")
+            self._last = (key, z)
+        self._point = (point, np.concatenate([x, self._last[1]]))
+        return self._point[1].copy()
 
     def pullback(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
         """d/dx of <g, [x; z(x)]> for g over [x; z] (a vector, or columns of a matrix)."""
@@ -54,10 +90,16 @@ class Lift:
         for j in range(cols.shape[1]):
             gz = cols[self.n_x:, j]
             back = []
-            for k, img in enumerate(self.images.items):
-                part = gz[self._zcuts[k]:self._zcuts[k + 1]].reshape(img.sym.shape, order="F")
-                back.append(np.asarray(img.operator.adjoint(part if part.shape[1] > 1 else part[:, 0]),
-                                       dtype=float).reshape(-1, order="F"))
+            for grp, group in enumerate(self._groups):
+                parts = [gz[self._zcuts[k]:self._zcuts[k + 1]].reshape(self.images.items[k].sym.shape, order="F")
+                         for k in group]
+                if self._stacked[grp] is not None:
+                    total = self._stacked[grp].T @ np.concatenate([p[:, 0] for p in parts])
+                else:
+                    total = sum(np.asarray(self.images.items[k].operator.adjoint(p if p.shape[1] > 1 else p[:, 0]),
+                                           dtype=float).reshape(self._arg_shapes[grp], order="F")
+                                for k, p in zip(group, parts))
+                back.append(np.asarray(total, dtype=float).reshape(-1, order="F"))
             out[:, j] += np.asarray(self._args_adjoint(x, np.concatenate(back)), dtype=float).ravel()
         return out.reshape((self.n_x,) + g.shape[1:])
 

@@ -2,8 +2,9 @@
 
 Written as a sum of squares (`ca.sumsqr(target - ca.mtimes(Phi, theta))`, ridge terms included), a learner with
 many rows has a symbolic Hessian C'C of rows x n_y^2 nodes: building and differentiating it dominated the solve of
-identification problems (T = 10,000 rows, 64 Hessian entries). This kind evaluates C(x) and d(x) (one sweep of the
-size of r) and forms C'C by BLAS; the implicit derivative's x-adjoint is one reverse sweep through r and C v.
+identification problems (T = 10,000 rows, 64 Hessian entries). This kind evaluates C(x) and d(x) (one sparse product
+where they are affine in x, as for signals the leader moves; else one sweep of the size of r) and forms C'C by BLAS;
+the implicit derivative's x-adjoint is the transposed product, or one reverse sweep through r and C v.
 """
 
 from __future__ import annotations
@@ -13,9 +14,10 @@ from functools import cached_property
 
 import casadi as ca
 import numpy as np
+import scipy.sparse as sp
 
 from ..errors import BilevelError
-from ..parameters import ParameterSet
+from ..parameters import CompiledFunction, ParameterSet
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
 
@@ -96,14 +98,43 @@ class ResidualLeastSquares(LowerLevel):
 
     def __post_init__(self) -> None:
         zero = ca.DM.zeros(self.n_y)
-        self.C_expr = C = ca.jacobian(self.r, self.y)
-        self.d_expr = d = -ca.substitute(self.r, self.y, zero)
-        self._data = self.params.function("residual_data", [self.x], [C, d, self.c])
-        v, a, b = ca.SX.sym("v", self.n_y), ca.SX.sym("a", int(self.r.numel())), ca.SX.sym("b", int(self.r.numel()))
-        self._adjoint = self.params.function(
-            "residual_adjoint", [self.x, self.y, v, a, b],
-            [ca.jtimes(ca.mtimes(C, v), self.x, a, True) + ca.jtimes(self.r, self.x, b, True)])
+        self.C_expr = ca.jacobian(self.r, self.y)
+        self.d_expr = -ca.substitute(self.r, self.y, zero)
+        self._affine = self._affine_data(ca.vertcat(ca.vec(self.C_expr), self.d_expr))
+        self._c = (None if ca.depends_on(self.c, self.x) or ca.depends_on(self.c, self.params.sym)
+                   else float(ca.evalf(self.c)))
         self._last: tuple[bytes, tuple[np.ndarray, np.ndarray, float]] | None = None
+
+    @cached_property
+    def _data(self) -> CompiledFunction:
+        """x -> C(x), d(x), c(x), one sweep of the expressions."""
+        return self.params.function("residual_data", [self.x], [self.C_expr, self.d_expr, self.c])
+
+    @cached_property
+    def _adjoint(self) -> CompiledFunction:
+        """(x, y, v, a, b) -> d/dx of a'C(x)v + b'r(x, y), one reverse sweep."""
+        v, a, b = ca.SX.sym("v", self.n_y), ca.SX.sym("a", int(self.r.numel())), ca.SX.sym("b", int(self.r.numel()))
+        return self.params.function("residual_adjoint", [self.x, self.y, v, a, b],
+                                    [ca.jtimes(ca.mtimes(self.C_expr, v), self.x, a, True)
+                                     + ca.jtimes(self.r, self.x, b, True)])
+
+    def _affine_data(self, data: ca.SX) -> tuple[sp.csr_matrix, np.ndarray] | None:
+        """(J, b) with [vec C(x); d(x)] = J x + b when the data are affine in x and read no parameters (signals the
+        leader moves, sliced or mapped): then C and d cost one sparse product, their x-adjoint one transposed one."""
+        if ca.depends_on(data, self.params.sym):
+            return None
+        J = ca.jacobian(data, self.x)
+        if ca.depends_on(J, self.x):
+            return None
+        offset = ca.substitute(data, self.x, ca.DM.zeros(self.n_x))
+        return sp.csr_matrix(ca.evalf(J).sparse()), np.asarray(ca.evalf(offset), dtype=float).ravel()
+
+    def _x_adjoint(self, x: np.ndarray, y: np.ndarray, v: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """d/dx of a'C(x)v + b'(C(x)y - d(x))."""
+        if self._affine is None:
+            return np.asarray(self._adjoint(x, y, v, a, b), dtype=float).ravel()
+        seed = np.concatenate([(np.outer(a, v) + np.outer(b, y)).ravel(order="F"), -b])
+        return self._affine[0].T @ seed
 
     @cached_property
     def fixed(self) -> bool:
@@ -113,7 +144,13 @@ class ResidualLeastSquares(LowerLevel):
         """C(x), d(x) and c(x) (the last point's are kept: one sweep serves the calls at a point)."""
         x = np.asarray(x, dtype=float).ravel()
         if self._last is None or self._last[0] != x.tobytes():
-            C, d, c = self._data(x)
+            if self._affine is not None:
+                J, offset = self._affine
+                v, m = J @ x + offset, int(self.r.numel())
+                C, d = v[:m * self.n_y].reshape((m, self.n_y), order="F"), v[m * self.n_y:]
+                c = self._c if self._c is not None else self._data(x)[2]
+            else:
+                C, d, c = self._data(x)
             self._last = (x.tobytes(), (np.asarray(C, dtype=float).reshape(-1, self.n_y),
                                         np.asarray(d, dtype=float).ravel(), float(np.asarray(c).ravel()[0])))
         return self._last[1]
@@ -126,7 +163,7 @@ class ResidualLeastSquares(LowerLevel):
     def gram_adjoint(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """d(v'C(x)'C(x)v)/dx = 2 (d(C v)/dx)'(C v)."""
         Cv = self.data(x)[0] @ v
-        return 2.0 * np.asarray(self._adjoint(x, np.zeros(self.n_y), v, Cv, np.zeros_like(Cv)), dtype=float).ravel()
+        return 2.0 * self._x_adjoint(x, np.zeros(self.n_y), v, Cv, np.zeros_like(Cv))
 
     def evaluate(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, list[np.ndarray]]:
         C, d, c = self.data(x)
@@ -149,7 +186,7 @@ class ResidualLeastSquares(LowerLevel):
                       v_h: np.ndarray) -> np.ndarray:
         """d/dx of v'C'(C y - d) = (d(C v)/dx)'r + (dr/dx)'(C v), one reverse sweep."""
         C, d, _ = self.data(x)
-        return np.asarray(self._adjoint(x, sol.y, v_s, C @ sol.y - d, C @ v_s), dtype=float).ravel()
+        return self._x_adjoint(x, sol.y, v_s, C @ sol.y - d, C @ v_s)
 
     def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
         return factor_solve(hessian_factor(K), rhs), K.shape[0]

@@ -2,9 +2,9 @@
 
 Each start x0 (the declared start, then seeded random points inside the bounds) is completed with the
 lower-level solution at x0 and its multipliers, so IPOPT starts on the MPCC's feasible set. The MPCC
-is transcribed with a complementarity mode (default Scholtes with a tiny t); the result is then
-polished on the branch its complementarity pattern selects (G_i = 0 or H_i = 0), a regular NLP whose
-solution satisfies complementarity exactly. The best start is the feasible one with the lowest F.
+is transcribed with a complementarity mode (default Scholtes with a tiny t). The best start (the feasible one with
+the lowest F) is then polished on the branch its complementarity pattern selects (G_i = 0 or H_i = 0), a regular NLP
+whose solution satisfies complementarity exactly; another start is polished only if it still beats the polished one.
 
 IPOPT finds a local solution near its start. Option warm="hypergradient" (also for `relaxation`) first runs method
 `hypergradient` over the same starts and hands its answer to one IPOPT solve: a Newton-accurate KKT point at the
@@ -148,6 +148,37 @@ def polish(prep: Prepared, w: np.ndarray, options: dict[str, Any], limit: Deadli
     return run if run.status is Status.SOLVED else None
 
 
+POLISH_TIE = 1e-6
+"""polish_best polishes a further candidate only if it beats the polished one by more than this (relative)."""
+
+
+def polish_best(prep: Prepared, candidates: list[tuple[np.ndarray, float, float]], runs: list[NLPRun],
+                records: list[dict[str, Any]], options: dict[str, Any],
+                limit: Deadline | None = None) -> tuple[int, int]:
+    """Polish the best candidate on its MPCC branch, and again whichever candidate is best after that, until the best
+    is polished or its polish failed (a relaxed solve's objective is within its tau of its branch's, so this is
+    usually one polish, not one per start); candidates, runs and records are updated in place. The best's index and
+    the polishes' iterations."""
+    tried: set[int] = set()
+    iterations, polished = 0, None
+    while (i := best_of(candidates)) not in tried:
+        if polished is not None and candidates[i][1] >= candidates[polished][1] - POLISH_TIE * (
+                1.0 + abs(candidates[polished][1])):
+            return polished, iterations  # no better than the polished one beyond the relaxation's own accuracy
+        tried.add(i)
+        pol = polish(prep, candidates[i][0], options, limit)
+        if pol is None:
+            continue
+        iterations, polished = iterations + pol.iterations, i
+        res, old = residual(prep, pol.w), runs[i]
+        candidates[i] = (pol.w, pol.objective, res)
+        runs[i] = NLPRun(pol.w, pol.objective, pol.status, f"{old.raw_status}, polished",
+                         old.iterations + pol.iterations, old.trace)
+        records[i] |= {"status": runs[i].raw_status, "objective": pol.objective, "residual": res, "polished": True,
+                       "iterations": runs[i].iterations}
+    return i, iterations
+
+
 def warm_start(prep: Prepared, x0: np.ndarray) -> np.ndarray:
     """MPCC start from x0 with the lower level solved there; zeros for y and multipliers if it cannot be."""
     try:
@@ -262,30 +293,23 @@ def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
     points, source, warm = kkt_starts(prep, "ipopt", options, limit)
     nlp_opts = kkt_nlp_options(options, warm)
     nlp = prep.mpcc.transcribe(mode)
-    records, candidates, traces, total_iter = [], [], [], 0
+    records, candidates, traces = [], [], []
     for k, w0 in enumerate(points):
         if k and limit.expired():
             break
         t0 = time.perf_counter()
         run = run_nlp(nlp, w0, nlp_opts, limit=limit)
-        total_iter += run.iterations
-        final, polished = run, False
-        if options.get("polish", True) and prep.mpcc.pairs:
-            pol = polish(prep, run.w, nlp_opts, limit)
-            if pol is not None:
-                total_iter += pol.iterations
-                final, polished = NLPRun(pol.w, pol.objective, pol.status, f"{run.raw_status}, polished",
-                                         run.iterations + pol.iterations, run.trace), True
-        res = residual(prep, final.w)
-        candidates.append((final.w, final.objective, res))
-        traces.append(final)
-        records.append({"start": k, "x0": prep.point(w0).x.tolist(), "status": final.raw_status,
-                        "objective": final.objective, "residual": res, "polished": polished,
-                        "iterations": final.iterations, "time": time.perf_counter() - t0})
-        progress(options.get("verbose"), "ipopt", f"start {k + 1}/{len(points)}: {final.raw_status}, F = "
-                 f"{prep.declared(final.objective):.6g}, residual {res:.1e}{' (polished)' if polished else ''}, "
-                 f"{final.iterations} iterations")
-    i = best_of(candidates)
+        res = residual(prep, run.w)
+        candidates.append((run.w, run.objective, res))
+        traces.append(run)
+        records.append({"start": k, "x0": prep.point(w0).x.tolist(), "status": run.raw_status,
+                        "objective": run.objective, "residual": res, "polished": False,
+                        "iterations": run.iterations, "time": time.perf_counter() - t0})
+        progress(options.get("verbose"), "ipopt", f"start {k + 1}/{len(points)}: {run.raw_status}, F = "
+                 f"{prep.declared(run.objective):.6g}, residual {res:.1e}, {run.iterations} iterations")
+    i, _ = (polish_best(prep, candidates, traces, records, nlp_opts, limit)
+            if options.get("polish", True) and prep.mpcc.pairs else (best_of(candidates), 0))
+    total_iter = sum(r["iterations"] for r in records)
     best = traces[i]
     kept = kept_warm_point(prep, points, candidates[i], best.raw_status, total_iter, records,
                            {"mode": repr(mode), **warm})

@@ -2,7 +2,7 @@
 
 One NLP is transcribed once with the relaxation parameter as an NLP parameter; each step re-solves it
 from the previous step's primal and dual point. The sequence stops when the complementarity residual
-is below `comp_tol` (or t reaches `t_min`), then the point is polished on its MPCC branch.
+is below `comp_tol` (or t reaches `t_min`); the best start's point is then polished on its MPCC branch.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
 from .base import MethodRun, Prepared, best_of, check_options
 from .options import check_numbers
-from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish, residual, run_nlp, settled
+from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish_best, residual, run_nlp, settled
 from .limits import Deadline, deadline, progress, stopped
 
 SCHEMES: dict[str, type[ComplementarityMode]] = {
@@ -63,7 +63,7 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
     points, source, warm = kkt_starts(prep, "relaxation", options, limit)
     opts = kkt_nlp_options(options, warm)
     nlp = prep.mpcc.transcribe(mode)
-    candidates, finals, paths, records, total = [], [], [], [], 0
+    candidates, finals, paths, records = [], [], [], []
     for k, w0 in enumerate(points):
         if k and limit.expired():
             break
@@ -71,21 +71,18 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
         run, path = relaxation_path(prep, nlp, w0, opts, float(options.get("t0", 1.0)), factor,
                                     float(options.get("t_min", 1e-12)), float(options.get("comp_tol", 1e-7)), limit,
                                     verbose)
-        total += sum(p["iterations"] for p in path)
-        polished = polish(prep, run.w, opts, limit) if options.get("polish", True) and prep.mpcc.pairs else None
-        if polished is not None:
-            total += polished.iterations
-            run = polished
         res = residual(prep, run.w)
         candidates.append((run.w, run.objective, res))
         finals.append(run)
         paths.append(path)
         records.append({"start": k, "x0": prep.point(w0).x.tolist(), "status": path[-1]["status"],
-                        "objective": run.objective, "residual": res, "polished": polished is not None,
+                        "objective": run.objective, "residual": res, "polished": False,
                         "steps": len(path), "time": time.perf_counter() - t_start})
         progress(verbose, "relaxation", f"start {k + 1}/{len(points)}: {len(path)} steps, "
                  f"F = {prep.declared(run.objective):.6g}, residual {res:.1e}")
-    i = best_of(candidates)
+    i, polishing = (polish_best(prep, candidates, finals, records, opts, limit)
+                    if options.get("polish", True) and prep.mpcc.pairs else (best_of(candidates), 0))
+    total = sum(p["iterations"] for path in paths for p in path) + polishing
     kept = kept_warm_point(prep, points, candidates[i], f"{finals[i].status.value} after {len(paths[i])} relaxation "
                            "steps", total, records, {"scheme": scheme, **warm})
     run = kept if kept is not None else MethodRun(

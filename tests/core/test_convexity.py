@@ -210,13 +210,13 @@ def test_no_method_certifies_a_non_optimal_follower(seed: int, n_y: int, x_depen
 
 # -- item 3: a nonlinear lower level whose convexity is not proven ----------------------------------------------
 def _narrow_bump() -> bl.BilevelProblem:
-    """f = (y - x)^2 - 0.5 exp(-((y - 1.3)/0.003)^2): a dip 0.006 wide that the sampled check and the multistart
+    """f = (y - x)^2 - 0.5 exp(-((y - 1.3)/0.0003)^2): a dip 0.0006 wide that the sampled check and the multistart
     miss. At x = 1 the follower's optimum is y = 1.29999 (f = -0.41), not y = 1 (f = 0)."""
     p = bl.BilevelProblem("narrow-bump")
     x = p.upper_variable("x", lb=-1, ub=1)
     y = p.lower_variable("y", lb=-2, ub=2)
     p.minimize_upper((x - 1) ** 2 + (y - 1) ** 2)
-    p.minimize_lower((y - x) ** 2 - 0.5 * ca.exp(-((y - 1.3) / 0.003) ** 2))
+    p.minimize_lower((y - x) ** 2 - 0.5 * ca.exp(-((y - 1.3) / 0.0003) ** 2))
     return p
 
 
@@ -226,7 +226,7 @@ def test_narrow_nonconvexity_is_local_evidence_not_solved(method: str) -> None:
     assert res.status is not bl.Status.SOLVED
     ys = np.linspace(-2, 2, 400001)
     x = res.x["x"][0]
-    f = (ys - x) ** 2 - 0.5 * np.exp(-((ys - 1.3) / 0.003) ** 2)
+    f = (ys - x) ** 2 - 0.5 * np.exp(-((ys - 1.3) / 0.0003) ** 2)
     assert f.min() < res.lower_objective - 0.3  # the brute force shows why SOLVED would have been wrong
     if res.status is bl.Status.INACCURATE:
         assert LOCAL_EVIDENCE in res.message and not res.certificate.convexity_proven
@@ -263,3 +263,21 @@ def test_interval_enclosure_contains_sampled_values(seed: int) -> None:
     for _ in range(50):
         val = np.asarray(fun(rng.uniform(lo, hi))).ravel()
         assert np.all(val >= enc_lo - 1e-12 * (1 + np.abs(val))) and np.all(val <= enc_hi + 1e-12 * (1 + np.abs(val)))
+
+
+@pytest.mark.parametrize("lower, points", [
+    (lambda x, y: ca.sumsqr(y - x) + y[0] * y[1], "one"),  # Hessian constant in x and y: one point proves it
+    (lambda x, y: ca.sumsqr(y) * (2 + x[0] ** 2), "per x"),  # varies with x only: one y per upper sample
+    (lambda x, y: ca.sumsqr(y) + y[0] ** 4, "all"),  # varies with y: every (x, y) sample
+])
+def test_the_sampled_convexity_check_evaluates_where_the_hessian_varies(lower, points: str) -> None:
+    """The probe's points follow what the lower Hessian depends on (read from its expression)."""
+    p = bl.BilevelProblem()
+    x = p.upper_variable("x", 2, lb=-1, ub=1)
+    y = p.lower_variable("y", 2, lb=-3, ub=3)
+    p.minimize_upper(ca.sumsqr(y))
+    p.minimize_lower(lower(x, y))
+    probe = prepare(p).canon.lower.convexity_probe
+    n_x = len({id(xs) for xs, _ in probe.points})
+    assert {"one": len(probe.points) == 1, "per x": len(probe.points) == n_x > 1,
+            "all": len(probe.points) > n_x > 1}[points], (len(probe.points), n_x)

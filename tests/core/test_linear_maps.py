@@ -159,9 +159,11 @@ def test_sum_of_squares_reads_weights_and_refuses_other_forms() -> None:
     assert sum_of_squares(ca.sumsqr(y ** 2 - x), y) is None  # squares of expressions nonlinear in y
 
 
-def test_residual_form_matches_the_expression_form(monkeypatch) -> None:
+@pytest.mark.parametrize("bent", [False, True], ids=["affine data", "data nonlinear in x"])
+def test_residual_form_matches_the_expression_form(monkeypatch, bent: bool) -> None:
     """An ARX(2, 2) identification attack: the residual kind (forced on a small instance) and the expression kind
-    give the same hypergradient; the attack's answer is numpy's refit of the poisoned data."""
+    give the same hypergradient; the attack's answer is numpy's refit of the poisoned data. Regressors affine in the
+    poisoning are evaluated as one sparse product; bent ones (y + dy + dy^2) by the expressions."""
     rng = np.random.default_rng(0)
     T = 200
     u = rng.standard_normal(T)
@@ -173,7 +175,7 @@ def test_residual_form_matches_the_expression_form(monkeypatch) -> None:
         p = bl.BilevelProblem("arx")
         dy = p.upper_variable("dy", T)
         theta = p.lower_variable("theta", 4)
-        yp = y + dy
+        yp = y + dy + (dy ** 2 if bent else 0)
         reg = ca.horzcat(-yp[1:T - 1], -yp[0:T - 2], ca.DM(u[1:T - 1]), ca.DM(u[0:T - 2]))
         p.minimize_lower(ca.sumsqr(yp[2:] - ca.mtimes(reg, theta)))
         p.upper_constraint(ca.sumsqr(dy) <= (0.05 * np.linalg.norm(y)) ** 2)
@@ -184,13 +186,14 @@ def test_residual_form_matches_the_expression_form(monkeypatch) -> None:
     phi0, g0 = _phi_and_gradient(declare(), x)
     monkeypatch.setattr(residual, "RESIDUAL_FORM_SIZE", 0)
     p = declare()
-    assert isinstance(prepare(p).canon.lower, ResidualLeastSquares)
+    low = prepare(p).canon.lower
+    assert isinstance(low, ResidualLeastSquares) and (low._affine is None) == bent
     phi, g = _phi_and_gradient(p, x)
     assert phi == pytest.approx(phi0, rel=1e-10)
     assert np.abs(g - g0).max() <= 1e-9 * np.abs(g0).max()
     res = p.solve("hypergradient", starts=1)
     assert res.success and res.certificate.passed
-    yp = y + res.x["dy"]
+    yp = y + res.x["dy"] + (res.x["dy"] ** 2 if bent else 0)
     reg = np.column_stack([-yp[1:T - 1], -yp[0:T - 2], u[1:T - 1], u[0:T - 2]])
     refit = np.linalg.lstsq(reg, yp[2:], rcond=None)[0]
     assert np.abs(refit - res.y["theta"]).max() <= 1e-9 * (1 + np.abs(refit).max())

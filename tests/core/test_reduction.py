@@ -74,3 +74,28 @@ def test_max_upper_is_min_of_negated_upper() -> None:
     q.maximize_upper(-(x - 4 * y))
     rp, rq = p.solve(starts=4), q.solve(starts=4)
     assert rq.upper_objective == pytest.approx(-rp.upper_objective, abs=1e-7) == pytest.approx(12.0, abs=1e-7)
+
+
+def test_every_branch_of_an_mpcc_is_one_compiled_nlp_with_its_sides_as_bounds() -> None:
+    """Bard 5.1.1's branches: each is the same NLP (same rows, one IPOPT build) with the sides in the row bounds, and
+    solving it holds the chosen side of every pair at zero."""
+    from bilevel.mpcc import Branch
+    from bilevel.solvers.ipopt import run_nlp
+
+    prep = prepare(bard_511())
+    mpcc = prep.mpcc
+    w = prep.pack(prep.lower_point(np.array([4.0])))
+    pairs = mpcc.pair_values(w)
+    first = {name: G <= H for name, (G, H) in pairs.items()}
+    flipped = {name: side.copy() for name, side in first.items()}
+    flipped["lower"][2] = False  # a neighbouring branch (the third lower constraint's multiplier held at zero instead)
+    options = {"ipopt": {"print_level": 0, "bound_relax_factor": 0.0}, "print_time": False}
+    forms = [mpcc.transcribe(Branch(sides=s)) for s in (first, flipped)]
+    assert forms[0].g is forms[1].g and not np.array_equal(forms[0].ubg, forms[1].ubg)
+    for sides, form in zip((first, flipped), forms):
+        run = run_nlp(form, w, options)
+        assert run.status is bl.Status.SOLVED
+        for name, (G, H) in mpcc.pair_values(run.w).items():
+            held = np.where(sides[name], G, H)
+            assert np.abs(held).max() <= 1e-8, (name, held)
+    assert len(mpcc._nlps) == 1 and len(next(iter(mpcc._nlps.values()))._solvers) == 1
