@@ -9,6 +9,7 @@ the implicit derivative's x-adjoint is the transposed product, or one reverse sw
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -29,7 +30,7 @@ def sum_of_squares(f: ca.SX, y: ca.SX) -> tuple[ca.SX, ca.SX] | None:
     """(r, c) with f = 1/2 ||r||^2 + c, r affine in y and c free of y, read from f's top-level sum of weighted squares
     (a least squares); None if f is not of that form (a term with y that is not a square, a square with a negative
     weight, or a squared expression nonlinear in y)."""
-    rows, rest, stack = [], [], [(f, 1.0)]
+    rows, scales, rest, stack = [], [], [], [(f, 1.0)]
     while stack:
         e, w = stack.pop()
         if e.is_constant():
@@ -47,14 +48,18 @@ def sum_of_squares(f: ca.SX, y: ca.SX) -> tuple[ca.SX, ca.SX] | None:
             if w < 0:
                 return None
             if w > 0:
-                rows.append(np.sqrt(2.0 * w) * e.dep(0))
+                rows.append(e.dep(0))
+                scales.append(math.sqrt(2.0 * w))
         elif ca.depends_on(e, y):
             return None
         else:
             rest.append(w * e)
-    if not rows or any(ca.which_depends(ca.vertcat(*rows), y, 2, False)):
+    if not rows:
         return None
-    return ca.vertcat(*rows), (ca.sum1(ca.vertcat(*rest)) if rest else ca.SX(0.0))
+    r = ca.vertcat(*rows)
+    if any(ca.which_depends(r, y, 2, False)):
+        return None
+    return r * ca.DM(scales), (ca.sum1(ca.vertcat(*rest)) if rest else ca.SX(0.0))  # one elementwise product
 
 
 @dataclass
