@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..ddc.bases import Basis, basis_polynomials
-from ..ddc.systems import SystemLike, num_den
+from .bases import Basis, basis_polynomials
+from .systems import SystemLike, num_den
 from ..errors import InvalidData, RankDeficientRegressor
 
 
