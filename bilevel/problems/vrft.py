@@ -35,25 +35,40 @@ def _recursion(op: LTIOperator, x: ca.SX) -> tuple[ca.SX, np.ndarray, np.ndarray
     return (ca.vertcat(x, ca.SX.zeros(d)) if d else x), op._b / op.den[0], op.den / op.den[0]
 
 
+def _delayed(v: ca.SX, j: int) -> ca.SX:
+    """v delayed by j samples (zeros first), of the same length."""
+    n = int(v.numel())
+    return v if j == 0 else ca.vertcat(ca.SX.zeros(min(j, n)), v[: max(n - j, 0)])
+
+
+def _fir(coefficients: np.ndarray, v: ca.SX) -> ca.SX:
+    """sum_j c_j v(t - j) over the record (zero before it), as whole-vector operations."""
+    out = ca.SX.zeros(int(v.numel()))
+    for j, c in enumerate(coefficients):
+        if c != 0 and j < v.numel():
+            out = out + c * _delayed(v, j)
+    return out
+
+
 def sx_filter(op: LTIOperator, x: ca.SX) -> ca.SX:
     """The operator's response to an SX signal over the record and its advance, by its difference equation
-    (O(N order) nodes; the first `advance` samples precede the record)."""
+    (O(N order) nodes; the first `advance` samples precede the record): the input taps as vector operations, the
+    output recursion as one CasADi step function accumulated over the record."""
     src, b, a = _recursion(op, x)
-    out: list[ca.SX] = []
-    for t in range(int(src.numel())):
-        acc = sum(b[j] * src[t - j] for j in range(b.size) if t - j >= 0 and b[j] != 0)
-        acc = acc - sum(a[j] * out[t - j] for j in range(1, a.size) if t - j >= 0 and a[j] != 0)
-        out.append(ca.SX(acc))
-    return ca.vertcat(*out)
+    u = _fir(b, src)
+    na = a.size - 1
+    if na == 0:
+        return u
+    s, ut = ca.SX.sym("s", na), ca.SX.sym("u")
+    y = ut - sum(a[j] * s[j - 1] for j in range(1, a.size) if a[j] != 0)
+    step = ca.Function("step", [s, ut], [ca.vertcat(y, s[0:na - 1]) if na > 1 else y, y])
+    return step.mapaccum("filter", int(src.numel()))(ca.SX.zeros(na), u.T)[1].T
 
 
 def difference_equation(op: LTIOperator, x: ca.SX, z: ca.SX) -> ca.SX:
     """a(q) z - b(q) x, zero exactly where z = sx_filter(op, x): banded in (x, z)."""
     src, b, a = _recursion(op, x)
-    rows = [sum(a[j] * z[t - j] for j in range(a.size) if t - j >= 0 and a[j] != 0)
-            - sum(b[j] * src[t - j] for j in range(b.size) if t - j >= 0 and b[j] != 0)
-            for t in range(int(src.numel()))]
-    return ca.vertcat(*[ca.SX(r) for r in rows])
+    return _fir(a, z) - _fir(b, src)
 
 
 def filtered(problem: BilevelProblem, name: str, op: LTIOperator, x: ca.SX) -> ca.SX:
