@@ -10,7 +10,8 @@ saved with `save_attack`).
 
 from ..ddc.loop import LoopPolynomial, arx_orders_for, fit_arx
 from ..problems.budget import Budget
-from ..problems.vrft_instance import PAPER_THETA0, VRFTAttack, VRFTSetting, attack_instance, flexible_transmission_setting
+from ..problems.vrft_instance import (PAPER_THETA0, VRFTAttack, VRFTSetting, attack_instance,
+                                      flexible_transmission_setting)
 from .outcome import unstable
 from .vrft_methods import (ATTACKS, attack_alternating, attack_budget_path, attack_joint, attack_summary,
                            attack_value, attack_white_noise, save_attack)

@@ -191,8 +191,9 @@ def attack(atk: VRFTAttack, method: str | Callable[..., MethodRun], warm_start: 
         options["starts"] = options.get("starts", 1) + 1
     fn = method if callable(method) else METHODS[method]
     result = solve(problem, method=fn, **{k: v for k, v in options.items() if v is not None})
-    return dataclasses.replace(result, method=method if isinstance(method, str) else result.method, wall_time=time.perf_counter() - t0,
-                               stats={**result.stats, **atk.stats(result.y["theta"])})
+    stats = {**result.stats, **atk.stats(result.y["theta"])}
+    return dataclasses.replace(result, method=method if isinstance(method, str) else result.method,
+                               wall_time=time.perf_counter() - t0, stats=stats)
 
 
 def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int | None = None,
@@ -276,7 +277,8 @@ def save_attack(result: BilevelResult, atk: VRFTAttack, path: str) -> None:
                  value=attack_value(result))
 
 
-def input_step(atk: VRFTAttack, a_y: np.ndarray, a_u0: np.ndarray | None = None, iters: int = 30) -> tuple[np.ndarray, State]:
+def input_step(atk: VRFTAttack, a_y: np.ndarray, a_u0: np.ndarray | None = None,
+               iters: int = 30) -> tuple[np.ndarray, State]:
     """The best a_u for fixed a_y: exact (l2), monotone conditional gradient (max-min), or projected gradient."""
     b = atk.budget_u
     if atk.objective != "destabilize" and b.norm == "l2" and b.rho is None:

@@ -100,7 +100,7 @@ def declare(atk: VRFTAttack) -> BilevelProblem:
     p = BilevelProblem(f"vrft-{atk.objective}")
     signals = {}
     for name, budget, delta in (("a_u", atk.budget_u, atk.delta_u), ("a_y", atk.budget_y, atk.delta_y)):
-        box = {"lb": -delta, "ub": delta} if budget.norm == "linf" else {}  # a box: bounds, projected on by every method
+        box = {"lb": -delta, "ub": delta} if budget.norm == "linf" else {}  # bounds: every method projects on them
         signals[name] = p.upper_variable(name, N, **box)
     a_u, a_y = signals["a_u"], signals["a_y"]
     theta = p.lower_variable("theta", k, start=atk.theta0)
