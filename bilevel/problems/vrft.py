@@ -119,8 +119,9 @@ def declare(atk: VRFTAttack) -> BilevelProblem:
         elif budget.norm == "l1":
             p.upper_constraint(ca.sum1(ca.fabs(signals[f"a_{name}"])) <= p.parameter(f"delta_{name}"),
                                name=f"budget_{name}")
-    if atk.objective == "maxmin":
-        p.maximize_upper(ca.sumsqr(t0 - ca.mtimes(phi0, theta)) / rows)
+    if atk.objective == "maxmin":  # ||t0 - Phi0 theta||^2 by Phi0's Gram matrix: O(k^2) nodes, not O(N k)
+        gram, cross, energy = p.parameter("gram0", (k, k)), p.parameter("cross0", k), p.parameter("energy0")
+        p.maximize_upper((energy - 2 * ca.dot(cross, theta) + ca.bilin(gram, theta, theta)) / rows)
     elif atk.objective == "targeted":
         p.minimize_upper(ca.sumsqr(p.parameter("theta_target", k) - theta) / k)
     else:
@@ -203,6 +204,8 @@ def _load(problem: BilevelProblem, atk: VRFTAttack) -> None:
                              "declare the instance with attack_problem(atk)")
         if budget.norm != "linf":
             values[f"delta_{name}"] = delta
+    if "gram0" in declared:
+        values |= {"gram0": atk.gram0, "cross0": atk.cross0, "energy0": float(atk.t0 @ atk.t0)}
     if "theta_target" in declared:
         values["theta_target"] = atk.theta_target
     if "loop_base" in declared:
