@@ -57,16 +57,21 @@ def _budgets(atk: VRFTAttack) -> Projection:
 
 
 def _starts(prep: Prepared, atk: VRFTAttack, starts: int, seed: int, first: str) -> list[np.ndarray]:
-    """The engine's start points, projected onto the budgets (which it may not know: l1, sparsity); with first="zero"
-    the declared start (zero poisoning) first."""
+    """`starts` distinct points of the engine's start sequence, projected onto the budgets (which it may not know: l1,
+    sparsity): for l2 budgets its conditioning start repeats the suggested one. With first="zero" the declared start
+    (zero poisoning) comes first."""
     if first not in FIRST:
         raise ModelError(f"first start {first!r} is not one of {', '.join(FIRST)}")
-    rng = np.random.default_rng(seed)
-    points = start_points(prep, starts - 1, rng, 1.0) if first == "zero" else start_points(prep, starts, rng, 1.0)
-    if first == "zero":
-        points = [prep.canon.x_start, *points]
     project = _budgets(atk)
-    return [project(x) for x in points]
+    head = [prep.canon.x_start] if first == "zero" else []
+    for n in range(starts - len(head), starts + 3):  # the sequence's prefix is the same for every n (same seed)
+        points = list(head)
+        for x in map(project, start_points(prep, n, np.random.default_rng(seed), 1.0)):
+            if not any(np.allclose(x, p, rtol=1e-8, atol=1e-12) for p in points):
+                points.append(x)
+        if len(points) >= starts:
+            break
+    return points[:starts]
 
 
 def method_run(prep: Prepared, atk: VRFTAttack, s: State, converged: bool | None, message: str,
