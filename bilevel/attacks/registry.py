@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-from ..errors import UnknownName
 from ..problems.vrft_instance import attack_instance
 from ..result import BilevelResult
 from .vrft_methods import attack_alternating, attack_joint
@@ -40,10 +39,3 @@ STRUCTURED: dict[str, Attack] = {
     **{f"willems-{o}": _willems(o) for o in ("maxmin", "eigen", "destabilize")},
 }
 """Registered problem name -> its structured attack."""
-
-
-def structured_attack(name: str) -> Attack:
-    """The structured attack of registered problem `name`; UnknownName if it has none."""
-    if name not in STRUCTURED:
-        raise UnknownName(f"problem {name!r} has no structured attack; those that have one: {', '.join(STRUCTURED)}")
-    return STRUCTURED[name]
