@@ -30,7 +30,7 @@ from datetime import datetime, timezone
 import numpy as np
 
 import bilevel as bl
-from bilevel.attacks.vrft import attack_instance
+from bilevel.problems.vrft_instance import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating
 from bilevel.attacks.willems import hypergradient_attack
 from bilevel.problems.vrft import attack_problem, load_instance

@@ -25,7 +25,7 @@ import numpy as np
 from scipy.sparse.linalg import LinearOperator
 
 from bilevel import BilevelProblem
-from bilevel.attacks.vrft import attack_instance
+from bilevel.problems.vrft_instance import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating, attack_value
 
 

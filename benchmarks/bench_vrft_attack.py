@@ -22,7 +22,7 @@ from threadpoolctl import threadpool_limits
 sys.path.insert(0, os.path.dirname(__file__))
 from vrft_baseline import paper_baseline  # noqa: E402
 
-from bilevel.attacks.vrft import attack_instance  # noqa: E402
+from bilevel.problems.vrft_instance import attack_instance  # noqa: E402
 from bilevel.attacks.vrft_methods import (attack_alternating, attack_budget_path, attack_value,  # noqa: E402
                                           attack_white_noise, unstable)
 from bilevel.experiments.vrft import EPS_Y  # noqa: E402

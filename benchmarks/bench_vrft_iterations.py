@@ -14,7 +14,7 @@ from datetime import datetime, timezone
 
 import numpy as np
 
-from bilevel.attacks.vrft import attack_instance
+from bilevel.problems.vrft_instance import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating
 
 

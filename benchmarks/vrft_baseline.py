@@ -8,20 +8,20 @@ gamma of the budget along the normalized gradient (the paper leaves the step rul
 
 from __future__ import annotations
 
-import time
-
 import cvxpy as cp
 import dccp  # noqa: F401  (registers the "dccp" solve method on cvxpy problems)
 import numpy as np
 
-from bilevel.attacks.vrft import VRFTAttack
-from bilevel.attacks.vrft_methods import _result
+from bilevel.attacks.vrft import hypergradient, state
+from bilevel.attacks.vrft_methods import attack, method_run
+from bilevel.problems.vrft_instance import VRFTAttack
 from bilevel.result import BilevelResult
+from bilevel.solvers.base import MethodRun, Prepared
 
 
 def dccp_input_step(atk: VRFTAttack, a_y: np.ndarray, seed: int) -> np.ndarray:
     """max_a (1/n)||t0 - Phi0 P'(t' + targets(a))||^2 s.t. ||a||_2 <= delta_u, by DCCP (prefiltered data)."""
-    s = atk.state(np.zeros(atk.N), a_y)
+    s = state(atk, np.zeros(atk.N), a_y)
     pinv = np.linalg.solve(s.R, s.Q.T)  # theta' = pinv @ target'
     a = cp.Variable(atk.N)
     rows = atk.n
@@ -36,23 +36,27 @@ def paper_baseline(atk: VRFTAttack, seed: int = 0, eta: float = 1e-4, pga_steps:
     """Algorithm 1 as published: alternate a DCCP a_u-step and `pga_steps` fixed-step PGA steps on a_y."""
     if atk.objective != "maxmin" or atk.setting.data != "prefiltered":
         raise ValueError("the paper-style baseline covers the max-min attack on prefiltered data")
-    t0 = time.perf_counter()
-    proj = atk.budget_y.projection(atk.y)
-    a_u, a_y = np.zeros(atk.N), np.zeros(atk.N)
-    J = atk.value(atk.state(a_u, a_y).theta)
-    history, it, converged = [], 0, False
-    for it in range(1, max_outer + 1):
-        a_u = dccp_input_step(atk, a_y, seed + it)
-        for _ in range(pga_steps):
-            g = atk.hypergradient(atk.state(a_u, a_y))[1]
-            norm = np.linalg.norm(g)
-            if norm == 0:
+
+    def paper_baseline_method(prep: Prepared, **options: object) -> MethodRun:
+        proj = atk.budget_y.projection(atk.y)
+        a_u, a_y = np.zeros(atk.N), np.zeros(atk.N)
+        J = atk.value(state(atk, a_u, a_y).theta)
+        history, it, converged = [], 0, False
+        for it in range(1, max_outer + 1):
+            a_u = dccp_input_step(atk, a_y, seed + it)
+            for _ in range(pga_steps):
+                g = hypergradient(atk, state(atk, a_u, a_y))[1]
+                norm = np.linalg.norm(g)
+                if norm == 0:
+                    break
+                a_y = proj(a_y + gamma * atk.delta_y * g / norm)
+            J_new = atk.value(state(atk, a_u, a_y).theta)
+            history.append({"iter": it, "value": J_new})
+            if abs(J_new - J) < eta:
+                J, converged = J_new, True
                 break
-            a_y = proj(a_y + gamma * atk.delta_y * g / norm)
-        J_new = atk.value(atk.state(a_u, a_y).theta)
-        history.append({"iter": it, "value": J_new})
-        if abs(J_new - J) < eta:
-            J, converged = J_new, True
-            break
-        J = J_new
-    return _result(atk, "paper-baseline", converged, atk.state(a_u, a_y), t0, it, it * (pga_steps + 1), history)
+            J = J_new
+        return method_run(prep, atk, state(atk, a_u, a_y), converged, "converged" if converged else "max_outer reached",
+                          [{"start": 0, "iterations": it}], history, it * (pga_steps + 1))
+
+    return attack(atk, paper_baseline_method)

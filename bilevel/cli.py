@@ -177,7 +177,7 @@ def _vrft_params(args: argparse.Namespace) -> dict[str, object]:
 
 
 def _cmd_attack(args: argparse.Namespace) -> int:
-    from .attacks.vrft import attack_instance
+    from .problems.vrft_instance import attack_instance
     from .attacks.vrft_methods import ATTACKS, attack_budget_path, attack_summary, save_attack
     from .experiments.vrft import EPS_Y
 

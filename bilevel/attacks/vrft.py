@@ -1,108 +1,23 @@
-"""VRFT poisoning as a bilevel problem with a least-squares lower level, in fast structured form.
+"""The learner of a VRFT instance in structured form: its least-squares fit on poisoned data, the attacker's
+hypergradient by implicit differentiation, and the exact input step.
 
-Lower level (learner): theta(u', y') = argmin ||t(u') - Phi(y') theta||^2 with Phi linear in y'
-(bilevel.ddc.vrft). Upper level (attacker): maximize J(theta(u + a_u, y + a_y)) over budgets on
-a_u, a_y. J is one of
-  "maxmin"      (1/n) ||t(u) - Phi(y) theta||^2, the learner's loss on clean data (paper, eq. op_maxmin);
-  "targeted"    -(1/nk) ||theta_a - theta||^2 (paper appendix A; maximizing minus the distance);
-  "destabilize" a smooth max of the closed-loop pole moduli of an ARX model the attacker fits
-                from the clean data (it does not know the plant).
-Everything is O(N nk) per evaluation: Phi by filtering, theta by a thin QR, gradients by adjoints.
+Everything is O(N nk) per evaluation: Phi by filtering, theta by a thin QR, gradients by adjoints
+(the instance, its data and objective: bilevel.problems.vrft_instance).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cache, cached_property
-from typing import Literal
 
 import numpy as np
 import scipy.linalg
 import scipy.linalg.lapack
 
-from ..ddc.bases import Basis, flexible_transmission_basis
-from ..ddc.data import paper_input, simulate
-from ..ddc.operators import LTIOperator
-from ..ddc.plants import flexible_transmission, flexible_transmission_prefilter, flexible_transmission_reference
-from ..ddc.systems import SystemLike, num_den
-from ..ddc.vrft import VRFTRegressor, least_squares, thin_qr, vrft_regressor
-from ..errors import InvalidData, ModelError, RankDeficientRegressor
+from ..ddc.vrft import thin_qr
+from ..errors import ModelError, RankDeficientRegressor
 from ..lower.least_squares import factor_solve
-from .budget import Budget
-from .spectral import LoopPolynomial, arx_orders_for, fit_arx
+from ..problems.vrft_instance import VRFTAttack
 from ..solvers.block_exact import quadratic_block_step
-from ..solvers.options import check_common_options
-
-Objective = Literal["maxmin", "targeted", "destabilize"]
-DataConvention = Literal["prefiltered", "raw"]
-
-
-@dataclass(frozen=True)
-class VRFTSetting:
-    """The learner's design: plant (for evaluation only), M_r, basis, L, data convention, boundary.
-
-    data="prefiltered": the recorded (u, y) are already filtered by L and the learner regresses on them
-    (the paper's assumption); data="raw": the learner filters by L itself. boundary: see ddc.vrft.
-    """
-
-    plant: SystemLike
-    reference: SystemLike
-    basis: Basis
-    prefilter: SystemLike
-    data: DataConvention = "prefiltered"
-    boundary: Literal["zero-final", "drop"] = "zero-final"
-
-    def __post_init__(self) -> None:
-        if self.data not in ("prefiltered", "raw"):
-            raise ModelError(f"data convention {self.data!r} is not 'prefiltered' or 'raw'")
-
-    @cached_property
-    def regressor(self) -> VRFTRegressor:
-        return vrft_regressor(self.reference, self.basis, None if self.data == "prefiltered" else self.prefilter,
-                              self.boundary)
-
-    @cached_property
-    def loop(self) -> LoopPolynomial:
-        """Closed loop of the true plant (used to judge stability, never by the attacker)."""
-        return LoopPolynomial.of(self.plant, self.basis)
-
-    @cached_property
-    def _filters(self) -> tuple[tuple[np.ndarray, np.ndarray], LTIOperator]:
-        """The plant's (num, den) and L's filter, read once: a setting records many data sets."""
-        return num_den(self.plant), LTIOperator(self.prefilter)
-
-    def recorded(self, u_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The data set the learner receives for plant input u_raw (filtered by L if prefiltered)."""
-        plant, pre = self._filters
-        y_raw = simulate(plant, u_raw)
-        if self.data == "raw":
-            return np.asarray(u_raw, dtype=float), y_raw
-        return pre.apply(u_raw), pre.apply(y_raw)
-
-
-def flexible_transmission_setting(data: DataConvention = "prefiltered",
-                                  boundary: Literal["zero-final", "drop"] = "zero-final") -> VRFTSetting:
-    """The paper's VRFT example: Landau's flexible transmission, M_r with a = e^-0.5, L = (1-M_r)M_r."""
-    return VRFTSetting(flexible_transmission(), flexible_transmission_reference(),
-                       flexible_transmission_basis(), flexible_transmission_prefilter(), data, boundary)
-
-
-CONVENTIONS = {
-    "paper": ("prefiltered", "zero-final"),
-    "prefiltered-drop": ("prefiltered", "drop"),
-    "raw": ("raw", "zero-final"),
-    "raw-drop": ("raw", "drop"),
-}
-"""Data convention and virtual-reference boundary handling; "paper" is the paper's (Sec. 4.1, Lemma 1)."""
-
-PAPER_THETA0 = np.array([0.33, -0.61, 0.72, -0.66, 0.48, -0.13])
-"""theta_0 of Campi et al. (2002) as quoted by the paper; its targeted attack aims at 3 * theta_0."""
-
-
-def scenario_data(setting: VRFTSetting, scenario: Literal["A", "B"], n: int = 512,
-                  rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Recorded (u, y) of the paper's scenario A (step on [5, 15]) or B (white noise, needs rng)."""
-    return setting.recorded(paper_input(scenario, n, rng))
 
 
 @dataclass
@@ -118,187 +33,80 @@ class State:
     Q: np.ndarray
 
 
-@dataclass
-class VRFTAttack:
-    """One attack instance: clean data, the learner, budgets and the attacker's objective.
+def state(atk: VRFTAttack, a_u: np.ndarray, a_y: np.ndarray) -> State:
+    """The learner's least-squares fit on (u + a_u, y + a_y)."""
+    reg = atk.setting.regressor
+    target = atk.t0 + reg.targets(a_u) if np.any(a_u) else atk.t0
+    return _fit(atk, a_u, a_y, target)
 
-    A budget given as a number eps means Budget(eps): ||a||_2 <= eps * ||signal||_2.
+
+def _fit(atk: VRFTAttack, a_u: np.ndarray, a_y: np.ndarray, target: np.ndarray) -> State:
+    """Thin QR of Phi(y + a_y) and theta' for the given targets."""
+    phi = atk.phi0 + atk.setting.regressor(a_y) if np.any(a_y) else atk.phi0
+    Q, R = thin_qr(phi)
+    theta, info = scipy.linalg.lapack.dtrtrs(R, Q.T @ target)  # R theta = Q't (LAPACK directly: once per step)
+    if info != 0:
+        raise RankDeficientRegressor(f"the poisoned regressor Phi' has rank below {R.shape[1]} (R[{info - 1}, "
+                                     f"{info - 1}] = 0): the learner's least squares has no unique solution")
+    return State(a_u, a_y, phi, target, theta, R, Q)
+
+
+def targets_adjoint(atk: VRFTAttack, g: np.ndarray) -> np.ndarray:
+    """Adjoint of a -> targets(a) (applied to a vector or to columns): pad the dropped rows, then L^T."""
+    reg = atk.setting.regressor
+    padded = np.concatenate([g, np.zeros((atk.N - g.shape[0],) + g.shape[1:])])
+    return padded if reg.prefilter is None else reg.prefilter.adjoint(padded)
+
+
+def hypergradient(atk: VRFTAttack, s: State) -> tuple[np.ndarray, np.ndarray]:
+    """(dJ/da_u, dJ/da_y) at state s, by implicit differentiation of the normal equations.
+
+    With w = (Phi'^T Phi')^{-1} dJ/dtheta and r' = t' - Phi' theta':
+    dJ/da_u = targets^T (Phi' w),  dJ/da_y = sum_i T_i^T (w_i r' - theta'_i Phi' w).
     """
-
-    setting: VRFTSetting
-    u: np.ndarray
-    y: np.ndarray
-    budget_u: Budget | float
-    budget_y: Budget | float
-    objective: Objective = "maxmin"
-    theta_target: np.ndarray | None = None
-    arx_orders: tuple[int, int, int] = (4, 2, 3)
-    surrogate_beta: float = 50.0
-
-    def __post_init__(self) -> None:
-        try:
-            self.u = np.asarray(self.u, dtype=float)
-            self.y = np.asarray(self.y, dtype=float)
-        except (TypeError, ValueError):
-            raise InvalidData("attack data u and y must be arrays of real numbers") from None
-        if self.u.shape != self.y.shape or self.u.ndim != 1:
-            raise InvalidData(f"u and y must be 1-D of equal length, got {self.u.shape} and {self.y.shape}")
-        if not (np.all(np.isfinite(self.u)) and np.all(np.isfinite(self.y))):
-            raise InvalidData("attack data contain NaN or inf")
-        self.budget_u, self.budget_y = Budget.of(self.budget_u), Budget.of(self.budget_y)
-        if self.objective not in ("maxmin", "targeted", "destabilize"):
-            raise ModelError(f"objective {self.objective!r} is not maxmin, targeted or destabilize")
-        reg = self.setting.regressor
-        if reg.rows(self.u.size) <= reg.n_params:
-            raise InvalidData(f"{self.u.size} samples give {max(reg.rows(self.u.size), 0)} regression rows for "
-                              f"{reg.n_params} controller parameters; the learner needs more rows than parameters: "
-                              "record a longer experiment")
-        self.phi0 = reg(self.y)
-        self.t0 = reg.targets(self.u)
-        self.n = self.t0.size
-        self.theta0 = least_squares(self.phi0, self.t0)[0]
-        self.gram0, self.cross0 = self.phi0.T @ self.phi0, self.phi0.T @ self.t0  # the max-min loss in O(nk^2)
-        if self.objective == "targeted":
-            if self.theta_target is None:
-                raise ModelError("the targeted attack needs theta_target (the paper uses 3 * theta_0)")
-            try:
-                self.theta_target = np.asarray(self.theta_target, dtype=float)
-            except (TypeError, ValueError):
-                raise InvalidData("theta_target must be an array of real numbers") from None
-            if self.theta_target.shape != (reg.n_params,) or not np.all(np.isfinite(self.theta_target)):
-                raise InvalidData(f"theta_target must be {reg.n_params} finite numbers (one per basis function), "
-                                  f"got shape {self.theta_target.shape}; e.g. 3 * PAPER_THETA0")
-        self.delta_u = self.budget_u.radius(self.u)
-        self.delta_y = self.budget_y.radius(self.y)
-        if self.objective == "destabilize":
-            try:
-                num, den = fit_arx(self.u, self.y, *self.arx_orders)
-            except RankDeficientRegressor as err:
-                raise RankDeficientRegressor(
-                    f"the destabilize objective's ARX model with arx_orders={tuple(self.arx_orders)} (na, nb, delay) "
-                    f"is rank-deficient on these data ({err}); pass VRFTAttack(..., arx_orders=...), e.g. "
-                    f"arx_orders={arx_orders_for(self.u, self.y)} (chosen from the data by "
-                    "bilevel.attacks.arx_orders_for: least AIC among full-rank orders)") from err
-            self.model_loop = LoopPolynomial.of((num, den), self.setting.basis)
-
-    @property
-    def N(self) -> int:
-        return self.u.size
-
-    # -- the lower level -------------------------------------------------------------------------
-    def state(self, a_u: np.ndarray, a_y: np.ndarray) -> State:
-        """The learner's least-squares fit on (u + a_u, y + a_y)."""
-        reg = self.setting.regressor
-        target = self.t0 + reg.targets(a_u) if np.any(a_u) else self.t0
-        return self._fit(a_u, a_y, target)
-
-    def _fit(self, a_u: np.ndarray, a_y: np.ndarray, target: np.ndarray) -> State:
-        """Thin QR of Phi(y + a_y) and theta' for the given targets."""
-        phi = self.phi0 + self.setting.regressor(a_y) if np.any(a_y) else self.phi0
-        Q, R = thin_qr(phi)
-        theta, info = scipy.linalg.lapack.dtrtrs(R, Q.T @ target)  # R theta = Q't (LAPACK directly: once per step)
-        if info != 0:
-            raise RankDeficientRegressor(f"the poisoned regressor Phi' has rank below {R.shape[1]} (R[{info - 1}, "
-                                         f"{info - 1}] = 0): the learner's least squares has no unique solution")
-        return State(a_u, a_y, phi, target, theta, R, Q)
-
-    def targets_adjoint(self, g: np.ndarray) -> np.ndarray:
-        """Adjoint of a -> targets(a) (applied to a vector or to columns): pad the dropped rows, then L^T."""
-        reg = self.setting.regressor
-        padded = np.concatenate([g, np.zeros((self.N - g.shape[0],) + g.shape[1:])])
-        return padded if reg.prefilter is None else reg.prefilter.adjoint(padded)
-
-    # -- the upper level -------------------------------------------------------------------------
-    def value(self, theta: np.ndarray) -> float:
-        """Attacker objective J(theta) (to maximize)."""
-        if self.objective == "maxmin":
-            r = self.t0 - self.phi0 @ theta
-            return float(r @ r / self.n)
-        if self.objective == "targeted":
-            d = self.theta_target - theta
-            return -float(d @ d / d.size)
-        return self.model_loop.surrogate(theta, self.surrogate_beta)[0]
-
-    def grad_theta(self, theta: np.ndarray) -> np.ndarray:
-        """dJ/dtheta."""
-        if self.objective == "maxmin":
-            return -2.0 / self.n * (self.cross0 - self.gram0 @ theta)
-        if self.objective == "targeted":
-            return 2.0 / theta.size * (self.theta_target - theta)
-        return self.model_loop.surrogate(theta, self.surrogate_beta)[1]
-
-    def hypergradient(self, s: State) -> tuple[np.ndarray, np.ndarray]:
-        """(dJ/da_u, dJ/da_y) at state s, by implicit differentiation of the normal equations.
-
-        With w = (Phi'^T Phi')^{-1} dJ/dtheta and r' = t' - Phi' theta':
-        dJ/da_u = targets^T (Phi' w),  dJ/da_y = sum_i T_i^T (w_i r' - theta'_i Phi' w).
-        """
-        w = factor_solve(s.R, self.grad_theta(s.theta))  # (R'R)^{-1} g, R'R = Phi'^T Phi'
-        pw = s.phi @ w
-        residual = s.target - s.phi @ s.theta
-        g_y = self.setting.regressor.adjoint(residual[:, None] * w - pw[:, None] * s.theta)
-        return self.targets_adjoint(pw), g_y
-
-    # -- exact a_u step (l2, no sparsity) --------------------------------------------------------
-    def best_input_attack(self, a_y: np.ndarray) -> tuple[np.ndarray, State]:
-        """Globally optimal a_u for fixed a_y when J is quadratic in theta and the budget is a plain l2 ball.
-
-        theta' = theta'_0 + S v and a_u = B v with ||a_u|| = ||v||, where Phi' = QR, W = targets^T Q,
-        S = R^{-1} (W'W)^{1/2}, B = W (W'W)^{-1/2}; a k-dimensional trust-region subproblem in v.
-        """
-        if self.objective == "destabilize" or self.budget_u.norm != "l2" or self.budget_u.rho is not None:
-            raise ModelError("the exact input step needs a quadratic objective (maxmin/targeted) and a plain l2 "
-                             "budget on a_u; use the conditional-gradient step otherwise")
-        zero = np.zeros(self.N)
-        s0 = self._fit(zero, a_y, self.t0)
-        if self.delta_u == 0:
-            return zero, s0
-        reg = self.setting.regressor
-        if reg.prefilter is None:  # targets(a) = a[:n]: W = [Q; 0] has orthonormal columns already
-            S = scipy.linalg.lapack.dtrtri(s0.R)[0]  # R^{-1}
-            B = None
-        else:
-            W = self.targets_adjoint(s0.Q)
-            lam, V = np.linalg.eigh(W.T @ W)
-            lam = np.maximum(lam, 1e-14 * lam.max())
-            S = scipy.linalg.solve_triangular(s0.R, (V * np.sqrt(lam)) @ V.T)
-            B = W @ ((V / np.sqrt(lam)) @ V.T)
-        # theta = s0.theta + S v over ||v|| <= delta_u: the framework's exact block step on -J (quadratic in theta)
-        if self.objective == "maxmin":  # J = ||t0 - Phi0 theta||^2 / n, via Phi0's Gram matrix
-            grad, hess = -2.0 * (self.cross0 - self.gram0 @ s0.theta) / self.n, 2.0 * self.gram0 / self.n
-        else:  # J = -||theta_a - theta||^2 / k
-            k = self.theta_target.size
-            grad, hess = 2.0 * (self.theta_target - s0.theta) / k, -2.0 * np.eye(k) / k
-        v = quadratic_block_step(S, -grad, -hess, self.delta_u)
-        if B is None:  # a_u = [Q v; 0] and targets(a_u) = Q v
-            qv = s0.Q @ v
-            a_u = zero
-            a_u[: self.n] = qv
-            target = s0.target + qv
-        else:
-            a_u = B @ v
-            target = s0.target + reg.targets(a_u)
-        return a_u, State(a_u, a_y, s0.phi, target, s0.theta + S @ v, s0.R, s0.Q)
+    w = factor_solve(s.R, atk.grad_theta(s.theta))  # (R'R)^{-1} g, R'R = Phi'^T Phi'
+    pw = s.phi @ w
+    residual = s.target - s.phi @ s.theta
+    g_y = atk.setting.regressor.adjoint(residual[:, None] * w - pw[:, None] * s.theta)
+    return targets_adjoint(atk, pw), g_y
 
 
-@cache
-def _convention_setting(convention: str) -> VRFTSetting:
-    """flexible_transmission_setting of a convention, built once per process (its regressor and loop with it)."""
-    return flexible_transmission_setting(*CONVENTIONS[convention])
+def best_input_attack(atk: VRFTAttack, a_y: np.ndarray) -> tuple[np.ndarray, State]:
+    """Globally optimal a_u for fixed a_y when J is quadratic in theta and the budget is a plain l2 ball.
 
-
-def attack_instance(objective: Objective, scenario: Literal["A", "B"] = "B", eps_u: float = 0.1,
-                    eps_y: float = 0.057, seed: int = 0, N: int = 512, convention: str = "paper",
-                    norm: str = "l2") -> VRFTAttack:
-    """The paper's flexible-transmission attack instance (data drawn with default_rng(seed))."""
-    if convention not in CONVENTIONS:
-        raise ModelError(f"convention {convention!r} is not one of {', '.join(CONVENTIONS)}")
-    check_common_options({"seed": seed})
-    setting = _convention_setting(convention)
-    reg = setting.regressor
-    if not isinstance(N, (int, np.integer)) or isinstance(N, bool) or reg.rows(int(N)) <= reg.n_params:
-        raise InvalidData(f"N={N!r} samples: the learner needs more regression rows than its {reg.n_params} "
-                          "parameters; pass an integer N of at least a few dozen (the paper uses 512)")
-    u, y = scenario_data(setting, scenario, N, np.random.default_rng(seed))
-    target = 3 * PAPER_THETA0 if objective == "targeted" else None
-    return VRFTAttack(setting, u, y, Budget(eps_u, norm), Budget(eps_y, norm), objective, target)
+    theta' = theta'_0 + S v and a_u = B v with ||a_u|| = ||v||, where Phi' = QR, W = targets^T Q,
+    S = R^{-1} (W'W)^{1/2}, B = W (W'W)^{-1/2}; a k-dimensional trust-region subproblem in v.
+    """
+    if atk.objective == "destabilize" or atk.budget_u.norm != "l2" or atk.budget_u.rho is not None:
+        raise ModelError("the exact input step needs a quadratic objective (maxmin/targeted) and a plain l2 "
+                         "budget on a_u; use the conditional-gradient step otherwise")
+    zero = np.zeros(atk.N)
+    s0 = _fit(atk, zero, a_y, atk.t0)
+    if atk.delta_u == 0:
+        return zero, s0
+    reg = atk.setting.regressor
+    if reg.prefilter is None:  # targets(a) = a[:n]: W = [Q; 0] has orthonormal columns already
+        S = scipy.linalg.lapack.dtrtri(s0.R)[0]  # R^{-1}
+        B = None
+    else:
+        W = targets_adjoint(atk, s0.Q)
+        lam, V = np.linalg.eigh(W.T @ W)
+        lam = np.maximum(lam, 1e-14 * lam.max())
+        S = scipy.linalg.solve_triangular(s0.R, (V * np.sqrt(lam)) @ V.T)
+        B = W @ ((V / np.sqrt(lam)) @ V.T)
+    # theta = s0.theta + S v over ||v|| <= delta_u: the framework's exact block step on -J (quadratic in theta)
+    if atk.objective == "maxmin":  # J = ||t0 - Phi0 theta||^2 / n, via Phi0's Gram matrix
+        grad, hess = -2.0 * (atk.cross0 - atk.gram0 @ s0.theta) / atk.n, 2.0 * atk.gram0 / atk.n
+    else:  # J = -||theta_a - theta||^2 / k
+        k = atk.theta_target.size
+        grad, hess = 2.0 * (atk.theta_target - s0.theta) / k, -2.0 * np.eye(k) / k
+    v = quadratic_block_step(S, -grad, -hess, atk.delta_u)
+    if B is None:  # a_u = [Q v; 0] and targets(a_u) = Q v
+        qv = s0.Q @ v
+        a_u = zero
+        a_u[: atk.n] = qv
+        target = s0.target + qv
+    else:
+        a_u = B @ v
+        target = s0.target + reg.targets(a_u)
+    return a_u, State(a_u, a_y, s0.phi, target, s0.theta + S @ v, s0.R, s0.Q)

@@ -13,6 +13,7 @@ import os
 from dataclasses import asdict, dataclass, fields
 from typing import Any, Callable, Sequence
 
+from ..attacks.registry import STRUCTURED as STRUCTURED_ATTACKS
 from ..errors import ModelError
 from ..files import atomic_open
 from ..problems import registry
@@ -92,11 +93,11 @@ def not_applicable(name: str, method: str, starts: int, seed: int) -> CompareRow
 
 def compare_task(task: dict[str, Any]) -> dict[str, Any]:
     """One (problem, method) run described by a sweep task; the CompareRow's fields (not_applicable when the
-    method rejects the problem as outside its scope). Method STRUCTURED runs the problem's own attack (its
-    registered `attack`, a BilevelResult like any method's), where it has one."""
+    method rejects the problem as outside its scope). Method STRUCTURED runs the problem's own attack
+    (bilevel.attacks.registry, a BilevelResult like any method's), where it has one."""
     outside = asdict(not_applicable(task["problem"], task["method"], task["starts"], task["seed"]))
     if task["method"] == STRUCTURED:
-        attack = registry.spec(task["problem"]).attack
+        attack = STRUCTURED_ATTACKS.get(task["problem"])
         if attack is None or task["options"]:  # no attack of its own; the attacks take no method options
             return outside
         result = attack(starts=task["starts"], seed=task["seed"], **task["params"])

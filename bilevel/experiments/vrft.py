@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..attacks.vrft import CONVENTIONS, VRFTAttack, attack_instance
+from ..problems.vrft_instance import CONVENTIONS, VRFTAttack, attack_instance
 from ..attacks.vrft_methods import ATTACKS, MAX_ITER, attack_budget_path, attack_summary
 from ..files import atomic_open
 from .stats import mean_interval, wilson_interval

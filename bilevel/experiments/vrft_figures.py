@@ -15,7 +15,7 @@ from ..attacks.vrft_methods import ATTACKS  # noqa: E402
 from ..ddc.analysis import closed_loop_bode, closed_loop_step  # noqa: E402
 from ..ddc.bases import controller_tf  # noqa: E402
 from ..ddc.data import simulate  # noqa: E402
-from ..attacks.vrft import CONVENTIONS, PAPER_THETA0  # noqa: E402
+from ..problems.vrft_instance import CONVENTIONS, PAPER_THETA0  # noqa: E402
 from ..files import atomic_path  # noqa: E402
 from .vrft import EPS_U, EPS_Y, PAPER_TABLE1, make_attack, sim_seeds, table_markdown  # noqa: E402
 

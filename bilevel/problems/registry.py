@@ -13,7 +13,6 @@ from typing import Any, Callable
 
 from ..errors import BilevelError, ModelError, UnknownName, did_you_mean
 from ..model import BilevelProblem
-from ..result import BilevelResult
 
 
 @dataclass(frozen=True)
@@ -29,9 +28,6 @@ class ProblemSpec:
     tags: tuple[str, ...] = ()
     description: str = ""
     defaults: dict[str, Any] = field(default_factory=dict)
-    attack: Callable[..., BilevelResult] | None = None
-    """The problem's structured attack, attack(starts=, seed=, **params) -> BilevelResult (`bilevel compare`'s
-    method "structured"), for the attack problems that have one."""
 
 
 _REGISTRY: dict[str, ProblemSpec] = {}
@@ -39,7 +35,7 @@ _REGISTRY: dict[str, ProblemSpec] = {}
 
 def register(name: str, *, source: str, optimum: float | None = None, solution: dict[str, Any] | None = None,
              lower_optimum: float | None = None, tags: tuple[str, ...] = (), description: str = "",
-             defaults: dict[str, Any] | None = None, attack: Callable[..., BilevelResult] | None = None
+             defaults: dict[str, Any] | None = None
              ) -> Callable[[Callable[..., BilevelProblem]], Callable[..., BilevelProblem]]:
     """Decorator registering a problem builder under `name` with its known optimum and source."""
 
@@ -48,7 +44,7 @@ def register(name: str, *, source: str, optimum: float | None = None, solution: 
             raise ModelError(f"a problem named {name!r} is already registered")
         doc = (build.__doc__ or "").strip().splitlines()
         _REGISTRY[name] = ProblemSpec(name, build, source, optimum, solution, lower_optimum, tuple(tags),
-                                      description or (doc[0] if doc else ""), dict(defaults or {}), attack)
+                                      description or (doc[0] if doc else ""), dict(defaults or {}))
         return build
 
     return decorate

@@ -1,29 +1,29 @@
 """VRFT poisoning attacks as registered bilevel problems (paper Sec. 3-4, appendix A).
 
 Upper variables a_u, a_y (N each) with budgets ||a|| <= eps ||signal|| (l2: a ball constraint; linf: the
-variables' bounds); lower variable theta (nk)
+variables' bounds; l1, for the structured attacks: a constraint on sum |a_i|); lower variable theta (nk)
 solving the VRFT least squares on the poisoned data. The regressor Phi(y + a_y) is written as
 filter recursions (O(N) expression nodes per column, no N x N blocks), each a definition: the KKT
 reformulation keeps the filtered signals as variables bound by their difference equations, so IPOPT's
-exact Hessian is sparse. The fast structured algorithms for the same instances are in
-bilevel.attacks.vrft_methods; `attack_instance` builds their VRFTAttack.
+exact Hessian is sparse. The instance (setting, data, budgets, objective) is bilevel.problems.vrft_instance's
+VRFTAttack; the structured attacks on the declared problem are in bilevel.attacks.vrft_methods.
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections import OrderedDict
+from typing import Any
+from weakref import WeakKeyDictionary
 
 import casadi as ca
 import numpy as np
 
-from ..attacks.vrft import VRFTAttack, attack_instance
-from ..attacks.vrft_methods import attack_alternating, attack_joint, conditioning_start
 from ..ddc.operators import LTIOperator
 from ..errors import ModelError
 from ..model import BilevelProblem
-from ..result import BilevelResult
 from .registry import register
 from .surrogates import gelfand_log_radius
+from .vrft_instance import VRFTAttack, VRFTSetting, attack_instance, conditioning_start
 
 SOURCE = "Russo & Proutiere, Poisoning Attacks against Data-Driven Control Methods (extended), "
 DEFAULTS = {"scenario": "B", "eps_u": 0.1, "eps_y": 0.057, "seed": 0, "N": 64, "convention": "paper"}
@@ -35,25 +35,40 @@ def _recursion(op: LTIOperator, x: ca.SX) -> tuple[ca.SX, np.ndarray, np.ndarray
     return (ca.vertcat(x, ca.SX.zeros(d)) if d else x), op._b / op.den[0], op.den / op.den[0]
 
 
+def _delayed(v: ca.SX, j: int) -> ca.SX:
+    """v delayed by j samples (zeros first), of the same length."""
+    n = int(v.numel())
+    return v if j == 0 else ca.vertcat(ca.SX.zeros(min(j, n)), v[: max(n - j, 0)])
+
+
+def _fir(coefficients: np.ndarray, v: ca.SX) -> ca.SX:
+    """sum_j c_j v(t - j) over the record (zero before it), as whole-vector operations."""
+    out = ca.SX.zeros(int(v.numel()))
+    for j, c in enumerate(coefficients):
+        if c != 0 and j < v.numel():
+            out = out + c * _delayed(v, j)
+    return out
+
+
 def sx_filter(op: LTIOperator, x: ca.SX) -> ca.SX:
     """The operator's response to an SX signal over the record and its advance, by its difference equation
-    (O(N order) nodes; the first `advance` samples precede the record)."""
+    (O(N order) nodes; the first `advance` samples precede the record): the input taps as vector operations, the
+    output recursion as one CasADi step function accumulated over the record."""
     src, b, a = _recursion(op, x)
-    out: list[ca.SX] = []
-    for t in range(int(src.numel())):
-        acc = sum(b[j] * src[t - j] for j in range(b.size) if t - j >= 0 and b[j] != 0)
-        acc = acc - sum(a[j] * out[t - j] for j in range(1, a.size) if t - j >= 0 and a[j] != 0)
-        out.append(ca.SX(acc))
-    return ca.vertcat(*out)
+    u = _fir(b, src)
+    na = a.size - 1
+    if na == 0:
+        return u
+    s, ut = ca.SX.sym("s", na), ca.SX.sym("u")
+    y = ut - sum(a[j] * s[j - 1] for j in range(1, a.size) if a[j] != 0)
+    step = ca.Function("step", [s, ut], [ca.vertcat(y, s[0:na - 1]) if na > 1 else y, y])
+    return step.mapaccum("filter", int(src.numel()))(ca.SX.zeros(na), u.T)[1].T
 
 
 def difference_equation(op: LTIOperator, x: ca.SX, z: ca.SX) -> ca.SX:
     """a(q) z - b(q) x, zero exactly where z = sx_filter(op, x): banded in (x, z)."""
     src, b, a = _recursion(op, x)
-    rows = [sum(a[j] * z[t - j] for j in range(a.size) if t - j >= 0 and a[j] != 0)
-            - sum(b[j] * src[t - j] for j in range(b.size) if t - j >= 0 and b[j] != 0)
-            for t in range(int(src.numel()))]
-    return ca.vertcat(*[ca.SX(r) for r in rows])
+    return _fir(a, z) - _fir(b, src)
 
 
 def filtered(problem: BilevelProblem, name: str, op: LTIOperator, x: ca.SX) -> ca.SX:
@@ -72,13 +87,22 @@ def attack_problem(atk: VRFTAttack) -> BilevelProblem:
     rebuilding it (with linf budgets only to one with the same radii: bounds are fixed at declaration).
     """
     _check_budgets(atk)
+    return declare(atk)
+
+
+def declare(atk: VRFTAttack) -> BilevelProblem:
+    """attack_problem without its check of the budgets: an l1 budget becomes the constraint ||a||_1 <= delta, and a
+    sparsity fraction rho is left out (the declared set is the norm ball; a method that keeps the sparsity searches
+    the narrower set and says so: MethodRun.feasible_set)."""
     reg = atk.setting.regressor
     N, k = atk.N, reg.n_params
     rows = reg.rows(N)
     p = BilevelProblem(f"vrft-{atk.objective}")
-    box = atk.budget_u.norm == "linf"  # a linf budget is a box: bounds, projected on by every method
-    a_u = p.upper_variable("a_u", N, **({"lb": -atk.delta_u, "ub": atk.delta_u} if box else {}))
-    a_y = p.upper_variable("a_y", N, **({"lb": -atk.delta_y, "ub": atk.delta_y} if box else {}))
+    signals = {}
+    for name, budget, delta in (("a_u", atk.budget_u, atk.delta_u), ("a_y", atk.budget_y, atk.delta_y)):
+        box = {"lb": -delta, "ub": delta} if budget.norm == "linf" else {}  # bounds: every method projects on them
+        signals[name] = p.upper_variable(name, N, **box)
+    a_u, a_y = signals["a_u"], signals["a_y"]
     theta = p.lower_variable("theta", k, start=atk.theta0)
     t0, phi0 = p.parameter("t0", rows), p.parameter("phi0", (rows, k))
     err = filtered(p, "e_y", reg.error, a_y)
@@ -88,59 +112,112 @@ def attack_problem(atk: VRFTAttack) -> BilevelProblem:
     t_a = a_u if reg.prefilter is None else filtered(p, "lu", reg.prefilter, a_u)
     residual = t0 + t_a[:rows] - ca.mtimes(phi0 + phi_a, theta)
     p.minimize_lower(ca.sumsqr(residual) / rows)
-    if not box:
-        delta_u, delta_y = p.parameter("delta_u"), p.parameter("delta_y")
-        p.upper_constraint(ca.sumsqr(a_u) <= delta_u ** 2, name="budget_u")
-        p.upper_constraint(ca.sumsqr(a_y) <= delta_y ** 2, name="budget_y")
-    if atk.objective == "maxmin":
-        p.maximize_upper(ca.sumsqr(t0 - ca.mtimes(phi0, theta)) / rows)
+    for name, budget in (("u", atk.budget_u), ("y", atk.budget_y)):
+        if budget.norm == "l2":
+            p.upper_constraint(ca.sumsqr(signals[f"a_{name}"]) <= p.parameter(f"delta_{name}") ** 2,
+                               name=f"budget_{name}")
+        elif budget.norm == "l1":
+            p.upper_constraint(ca.sum1(ca.fabs(signals[f"a_{name}"])) <= p.parameter(f"delta_{name}"),
+                               name=f"budget_{name}")
+    if atk.objective == "maxmin":  # ||t0 - Phi0 theta||^2 by Phi0's Gram matrix: O(k^2) nodes, not O(N k)
+        gram, cross, energy = p.parameter("gram0", (k, k)), p.parameter("cross0", k), p.parameter("energy0")
+        p.maximize_upper((energy - 2 * ca.dot(cross, theta) + ca.bilin(gram, theta, theta)) / rows)
     elif atk.objective == "targeted":
         p.minimize_upper(ca.sumsqr(p.parameter("theta_target", k) - theta) / k)
     else:
         loop = atk.model_loop
         p.maximize_upper(gelfand_radius(p.parameter("loop_base", loop.base.size),
                                         p.parameter("loop_slopes", loop.slopes.shape), theta))
-    load_instance(p, atk)
+    _load(p, atk)
     return p
 
 
+_INSTANCES: WeakKeyDictionary[BilevelProblem, VRFTAttack] = WeakKeyDictionary()
+_NORMS: WeakKeyDictionary[BilevelProblem, dict[str, str]] = WeakKeyDictionary()
+"""The instance each declared problem holds, and the budget norm of each signal it was declared with."""
+
+
+def instance_of(problem: BilevelProblem) -> VRFTAttack:
+    """The instance a problem from attack_problem (or a vrft-* builder) currently holds (load_instance sets it)."""
+    if problem not in _INSTANCES:
+        raise ModelError(f"problem {problem.name!r} was not declared from a VRFT instance; declare it with "
+                         "bilevel.problems.vrft.attack_problem(atk) or build a registered vrft-* problem")
+    return _INSTANCES[problem]
+
+
+DECLARED_CACHE = 4
+"""problem_for keeps this many declared problems per process (declaring and preparing one at N = 512 takes about
+0.4 s, re-loading it a few ms)."""
+_DECLARED: OrderedDict[tuple[Any, ...], tuple[VRFTSetting, BilevelProblem]] = OrderedDict()
+
+
+def problem_for(atk: VRFTAttack) -> BilevelProblem:
+    """The declared problem of `atk` (any budget `declare` takes), loaded with its data: declared once per setting,
+    objective, N, budget norms (linf: radii) and ARX orders in this process, re-targeted with set_value after."""
+    budgets = tuple(b.radius(s) if b.norm == "linf" else b.norm
+                    for b, s in ((atk.budget_u, atk.u), (atk.budget_y, atk.y)))  # linf radii are declared bounds
+    key = (id(atk.setting), atk.objective, atk.N, budgets,
+           tuple(atk.arx_orders) if atk.objective == "destabilize" else ())
+    hit = _DECLARED.get(key)
+    if hit is not None and hit[0] is atk.setting:  # the setting is kept alive with its problem: its id is not reused
+        _DECLARED.move_to_end(key)
+        _load(hit[1], atk)
+        return hit[1]
+    problem = declare(atk)
+    _DECLARED[key] = (atk.setting, problem)
+    while len(_DECLARED) > DECLARED_CACHE:
+        _DECLARED.popitem(last=False)
+    return problem
+
+
 def _check_budgets(atk: VRFTAttack) -> None:
-    norms = {atk.budget_u.norm, atk.budget_y.norm}
-    if norms not in ({"l2"}, {"linf"}) or atk.budget_u.rho or atk.budget_y.rho:
-        raise ModelError("the declared VRFT problem supports l2 budgets (balls) and linf budgets (bounds), the same "
-                         f"norm on both signals and no sparsity; got {atk.budget_u} and {atk.budget_y}: use the "
-                         "structured attacks in bilevel.attacks.vrft_methods for l1 or sparse budgets")
+    for budget in (atk.budget_u, atk.budget_y):
+        if budget.norm not in ("l2", "linf") or budget.rho:
+            raise ModelError("the declared VRFT problem supports l2 budgets (balls) and linf budgets (bounds) with no "
+                             f"sparsity; got {atk.budget_u} and {atk.budget_y}: use the structured attacks in "
+                             "bilevel.attacks.vrft_methods for l1 or sparse budgets")
 
 
 def load_instance(problem: BilevelProblem, atk: VRFTAttack) -> None:
     """Set the parameters and the suggested start of a problem from `attack_problem` to instance `atk` (same
-    scenario, N and objective); the next solve reuses the declared problem's preparation."""
+    scenario, N, objective and budget norms); the next solve reuses the declared problem's preparation."""
     _check_budgets(atk)
+    _load(problem, atk)
+
+
+def _load(problem: BilevelProblem, atk: VRFTAttack) -> None:
+    """load_instance for any budget `declare` takes."""
     declared = {q.name: q for q in problem.parameters.items}
     rows = declared["t0"].size if "t0" in declared else 0
     if problem.name != f"vrft-{atk.objective}" or rows != atk.t0.size:
         raise ModelError(f"instance ({atk.objective}, N = {atk.N}) does not fit problem {problem.name!r} declared for "
                          f"{rows} regression rows; declare it with attack_problem(atk)")
-    if "delta_u" not in declared:  # linf budgets are the variables' bounds, fixed at declaration
-        bounds = {v.name: float(v.ub[0]) for v in problem.variables if v.name in ("a_u", "a_y")}
-        if atk.budget_u.norm != "linf" or not np.allclose([bounds["a_u"], bounds["a_y"]],
-                                                          [atk.delta_u, atk.delta_y], rtol=1e-12, atol=0):
-            raise ModelError(f"instance budgets (delta_u = {atk.delta_u:.6g}, delta_y = {atk.delta_y:.6g}, "
-                             f"{atk.budget_u.norm}) differ from the declared linf bounds ({bounds['a_u']:.6g}, "
-                             f"{bounds['a_y']:.6g}); declare the instance with attack_problem(atk)")
-    elif atk.budget_u.norm != "l2":
-        raise ModelError("this problem was declared with l2 budgets; declare a linf instance with attack_problem(atk)")
+    bounds = {v.name: float(v.ub[0]) for v in problem.variables if v.name in ("a_u", "a_y")}
     values = {"t0": atk.t0, "phi0": atk.phi0}
-    if "delta_u" in declared:
-        values |= {"delta_u": atk.delta_u, "delta_y": atk.delta_y}
+    norms = _NORMS.get(problem, {})
+    for name, budget, delta in (("u", atk.budget_u, atk.delta_u), ("y", atk.budget_y, atk.delta_y)):
+        declared_norm = norms.setdefault(name, budget.norm)
+        if budget.norm != declared_norm:
+            raise ModelError(f"this problem was declared with an {declared_norm} budget on a_{name}, the instance has "
+                             f"{budget.norm}; declare the instance with attack_problem(atk)")
+        if budget.norm == "linf" and not np.isclose(bounds[f"a_{name}"], delta, rtol=1e-12, atol=0):
+            raise ModelError(f"instance budgets (delta_u = {atk.delta_u:.6g}, delta_y = {atk.delta_y:.6g}, linf) "
+                             f"differ from the declared linf bounds ({bounds['a_u']:.6g}, {bounds['a_y']:.6g}); "
+                             "declare the instance with attack_problem(atk)")
+        if budget.norm != "linf":
+            values[f"delta_{name}"] = delta
+    if "gram0" in declared:
+        values |= {"gram0": atk.gram0, "cross0": atk.cross0, "energy0": float(atk.t0 @ atk.t0)}
     if "theta_target" in declared:
         values["theta_target"] = atk.theta_target
     if "loop_base" in declared:
         values |= {"loop_base": atk.model_loop.base, "loop_slopes": atk.model_loop.slopes}
     for name, value in values.items():
         problem.set_value(name, value)
+    _NORMS[problem] = norms
     problem.starts.clear()  # a_y = 0 is stationary: start where the regressor is ill-conditioned
     problem.suggest_start(a_y=conditioning_start(atk))
+    _INSTANCES[problem] = atk
 
 
 def gelfand_radius(base: np.ndarray | ca.SX, slopes: np.ndarray | ca.SX, theta: ca.SX, power: int = 16) -> ca.SX:
@@ -153,17 +230,7 @@ def gelfand_radius(base: np.ndarray | ca.SX, slopes: np.ndarray | ca.SX, theta: 
     return gelfand_log_radius(C, power)
 
 
-def _structured(objective: str) -> Callable[..., BilevelResult]:
-    """The structured attack on vrft-<objective>: the alternating attack (its exact input step), joint ascent for
-    'destabilize'."""
-    def attack(starts: int = 1, seed: int = 0, **params: Any) -> BilevelResult:
-        run = attack_joint if objective == "destabilize" else attack_alternating
-        return run(attack_instance(objective, **params), starts=starts, seed=seed)
-    return attack
-
-
 @register("vrft-maxmin", source=SOURCE + "Sec. 4.4, eq. (op_maxmin)", tags=("attack", "vrft"), defaults=DEFAULTS,
-          attack=_structured("maxmin"),
           description="max-min poisoning of VRFT on the flexible transmission (maximize the learner's loss)")
 def vrft_maxmin(**params) -> BilevelProblem:
     """Max-min attack on VRFT: maximize the learner's clean-data loss at the poisoned theta."""
@@ -171,7 +238,7 @@ def vrft_maxmin(**params) -> BilevelProblem:
 
 
 @register("vrft-targeted", source=SOURCE + "appendix A, eq. (op_vrft_targeted), theta_a = 3 theta_0",
-          tags=("attack", "vrft"), defaults=DEFAULTS, attack=_structured("targeted"),
+          tags=("attack", "vrft"), defaults=DEFAULTS,
           description="targeted poisoning of VRFT: drive theta towards theta_a = 3 theta_0")
 def vrft_targeted(**params) -> BilevelProblem:
     """Targeted attack on VRFT: minimize ||theta_a - theta'||^2 / nk."""
@@ -181,7 +248,7 @@ def vrft_targeted(**params) -> BilevelProblem:
 @register("vrft-destabilize", source=SOURCE + "beyond the paper: the attacker fits an ARX model to the clean data "
           "and maximizes a smooth spectral radius of the modelled closed loop", tags=("attack", "vrft"),
           defaults=DEFAULTS, description="destabilizing poisoning of VRFT (maximize the modelled closed-loop "
-          "spectral radius)", attack=_structured("destabilize"))
+          "spectral radius)")
 def vrft_destabilize(**params) -> BilevelProblem:
     """Destabilizing attack: maximize log ||C(theta')^16||_F / 16 for the ARX-modelled closed loop."""
     return attack_problem(attack_instance("destabilize", **params))

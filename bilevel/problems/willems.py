@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, fields
-from typing import Any, Callable
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -43,7 +43,6 @@ from ..ddc.data import batch_reactor_data
 from ..ddc.depersis_tesi import check_persistency, state_data
 from ..errors import InvalidData, ModelError
 from ..model import BilevelProblem
-from ..result import BilevelResult
 from ..solvers.options import check_common_options, check_counts, check_flags, check_numbers
 from ..vech import symmetric_sx
 from .registry import register
@@ -281,23 +280,10 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
     return WillemsAttack(s, x, u, a_id, b_id, qx, r, p, du, dx, gain, acl, upper, seen)
 
 
-def _structured(objective: str) -> Callable[..., BilevelResult]:
-    """The structured attack on willems-<objective>: the destabilizing attack, or the criterion's hypergradient
-    ascent (no stop at instability: the criterion's local maximum, as a generic method would seek)."""
-    def attack(starts: int = 8, seed: int = 0, **params: Any) -> BilevelResult:
-        from ..attacks.willems import destabilize_attack, hypergradient_attack  # attacks.willems imports this module
-
-        built = build_attack(WillemsSetting(objective=objective, **params))
-        if objective == "destabilize":
-            return destabilize_attack(built, starts=starts, seed=seed)
-        return hypergradient_attack(built, starts=starts, seed=seed, stop_when_unstable=False)
-    return attack
-
-
 def _register(objective: str, description: str) -> None:
     @register(f"willems-{objective}", source=SOURCE, tags=("willems", "attack", "sdp"), description=description,
               defaults={"horizon": 15, "seed": 0, "delta_u": 0.1, "delta_x": 0.0, "poison": "u", "design": "lqr",
-                        "reg": DEFAULT_REG}, attack=_structured(objective))
+                        "reg": DEFAULT_REG})
     def build(**params: Any) -> BilevelProblem:
         if params.get("selection") in SOLVER_SELECTIONS:
             raise ModelError(f"willems-{objective}: the declared problem's learner is the regularized SDP; "

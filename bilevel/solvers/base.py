@@ -257,9 +257,12 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
     if status in (Status.SOLVED, Status.INACCURATE) and not proven:
         status, message = _local_verdict(prep, run, point, cert, stats, status, message)
     sol = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse)
-    syms = ca.vertcat(prep.canon.x, prep.canon.y, prep.canon.params.sym)
     values = np.concatenate([point.x, point.y, prep.canon.params.value])
-    evaluate = lambda expr: ca.evalf(ca.substitute(prep.problem.explicit(expr), syms, ca.DM(values)))  # noqa: E731
+
+    def evaluate(expr: Any) -> Any:  # the symbols are gathered on use: for thousands of entries that takes ms
+        syms = ca.vertcat(prep.canon.x, prep.canon.y, prep.canon.params.sym)
+        return ca.evalf(ca.substitute(prep.problem.explicit(expr), syms, ca.DM(values)))
+
     return BilevelResult(status, message, method, prep.problem.name, sol.x, sol.y, sol.multipliers,
                          sol.upper_objective, sol.lower_objective, cert, wall_time, run.nit, tuple(run.history),
                          tuple(run.starts), stats, evaluate)

@@ -117,9 +117,12 @@ def _project_l1(d: np.ndarray, radius: float) -> np.ndarray:
     a = np.abs(d)
     if a.sum() <= radius:
         return d.copy()
+    if radius <= 0:
+        return np.zeros_like(d)
     u = np.sort(a)[::-1]
     cssv = np.cumsum(u) - radius
-    rho = np.nonzero(u * np.arange(1, u.size + 1) > cssv)[0][-1]
+    support = np.nonzero(u * np.arange(1, u.size + 1) > cssv)[0]  # empty when radius is below u[0]'s round-off
+    rho = support[-1] if support.size else 0
     theta = cssv[rho] / (rho + 1.0)
     return np.sign(d) * np.maximum(a - theta, 0.0)
 

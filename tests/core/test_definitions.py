@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import bilevel as bl
-from bilevel.attacks.vrft import flexible_transmission_setting
+from bilevel.problems.vrft_instance import flexible_transmission_setting
 from bilevel.errors import InvalidData, ModelError
 from bilevel.mpcc import Scholtes
 from bilevel.problems import registry

@@ -13,7 +13,7 @@ from scipy.sparse.linalg import aslinearoperator
 import bilevel as bl
 import bilevel.linear_maps as linear_maps
 import bilevel.lower.residual as residual
-from bilevel.attacks.vrft import attack_instance
+from bilevel.problems.vrft_instance import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating
 from bilevel.errors import ModelError
 from bilevel.lower.images import ImageLower

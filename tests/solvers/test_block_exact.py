@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 import bilevel as bl
-from bilevel.attacks.vrft import attack_instance
-from bilevel.attacks.vrft_methods import attack_alternating, conditioning_start
+from bilevel.problems.vrft_instance import attack_instance
+from bilevel.attacks.vrft_methods import attack_alternating
+from bilevel.problems.vrft_instance import conditioning_start
 from bilevel.errors import ModelError
 from bilevel.problems import registry
 from bilevel.solvers.base import prepare

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..ddc.bases import Basis, basis_polynomials
-from ..ddc.systems import SystemLike, num_den
 from ..errors import InvalidData, RankDeficientRegressor
+from .bases import Basis, basis_polynomials
+from .systems import SystemLike, num_den
 
 
 @dataclass(frozen=True)

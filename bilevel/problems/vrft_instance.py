@@ -1,0 +1,238 @@
+"""A VRFT poisoning instance: the learner's design (VRFTSetting), the clean data, budgets and the attacker's objective.
+
+Lower level (learner): theta(u', y') = argmin ||t(u') - Phi(y') theta||^2 with Phi linear in y'
+(bilevel.ddc.vrft). Upper level (attacker): maximize J(theta(u + a_u, y + a_y)) over budgets on
+a_u, a_y. J is one of
+  "maxmin"      (1/n) ||t(u) - Phi(y) theta||^2, the learner's loss on clean data (paper, eq. op_maxmin);
+  "targeted"    -(1/nk) ||theta_a - theta||^2 (paper appendix A; maximizing minus the distance);
+  "destabilize" a smooth max of the closed-loop pole moduli of an ARX model the attacker fits
+                from the clean data (it does not know the plant).
+bilevel.problems.vrft declares the instance as a BilevelProblem; bilevel.attacks.vrft solves it in structured form.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cache, cached_property
+from typing import Any, Literal
+
+import numpy as np
+
+from ..ddc.bases import Basis, flexible_transmission_basis
+from ..ddc.data import paper_input, simulate
+from ..ddc.loop import LoopPolynomial, arx_orders_for, fit_arx
+from ..ddc.operators import LTIOperator
+from ..ddc.plants import flexible_transmission, flexible_transmission_prefilter, flexible_transmission_reference
+from ..ddc.systems import SystemLike, num_den
+from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
+from ..errors import InvalidData, ModelError, RankDeficientRegressor
+from ..solvers.ascent import budget_direction
+from ..solvers.options import check_common_options
+from .budget import Budget
+
+Objective = Literal["maxmin", "targeted", "destabilize"]
+DataConvention = Literal["prefiltered", "raw"]
+
+
+@dataclass(frozen=True)
+class VRFTSetting:
+    """The learner's design: plant (for evaluation only), M_r, basis, L, data convention, boundary.
+
+    data="prefiltered": the recorded (u, y) are already filtered by L and the learner regresses on them
+    (the paper's assumption); data="raw": the learner filters by L itself. boundary: see ddc.vrft.
+    """
+
+    plant: SystemLike
+    reference: SystemLike
+    basis: Basis
+    prefilter: SystemLike
+    data: DataConvention = "prefiltered"
+    boundary: Literal["zero-final", "drop"] = "zero-final"
+
+    def __post_init__(self) -> None:
+        if self.data not in ("prefiltered", "raw"):
+            raise ModelError(f"data convention {self.data!r} is not 'prefiltered' or 'raw'")
+
+    @cached_property
+    def regressor(self) -> VRFTRegressor:
+        return vrft_regressor(self.reference, self.basis, None if self.data == "prefiltered" else self.prefilter,
+                              self.boundary)
+
+    @cached_property
+    def loop(self) -> LoopPolynomial:
+        """Closed loop of the true plant (used to judge stability, never by the attacker)."""
+        return LoopPolynomial.of(self.plant, self.basis)
+
+    @cached_property
+    def _filters(self) -> tuple[tuple[np.ndarray, np.ndarray], LTIOperator]:
+        """The plant's (num, den) and L's filter, read once: a setting records many data sets."""
+        return num_den(self.plant), LTIOperator(self.prefilter)
+
+    def recorded(self, u_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The data set the learner receives for plant input u_raw (filtered by L if prefiltered)."""
+        plant, pre = self._filters
+        y_raw = simulate(plant, u_raw)
+        if self.data == "raw":
+            return np.asarray(u_raw, dtype=float), y_raw
+        return pre.apply(u_raw), pre.apply(y_raw)
+
+
+def flexible_transmission_setting(data: DataConvention = "prefiltered",
+                                  boundary: Literal["zero-final", "drop"] = "zero-final") -> VRFTSetting:
+    """The paper's VRFT example: Landau's flexible transmission, M_r with a = e^-0.5, L = (1-M_r)M_r."""
+    return VRFTSetting(flexible_transmission(), flexible_transmission_reference(),
+                       flexible_transmission_basis(), flexible_transmission_prefilter(), data, boundary)
+
+
+CONVENTIONS = {
+    "paper": ("prefiltered", "zero-final"),
+    "prefiltered-drop": ("prefiltered", "drop"),
+    "raw": ("raw", "zero-final"),
+    "raw-drop": ("raw", "drop"),
+}
+"""Data convention and virtual-reference boundary handling; "paper" is the paper's (Sec. 4.1, Lemma 1)."""
+
+PAPER_THETA0 = np.array([0.33, -0.61, 0.72, -0.66, 0.48, -0.13])
+"""theta_0 of Campi et al. (2002) as quoted by the paper; its targeted attack aims at 3 * theta_0."""
+
+
+def scenario_data(setting: VRFTSetting, scenario: Literal["A", "B"], n: int = 512,
+                  rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Recorded (u, y) of the paper's scenario A (step on [5, 15]) or B (white noise, needs rng)."""
+    return setting.recorded(paper_input(scenario, n, rng))
+
+
+@dataclass
+class VRFTAttack:
+    """One attack instance: clean data, the learner, budgets and the attacker's objective.
+
+    A budget given as a number eps means Budget(eps): ||a||_2 <= eps * ||signal||_2.
+    """
+
+    setting: VRFTSetting
+    u: np.ndarray
+    y: np.ndarray
+    budget_u: Budget | float
+    budget_y: Budget | float
+    objective: Objective = "maxmin"
+    theta_target: np.ndarray | None = None
+    arx_orders: tuple[int, int, int] = (4, 2, 3)
+    surrogate_beta: float = 50.0
+
+    def __post_init__(self) -> None:
+        try:
+            self.u = np.asarray(self.u, dtype=float)
+            self.y = np.asarray(self.y, dtype=float)
+        except (TypeError, ValueError):
+            raise InvalidData("attack data u and y must be arrays of real numbers") from None
+        if self.u.shape != self.y.shape or self.u.ndim != 1:
+            raise InvalidData(f"u and y must be 1-D of equal length, got {self.u.shape} and {self.y.shape}")
+        if not (np.all(np.isfinite(self.u)) and np.all(np.isfinite(self.y))):
+            raise InvalidData("attack data contain NaN or inf")
+        self.budget_u, self.budget_y = Budget.of(self.budget_u), Budget.of(self.budget_y)
+        if self.objective not in ("maxmin", "targeted", "destabilize"):
+            raise ModelError(f"objective {self.objective!r} is not maxmin, targeted or destabilize")
+        reg = self.setting.regressor
+        if reg.rows(self.u.size) <= reg.n_params:
+            raise InvalidData(f"{self.u.size} samples give {max(reg.rows(self.u.size), 0)} regression rows for "
+                              f"{reg.n_params} controller parameters; the learner needs more rows than parameters: "
+                              "record a longer experiment")
+        self.phi0 = reg(self.y)
+        self.t0 = reg.targets(self.u)
+        self.n = self.t0.size
+        self.theta0 = least_squares(self.phi0, self.t0)[0]
+        self.gram0, self.cross0 = self.phi0.T @ self.phi0, self.phi0.T @ self.t0  # the max-min loss in O(nk^2)
+        if self.objective == "targeted":
+            if self.theta_target is None:
+                raise ModelError("the targeted attack needs theta_target (the paper uses 3 * theta_0)")
+            try:
+                self.theta_target = np.asarray(self.theta_target, dtype=float)
+            except (TypeError, ValueError):
+                raise InvalidData("theta_target must be an array of real numbers") from None
+            if self.theta_target.shape != (reg.n_params,) or not np.all(np.isfinite(self.theta_target)):
+                raise InvalidData(f"theta_target must be {reg.n_params} finite numbers (one per basis function), "
+                                  f"got shape {self.theta_target.shape}; e.g. 3 * PAPER_THETA0")
+        self.delta_u = self.budget_u.radius(self.u)
+        self.delta_y = self.budget_y.radius(self.y)
+        if self.objective == "destabilize":
+            try:
+                num, den = fit_arx(self.u, self.y, *self.arx_orders)
+            except RankDeficientRegressor as err:
+                raise RankDeficientRegressor(
+                    f"the destabilize objective's ARX model with arx_orders={tuple(self.arx_orders)} (na, nb, delay) "
+                    f"is rank-deficient on these data ({err}); pass VRFTAttack(..., arx_orders=...), e.g. "
+                    f"arx_orders={arx_orders_for(self.u, self.y)} (chosen from the data by "
+                    "bilevel.ddc.loop.arx_orders_for: least AIC among full-rank orders)") from err
+            self.model_loop = LoopPolynomial.of((num, den), self.setting.basis)
+
+    @property
+    def N(self) -> int:
+        return self.u.size
+
+    def value(self, theta: np.ndarray) -> float:
+        """Attacker objective J(theta) (to maximize)."""
+        if self.objective == "maxmin":
+            r = self.t0 - self.phi0 @ theta
+            return float(r @ r / self.n)
+        if self.objective == "targeted":
+            d = self.theta_target - theta
+            return -float(d @ d / d.size)
+        return self.model_loop.surrogate(theta, self.surrogate_beta)[0]
+
+    def grad_theta(self, theta: np.ndarray) -> np.ndarray:
+        """dJ/dtheta."""
+        if self.objective == "maxmin":
+            return -2.0 / self.n * (self.cross0 - self.gram0 @ theta)
+        if self.objective == "targeted":
+            return 2.0 / theta.size * (self.theta_target - theta)
+        return self.model_loop.surrogate(theta, self.surrogate_beta)[1]
+
+    def stats(self, theta: np.ndarray) -> dict[str, Any]:
+        """What an attack result adds at the poisoned theta: the attack's own criterion (value), the learner's loss on
+        the clean data, the true closed loop's spectral radius, and the same at the clean theta; budgets."""
+        loop, r = self.setting.loop, self.t0 - self.phi0 @ theta
+        return {"objective": self.objective, "value": self.value(theta), "learner_loss": float(r @ r / self.n),
+                "theta_clean": self.theta0, "value_clean": self.value(self.theta0),
+                "spectral_radius": loop.spectral_radius(theta),
+                "spectral_radius_clean": loop.spectral_radius(self.theta0),
+                "delta_u": self.delta_u, "delta_y": self.delta_y}
+
+
+def conditioning_start(atk: VRFTAttack, iters: int = 10) -> np.ndarray:
+    """a_y that makes the poisoned regressor ill-conditioned: projected descent on sigma_min(Phi(y + a_y)).
+
+    The learner's loss at theta' grows when Phi'^T Phi' nearly loses rank (theta' then moves far for a
+    small a_u), so the max-min ascent starts from the a_y that shrinks Phi's smallest singular value
+    (gradient sum_i w_i T_i^T l for its singular pair (l, w)), one budget radius per step.
+    """
+    reg = atk.setting.regressor
+    proj = atk.budget_y.projection(atk.y)
+    a = np.zeros(atk.N)
+    for _ in range(iters):
+        U, _, Vt = np.linalg.svd(atk.phi0 + reg(a), full_matrices=False)
+        g = reg.adjoint(np.outer(U[:, -1], Vt[-1]))
+        a = proj(a - budget_direction(g, atk.delta_y, atk.budget_y.order))
+    return a
+
+
+@cache
+def _convention_setting(convention: str) -> VRFTSetting:
+    """flexible_transmission_setting of a convention, built once per process (its regressor and loop with it)."""
+    return flexible_transmission_setting(*CONVENTIONS[convention])
+
+
+def attack_instance(objective: Objective, scenario: Literal["A", "B"] = "B", eps_u: float = 0.1,
+                    eps_y: float = 0.057, seed: int = 0, N: int = 512, convention: str = "paper",
+                    norm: str = "l2") -> VRFTAttack:
+    """The paper's flexible-transmission attack instance (data drawn with default_rng(seed))."""
+    if convention not in CONVENTIONS:
+        raise ModelError(f"convention {convention!r} is not one of {', '.join(CONVENTIONS)}")
+    check_common_options({"seed": seed})
+    setting = _convention_setting(convention)
+    reg = setting.regressor
+    if not isinstance(N, (int, np.integer)) or isinstance(N, bool) or reg.rows(int(N)) <= reg.n_params:
+        raise InvalidData(f"N={N!r} samples: the learner needs more regression rows than its {reg.n_params} "
+                          "parameters; pass an integer N of at least a few dozen (the paper uses 512)")
+    u, y = scenario_data(setting, scenario, N, np.random.default_rng(seed))
+    target = 3 * PAPER_THETA0 if objective == "targeted" else None
+    return VRFTAttack(setting, u, y, Budget(eps_u, norm), Budget(eps_y, norm), objective, target)
