@@ -28,6 +28,11 @@ RESIDUAL_FORM_SIZE = 10_000
 2,000 terms up, at the same build time; at 18,000 terms, N = 512, 95 us against 157 us)."""
 
 
+AFFINE_FILL = 4
+"""The residual data are evaluated as a sparse product when its matrix has at most this many nonzeros per operation
+of their expressions (a nonzero costs about a quarter of an operation of CasADi's evaluator)."""
+
+
 def sum_of_squares(f: ca.SX, y: ca.SX) -> tuple[ca.SX, ca.SX] | None:
     """(r, c) with f = 1/2 ||r||^2 + c, r affine in y and c free of y, read from f's top-level sum of weighted squares
     (a least squares); None if f is not of that form (a term with y that is not a square, a square with a negative
@@ -126,10 +131,13 @@ class ResidualLeastSquares(LowerLevel):
                                      + ca.jtimes(self.r, self.x, b, True)])
 
     def _affine_data(self, data: ca.SX) -> tuple[sp.csr_matrix, np.ndarray] | None:
-        """(J, b) with [vec C(x); d(x)] = J x + b when the data are affine in x and read no parameters (signals the
-        leader moves, sliced or mapped): then C and d cost one sparse product, their x-adjoint one transposed one."""
+        """(J, b) with [vec C(x); d(x)] = J x + b when the data are affine in x, read no parameters and J has at most
+        AFFINE_FILL nonzeros per operation of their expressions (signals the leader moves, sliced or mapped): then C
+        and d cost one sparse product, their x-adjoint one transposed one; else None (the expressions are evaluated)."""
         if ca.depends_on(data, self.params.sym):
             return None
+        if ca.jacobian_sparsity(data, self.x).nnz() > AFFINE_FILL * self._data.n_instructions():
+            return None  # e.g. a recursive filter: a few operations per sample, a dense lower-triangular Jacobian
         J = ca.jacobian(data, self.x)
         if ca.depends_on(J, self.x):
             return None

@@ -221,3 +221,35 @@ def test_lower_qp_takes_a_regressor_the_leader_moves() -> None:
     Cp = Phi + mine.x["dphi"]
     refit = np.linalg.solve(Cp.T @ Cp + 0.1 * np.eye(3), Cp.T @ t)
     assert np.abs(refit - mine.y["theta"]).max() <= 1e-9 * (1 + np.abs(refit).max())
+
+
+def test_residual_data_from_a_recursion_stay_expressions(monkeypatch) -> None:
+    """A first-order filter of the poisoning written as a recursion (2 operations per sample, a dense lower-triangular
+    Jacobian) is evaluated by its expressions, not as a dense sparse matrix, and gives the same hypergradient as the
+    expression kind; the answer is a numpy refit."""
+    rng = np.random.default_rng(1)
+    T = 300
+    u, y = rng.standard_normal(T), rng.standard_normal(T)
+
+    def declare() -> bl.BilevelProblem:
+        p = bl.BilevelProblem("filtered")
+        dy = p.upper_variable("dy", T)
+        theta = p.lower_variable("theta", 2)
+        f = [y[0] + dy[0]]
+        for k in range(1, T):
+            f.append(0.9 * f[-1] + y[k] + dy[k])
+        reg = ca.horzcat(ca.vertcat(*f), ca.DM(u))
+        p.minimize_lower(ca.sumsqr(ca.DM(y) - ca.mtimes(reg, theta)))
+        p.upper_constraint(ca.sumsqr(dy) <= 0.01 * T)
+        p.maximize_upper(ca.sumsqr(theta))
+        return p
+
+    x = 0.01 * rng.standard_normal(T)
+    phi0, g0 = _phi_and_gradient(declare(), x)
+    monkeypatch.setattr(residual, "RESIDUAL_FORM_SIZE", 0)
+    p = declare()
+    low = prepare(p).canon.lower
+    assert isinstance(low, ResidualLeastSquares) and low._affine is None
+    phi, g = _phi_and_gradient(p, x)
+    assert phi == pytest.approx(phi0, rel=1e-10)
+    assert np.abs(g - g0).max() <= 1e-9 * np.abs(g0).max()
