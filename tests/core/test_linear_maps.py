@@ -159,6 +159,20 @@ def test_sum_of_squares_reads_weights_and_refuses_other_forms() -> None:
     assert sum_of_squares(ca.sumsqr(y ** 2 - x), y) is None  # squares of expressions nonlinear in y
 
 
+def _residual_matches_expressions(monkeypatch, declare, x: np.ndarray, affine: bool) -> bl.BilevelProblem:
+    """The problem `declare` builds, in the residual kind (forced) with its data evaluated as a sparse product or
+    not (`affine`), with the expression kind's phi and hypergradient at x; returned for more checks."""
+    phi0, g0 = _phi_and_gradient(declare(), x)
+    monkeypatch.setattr(residual, "RESIDUAL_FORM_SIZE", 0)
+    p = declare()
+    low = prepare(p).canon.lower
+    assert isinstance(low, ResidualLeastSquares) and (low._affine is not None) == affine
+    phi, g = _phi_and_gradient(p, x)
+    assert phi == pytest.approx(phi0, rel=1e-10)
+    assert np.abs(g - g0).max() <= 1e-9 * np.abs(g0).max()
+    return p
+
+
 @pytest.mark.parametrize("bent", [False, True], ids=["affine data", "data nonlinear in x"])
 def test_residual_form_matches_the_expression_form(monkeypatch, bent: bool) -> None:
     """An ARX(2, 2) identification attack: the residual kind (forced on a small instance) and the expression kind
@@ -182,15 +196,7 @@ def test_residual_form_matches_the_expression_form(monkeypatch, bent: bool) -> N
         p.maximize_upper(ca.sumsqr(theta))
         return p
 
-    x = 0.01 * rng.standard_normal(T)
-    phi0, g0 = _phi_and_gradient(declare(), x)
-    monkeypatch.setattr(residual, "RESIDUAL_FORM_SIZE", 0)
-    p = declare()
-    low = prepare(p).canon.lower
-    assert isinstance(low, ResidualLeastSquares) and (low._affine is None) == bent
-    phi, g = _phi_and_gradient(p, x)
-    assert phi == pytest.approx(phi0, rel=1e-10)
-    assert np.abs(g - g0).max() <= 1e-9 * np.abs(g0).max()
+    p = _residual_matches_expressions(monkeypatch, declare, 0.01 * rng.standard_normal(T), affine=not bent)
     res = p.solve("hypergradient", starts=1)
     assert res.success and res.certificate.passed
     yp = y + res.x["dy"] + (res.x["dy"] ** 2 if bent else 0)
@@ -244,12 +250,4 @@ def test_residual_data_from_a_recursion_stay_expressions(monkeypatch) -> None:
         p.maximize_upper(ca.sumsqr(theta))
         return p
 
-    x = 0.01 * rng.standard_normal(T)
-    phi0, g0 = _phi_and_gradient(declare(), x)
-    monkeypatch.setattr(residual, "RESIDUAL_FORM_SIZE", 0)
-    p = declare()
-    low = prepare(p).canon.lower
-    assert isinstance(low, ResidualLeastSquares) and low._affine is None
-    phi, g = _phi_and_gradient(p, x)
-    assert phi == pytest.approx(phi0, rel=1e-10)
-    assert np.abs(g - g0).max() <= 1e-9 * np.abs(g0).max()
+    _residual_matches_expressions(monkeypatch, declare, 0.01 * rng.standard_normal(T), affine=False)
