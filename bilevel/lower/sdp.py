@@ -40,6 +40,15 @@ def solve_square(matrix: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
         return solution, int(rank)
 
 
+def _vech_maps(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The vec positions of vech's entries (vech(S) = vec(S)[rows]) and the duplication matrix D (vec S = D vech S)."""
+    rows = vech(np.arange(n * n).reshape(n, n, order="F"))
+    dup = np.zeros((n * n, rows.size))
+    dup[rows, np.arange(rows.size)] = 1.0
+    dup[vech(np.arange(n * n).reshape(n, n, order="F").T), np.arange(rows.size)] = 1.0
+    return rows, dup
+
+
 @dataclass(frozen=True)
 class ConicKKT:
     """r(w; x) = [grad_y L ; lam * g ; h ; vech((M_k Z_k + Z_k M_k) / 2)] = 0 in w = (y, lam, mu, vech Z_k).
@@ -48,7 +57,7 @@ class ConicKKT:
     1998): y*(x) is then differentiable with dw/dx = -(dr/dw)^-1 dr/dx.
     """
 
-    residual: Callable      # (x, w) -> (r, dr/dw)
+    residual: Callable      # (x, w) -> (r, dr/dw), numpy
     residual_x: Callable    # (x, w) -> dr/dx
     sizes: tuple[int, ...]     # n_y, n_g, n_h, then vech sizes of the Z_k
     psd_dims: tuple[int, ...]
@@ -85,15 +94,51 @@ class SemidefiniteLower(QuadraticLower):
 
     @cached_property
     def conic_kkt(self) -> ConicKKT:
-        """The KKT residual with PSD complementarity and its Jacobians (built on first use)."""
+        """The KKT residual with PSD complementarity: r and dr/dw numerically from the SDP's data at x (it is affine in
+        y with affine LMIs, so no symbolic derivative is needed); dr/dx symbolically, built on first use."""
+        psd_dims = tuple(int(m.size1()) for m in self.psd)
+        sizes = (self.n_y, int(self.g.numel()), int(self.h.numel()), *(k * (k + 1) // 2 for k in psd_dims))
+        return ConicKKT(self._kkt_residual, lambda x, w: self._kkt_residual_x(x, w), sizes, psd_dims)
+
+    def _kkt_residual(self, x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(r, dr/dw) at (x, w): stationarity P y + q + A'lam + E'mu - sum_k J_k' vec Z_k, lam * g, h and
+        vech((M_k Z_k + Z_k M_k) / 2), with J_k = d vec(M_k)/dy and vec Z_k = D_k vech Z_k (duplication)."""
+        d, lmis = self.data(x), self.lmi_data(x)
+        sizes = self.conic_kkt.sizes
+        y, lam, mu, *zv = np.split(np.asarray(w, dtype=float).ravel(), np.cumsum(sizes)[:-1])
+        g = d.A @ y + d.b
+        stationarity = d.P @ y + d.q + d.A.T @ lam + d.E.T @ mu
+        n_lin = self.n_y + lam.size + mu.size
+        jac = np.zeros((sum(sizes), sum(sizes)))
+        jac[: self.n_y, : self.n_y] = d.P
+        jac[: self.n_y, self.n_y: self.n_y + lam.size] = d.A.T
+        jac[: self.n_y, self.n_y + lam.size: n_lin] = d.E.T
+        jac[self.n_y: self.n_y + lam.size, : self.n_y] = lam[:, None] * d.A
+        jac[self.n_y: self.n_y + lam.size, self.n_y: self.n_y + lam.size] = np.diag(g)
+        jac[self.n_y + lam.size: n_lin, : self.n_y] = d.E
+        products, start = [], n_lin
+        for (m0, jm), z_vech, k in zip(lmis, zv, self.conic_kkt.psd_dims):
+            rows, dup = _vech_maps(k)
+            z, eye = unvech(z_vech, k), np.eye(k)
+            m = m0.reshape(k, k, order="F") + (jm @ y).reshape(k, k, order="F")
+            stationarity = stationarity - jm.T @ z.reshape(-1, order="F")
+            products.append(vech(0.5 * (m @ z + z @ m)))
+            block = slice(start, start + z_vech.size)
+            jac[: self.n_y, block] = -jm.T @ dup
+            jac[block, : self.n_y] = (0.5 * (np.kron(z.T, eye) + np.kron(eye, z)) @ jm)[rows]
+            jac[block, block] = (0.5 * (np.kron(eye, m) + np.kron(m.T, eye)) @ dup)[rows]
+            start += z_vech.size
+        r = np.concatenate([stationarity, lam * g, d.E @ y + d.e, *products])
+        return r, jac
+
+    @cached_property
+    def _kkt_residual_x(self) -> Callable:
+        """(x, w) -> dr/dx, symbolic (the x-derivative the adjoint needs where the SDP depends on x)."""
         kkt = self.kkt()
         products = [vech_sx(0.5 * (ca.mtimes(m, z) + ca.mtimes(z, m))) for m, z in zip(self.psd, kkt.Z)]
         r = ca.vertcat(kkt.stationarity, kkt.lam * self.g, self.h, *products)
         w = ca.vertcat(self.y, kkt.lam, kkt.mu, *kkt.Z_vech)
-        sizes = (self.n_y, int(kkt.lam.numel()), int(kkt.mu.numel()), *(int(v.numel()) for v in kkt.Z_vech))
-        return ConicKKT(self.params.function("kkt_residual", [self.x, w], [r, ca.jacobian(r, w)]),
-                        self.params.function("kkt_residual_x", [self.x, w], [ca.jacobian(r, self.x)]), sizes,
-                        tuple(int(m.size1()) for m in self.psd))
+        return self.params.function("kkt_residual_x", [self.x, w], [ca.jacobian(r, self.x)])
 
     def pack(self, sol: LowerSolution) -> np.ndarray:
         """w = (y, lam, mu, vech Z_k) of a solution."""
