@@ -51,6 +51,7 @@ from ..certificate import DEFAULT_TOL, Certificate
 from ..errors import BilevelError, ModelError, SolverFailed
 from ..lower import LowerSolution, build_lower
 from ..lower.quadratic import clarabel_solution
+from ..lower.sdp import SemidefiniteLower
 from ..model import unflatten_all
 from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, WillemsSetting, build_attack, criterion_values
 from ..result import BilevelResult, Status
@@ -95,16 +96,19 @@ class Evaluation:
 class SDPHypergradient:
     """phi(x) = F(x, y*(x)) of a WillemsAttack and its gradient by implicit differentiation of the SDP's KKT system."""
 
-    def __init__(self, attack: WillemsAttack, polish_steps: int = 4) -> None:
+    def __init__(self, attack: WillemsAttack, polish_steps: int = 4, lower: SemidefiniteLower | None = None) -> None:
+        """lower: the learner's lower level if already built from attack.problem (an engine's canonical one)."""
         p = attack.problem
         self.attack, self.polish_steps = attack, int(polish_steps)
         x = attack.upper
         y = ca.vertcat(*[ca.vec(v.sym) for v in p.lower_variables])
-        h = ca.vertcat(*[c.body for c in p.lower_constraints])
-        psd = [c.matrix for c in p.lower_psd_constraints]
-        h_names = [f"{c.name}[{i}]" for c in p.lower_constraints for i in range(int(c.body.numel()))]
-        self.lower_level = build_lower(x, y, p.lower_objective.expr, ca.SX(0, 1), h, psd, [], h_names,
-                                       [c.name for c in p.lower_psd_constraints], [np.zeros(int(x.numel()))])
+        if lower is None:
+            h = ca.vertcat(*[c.body for c in p.lower_constraints])
+            psd = [c.matrix for c in p.lower_psd_constraints]
+            h_names = [f"{c.name}[{i}]" for c in p.lower_constraints for i in range(int(c.body.numel()))]
+            lower = build_lower(x, y, p.lower_objective.expr, ca.SX(0, 1), h, psd, [], h_names,
+                                [c.name for c in p.lower_psd_constraints], [np.zeros(int(x.numel()))])
+        self.lower_level = lower
         F = p.upper_objective.expr
         self._upper = ca.Function("attacker", [x, y], [F, ca.gradient(F, x), ca.gradient(F, y), attack.gain,
                                                        attack.closed_loop])
@@ -200,10 +204,9 @@ class SDPHypergradient:
         return criterion_values(at.a_id + at.b_id @ gains, gains, at.setting.objective, at.qx, at.cost_weight)
 
 
-def _certificate(oracle: SDPHypergradient, x: np.ndarray, ev: Evaluation) -> Certificate:
+def _certificate(at: WillemsAttack, x: np.ndarray, ev: Evaluation) -> Certificate:
     """The learner's KKT residual at the poisoned data (its own solve, Newton-polished; not checked for the solver's
     own Q, which is by definition that solver's answer) and the budget; no independent re-solve (lower_gap NaN)."""
-    at = oracle.attack
     own = at.setting.selection in SOLVER_SELECTIONS
     bound = at.budget()
     violation = float(np.max(np.maximum(np.abs(x) - bound, 0.0), initial=0.0))
@@ -216,19 +219,19 @@ def _certificate(oracle: SDPHypergradient, x: np.ndarray, ev: Evaluation) -> Cer
                        ev.lower.y.tolist(), "cvxpy + Clarabel", KKT_TOL, not failed, failed, note, y_distance=np.nan)
 
 
-def _result(oracle: SDPHypergradient, method: str, x: np.ndarray, t0: float, evaluations: int, iterations: int,
-            message: str, converged: bool | None, details: dict[str, Any] | None = None) -> BilevelResult:
+def _result(at: WillemsAttack, oracle: SDPHypergradient, method: str, x: np.ndarray, t0: float, evaluations: int,
+            iterations: int, message: str, converged: bool | None,
+            details: dict[str, Any] | None = None) -> BilevelResult:
     """The attack's outcome as a BilevelResult of its registered problem willems-<objective>: x = {Du, Dx}, the
     learner's variables in y, upper_objective the criterion (+inf where the identified loop is unstable for the
     max-min criterion, the paper's convention), the certificate, and the gain and true closed loop in stats.
     converged: True at a converged ascent, False at max_iter, None for a heuristic, a sample or a stop at the
     attacker's goal (never SOLVED)."""
-    at = oracle.attack
     x = np.asarray(x, dtype=float)
     ev = oracle.evaluate(x)
     plant = batch_reactor()
     eig = np.linalg.eigvals(plant.A + plant.B @ ev.gain)
-    cert = _certificate(oracle, x, ev)
+    cert = _certificate(at, x, ev)
     p = at.problem
     stats = {"objective": at.setting.objective, "x": x, "gain": ev.gain, "eigenvalues": eig,
              "spectral_radius": float(np.max(np.abs(eig))), "identified_radius": ev.identified_radius,
@@ -265,9 +268,9 @@ def _seed(seed: int | np.random.SeedSequence | np.random.Generator | None) -> np
 def _ascent_setup(attack: WillemsAttack, oracle: "SDPHypergradient | None", seed: Any,
                   who: str) -> tuple["SDPHypergradient", np.random.Generator, np.ndarray, Box]:
     """The oracle (built unless given, and checked to be this attack's), the rng, the budget and its box."""
-    oracle = oracle or SDPHypergradient(attack)
-    if oracle.attack is not attack:
-        raise ModelError(f"{who}: the oracle was built for another WillemsAttack")
+    oracle = oracle or shared_oracle(attack)[0]
+    if oracle.attack.declaration != attack.declaration:
+        raise ModelError(f"{who}: the oracle was built for another WillemsAttack (other data, learner or criterion)")
     bound = attack.budget()
     return oracle, _seed(seed), bound, Box(-bound, bound)
 
@@ -306,7 +309,7 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, 
         raise SolverFailed(f"hypergradient attack: the learner's SDP could not be solved from any of {starts} starts "
                            f"({records[-1]['message']})")
     ev, k, reason = _select(finished, stop_when_unstable)
-    return _result(oracle, "hypergradient", ev.x, t0, evals, iters, f"start {k} of {len(records)} run ({reason})",
+    return _result(attack, oracle, "hypergradient", ev.x, t0, evals, iters, f"start {k} of {len(records)} run ({reason})",
                    None if reason == GOAL else reason == CONVERGED,
                    {"starts": records, "lower_solves": oracle.lower_solves})
 
@@ -339,8 +342,7 @@ def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize:
     check_common_options({"seed": seed, "tol": tol, "max_iter": maxiter})
     check_counts({"popsize": popsize}, ("popsize",))
     t0 = time.perf_counter()
-    oracle = oracle or SDPHypergradient(attack)
-    bound = attack.budget()
+    oracle, _, bound, _ = _ascent_setup(attack, oracle, seed, "de_attack")
     counter = {"evaluations": 0}
 
     def loss(xs: np.ndarray) -> np.ndarray:
@@ -355,7 +357,7 @@ def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize:
         return stop_when_unstable and oracle.evaluate(intermediate_result.x).identified_radius >= 1.0
 
     out = evolve(loss, -bound, bound, _seed(seed), maxiter, popsize, tol, stop=stop, vectorized=oracle.lower_fixed)
-    return _result(oracle, "differential-evolution", np.clip(out.x, -bound, bound), t0, counter["evaluations"],
+    return _result(attack, oracle, "differential-evolution", np.clip(out.x, -bound, bound), t0, counter["evaluations"],
                    int(out.nit), f"{out.message} (a heuristic: no optimality claim)", None,
                    {"lower_solves": oracle.lower_solves})
 
@@ -367,7 +369,7 @@ def random_attack(attack: WillemsAttack, seed: Any = 0) -> BilevelResult:
     t0 = time.perf_counter()
     bound = attack.budget()
     x = bound * _seed(seed).choice([-1.0, 1.0], size=bound.size)
-    return _result(SDPHypergradient(attack), "random", x, t0, 1, 0, "random signs at the budget (a baseline)", None)
+    return _result(attack, shared_oracle(attack)[0], "random", x, t0, 1, 0, "random signs at the budget (a baseline)", None)
 
 
 @single_threaded_call
@@ -386,12 +388,12 @@ def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> 
                         for name in ("Du", "Dx") if name in res.x])
     bound = attack.budget()
     clipped = float(np.max(np.abs(x - np.clip(x, -bound, bound)), initial=0.0))
-    oracle = SDPHypergradient(attack)
+    oracle = shared_oracle(attack)[0]
     cert = res.certificate
     details = {"status": res.status.value, "solver_objective": res.upper_objective, "clipped_by": clipped,
                "certificate_passed": bool(cert is not None and cert.passed),
                "certificate_failed": list(cert.failed) if cert is not None else [], "solve_time": res.wall_time}
-    return _result(oracle, f"kkt-{method}", np.clip(x, -bound, bound), t0, 0, res.nit,
+    return _result(attack, oracle, f"kkt-{method}", np.clip(x, -bound, bound), t0, 0, res.nit,
                    f"{method} on the KKT reformulation: {res.status.value} ({res.message}); the learner re-solved at "
                    "that point clipped to the budget", res.status is Status.SOLVED and clipped == 0.0, details)
 
@@ -441,17 +443,41 @@ def _ascent_path(oracle: SDPHypergradient, box: Box, scale: np.ndarray, x0: np.n
     return x, ev, it, converged
 
 
-def radius_engine(attack: WillemsAttack, oracle: SDPHypergradient) -> Hypergradient:
+def radius_engine(attack: WillemsAttack, oracle: SDPHypergradient | None = None) -> Hypergradient:
     """The generic engine (bilevel.solvers.implicit) on the attack's spectral-radius problem, its fixed lower level
-    given the learner's solution of `oracle` (any selection): it never solves the SDP again."""
-    if not oracle.lower_fixed:
+    given the learner's solution of `oracle` (any selection; by default an oracle on the engine's own lower level):
+    it never solves the SDP again."""
+    engine = Hypergradient(prepare(attack.radius_problem()))
+    if not engine.low.fixed:
         raise ModelError("destabilize_attack needs a learner that ignores the poisoning (poison='u' with design 'lqr' "
                          "or 'stabilizing'); for state or joint poisoning solve attack.radius_problem() with "
                          "method='hypergradient', which re-solves the SDP at every point")
-    engine = Hypergradient(prepare(attack.radius_problem()))
+    oracle = oracle or SDPHypergradient(attack, lower=engine.low)
     zero = np.zeros(oracle.n_x)
     engine.evaluate(zero, lower=oracle.lower_solution(zero)[0])
     return engine
+
+
+ORACLES_KEPT = 4
+"""Declarations (WillemsAttack.declaration) whose oracle and radius engine a process keeps, most recent first."""
+_ORACLES: dict[tuple, tuple[SDPHypergradient, Hypergradient | None]] = {}
+
+
+def shared_oracle(attack: WillemsAttack, engine: bool = False) -> tuple[SDPHypergradient, Hypergradient | None]:
+    """The oracle of the attack's declaration (data, learner, criterion: any budget) and, if `engine`, its radius
+    engine (radius_engine, on the oracle's lower level), kept per process for the last ORACLES_KEPT declarations:
+    attacks on one data set at several budgets, or by several methods, build them and solve the learner once.
+    Neither reads the budget (each attack passes its own box to the ascent)."""
+    key = attack.declaration
+    oracle, eng = _ORACLES.pop(key, (None, None))
+    if engine and eng is None:
+        eng = radius_engine(attack, oracle)
+        oracle = oracle or SDPHypergradient(attack, lower=eng.low)
+    oracle = oracle or SDPHypergradient(attack)
+    _ORACLES[key] = (oracle, eng)
+    while len(_ORACLES) > ORACLES_KEPT:
+        del _ORACLES[next(iter(_ORACLES))]
+    return oracle, eng
 
 
 @single_threaded_call
@@ -459,17 +485,17 @@ def destabilize_attack(attack: WillemsAttack, starts: int = 64, seed: Any = 0, m
                        oracle: SDPHypergradient | None = None) -> BilevelResult:
     """Maximize the spectral radius of the attacker's closed loop A_id + B_id K over the input poisoning, exactly
     (eigenvector derivatives of rho) on the generic engine: the learner is solved once, K is affine in the poisoning,
-    and `starts` points ascend together (bilevel.solvers.ascent.batched_box_ascent): the clean data and the largest-rho points of a
-    pool of `pool` random ones (half uniform in the box, half its vertices). Returns the point with the largest
-    identified rho."""
+    and `starts` points ascend together (bilevel.solvers.ascent.batched_box_ascent): the clean data and the largest-rho
+    points of a pool of `pool` random ones (half uniform in the box, half its vertices). Returns the point with the
+    largest identified rho. Without `oracle`, the declaration's shared oracle and engine (shared_oracle)."""
     if attack.setting.objective != "destabilize":
         raise ModelError(f"destabilize_attack maximizes the spectral radius; got objective="
                          f"{attack.setting.objective!r}: build the attack with objective='destabilize'")
     check_common_options({"starts": starts, "seed": seed, "max_iter": max_iter})
     check_counts({"pool": pool}, ("pool",))
     t0 = time.perf_counter()
+    oracle, engine = shared_oracle(attack, engine=True) if oracle is None else (oracle, radius_engine(attack, oracle))
     oracle, rng, bound, _ = _ascent_setup(attack, oracle, seed, "destabilize_attack")
-    engine = radius_engine(attack, oracle)
     candidates = rng.uniform(-1.0, 1.0, (max(pool, starts - 1), bound.size)) * bound
     candidates[: candidates.shape[0] // 2] = np.sign(candidates[: candidates.shape[0] // 2]) * bound
     screened = np.argsort(engine.spectral_batch(candidates.T)[0], kind="stable")[: starts - 1]  # F = -rho
@@ -481,7 +507,7 @@ def destabilize_attack(attack: WillemsAttack, starts: int = 64, seed: Any = 0, m
     xs, rho, iters, evaluations = batched_box_ascent(radius, bound, x0, max_iter)
     evaluations += candidates.shape[0]
     best = int(np.nanargmax(rho))
-    return _result(oracle, "destabilize", xs[best], t0, evaluations, iters,
+    return _result(attack, oracle, "destabilize", xs[best], t0, evaluations, iters,
                    f"largest identified spectral radius {rho[best]:.6g} over {starts} starts (the best point of "
                    "their ascents, not a certified local maximum)", None,
                    {"starts": starts, "identified_radius": float(rho[best]), "start_radii": rho.tolist(),

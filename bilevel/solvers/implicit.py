@@ -93,8 +93,15 @@ class Hypergradient:
         if canon.spectral is not None:
             m = ca.vec(canon.spectral)
             jx = ca.jacobian(m, x)
-            self._spectral = canon.params.function("spectral", [x, y], [m, jx, ca.jacobian(m, y)])
+            self._spectral = canon.params.function("spectral", [x, y], [m, jx])
             self.spectral_affine = low.fixed and not ca.depends_on(jx, x)
+
+    @cached_property
+    def _spectral_y(self) -> CompiledFunction:
+        """(x, y) -> d vec(M)/dy of a spectral objective, built on first use: only a lower level that moves with x
+        needs it (on large SDPs M = A + B V S^-1 makes this Jacobian costly)."""
+        canon = self.canon
+        return canon.params.function("spectral_y", [canon.x, canon.y], [ca.jacobian(ca.vec(canon.spectral), canon.y)])
 
     @cached_property
     def _upper_and_f(self) -> CompiledFunction:
@@ -192,14 +199,16 @@ class Hypergradient:
         return Evaluation(x, phi, F, violation, sol, upper, vals)
 
     def _with_spectral(self, x: np.ndarray, y: np.ndarray, upper: list[np.ndarray]) -> list[np.ndarray]:
-        """The upper sweep with F, dF/dx and dF/dy of the spectral objective in place of the NaN expression's."""
-        m, jx, jy = (np.asarray(v, dtype=float) for v in self._spectral(x, y))
+        """The upper sweep with F, dF/dx and dF/dy of the spectral objective in place of the NaN expression's (dF/dy
+        NaN on a lower level that ignores x: its gradient never reads it)."""
+        m, jx = (np.asarray(v, dtype=float) for v in self._spectral(x, y))
         n = int(self.canon.spectral.size1())
         r = spectral_radius(m.reshape(n, n, order="F"))
         sign = self.canon.spectral_sign
         g = sign * r.gradient.ravel(order="F")
-        return [np.array([[sign * float(r.value)]]), upper[1], upper[2], (jx.T @ g)[:, None], (jy.T @ g)[:, None],
-                *upper[5:]]
+        gy = np.full((self.low.n_y, 1), np.nan) if self.low.fixed else \
+            (np.asarray(self._spectral_y(x, y), dtype=float).T @ g)[:, None]
+        return [np.array([[sign * float(r.value)]]), upper[1], upper[2], (jx.T @ g)[:, None], gy, *upper[5:]]
 
     def spectral_batch(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """F = sign * rho(M), dF/dx (n_x x S) and the tie counts at each column of xs (n_x x S), for a spectral
@@ -216,7 +225,7 @@ class Hypergradient:
         revision = self.low.params.revision
         if self._affine is None or self._affine[0] != revision:
             zero = np.zeros(self.low.n_x)
-            m0, jx, _ = (np.asarray(v, dtype=float) for v in self._spectral(zero, self.evaluate(zero).lower.y))
+            m0, jx = (np.asarray(v, dtype=float) for v in self._spectral(zero, self.evaluate(zero).lower.y))
             self._affine = (revision, m0.ravel(), jx)
         _, m0, jx = self._affine
         r = spectral_radius((m0[:, None] + jx @ xs).T.reshape(-1, n, n).transpose(0, 2, 1))
