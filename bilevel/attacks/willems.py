@@ -119,6 +119,7 @@ class SDPHypergradient:
         self.n_x = int(x.numel())
         self.lower_solves = 0
         self._cache: tuple[np.ndarray, LowerSolution, float] | None = None
+        self._affine: tuple[np.ndarray, np.ndarray] | None = None  # K(0) and dK/dx of a fixed learner
 
     # -- the learner's response ---------------------------------------------------------------------
     def polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, float]:
@@ -191,17 +192,30 @@ class SDPHypergradient:
         ev = self.evaluate(x)
         return ev.phi, self.gradient(ev)
 
+    def loops(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Identified closed loops A_id + B_id K and gains K at the rows of xs, where the learner ignores x and K is
+        affine in x (K0 and dK/dx evaluated once)."""
+        if not self._gain_affine:
+            raise ModelError("loops needs a learner that ignores the poisoning (K affine in it); use evaluate")
+        if self._affine is None:
+            zero = np.zeros(self.n_x)
+            self._affine = tuple(np.asarray(v, dtype=float) for v in self._gain(zero, self.lower_solution(zero)[0].y))
+        (k0, jac), at = self._affine, self.attack
+        gains = k0[None] + (xs @ jac.T).reshape(xs.shape[0], at.n_states, at.n_inputs).transpose(0, 2, 1)
+        return at.a_id + at.b_id @ gains, gains
+
+    def identified_radius(self, x: np.ndarray) -> float:
+        """Spectral radius of the identified closed loop at x."""
+        acl = self.loops(x[None])[0][0] if self._gain_affine else self.evaluate(x).closed_loop
+        return float(np.max(np.abs(np.linalg.eigvals(acl))))
+
     def objectives(self, xs: np.ndarray) -> np.ndarray:
         """phi at each row of xs; batched in numpy when the learner ignores x and K is then affine in x."""
         xs = np.atleast_2d(np.asarray(xs, dtype=float))
         if not self._gain_affine:
             return np.array([self.evaluate(x).phi for x in xs])
         at = self.attack
-        y = self.lower_solution(xs[0])[0].y
-        k0, jac = (np.asarray(v, dtype=float) for v in self._gain(np.zeros(self.n_x), y))
-        m, n = at.n_inputs, at.n_states
-        gains = k0[None] + (xs @ jac.T).reshape(xs.shape[0], n, m).transpose(0, 2, 1)
-        return criterion_values(at.a_id + at.b_id @ gains, gains, at.setting.objective, at.qx, at.cost_weight)
+        return criterion_values(*self.loops(xs), at.setting.objective, at.qx, at.cost_weight)
 
 
 def _certificate(at: WillemsAttack, x: np.ndarray, ev: Evaluation) -> Certificate:
@@ -354,7 +368,7 @@ def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize:
     def stop(intermediate_result: scipy.optimize.OptimizeResult) -> bool:
         if -intermediate_result.fun >= UNSTABLE_PENALTY:
             return True
-        return stop_when_unstable and oracle.evaluate(intermediate_result.x).identified_radius >= 1.0
+        return stop_when_unstable and oracle.identified_radius(intermediate_result.x) >= 1.0
 
     out = evolve(loss, -bound, bound, _seed(seed), maxiter, popsize, tol, stop=stop, vectorized=oracle.lower_fixed)
     return _result(attack, oracle, "differential-evolution", np.clip(out.x, -bound, bound), t0, counter["evaluations"],

@@ -98,7 +98,7 @@ def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, 
         for members in [np.arange(size)] if vectorized else np.arange(size)[:, None]:
             r0, r1 = _others(rng, members, size)
             mutant = unit[best] + weight * (unit[r0] - unit[r1])
-            cross = rng.uniform(size=(members.size, n)) < RECOMBINATION
+            cross = rng.random((members.size, n), dtype=np.float32) < RECOMBINATION
             cross[np.arange(members.size), rng.integers(n, size=members.size)] = True
             trial = np.where(cross, mutant, unit[members])
             outside = (trial < 0.0) | (trial > 1.0)
@@ -108,8 +108,7 @@ def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, 
             better = trial_energies <= energies[members]
             unit[members[better]], energies[members[better]] = trial[better], trial_energies[better]
             best = int(np.argmin(energies)) if vectorized or energies[members[0]] <= energies[best] else best
-        state = scipy.optimize.OptimizeResult(x=lb + unit[best] * width, fun=float(energies[best]), nit=nit,
-                                              nfev=nfev, population=lb + unit * width, population_energies=energies)
+        state = scipy.optimize.OptimizeResult(x=lb + unit[best] * width, fun=float(energies[best]), nit=nit, nfev=nfev)
         if stop is not None and stop(state):
             message = "callback function requested stop early"
             break
