@@ -149,12 +149,16 @@ class SDPHypergradient:
             self.lower_solves += 1
             self._cache = (x.copy(), self.solver_selection(), float("nan"))
             return self._cache[1], self._cache[2]
-        with warnings.catch_warnings():  # cvxpy's "may be inaccurate": the polished KKT residual decides below
-            warnings.simplefilter("ignore", UserWarning)
-            # Clarabel's raw point: the Newton polish below works on this SDP's own KKT system, so the
-            # generic face polish of the certificate's re-solve would only add ~20 ms per solve
-            sol = clarabel_solution(self.lower_level.data(x), "of the learner", self.lower_level.lmi_data(x))
-        sol, res = self.polish(x, sol)
+        near = None if self._cache is None else self.lower_level.continue_from(x, self._cache[1], self.polish_steps + 2)
+        if near is not None:  # Newton continuation from the last point's solution: no conic solve
+            sol, res = near
+        else:
+            with warnings.catch_warnings():  # cvxpy's "may be inaccurate": the polished KKT residual decides below
+                warnings.simplefilter("ignore", UserWarning)
+                # Clarabel's raw point: the Newton polish below works on this SDP's own KKT system, so the
+                # generic face polish of the certificate's re-solve would only add ~20 ms per solve
+                sol = clarabel_solution(self.lower_level.data(x), "of the learner", self.lower_level.lmi_data(x))
+            sol, res = self.polish(x, sol)
         if self.attack.setting.selection == "min-norm":  # the engine's selection: Q onto the row space of D
             sol = self.lower_level.select_min_norm(x, sol)
             res = self.lower_level.kkt_residual(x, sol)
