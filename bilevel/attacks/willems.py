@@ -239,14 +239,15 @@ def _certificate(at: WillemsAttack, x: np.ndarray, ev: Evaluation) -> Certificat
 
 def _result(at: WillemsAttack, oracle: SDPHypergradient, method: str, x: np.ndarray, t0: float, evaluations: int,
             iterations: int, message: str, converged: bool | None,
-            details: dict[str, Any] | None = None) -> BilevelResult:
+            details: dict[str, Any] | None = None, ev: Evaluation | None = None) -> BilevelResult:
     """The attack's outcome as a BilevelResult of its registered problem willems-<objective>: x = {Du, Dx}, the
     learner's variables in y, upper_objective the criterion (+inf where the identified loop is unstable for the
     max-min criterion, the paper's convention), the certificate, and the gain and true closed loop in stats.
     converged: True at a converged ascent, False at max_iter, None for a heuristic, a sample or a stop at the
-    attacker's goal (never SOLVED)."""
+    attacker's goal (never SOLVED). ev: the point's evaluation if the attack made it (the learner is not solved
+    again: where the SDP moves with x, the ascent's solution may come from Newton continuation)."""
     x = np.asarray(x, dtype=float)
-    ev = oracle.evaluate(x)
+    ev = ev if ev is not None and np.array_equal(ev.x, x) else oracle.evaluate(x)
     plant = batch_reactor()
     eig = np.linalg.eigvals(plant.A + plant.B @ ev.gain)
     cert = _certificate(at, x, ev)
@@ -329,7 +330,7 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, 
     ev, k, reason = _select(finished, stop_when_unstable)
     return _result(attack, oracle, "hypergradient", ev.x, t0, evals, iters, f"start {k} of {len(records)} run ({reason})",
                    None if reason == GOAL else reason == CONVERGED,
-                   {"starts": records, "lower_solves": oracle.lower_solves})
+                   {"starts": records, "lower_solves": oracle.lower_solves}, ev)
 
 
 def _select(finished: list[tuple[Evaluation, int, str]], stop_when_unstable: bool) -> tuple[Evaluation, int, str]:
