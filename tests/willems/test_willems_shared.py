@@ -134,3 +134,21 @@ def test_paper_tasks_keep_a_data_set_together() -> None:
     sets = [(t["horizon"], t["seed"]) for t in tasks]
     runs = [s for i, s in enumerate(sets) if i == 0 or s != sets[i - 1]]
     assert len(runs) == len(set(sets)) == 6 and len(tasks) == 6 * 30
+
+
+def test_newton_continuation_reaches_the_conic_solution() -> None:
+    """State poisoning: continue_from at a point 1e-3 away from a solved one equals Clarabel + Newton polish there
+    (Q to 1e-8 relative, residual <= 1e-9); from the same solution at a point 0.5 away it gives up
+    (None) or returns a point inside the cones at the same residual bound."""
+    attack = build_attack(objective="eigen", horizon=15, seed=8, poison="xu", delta_u=0.01, delta_x=0.01)
+    low = willems.SDPHypergradient(attack).lower_level
+    rng = np.random.default_rng(5)
+    x0 = rng.uniform(-0.01, 0.01, low.n_x)
+    x1 = x0 + rng.uniform(-1e-3, 1e-3, low.n_x)
+    at0 = low.newton_polish(x0, low.solve(x0))[0]
+    fresh, fresh_residual = low.newton_polish(x1, low.solve(x1))
+    near = low.continue_from(x1, at0)
+    assert near is not None and near[1] <= 1e-9 and fresh_residual <= 1e-9
+    assert np.abs(near[0].y - fresh.y).max() <= 1e-8 * np.abs(fresh.y).max()
+    far = low.continue_from(x1 + 0.5, at0)
+    assert far is None or (far[1] <= 1e-9 and low.in_cones(x1 + 0.5, far[0]))
