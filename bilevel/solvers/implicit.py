@@ -11,7 +11,8 @@ is computed by the adjoint: grad phi = grad_x phi - R' z with K' z = (grad_y phi
 and R its x-derivative, which equals grad_x phi + (dy/dx)' grad_y phi without forming dy/dx.
 A lower level with LMIs is polished and differentiated through its conic KKT system instead (stationarity,
 lam * g, h and vech((M_k Z_k + Z_k M_k) / 2), bilevel.lower.sdp.ConicKKT, and SemidefiniteLower.adjoint: the
-same code as the Willems attacks), after which y is projected off the directions the SDP sees only through a ridge
+same code as the Willems attacks; a new point's solution is first sought by Newton continuation from the last one,
+SemidefiniteLower.continue_from), after which y is projected off the directions the SDP sees only through a ridge
 (SemidefiniteLower.select_min_norm: the minimum-norm selection of a non-unique solution, or the exact ridge
 solution); it needs a strictly complementary lower solution, unique up to those directions.
 
@@ -88,6 +89,7 @@ class Hypergradient:
         self._fixed: tuple[int, LowerSolution, KKTValues | None] | None = None  # (parameter revision, ...)
         self._batches: dict[int, ca.Function] = {}  # batch_phi's mapped sweeps, by batch size
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
+        self._last_conic: LowerSolution | None = None  # the last conic solution, where continuation starts
         self._spectral: CompiledFunction | None = None  # a spectral objective's M, dM/dx, dM/dy (vec M rows)
         self._affine: tuple[int, np.ndarray, np.ndarray] | None = None  # (revision, M(0, y*), dM/dx) when fixed
         if canon.spectral is not None:
@@ -178,8 +180,11 @@ class Hypergradient:
             _, sol, vals = self._fixed
         elif lower is not None:
             sol, vals = lower, kkt
-        elif self.conic:
-            sol, vals = self.low.select_min_norm(x, self.low.newton_polish(x, self.low.solve(x))[0]), None
+        elif self.conic:  # Newton continuation from the last point's solution, else a conic solve and its polish
+            near = None if self._last_conic is None else self.low.continue_from(x, self._last_conic)
+            sol = near[0] if near is not None else self.low.newton_polish(x, self.low.solve(x))[0]
+            sol, vals = self.low.select_min_norm(x, sol), None
+            self._last_conic = sol
         else:
             sol, vals = self.polish(x, self.low.solve(x))
         if self.low.fixed:  # y* constant in x: solved once, no adjoint
