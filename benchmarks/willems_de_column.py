@@ -1,0 +1,48 @@
+"""The paper sweep's differential-evolution column alone, against the committed table's 95% intervals.
+
+Runs every DE task of the 256-simulation paper sweep (or the first SIMS simulations) through attack_task in task
+order, appending rows to OUT/de.jsonl (resumable), then writes OUT/table_paper.csv (its DE cells) and prints
+willems_table_check's comparison with docs/results/willems. Usage: willems_de_column.py OUT [SIMS].
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import time
+
+from bilevel.experiments.willems import attack_task, make_plan, paper_tasks, summarize, write_csv
+from bilevel.threads import single_threaded
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from willems_table_check import main as check  # noqa: E402
+
+FIELDS = ("horizon", "method", "delta_u")
+
+
+def main(out: str, sims: int = 256) -> int:
+    """Run (or resume) the DE tasks, write their table and compare it with the committed one."""
+    print(f"# willems_de_column.py {out} {sims} -- {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}, "
+          f"{platform.node()}, nproc {os.cpu_count()}")
+    os.makedirs(out, exist_ok=True)
+    path = os.path.join(out, "de.jsonl")
+    done = {}
+    if os.path.exists(path):
+        with open(path, encoding="utf-8") as fh:
+            done = {r["key"]: r for r in map(json.loads, fh)}
+    tasks = [t for t in paper_tasks(make_plan(256, False), 0) if t["method"] == "de" and t["sim"] < sims]
+    with single_threaded(), open(path, "a", encoding="utf-8") as fh:
+        for task in tasks:
+            if task["key"] not in done:
+                row = {k: v for k, v in attack_task(task).items() if k != "du"} | {"key": task["key"]}
+                fh.write(json.dumps(row) + "\n")
+                fh.flush()
+                done[task["key"]] = row
+    write_csv(summarize([done[t["key"]] for t in tasks], FIELDS), FIELDS, os.path.join(out, "table_paper.csv"))
+    return check(out)
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1], *(int(a) for a in sys.argv[2:3])))
