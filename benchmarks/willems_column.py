@@ -1,8 +1,9 @@
-"""The paper sweep's differential-evolution column alone, against the committed table's 95% intervals.
+"""One method's column of the paper sweep alone, against the committed table's 95% intervals.
 
-Runs every DE task of the 256-simulation paper sweep (or the first SIMS simulations) through attack_task in task
-order, appending rows to OUT/de.jsonl (resumable), then writes OUT/table_paper.csv (its DE cells) and prints
-willems_table_check's comparison with docs/results/willems. Usage: willems_de_column.py OUT [SIMS].
+Runs every task of METHOD (de, hypergradient or destabilize) in the 256-simulation paper sweep (or its first SIMS
+simulations) through attack_task in task order, appending rows to OUT/METHOD.jsonl (resumable), then writes
+OUT/table_paper.csv (that column's cells) and prints willems_table_check's comparison with docs/results/willems.
+Usage: willems_column.py OUT METHOD [SIMS].
 """
 
 from __future__ import annotations
@@ -22,17 +23,17 @@ from willems_table_check import main as check  # noqa: E402
 FIELDS = ("horizon", "method", "delta_u")
 
 
-def main(out: str, sims: int = 256) -> int:
-    """Run (or resume) the DE tasks, write their table and compare it with the committed one."""
-    print(f"# willems_de_column.py {out} {sims} -- {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}, "
+def main(out: str, method: str, sims: int = 256) -> int:
+    """Run (or resume) the method's tasks, write their table and compare it with the committed one."""
+    print(f"# willems_column.py {out} {method} {sims} -- {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}, "
           f"{platform.node()}, nproc {os.cpu_count()}")
     os.makedirs(out, exist_ok=True)
-    path = os.path.join(out, "de.jsonl")
+    path = os.path.join(out, f"{method}.jsonl")
     done = {}
     if os.path.exists(path):
         with open(path, encoding="utf-8") as fh:
             done = {r["key"]: r for r in map(json.loads, fh)}
-    tasks = [t for t in paper_tasks(make_plan(256, False), 0) if t["method"] == "de" and t["sim"] < sims]
+    tasks = [t for t in paper_tasks(make_plan(256, False), 0) if t["method"] == method and t["sim"] < sims]
     with single_threaded(), open(path, "a", encoding="utf-8") as fh:
         for task in tasks:
             if task["key"] not in done:
@@ -45,4 +46,4 @@ def main(out: str, sims: int = 256) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1], *(int(a) for a in sys.argv[2:3])))
+    sys.exit(main(sys.argv[1], sys.argv[2], *(int(a) for a in sys.argv[3:4])))
