@@ -1,9 +1,10 @@
-"""One method's column of the paper sweep alone, against the committed table's 95% intervals.
+"""One method's column of the paper sweep, or one side sweep, alone, against the committed table's 95% intervals.
 
-Runs every task of METHOD (de, hypergradient or destabilize) in the 256-simulation paper sweep (or its first SIMS
-simulations) through attack_task in task order, appending rows to OUT/METHOD.jsonl (resumable), then writes
-OUT/table_paper.csv (that column's cells) and prints willems_table_check's comparison with docs/results/willems.
-Usage: willems_column.py OUT METHOD [SIMS].
+Runs every task of METHOD (de, hypergradient or destabilize) in the 256-simulation paper sweep, or every task of the
+remark or designs sweep (METHOD remark / designs), or their first SIMS simulations, through attack_task in task
+order, appending rows to OUT/METHOD.jsonl (resumable), then writes its table CSV (OUT/table_paper.csv: that
+column's cells; OUT/table_remark.csv, OUT/table_designs.csv) and prints willems_table_check's comparison with
+docs/results/willems. Usage: willems_column.py OUT METHOD [SIMS].
 """
 
 from __future__ import annotations
@@ -14,13 +15,16 @@ import platform
 import sys
 import time
 
-from bilevel.experiments.willems import attack_task, make_plan, paper_tasks, summarize, write_csv
+from bilevel.experiments.willems import (attack_task, design_tasks, make_plan, paper_tasks, remark_tasks,
+                                        summarize, write_csv)
 from bilevel.threads import single_threaded
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from willems_table_check import main as check  # noqa: E402
 
-FIELDS = ("horizon", "method", "delta_u")
+SWEEPS = {"paper": (paper_tasks, ("horizon", "method", "delta_u")),
+          "remark": (remark_tasks, ("horizon", "method", "criterion")),
+          "designs": (design_tasks, ("design", "poison", "criterion", "delta_u"))}
 
 
 def main(out: str, method: str, sims: int = 256) -> int:
@@ -33,7 +37,10 @@ def main(out: str, method: str, sims: int = 256) -> int:
     if os.path.exists(path):
         with open(path, encoding="utf-8") as fh:
             done = {r["key"]: r for r in map(json.loads, fh)}
-    tasks = [t for t in paper_tasks(make_plan(256, False), 0) if t["method"] == method and t["sim"] < sims]
+    sweep = method if method in SWEEPS else "paper"
+    make_tasks, fields = SWEEPS[sweep]
+    tasks = [t for t in make_tasks(make_plan(256, False), 0)
+             if (sweep != "paper" or t["method"] == method) and t["sim"] < sims]
     with single_threaded(), open(path, "a", encoding="utf-8") as fh:
         for task in tasks:
             if task["key"] not in done:
@@ -41,7 +48,7 @@ def main(out: str, method: str, sims: int = 256) -> int:
                 fh.write(json.dumps(row) + "\n")
                 fh.flush()
                 done[task["key"]] = row
-    write_csv(summarize([done[t["key"]] for t in tasks], FIELDS), FIELDS, os.path.join(out, "table_paper.csv"))
+    write_csv(summarize([done[t["key"]] for t in tasks], fields), fields, os.path.join(out, f"table_{sweep}.csv"))
     return check(out)
 
 
