@@ -14,7 +14,9 @@ every constraint unchanged. At a strictly
 complementary, nondegenerate solution dr/dw is nonsingular (Alizadeh, Haeberly & Overton 1998),
 so y*(x) is differentiable with dw/dx = -(dr/dw)^-1 dr/dx. The gradient of phi(x) = F(x, y*(x))
 comes from the adjoint system (dr/dw)' z = (dF/dy, 0, 0): grad phi = dF/dx - (dr/dx)' z. When the
-lower level does not depend on x (U poisoning of the lqr and stabilizing designs) it is solved once.
+lower level does not depend on x (U poisoning of the lqr and stabilizing designs) it is solved once; otherwise each
+new point's solution is first sought by Newton continuation from the last one (SemidefiniteLower.continue_from).
+Attacks on one declaration (data, learner, criterion; any budget) share one oracle per process (shared_oracle).
 
 Ascent: the engine's spectral projected gradient loop (bilevel.solvers.ascent, in budget units) on the
 linf box (exact clipping, bilevel.solvers.projections.Box), from the clean data and from uniform random
