@@ -41,6 +41,7 @@ import dataclasses
 import time
 import warnings
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, Callable, Literal
 
 import casadi as ca
@@ -115,13 +116,22 @@ class SDPHypergradient:
         self._upper = ca.Function("attacker", [x, y], [F, ca.gradient(F, x), ca.gradient(F, y), attack.gain,
                                                        attack.closed_loop])
         self.lower_fixed = self.lower_level.fixed
-        gain_jacobian = ca.jacobian(ca.vec(attack.gain), x)
-        self._gain_affine = self.lower_fixed and not ca.depends_on(gain_jacobian, x)
-        self._gain = ca.Function("gain", [x, y], [attack.gain, gain_jacobian])
+        self._x, self._y = x, y
         self.n_x = int(x.numel())
         self.lower_solves = 0
         self._cache: tuple[np.ndarray, LowerSolution, float] | None = None
         self._affine: tuple[np.ndarray, np.ndarray] | None = None  # K(0) and dK/dx of a fixed learner
+
+    @cached_property
+    def _gain(self) -> ca.Function:
+        """(x, y) -> K and dK/dx (built on first use: only the batched paths read it)."""
+        x, gain = self._x, self.attack.gain
+        return ca.Function("gain", [x, self._y], [gain, ca.jacobian(ca.vec(gain), x)])
+
+    @cached_property
+    def _gain_affine(self) -> bool:
+        """Whether K is affine in x: the learner ignores x and dK/dx does not depend on x."""
+        return self.lower_fixed and not ca.depends_on(ca.jacobian(ca.vec(self.attack.gain), self._x), self._x)
 
     # -- the learner's response ---------------------------------------------------------------------
     def polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, float]:
