@@ -90,7 +90,7 @@ class Hypergradient:
         self._batches: dict[int, ca.Function] = {}  # batch_phi's mapped sweeps, by batch size
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
         self._last_conic: LowerSolution | None = None  # the last conic solution, where continuation starts
-        self._spectral: CompiledFunction | None = None  # a spectral objective's M, dM/dx, dM/dy (vec M rows)
+        self._spectral: CompiledFunction | None = None  # a spectral objective's M and dM/dx (vec M rows)
         self._affine: tuple[int, np.ndarray, np.ndarray] | None = None  # (revision, M(0, y*), dM/dx) when fixed
         if canon.spectral is not None:
             m = ca.vec(canon.spectral)
