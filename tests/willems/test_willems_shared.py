@@ -152,3 +152,17 @@ def test_newton_continuation_reaches_the_conic_solution() -> None:
     assert np.abs(near[0].y - fresh.y).max() <= 1e-8 * np.abs(fresh.y).max()
     far = low.continue_from(x1 + 0.5, at0)
     assert far is None or (far[1] <= 1e-9 and low.in_cones(x1 + 0.5, far[0]))
+
+
+def test_budget_cdf_shows_every_finite_budget() -> None:
+    """The delta_u* CDF's x-axis reaches past the largest finite delta_u* (1.25 here), each curve ends at its final
+    fraction on the right edge, and a data set never destabilized (inf) keeps its curve below 1."""
+    from bilevel.experiments.willems_budget import budget_figure
+
+    rows = [{"horizon": n, "selection": "min-norm", "data_seed": i, "delta_star": v, "attacks": 10}
+            for n, values in ((15, [0.3, 0.5, 1.25]), (50, [0.7, 1.0, float("inf")])) for i, v in enumerate(values)]
+    ax = budget_figure(rows).axes[0]
+    right = ax.get_xlim()[1]
+    assert right == pytest.approx(1.05 * 1.25)
+    ends = sorted((line.get_xdata()[-1], line.get_ydata()[-1]) for line in ax.get_lines())
+    assert ends == [(pytest.approx(right), pytest.approx(2 / 3)), (pytest.approx(right), pytest.approx(1.0))]
