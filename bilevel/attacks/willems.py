@@ -14,7 +14,9 @@ every constraint unchanged. At a strictly
 complementary, nondegenerate solution dr/dw is nonsingular (Alizadeh, Haeberly & Overton 1998),
 so y*(x) is differentiable with dw/dx = -(dr/dw)^-1 dr/dx. The gradient of phi(x) = F(x, y*(x))
 comes from the adjoint system (dr/dw)' z = (dF/dy, 0, 0): grad phi = dF/dx - (dr/dx)' z. When the
-lower level does not depend on x (U poisoning of the lqr and stabilizing designs) it is solved once.
+lower level does not depend on x (U poisoning of the lqr and stabilizing designs) it is solved once; otherwise each
+new point's solution is first sought by Newton continuation from the last one (SemidefiniteLower.continue_from).
+Attacks on one declaration (data, learner, criterion; any budget) share one oracle per process (shared_oracle).
 
 Ascent: the engine's spectral projected gradient loop (bilevel.solvers.ascent, in budget units) on the
 linf box (exact clipping, bilevel.solvers.projections.Box), from the clean data and from uniform random
@@ -39,6 +41,7 @@ import dataclasses
 import time
 import warnings
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, Callable, Literal
 
 import casadi as ca
@@ -51,6 +54,7 @@ from ..certificate import DEFAULT_TOL, Certificate
 from ..errors import BilevelError, ModelError, SolverFailed
 from ..lower import LowerSolution, build_lower
 from ..lower.quadratic import clarabel_solution
+from ..lower.sdp import SemidefiniteLower
 from ..model import unflatten_all
 from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, WillemsSetting, build_attack, criterion_values
 from ..result import BilevelResult, Status
@@ -95,26 +99,39 @@ class Evaluation:
 class SDPHypergradient:
     """phi(x) = F(x, y*(x)) of a WillemsAttack and its gradient by implicit differentiation of the SDP's KKT system."""
 
-    def __init__(self, attack: WillemsAttack, polish_steps: int = 4) -> None:
+    def __init__(self, attack: WillemsAttack, polish_steps: int = 4, lower: SemidefiniteLower | None = None) -> None:
+        """lower: the learner's lower level if already built from attack.problem (an engine's canonical one)."""
         p = attack.problem
         self.attack, self.polish_steps = attack, int(polish_steps)
         x = attack.upper
         y = ca.vertcat(*[ca.vec(v.sym) for v in p.lower_variables])
-        h = ca.vertcat(*[c.body for c in p.lower_constraints])
-        psd = [c.matrix for c in p.lower_psd_constraints]
-        h_names = [f"{c.name}[{i}]" for c in p.lower_constraints for i in range(int(c.body.numel()))]
-        self.lower_level = build_lower(x, y, p.lower_objective.expr, ca.SX(0, 1), h, psd, [], h_names,
-                                       [c.name for c in p.lower_psd_constraints], [np.zeros(int(x.numel()))])
+        if lower is None:
+            h = ca.vertcat(*[c.body for c in p.lower_constraints])
+            psd = [c.matrix for c in p.lower_psd_constraints]
+            h_names = [f"{c.name}[{i}]" for c in p.lower_constraints for i in range(int(c.body.numel()))]
+            lower = build_lower(x, y, p.lower_objective.expr, ca.SX(0, 1), h, psd, [], h_names,
+                                [c.name for c in p.lower_psd_constraints], [np.zeros(int(x.numel()))])
+        self.lower_level = lower
         F = p.upper_objective.expr
         self._upper = ca.Function("attacker", [x, y], [F, ca.gradient(F, x), ca.gradient(F, y), attack.gain,
                                                        attack.closed_loop])
         self.lower_fixed = self.lower_level.fixed
-        gain_jacobian = ca.jacobian(ca.vec(attack.gain), x)
-        self._gain_affine = self.lower_fixed and not ca.depends_on(gain_jacobian, x)
-        self._gain = ca.Function("gain", [x, y], [attack.gain, gain_jacobian])
+        self._x, self._y = x, y
         self.n_x = int(x.numel())
         self.lower_solves = 0
         self._cache: tuple[np.ndarray, LowerSolution, float] | None = None
+        self._affine: tuple[np.ndarray, np.ndarray] | None = None  # K(0) and dK/dx of a fixed learner
+
+    @cached_property
+    def _gain(self) -> ca.Function:
+        """(x, y) -> K and dK/dx (built on first use: only the batched paths read it)."""
+        x, gain = self._x, self.attack.gain
+        return ca.Function("gain", [x, self._y], [gain, ca.jacobian(ca.vec(gain), x)])
+
+    @cached_property
+    def _gain_affine(self) -> bool:
+        """Whether K is affine in x: the learner ignores x and dK/dx does not depend on x."""
+        return self.lower_fixed and not ca.depends_on(ca.jacobian(ca.vec(self.attack.gain), self._x), self._x)
 
     # -- the learner's response ---------------------------------------------------------------------
     def polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, float]:
@@ -144,12 +161,16 @@ class SDPHypergradient:
             self.lower_solves += 1
             self._cache = (x.copy(), self.solver_selection(), float("nan"))
             return self._cache[1], self._cache[2]
-        with warnings.catch_warnings():  # cvxpy's "may be inaccurate": the polished KKT residual decides below
-            warnings.simplefilter("ignore", UserWarning)
-            # Clarabel's raw point: the Newton polish below works on this SDP's own KKT system, so the
-            # generic face polish of the certificate's re-solve would only add ~20 ms per solve
-            sol = clarabel_solution(self.lower_level.data(x), "of the learner", self.lower_level.lmi_data(x))
-        sol, res = self.polish(x, sol)
+        near = None if self._cache is None else self.lower_level.continue_from(x, self._cache[1], self.polish_steps + 2)
+        if near is not None:  # Newton continuation from the last point's solution: no conic solve
+            sol, res = near
+        else:
+            with warnings.catch_warnings():  # cvxpy's "may be inaccurate": the polished KKT residual decides below
+                warnings.simplefilter("ignore", UserWarning)
+                # Clarabel's raw point: the Newton polish below works on this SDP's own KKT system, so the
+                # generic face polish of the certificate's re-solve would only add ~20 ms per solve
+                sol = clarabel_solution(self.lower_level.data(x), "of the learner", self.lower_level.lmi_data(x))
+            sol, res = self.polish(x, sol)
         if self.attack.setting.selection == "min-norm":  # the engine's selection: Q onto the row space of D
             sol = self.lower_level.select_min_norm(x, sol)
             res = self.lower_level.kkt_residual(x, sol)
@@ -187,23 +208,35 @@ class SDPHypergradient:
         ev = self.evaluate(x)
         return ev.phi, self.gradient(ev)
 
+    def loops(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Identified closed loops A_id + B_id K and gains K at the rows of xs, where the learner ignores x and K is
+        affine in x (K0 and dK/dx evaluated once)."""
+        if not self._gain_affine:
+            raise ModelError("loops needs a learner that ignores the poisoning (K affine in it); use evaluate")
+        if self._affine is None:
+            zero = np.zeros(self.n_x)
+            self._affine = tuple(np.asarray(v, dtype=float) for v in self._gain(zero, self.lower_solution(zero)[0].y))
+        (k0, jac), at = self._affine, self.attack
+        gains = k0[None] + (xs @ jac.T).reshape(xs.shape[0], at.n_states, at.n_inputs).transpose(0, 2, 1)
+        return at.a_id + at.b_id @ gains, gains
+
+    def identified_radius(self, x: np.ndarray) -> float:
+        """Spectral radius of the identified closed loop at x."""
+        acl = self.loops(x[None])[0][0] if self._gain_affine else self.evaluate(x).closed_loop
+        return float(np.max(np.abs(np.linalg.eigvals(acl))))
+
     def objectives(self, xs: np.ndarray) -> np.ndarray:
         """phi at each row of xs; batched in numpy when the learner ignores x and K is then affine in x."""
         xs = np.atleast_2d(np.asarray(xs, dtype=float))
         if not self._gain_affine:
             return np.array([self.evaluate(x).phi for x in xs])
         at = self.attack
-        y = self.lower_solution(xs[0])[0].y
-        k0, jac = (np.asarray(v, dtype=float) for v in self._gain(np.zeros(self.n_x), y))
-        m, n = at.n_inputs, at.n_states
-        gains = k0[None] + (xs @ jac.T).reshape(xs.shape[0], n, m).transpose(0, 2, 1)
-        return criterion_values(at.a_id + at.b_id @ gains, gains, at.setting.objective, at.qx, at.cost_weight)
+        return criterion_values(*self.loops(xs), at.setting.objective, at.qx, at.cost_weight)
 
 
-def _certificate(oracle: SDPHypergradient, x: np.ndarray, ev: Evaluation) -> Certificate:
+def _certificate(at: WillemsAttack, x: np.ndarray, ev: Evaluation) -> Certificate:
     """The learner's KKT residual at the poisoned data (its own solve, Newton-polished; not checked for the solver's
     own Q, which is by definition that solver's answer) and the budget; no independent re-solve (lower_gap NaN)."""
-    at = oracle.attack
     own = at.setting.selection in SOLVER_SELECTIONS
     bound = at.budget()
     violation = float(np.max(np.maximum(np.abs(x) - bound, 0.0), initial=0.0))
@@ -216,19 +249,20 @@ def _certificate(oracle: SDPHypergradient, x: np.ndarray, ev: Evaluation) -> Cer
                        ev.lower.y.tolist(), "cvxpy + Clarabel", KKT_TOL, not failed, failed, note, y_distance=np.nan)
 
 
-def _result(oracle: SDPHypergradient, method: str, x: np.ndarray, t0: float, evaluations: int, iterations: int,
-            message: str, converged: bool | None, details: dict[str, Any] | None = None) -> BilevelResult:
+def _result(at: WillemsAttack, oracle: SDPHypergradient, method: str, x: np.ndarray, t0: float, evaluations: int,
+            iterations: int, message: str, converged: bool | None,
+            details: dict[str, Any] | None = None, ev: Evaluation | None = None) -> BilevelResult:
     """The attack's outcome as a BilevelResult of its registered problem willems-<objective>: x = {Du, Dx}, the
     learner's variables in y, upper_objective the criterion (+inf where the identified loop is unstable for the
     max-min criterion, the paper's convention), the certificate, and the gain and true closed loop in stats.
     converged: True at a converged ascent, False at max_iter, None for a heuristic, a sample or a stop at the
-    attacker's goal (never SOLVED)."""
-    at = oracle.attack
+    attacker's goal (never SOLVED). ev: the point's evaluation if the attack made it (the learner is not solved
+    again: where the SDP moves with x, the ascent's solution may come from Newton continuation)."""
     x = np.asarray(x, dtype=float)
-    ev = oracle.evaluate(x)
+    ev = ev if ev is not None and np.array_equal(ev.x, x) else oracle.evaluate(x)
     plant = batch_reactor()
     eig = np.linalg.eigvals(plant.A + plant.B @ ev.gain)
-    cert = _certificate(oracle, x, ev)
+    cert = _certificate(at, x, ev)
     p = at.problem
     stats = {"objective": at.setting.objective, "x": x, "gain": ev.gain, "eigenvalues": eig,
              "spectral_radius": float(np.max(np.abs(eig))), "identified_radius": ev.identified_radius,
@@ -265,9 +299,9 @@ def _seed(seed: int | np.random.SeedSequence | np.random.Generator | None) -> np
 def _ascent_setup(attack: WillemsAttack, oracle: "SDPHypergradient | None", seed: Any,
                   who: str) -> tuple["SDPHypergradient", np.random.Generator, np.ndarray, Box]:
     """The oracle (built unless given, and checked to be this attack's), the rng, the budget and its box."""
-    oracle = oracle or SDPHypergradient(attack)
-    if oracle.attack is not attack:
-        raise ModelError(f"{who}: the oracle was built for another WillemsAttack")
+    oracle = oracle or shared_oracle(attack)[0]
+    if oracle.attack.declaration != attack.declaration:
+        raise ModelError(f"{who}: the oracle was built for another WillemsAttack (other data, learner or criterion)")
     bound = attack.budget()
     return oracle, _seed(seed), bound, Box(-bound, bound)
 
@@ -306,9 +340,9 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, 
         raise SolverFailed(f"hypergradient attack: the learner's SDP could not be solved from any of {starts} starts "
                            f"({records[-1]['message']})")
     ev, k, reason = _select(finished, stop_when_unstable)
-    return _result(oracle, "hypergradient", ev.x, t0, evals, iters, f"start {k} of {len(records)} run ({reason})",
+    return _result(attack, oracle, "hypergradient", ev.x, t0, evals, iters, f"start {k} of {len(records)} run ({reason})",
                    None if reason == GOAL else reason == CONVERGED,
-                   {"starts": records, "lower_solves": oracle.lower_solves})
+                   {"starts": records, "lower_solves": oracle.lower_solves}, ev)
 
 
 def _select(finished: list[tuple[Evaluation, int, str]], stop_when_unstable: bool) -> tuple[Evaluation, int, str]:
@@ -339,8 +373,7 @@ def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize:
     check_common_options({"seed": seed, "tol": tol, "max_iter": maxiter})
     check_counts({"popsize": popsize}, ("popsize",))
     t0 = time.perf_counter()
-    oracle = oracle or SDPHypergradient(attack)
-    bound = attack.budget()
+    oracle, _, bound, _ = _ascent_setup(attack, oracle, seed, "de_attack")
     counter = {"evaluations": 0}
 
     def loss(xs: np.ndarray) -> np.ndarray:
@@ -352,10 +385,10 @@ def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize:
     def stop(intermediate_result: scipy.optimize.OptimizeResult) -> bool:
         if -intermediate_result.fun >= UNSTABLE_PENALTY:
             return True
-        return stop_when_unstable and oracle.evaluate(intermediate_result.x).identified_radius >= 1.0
+        return stop_when_unstable and oracle.identified_radius(intermediate_result.x) >= 1.0
 
     out = evolve(loss, -bound, bound, _seed(seed), maxiter, popsize, tol, stop=stop, vectorized=oracle.lower_fixed)
-    return _result(oracle, "differential-evolution", np.clip(out.x, -bound, bound), t0, counter["evaluations"],
+    return _result(attack, oracle, "differential-evolution", np.clip(out.x, -bound, bound), t0, counter["evaluations"],
                    int(out.nit), f"{out.message} (a heuristic: no optimality claim)", None,
                    {"lower_solves": oracle.lower_solves})
 
@@ -367,7 +400,7 @@ def random_attack(attack: WillemsAttack, seed: Any = 0) -> BilevelResult:
     t0 = time.perf_counter()
     bound = attack.budget()
     x = bound * _seed(seed).choice([-1.0, 1.0], size=bound.size)
-    return _result(SDPHypergradient(attack), "random", x, t0, 1, 0, "random signs at the budget (a baseline)", None)
+    return _result(attack, shared_oracle(attack)[0], "random", x, t0, 1, 0, "random signs at the budget (a baseline)", None)
 
 
 @single_threaded_call
@@ -386,12 +419,12 @@ def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> 
                         for name in ("Du", "Dx") if name in res.x])
     bound = attack.budget()
     clipped = float(np.max(np.abs(x - np.clip(x, -bound, bound)), initial=0.0))
-    oracle = SDPHypergradient(attack)
+    oracle = shared_oracle(attack)[0]
     cert = res.certificate
     details = {"status": res.status.value, "solver_objective": res.upper_objective, "clipped_by": clipped,
                "certificate_passed": bool(cert is not None and cert.passed),
                "certificate_failed": list(cert.failed) if cert is not None else [], "solve_time": res.wall_time}
-    return _result(oracle, f"kkt-{method}", np.clip(x, -bound, bound), t0, 0, res.nit,
+    return _result(attack, oracle, f"kkt-{method}", np.clip(x, -bound, bound), t0, 0, res.nit,
                    f"{method} on the KKT reformulation: {res.status.value} ({res.message}); the learner re-solved at "
                    "that point clipped to the budget", res.status is Status.SOLVED and clipped == 0.0, details)
 
@@ -441,17 +474,41 @@ def _ascent_path(oracle: SDPHypergradient, box: Box, scale: np.ndarray, x0: np.n
     return x, ev, it, converged
 
 
-def radius_engine(attack: WillemsAttack, oracle: SDPHypergradient) -> Hypergradient:
+def radius_engine(attack: WillemsAttack, oracle: SDPHypergradient | None = None) -> Hypergradient:
     """The generic engine (bilevel.solvers.implicit) on the attack's spectral-radius problem, its fixed lower level
-    given the learner's solution of `oracle` (any selection): it never solves the SDP again."""
-    if not oracle.lower_fixed:
+    given the learner's solution of `oracle` (any selection; by default an oracle on the engine's own lower level):
+    it never solves the SDP again."""
+    engine = Hypergradient(prepare(attack.radius_problem()))
+    if not engine.low.fixed:
         raise ModelError("destabilize_attack needs a learner that ignores the poisoning (poison='u' with design 'lqr' "
                          "or 'stabilizing'); for state or joint poisoning solve attack.radius_problem() with "
                          "method='hypergradient', which re-solves the SDP at every point")
-    engine = Hypergradient(prepare(attack.radius_problem()))
+    oracle = oracle or SDPHypergradient(attack, lower=engine.low)
     zero = np.zeros(oracle.n_x)
     engine.evaluate(zero, lower=oracle.lower_solution(zero)[0])
     return engine
+
+
+ORACLES_KEPT = 4
+"""Declarations (WillemsAttack.declaration) whose oracle and radius engine a process keeps, most recent first."""
+_ORACLES: dict[tuple, tuple[SDPHypergradient, Hypergradient | None]] = {}
+
+
+def shared_oracle(attack: WillemsAttack, engine: bool = False) -> tuple[SDPHypergradient, Hypergradient | None]:
+    """The oracle of the attack's declaration (data, learner, criterion: any budget) and, if `engine`, its radius
+    engine (radius_engine, on the oracle's lower level), kept per process for the last ORACLES_KEPT declarations:
+    attacks on one data set at several budgets, or by several methods, build them and solve the learner once.
+    Neither reads the budget (each attack passes its own box to the ascent)."""
+    key = attack.declaration
+    oracle, eng = _ORACLES.pop(key, (None, None))
+    if engine and eng is None:
+        eng = radius_engine(attack, oracle)
+        oracle = oracle or SDPHypergradient(attack, lower=eng.low)
+    oracle = oracle or SDPHypergradient(attack)
+    _ORACLES[key] = (oracle, eng)
+    while len(_ORACLES) > ORACLES_KEPT:
+        del _ORACLES[next(iter(_ORACLES))]
+    return oracle, eng
 
 
 @single_threaded_call
@@ -459,17 +516,17 @@ def destabilize_attack(attack: WillemsAttack, starts: int = 64, seed: Any = 0, m
                        oracle: SDPHypergradient | None = None) -> BilevelResult:
     """Maximize the spectral radius of the attacker's closed loop A_id + B_id K over the input poisoning, exactly
     (eigenvector derivatives of rho) on the generic engine: the learner is solved once, K is affine in the poisoning,
-    and `starts` points ascend together (bilevel.solvers.ascent.batched_box_ascent): the clean data and the largest-rho points of a
-    pool of `pool` random ones (half uniform in the box, half its vertices). Returns the point with the largest
-    identified rho."""
+    and `starts` points ascend together (bilevel.solvers.ascent.batched_box_ascent): the clean data and the largest-rho
+    points of a pool of `pool` random ones (half uniform in the box, half its vertices). Returns the point with the
+    largest identified rho. Without `oracle`, the declaration's shared oracle and engine (shared_oracle)."""
     if attack.setting.objective != "destabilize":
         raise ModelError(f"destabilize_attack maximizes the spectral radius; got objective="
                          f"{attack.setting.objective!r}: build the attack with objective='destabilize'")
     check_common_options({"starts": starts, "seed": seed, "max_iter": max_iter})
     check_counts({"pool": pool}, ("pool",))
     t0 = time.perf_counter()
+    oracle, engine = shared_oracle(attack, engine=True) if oracle is None else (oracle, radius_engine(attack, oracle))
     oracle, rng, bound, _ = _ascent_setup(attack, oracle, seed, "destabilize_attack")
-    engine = radius_engine(attack, oracle)
     candidates = rng.uniform(-1.0, 1.0, (max(pool, starts - 1), bound.size)) * bound
     candidates[: candidates.shape[0] // 2] = np.sign(candidates[: candidates.shape[0] // 2]) * bound
     screened = np.argsort(engine.spectral_batch(candidates.T)[0], kind="stable")[: starts - 1]  # F = -rho
@@ -481,7 +538,7 @@ def destabilize_attack(attack: WillemsAttack, starts: int = 64, seed: Any = 0, m
     xs, rho, iters, evaluations = batched_box_ascent(radius, bound, x0, max_iter)
     evaluations += candidates.shape[0]
     best = int(np.nanargmax(rho))
-    return _result(oracle, "destabilize", xs[best], t0, evaluations, iters,
+    return _result(attack, oracle, "destabilize", xs[best], t0, evaluations, iters,
                    f"largest identified spectral radius {rho[best]:.6g} over {starts} starts (the best point of "
                    "their ascents, not a certified local maximum)", None,
                    {"starts": starts, "identified_radius": float(rho[best]), "start_radii": rho.tolist(),

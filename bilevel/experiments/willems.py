@@ -24,12 +24,14 @@ import matplotlib
 
 matplotlib.use("Agg")
 import numpy as np  # noqa: E402
+import scipy.linalg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from ..attacks.willems import (de_attack, destabilize_attack, hypergradient_attack, willems_row,  # noqa: E402
                                random_attack)
 from ..ddc.data import batch_reactor_data  # noqa: E402
-from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller  # noqa: E402
+from ..ddc.depersis_tesi import (check_persistency, lqr_controller, stabilizing_controller,  # noqa: E402
+                                 state_data)
 from ..ddc.plants import batch_reactor  # noqa: E402
 from ..errors import BilevelError  # noqa: E402
 from ..files import atomic_open, atomic_path  # noqa: E402
@@ -124,11 +126,12 @@ def _task(plan: Plan, root_seed: int, experiment: str, i: int, seeds: tuple[int,
 
 
 def paper_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict[str, Any]]:
-    """Input poisoning of the appendix SDP: every (N, delta_u, sim) for the eigenvalue criterion (ours and DE)
-    and for the destabilizing attack (its own criterion)."""
+    """Input poisoning of the appendix SDP: every (N, sim, delta_u) for the eigenvalue criterion (ours and DE)
+    and for the destabilizing attack (its own criterion). A data set's tasks are consecutive, so a worker reuses
+    its learner across budgets and methods (bilevel.attacks.willems.shared_oracle)."""
     return [_task(plan, seed, "paper", i, s, method, horizon=n, delta_u=d, delta_x=0.0, poison="u", design="lqr",
                   criterion="destabilize" if method == "destabilize" else "eigen", selection=selection)
-            for n in plan.horizons for d in plan.deltas for i, s in enumerate(sim_seeds(seed, plan.sims))
+            for n in plan.horizons for i, s in enumerate(sim_seeds(seed, plan.sims)) for d in plan.deltas
             for method in ("hypergradient", "de", "destabilize")]
 
 
@@ -146,17 +149,39 @@ def design_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dic
                   delta_x=d if poison == "xu" else 0.0, poison=poison, design=design, criterion=criterion,
                   selection=selection)
             for design in ("lqr", "lqr-r", "stabilizing") for poison in ("u", "xu") for criterion in ("maxmin", "eigen")
-            for d in plan.design_deltas for i, s in enumerate(sim_seeds(seed, plan.design_sims))]
+            for i, s in enumerate(sim_seeds(seed, plan.design_sims)) for d in plan.design_deltas]
 
 
-def _reference_radius(setting: WillemsSetting, x: np.ndarray, u: np.ndarray) -> float:
-    """Spectral radius of the true loop under the unregularized learner of bilevel.ddc on the poisoned data."""
+REFERENCES_KEPT = 4
+"""Data sets whose reference learner (bilevel.ddc, clean data) a process keeps."""
+_REFERENCES: dict[tuple, Any] = {}
+
+
+def _reference_learner(design: str, x: np.ndarray, u: np.ndarray) -> Any:
+    """The unregularized learner of bilevel.ddc on (x, u), no column balancing (the committed sweep's)."""
+    if design == "stabilizing":
+        return stabilizing_controller(x, u, balance=False)
+    return lqr_controller(x, u, input_cost=design == "lqr-r", balance=False)
+
+
+def _reference_radius(setting: WillemsSetting, x: np.ndarray, u: np.ndarray, clean_u: np.ndarray) -> float:
+    """Spectral radius of the true loop under the unregularized learner of bilevel.ddc on the poisoned data (x, u).
+    Where that SDP ignores the inputs (designs lqr and stabilizing) its Q is the clean data's, solved once per data
+    set and kept: K = U Q (X0 Q)^-1 on the poisoned inputs, after the learner's persistency check on them."""
     plant = batch_reactor()
     try:
-        if setting.design == "stabilizing":
-            k = stabilizing_controller(x, u, balance=False).k  # the learner of the committed sweep
+        if setting.design == "lqr-r":
+            k = _reference_learner(setting.design, x, u).k
         else:
-            k = lqr_controller(x, u, input_cost=setting.design == "lqr-r", balance=False).k
+            key = (setting.design, x.tobytes(), clean_u.tobytes())
+            learner = _REFERENCES.pop(key, None) or _reference_learner(setting.design, x, clean_u)
+            _REFERENCES[key] = learner
+            while len(_REFERENCES) > REFERENCES_KEPT:
+                del _REFERENCES[next(iter(_REFERENCES))]
+            data = state_data(x, u)
+            check_persistency(data)
+            s = data.x0 @ learner.q
+            k = scipy.linalg.solve(0.5 * (s + s.T), (data.u0 @ learner.q).T, assume_a="sym").T
     except BilevelError:
         return float("nan")
     return float(np.max(np.abs(np.linalg.eigvals(plant.A + plant.B @ k))))
@@ -186,7 +211,7 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
                         if k not in ("method", "x", "details", "gain", "eigenvalues")}}
     with warnings.catch_warnings():  # cvxpy's "solution may be inaccurate" on the badly scaled N = 50 data
         warnings.simplefilter("ignore", UserWarning)
-        row["reference_radius"] = _reference_radius(setting, attack.x + dx, attack.u + du)
+        row["reference_radius"] = _reference_radius(setting, attack.x + dx, attack.u + du, attack.u)
     if task["experiment"] == "paper":
         row["du"] = du.tolist()
     return row

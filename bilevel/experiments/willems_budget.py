@@ -86,6 +86,28 @@ def summary_markdown(rows: list[dict[str, float]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def budget_figure(rows: list[dict[str, float]]) -> Figure:
+    """Empirical CDF of delta_u* per horizon and selection; the x-axis reaches 1.05 times the largest finite value."""
+    fig = Figure(figsize=(5.0, 3.4))
+    ax = fig.add_subplot()
+    finite = [r["delta_star"] for r in rows if np.isfinite(r["delta_star"])]
+    right = 1.05 * max(finite, default=1.0)  # every finite delta_u* on the axis; a set never destabilized stays off
+    for key in sorted({(r["horizon"], r["selection"]) for r in rows}):
+        d = np.sort([r["delta_star"] for r in rows if (r["horizon"], r["selection"]) == key])
+        reached = np.arange(1, d.size + 1) / d.size
+        shown = np.isfinite(d)
+        ax.step(np.append(d[shown], right), np.append(reached[shown], reached[shown][-1] if shown.any() else 0.0),
+                where="post", label=f"N = {key[0]}, {key[1]}")
+    ax.set_xlabel("delta_u* (smallest destabilizing linf input budget)")
+    ax.set_ylabel("fraction of data sets")
+    ax.set_xlim(0, right)
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    return fig
+
+
 def write_outputs(rows: list[dict[str, float]], out_dir: str) -> str:
     """budget.csv, budget.md (summary_markdown) and fig_budget_cdf.png (empirical CDF per horizon and selection)."""
     os.makedirs(out_dir, exist_ok=True)
@@ -93,18 +115,7 @@ def write_outputs(rows: list[dict[str, float]], out_dir: str) -> str:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    fig = Figure(figsize=(5.0, 3.4))
-    ax = fig.add_subplot()
-    for key in sorted({(r["horizon"], r["selection"]) for r in rows}):
-        d = np.sort([r["delta_star"] for r in rows if (r["horizon"], r["selection"]) == key])
-        ax.step(d, np.arange(1, d.size + 1) / d.size, where="post", label=f"N = {key[0]}, {key[1]}")
-    ax.set_xlabel("delta_u* (smallest destabilizing linf input budget)")
-    ax.set_ylabel("fraction of data sets")
-    ax.set_xlim(0, 1.05)
-    ax.set_ylim(0, 1)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
+    fig = budget_figure(rows)
     with atomic_path(os.path.join(out_dir, "fig_budget_cdf.png")) as tmp:
         fig.savefig(tmp, dpi=150)
     table = summary_markdown(rows)

@@ -202,11 +202,15 @@ class ExpressionLower(LowerLevel):
         if self.hess_f is None:
             self.hess_f = ca.hessian(self.f, self.y)[0]
         self._eval = self.params.function("lower_eval", [self.x, self.y], [self.f, self.g, self.h, *self.psd])
-        jac_psd = [ca.jacobian(ca.vec(m), self.y) for m in self.psd]
-        self._derivs = self.params.function("lower_derivs", [self.x, self.y],
-                                            [ca.gradient(self.f, self.y), ca.jacobian(self.g, self.y),
-                                             ca.jacobian(self.h, self.y), *jac_psd])
         self._hess = self.params.function("lower_hess", [self.x, self.y], [self.hess_f])
+
+    @cached_property
+    def _derivs(self) -> CompiledFunction:
+        """(x, y) -> grad_y f, J_g, J_h and d vec(M_k)/dy, built on first use (the LMI Jacobians are costly on large
+        SDPs, whose solves and KKT system read them numerically from SemidefiniteLower.lmi_data instead)."""
+        jac_psd = [ca.jacobian(ca.vec(m), self.y) for m in self.psd]
+        return self.params.function("lower_derivs", [self.x, self.y], [ca.gradient(self.f, self.y),
+                                    ca.jacobian(self.g, self.y), ca.jacobian(self.h, self.y), *jac_psd])
 
     @cached_property
     def fixed(self) -> bool:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Callable
@@ -13,10 +14,13 @@ import numpy as np
 from ..vech import unvech, vech, vech_sx
 from .base import LowerSolution
 from .convexity import psd_violation
-from .quadratic import QuadraticLower, solve_qp_clarabel
+from .quadratic import QPData, QuadraticLower, solve_qp_clarabel
 
 PSD_TOL = 1e-9
 """Relative PSD violation of M_k and Z_k tolerated in a polished iterate."""
+CONTINUATION_TOL, CONTINUATION_STEPS = 1e-9, 6
+"""KKT residual that a Newton continuation from a nearby solution must reach (no worse than a polished conic solve),
+and its Newton steps."""
 FREE_RTOL = 1e-10
 """Singular values below FREE_RTOL times the largest count as zero when finding the directions the SDP sees."""
 
@@ -40,6 +44,23 @@ def solve_square(matrix: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
         return solution, int(rank)
 
 
+@functools.cache
+def _vech_maps(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The vec positions of vech's entries (vech(S) = vec(S)[rows]), the duplication matrix D (vec S = D vech S) and
+    the symmetric basis matrices (unvech of each unit vector, stacked)."""
+    index = np.arange(n * n).reshape(n, n, order="F")
+    rows = vech(index)
+    dup = np.zeros((n * n, rows.size))
+    dup[rows, np.arange(rows.size)] = 1.0
+    dup[vech(index.T), np.arange(rows.size)] = 1.0
+    return rows, dup, dup.T.reshape(rows.size, n, n).transpose(0, 2, 1)
+
+
+def _vech_stack(mats: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """vech of each matrix of a stack (S, n, n), as columns (n(n+1)/2 x S)."""
+    return mats.transpose(0, 2, 1).reshape(mats.shape[0], -1)[:, rows].T
+
+
 @dataclass(frozen=True)
 class ConicKKT:
     """r(w; x) = [grad_y L ; lam * g ; h ; vech((M_k Z_k + Z_k M_k) / 2)] = 0 in w = (y, lam, mu, vech Z_k).
@@ -48,7 +69,7 @@ class ConicKKT:
     1998): y*(x) is then differentiable with dw/dx = -(dr/dw)^-1 dr/dx.
     """
 
-    residual: Callable      # (x, w) -> (r, dr/dw)
+    residual: Callable      # (x, w) -> (r, dr/dw), numpy
     residual_x: Callable    # (x, w) -> dr/dx
     sizes: tuple[int, ...]     # n_y, n_g, n_h, then vech sizes of the Z_k
     psd_dims: tuple[int, ...]
@@ -67,6 +88,7 @@ class SemidefiniteLower(QuadraticLower):
         for m in self.psd:
             outs += [ca.substitute(m, self.y, zero), ca.substitute(ca.jacobian(ca.vec(m), self.y), self.y, zero)]
         self._lmi = self.params.function("lmi_coeffs", [self.x], outs)
+        self._last_point: tuple[tuple, QPData, tuple] | None = None
 
     def lmi_data(self, x: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
         """(M_k0, d vec(M_k)/dy) for every LMI at upper point x."""
@@ -85,15 +107,61 @@ class SemidefiniteLower(QuadraticLower):
 
     @cached_property
     def conic_kkt(self) -> ConicKKT:
-        """The KKT residual with PSD complementarity and its Jacobians (built on first use)."""
+        """The KKT residual with PSD complementarity: r and dr/dw numerically from the SDP's data at x (it is affine in
+        y with affine LMIs, so no symbolic derivative is needed); dr/dx symbolically, built on first use."""
+        psd_dims = tuple(int(m.size1()) for m in self.psd)
+        sizes = (self.n_y, int(self.g.numel()), int(self.h.numel()), *(k * (k + 1) // 2 for k in psd_dims))
+        return ConicKKT(self._kkt_residual, lambda x, w: self._kkt_residual_x(x, w), sizes, psd_dims)
+
+    def _point_data(self, x: np.ndarray) -> tuple[QPData, tuple[tuple[np.ndarray, np.ndarray], ...]]:
+        """data(x) and lmi_data(x), kept for the last x and parameter values (Newton steps evaluate the residual at one
+        x repeatedly)."""
+        key = (np.asarray(x, dtype=float).tobytes(), self.params.revision)
+        if self._last_point is None or self._last_point[0] != key:
+            self._last_point = (key, self.data(x), self.lmi_data(x))
+        return self._last_point[1], self._last_point[2]
+
+    def _kkt_residual(self, x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(r, dr/dw) at (x, w): stationarity P y + q + A'lam + E'mu - sum_k J_k' vec Z_k, lam * g, h and
+        vech((M_k Z_k + Z_k M_k) / 2), with J_k = d vec(M_k)/dy and vec Z_k = D_k vech Z_k (duplication)."""
+        d, lmis = self._point_data(x)
+        sizes = self.conic_kkt.sizes
+        ny = sizes[0]
+        y, lam, mu, *zv = np.split(np.asarray(w, dtype=float).ravel(), np.cumsum(sizes)[:-1])
+        g = d.A @ y + d.b
+        stationarity = d.P @ y + d.q + d.A.T @ lam + d.E.T @ mu
+        n_lin = ny + lam.size + mu.size
+        jac = np.zeros((sum(sizes), sum(sizes)))
+        jac[:ny, :ny] = d.P
+        jac[:ny, ny: ny + lam.size] = d.A.T
+        jac[:ny, ny + lam.size: n_lin] = d.E.T
+        jac[ny: ny + lam.size, :ny] = lam[:, None] * d.A
+        jac[ny: ny + lam.size, ny: ny + lam.size] = np.diag(g)
+        jac[ny + lam.size: n_lin, :ny] = d.E
+        products, start = [], n_lin
+        for (m0, jm), z_vech, k in zip(lmis, zv, self.conic_kkt.psd_dims):
+            rows, dup, basis = _vech_maps(k)
+            z = unvech(z_vech, k)
+            m = m0.reshape(k, k, order="F") + (jm @ y).reshape(k, k, order="F")
+            stationarity = stationarity - jm.T @ z.reshape(-1, order="F")
+            products.append(vech(0.5 * (m @ z + z @ m)))
+            block = slice(start, start + z_vech.size)
+            m_y = jm.T.reshape(ny, k, k).transpose(0, 2, 1)  # d M / dy_j, stacked
+            jac[:ny, block] = -jm.T @ dup
+            jac[block, :ny] = _vech_stack(0.5 * (m_y @ z + z @ m_y), rows)
+            jac[block, block] = _vech_stack(0.5 * (m @ basis + basis @ m), rows)
+            start += z_vech.size
+        r = np.concatenate([stationarity, lam * g, d.E @ y + d.e, *products])
+        return r, jac
+
+    @cached_property
+    def _kkt_residual_x(self) -> Callable:
+        """(x, w) -> dr/dx, symbolic (the x-derivative the adjoint needs where the SDP depends on x)."""
         kkt = self.kkt()
         products = [vech_sx(0.5 * (ca.mtimes(m, z) + ca.mtimes(z, m))) for m, z in zip(self.psd, kkt.Z)]
         r = ca.vertcat(kkt.stationarity, kkt.lam * self.g, self.h, *products)
         w = ca.vertcat(self.y, kkt.lam, kkt.mu, *kkt.Z_vech)
-        sizes = (self.n_y, int(kkt.lam.numel()), int(kkt.mu.numel()), *(int(v.numel()) for v in kkt.Z_vech))
-        return ConicKKT(self.params.function("kkt_residual", [self.x, w], [r, ca.jacobian(r, w)]),
-                        self.params.function("kkt_residual_x", [self.x, w], [ca.jacobian(r, self.x)]), sizes,
-                        tuple(int(m.size1()) for m in self.psd))
+        return self.params.function("kkt_residual_x", [self.x, w], [ca.jacobian(r, self.x)])
 
     def pack(self, sol: LowerSolution) -> np.ndarray:
         """w = (y, lam, mu, vech Z_k) of a solution."""
@@ -136,6 +204,14 @@ class SemidefiniteLower(QuadraticLower):
             if value < 1e-14:
                 break
         return sol, best
+
+    def continue_from(self, x: np.ndarray, near: LowerSolution,
+                      steps: int = CONTINUATION_STEPS) -> tuple[LowerSolution, float] | None:
+        """The solution at x by Newton steps on r(w; x) = 0 from `near`, a solution at a nearby upper point
+        (continuation, no conic solve), with its residual; None unless an iterate inside the cones reaches
+        CONTINUATION_TOL (then solve afresh). A KKT point inside the cones is optimal (the SDP is convex)."""
+        sol, residual = self.newton_polish(x, near, steps)
+        return (sol, residual) if sol is not near and residual <= CONTINUATION_TOL else None
 
     def seen_directions(self, x: np.ndarray) -> np.ndarray:
         """Orthonormal basis S (n_y x k) of the smallest P-invariant subspace holding the rows of A, E, q' and every

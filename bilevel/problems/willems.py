@@ -213,6 +213,13 @@ class WillemsAttack:
         p.maximize_spectral_radius(self.closed_loop)
         return p
 
+    @property
+    def declaration(self) -> tuple:
+        """The setting without its budgets (delta_u, delta_x): attacks with equal declarations have the same data,
+        learner and criterion, and differ only in the box (bilevel.attacks.willems shares their oracle)."""
+        return tuple((f.name, getattr(self.setting, f.name)) for f in fields(self.setting)
+                     if f.name not in ("delta_u", "delta_x"))
+
     def budget(self) -> np.ndarray:
         """Upper bounds of |x| entrywise (the linf budgets of each upper entry)."""
         m, t = self.u.shape

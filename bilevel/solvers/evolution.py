@@ -46,15 +46,77 @@ def default_budget(n: int) -> tuple[int, int]:
     return members, min(100, max(20, EVALUATIONS // members))
 
 
+MUTATION, RECOMBINATION = (0.5, 1.0), 0.7
+"""scipy's defaults: the differential weight drawn uniformly from MUTATION each generation (dither), and the crossover
+probability."""
+
+
+def _others(rng: np.random.Generator, members: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Two distinct population indices per entry of `members`, both different from it, uniformly at random."""
+    r0 = rng.integers(size - 1, size=members.size)
+    r0 = r0 + (r0 >= members)
+    lo, hi = np.minimum(members, r0), np.maximum(members, r0)
+    r1 = rng.integers(size - 2, size=members.size)
+    r1 = r1 + (r1 >= lo)
+    return r0, r1 + (r1 >= hi)
+
+
 def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, rng: np.random.Generator,
            max_iter: int, popsize: int, tol: float, stop: Callable[[Any], bool] | None = None,
            vectorized: bool = False, init: str | np.ndarray = "latinhypercube") -> scipy.optimize.OptimizeResult:
-    """scipy's differential evolution (best1bin, no gradient polish) minimizing `values` over the box [lb, ub];
-    vectorized: `values` maps an (n, S) array of S points to S values (the population is then updated per generation).
-    """
-    return scipy.optimize.differential_evolution(
-        values, list(zip(lb, ub)), maxiter=int(max_iter), popsize=int(popsize), tol=float(tol), polish=False, rng=rng,
-        callback=stop, vectorized=vectorized, updating="deferred" if vectorized else "immediate", init=init)
+    """Differential evolution minimizing `values` over the box [lb, ub] (Storn & Price 1997, the algorithm of scipy's
+    differential_evolution with its defaults and no gradient polish: best1bin, MUTATION dithered per generation,
+    RECOMBINATION, max(5, popsize * n) members from a Latin hypercube or the rows of `init`, an entry leaving the box
+    redrawn uniformly; stops after max_iter generations, when std(energies) <= tol * |mean(energies)|, or when
+    stop(intermediate_result) is true).
+    vectorized: `values` maps an (n, S) array of S points to S values; a generation is then drawn from the population
+    as it was and scored in one call (scipy's updating='deferred'); otherwise point by point, each accepted trial
+    joining the population at once ('immediate'). Sample selection and crossover are drawn for the whole generation
+    at once (scipy draws them member by member: its permutation per member dominates the time of a large
+    population on a cheap objective), so the random stream, not the algorithm, differs from scipy's."""
+    lb, ub = np.asarray(lb, dtype=float), np.asarray(ub, dtype=float)
+    n, width = lb.size, ub - lb
+    if isinstance(init, str):
+        size = max(5, int(popsize) * n)
+        strata = (rng.uniform(size=(size, n)) + np.arange(size)[:, None]) / size
+        unit = np.column_stack([strata[rng.permutation(size), j] for j in range(n)])
+    else:
+        unit = np.clip((np.asarray(init, dtype=float) - lb) / np.where(width > 0, width, 1.0), 0.0, 1.0)
+        size = unit.shape[0]
+
+    def score(u: np.ndarray) -> np.ndarray:
+        points = lb + u * width
+        if vectorized:
+            return np.asarray(values(points.T), dtype=float).ravel()
+        return np.array([float(values(point)) for point in points])
+
+    energies = score(unit)
+    best, nfev, message, success = int(np.argmin(energies)), size, "Maximum number of iterations has been exceeded.", False
+    nit = 0
+    for nit in range(1, int(max_iter) + 1):
+        weight = rng.uniform(*MUTATION)
+        for members in [np.arange(size)] if vectorized else np.arange(size)[:, None]:
+            r0, r1 = _others(rng, members, size)
+            mutant = unit[best] + weight * (unit[r0] - unit[r1])
+            cross = rng.random((members.size, n), dtype=np.float32) < RECOMBINATION
+            cross[np.arange(members.size), rng.integers(n, size=members.size)] = True
+            trial = np.where(cross, mutant, unit[members])
+            outside = (trial < 0.0) | (trial > 1.0)
+            trial[outside] = rng.uniform(size=int(outside.sum()))
+            trial_energies = score(trial)
+            nfev += members.size
+            better = trial_energies <= energies[members]
+            unit[members[better]], energies[members[better]] = trial[better], trial_energies[better]
+            best = int(np.argmin(energies)) if vectorized or energies[members[0]] <= energies[best] else best
+        state = scipy.optimize.OptimizeResult(x=lb + unit[best] * width, fun=float(energies[best]), nit=nit, nfev=nfev)
+        if stop is not None and stop(state):
+            message = "callback function requested stop early"
+            break
+        if np.all(np.isfinite(energies)) and np.std(energies) <= tol * np.abs(np.mean(energies)):
+            message, success = "Optimization terminated successfully.", True
+            break
+    return scipy.optimize.OptimizeResult(x=lb + unit[best] * width, fun=float(energies[best]), nit=nit, nfev=nfev,
+                                         message=message, success=success)
 
 
 def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:

@@ -11,7 +11,8 @@ is computed by the adjoint: grad phi = grad_x phi - R' z with K' z = (grad_y phi
 and R its x-derivative, which equals grad_x phi + (dy/dx)' grad_y phi without forming dy/dx.
 A lower level with LMIs is polished and differentiated through its conic KKT system instead (stationarity,
 lam * g, h and vech((M_k Z_k + Z_k M_k) / 2), bilevel.lower.sdp.ConicKKT, and SemidefiniteLower.adjoint: the
-same code as the Willems attacks), after which y is projected off the directions the SDP sees only through a ridge
+same code as the Willems attacks; a new point's solution is first sought by Newton continuation from the last one,
+SemidefiniteLower.continue_from), after which y is projected off the directions the SDP sees only through a ridge
 (SemidefiniteLower.select_min_norm: the minimum-norm selection of a non-unique solution, or the exact ridge
 solution); it needs a strictly complementary lower solution, unique up to those directions.
 
@@ -88,13 +89,21 @@ class Hypergradient:
         self._fixed: tuple[int, LowerSolution, KKTValues | None] | None = None  # (parameter revision, ...)
         self._batches: dict[int, ca.Function] = {}  # batch_phi's mapped sweeps, by batch size
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
-        self._spectral: CompiledFunction | None = None  # a spectral objective's M, dM/dx, dM/dy (vec M rows)
+        self._last_conic: LowerSolution | None = None  # the last conic solution, where continuation starts
+        self._spectral: CompiledFunction | None = None  # a spectral objective's M and dM/dx (vec M rows)
         self._affine: tuple[int, np.ndarray, np.ndarray] | None = None  # (revision, M(0, y*), dM/dx) when fixed
         if canon.spectral is not None:
             m = ca.vec(canon.spectral)
             jx = ca.jacobian(m, x)
-            self._spectral = canon.params.function("spectral", [x, y], [m, jx, ca.jacobian(m, y)])
+            self._spectral = canon.params.function("spectral", [x, y], [m, jx])
             self.spectral_affine = low.fixed and not ca.depends_on(jx, x)
+
+    @cached_property
+    def _spectral_y(self) -> CompiledFunction:
+        """(x, y) -> d vec(M)/dy of a spectral objective, built on first use: only a lower level that moves with x
+        needs it (on large SDPs M = A + B V S^-1 makes this Jacobian costly)."""
+        canon = self.canon
+        return canon.params.function("spectral_y", [canon.x, canon.y], [ca.jacobian(ca.vec(canon.spectral), canon.y)])
 
     @cached_property
     def _upper_and_f(self) -> CompiledFunction:
@@ -171,8 +180,11 @@ class Hypergradient:
             _, sol, vals = self._fixed
         elif lower is not None:
             sol, vals = lower, kkt
-        elif self.conic:
-            sol, vals = self.low.select_min_norm(x, self.low.newton_polish(x, self.low.solve(x))[0]), None
+        elif self.conic:  # Newton continuation from the last point's solution, else a conic solve and its polish
+            near = None if self._last_conic is None else self.low.continue_from(x, self._last_conic)
+            sol = near[0] if near is not None else self.low.newton_polish(x, self.low.solve(x))[0]
+            sol, vals = self.low.select_min_norm(x, sol), None
+            self._last_conic = sol
         else:
             sol, vals = self.polish(x, self.low.solve(x))
         if self.low.fixed:  # y* constant in x: solved once, no adjoint
@@ -192,14 +204,16 @@ class Hypergradient:
         return Evaluation(x, phi, F, violation, sol, upper, vals)
 
     def _with_spectral(self, x: np.ndarray, y: np.ndarray, upper: list[np.ndarray]) -> list[np.ndarray]:
-        """The upper sweep with F, dF/dx and dF/dy of the spectral objective in place of the NaN expression's."""
-        m, jx, jy = (np.asarray(v, dtype=float) for v in self._spectral(x, y))
+        """The upper sweep with F, dF/dx and dF/dy of the spectral objective in place of the NaN expression's (dF/dy
+        NaN on a lower level that ignores x: its gradient never reads it)."""
+        m, jx = (np.asarray(v, dtype=float) for v in self._spectral(x, y))
         n = int(self.canon.spectral.size1())
         r = spectral_radius(m.reshape(n, n, order="F"))
         sign = self.canon.spectral_sign
         g = sign * r.gradient.ravel(order="F")
-        return [np.array([[sign * float(r.value)]]), upper[1], upper[2], (jx.T @ g)[:, None], (jy.T @ g)[:, None],
-                *upper[5:]]
+        gy = np.full((self.low.n_y, 1), np.nan) if self.low.fixed else \
+            (np.asarray(self._spectral_y(x, y), dtype=float).T @ g)[:, None]
+        return [np.array([[sign * float(r.value)]]), upper[1], upper[2], (jx.T @ g)[:, None], gy, *upper[5:]]
 
     def spectral_batch(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """F = sign * rho(M), dF/dx (n_x x S) and the tie counts at each column of xs (n_x x S), for a spectral
@@ -216,7 +230,7 @@ class Hypergradient:
         revision = self.low.params.revision
         if self._affine is None or self._affine[0] != revision:
             zero = np.zeros(self.low.n_x)
-            m0, jx, _ = (np.asarray(v, dtype=float) for v in self._spectral(zero, self.evaluate(zero).lower.y))
+            m0, jx = (np.asarray(v, dtype=float) for v in self._spectral(zero, self.evaluate(zero).lower.y))
             self._affine = (revision, m0.ravel(), jx)
         _, m0, jx = self._affine
         r = spectral_radius((m0[:, None] + jx @ xs).T.reshape(-1, n, n).transpose(0, 2, 1))
