@@ -490,7 +490,8 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
         f"{plan.rho_starts} starts) maximizes rho(A_id + B_id K) = max |eig| instead, exactly (eigenvector "
         "derivatives, the learner solved once) and reports the largest radius it reached.",
         f"- Ours: projected hypergradient ascent, {plan.starts} starts (clean data + uniform in the box). "
-        f"DE: scipy differential_evolution, best1bin, popsize {plan.de_popsize} x dim, {plan.de_maxiter} "
+        "DE: differential evolution (bilevel.solvers.evolution.evolve: scipy's algorithm and defaults), best1bin, "
+        f"popsize {plan.de_popsize} x dim, {plan.de_maxiter} "
         "generations, no gradient polish, same box and seeds (the paper used MATLAB's particle swarm).",
         "- Stability is judged on the true plant: unstable iff max |eig(A + B K)| >= 1.", "",
         "## Fraction of unstable closed loops (paper setting)", "",
