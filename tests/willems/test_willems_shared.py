@@ -138,7 +138,7 @@ def test_paper_tasks_keep_a_data_set_together() -> None:
 
 def test_newton_continuation_reaches_the_conic_solution() -> None:
     """State poisoning: continue_from at a point 1e-3 away from a solved one equals Clarabel + Newton polish there
-    (Q to 1e-8 relative, residual <= 1e-9); from the same solution at a point 0.5 away it gives up
+    (Q to 1e-6 relative, far closer than x0's, residual <= 1e-9); from the same solution at a point 0.5 away it gives up
     (None) or returns a point inside the cones at the same residual bound."""
     attack = build_attack(objective="eigen", horizon=15, seed=8, poison="xu", delta_u=0.01, delta_x=0.01)
     low = willems.SDPHypergradient(attack).lower_level
@@ -149,7 +149,10 @@ def test_newton_continuation_reaches_the_conic_solution() -> None:
     fresh, fresh_residual = low.newton_polish(x1, low.solve(x1))
     near = low.continue_from(x1, at0)
     assert near is not None and near[1] <= 1e-9 and fresh_residual <= 1e-9
-    assert np.abs(near[0].y - fresh.y).max() <= 1e-8 * np.abs(fresh.y).max()
+    # both are KKT points at residual <= 1e-9 of an ill-conditioned SDP: they agree to ~1e-8 relative, and how closely
+    # depends on the BLAS kernel (1.1e-8 under OpenBLAS Haswell); x0's solution is ~1e-3 away, so 1e-6 tells them apart
+    assert np.abs(near[0].y - fresh.y).max() <= 1e-6 * np.abs(fresh.y).max()
+    assert np.abs(at0.y - fresh.y).max() > 1e-4 * np.abs(fresh.y).max()
     far = low.continue_from(x1 + 0.5, at0)
     assert far is None or (far[1] <= 1e-9 and low.in_cones(x1 + 0.5, far[0]))
 
