@@ -18,7 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import BilevelError
-from ..parameters import CompiledFunction, ParameterSet
+from ..parameters import CompiledFunction, ParameterSet, scalar
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
 
@@ -113,8 +113,9 @@ class ResidualLeastSquares(LowerLevel):
         self.C_expr = ca.jacobian(self.r, self.y)
         self.d_expr = -ca.substitute(self.r, self.y, zero)
         self._affine = self._affine_data(ca.vertcat(ca.vec(self.C_expr), self.d_expr))
-        self._c = (None if ca.depends_on(self.c, self.x) or ca.depends_on(self.c, self.params.sym)
-                   else float(ca.evalf(self.c)))
+        moves = ca.depends_on(self.c, self.x) or ca.depends_on(self.c, self.params.sym)
+        self._c = self.params.function("residual_c", [self.x], [self.c]) if moves else float(ca.evalf(self.c))
+        """c(x): a constant, or its function (the affine path evaluates it alone, not the sweep of C and d)."""
         self._last: tuple[bytes, tuple[np.ndarray, np.ndarray, float]] | None = None
 
     @cached_property
@@ -163,7 +164,7 @@ class ResidualLeastSquares(LowerLevel):
                 J, offset = self._affine
                 v, m = J @ x + offset, int(self.r.numel())
                 C, d = v[:m * self.n_y].reshape((m, self.n_y), order="F"), v[m * self.n_y:]
-                c = self._c if self._c is not None else self._data(x)[2]
+                c = self._c if isinstance(self._c, float) else scalar(self._c(x))
             else:
                 C, d, c = self._data(x)
             self._last = (x.tobytes(), (np.asarray(C, dtype=float).reshape(-1, self.n_y),

@@ -251,3 +251,24 @@ def test_residual_data_from_a_recursion_stay_expressions(monkeypatch) -> None:
         return p
 
     _residual_matches_expressions(monkeypatch, declare, 0.01 * rng.standard_normal(T), affine=False)
+
+
+def test_residual_form_with_affine_data_keeps_the_terms_free_of_y(monkeypatch) -> None:
+    """A least squares plus a term of x alone (c(x) = ||dy||^2 / 10): the residual kind (forced) takes the
+    sparse-product path for its data and its value at (x, y) equals the declared objective's."""
+    monkeypatch.setattr(residual, "RESIDUAL_FORM_SIZE", 0)
+    rng = np.random.default_rng(4)
+    T = 400
+    u, y = rng.standard_normal(T), rng.standard_normal(T)
+    p = bl.BilevelProblem("with-c")
+    dy = p.upper_variable("dy", T)
+    theta = p.lower_variable("theta", 2)
+    yp = y + dy
+    f = ca.sumsqr(yp[1:] - ca.mtimes(ca.horzcat(yp[:T - 1], ca.DM(u[:T - 1])), theta)) + 0.1 * ca.sumsqr(dy)
+    p.minimize_lower(f)
+    p.maximize_upper(ca.sumsqr(theta))
+    low = prepare(p).canon.lower
+    assert isinstance(low, ResidualLeastSquares) and low._affine is not None
+    x, th = rng.standard_normal(T), rng.standard_normal(2)
+    expected = float(ca.evalf(ca.substitute(ca.substitute(f, dy, ca.DM(x)), theta, ca.DM(th))))
+    assert low.evaluate(x, th)[0] == pytest.approx(expected, rel=1e-12)
