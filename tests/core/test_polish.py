@@ -131,7 +131,7 @@ def test_wrong_face_is_rejected_and_the_solver_point_kept() -> None:
     np.testing.assert_array_equal(right.lam, [1e-3, 0.0])
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60, deadline=None, derandomize=True)
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 5),
        kinds=st.lists(st.sampled_from(["active", "degenerate", "inactive"]), max_size=9))
 def test_random_qp_with_known_optimum_is_polished_to_rounding(seed: int, n: int, kinds: list[str]) -> None:
