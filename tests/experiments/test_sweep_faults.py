@@ -149,14 +149,18 @@ def test_real_vrft_sweep_survives_a_worker_killed_from_outside(tmp_path) -> None
         {k: v for k, v in c.items() if k != "time_ms"} for c in ref_summary.values()]
 
 
-def test_main_process_killed_takes_its_workers_and_resume_matches(tmp_path, toy_reference) -> None:
+def test_main_process_killed_takes_its_workers_and_resume_matches(tmp_path, toy_reference, monkeypatch) -> None:
     """SIGKILL of the main process (nothing can run in it): its two workers are gone within 3 s (they die with
     their parent), the resumed run's outputs equal the uninterrupted run's, and it removes the killed run's
-    temporary directory."""
+    temporary directory. Both runs use a private temporary directory: any sweep starting elsewhere (another test
+    process) removes the stale marks of dead processes in the shared one, which would race the check below."""
     out = str(tmp_path / "run")
+    private = tmp_path / "tmp"
+    private.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(private))
     proc = subprocess.Popen([sys.executable, "-m", "tests.experiments.faulty", out, str(TOY_TASKS), "0.3"], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-                            env={**os.environ, "PYTHONPATH": ROOT})
+                            env={**os.environ, "PYTHONPATH": ROOT, "TMPDIR": str(private)})
     try:
         wait_for_rows(proc, os.path.join(out, "rows.jsonl"), 3)
         workers = psutil.Process(proc.pid).children(recursive=True)
