@@ -1,5 +1,8 @@
 """Poisoning attacks on the De Persis–Tesi learners (paper appendix B, Willems' lemma) as bilevel problems.
 
+Data: one noise-free trajectory (X, U) of a state-feedback plant x_{t+1} = A x_t + B u_t (WillemsSetting.plant,
+the paper's batch reactor by default), drawn from the plant or given (WillemsSetting.data).
+
 Upper level (attacker): perturbations Du (m x T) of the inputs and, if poisoned, Dx of the states,
 in linf boxes |Du| <= delta_u, |Dx| <= delta_x; it maximizes the max-min criterion (closed-loop H2
 cost trace((Qx + K'RK) W), W = Acl W Acl' + I), the eigenvalue criterion log det(Acl Acl') or the
@@ -153,8 +156,9 @@ class WillemsSetting:
             raise InvalidData("willems: data must be the pair (X, U), X n x (T+1) states and U m x T inputs") from None
         split = state_data(x, u)
         if split.x0.shape[0] != n or split.u0.shape[0] != m:
-            raise InvalidData(f"willems: the plant has n = {n} states and m = {m} inputs, the data X "
-                              f"{np.shape(x)} and U {np.shape(u)}; pass X as n x (T+1) and U as m x T of this plant")
+            which = "the plant" if self.plant is not None else "the default plant (the batch reactor; pass plant=)"
+            raise InvalidData(f"willems: {which} has n = {n} states and m = {m} inputs, the data X {np.shape(x)} "
+                              f"and U {np.shape(u)}; pass X as n x (T+1) and U as m x T of the plant's experiment")
         t = split.u0.shape[1]
         if self.horizon is not None and self.horizon != t:
             raise ModelError(f"willems: horizon={self.horizon} but the data have T = {t} samples; pass horizon=None "
@@ -227,7 +231,8 @@ def _gramian_expr(acl: ca.SX) -> ca.SX:
 @dataclass
 class WillemsAttack:
     """A built instance: clean data, identified model, the BilevelProblem, its gain K and closed loop A_id + B_id K
-    (CasADi expressions of the upper and lower variables) and the flat upper vector `upper` = (vec Du, vec Dx)."""
+    (CasADi expressions of the upper and lower variables) and the flat upper vector `upper` = (vec Du, vec Dx); the
+    true plant (`plant`, `true_closed_loop`) only judges results."""
 
     setting: WillemsSetting
     x: np.ndarray
@@ -332,10 +337,9 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
     except NotPersistentlyExciting as err:
         n_m = x.shape[0] + u.shape[0]
         raise NotPersistentlyExciting(
-            f"willems: the learner needs [U0; X0] of full row rank n + m = {n_m}: {err}. Fix: a longer horizon (at "
-            f"least T >= n + m = {n_m}, got T = {u.shape[1]}) or a richer input (drawn data: a larger input_std or "
-            "x0; given data: an experiment that excites every state and input; an uncontrollable (A, B) never gives "
-            "full rank from x0 = 0)") from None
+            f"willems: the learner needs [U0; X0] of full row rank, so T >= n + m = {n_m} samples at least: {err}. "
+            "Fix: a longer horizon (drawn data: horizon=; given data: a longer experiment) or a richer input, one "
+            "that excites every state (from x0 = 0 an uncontrollable (A, B) never gives full rank)") from None
     a_id, b_id = identified_model(x, u)
     n, m, t = x.shape[0], u.shape[0], s.horizon
     qx, r = _weight(s.qx, n, "qx"), _weight(s.r, m, "r")
