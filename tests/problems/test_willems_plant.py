@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from bilevel.attacks.willems import SDPHypergradient, destabilize_attack, hypergradient_attack
-from bilevel.ddc.data import batch_reactor_data
+from bilevel.attacks.willems import (SDPHypergradient, destabilize_attack, hypergradient_attack,
+                                     shared_oracle)
+from bilevel.ddc.data import batch_reactor_data, white_noise_trajectory
 from bilevel.ddc.depersis_tesi import lqr_controller
 from bilevel.errors import InvalidData, ModelError, NotPersistentlyExciting
 from bilevel.problems import registry
@@ -88,6 +89,18 @@ def test_plant_forms_give_one_hashable_setting() -> None:
     assert scaled.x[:, 0].tolist() == [1.0, 0.0, 0.0]
 
 
+def test_shared_oracle_keys_on_plant_and_data() -> None:
+    """Attacks on one plant and data share the oracle whatever the budget or the plant's form; another plant or other
+    data with the same horizon and seed get their own."""
+    first = build_attack(plant=AIRCRAFT, horizon=20, delta_u=0.1)
+    same = build_attack(plant=(AIRCRAFT.A, AIRCRAFT.B), horizon=20, delta_u=0.3)
+    assert shared_oracle(first)[0] is shared_oracle(same)[0]
+    slower = build_attack(plant=(0.9 * AIRCRAFT.A, AIRCRAFT.B), horizon=20)
+    other = build_attack(plant=AIRCRAFT, horizon=20, seed=1)
+    given = build_attack(plant=AIRCRAFT, data=(other.x, other.u))
+    assert len({id(shared_oracle(a)[0]) for a in (first, slower, given)}) == 3
+
+
 @pytest.mark.parametrize(("design", "r"), [("lqr", 1e-12), ("lqr-r", 1.0)])
 def test_clean_learner_gives_the_riccati_gain(design: str, r: float) -> None:
     """Noise-free data (T = 20): the instance's learner (regularized SDP, min-norm Q, KKT-polished) and bilevel.ddc's
@@ -155,7 +168,8 @@ def test_bad_data_name_the_fix() -> None:
         WillemsSetting(plant=AIRCRAFT, data=(x, u), input_std=2.0)
     with pytest.raises(InvalidData, match="the pair \\(X, U\\)"):
         WillemsSetting(plant=AIRCRAFT, data=x)
-    with pytest.raises(NotPersistentlyExciting, match="T >= n \\+ m = 4 samples.*T = 3.*Fix: a longer horizon.*or a richer input"):
+    short = "T >= n \\+ m = 4 samples.*T = 3.*Fix: a longer horizon.*or a richer input"
+    with pytest.raises(NotPersistentlyExciting, match=short):
         build_attack(WillemsSetting(plant=AIRCRAFT, data=(x[:, :4], u[:, :3])))
     uncontrollable = (np.diag([0.5, 0.6, 0.7]), [[1.0], [1.0], [0.0]])  # x_3 never moves from x_0 = 0
     with pytest.raises(NotPersistentlyExciting, match="rank \\[U0; X0\\] = 3 but n \\+ m = 4.*uncontrollable"):
@@ -171,3 +185,8 @@ def test_bad_data_name_the_fix() -> None:
 def test_bad_drawing_parameters_are_refused(params: dict, error: type, match: str) -> None:
     with pytest.raises(error, match=match):
         WillemsSetting(plant=AIRCRAFT, **params)
+
+
+def test_white_noise_trajectory_refuses_an_unknown_initial_state_word() -> None:
+    with pytest.raises(InvalidData, match="x0='zero': give the initial state as n numbers, None"):
+        white_noise_trajectory(AIRCRAFT.A, AIRCRAFT.B, 5, np.random.default_rng(0), x0="zero")
