@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, fields
+from functools import cache
 from typing import Any
 
 import casadi as ca
@@ -76,6 +77,13 @@ DEFAULT_HORIZON = 15
 def _frozen(a: np.ndarray) -> Matrix:
     """An array as nested tuples of floats (exact: the setting stays hashable and its arrays round-trip bit for bit)."""
     return tuple(map(tuple, np.asarray(a, dtype=float).tolist()))
+
+
+@cache
+def _batch_reactor() -> tuple[Matrix, Matrix]:
+    """The paper's plant as (A, B) tuples, read once (a setting checks its plant's sizes when it is made)."""
+    reactor = batch_reactor()
+    return _frozen(reactor.A), _frozen(reactor.B)
 
 
 @dataclass(frozen=True)
@@ -168,10 +176,8 @@ class WillemsSetting:
 
     def plant_matrices(self) -> tuple[np.ndarray, np.ndarray]:
         """(A, B) of the true plant (the batch reactor when plant is None)."""
-        if self.plant is None:
-            reactor = batch_reactor()
-            return reactor.A, reactor.B
-        return np.array(self.plant[0]), np.array(self.plant[1])
+        a, b = _batch_reactor() if self.plant is None else self.plant
+        return np.array(a), np.array(b)
 
     def experiment(self) -> tuple[np.ndarray, np.ndarray]:
         """The clean data (X, U): the given ones, or one experiment drawn from the plant with default_rng(seed)."""
