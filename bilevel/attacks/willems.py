@@ -49,7 +49,6 @@ import numpy as np
 import scipy.optimize
 
 from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller
-from ..ddc.plants import batch_reactor
 from ..certificate import DEFAULT_TOL, Certificate
 from ..errors import BilevelError, ModelError, SolverFailed
 from ..lower import LowerSolution, build_lower
@@ -260,8 +259,7 @@ def _result(at: WillemsAttack, oracle: SDPHypergradient, method: str, x: np.ndar
     again: where the SDP moves with x, the ascent's solution may come from Newton continuation)."""
     x = np.asarray(x, dtype=float)
     ev = ev if ev is not None and np.array_equal(ev.x, x) else oracle.evaluate(x)
-    plant = batch_reactor()
-    eig = np.linalg.eigvals(plant.A + plant.B @ ev.gain)
+    eig = np.linalg.eigvals(at.true_closed_loop(ev.gain))
     cert = _certificate(at, x, ev)
     p = at.problem
     stats = {"objective": at.setting.objective, "x": x, "gain": ev.gain, "eigenvalues": eig,

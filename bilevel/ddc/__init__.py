@@ -18,6 +18,7 @@ from bilevel.ddc.data import (
     state_trajectory,
     step_pulse,
     white_noise,
+    white_noise_trajectory,
 )
 from bilevel.ddc.depersis_tesi import (
     DPTController,
@@ -57,4 +58,5 @@ __all__ = [
     "num_den", "paper_input", "pi_basis", "pid_basis", "reference_inverse",
     "series", "simulate", "stabilizing_controller", "state_data", "state_trajectory",
     "step_pulse", "virtual_error_operator", "vrft_loss", "vrft_regressor", "white_noise",
+    "white_noise_trajectory",
 ]

@@ -62,11 +62,24 @@ def state_trajectory(
     return x
 
 
+def white_noise_trajectory(
+    a: ArrayLike, b: ArrayLike, horizon: int, rng: np.random.Generator, input_std: float = 1.0,
+    x0: ArrayLike | Literal["random"] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(X, U) of one experiment on x_{t+1} = A x_t + B u_t: U (m x T) i.i.d. N(0, input_std^2), then X (n x (T+1))
+    from x0 (0 when None; "random": drawn N(0, I) from rng after U)."""
+    b = np.atleast_2d(np.asarray(b, dtype=float))
+    u = input_std * white_noise(horizon, rng, channels=b.shape[1])
+    if isinstance(x0, str):
+        if x0 != "random":
+            raise InvalidData(f"x0={x0!r}: give the initial state as n numbers, None (x0 = 0) or 'random'")
+        x0 = rng.standard_normal(b.shape[0])
+    return state_trajectory(a, b, u, x0), u
+
+
 def batch_reactor_data(
     horizon: int, rng: np.random.Generator, random_x0: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """(X, U): batch reactor states (4 x (T+1)) under white input U (2 x T); x0 = 0 or N(0, I)."""
     plant: control.StateSpace = batch_reactor()
-    u = white_noise(horizon, rng, channels=plant.ninputs)
-    x0 = rng.standard_normal(plant.nstates) if random_x0 else None
-    return state_trajectory(plant.A, plant.B, u, x0), u
+    return white_noise_trajectory(plant.A, plant.B, horizon, rng, x0="random" if random_x0 else None)

@@ -1,5 +1,8 @@
 """Poisoning attacks on the De Persis–Tesi learners (paper appendix B, Willems' lemma) as bilevel problems.
 
+Data: one noise-free trajectory (X, U) of a state-feedback plant x_{t+1} = A x_t + B u_t (WillemsSetting.plant,
+the paper's batch reactor by default), drawn from the plant or given (WillemsSetting.data).
+
 Upper level (attacker): perturbations Du (m x T) of the inputs and, if poisoned, Dx of the states,
 in linf boxes |Du| <= delta_u, |Dx| <= delta_x; it maximizes the max-min criterion (closed-loop H2
 cost trace((Qx + K'RK) W), W = Acl W Acl' + I), the eigenvalue criterion log det(Acl Acl') or the
@@ -33,15 +36,19 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, fields
+from functools import cache
 from typing import Any
 
 import casadi as ca
 import numpy as np
 import scipy.linalg
+from numpy.typing import ArrayLike
 
-from ..ddc.data import batch_reactor_data
+from ..ddc.data import white_noise_trajectory
 from ..ddc.depersis_tesi import check_persistency, state_data
-from ..errors import InvalidData, ModelError
+from ..ddc.plants import batch_reactor
+from ..ddc.systems import StatePlantLike, state_matrices
+from ..errors import InvalidData, ModelError, NotPersistentlyExciting
 from ..model import BilevelProblem
 from ..solvers.options import check_common_options, check_counts, check_flags, check_numbers
 from ..vech import symmetric_sx
@@ -63,31 +70,60 @@ SOURCE = ("Russo & Proutiere, Poisoning attacks against data-driven control meth
           "'Attacks on methods based on Willems lemma'; De Persis & Tesi, IEEE TAC 2020, Thms 3-4")
 
 
+Matrix = tuple[tuple[float, ...], ...]
+DEFAULT_HORIZON = 15
+
+
+def _frozen(a: np.ndarray) -> Matrix:
+    """An array as nested tuples of floats (exact: the setting stays hashable and its arrays round-trip bit for bit)."""
+    return tuple(map(tuple, np.asarray(a, dtype=float).tolist()))
+
+
+@cache
+def _batch_reactor() -> tuple[Matrix, Matrix]:
+    """The paper's plant as (A, B) tuples, read once (a setting checks its plant's sizes when it is made)."""
+    reactor = batch_reactor()
+    return _frozen(reactor.A), _frozen(reactor.B)
+
+
 @dataclass(frozen=True)
 class WillemsSetting:
-    """Parameters of one attack instance (data are the batch reactor under u ~ N(0, 1), x_0 = 0)."""
+    """Parameters of one attack instance: the plant, its data, the learner, the budgets and the attacker's criterion.
+
+    plant: a discrete-time python-control StateSpace with C = I, D = 0, or (A, B); None is the paper's batch reactor.
+    It generates drawn data and judges results (the true closed loop A + B K); the attacker never uses it.
+    data: (X, U) with X n x (T+1) and U m x T, or None to draw one experiment from the plant: U i.i.d.
+    N(0, input_std^2) from default_rng(seed), X from x0 (0 when None; "random": N(0, I) drawn after U).
+    horizon: T of the drawn data (15 when None); with given data None or their T.
+    The arrays are stored as tuples of floats: a setting is hashable and equal settings have equal data.
+    """
 
     objective: str = "eigen"
-    horizon: int = 15
+    horizon: int | None = None
     seed: int = 0
     delta_u: float = 0.1
     delta_x: float = 0.0
     poison: str = "u"
     design: str = "lqr"
-    qx: tuple[tuple[float, ...], ...] | None = None
-    r: tuple[tuple[float, ...], ...] | None = None
+    qx: Matrix | None = None
+    r: Matrix | None = None
     reg: float = DEFAULT_REG
     poison_x0: bool = False
     selection: str = "min-norm"
+    plant: StatePlantLike | tuple[Matrix, Matrix] | None = None
+    data: tuple[ArrayLike, ArrayLike] | tuple[Matrix, Matrix] | None = None
+    input_std: float = 1.0
+    x0: tuple[float, ...] | str | None = None
 
     def __post_init__(self) -> None:
         for name, value, allowed in (("objective", self.objective, OBJECTIVES), ("design", self.design, DESIGNS),
                                      ("poison", self.poison, POISONS), ("selection", self.selection, SELECTIONS)):
             if value not in allowed:
                 raise ModelError(f"willems: {name}={value!r} is not one of {', '.join(allowed)}")
-        check_numbers({"delta_u": self.delta_u, "delta_x": self.delta_x, "reg": self.reg},
-                      nonnegative=("delta_u", "delta_x", "reg"))
-        check_counts({"horizon": self.horizon}, ("horizon",))
+        check_numbers({"delta_u": self.delta_u, "delta_x": self.delta_x, "reg": self.reg, "input_std": self.input_std},
+                      positive=("input_std",), nonnegative=("delta_u", "delta_x", "reg"))
+        if self.horizon is not None:
+            check_counts({"horizon": self.horizon}, ("horizon",))
         check_flags({"poison_x0": self.poison_x0}, ("poison_x0",))
         check_common_options({"seed": self.seed})
         if "u" not in self.poison and self.delta_u > 0:
@@ -99,6 +135,56 @@ class WillemsSetting:
             raise ModelError(f"willems: selection={self.selection!r} (the solver's own Q) is defined only where the "
                              f"SDP ignores the poisoning; got poison={self.poison!r}, design={self.design!r}: use "
                              "poison='u' with design 'lqr' or 'stabilizing', or selection 'min-norm'/'tikhonov'")
+        for name in ("qx", "r"):  # as tuples, so that the setting stays hashable (build_attack checks them)
+            if getattr(self, name) is not None:
+                try:
+                    object.__setattr__(self, name, _frozen(getattr(self, name)))
+                except (TypeError, ValueError):
+                    raise ModelError(f"willems: {name} must be a square matrix of numbers") from None
+        a, b = self.plant_matrices() if self.plant is None else state_matrices(self.plant)
+        if self.plant is not None:
+            object.__setattr__(self, "plant", (_frozen(a), _frozen(b)))
+        n, m = b.shape
+        if self.data is None:
+            object.__setattr__(self, "horizon", DEFAULT_HORIZON if self.horizon is None else self.horizon)
+            if self.x0 is not None and not isinstance(self.x0, str):
+                x0 = np.asarray(self.x0, dtype=float).ravel()
+                if x0.shape != (n,) or not np.all(np.isfinite(x0)):
+                    raise InvalidData(f"willems: x0 must be the plant's {n} initial states (finite), None (0) or "
+                                      f"'random'; got shape {x0.shape}")
+                object.__setattr__(self, "x0", tuple(x0.tolist()))
+            elif self.x0 is not None and self.x0 != "random":
+                raise InvalidData(f"willems: x0={self.x0!r}: give n numbers, None (x0 = 0) or 'random'")
+            return
+        if self.x0 is not None or self.input_std != 1.0:
+            raise ModelError("willems: x0 and input_std describe drawn data; with data=(X, U) given, drop them")
+        try:
+            x, u = self.data
+        except (TypeError, ValueError):
+            raise InvalidData("willems: data must be the pair (X, U), X n x (T+1) states and U m x T inputs") from None
+        split = state_data(x, u)
+        if split.x0.shape[0] != n or split.u0.shape[0] != m:
+            which = "the plant" if self.plant is not None else "the default plant (the batch reactor; pass plant=)"
+            raise InvalidData(f"willems: {which} has n = {n} states and m = {m} inputs, the data X {np.shape(x)} "
+                              f"and U {np.shape(u)}; pass X as n x (T+1) and U as m x T of the plant's experiment")
+        t = split.u0.shape[1]
+        if self.horizon is not None and self.horizon != t:
+            raise ModelError(f"willems: horizon={self.horizon} but the data have T = {t} samples; pass horizon=None "
+                             f"(the data's length) or horizon={t}")
+        object.__setattr__(self, "horizon", t)
+        object.__setattr__(self, "data", (_frozen(np.asarray(x, dtype=float)), _frozen(np.atleast_2d(u))))
+
+    def plant_matrices(self) -> tuple[np.ndarray, np.ndarray]:
+        """(A, B) of the true plant (the batch reactor when plant is None)."""
+        a, b = _batch_reactor() if self.plant is None else self.plant
+        return np.array(a), np.array(b)
+
+    def experiment(self) -> tuple[np.ndarray, np.ndarray]:
+        """The clean data (X, U): the given ones, or one experiment drawn from the plant with default_rng(seed)."""
+        if self.data is not None:
+            return np.array(self.data[0]), np.array(self.data[1])
+        return white_noise_trajectory(*self.plant_matrices(), self.horizon, np.random.default_rng(self.seed),
+                                      self.input_std, self.x0)
 
 
 def selection_applies(selection: str, poison: str, design: str) -> bool:
@@ -151,7 +237,8 @@ def _gramian_expr(acl: ca.SX) -> ca.SX:
 @dataclass
 class WillemsAttack:
     """A built instance: clean data, identified model, the BilevelProblem, its gain K and closed loop A_id + B_id K
-    (CasADi expressions of the upper and lower variables) and the flat upper vector `upper` = (vec Du, vec Dx)."""
+    (CasADi expressions of the upper and lower variables) and the flat upper vector `upper` = (vec Du, vec Dx); the
+    true plant (`plant`, `true_closed_loop`) only judges results."""
 
     setting: WillemsSetting
     x: np.ndarray
@@ -176,6 +263,16 @@ class WillemsAttack:
     @property
     def n_inputs(self) -> int:
         return self.u.shape[0]
+
+    @property
+    def plant(self) -> tuple[np.ndarray, np.ndarray]:
+        """(A, B) of the true plant: it judges the attack's result, the attacker never uses it (it has a_id, b_id)."""
+        return self.setting.plant_matrices()
+
+    def true_closed_loop(self, gain: np.ndarray) -> np.ndarray:
+        """A + B K of the true plant under gain K (m x n), or a batch of them for K (..., m, n)."""
+        a, b = self.plant
+        return a + b @ np.asarray(gain, dtype=float)
 
     @property
     def x_offset(self) -> int:
@@ -230,7 +327,8 @@ class WillemsAttack:
 
 
 def build_attack(setting: WillemsSetting | None = None, **params: Any) -> WillemsAttack:
-    """Draw the batch-reactor data of `setting` (or of keyword parameters) and declare the attack problem."""
+    """The clean data of `setting` (or of keyword parameters), given or drawn from its plant, checked for the
+    learner's rank condition, and the attack problem declared on them."""
     if setting is not None and params:
         raise ModelError("build_attack: pass either a WillemsSetting or keyword parameters, not both")
     try:
@@ -239,10 +337,15 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
         known = ", ".join(f.name for f in fields(WillemsSetting))
         raise ModelError(f"build_attack: the parameters {', '.join(sorted(params))} include an unknown one; a "
                          f"WillemsSetting takes {known}") from None
-    if s.horizon < 6:
-        raise InvalidData(f"willems: horizon T={s.horizon} is too short; the batch reactor needs T >= n + m = 6 "
-                          "samples for [U0; X0] to have full row rank")
-    x, u = batch_reactor_data(s.horizon, np.random.default_rng(s.seed))
+    x, u = s.experiment()
+    try:
+        check_persistency(state_data(x, u))
+    except NotPersistentlyExciting as err:
+        n_m = x.shape[0] + u.shape[0]
+        raise NotPersistentlyExciting(
+            f"willems: the learner needs [U0; X0] of full row rank, so T >= n + m = {n_m} samples at least: {err}. "
+            "Fix: a longer horizon (drawn data: horizon=; given data: a longer experiment) or a richer input, one "
+            "that excites every state (from x0 = 0 an uncontrollable (A, B) never gives full rank)") from None
     a_id, b_id = identified_model(x, u)
     n, m, t = x.shape[0], u.shape[0], s.horizon
     qx, r = _weight(s.qx, n, "qx"), _weight(s.r, m, "r")
@@ -289,8 +392,8 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
 
 def _register(objective: str, description: str) -> None:
     @register(f"willems-{objective}", source=SOURCE, tags=("willems", "attack", "sdp"), description=description,
-              defaults={"horizon": 15, "seed": 0, "delta_u": 0.1, "delta_x": 0.0, "poison": "u", "design": "lqr",
-                        "reg": DEFAULT_REG})
+              defaults={**{f.name: f.default for f in fields(WillemsSetting) if f.name != "objective"},
+                        "horizon": DEFAULT_HORIZON})
     def build(**params: Any) -> BilevelProblem:
         if params.get("selection") in SOLVER_SELECTIONS:
             raise ModelError(f"willems-{objective}: the declared problem's learner is the regularized SDP; "

@@ -18,8 +18,8 @@ import pytest
 import bilevel as bl
 from bilevel import attacks as atk
 from bilevel.attacks import willems
-from bilevel.errors import (BilevelError, InvalidData, ModelError, RankDeficientRegressor, UnknownName,
-                            UnknownOption)
+from bilevel.errors import (BilevelError, InvalidData, ModelError, NotPersistentlyExciting,
+                            RankDeficientRegressor, UnknownName, UnknownOption)
 from bilevel.problems import registry
 from bilevel.problems.willems import WillemsSetting, build_attack
 from bilevel.solvers.base import MethodRun
@@ -376,8 +376,8 @@ CASES: dict[str, tuple[Callable[[], Any], Any, str]] = {
                                    "3 samples are too few"),
     "fit_arx negative order": (lambda: atk.fit_arx(*_vrft_data(64), -1, 2, 0), InvalidData,
                                "ARX orders must be integers"),
-    "Willems horizon too short": (lambda: build_attack(WillemsSetting(horizon=3)), InvalidData,
-                                  "horizon T=3 is too short"),
+    "Willems horizon too short": (lambda: build_attack(WillemsSetting(horizon=3)), NotPersistentlyExciting,
+                                  "T >= n \\+ m = 6 samples at least.*Fix: a longer horizon"),
     # -- the cvxpy front end -----------------------------------------------------------------------------------------
     "cvxpy integer lower level": (_lower_cvxpy(_cvx_integer), ModelError, "integer or boolean variables"),
     "cvxpy non-DCP lower level": (_lower_cvxpy(_cvx_not_dcp), ModelError, "not DCP"),

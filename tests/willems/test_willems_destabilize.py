@@ -164,7 +164,7 @@ def test_cli_solves_willems_destabilize_with_json(tmp_path, capsys) -> None:
     assert data["unstable"] is True and data["spectral_radius"] == pytest.approx(1.0214, abs=1e-3)
     assert "spectral_radius" in capsys.readouterr().out
     assert main(["solve", "willems-destabilize", "--param", "budget=1"]) == 2
-    assert "willems-destabilize takes delta_u" in capsys.readouterr().err
+    assert "willems-destabilize takes data, delta_u" in capsys.readouterr().err
 
 
 def test_smallest_destabilizing_budget_brackets_the_first_unstable_budget() -> None:
