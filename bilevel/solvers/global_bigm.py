@@ -100,3 +100,13 @@ def derive_big_m(relax: Relaxation) -> BigM | None:
     for i, side in fixed.items():  # a fixed side is zero at every feasible point: its bound is exact
         (mult if side == H_SIDE else slack)[i] = 0.0
     return BigM(slack, mult, f.labels, fixed)
+
+
+def derive_bounds(relax: Relaxation, fixed: dict[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) bounds of every MPCC variable over R with `fixed` (LP minima and maxima widened by the margin;
+    -inf / inf where unbounded): the box SCIP's spatial branch-and-bound branches in."""
+    eye = np.eye(relax.form.n)
+    hi = np.array([_extreme(relax, e, 0.0, fixed, 1.0) for e in eye])
+    lo = np.array([_extreme(relax, e, 0.0, fixed, -1.0) for e in eye])
+    margin = SAFETY * (1.0 + np.maximum(np.abs(lo), np.abs(hi)))
+    return np.maximum(lo - margin, relax.form.lb), np.minimum(hi + margin, relax.form.ub)

@@ -3,7 +3,9 @@
 min 1/2 w'Qw + c'w + c0  s.t.  A_eq w = b_eq,  A_in w <= b_in,  lb <= w <= ub,  0 <= G w + g ⟂ H w + h >= 0.
 That holds for an LP or convex-QP lower level whose KKT stationarity is linear in (x, y, lam, mu) (constant
 Hessian P and constraint matrices A, E in y; q, b, e affine in x), linear upper constraints, and a linear or
-convex quadratic upper objective. Everything else is rejected with a ModelError saying why.
+convex quadratic upper objective. With `nonconvex_leader` (algorithm "scip"), the upper objective may be any
+expression SCIP takes (bilinear, polynomial, ...) and upper rows nonlinear in w are kept apart (a Leader); the
+lower level's conditions stay as above. Everything else is rejected with a ModelError naming the class and the fix.
 """
 
 from __future__ import annotations
@@ -20,7 +22,23 @@ from ..parameters import ParameterSet, scalar
 from .base import Prepared
 
 LOCAL_METHODS = "use a local method instead: method='relaxation' (most robust) or method='ipopt'"
+SCIP_FIX = ("algorithm='scip' of method 'global' proves this class with SCIP's spatial branch-and-bound once pyscipopt is "
+            "installed (pip install pyscipopt, or pip install 'bilevel[global]')")
+NOT_IN_SCIP = "a class algorithm 'scip' does not cover yet"
 CONVEXITY_TOL = 1e-9
+
+
+@dataclass(frozen=True)
+class Leader:
+    """The upper level as SCIP takes it (algorithm "scip"): the objective F(w), and the upper rows nonlinear in w,
+    inequalities(w) <= 0 and equalities(w) = 0, all with the parameters' values substituted. `nonconvex` names the
+    class outside the convex algorithms' scope ("" when the upper level is convex quadratic with linear rows)."""
+
+    w: ca.SX
+    objective: ca.SX
+    inequalities: ca.SX
+    equalities: ca.SX
+    nonconvex: str
 
 
 @dataclass(frozen=True)
@@ -41,6 +59,8 @@ class LinearMPCC:
     H: np.ndarray
     h: np.ndarray
     labels: tuple[str, ...]
+    leader: Leader | None = None
+    """Set when built for algorithm "scip"; with a nonconvex leader, Q, c and c0 are zero (the objective is there)."""
 
     @property
     def n(self) -> int:
@@ -72,13 +92,21 @@ def _affine(expr: ca.SX, w: ca.SX, what: str, why: str, params: ParameterSet) ->
     return np.asarray(J, dtype=float).reshape(n_rows, -1), np.asarray(r, dtype=float).ravel()
 
 
-def _objective(F: ca.SX, w: ca.SX, params: ParameterSet) -> tuple[np.ndarray, np.ndarray, float]:
-    """(Q, c, c0) of a convex quadratic F; ModelError if F is not quadratic or not convex."""
+def _split(expr: ca.SX, w: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """(rows affine in w, rows nonlinear in w) of expr."""
+    affine, nonlinear = [], []
+    for i in range(int(expr.numel())):
+        (nonlinear if ca.depends_on(ca.jacobian(expr[i], w), w) else affine).append(expr[i])
+    return tuple(ca.vertcat(*rows) if rows else ca.SX(0, 1) for rows in (affine, nonlinear))
+
+
+def _objective(F: ca.SX, w: ca.SX, params: ParameterSet) -> tuple[np.ndarray, np.ndarray, float] | str:
+    """(Q, c, c0) of a convex quadratic F, or the class of a nonconvex one (a phrase for the error messages)."""
     grad = ca.gradient(F, w)
     hess = ca.jacobian(grad, w)
     if ca.depends_on(hess, w):
-        raise ModelError("method 'global' needs an upper objective that is linear or convex quadratic in (x, y); "
-                         f"this one is of higher degree; {LOCAL_METHODS}")
+        return "an upper objective of degree above 2 or not polynomial (the convex algorithms need it linear or convex " \
+               "quadratic in (x, y))"
     fun = params.function("quad", [w], [ca.densify(hess), ca.densify(grad), F])
     Q, c, c0 = fun(np.zeros(int(w.numel())))
     Q = np.asarray(Q, dtype=float)
@@ -86,48 +114,70 @@ def _objective(F: ca.SX, w: ca.SX, params: ParameterSet) -> tuple[np.ndarray, np
     if np.any(Q):
         low = float(np.linalg.eigvalsh(Q).min())
         if low < -CONVEXITY_TOL * max(1.0, float(np.abs(Q).max())):
-            raise ModelError("method 'global' needs a convex upper objective (in minimization form): its Hessian in "
-                             f"(x, y) has eigenvalue {low:.3g} (e.g. a bilinear x*y term); {LOCAL_METHODS}")
+            return ("a nonconvex upper objective (the convex algorithms need a convex upper objective in minimization "
+                    f"form; its Hessian in (x, y) has eigenvalue {low:.3g}, e.g. a bilinear x*y term)")
     return Q, np.asarray(c, dtype=float).ravel(), scalar(c0)
 
 
-def linear_mpcc(prep: Prepared) -> LinearMPCC:
-    """The prepared problem's MPCC as a LinearMPCC, or a ModelError naming what is out of scope and why."""
+def _refuse(nonconvex: str) -> ModelError:
+    """The error for a leader outside the convex algorithms' scope when SCIP is not used."""
+    return ModelError(f"method 'global' was given {nonconvex}: a nonconvex leader; {SCIP_FIX}; or {LOCAL_METHODS}")
+
+
+def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
+    """The prepared problem's MPCC as a LinearMPCC, or a ModelError naming what is out of scope and why.
+
+    With nonconvex_leader (algorithm "scip"), a nonconvex upper objective and nonlinear upper rows are kept in
+    the form's Leader instead of refused."""
     low = prep.canon.lower
     if low.kind not in ("lp", "qp", "least-squares"):
         raise ModelError(f"method 'global' handles LP and convex-QP lower levels with affine constraints; this lower "
-                         f"level is of kind {low.kind!r}; {LOCAL_METHODS}")
+                         f"level is of kind {low.kind!r} ({NOT_IN_SCIP}); {LOCAL_METHODS}")
     mpcc = prep.mpcc
     w = mpcc.w
     canon = prep.canon
     n_H, n_y = int(canon.H.numel()), low.n_y
     eq = mpcc.equalities
-    A_H, r_H = _affine(eq[:n_H] if n_H else ca.SX(0, 1), w, "the upper equality constraints",
-                       "they must be linear in (x, y)", mpcc.params)
+    upper_eq, upper_eq_nl = _split(mpcc.params.substitute(eq[:n_H] if n_H else ca.SX(0, 1)), w)
+    upper_in, upper_in_nl = _split(mpcc.params.substitute(mpcc.inequalities), w)
+    A_H, r_H = _affine(upper_eq, w, "the upper equality constraints", "they must be linear in (x, y)", mpcc.params)
     A_s, r_s = _affine(eq[n_H:n_H + n_y], w, "the lower-level KKT stationarity",
                        "the lower objective's Hessian in y and the constraint matrices in y must not depend on x "
-                       "(an x*y term in a lower constraint or an x-dependent quadratic term breaks this)", mpcc.params)
+                       f"(an x*y term in a lower constraint or an x-dependent quadratic term breaks this: {NOT_IN_SCIP})",
+                       mpcc.params)
     require_convex_everywhere(low, np.clip(np.zeros(low.n_x), canon.x_lb, canon.x_ub))  # after the affinity check
     A_h, r_h = _affine(eq[n_H + n_y:], w, "the lower equality constraints", "they must be affine in (x, y)",
                        mpcc.params)
-    A_in, r_in = _affine(mpcc.inequalities, w, "the upper inequality constraints", "they must be linear in (x, y)",
+    A_in, r_in = _affine(upper_in, w, "the upper inequality constraints", "they must be linear in (x, y)",
                          mpcc.params)
     G_rows, g, H_rows, h, labels = [], [], [], [], []
     for pair in mpcc.pairs:
         if not isinstance(pair, ScalarPair):
             raise ModelError(f"method 'global' does not handle LMI (PSD) pairs such as {pair.name!r}; {LOCAL_METHODS}")
         Gi, gi = _affine(pair.G, w, "the lower inequality constraints",
-                         "g(x, y) = A y + b(x) with A constant and b affine in x", mpcc.params)
+                         f"g(x, y) = A y + b(x) with A constant and b affine in x ({NOT_IN_SCIP})", mpcc.params)
         Hi, hi = _affine(pair.H, w, "the multipliers of the pairs", "they are variables of the MPCC", mpcc.params)
         G_rows.append(Gi)
         g.append(gi)
         H_rows.append(Hi)
         h.append(hi)
         labels += list(pair.labels) or [f"{pair.name}[{i}]" for i in range(gi.size)]
-    Q, c, c0 = _objective(mpcc.objective, w, mpcc.params)
+    quadratic = _objective(mpcc.objective, w, mpcc.params)
+    rows_nl = int(upper_eq_nl.numel()) + int(upper_in_nl.numel())
+    nonconvex = quadratic if isinstance(quadratic, str) else ""
+    if rows_nl:
+        nonconvex = " and ".join(filter(None, [nonconvex, f"{rows_nl} upper constraint row(s) nonlinear in (x, y) (the "
+                                                          "convex algorithms need the upper inequality constraints "
+                                                          "to be affine)"]))
+    if nonconvex and not nonconvex_leader:
+        raise _refuse(nonconvex)
+    leader = None
+    if nonconvex_leader:
+        leader = Leader(w, mpcc.params.substitute(mpcc.objective), upper_in_nl, upper_eq_nl, nonconvex)
     n = int(w.numel())
+    Q, c, c0 = (np.zeros((n, n)), np.zeros(n), 0.0) if isinstance(quadratic, str) else quadratic
     stack = lambda parts: np.vstack(parts) if parts else np.zeros((0, n))  # noqa: E731
     flat = lambda parts: np.concatenate(parts) if parts else np.zeros(0)  # noqa: E731
     return LinearMPCC(Q, c, c0, np.vstack([A_H, A_s, A_h]), -np.concatenate([r_H, r_s, r_h]), A_in, -r_in,
                       mpcc.lbw.astype(float), mpcc.ubw.astype(float), stack(G_rows), flat(g), stack(H_rows),
-                      flat(h), tuple(labels))
+                      flat(h), tuple(labels), leader)
