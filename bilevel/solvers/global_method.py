@@ -24,7 +24,7 @@ from .global_bigm import derive_big_m, derive_bounds
 from .global_form import linear_mpcc
 from .global_milp import solve_milp
 from .global_nodes import G_SIDE, Relaxation
-from .global_scip import require_scip, scip_available, solve_scip
+from .global_scip import require_scip, scip_available, solve_scip, unbounded_nonconvex
 from .limits import progress
 
 ALGORITHMS = ("auto", "milp", "branch-and-bound", "scip")
@@ -110,6 +110,12 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     if use_scip:
         name = "scip (spatial branch-and-bound, derived bounds)"
         box = derive_bounds(relax, big_m.fixed)
+        if form.leader.nonconvex and (free := unbounded_nonconvex(form.leader, box, prep.mpcc.blocks)):
+            raise ModelError(f"algorithm 'scip' of method 'global' needs finite bounds on the variables of the "
+                             f"leader's nonconvex terms; {', '.join(free)} (canonical MPCC entries) have none, declared "
+                             "or derived over the relaxed KKT polyhedron: declare bounds on them (lb=..., ub=... in "
+                             "upper_variable / lower_variable); a box that holds an optimum leaves the optimal value "
+                             "unchanged")
         remaining = max(time_limit - (time.perf_counter() - t0), 1e-3)
         outcome = solve_scip(relax, big_m, box, gap_tol, remaining, node_limit)
     elif use_milp:

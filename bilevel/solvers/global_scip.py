@@ -89,6 +89,19 @@ _UNARY = {ca.OP_ASSIGN, ca.OP_NEG, ca.OP_SQ, ca.OP_TWICE, ca.OP_INV, ca.OP_EXP, 
           ca.OP_COS}
 
 
+def unbounded_nonconvex(leader: Leader, box: tuple[np.ndarray, np.ndarray], blocks: dict[str, slice]) -> list[str]:
+    """Names (block[index] of the MPCC vector, e.g. x[0]) of the variables in a nonlinear term of the leader whose
+    derived box is infinite: SCIP's relaxation of such a term has no finite bound."""
+    exprs = ca.vertcat(leader.objective, leader.inequalities, leader.equalities)
+    columns = sorted({j for i in range(int(exprs.numel())) for j in ca.hessian(exprs[i], leader.w)[0].sparsity().row()})
+    names = []
+    for j in columns:
+        if not (np.isfinite(box[0][j]) and np.isfinite(box[1][j])):
+            block, part = next((b, s) for b, s in blocks.items() if s.start <= j < s.stop)
+            names.append(f"{block}[{j - part.start}]")
+    return names
+
+
 def _finite(v: float, infinity: float) -> float | None:
     """v as a SCIP bound: None where infinite."""
     return None if not np.isfinite(v) or abs(v) >= infinity else float(v)
