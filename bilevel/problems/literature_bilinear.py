@@ -73,8 +73,8 @@ def bolib_ishizukaaiyoshi1992a() -> BilevelProblem:
     source=f"{_BOLIB} TollSettingP1, F* = -7, f* = 12 (flag 2: best known; optimal by path enumeration, see the "
            "docstring); the toll-setting model of Labbé, Marcotte & Savard (1998), 'A bilevel model of taxation and "
            "its application to optimal highway pricing', Management Science 44(12):1608-1622",
-    optimum=7.0, solution={"x": [7.0, 12.0, 12.0]}, lower_optimum=12.0,
-    tags=("bilinear", "toll", "linear-linear", "max-upper", "nonunique-lower", "textbook"))
+    optimum=7.0, solution={"x": [7.0, 12.0, 12.0], "y": [0, 0, 1, 0, 0, 0, 0, 0]}, lower_optimum=12.0,
+    tags=("bilinear", "toll", "quadratic-quadratic", "max-upper", "nonunique-lower", "textbook"))
 def bolib_tollsettingp1() -> BilevelProblem:
     """Toll setting on a 5-node network: the leader maximises toll revenue on three arcs, one unit of traffic takes
     the cheapest path (LP on arc flows y1..y8 with flow conservation).
@@ -103,8 +103,8 @@ def bolib_tollsettingp1() -> BilevelProblem:
     "bolib-tollsettingp4",
     source=f"{_BOLIB} TollSettingP4, F* = -4, f* = 14 (flag 2: best known; optimal by enumeration, see the "
            "docstring); toll setting after Labbé, Marcotte & Savard (1998), Management Science 44(12):1608-1622",
-    optimum=4.0, solution={"x": [2.5, -1.0]}, lower_optimum=14.0,
-    tags=("bilinear", "toll", "linear-linear", "max-upper", "nonunique-lower", "textbook"))
+    optimum=4.0, solution={"x": [2.5, -1.0], "y": [0, 1, 1, 0]}, lower_optimum=14.0,
+    tags=("bilinear", "toll", "quadratic-quadratic", "max-upper", "nonunique-lower", "textbook"))
 def bolib_tollsettingp4() -> BilevelProblem:
     """Two commodities, each choosing a toll-free arc (cost 8, resp. 6) or a tolled one (3 + 2 x1, resp.
     3 + 2 x1 + 2 x2); x2 may be negative (a subsidy).
@@ -126,8 +126,8 @@ def bolib_tollsettingp4() -> BilevelProblem:
     "bolib-tollsettingp5",
     source=f"{_BOLIB} TollSettingP5, F* = -2.5, f* = 14 (flag 2: best known; optimal by enumeration, see the "
            "docstring); toll setting after Labbé, Marcotte & Savard (1998), Management Science 44(12):1608-1622",
-    optimum=2.5, solution={"x": [2.5]}, lower_optimum=14.0,
-    tags=("bilinear", "toll", "linear-linear", "max-upper", "nonunique-lower", "textbook"))
+    optimum=2.5, solution={"x": [2.5], "y": [0, 1, 0, 1]}, lower_optimum=14.0,
+    tags=("bilinear", "toll", "quadratic-quadratic", "max-upper", "nonunique-lower", "textbook"))
 def bolib_tollsettingp5() -> BilevelProblem:
     """One toll on two commodities' tolled arcs (cost 3 + 2x, resp. 4 + 2x, against toll-free 8, resp. 6).
 
