@@ -107,15 +107,16 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
                          "algorithm='branch-and-bound' or 'auto'")
     use_milp = use_milp and algorithm != "branch-and-bound"
     remaining = max(time_limit - (time.perf_counter() - t0), 1e-3)
+    free: list[str] = []
     if use_scip:
         name = "scip (spatial branch-and-bound, derived bounds)"
         box = derive_bounds(relax, big_m.fixed)
-        if form.leader.nonconvex and (free := unbounded_nonconvex(form.leader, box, prep.mpcc.blocks)):
-            raise ModelError(f"algorithm 'scip' of method 'global' needs finite bounds on the variables of the "
-                             f"leader's nonconvex terms; {', '.join(free)} (canonical MPCC entries) have none, declared "
-                             "or derived over the relaxed KKT polyhedron: declare bounds on them (lb=..., ub=... in "
-                             "upper_variable / lower_variable); a box that holds an optimum leaves the optimal value "
-                             "unchanged")
+        free = unbounded_nonconvex(form.leader, box, prep.mpcc.blocks) if form.leader.nonconvex else []
+        if leaders := [v for v in free if v.startswith("x[")]:
+            raise ModelError(f"algorithm 'scip' of method 'global' needs finite bounds on the leader's variables in "
+                             f"nonconvex terms; {', '.join(leaders)} (canonical upper variables) have none, declared or "
+                             "derived over the relaxed KKT polyhedron: declare bounds on them (lb=..., ub=... in "
+                             "upper_variable); a box that holds an optimum leaves the optimal value unchanged")
         remaining = max(time_limit - (time.perf_counter() - t0), 1e-3)
         outcome = solve_scip(relax, big_m, box, gap_tol, remaining, node_limit)
     elif use_milp:
@@ -142,6 +143,9 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     history = [h if sense == "min" else {"node": h["node"], "lower": -h["upper"], "upper": -h["lower"]}
                for h in outcome.history]  # the bounds' trajectory, in the declared sense like the bounds
     summary = f"{name}: bounds [{low:.10g}, {high:.10g}], relative gap {gap:.2e}, {outcome.nodes} nodes"
+    if use_scip and free and not proven:
+        summary += (f"; {', '.join(free)} enter nonconvex terms with no finite bound, which SCIP's relaxation needs: "
+                    "declare bounds on the lower variables")
     status, message = _verdict(outcome, name, summary, proven)
     progress(options.get("verbose"), "global", f"{summary} ({outcome.ended}, {time.perf_counter() - t0:.1f} s)")
     w = None if outcome.w is None or status is Status.INFEASIBLE else np.asarray(outcome.w, dtype=float)
