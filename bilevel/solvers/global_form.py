@@ -24,7 +24,7 @@ from .base import Prepared
 LOCAL_METHODS = "use a local method instead: method='relaxation' (most robust) or method='ipopt'"
 SCIP_FIX = ("algorithm='scip' of method 'global' proves this class with SCIP's spatial branch-and-bound once pyscipopt is "
             "installed (pip install pyscipopt, or pip install 'bilevel[global]')")
-NOT_IN_SCIP = "a class algorithm 'scip' does not cover yet"
+NOT_IN_SCIP = "algorithm 'scip' does not cover this class yet"
 CONVEXITY_TOL = 1e-9
 
 
@@ -121,7 +121,8 @@ def _objective(F: ca.SX, w: ca.SX, params: ParameterSet) -> tuple[np.ndarray, np
 
 def _refuse(nonconvex: str) -> ModelError:
     """The error for a leader outside the convex algorithms' scope when SCIP is not used."""
-    return ModelError(f"method 'global' was given {nonconvex}: a nonconvex leader; {SCIP_FIX}; or {LOCAL_METHODS}")
+    return ModelError(f"method 'global' was given {nonconvex} (class: nonconvex leader); {SCIP_FIX}; or "
+                      f"{LOCAL_METHODS}")
 
 
 def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
@@ -132,7 +133,7 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
     low = prep.canon.lower
     if low.kind not in ("lp", "qp", "least-squares"):
         raise ModelError(f"method 'global' handles LP and convex-QP lower levels with affine constraints; this lower "
-                         f"level is of kind {low.kind!r} ({NOT_IN_SCIP}); {LOCAL_METHODS}")
+                         f"level is of kind {low.kind!r} (class: nonlinear lower level; {NOT_IN_SCIP}); {LOCAL_METHODS}")
     mpcc = prep.mpcc
     w = mpcc.w
     canon = prep.canon
@@ -143,7 +144,8 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
     A_H, r_H = _affine(upper_eq, w, "the upper equality constraints", "they must be linear in (x, y)", mpcc.params)
     A_s, r_s = _affine(eq[n_H:n_H + n_y], w, "the lower-level KKT stationarity",
                        "the lower objective's Hessian in y and the constraint matrices in y must not depend on x "
-                       f"(an x*y term in a lower constraint or an x-dependent quadratic term breaks this: {NOT_IN_SCIP})",
+                       "(an x*y term in a lower constraint or an x-dependent quadratic term breaks this; class: "
+                       f"x-dependent lower Hessian or constraint matrix; {NOT_IN_SCIP})",
                        mpcc.params)
     require_convex_everywhere(low, np.clip(np.zeros(low.n_x), canon.x_lb, canon.x_ub))  # after the affinity check
     A_h, r_h = _affine(eq[n_H + n_y:], w, "the lower equality constraints", "they must be affine in (x, y)",
@@ -155,7 +157,8 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
         if not isinstance(pair, ScalarPair):
             raise ModelError(f"method 'global' does not handle LMI (PSD) pairs such as {pair.name!r}; {LOCAL_METHODS}")
         Gi, gi = _affine(pair.G, w, "the lower inequality constraints",
-                         f"g(x, y) = A y + b(x) with A constant and b affine in x ({NOT_IN_SCIP})", mpcc.params)
+                         "g(x, y) = A y + b(x) with A constant and b affine in x (class: lower constraints "
+                         f"nonlinear in x; {NOT_IN_SCIP})", mpcc.params)
         Hi, hi = _affine(pair.H, w, "the multipliers of the pairs", "they are variables of the MPCC", mpcc.params)
         G_rows.append(Gi)
         g.append(gi)

@@ -1,0 +1,84 @@
+"""method="global" on every registered textbook problem: the proof (bounds, nodes) and its time, with SCIP taking
+the nonconvex leaders (algorithm "auto"), next to ipopt (8 starts, the baseline, run in the same process).
+
+One line per problem: known F*, the proven bounds in the declared sense, relative gap, nodes, the algorithm, the
+median wall time of REPEATS solves, ipopt's median time and the ratio. Then the median time over the problems the
+method proves (the issue asks <= 5 s) and the problems it refuses, with the class its ModelError names.
+Asserts nothing. Usage: python benchmarks/bench_global_scip.py > benchmarks/results/bench_global_scip.txt
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from datetime import datetime, timezone
+
+import numpy as np
+import pyscipopt
+import scipy
+
+import bilevel as bl
+from bilevel.problems import registry
+
+REPEATS = 3
+
+
+def header() -> None:
+    """Machine, date, load and versions, so the numbers can be read in context."""
+    uname = subprocess.run(["uname", "-a"], capture_output=True, text=True).stdout.strip()
+    print(f"# bench_global_scip.py — {datetime.now(timezone.utc):%Y-%m-%d %H:%M:%S} UTC")
+    print(f"# uname -a: {uname}")
+    print(f"# nproc: {os.cpu_count()}; load average at start: {', '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    print("# NOTE: the machine may be shared with other jobs; compare the ratio column, not absolute times")
+    print(f"# python {platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}, pyscipopt "
+          f"{pyscipopt.__version__} (SCIP {pyscipopt.Model().version()}), bilevel {sys.modules['bilevel'].__file__}")
+
+
+def timed(name: str, method: str, **options: object) -> tuple[float, bl.BilevelResult]:
+    """Median wall time over REPEATS solves, and the last result."""
+    times, res = [], None
+    for _ in range(REPEATS):
+        t0 = time.perf_counter()
+        res = bl.solve(registry.get(name), method=method, **options)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), res
+
+
+def main() -> None:
+    header()
+    print(f"\n## Textbook problems, method='global' (median of {REPEATS} runs) vs ipopt (8 starts)")
+    print(f"{'problem':<28} {'F*':>12} {'lower bound':>14} {'upper bound':>14} {'gap':>8} {'nodes':>6} "
+          f"{'status':<8} {'algorithm':<16} {'global [s]':>10} {'ipopt [s]':>10} {'g/i':>6}")
+    times, ratios, refused = [], [], []
+    for name in registry.names("textbook"):
+        known = registry.spec(name).optimum
+        try:
+            tg, res = timed(name, "global")
+        except bl.ModelError as exc:
+            refused.append(f"{name}: {exc}")
+            continue
+        ti, _ = timed(name, "ipopt", starts=8, seed=0)
+        gb = res.certificate.global_bound if res.certificate else None
+        low, high = (gb.lower_bound, gb.upper_bound) if gb else (res.stats["lower_bound"], res.stats["upper_bound"])
+        proven = bool(gb and gb.proven) and res.status is bl.Status.SOLVED
+        if proven:
+            times.append(tg)
+            ratios.append(tg / ti)
+        status = "proven" if proven else res.status.value
+        print(f"{name:<28} {known:>12.8g} {low:>14.10g} {high:>14.10g} {res.stats['gap']:>8.1e} "
+              f"{res.stats['nodes']:>6} {status:<8} {res.stats['algorithm'].split(' ')[0]:<16} {tg:>10.3f} "
+              f"{ti:>10.3f} {tg / ti:>6.2f}", flush=True)
+    print(f"\nproven: {len(times)} problems; median time {statistics.median(times):.3f} s, worst {max(times):.3f} s; "
+          f"median ratio global / ipopt {statistics.median(ratios):.2f}")
+    print("refused by method 'global' (ModelError):")
+    for line in refused:
+        print(f"  {line}")
+    print(f"# load average at end: {', '.join(f'{v:.2f}' for v in os.getloadavg())}")
+
+
+if __name__ == "__main__":
+    main()
