@@ -31,14 +31,22 @@ CONVEXITY_TOL = 1e-9
 @dataclass(frozen=True)
 class Leader:
     """The upper level as SCIP takes it (algorithm "scip"): the objective F(w), and the upper rows nonlinear in w,
-    inequalities(w) <= 0 and equalities(w) = 0, all with the parameters' values substituted. `nonconvex` names the
-    class outside the convex algorithms' scope ("" when the upper level is convex quadratic with linear rows)."""
+    inequalities(w) <= 0 and equalities(w) = 0, all with the parameters' values substituted; `slacks` holds the
+    pairs whose slack G_i(w) = -g_i(x, y) is nonlinear in x (index, expression; their rows in G and g are zero).
+    `nonconvex` names the class outside the convex algorithms' scope ("" when the upper level is convex quadratic
+    with linear rows)."""
 
     w: ca.SX
     objective: ca.SX
     inequalities: ca.SX
     equalities: ca.SX
     nonconvex: str
+    slacks: tuple[tuple[int, ca.SX], ...] = ()
+
+    @property
+    def nonlinear_rows(self) -> bool:
+        """True when some constraint row is nonlinear (SCIP may then bound variables the LPs cannot)."""
+        return bool(self.inequalities.numel() or self.equalities.numel() or self.slacks)
 
 
 @dataclass(frozen=True)
@@ -69,6 +77,11 @@ class LinearMPCC:
     @property
     def n_pairs(self) -> int:
         return self.g.size
+
+    @property
+    def nonlinear_pairs(self) -> set[int]:
+        """Pairs whose slack is nonlinear in x (kept by the Leader; zero rows in G and g)."""
+        return {i for i, _ in self.leader.slacks} if self.leader is not None else set()
 
     @property
     def linear(self) -> bool:
@@ -119,6 +132,23 @@ def _objective(F: ca.SX, w: ca.SX, params: ParameterSet) -> tuple[np.ndarray, np
     return Q, np.asarray(c, dtype=float).ravel(), scalar(c0)
 
 
+def _nonlinear_slacks(G: ca.SX, w: ca.SX, first: int, slacks: list[tuple[int, ca.SX]]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, constants) of a pair's slacks G (parameters substituted): affine rows as they are, rows nonlinear in w
+    as zeros, appended to `slacks` with their pair index (first + row) for SCIP."""
+    n = int(w.numel())
+    J, r = np.zeros((int(G.numel()), n)), np.zeros(int(G.numel()))
+    for k in range(int(G.numel())):
+        jac = ca.jacobian(G[k], w)
+        if ca.depends_on(jac, w):
+            slacks.append((first + k, G[k]))
+            continue
+        fun = ca.Function("affine_row", [w], [ca.densify(jac), G[k]])
+        Jk, rk = fun(np.zeros(n))
+        J[k], r[k] = np.asarray(Jk, dtype=float).ravel(), float(rk)
+    return J, r
+
+
 def _refuse(nonconvex: str) -> ModelError:
     """The error for a leader outside the convex algorithms' scope when SCIP is not used."""
     return ModelError(f"method 'global' was given {nonconvex} (class: nonconvex leader); {SCIP_FIX}; or "
@@ -153,12 +183,17 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
     A_in, r_in = _affine(upper_in, w, "the upper inequality constraints", "they must be linear in (x, y)",
                          mpcc.params)
     G_rows, g, H_rows, h, labels = [], [], [], [], []
+    slacks: list[tuple[int, ca.SX]] = []
     for pair in mpcc.pairs:
         if not isinstance(pair, ScalarPair):
             raise ModelError(f"method 'global' does not handle LMI (PSD) pairs such as {pair.name!r}; {LOCAL_METHODS}")
-        Gi, gi = _affine(pair.G, w, "the lower inequality constraints",
-                         "g(x, y) = A y + b(x) with A constant and b affine in x (class: lower constraints "
-                         f"nonlinear in x; {NOT_IN_SCIP})", mpcc.params)
+        try:
+            Gi, gi = _affine(pair.G, w, "the lower inequality constraints", "g(x, y) = A y + b(x) with A constant "
+                             f"and b affine in x (class: lower constraints nonlinear in x; {SCIP_FIX})", mpcc.params)
+        except ModelError:
+            if not nonconvex_leader:
+                raise
+            Gi, gi = _nonlinear_slacks(mpcc.params.substitute(pair.G), w, sum(v.size for v in g), slacks)
         Hi, hi = _affine(pair.H, w, "the multipliers of the pairs", "they are variables of the MPCC", mpcc.params)
         G_rows.append(Gi)
         g.append(gi)
@@ -172,11 +207,14 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
         nonconvex = " and ".join(filter(None, [nonconvex, f"{rows_nl} upper constraint row(s) nonlinear in (x, y) (the "
                                                           "convex algorithms need the upper inequality constraints "
                                                           "to be affine)"]))
+    if slacks:
+        nonconvex = " and ".join(filter(None, [nonconvex, f"{len(slacks)} lower constraint row(s) nonlinear in x"]))
     if nonconvex and not nonconvex_leader:
         raise _refuse(nonconvex)
     leader = None
     if nonconvex_leader:
-        leader = Leader(w, mpcc.params.substitute(mpcc.objective), upper_in_nl, upper_eq_nl, nonconvex)
+        leader = Leader(w, mpcc.params.substitute(mpcc.objective), upper_in_nl, upper_eq_nl, nonconvex,
+                        tuple(slacks))
     n = int(w.numel())
     Q, c, c0 = (np.zeros((n, n)), np.zeros(n), 0.0) if isinstance(quadratic, str) else quadratic
     stack = lambda parts: np.vstack(parts) if parts else np.zeros((0, n))  # noqa: E731

@@ -112,7 +112,8 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
         name = "scip (spatial branch-and-bound, derived bounds)"
         box = derive_bounds(relax, big_m.fixed)
         free = unbounded_nonconvex(form.leader, box, prep.mpcc.blocks) if form.leader.nonconvex else []
-        if leaders := [v for v in free if v.startswith("x[")]:
+        leaders = [v for v in free if v.startswith("x[")]
+        if leaders and not form.leader.nonlinear_rows:  # with nonlinear rows, SCIP's propagation may bound them
             raise ModelError(f"algorithm 'scip' of method 'global' needs finite bounds on the leader's variables in "
                              f"nonconvex terms; {', '.join(leaders)} (canonical upper variables) have none, declared or "
                              "derived over the relaxed KKT polyhedron: declare bounds on them (lb=..., ub=... in "
@@ -145,7 +146,7 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     summary = f"{name}: bounds [{low:.10g}, {high:.10g}], relative gap {gap:.2e}, {outcome.nodes} nodes"
     if use_scip and free and not proven:
         summary += (f"; {', '.join(free)} enter nonconvex terms with no finite bound, which SCIP's relaxation needs: "
-                    "declare bounds on the lower variables")
+                    "declare bounds on them")
     status, message = _verdict(outcome, name, summary, proven)
     progress(options.get("verbose"), "global", f"{summary} ({outcome.ended}, {time.perf_counter() - t0:.1f} s)")
     w = None if outcome.w is None or status is Status.INFEASIBLE else np.asarray(outcome.w, dtype=float)

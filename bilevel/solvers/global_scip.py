@@ -27,6 +27,9 @@ from .global_bigm import BigM
 from .global_form import Leader
 from .global_nodes import G_SIDE, H_SIDE, Relaxation
 
+FEASTOL = 1e-9
+"""SCIP's feasibility tolerance (default 1e-6): nonlinear upper rows are not re-projected after the solve."""
+
 INSTALL = "pip install pyscipopt (or pip install 'bilevel[global]')"
 
 SCIP_ENDED = {"optimal": "proven", "gaplimit": "proven", "timelimit": "time_limit", "nodelimit": "node_limit",
@@ -92,7 +95,7 @@ _UNARY = {ca.OP_ASSIGN, ca.OP_NEG, ca.OP_SQ, ca.OP_TWICE, ca.OP_INV, ca.OP_EXP, 
 def unbounded_nonconvex(leader: Leader, box: tuple[np.ndarray, np.ndarray], blocks: dict[str, slice]) -> list[str]:
     """Names (block[index] of the MPCC vector, e.g. x[0]) of the variables in a nonlinear term of the leader whose
     derived box is infinite: SCIP's relaxation of such a term has no finite bound."""
-    exprs = ca.vertcat(leader.objective, leader.inequalities, leader.equalities)
+    exprs = ca.vertcat(leader.objective, leader.inequalities, leader.equalities, *(e for _, e in leader.slacks))
     columns = sorted({j for i in range(int(exprs.numel())) for j in ca.hessian(exprs[i], leader.w)[0].sparsity().row()})
     names = []
     for j in columns:
@@ -123,11 +126,13 @@ def _build(scip: Any, relax: Relaxation, leader: Leader, big_m: BigM, lo: np.nda
         model.addCons(linear(row) == float(b))
     for row, b in zip(*relax.cuts):
         model.addCons(linear(row) <= float(b))
+    slacks = dict(leader.slacks)
+    slack_exprs = dict(zip(slacks, scip_expressions(ca.vertcat(*slacks.values()), leader.w, w))) if slacks else {}
     for i in range(f.n_pairs):
         side = big_m.fixed.get(i)
         s = model.addVar(f"slack{i}", lb=0.0, ub=0.0 if side == G_SIDE else _finite(big_m.slack[i], inf))
         m = model.addVar(f"mult{i}", lb=0.0, ub=0.0 if side == H_SIDE else _finite(big_m.multiplier[i], inf))
-        model.addCons(linear(f.G[i]) + float(f.g[i]) == s)
+        model.addCons((slack_exprs[i] if i in slack_exprs else linear(f.G[i]) + float(f.g[i])) == s)
         model.addCons(linear(f.H[i]) + float(f.h[i]) == m)
         if side is not None:
             continue
@@ -151,9 +156,19 @@ def _build(scip: Any, relax: Relaxation, leader: Leader, big_m: BigM, lo: np.nda
 
 def polish(relax: Relaxation, w0: np.ndarray) -> np.ndarray | None:
     """The point nearest to w0 (max norm) on the branch w0 selects: every pair held on its side, an LP; None if it
-    fails. Every point of that branch satisfies the lower level's KKT conditions exactly."""
+    fails. Every point of that branch satisfies the lower level's KKT conditions exactly, except at a pair whose
+    slack is nonlinear in x and zero at w0 (not an LP row: left where SCIP put it)."""
     f = relax.form
-    A_eq, b_eq = relax.branch_rows(sides_of(relax, w0))
+    sides = sides_of(relax, w0)
+    if f.leader is not None and f.leader.slacks:
+        index, exprs = zip(*f.leader.slacks)
+        values = np.asarray(ca.Function("slacks", [f.leader.w], [ca.vertcat(*exprs)])(w0), dtype=float).ravel()
+        for i, v in zip(index, values):
+            if v > f.H[i] @ w0 + f.h[i]:
+                sides[i] = H_SIDE
+            else:
+                del sides[i]
+    A_eq, b_eq = relax.branch_rows(sides)
     n = f.n
     eye = np.eye(n)
     A_ub = np.vstack([np.hstack([relax.A_ub, np.zeros((relax.b_ub.size, 1))]),
@@ -178,6 +193,7 @@ def solve_scip(relax: Relaxation, big_m: BigM, box: tuple[np.ndarray, np.ndarray
     model, w = _build(scip, relax, leader, big_m, *box)
     model.setParam("limits/time", max(time_limit - (time.perf_counter() - t0), 1e-3))
     model.setParam("limits/nodes", int(node_limit))
+    model.setParam("numerics/feastol", FEASTOL)
     model.setParam("limits/gap", gap_tol)      # SCIP's relative gap divides by min(|primal|, |dual|): it closing
     model.setParam("limits/absgap", gap_tol)   # implies ours, which divides by max(1, |upper|)
     model.optimize()

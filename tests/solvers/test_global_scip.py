@@ -4,6 +4,8 @@ Published optima (each value re-derived by hand in the problem's docstring and r
 tests/problems/test_literature_data.py):
 - bolib-hendersonquandt1958: Henderson & Quandt (1958), Microeconomic Theory, Stackelberg duopoly; BOLIB
   HendersonQuandt1958 (Zhou, Zemkoho & Tin 2020), F* = -3266.67 (exact -9800/3).
+- macmpec-bard3: Bard (1988), Math. Program. 40:15-27, Example 3 (MacMPEC bard3, BOLIB Bard1988Ex3),
+  F* = -12.6787 (exact -12.6787109375): concave leader, x^2 in an upper and a lower constraint.
 - macmpec-ex9.2.8: Yezza (1996), JOTA 89:189-219, Example 3.1; Floudas et al. (1999), Handbook of Test Problems,
   ch. 9 (MacMPEC ex9.2.8), F* = 1.5.
 - bolib-lucchettietal1987: Lucchetti, Mignanego & Pieri (1987), Optimization 18:857-866; BOLIB, F* = 0.
@@ -30,7 +32,7 @@ from bilevel.solvers import global_method, global_scip
 
 pytest.importorskip("pyscipopt")
 
-NONCONVEX_LEADER = sorted({"bolib-hendersonquandt1958", "macmpec-ex9.2.8", *registry.names("bilinear"),
+NONCONVEX_LEADER = sorted({"bolib-hendersonquandt1958", "macmpec-ex9.2.8", "macmpec-bard3", *registry.names("bilinear"),
                            *registry.names("polynomial")})
 GAP = 1e-6
 
@@ -120,8 +122,20 @@ def test_x_dependent_lower_hessian_is_refused_as_not_covered_by_scip() -> None:
     y = p.lower_variable("y", 1, lb=0, ub=5)
     p.minimize_upper(x * y)
     p.minimize_lower((1 + x) * y ** 2 - y)
-    with pytest.raises(bl.ModelError, match="KKT stationarity.*does not cover yet"):
+    with pytest.raises(bl.ModelError, match="KKT stationarity.*does not cover this class yet"):
         bl.solve(p, method="global")
+
+
+def test_lower_constraint_nonlinear_in_x_is_proven() -> None:
+    """min x - y over x in [0, 1], y in argmax{y : y + x^2 <= 3, 0 <= y <= 5}: y = 3 - x^2, F = x - 3 + x^2,
+    minimal at x = 0 with F* = -3 (the slack of y + x^2 <= 3 is nonlinear in x: an SCIP constraint, SOS1)."""
+    p = bl.BilevelProblem("b(x)")
+    x = p.upper_variable("x", 1, lb=0, ub=1)
+    y = p.lower_variable("y", 1, lb=0, ub=5)
+    p.minimize_upper(x - y)
+    p.minimize_lower(-y)
+    p.lower_constraint(y + x ** 2 <= 3)
+    _check_proven(bl.solve(p, method="global"), -3.0)
 
 
 def test_nonlinear_upper_constraint_and_expression_translation() -> None:
