@@ -202,13 +202,13 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
         labels += list(pair.labels) or [f"{pair.name}[{i}]" for i in range(gi.size)]
     quadratic = _objective(mpcc.objective, w, mpcc.params)
     rows_nl = int(upper_eq_nl.numel()) + int(upper_in_nl.numel())
-    nonconvex = quadratic if isinstance(quadratic, str) else ""
+    classes = [quadratic] if isinstance(quadratic, str) else []
     if rows_nl:
-        nonconvex = " and ".join(filter(None, [nonconvex, f"{rows_nl} upper constraint row(s) nonlinear in (x, y) (the "
-                                                          "convex algorithms need the upper inequality constraints "
-                                                          "to be affine)"]))
+        classes.append(f"{rows_nl} upper constraint row(s) nonlinear in (x, y) (the convex algorithms need the upper "
+                       "inequality constraints to be affine)")
     if slacks:
-        nonconvex = " and ".join(filter(None, [nonconvex, f"{len(slacks)} lower constraint row(s) nonlinear in x"]))
+        classes.append(f"{len(slacks)} lower constraint row(s) nonlinear in x")
+    nonconvex = " and ".join(classes)
     if nonconvex and not nonconvex_leader:
         raise _refuse(nonconvex)
     leader = None

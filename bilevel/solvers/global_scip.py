@@ -5,9 +5,10 @@ nonlinear programs with SCIP 8", J. Glob. Optim. 87:1-24).
 The model: the MPCC variables w in the box derived over the relaxed KKT polyhedron R (global_bigm.derive_bounds),
 every linear row, the slack s_i = G_i w + g_i and multiplier m_i = H_i w + h_i of each pair with complementarity
 written with a binary (big-M, where both derived bounds are finite) or as an SOS1 constraint (where one is not),
-and the upper objective F(w) and nonlinear upper rows translated from CasADi to SCIP expressions. SCIP's point is
-then projected on the linear branch it selects (every pair on one side, an LP), so complementarity is exact at the
-returned point, and F is evaluated there; SCIP's dual bound is the proven lower bound.
+and the upper objective F(w), the nonlinear upper rows and the slacks nonlinear in x translated from CasADi to SCIP
+expressions. SCIP's point is then projected on the linear branch it selects (every pair on one side, an LP), so
+complementarity is exact at the returned point (up to SCIP's tolerance on a slack nonlinear in x), and F is
+evaluated there; SCIP's dual bound is the proven lower bound.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ from __future__ import annotations
 import importlib.util
 import operator
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -34,7 +36,7 @@ INSTALL = "pip install pyscipopt (or pip install 'bilevel[global]')"
 
 SCIP_ENDED = {"optimal": "proven", "gaplimit": "proven", "timelimit": "time_limit", "nodelimit": "node_limit",
               "totalnodelimit": "node_limit", "infeasible": "infeasible", "unbounded": "unbounded",
-              "inforunbd": "unbounded", "userinterrupt": "time_limit"}
+              "inforunbd": "unbounded", "userinterrupt": "interrupted"}
 """SCIP status -> how the search ended (anything else: "failed")."""
 
 
@@ -58,6 +60,10 @@ def _operations(scip: Any) -> dict[int, Callable[..., Any]]:
             ca.OP_TWICE: lambda a: 2.0 * a, ca.OP_INV: lambda a: 1.0 / a, ca.OP_EXP: scip.exp, ca.OP_LOG: scip.log,
             ca.OP_SQRT: scip.sqrt, ca.OP_SIN: scip.sin, ca.OP_COS: scip.cos, ca.OP_CONSTPOW: operator.pow,
             ca.OP_POW: operator.pow}
+
+
+_UNARY = {ca.OP_ASSIGN, ca.OP_NEG, ca.OP_SQ, ca.OP_TWICE, ca.OP_INV, ca.OP_EXP, ca.OP_LOG, ca.OP_SQRT, ca.OP_SIN,
+          ca.OP_COS}
 
 
 def scip_expressions(exprs: ca.SX, w: ca.SX, variables: list[Any]) -> list[Any]:
@@ -87,9 +93,6 @@ def scip_expressions(exprs: ca.SX, w: ca.SX, variables: list[Any]) -> list[Any]:
                              "cos); rewrite the expression or use a local method")
     return out
 
-
-_UNARY = {ca.OP_ASSIGN, ca.OP_NEG, ca.OP_SQ, ca.OP_TWICE, ca.OP_INV, ca.OP_EXP, ca.OP_LOG, ca.OP_SQRT, ca.OP_SIN,
-          ca.OP_COS}
 
 
 def unbounded_nonconvex(leader: Leader, box: tuple[np.ndarray, np.ndarray], blocks: dict[str, slice]) -> list[str]:

@@ -222,3 +222,15 @@ def test_random_bilinear_leader_matches_vertex_enumeration(seed: int, n_x: int, 
     assert np.isfinite(brute)  # y = 0 is a vertex and some vertex is optimal at every x
     res = bl.solve(_bilinear_problem(*data), method="global")
     _check_proven(res, brute)
+
+
+def test_command_line_names_the_class_of_a_refused_problem(monkeypatch, capsys) -> None:
+    """`bilevel solve NAME --method global` on a refused problem: exit code 2 and the class in the error."""
+    from bilevel.cli import main
+
+    assert main(["solve", "bolib-floudaszlobec1998", "--method", "global"]) == 2
+    assert "class: nonlinear lower level" in capsys.readouterr().err
+    monkeypatch.setattr(global_method, "scip_available", lambda: False)
+    assert main(["solve", "bolib-tollsettingp5", "--method", "global"]) == 2
+    err = capsys.readouterr().err
+    assert "class: nonconvex leader" in err and "pip install pyscipopt" in err
