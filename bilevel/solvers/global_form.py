@@ -10,16 +10,21 @@ lower level's conditions stay as above. Everything else is rejected with a Model
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
 
-from ..errors import ModelError
+from ..errors import ModelError, NonConvexLowerLevel
 from ..lower.convexity import require_convex_everywhere
 from ..mpcc import ScalarPair
 from ..parameters import ParameterSet, scalar
 from .base import Prepared
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..lower.base import LowerLevel
 
 LOCAL_METHODS = "use a local method instead: method='relaxation' (most robust) or method='ipopt'"
 SCIP_FIX = ("algorithm='scip' of method 'global' proves this class with SCIP's spatial branch-and-bound once pyscipopt is "
@@ -149,6 +154,38 @@ def _nonlinear_slacks(G: ca.SX, w: ca.SX, first: int, slacks: list[tuple[int, ca
     return J, r
 
 
+MAX_BOX_VERTICES = 4096
+"""Largest number of vertices of the upper box on which an x-dependent lower Hessian is checked."""
+
+
+def _require_convex_on_box(low: LowerLevel, x_lb: np.ndarray, x_ub: np.ndarray) -> None:
+    """An x-dependent lower Hessian P(x) is PSD at every x of the declared box: proven when P is affine in x (its
+    smallest eigenvalue is then concave in x, so its minimum over the box is at a vertex) and PSD at each vertex;
+    a ModelError naming what is missing otherwise. The KKT reformulation is exact only where the lower level is
+    convex."""
+    hess = low.params.substitute(low.hess_f) if getattr(low, "hess_f", None) is not None else ca.SX(low.n_y, low.n_y)
+    if ca.depends_on(ca.jacobian(ca.vec(hess), ca.vertcat(low.x, low.y)), ca.vertcat(low.x, low.y)):
+        raise ModelError("method 'global' with an x-dependent lower Hessian needs it affine in x and constant in y "
+                         "(class: x-dependent lower Hessian, nonlinear in x; algorithm 'scip' does not cover this "
+                         f"class yet); {LOCAL_METHODS}")
+    varying = np.flatnonzero([ca.depends_on(hess, low.x[i]) for i in range(low.n_x)])
+    if not (np.all(np.isfinite(x_lb[varying])) and np.all(np.isfinite(x_ub[varying]))) or 2 ** varying.size > \
+            MAX_BOX_VERTICES:
+        raise ModelError("method 'global' with an x-dependent lower Hessian proves the lower level convex on the box "
+                         f"of the upper variables it depends on; declare finite bounds on them (at most "
+                         f"{int(np.log2(MAX_BOX_VERTICES))} such variables); {LOCAL_METHODS}")
+    fun = ca.Function("lower_hessian", [low.x], [hess])
+    for corner in itertools.product(*[(x_lb[i], x_ub[i]) for i in varying]):
+        x = np.clip(np.zeros(low.n_x), x_lb, x_ub)
+        x[varying] = corner
+        P = np.asarray(fun(x), dtype=float)
+        low_eig = float(np.linalg.eigvalsh(0.5 * (P + P.T)).min()) if P.size else 0.0
+        if low_eig < -CONVEXITY_TOL * max(1.0, float(np.abs(P).max(initial=0.0))):
+            raise NonConvexLowerLevel(f"the lower level is not convex at x = {np.array2string(x, precision=4)} "
+                                      f"(lower Hessian eigenvalue {low_eig:.3g}), a vertex of the upper box; method "
+                                      "'global' proves nothing for it")
+
+
 def _refuse(nonconvex: str) -> ModelError:
     """The error for a leader outside the convex algorithms' scope when SCIP is not used."""
     return ModelError(f"method 'global' was given {nonconvex} (class: nonconvex leader); {SCIP_FIX}; or "
@@ -172,12 +209,17 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
     upper_eq, upper_eq_nl = _split(mpcc.params.substitute(eq[:n_H] if n_H else ca.SX(0, 1)), w)
     upper_in, upper_in_nl = _split(mpcc.params.substitute(mpcc.inequalities), w)
     A_H, r_H = _affine(upper_eq, w, "the upper equality constraints", "they must be linear in (x, y)", mpcc.params)
-    A_s, r_s = _affine(eq[n_H:n_H + n_y], w, "the lower-level KKT stationarity",
+    stationarity, stationarity_nl = eq[n_H:n_H + n_y], ca.SX(0, 1)
+    if nonconvex_leader and ca.depends_on(ca.jacobian(stationarity, w), w):
+        stationarity, stationarity_nl = _split(mpcc.params.substitute(stationarity), w)
+    A_s, r_s = _affine(stationarity, w, "the lower-level KKT stationarity",
                        "the lower objective's Hessian in y and the constraint matrices in y must not depend on x "
                        "(an x*y term in a lower constraint or an x-dependent quadratic term breaks this; class: "
-                       f"x-dependent lower Hessian or constraint matrix; {NOT_IN_SCIP})",
-                       mpcc.params)
-    require_convex_everywhere(low, np.clip(np.zeros(low.n_x), canon.x_lb, canon.x_ub))  # after the affinity check
+                       f"x-dependent lower Hessian or constraint matrix; {SCIP_FIX})", mpcc.params)
+    if stationarity_nl.numel():
+        _require_convex_on_box(low, canon.x_lb, canon.x_ub)
+    else:
+        require_convex_everywhere(low, np.clip(np.zeros(low.n_x), canon.x_lb, canon.x_ub))  # after the affinity check
     A_h, r_h = _affine(eq[n_H + n_y:], w, "the lower equality constraints", "they must be affine in (x, y)",
                        mpcc.params)
     A_in, r_in = _affine(upper_in, w, "the upper inequality constraints", "they must be linear in (x, y)",
@@ -208,13 +250,16 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
                        "inequality constraints to be affine)")
     if slacks:
         classes.append(f"{len(slacks)} lower constraint row(s) nonlinear in x")
+    if stationarity_nl.numel():
+        classes.append(f"an x-dependent lower Hessian or constraint matrix ({int(stationarity_nl.numel())} KKT "
+                       "stationarity row(s) nonlinear)")
     nonconvex = " and ".join(classes)
     if nonconvex and not nonconvex_leader:
         raise _refuse(nonconvex)
     leader = None
     if nonconvex_leader:
-        leader = Leader(w, mpcc.params.substitute(mpcc.objective), upper_in_nl, upper_eq_nl, nonconvex,
-                        tuple(slacks))
+        leader = Leader(w, mpcc.params.substitute(mpcc.objective), upper_in_nl,
+                        ca.vertcat(upper_eq_nl, stationarity_nl), nonconvex, tuple(slacks))
     n = int(w.numel())
     Q, c, c0 = (np.zeros((n, n)), np.zeros(n), 0.0) if isinstance(quadratic, str) else quadratic
     stack = lambda parts: np.vstack(parts) if parts else np.zeros((0, n))  # noqa: E731

@@ -112,6 +112,12 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
         name = "scip (spatial branch-and-bound, derived bounds)"
         box = derive_bounds(relax, big_m.fixed)
         free = unbounded_nonconvex(form.leader, box, prep.mpcc.blocks) if form.leader.nonconvex else []
+        if multipliers := [v for v in free if not v.startswith(("x[", "y["))]:
+            raise ModelError(f"algorithm 'scip' of method 'global': the multipliers {', '.join(multipliers)} enter "
+                             "products with x in the KKT stationarity (a lower constraint matrix depending on x) and "
+                             "have no bound derivable over the relaxed KKT polyhedron (class: x-dependent lower "
+                             "constraint matrix; algorithm 'scip' does not cover this class yet); use a local "
+                             "method: method='relaxation' or method='ipopt'")
         leaders = [v for v in free if v.startswith("x[")]
         if leaders and not form.leader.nonlinear_rows:  # with nonlinear rows, SCIP's propagation may bound them
             raise ModelError(f"algorithm 'scip' of method 'global' needs finite bounds on the leader's variables in "

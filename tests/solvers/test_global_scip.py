@@ -116,13 +116,41 @@ def test_convex_algorithms_refuse_a_nonconvex_leader_and_scip_takes_a_convex_one
     _check_proven(res, 17.0)
 
 
-def test_x_dependent_lower_hessian_is_refused_as_not_covered_by_scip() -> None:
+def _x_hessian(lower_curvature) -> bl.BilevelProblem:
+    """min (y - 0.6)^2 + 0.1 x over x in [0, 2], y in argmin{c(x) y^2 - 2 y : 0 <= y <= 5}: y(x) = 1 / c(x)."""
     p = bl.BilevelProblem("x-hessian")
-    x = p.upper_variable("x", 1, lb=0, ub=1)
+    x = p.upper_variable("x", 1, lb=0, ub=2)
     y = p.lower_variable("y", 1, lb=0, ub=5)
-    p.minimize_upper(x * y)
-    p.minimize_lower((1 + x) * y ** 2 - y)
-    with pytest.raises(bl.ModelError, match="KKT stationarity.*does not cover this class yet"):
+    p.minimize_upper((y - 0.6) ** 2 + 0.1 * x)
+    p.minimize_lower(lower_curvature(x) * y ** 2 - 2 * y)
+    return p
+
+
+def test_x_dependent_lower_hessian_affine_in_x_is_proven() -> None:
+    """Lower Hessian 2 (1 + x), PSD on the box [0, 2] (checked at its vertices): y = 1 / (1 + x), and the proven
+    value is the minimum of (1 / (1 + x) - 0.6)^2 + 0.1 x, computed here on a grid refined by a bounded search."""
+    res = bl.solve(_x_hessian(lambda x: 1 + x), method="global")
+
+    def along(v: float) -> float:
+        return (1.0 / (1.0 + v) - 0.6) ** 2 + 0.1 * v
+
+    xs = np.linspace(0.0, 2.0, 2001)
+    k = int(np.argmin([along(v) for v in xs]))
+    near = minimize_scalar(along, bounds=(xs[max(k - 1, 0)], xs[min(k + 1, xs.size - 1)]), method="bounded",
+                           options={"xatol": 1e-12})
+    _check_proven(res, min(near.fun, along(xs[k])))
+    assert "x-dependent lower Hessian" in res.message or res.stats["algorithm"].startswith("scip")
+
+
+def test_x_dependent_lower_hessian_refusals_name_the_class() -> None:
+    with pytest.raises(bl.ModelError, match="x-dependent lower Hessian, nonlinear in x.*does not cover"):
+        bl.solve(_x_hessian(lambda x: 1 + x ** 2), method="global")
+    p = bl.BilevelProblem("corner")   # lower Hessian 2 (1 - x1 - x2): negative only near the corner (0.51, 0.51)
+    x = p.upper_variable("x", 2, lb=0, ub=0.51)
+    y = p.lower_variable("y", 1, lb=0, ub=5)
+    p.minimize_upper(x[0] * y)
+    p.minimize_lower((1 - x[0] - x[1]) * y ** 2 - y)
+    with pytest.raises(bl.NonConvexLowerLevel, match="vertex of the upper box"):
         bl.solve(p, method="global")
 
 
