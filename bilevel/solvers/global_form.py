@@ -4,8 +4,9 @@ min 1/2 w'Qw + c'w + c0  s.t.  A_eq w = b_eq,  A_in w <= b_in,  lb <= w <= ub,  
 That holds for an LP or convex-QP lower level whose KKT stationarity is linear in (x, y, lam, mu) (constant
 Hessian P and constraint matrices A, E in y; q, b, e affine in x), linear upper constraints, and a linear or
 convex quadratic upper objective. With `nonconvex_leader` (algorithm "scip"), the upper objective may be any
-expression SCIP takes (bilinear, polynomial, ...) and upper rows nonlinear in w are kept apart (a Leader); the
-lower level's conditions stay as above. Everything else is rejected with a ModelError naming the class and the fix.
+expression SCIP takes (bilinear, polynomial, ...), and upper rows nonlinear in w, lower slacks nonlinear in x and
+KKT stationarity rows nonlinear through an x-dependent lower Hessian (affine in x, convex on the upper box) are
+kept apart (a Leader). Everything else is rejected with a ModelError naming the class and the fix.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 Big-M bounds are derived by LPs (global_bigm.py). A linear upper objective with every bound finite goes to HiGHS
 as a MILP (global_milp.py); otherwise (a convex-quadratic upper objective, or a pair with no finite bound) the
 pairs are branched on directly (global_bb.py). A nonconvex leader (bilinear or polynomial upper objective,
-nonlinear upper constraints) goes to SCIP's spatial branch-and-bound on the same reformulation (global_scip.py).
+nonlinear upper constraints), lower constraints nonlinear in x and an x-dependent lower Hessian go to SCIP's spatial
+branch-and-bound on the same reformulation (global_scip.py).
 The KKT reformulation is exact for these lower levels, so its global optimum is the optimistic bilevel optimum,
 also when the lower solution is not unique.
 """
