@@ -5,7 +5,9 @@ One line per problem: known F*, the proven bounds in the declared sense, relativ
 picks, the median wall time of REPEATS solves, ipopt's median time and the ratio, and the time with
 algorithm="scip" forced (SCIP on the convex problems too, against HiGHS / our branch-and-bound there). Then the median time over the problems the
 method proves (the issue asks <= 5 s) and the problems it refuses, with the class its ModelError names.
-Asserts nothing. Usage: python benchmarks/bench_global_scip.py > benchmarks/results/bench_global_scip.txt
+Part 2: random instances with a bilinear leader over an LP lower level (bilevel/problems/random_bilinear.py;
+n_x = n_y / 2, m = n_y / 2 general rows plus the box 0 <= y <= 1), SEEDS seeds per size, TIME_LIMIT each, growing
+until a size has a seed that is not proven. Asserts nothing. Usage: python benchmarks/bench_global_scip.py > benchmarks/results/bench_global_scip.txt
 """
 
 from __future__ import annotations
@@ -24,8 +26,12 @@ import scipy
 
 import bilevel as bl
 from bilevel.problems import registry
+from bilevel.problems.random_bilinear import build_bilinear_bilevel, random_bilinear_data
 
 REPEATS = 3
+SEEDS = 3
+TIME_LIMIT = 60.0
+SIZES = (4, 8, 12, 16, 20, 24, 32)
 
 
 def header() -> None:
@@ -47,6 +53,28 @@ def timed(name: str, method: str, **options: object) -> tuple[float, bl.BilevelR
         res = bl.solve(registry.get(name), method=method, **options)
         times.append(time.perf_counter() - t0)
     return statistics.median(times), res
+
+
+def random_table() -> None:
+    """Grow the random bilinear size until some seed is not proven within TIME_LIMIT."""
+    print(f"\n## Random bilinear leader over an LP lower level, {SEEDS} seeds per size, time limit {TIME_LIMIT:.0f} s")
+    print(f"{'n_x':>4} {'n_y':>4} {'m':>4} {'pairs':>6} {'proven':>7} {'median [s]':>11} {'worst [s]':>10} "
+          f"{'max nodes':>10} {'worst gap':>10}")
+    for n_y in SIZES:
+        n_x = m = max(1, n_y // 2)
+        times, nodes, gaps, proven = [], [], [], 0
+        for seed in range(SEEDS):
+            data = random_bilinear_data(np.random.default_rng(seed), n_x, n_y, m)
+            t0 = time.perf_counter()
+            res = bl.solve(build_bilinear_bilevel(data), method="global", time_limit=TIME_LIMIT)
+            times.append(time.perf_counter() - t0)
+            nodes.append(res.stats.get("nodes", 0))
+            gaps.append(res.stats.get("gap", np.inf))
+            proven += res.status is bl.Status.SOLVED
+        print(f"{n_x:>4} {n_y:>4} {m:>4} {m + 2 * n_y:>6} {proven:>4}/{SEEDS} {statistics.median(times):>11.2f} "
+              f"{max(times):>10.2f} {max(nodes):>10} {max(gaps):>10.1e}", flush=True)
+        if proven < SEEDS:
+            break
 
 
 def main() -> None:
@@ -85,6 +113,7 @@ def main() -> None:
     print("refused by method 'global' (ModelError):")
     for line in refused:
         print(f"  {line}")
+    random_table()
     print(f"# load average at end: {', '.join(f'{v:.2f}' for v in os.getloadavg())}")
 
 

@@ -28,6 +28,7 @@ from scipy.optimize import linprog, minimize_scalar
 import bilevel as bl
 from bilevel.experiments.compare import relative_gap
 from bilevel.problems import registry
+from bilevel.problems.random_bilinear import BilinearData, build_bilinear_bilevel, random_bilinear_data
 from bilevel.solvers import global_method, global_scip
 
 pytest.importorskip("pyscipopt")
@@ -91,8 +92,8 @@ def test_node_limit_returns_valid_bounds_and_an_honest_status() -> None:
 
 
 def test_time_limit_returns_an_honest_status() -> None:
-    data = _random_instance(np.random.default_rng(0), 4, 12, 8)
-    res = bl.solve(_bilinear_problem(*data), method="global", time_limit=0.01)
+    data = random_bilinear_data(np.random.default_rng(0), 4, 12, 8)
+    res = bl.solve(build_bilinear_bilevel(data), method="global", time_limit=0.01)
     assert res.status is bl.Status.MAX_ITERATIONS, res.message
     assert "time_limit" in res.message
     low, high = res.stats["lower_bound"], res.stats["upper_bound"]
@@ -189,25 +190,8 @@ def test_nonlinear_upper_constraint_and_expression_translation() -> None:
     assert res.certificate.global_bound.proven
 
 
-# --- the property: bilinear leader over an LP lower level, against brute force over the lower level's vertices ---
-
-def _random_instance(rng: np.random.Generator, n_x: int, n_y: int, m: int) -> tuple[np.ndarray, ...]:
-    """(C, c, e, d, R, A, b): F = x'Cy + c'x + e'y; follower min (d + R'x)'y s.t. A y <= b, 0 <= y <= 1;
-    x in [0, 1]^n_x. b > 0 keeps y = 0 feasible; the follower's cost depends on x (a price or toll)."""
-    return (rng.normal(size=(n_x, n_y)), rng.normal(size=n_x), rng.normal(size=n_y), rng.normal(size=n_y),
-            rng.normal(size=(n_x, n_y)), rng.normal(size=(m, n_y)), rng.uniform(0.5, 2.0, size=m))
-
-
-def _bilinear_problem(C, c, e, d, R, A, b) -> bl.BilevelProblem:
-    p = bl.BilevelProblem("random-bilinear")
-    x = p.upper_variable("x", C.shape[0], lb=0, ub=1)
-    y = p.lower_variable("y", C.shape[1], lb=0, ub=1)
-    DM = ca.DM
-    p.minimize_upper(ca.dot(x, ca.mtimes(DM(C), y)) + ca.dot(DM(c), x) + ca.dot(DM(e), y))
-    p.minimize_lower(ca.dot(DM(d) + ca.mtimes(DM(R).T, x), y))
-    p.lower_constraint(ca.mtimes(DM(A), y) <= DM(b))
-    return p
-
+# --- the property: bilinear leader over an LP lower level (bilevel/problems/random_bilinear.py), against brute
+# force over the lower level's vertices ---
 
 def _vertices(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Vertices of {y : A y <= b, 0 <= y <= 1} by solving every choice of n_y active rows."""
@@ -225,13 +209,14 @@ def _vertices(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array(found)
 
 
-def brute_force(C, c, e, d, R, A, b) -> float:
+def brute_force(data: BilinearData) -> float:
     """Optimistic optimum: min over vertices v of min over {x in [0,1]^n : v is a follower optimum at x} of F(x, v).
 
     F(x, .) is linear, so over the follower's optimal face (a face of the polytope) its minimum is at a vertex; for
     fixed v the set of x making v optimal is {x : (d + R'x)'(v - u) <= 0 for every vertex u}, so each inner
     problem is an LP in x (F(x, v) is linear in x)."""
-    V = _vertices(A, b)
+    C, c, e, d, R = data.C, data.c, data.e, data.d, data.R
+    V = _vertices(data.A, data.b)
     best = np.inf
     for v in V:
         diffs = v[None, :] - V                        # rows v - u
@@ -245,10 +230,10 @@ def brute_force(C, c, e, d, R, A, b) -> float:
 @settings(max_examples=12, deadline=None, derandomize=True)
 @given(seed=st.integers(0, 2**32 - 1), n_x=st.integers(1, 2), n_y=st.integers(1, 3), m=st.integers(1, 2))
 def test_random_bilinear_leader_matches_vertex_enumeration(seed: int, n_x: int, n_y: int, m: int) -> None:
-    data = _random_instance(np.random.default_rng(seed), n_x, n_y, m)
-    brute = brute_force(*data)
+    data = random_bilinear_data(np.random.default_rng(seed), n_x, n_y, m)
+    brute = brute_force(data)
     assert np.isfinite(brute)  # y = 0 is a vertex and some vertex is optimal at every x
-    res = bl.solve(_bilinear_problem(*data), method="global")
+    res = bl.solve(build_bilinear_bilevel(data), method="global")
     _check_proven(res, brute)
 
 
