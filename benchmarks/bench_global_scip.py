@@ -7,7 +7,8 @@ algorithm="scip" forced (SCIP on the convex problems too, against HiGHS / our br
 method proves (the issue asks <= 5 s) and the problems it refuses, with the class its ModelError names.
 Part 2: random instances with a bilinear leader over an LP lower level (bilevel/problems/random_bilinear.py;
 n_x = n_y / 2, m = n_y / 2 general rows plus the box 0 <= y <= 1), SEEDS seeds per size, TIME_LIMIT each, growing
-until a size has a seed that is not proven. Asserts nothing. Usage: python benchmarks/bench_global_scip.py > benchmarks/results/bench_global_scip.txt
+until a size has a seed that is not proven. Asserts nothing.
+Usage: python benchmarks/bench_global_scip.py > benchmarks/results/bench_global_scip.txt
 """
 
 from __future__ import annotations
@@ -26,7 +27,10 @@ import scipy
 
 import bilevel as bl
 from bilevel.problems import registry
-from bilevel.problems.random_bilinear import build_bilinear_bilevel, random_bilinear_data
+from bilevel.problems.random_bilinear import (
+    build_bilinear_bilevel,
+    random_bilinear_data,
+)
 
 REPEATS = 3
 SEEDS = 3
