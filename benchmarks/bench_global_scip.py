@@ -3,8 +3,9 @@ the nonconvex leaders (algorithm "auto"), next to ipopt (8 starts, the baseline,
 
 One line per problem: known F*, the proven bounds in the declared sense, relative gap, nodes, the algorithm "auto"
 picks, the median wall time of REPEATS solves, ipopt's median time and the ratio, and the time with
-algorithm="scip" forced (SCIP on the convex problems too, against HiGHS / our branch-and-bound there). Then the median time over the problems the
-method proves (the issue asks <= 5 s) and the problems it refuses, with the class its ModelError names.
+algorithm="scip" forced (SCIP on the convex problems too, against HiGHS / our branch-and-bound there). Then the
+median time over the problems the method proves (the issue asks <= 5 s) and the problems it refuses, with the
+class its ModelError names.
 Part 2: random instances with a bilinear leader over an LP lower level (bilevel/problems/random_bilinear.py;
 n_x = n_y / 2, m = n_y / 2 general rows plus the box 0 <= y <= 1), SEEDS seeds per size, TIME_LIMIT each, growing
 until a size has a seed that is not proven. Asserts nothing.
