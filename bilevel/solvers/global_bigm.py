@@ -79,9 +79,11 @@ def derive_big_m(relax: Relaxation) -> BigM | None:
     None when fixing empties R, i.e. some pair can be complementary at no point: the MPCC is infeasible.
     """
     f = relax.form
+    nonlinear = f.nonlinear_pairs  # slack nonlinear in x: no LP bound, never fixed by its slack's minimum
     fixed: dict[int, int] = {}
     while True:
-        slack = np.array([_extreme(relax, f.G[i], f.g[i], fixed, 1.0) for i in range(f.n_pairs)])
+        slack = np.array([np.inf if i in nonlinear else _extreme(relax, f.G[i], f.g[i], fixed, 1.0)
+                          for i in range(f.n_pairs)])
         mult = np.array([_extreme(relax, f.H[i], f.h[i], fixed, 1.0) for i in range(f.n_pairs)])
         if np.any(np.isnan(slack)) or np.any(np.isnan(mult)):
             return None
@@ -89,7 +91,7 @@ def derive_big_m(relax: Relaxation) -> BigM | None:
         for i in range(f.n_pairs):
             if i in fixed:
                 continue
-            if _extreme(relax, f.G[i], f.g[i], fixed, -1.0) > FIX_TOL * max(1.0, slack[i]):
+            if i not in nonlinear and _extreme(relax, f.G[i], f.g[i], fixed, -1.0) > FIX_TOL * max(1.0, slack[i]):
                 new[i] = H_SIDE
             elif _extreme(relax, f.H[i], f.h[i], fixed, -1.0) > FIX_TOL * max(1.0, mult[i]):
                 new[i] = G_SIDE
@@ -100,3 +102,13 @@ def derive_big_m(relax: Relaxation) -> BigM | None:
     for i, side in fixed.items():  # a fixed side is zero at every feasible point: its bound is exact
         (mult if side == H_SIDE else slack)[i] = 0.0
     return BigM(slack, mult, f.labels, fixed)
+
+
+def derive_bounds(relax: Relaxation, fixed: dict[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) bounds of every MPCC variable over R with `fixed` (LP minima and maxima widened by the margin;
+    -inf / inf where unbounded): the box SCIP's spatial branch-and-bound branches in."""
+    eye = np.eye(relax.form.n)
+    hi = np.array([_extreme(relax, e, 0.0, fixed, 1.0) for e in eye])
+    lo = np.array([_extreme(relax, e, 0.0, fixed, -1.0) for e in eye])
+    margin = SAFETY * (1.0 + np.maximum(np.abs(lo), np.abs(hi)))
+    return np.maximum(lo - margin, relax.form.lb), np.minimum(hi + margin, relax.form.ub)

@@ -2,8 +2,11 @@
 
 Big-M bounds are derived by LPs (global_bigm.py). A linear upper objective with every bound finite goes to HiGHS
 as a MILP (global_milp.py); otherwise (a convex-quadratic upper objective, or a pair with no finite bound) the
-pairs are branched on directly (global_bb.py). The KKT reformulation is exact for these lower levels, so its
-global optimum is the optimistic bilevel optimum, also when the lower solution is not unique.
+pairs are branched on directly (global_bb.py). A nonconvex leader (bilinear or polynomial upper objective,
+nonlinear upper constraints), lower constraints nonlinear in x and an x-dependent lower Hessian go to SCIP's spatial
+branch-and-bound on the same reformulation (global_scip.py).
+The KKT reformulation is exact for these lower levels, so its global optimum is the optimistic bilevel optimum,
+also when the lower solution is not unique.
 """
 
 from __future__ import annotations
@@ -18,13 +21,14 @@ from ..errors import BilevelError, ModelError
 from ..result import Status
 from .base import MethodRun, Prepared, check_options, unbounded_lower
 from .global_bb import Guess, SearchOutcome, branch_and_bound, relative_gap, sides_of
-from .global_bigm import derive_big_m
+from .global_bigm import derive_big_m, derive_bounds
 from .global_form import linear_mpcc
 from .global_milp import solve_milp
 from .global_nodes import G_SIDE, Relaxation
+from .global_scip import require_scip, scip_available, solve_scip, unbounded_nonconvex
 from .limits import progress
 
-ALGORITHMS = ("auto", "milp", "branch-and-bound")
+ALGORITHMS = ("auto", "milp", "branch-and-bound", "scip")
 
 
 def _declared(outcome: SearchOutcome, sense: str) -> tuple[float, float]:
@@ -76,11 +80,14 @@ def _verdict(outcome: SearchOutcome, name: str, summary: str, proven: bool) -> t
 
 def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     """Global optimum with a proof (options: time_limit [s, 60], node_limit [100000], gap [1e-6 relative],
-    algorithm [auto | milp | branch-and-bound], verbose: a line per phase; starts and seed are accepted and unused:
-    it is deterministic)."""
+    algorithm [auto | milp | branch-and-bound | scip; auto takes scip for a nonconvex leader when pyscipopt is
+    installed], verbose: a line per phase; starts and seed are accepted and unused: it is deterministic)."""
     time_limit, node_limit, gap_tol, algorithm = _options(options)
+    if algorithm == "scip":
+        require_scip()
     t0 = time.perf_counter()
-    form = linear_mpcc(prep)
+    form = linear_mpcc(prep, nonconvex_leader=algorithm == "scip" or (algorithm == "auto" and scip_available()))
+    use_scip = algorithm == "scip" or (form.leader is not None and bool(form.leader.nonconvex))
     base = Relaxation(form)
     if base.solve({}).status == "infeasible":
         if (why := unbounded_lower(prep, prep.projection(prep.canon.x_start))) is not None:
@@ -94,14 +101,33 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     relax = Relaxation(form, big_m.slack, big_m.multiplier)
     progress(options.get("verbose"), "global", f"big-M bounds derived for {form.n_pairs} pairs "
              f"({time.perf_counter() - t0:.1f} s)")
-    use_milp = form.linear and big_m.finite and form.n_pairs > 0
+    use_milp = form.linear and big_m.finite and form.n_pairs > 0 and not use_scip
     if algorithm == "milp" and not use_milp:
         raise ModelError("algorithm 'milp' needs a linear upper objective and a finite derived big-M for every pair "
                          f"(here: linear objective {form.linear}, all bounds finite {big_m.finite}); use "
                          "algorithm='branch-and-bound' or 'auto'")
     use_milp = use_milp and algorithm != "branch-and-bound"
     remaining = max(time_limit - (time.perf_counter() - t0), 1e-3)
-    if use_milp:
+    free: list[str] = []
+    if use_scip:
+        name = "scip (spatial branch-and-bound, derived bounds)"
+        box = derive_bounds(relax, big_m.fixed)
+        free = unbounded_nonconvex(form.leader, box, prep.mpcc.blocks) if form.leader.nonconvex else []
+        if multipliers := [v for v in free if not v.startswith(("x[", "y["))]:
+            raise ModelError(f"algorithm 'scip' of method 'global': the multipliers {', '.join(multipliers)} enter "
+                             "products with x in the KKT stationarity (a lower constraint matrix depending on x) and "
+                             "have no bound derivable over the relaxed KKT polyhedron (class: x-dependent lower "
+                             "constraint matrix; algorithm 'scip' does not cover this class yet); use a local "
+                             "method: method='relaxation' or method='ipopt'")
+        leaders = [v for v in free if v.startswith("x[")]
+        if leaders and not form.leader.nonlinear_rows:  # with nonlinear rows, SCIP's propagation may bound them
+            raise ModelError(f"algorithm 'scip' of method 'global' needs finite bounds on the leader's variables in "
+                             f"nonconvex terms; {', '.join(leaders)} (canonical upper variables) have none, declared or "
+                             "derived over the relaxed KKT polyhedron: declare bounds on them (lb=..., ub=... in "
+                             "upper_variable); a box that holds an optimum leaves the optimal value unchanged")
+        remaining = max(time_limit - (time.perf_counter() - t0), 1e-3)
+        outcome = solve_scip(relax, big_m, box, gap_tol, remaining, node_limit)
+    elif use_milp:
         name = "milp (HiGHS, derived big-M)"
         outcome = solve_milp(relax, big_m, gap_tol, remaining, node_limit)
     else:
@@ -112,7 +138,9 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     proven = outcome.ended == "proven" and gap <= gap_tol
     sense = prep.problem.upper_objective.sense
     low, high = _declared(outcome, sense)
-    justification = (("big-M used" if use_milp else "big-M not used (hull cuts only)") + ": each bound is an LP "
+    used = "big-M used where finite, SOS1 elsewhere" if use_scip else ("big-M used" if use_milp else
+                                                                        "big-M not used (hull cuts only)")
+    justification = (used + ": each bound is an LP "
                      "maximum over the relaxed KKT polyhedron R; a side is forced where the other's LP minimum "
                      "over R is positive",) + big_m.justification()
     bound = GlobalBound(low, high, gap, gap_tol, proven, name, outcome.nodes, justification)
@@ -123,6 +151,9 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
     history = [h if sense == "min" else {"node": h["node"], "lower": -h["upper"], "upper": -h["lower"]}
                for h in outcome.history]  # the bounds' trajectory, in the declared sense like the bounds
     summary = f"{name}: bounds [{low:.10g}, {high:.10g}], relative gap {gap:.2e}, {outcome.nodes} nodes"
+    if use_scip and free and not proven:
+        summary += (f"; {', '.join(free)} enter nonconvex terms with no finite bound, which SCIP's relaxation needs: "
+                    "declare bounds on them")
     status, message = _verdict(outcome, name, summary, proven)
     progress(options.get("verbose"), "global", f"{summary} ({outcome.ended}, {time.perf_counter() - t0:.1f} s)")
     w = None if outcome.w is None or status is Status.INFEASIBLE else np.asarray(outcome.w, dtype=float)

@@ -48,7 +48,8 @@ class Relaxation:
         self.b_ub = np.concatenate([self.cuts[1], form.g, form.h])
         self._highs: highspy._Highs | None = None
 
-    def _fixed_rows(self, fixed: dict[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    def branch_rows(self, fixed: dict[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """(A, b) of the equalities A w = b of a node: A_eq w = b_eq and each fixed pair's side held at zero."""
         f = self.form
         rows = [f.G[i] if side == G_SIDE else f.H[i] for i, side in fixed.items()]
         rhs = [-f.g[i] if side == G_SIDE else -f.h[i] for i, side in fixed.items()]
@@ -61,7 +62,7 @@ class Relaxation:
             sol = self._highs_lp(fixed)
             if sol.status != "failed":
                 return sol
-        A_eq, b_eq = self._fixed_rows(fixed)
+        A_eq, b_eq = self.branch_rows(fixed)
         return self._lp(A_eq, b_eq) if self.form.linear else self._qp(A_eq, b_eq)
 
     def _highs_model(self) -> highspy._Highs:

@@ -61,11 +61,16 @@ SEARCH: dict[str, tuple[list[tuple[float, float]], int | list[int]]] = {
     # summing the three lower constraints as for ex9.1.3 gives x1 + x2 <= 1.5
     "macmpec-bilin": ([(0, 1.5), (0, 1.5)], 31),
     "basblib-s_1989_01": ([(0, 1.5), (0, 1.5)], 31),
+    # the declared boxes, on grids through the optimum (tolls are integers or halves there)
+    "bolib-tollsettingp1": ([(0, 12), (0, 12), (0, 12)], 13),
+    "bolib-tollsettingp4": ([(-10, 10), (-10, 10)], 41),
+    "bolib-tollsettingp5": ([(-10, 10)], 401),
+    "bolib-ishizukaaiyoshi1992a": ([(0, 10)], 401),
 }
 
 TEXTBOOK = registry.names(tag="textbook")
 KNOWN_TAGS = {"linear-linear", "linear-quadratic", "quadratic-quadratic", "nonlinear-quadratic",
-              "nonlinear-convex", "equality", "max-lower", "max-upper", "nonunique-lower", "textbook"}
+              "nonlinear-linear", "nonlinear-convex", "bilinear", "polynomial", "toll", "equality", "max-lower", "max-upper", "nonunique-lower", "textbook"}
 
 
 def _rel_tol(value: float, rel: float, abs_at_zero: float = 1e-6) -> float:
