@@ -173,11 +173,6 @@ class IdentificationAttack:
         q = self.signals["U"].shape[0] if self.learner == "ss" else self.orders[1]
         return list(range(k - q, k))
 
-    @property
-    def ar_order(self) -> int:
-        """Lags of the output among the regressors (the whiteness test's degrees-of-freedom correction)."""
-        return 1 if self.learner == "ss" else self.orders[0]
-
     def radius(self, name: str) -> float:
         """delta_S = eps_S ||S||_F."""
         return float(self.eps[name] * np.linalg.norm(self.signals[name]))
@@ -185,8 +180,7 @@ class IdentificationAttack:
     def tests(self, signals: dict[str, np.ndarray] | None = None) -> dict[str, ResidualTest]:
         """The defender's tests of the least-squares model fitted on `signals` (default: the clean data)."""
         Y, Z = self.regression(self.signals if signals is None else signals)
-        return regression_tests(Y, Z, least_squares_fit(Y, Z), self.input_rows, self.setting.noise_std, self.lags,
-                                self.ar_order)
+        return regression_tests(Y, Z, least_squares_fit(Y, Z), self.input_rows, self.setting.noise_std, self.lags)
 
 
 def attack_instance(learner: Learner, T: int = 100, eps: float = 0.05, objective: Objective = "frobenius",

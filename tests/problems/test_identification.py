@@ -98,7 +98,7 @@ def test_stealthy_attack_keeps_statistics_within_delta(learner: str, options: di
     else:
         phi, target = arx_rows(signals["u"].ravel(), signals["y"].ravel(), 4, 4)
         Y, Z = target[None, :], phi.T
-    after = regression_tests(Y, Z, theta, atk.input_rows, 0.1, atk.lags, atk.ar_order)
+    after = regression_tests(Y, Z, theta, atk.input_rows, 0.1, atk.lags)
     before = atk.tests()
     for name in before:
         assert abs(1 - after[name].statistic / before[name].statistic) <= delta + 1e-6, name
