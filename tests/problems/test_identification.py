@@ -125,3 +125,10 @@ def test_bad_parameters_are_refused() -> None:
         attack_instance("arx", T=15)
     with pytest.raises(ModelError, match="learner"):
         attack_instance("bj")
+
+
+def test_identification_page_runs() -> None:
+    """docs/identification.md's code prints what the page says."""
+    from tests.docs_pages import run_page
+
+    run_page("identification.md")
