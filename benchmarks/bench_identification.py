@@ -126,7 +126,7 @@ def main(data_sets: int = 10, T: int = 100, delta: float = 0.05) -> None:
     print()
     for i, name in enumerate(ENGINES):
         e = r[:, i]
-        reach = np.mean((e[:, 2] == 1) & (e[:, 0] >= base[:, 0] * (1 - 1e-6) - (base[:, 2] == 0) * np.inf))
+        reach = np.mean((e[:, 2] == 1) & ((e[:, 0] >= base[:, 0] * (1 - 1e-6)) | (base[:, 2] == 0)))
         print(f"engine {name}: ok on {int(e[:, 2].sum())}/{len(e)}; ok and ||d[A B]||_2 >= SLSQP's (or SLSQP not "
               f"stealthy) on {reach:.0%}; median ||d[A B]||_2 {np.median(e[:, 0]):.4f} (SLSQP {np.median(base[:, 0]):.4f}, "
               f"stealthy {int(base[:, 2].sum())}/{len(base)}); median time {np.median(e[:, 1]):.2f} s per data set "

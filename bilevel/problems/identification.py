@@ -12,6 +12,7 @@ lower level. The clean data and statistics are parameters: load_instance re-targ
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from typing import Any
 
 import casadi as ca
@@ -75,6 +76,27 @@ def declare(atk: IdentificationAttack) -> BilevelProblem:
         p.maximize_spectral_radius(ca.mtimes(error, error.T))
     load_instance(p, atk)
     return p
+
+
+DECLARED_CACHE = 4
+"""problem_for keeps this many declared problems per process (a declared problem keeps its preparation: IPOPT's
+compiled NLP takes seconds to build, re-loading data a few milliseconds)."""
+_DECLARED: OrderedDict[tuple[Any, ...], BilevelProblem] = OrderedDict()
+
+
+def problem_for(atk: IdentificationAttack) -> BilevelProblem:
+    """The declared problem of `atk`, loaded with its data: declared once per learner, signal shapes, orders,
+    objective and stealth declaration in this process, re-targeted with load_instance after."""
+    key = (atk.learner, tuple(v.shape for v in atk.signals.values()), atk.orders, atk.objective, atk.lags,
+           atk.stealth is None)
+    if key in _DECLARED:
+        _DECLARED.move_to_end(key)
+        load_instance(_DECLARED[key], atk)
+        return _DECLARED[key]
+    _DECLARED[key] = declare(atk)
+    while len(_DECLARED) > DECLARED_CACHE:
+        _DECLARED.popitem(last=False)
+    return _DECLARED[key]
 
 
 def load_instance(problem: BilevelProblem, atk: IdentificationAttack) -> None:
