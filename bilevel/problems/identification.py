@@ -16,7 +16,6 @@ from collections import OrderedDict
 from typing import Any
 
 import casadi as ca
-import numpy as np
 
 from ..errors import ModelError
 from ..model import BilevelProblem

@@ -24,7 +24,7 @@ def ljung_box(e: np.ndarray, lags: int) -> float:
 def hosking(E: np.ndarray, lags: int) -> float:
     """Hosking (1980), eq. (1.4) in its vec form: N^2 sum_j vec(C_j)' (C_0^-1 kron C_0^-1) vec(C_j) / (N - j), with
     C_j = (1/N) sum_{t=j}^{N-1} e_t e_{t-j}' summed sample by sample."""
-    n, N = E.shape
+    N = E.shape[1]
     C = [sum(np.outer(E[:, t], E[:, t - j]) for t in range(j, N)) / N for j in range(lags + 1)]
     W = np.kron(np.linalg.inv(C[0]), np.linalg.inv(C[0]))
     return N ** 2 * sum(C[j].ravel("F") @ W @ C[j].ravel("F") / (N - j) for j in range(1, lags + 1))

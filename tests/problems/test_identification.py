@@ -3,7 +3,6 @@ poisoned data, budgets hold, stealthy attacks keep the residual tests' statistic
 
 from __future__ import annotations
 
-import control
 import numpy as np
 import pytest
 
