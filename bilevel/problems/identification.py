@@ -1,0 +1,131 @@
+"""Poisoning attacks on least-squares system identification as registered bilevel problems.
+
+Upper variables: one change dS per signal (dX, dU for the state-space learner; du, dy for ARX), each in the ball
+||dS||_F <= eps ||S||_F. Lower variable Theta ([A B] or the ARX theta as a 1 x (na + nb) row) solving the learner's
+least squares min ||Y - Theta Z||_F^2 on the poisoned signals (bilevel.problems.identification_instance). The
+attacker maximizes ||Theta - Theta_clean||_F^2 ("frobenius") or ||Theta - Theta_clean||_2^2 ("spectral", the
+spectral radius of dTheta dTheta'). With stealth = delta, upper constraints 1 - delta <= stat'/stat <= 1 + delta keep
+each residual statistic of bilevel.ddc.residual_tests (variance, whiteness, input F) within delta of its clean value;
+the F statistic's restricted model (Y regressed on Z without its input rows) is a second least-squares block of the
+lower level. The clean data and statistics are parameters: load_instance re-targets a declared problem.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Any
+
+import casadi as ca
+
+from ..errors import ModelError
+from ..model import BilevelProblem
+from .identification_instance import IdentificationAttack, Objective, arx_regression, attack_instance, ss_regression
+from .registry import register
+
+SOURCE = ("beyond the paper: least-squares identification of the flexible transmission (Russo & Proutiere, Analysis "
+          "and Detectability of Offline Data Poisoning Attacks on Linear Systems, 2023)")
+DEFAULTS = {"T": 100, "eps": 0.05, "objective": "frobenius", "stealth": None, "seed": 0, "lags": 10}
+STATISTICS = ("variance", "whiteness", "input")
+
+
+def statistics(E: ca.SX, E_restricted: ca.SX, n_regressors: int, n_inputs: int, noise_std: float,
+               lags: int) -> dict[str, ca.SX]:
+    """The residual tests' statistics as expressions of the residuals E (n x N) of the model and E_restricted of the
+    model without its input rows (the formulas of bilevel.ddc.residual_tests)."""
+    n, N = E.shape
+    rss, rss0 = ca.sumsqr(E), ca.sumsqr(E_restricted)
+    R = [ca.mtimes(E[:, j:], E[:, :N - j].T) / N for j in range(lags + 1)]
+    inv0 = ca.inv(R[0])
+    whiteness = N ** 2 * sum(ca.trace(ca.mtimes([R[j].T, inv0, R[j], inv0])) / (N - j) for j in range(1, lags + 1))
+    d1, d2 = n * n_inputs, n * (N - n_regressors)
+    return {"variance": rss / noise_std ** 2, "whiteness": whiteness, "input": ((rss0 - rss) / d1) / (rss / d2)}
+
+
+def declare(atk: IdentificationAttack) -> BilevelProblem:
+    """The bilevel program of an attack instance, declared with the generic API (budgets as balls)."""
+    p = BilevelProblem(f"ident-{atk.learner}")
+    poisoned = {}
+    for name, clean in atk.signals.items():
+        d = p.upper_variable(f"d{name}", clean.shape)
+        p.upper_constraint(ca.sumsqr(d) <= p.parameter(f"delta_{name}") ** 2, name=f"budget_{name}")
+        poisoned[name] = p.parameter(name, clean.shape) + d
+    if atk.learner == "ss":
+        Y, Z = ss_regression(poisoned["X"], poisoned["U"])
+    else:
+        Y, Z = arx_regression(poisoned["u"], poisoned["y"], *atk.orders)
+    theta = p.lower_variable("theta", atk.theta0.shape, start=atk.theta0)
+    E = Y - ca.mtimes(theta, Z)
+    lower = ca.sumsqr(E)
+    if atk.stealth is not None:
+        keep = [i for i in range(Z.shape[0]) if i not in atk.input_rows]
+        theta_r = p.lower_variable("theta_restricted", (atk.theta0.shape[0], len(keep)))
+        E_r = Y - ca.mtimes(theta_r, Z[keep, :])
+        lower += ca.sumsqr(E_r)
+        stats = statistics(E, E_r, Z.shape[0], len(atk.input_rows), atk.setting.noise_std, atk.lags)
+        delta = p.parameter("stealth")
+        for name in STATISTICS:
+            ratio = stats[name] / p.parameter(f"{name}_clean")
+            p.upper_constraint(ratio <= 1 + delta, name=f"stealth_{name}_high")
+            p.upper_constraint(ratio >= 1 - delta, name=f"stealth_{name}_low")
+    p.minimize_lower(lower)
+    error = theta - p.parameter("theta_clean", atk.theta0.shape)
+    if atk.objective == "frobenius":
+        p.maximize_upper(ca.sumsqr(error))
+    else:
+        p.maximize_spectral_radius(ca.mtimes(error, error.T))
+    load_instance(p, atk)
+    return p
+
+
+DECLARED_CACHE = 4
+"""problem_for keeps this many declared problems per process (a declared problem keeps its preparation: IPOPT's
+compiled NLP takes seconds to build, re-loading data a few milliseconds)."""
+_DECLARED: OrderedDict[tuple[Any, ...], BilevelProblem] = OrderedDict()
+
+
+def problem_for(atk: IdentificationAttack) -> BilevelProblem:
+    """The declared problem of `atk`, loaded with its data: declared once per learner, signal shapes, orders,
+    objective and stealth declaration in this process, re-targeted with load_instance after."""
+    key = (atk.learner, tuple(v.shape for v in atk.signals.values()), atk.orders, atk.objective, atk.lags,
+           atk.stealth is None)
+    if key in _DECLARED:
+        _DECLARED.move_to_end(key)
+        load_instance(_DECLARED[key], atk)
+        return _DECLARED[key]
+    _DECLARED[key] = declare(atk)
+    while len(_DECLARED) > DECLARED_CACHE:
+        _DECLARED.popitem(last=False)
+    return _DECLARED[key]
+
+
+def load_instance(problem: BilevelProblem, atk: IdentificationAttack) -> None:
+    """Set the parameters of a problem from `declare` to instance `atk` (same learner, shapes, objective and stealth
+    declaration); the next solve reuses the declared problem's preparation."""
+    declared = {q.name: q for q in problem.parameters.items}
+    if problem.name != f"ident-{atk.learner}" or ("stealth" in declared) != (atk.stealth is not None) \
+            or any(declared[k].sym.shape != v.shape for k, v in atk.signals.items()):
+        raise ModelError(f"instance ({atk.learner}, signals {[v.shape for v in atk.signals.values()]}, stealth "
+                         f"{atk.stealth}) does not fit problem {problem.name!r}; declare it with declare(atk)")
+    values: dict[str, Any] = {**atk.signals, "theta_clean": atk.theta0}
+    values |= {f"delta_{name}": atk.radius(name) for name in atk.signals}
+    if atk.stealth is not None:
+        clean = atk.tests()
+        values |= {"stealth": atk.stealth} | {f"{name}_clean": clean[name].statistic for name in STATISTICS}
+    for name, value in values.items():
+        problem.set_value(name, value)
+
+
+@register("ident-ss", source=SOURCE, tags=("attack", "identification"), defaults=DEFAULTS,
+          description="poisoning of state-space least squares [A B] (maximize the parameter error)")
+def ident_ss(T: int = 100, eps: float = 0.05, objective: Objective = "frobenius", stealth: float | None = None,
+             seed: int = 0, lags: int = 10) -> BilevelProblem:
+    """[A B] from T poisoned states and inputs of the flexible transmission (controllable canonical form)."""
+    return declare(attack_instance("ss", T, eps, objective, stealth, seed, lags))
+
+
+@register("ident-arx", source=SOURCE, tags=("attack", "identification"), defaults={**DEFAULTS, "na": 4, "nb": 4},
+          description="poisoning of ARX(na, nb) least squares (maximize the parameter error)")
+def ident_arx(T: int = 100, eps: float = 0.05, objective: Objective = "frobenius", stealth: float | None = None,
+              seed: int = 0, lags: int = 10, na: int = 4, nb: int = 4) -> BilevelProblem:
+    """ARX(na, nb) from T poisoned input/output samples of the flexible transmission."""
+    return declare(attack_instance("arx", T, eps, objective, stealth, seed, lags, na, nb))
