@@ -13,7 +13,8 @@ import casadi as ca
 import numpy as np
 
 from ..errors import ModelError
-from ..linear_maps import Images
+from ..linear_maps import Images, Operator
+from ..toeplitz import ToeplitzBank
 from ..parameters import ParameterSet
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 
@@ -22,7 +23,8 @@ class Lift:
     """x -> [x; z(x)] and the pull-back of [x; z]-gradients to x: g_x + J_arg(x)' A' g_z.
 
     Images of the same argument (a filter bank applied to one attacked signal) share it: the argument is evaluated
-    and pulled back once, and their dense matrices are stacked into one, so the bank costs one BLAS product each way.
+    and pulled back once, and their matrices are stacked into one (Operator.stacked), so the bank costs one product
+    each way (one BLAS product, or one FFT convolution for filter matrices).
     """
 
     def __init__(self, x: ca.SX, images: Images, params: ParameterSet) -> None:
@@ -49,13 +51,13 @@ class Lift:
         self._point: tuple[tuple[bytes, int], np.ndarray] | None = None
         self._params = params
 
-    def _stack(self, group: list[int]) -> np.ndarray | None:
-        """The group's dense matrices stacked (one product for all), None unless every one is dense and the shared
-        argument is a single column."""
+    def _stack(self, group: list[int]) -> Operator | ToeplitzBank | None:
+        """The group's matrices stacked (one product for all: Operator.stacked), None unless there are several, of
+        one stackable kind, and the shared argument is a single column."""
         items = [self.images.items[k] for k in group]
-        if len(items) < 2 or any(i.operator.kind != "dense" or i.arg.shape[1] != 1 for i in items):
+        if len(items) < 2 or any(i.arg.shape[1] != 1 for i in items):
             return None
-        return np.vstack([i.operator.data for i in items])
+        return Operator.stacked([i.operator for i in items])
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """[x; z(x)]; z is kept for the last arguments of the maps (a step that moves only entries the maps do not
@@ -72,7 +74,7 @@ class Lift:
                 a = args[self._cuts[g]:self._cuts[g + 1]].reshape(self._arg_shapes[g], order="F")
                 a = a if a.shape[1] > 1 else a[:, 0]
                 if self._stacked[g] is not None:  # the images of one argument: one product
-                    products = np.split(self._stacked[g] @ a, np.cumsum(
+                    products = np.split(self._stacked[g].apply(a), np.cumsum(
                         [self.images.items[k].operator.shape[0] for k in group])[:-1])
                 else:
                     products = [self.images.items[k].operator.apply(a) for k in group]
@@ -94,7 +96,7 @@ class Lift:
                 parts = [gz[self._zcuts[k]:self._zcuts[k + 1]].reshape(self.images.items[k].sym.shape, order="F")
                          for k in group]
                 if self._stacked[grp] is not None:
-                    total = self._stacked[grp].T @ np.concatenate([p[:, 0] for p in parts])
+                    total = self._stacked[grp].adjoint(np.concatenate([p[:, 0] for p in parts]))
                 else:
                     total = sum(np.asarray(self.images.items[k].operator.adjoint(p if p.shape[1] > 1 else p[:, 0]),
                                            dtype=float).reshape(self._arg_shapes[grp], order="F")
