@@ -55,6 +55,7 @@ class ToeplitzBank:
         self.length = next_fast_len(max(t.size for t, _ in parts), real=True)
         self.spectra = np.stack([rfft(t, self.length) for t, _ in parts])
         self.correction = sp.vstack([R for _, R in parts], format="csr")
+        self._correction_t = self.correction.T.tocsr()
         self.shape = (int(self.cuts[-1]), n)
 
     @classmethod
@@ -77,4 +78,4 @@ class ToeplitzBank:
             padded[k, self.n - 1:self.n - 1 + r] = Y[self.cuts[k]:self.cuts[k + 1]]
         spectra = self.spectra.reshape(self.spectra.shape + (1,) * (Y.ndim - 1))
         total = (rfft(padded, axis=1) * spectra.conj()).sum(axis=0)
-        return irfft(total, self.length, axis=0)[:self.n] + self.correction.T @ Y
+        return irfft(total, self.length, axis=0)[:self.n] + self._correction_t @ Y

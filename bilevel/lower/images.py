@@ -11,6 +11,7 @@ from functools import cached_property
 
 import casadi as ca
 import numpy as np
+import scipy.sparse as sp
 
 from ..errors import ModelError
 from ..linear_maps import Images, Operator
@@ -44,9 +45,19 @@ class Lift:
         v = ca.SX.sym("v", int(flat.numel()))
         self._args = params.function("image_args", [x], [flat])
         self._args_adjoint = params.function("image_args_adjoint", [x, v], [ca.jtimes(flat, x, v, True)])
+        jac = ca.jacobian(flat, x)
+        self._affine = None
+        """(J, b, J') where the arguments are J x + b (signals the leader moves, sliced or shifted): a sparse
+        product each way instead of a sweep."""
+        if not ca.depends_on(flat, params.sym) and not ca.depends_on(jac, x):
+            J = sp.csr_matrix(ca.evalf(jac).sparse())
+            offset = np.asarray(ca.evalf(ca.substitute(flat, x, ca.DM.zeros(self.n_x))), dtype=float).ravel()
+            self._affine = (J, offset, J.T.tocsr())
         self._arg_shapes = [a.shape for a in args]
         self._cuts = np.cumsum([0] + [int(a.numel()) for a in args])
         self._zcuts = np.cumsum([0] + [int(i.sym.numel()) for i in images.items])
+        self._item_shapes = [i.sym.shape for i in images.items]
+        self._zindex = [self._z_entries(group) for group in self._groups]
         self._last: tuple[bytes, np.ndarray] | None = None
         self._point: tuple[tuple[bytes, int], np.ndarray] | None = None
         self._params = params
@@ -59,6 +70,12 @@ class Lift:
             return None
         return Operator.stacked([i.operator for i in items])
 
+    def _z_entries(self, group: list[int]) -> slice | np.ndarray:
+        """The entries of z that hold the group's images, in order (a slice where they are consecutive)."""
+        if all(self._zcuts[k + 1] == self._zcuts[b] for k, b in zip(group, group[1:])):
+            return slice(int(self._zcuts[group[0]]), int(self._zcuts[group[-1] + 1]))
+        return np.concatenate([np.arange(self._zcuts[k], self._zcuts[k + 1]) for k in group])
+
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """[x; z(x)]; z is kept for the last arguments of the maps (a step that moves only entries the maps do not
         read, e.g. an exact block, costs no product)."""
@@ -66,7 +83,8 @@ class Lift:
         point = (x.tobytes(), self._params.revision)  # the arguments may read parameters too
         if self._point is not None and self._point[0] == point:
             return self._point[1].copy()
-        args = np.asarray(self._args(x), dtype=float).ravel()
+        args = (np.asarray(self._args(x), dtype=float).ravel() if self._affine is None
+                else self._affine[0] @ x + self._affine[1])
         key = args.tobytes()
         if self._last is None or self._last[0] != key:
             z = np.empty(self.n_z)
@@ -74,11 +92,10 @@ class Lift:
                 a = args[self._cuts[g]:self._cuts[g + 1]].reshape(self._arg_shapes[g], order="F")
                 a = a if a.shape[1] > 1 else a[:, 0]
                 if self._stacked[g] is not None:  # the images of one argument: one product
-                    products = np.split(self._stacked[g].apply(a), np.cumsum(
-                        [self.images.items[k].operator.shape[0] for k in group])[:-1])
-                else:
-                    products = [self.images.items[k].operator.apply(a) for k in group]
-                for k, prod in zip(group, products):
+                    z[self._zindex[g]] = self._stacked[g].apply(a)
+                    continue
+                for k in group:
+                    prod = self.images.items[k].operator.apply(a)
                     z[self._zcuts[k]:self._zcuts[k + 1]] = np.asarray(prod, dtype=float).reshape(-1, order="F")
             self._last = (key, z)
         self._point = (point, np.concatenate([x, self._last[1]]))
@@ -93,16 +110,18 @@ class Lift:
             gz = cols[self.n_x:, j]
             back = []
             for grp, group in enumerate(self._groups):
-                parts = [gz[self._zcuts[k]:self._zcuts[k + 1]].reshape(self.images.items[k].sym.shape, order="F")
-                         for k in group]
                 if self._stacked[grp] is not None:
-                    total = self._stacked[grp].adjoint(np.concatenate([p[:, 0] for p in parts]))
+                    total = self._stacked[grp].adjoint(gz[self._zindex[grp]])
                 else:
+                    parts = [gz[self._zcuts[k]:self._zcuts[k + 1]].reshape(self._item_shapes[k], order="F")
+                             for k in group]
                     total = sum(np.asarray(self.images.items[k].operator.adjoint(p if p.shape[1] > 1 else p[:, 0]),
                                            dtype=float).reshape(self._arg_shapes[grp], order="F")
                                 for k, p in zip(group, parts))
                 back.append(np.asarray(total, dtype=float).reshape(-1, order="F"))
-            out[:, j] += np.asarray(self._args_adjoint(x, np.concatenate(back)), dtype=float).ravel()
+            back = np.concatenate(back)
+            out[:, j] += (np.asarray(self._args_adjoint(x, back), dtype=float).ravel() if self._affine is None
+                          else self._affine[2] @ back)
         return out.reshape((self.n_x,) + g.shape[1:])
 
     def expanded(self) -> ca.SX:

@@ -131,8 +131,8 @@ class ResidualLeastSquares(LowerLevel):
                                     [ca.jtimes(ca.mtimes(self.C_expr, v), self.x, a, True)
                                      + ca.jtimes(self.r, self.x, b, True)])
 
-    def _affine_data(self, data: ca.SX) -> tuple[sp.csr_matrix, np.ndarray] | None:
-        """(J, b) with [vec C(x); d(x)] = J x + b when the data are affine in x, read no parameters and J has at most
+    def _affine_data(self, data: ca.SX) -> tuple[sp.csr_matrix, np.ndarray, sp.csr_matrix] | None:
+        """(J, b, J') with [vec C(x); d(x)] = J x + b when the data are affine in x, read no parameters and J has at most
         AFFINE_FILL nonzeros per operation of their expressions (signals the leader moves, sliced or mapped): then C
         and d cost one sparse product, their x-adjoint one transposed one; else None (the expressions are evaluated)."""
         if ca.depends_on(data, self.params.sym):
@@ -143,14 +143,15 @@ class ResidualLeastSquares(LowerLevel):
         if ca.depends_on(J, self.x):
             return None
         offset = ca.substitute(data, self.x, ca.DM.zeros(self.n_x))
-        return sp.csr_matrix(ca.evalf(J).sparse()), np.asarray(ca.evalf(offset), dtype=float).ravel()
+        J = sp.csr_matrix(ca.evalf(J).sparse())
+        return J, np.asarray(ca.evalf(offset), dtype=float).ravel(), J.T.tocsr()
 
     def _x_adjoint(self, x: np.ndarray, y: np.ndarray, v: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """d/dx of a'C(x)v + b'(C(x)y - d(x))."""
         if self._affine is None:
             return np.asarray(self._adjoint(x, y, v, a, b), dtype=float).ravel()
         seed = np.concatenate([(np.outer(a, v) + np.outer(b, y)).ravel(order="F"), -b])
-        return self._affine[0].T @ seed
+        return self._affine[2] @ seed
 
     @cached_property
     def fixed(self) -> bool:
@@ -161,7 +162,7 @@ class ResidualLeastSquares(LowerLevel):
         x = np.asarray(x, dtype=float).ravel()
         if self._last is None or self._last[0] != x.tobytes():
             if self._affine is not None:
-                J, offset = self._affine
+                J, offset, _ = self._affine
                 v, m = J @ x + offset, int(self.r.numel())
                 C, d = v[:m * self.n_y].reshape((m, self.n_y), order="F"), v[m * self.n_y:]
                 c = self._c if isinstance(self._c, float) else scalar(self._c(x))
