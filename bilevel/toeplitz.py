@@ -53,9 +53,14 @@ class ToeplitzBank:
         self.rows = [t.size - n + 1 for t, _ in parts]
         self.cuts = np.cumsum([0] + self.rows)
         self.length = next_fast_len(max(t.size for t, _ in parts), real=True)
-        self.spectra = np.stack([rfft(t, self.length) for t, _ in parts])
+        kernels = np.zeros((len(parts), self.length))
+        for k, (t, _) in enumerate(parts):
+            kernels[k, :t.size] = t
+        self.spectra = rfft(np.roll(kernels, 1 - n, axis=1), axis=1)
+        """The kernels' spectra, rotated by n - 1 entries: row i of A_k X is entry i of the circular convolution."""
         self.correction = sp.vstack([R for _, R in parts], format="csr")
         self._correction_t = self.correction.T.tocsr()
+        self._equal = len(set(self.rows)) == 1
         self.shape = (int(self.cuts[-1]), n)
 
     @classmethod
@@ -65,17 +70,23 @@ class ToeplitzBank:
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """[A_1 X; A_2 X; ...]."""
-        spectrum = rfft(X, self.length, axis=0)
-        full = irfft(self.spectra.reshape(self.spectra.shape + (1,) * (X.ndim - 1)) * spectrum[None], self.length,
-                     axis=1)
-        out = np.concatenate([full[k, self.n - 1:self.n - 1 + r] for k, r in enumerate(self.rows)])
+        spectra = self.spectra.reshape(self.spectra.shape + (1,) * (X.ndim - 1))
+        full = irfft(spectra * rfft(X, self.length, axis=0)[None], self.length, axis=1)
+        if self._equal:
+            out = full[:, :self.rows[0]].reshape((-1,) + X.shape[1:])
+        else:
+            out = np.concatenate([full[k, :r] for k, r in enumerate(self.rows)])
         return out + self.correction @ X
 
     def adjoint(self, Y: np.ndarray) -> np.ndarray:
-        """sum_k A_k' Y_k for Y = [Y_1; Y_2; ...]: a correlation, the Y_k placed where apply reads the products."""
-        padded = np.zeros((len(self.rows), self.length) + Y.shape[1:])
-        for k, r in enumerate(self.rows):
-            padded[k, self.n - 1:self.n - 1 + r] = Y[self.cuts[k]:self.cuts[k + 1]]
+        """sum_k A_k' Y_k for Y = [Y_1; Y_2; ...]: a correlation with each kernel."""
+        if self._equal:
+            parts = rfft(Y.reshape((len(self.rows), self.rows[0]) + Y.shape[1:]), self.length, axis=1)
+        else:
+            padded = np.zeros((len(self.rows), self.length) + Y.shape[1:])
+            for k, r in enumerate(self.rows):
+                padded[k, :r] = Y[self.cuts[k]:self.cuts[k + 1]]
+            parts = rfft(padded, axis=1)
         spectra = self.spectra.reshape(self.spectra.shape + (1,) * (Y.ndim - 1))
-        total = (rfft(padded, axis=1) * spectra.conj()).sum(axis=0)
+        total = (parts * spectra.conj()).sum(axis=0)
         return irfft(total, self.length, axis=0)[:self.n] + self._correction_t @ Y

@@ -38,6 +38,7 @@ from scipy.optimize import lsq_linear
 
 from ..errors import ModelError
 from ..lower.base import ExpressionLower, KKTValues, LowerSolution
+from ..lower.residual import numeric_squares
 from ..parameters import CompiledFunction
 from ..spectral_radius import spectral_radius
 from .base import Prepared
@@ -83,8 +84,13 @@ class Hypergradient:
         G = ca.vertcat(*[canon.G[i] for i in kept]) if kept else ca.SX(0, 1)  # projected rows need no penalty
         self._upper_outputs = [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y), ca.jacobian(G, x),
                                ca.jacobian(G, y), ca.jacobian(H, x), ca.jacobian(H, y)]
-        self._upper = canon.params.function("upper", [x, y], self._upper_outputs)
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
+        self._squares = None if canon.spectral is not None else numeric_squares(canon.F, y,
+                                                                                ca.vertcat(x, canon.params.sym))
+        """F as NumericSquares (a numeric matrix written into an objective of y alone): evaluated by BLAS, not swept."""
+        swept = self._upper_outputs if self._squares is None else \
+            [ca.SX(1, 1), G, H, ca.SX(nx, 1), ca.SX(ny, 1), *self._upper_outputs[5:]]
+        self._upper = canon.params.function("upper", [x, y], swept)
         self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
         self._fixed: tuple[int, LowerSolution, KKTValues | None] | None = None  # (parameter revision, ...)
         self._batches: dict[int, ca.Function] = {}  # batch_phi's mapped sweeps, by batch size
@@ -196,6 +202,8 @@ class Hypergradient:
             if np.isnan(sol.objective):  # the matrix form evaluates f numerically
                 sol.objective = float(self.low.evaluate(x, sol.y)[0])
             upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
+            if self._squares is not None:
+                upper[0], upper[4] = self._squares(sol.y)
         if self._spectral is not None:
             upper = self._with_spectral(x, sol.y, upper)
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()

@@ -272,3 +272,25 @@ def test_residual_form_with_affine_data_keeps_the_terms_free_of_y(monkeypatch) -
     x, th = rng.standard_normal(T), rng.standard_normal(2)
     expected = float(ca.evalf(ca.substitute(ca.substitute(f, dy, ca.DM(x)), theta, ca.DM(th))))
     assert low.evaluate(x, th)[0] == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("sense", ["min", "max"])
+def test_an_upper_objective_with_a_numeric_matrix_is_evaluated_by_blas(sense: str) -> None:
+    """F = ||A y - b||^2 / 3 + 2 with A written into the graph is read as numeric squares (residual.NumericSquares);
+    with y* = x, F and its gradient are checked against the closed form."""
+    rng = np.random.default_rng(5)
+    A, b = rng.standard_normal((200, 6)), rng.standard_normal(200)
+    p = bl.BilevelProblem("squares")
+    x = p.upper_variable("x", 6)
+    y = p.lower_variable("y", 6)
+    p.minimize_lower(ca.sumsqr(y - x))
+    F = ca.sumsqr(ca.mtimes(ca.DM(A), y) - b) / 3 + 2
+    (p.minimize_upper if sense == "min" else p.maximize_upper)(F)
+    oracle = Hypergradient(prepare(p))
+    assert oracle._squares is not None
+    x0 = rng.standard_normal(6)
+    ev = oracle.evaluate(x0)
+    sign = 1.0 if sense == "min" else -1.0  # the canonical form minimizes
+    r = A @ x0 - b
+    assert ev.F == pytest.approx(sign * (r @ r / 3 + 2), rel=1e-12)
+    assert np.abs(oracle.gradient(ev)[0] - sign * 2 * A.T @ r / 3).max() <= 1e-10 * np.abs(A.T @ r).max()
