@@ -60,6 +60,9 @@ class ToeplitzBank:
         """The kernels' spectra, rotated by n - 1 entries: row i of A_k X is entry i of the circular convolution."""
         self.correction = sp.vstack([R for _, R in parts], format="csr")
         self._correction_t = self.correction.T.tocsr()
+        cols = np.unique(self.correction.indices)
+        self._columns = (cols, self.correction[:, cols].toarray()) if cols.size <= CORRECTION_PER_EDGE else None
+        """(columns, their entries) when the corrections sit in a few columns (a filter's boundary): dense products."""
         self._equal = len(set(self.rows)) == 1
         self.shape = (int(self.cuts[-1]), n)
 
@@ -76,6 +79,8 @@ class ToeplitzBank:
             out = full[:, :self.rows[0]].reshape((-1,) + X.shape[1:])
         else:
             out = np.concatenate([full[k, :r] for k, r in enumerate(self.rows)])
+        if self._columns is not None:
+            return out + self._columns[1] @ X[self._columns[0]]
         return out + self.correction @ X
 
     def adjoint(self, Y: np.ndarray) -> np.ndarray:
@@ -89,4 +94,8 @@ class ToeplitzBank:
             parts = rfft(padded, axis=1)
         spectra = self.spectra.reshape(self.spectra.shape + (1,) * (Y.ndim - 1))
         total = (parts * spectra.conj()).sum(axis=0)
-        return irfft(total, self.length, axis=0)[:self.n] + self._correction_t @ Y
+        out = irfft(total, self.length, axis=0)[:self.n]
+        if self._columns is None:
+            return out + self._correction_t @ Y
+        out[self._columns[0]] += self._columns[1].T @ Y
+        return out

@@ -37,13 +37,16 @@ def test_split_finds_the_diagonals_and_the_corrections_at_either_corner(m: int, 
     assert toeplitz_split(A[:100, :100]) is None  # too small to gain
 
 
-@pytest.mark.parametrize("rows", [(260, 300), (280, 280)])
-def test_bank_products_equal_the_dense_ones(rows: tuple[int, int]) -> None:
+@pytest.mark.parametrize("rows, boundary", [((260, 300), "columns"), ((280, 280), "columns"), ((260, 300), "rows")])
+def test_bank_products_equal_the_dense_ones(rows: tuple[int, int], boundary: str) -> None:
     rng = np.random.default_rng(1)
     mats = []
     for m in rows:
         A = _toeplitz(rng.standard_normal(m + 256 - 1), m, 256)
-        A[:, :3] = rng.standard_normal((m, 3))  # three dense boundary columns
+        if boundary == "columns":  # three dense boundary columns (products by a dense block)
+            A[:, :3] = rng.standard_normal((m, 3))
+        else:  # two boundary rows (products by the sparse correction)
+            A[:2] = rng.standard_normal((2, 256))
         mats.append(A)
     bank = ToeplitzBank([toeplitz_split(A) for A in mats], 256)
     S = np.vstack(mats)
