@@ -77,12 +77,12 @@ class Lift:
         return np.concatenate([np.arange(self._zcuts[k], self._zcuts[k + 1]) for k in group])
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        """[x; z(x)]; z is kept for the last arguments of the maps (a step that moves only entries the maps do not
-        read, e.g. an exact block, costs no product)."""
+        """[x; z(x)], read-only (the same array for repeated calls at a point); z is kept for the last arguments of the
+        maps (a step that moves only entries the maps do not read, e.g. an exact block, costs no product)."""
         x = np.asarray(x, dtype=float).ravel()
         point = (x.tobytes(), self._params.revision)  # the arguments may read parameters too
         if self._point is not None and self._point[0] == point:
-            return self._point[1].copy()
+            return self._point[1]
         args = (np.asarray(self._args(x), dtype=float).ravel() if self._affine is None
                 else self._affine[0] @ x + self._affine[1])
         key = args.tobytes()
@@ -98,8 +98,10 @@ class Lift:
                     prod = self.images.items[k].operator.apply(a)
                     z[self._zcuts[k]:self._zcuts[k + 1]] = np.asarray(prod, dtype=float).reshape(-1, order="F")
             self._last = (key, z)
-        self._point = (point, np.concatenate([x, self._last[1]]))
-        return self._point[1].copy()
+        lifted = np.concatenate([x, self._last[1]])
+        lifted.flags.writeable = False
+        self._point = (point, lifted)
+        return lifted
 
     def pullback(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
         """d/dx of <g, [x; z(x)]> for g over [x; z] (a vector, or columns of a matrix)."""

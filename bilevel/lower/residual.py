@@ -154,7 +154,8 @@ class ResidualLeastSquares(LowerLevel):
         moves = ca.depends_on(self.c, self.x) or ca.depends_on(self.c, self.params.sym)
         self._c = self.params.function("residual_c", [self.x], [self.c]) if moves else float(ca.evalf(self.c))
         """c(x): a constant, or its function (the affine path evaluates it alone, not the sweep of C and d)."""
-        self._last: tuple[bytes, tuple[np.ndarray, np.ndarray, float]] | None = None
+        self._last: tuple[tuple[bytes, int], tuple[np.ndarray, np.ndarray, float]] | None = None
+        self._seen: np.ndarray | None = None
 
     @cached_property
     def _data(self) -> CompiledFunction:
@@ -196,9 +197,14 @@ class ResidualLeastSquares(LowerLevel):
         return not ca.depends_on(self.r, self.x) and not ca.depends_on(self.c, self.x)
 
     def data(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        """C(x), d(x) and c(x) (the last point's are kept: one sweep serves the calls at a point)."""
-        x = np.asarray(x, dtype=float).ravel()
-        if self._last is None or self._last[0] != x.tobytes():
+        """C(x), d(x) and c(x) (the last point's are kept: one sweep serves the calls at a point; a read-only x, as
+        a lifted point, is known again by identity)."""
+        revision = self.params.revision  # the data may read parameters
+        if x is self._seen and self._last[0][1] == revision:
+            return self._last[1]
+        given, x = x, np.asarray(x, dtype=float).ravel()
+        key = (x.tobytes(), revision)
+        if self._last is None or self._last[0] != key:
             if self._affine is not None:
                 J, offset, _ = self._affine
                 v, m = J @ x + offset, int(self.r.numel())
@@ -206,8 +212,9 @@ class ResidualLeastSquares(LowerLevel):
                 c = self._c if isinstance(self._c, float) else scalar(self._c(x))
             else:
                 C, d, c = self._data(x)
-            self._last = (x.tobytes(), (np.asarray(C, dtype=float).reshape(-1, self.n_y),
-                                        np.asarray(d, dtype=float).ravel(), float(np.asarray(c).ravel()[0])))
+            self._last = (key, (np.asarray(C, dtype=float).reshape(-1, self.n_y), np.asarray(d, dtype=float).ravel(),
+                                float(np.asarray(c).ravel()[0])))
+        self._seen = given if isinstance(given, np.ndarray) and not given.flags.writeable else None
         return self._last[1]
 
     def gram(self, x: np.ndarray) -> np.ndarray:

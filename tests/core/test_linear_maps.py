@@ -294,3 +294,23 @@ def test_an_upper_objective_with_a_numeric_matrix_is_evaluated_by_blas(sense: st
     r = A @ x0 - b
     assert ev.F == pytest.approx(sign * (r @ r / 3 + 2), rel=1e-12)
     assert np.abs(oracle.gradient(ev)[0] - sign * 2 * A.T @ r / 3).max() <= 1e-10 * np.abs(A.T @ r).max()
+
+
+def test_residual_data_follow_a_parameter_at_the_same_point() -> None:
+    """The residual form's data are kept per point and parameter revision: after set_value the learner at the same x
+    is numpy's fit of the new data."""
+    rng = np.random.default_rng(4)
+    A, b = rng.standard_normal((400, 6)), rng.standard_normal(400)
+    p = bl.BilevelProblem("ridge")
+    db = p.upper_variable("db", 400)
+    scale = p.parameter("scale", value=1.0)
+    w = p.lower_variable("w", 6)
+    p.minimize_lower(ca.sumsqr(scale * ca.mtimes(ca.DM(A), w) - b - db))
+    p.upper_constraint(ca.sumsqr(db) <= 1.0)
+    p.maximize_upper(ca.sumsqr(w))
+    low = prepare(p).canon.lower
+    assert isinstance(low, ResidualLeastSquares)
+    x = 0.01 * rng.standard_normal(400)
+    for s in (1.0, 2.0):
+        p.set_value("scale", s)
+        assert np.allclose(low.solve(x).y, np.linalg.lstsq(s * A, b + x, rcond=None)[0], rtol=1e-10, atol=1e-12)
