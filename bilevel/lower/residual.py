@@ -189,7 +189,9 @@ class ResidualLeastSquares(LowerLevel):
         """d/dx of a'C(x)v + b'(C(x)y - d(x))."""
         if self._affine is None:
             return np.asarray(self._adjoint(x, y, v, a, b), dtype=float).ravel()
-        seed = np.concatenate([(np.outer(a, v) + np.outer(b, y)).ravel(order="F"), -b])
+        seed = np.empty(a.size * v.size + b.size)  # [vec(a v' + b y'); -b], vec column-major
+        np.add(np.outer(v, a), np.outer(y, b), out=seed[:a.size * v.size].reshape(v.size, a.size))
+        np.negative(b, out=seed[a.size * v.size:])
         return self._affine[2] @ seed
 
     @cached_property

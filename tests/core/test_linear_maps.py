@@ -17,6 +17,7 @@ from bilevel.problems.vrft_instance import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating
 from bilevel.errors import ModelError
 from bilevel.lower.images import ImageLower
+from bilevel.lower.least_squares import factor_solve, hessian_factor
 from bilevel.lower.residual import ResidualLeastSquares, sum_of_squares
 from bilevel.solvers.base import prepare
 from bilevel.solvers.implicit import Hypergradient
@@ -314,3 +315,16 @@ def test_residual_data_follow_a_parameter_at_the_same_point() -> None:
     for s in (1.0, 2.0):
         p.set_value("scale", s)
         assert np.allclose(low.solve(x).y, np.linalg.lstsq(s * A, b + x, rcond=None)[0], rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("columns", [1, 3, 512])
+def test_factor_solve_solves_for_any_number_of_columns(columns: int) -> None:
+    """P^{-1} B from the Cholesky factor: by potrs, or by transposed triangular solves for wide B; P X = B either way,
+    on an ill-conditioned P too."""
+    rng = np.random.default_rng(6)
+    Q = np.linalg.qr(rng.standard_normal((6, 6)))[0]
+    P = Q @ np.diag(np.logspace(0, -8, 6)) @ Q.T
+    B = rng.standard_normal((6, columns))
+    X = factor_solve(hessian_factor(P), B)
+    assert X.shape == B.shape
+    assert np.abs(P @ X - B).max() <= 1e-12 * (1.0 + np.abs(X).max())  # backward stable: eps ||P|| ||X||
