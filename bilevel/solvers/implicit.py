@@ -201,7 +201,10 @@ class Hypergradient:
         else:
             if np.isnan(sol.objective):  # the matrix form evaluates f numerically
                 sol.objective = float(self.low.evaluate(x, sol.y)[0])
-            upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
+            if self._squares is None or self._upper_shapes[1][0] + self._upper_shapes[2][0] > 0:
+                upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
+            else:  # F is all there is: nothing to sweep
+                upper = [np.zeros(shape) for shape in self._upper_shapes]
             if self._squares is not None:
                 upper[0], upper[4] = self._squares(sol.y)
         if self._spectral is not None:
