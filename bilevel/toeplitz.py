@@ -58,11 +58,17 @@ class ToeplitzBank:
             kernels[k, :t.size] = t
         self.spectra = rfft(np.roll(kernels, 1 - n, axis=1), axis=1)
         """The kernels' spectra, rotated by n - 1 entries: row i of A_k X is entry i of the circular convolution."""
+        self._conj = self.spectra.conj()
         self.correction = sp.vstack([R for _, R in parts], format="csr")
         self._correction_t = self.correction.T.tocsr()
         cols = np.unique(self.correction.indices)
-        self._columns = (cols, self.correction[:, cols].toarray()) if cols.size <= CORRECTION_PER_EDGE else None
+        self._columns: tuple[np.ndarray | slice, np.ndarray] | None = None
         """(columns, their entries) when the corrections sit in a few columns (a filter's boundary): dense products."""
+        if cols.size <= CORRECTION_PER_EDGE:
+            block = self.correction[:, cols].toarray()
+            if cols.size and cols[-1] - cols[0] + 1 == cols.size:  # adjacent columns: X read by a view
+                cols = slice(int(cols[0]), int(cols[-1]) + 1)
+            self._columns = (cols, block)
         self._equal = len(set(self.rows)) == 1
         self.shape = (int(self.cuts[-1]), n)
 
@@ -79,9 +85,8 @@ class ToeplitzBank:
             out = full[:, :self.rows[0]].reshape((-1,) + X.shape[1:])
         else:
             out = np.concatenate([full[k, :r] for k, r in enumerate(self.rows)])
-        if self._columns is not None:
-            return out + self._columns[1] @ X[self._columns[0]]
-        return out + self.correction @ X
+        out += self.correction @ X if self._columns is None else self._columns[1] @ X[self._columns[0]]
+        return out
 
     def adjoint(self, Y: np.ndarray) -> np.ndarray:
         """sum_k A_k' Y_k for Y = [Y_1; Y_2; ...]: a correlation with each kernel."""
@@ -92,8 +97,7 @@ class ToeplitzBank:
             for k, r in enumerate(self.rows):
                 padded[k, :r] = Y[self.cuts[k]:self.cuts[k + 1]]
             parts = rfft(padded, axis=1)
-        spectra = self.spectra.reshape(self.spectra.shape + (1,) * (Y.ndim - 1))
-        total = (parts * spectra.conj()).sum(axis=0)
+        total = (parts * self._conj.reshape(self._conj.shape + (1,) * (Y.ndim - 1))).sum(axis=0)
         out = irfft(total, self.length, axis=0)[:self.n]
         if self._columns is None:
             return out + self._correction_t @ Y
