@@ -38,7 +38,6 @@ from scipy.optimize import lsq_linear
 
 from ..errors import ModelError
 from ..lower.base import ExpressionLower, KKTValues, LowerSolution
-from ..lower.residual import numeric_squares
 from ..parameters import CompiledFunction
 from ..spectral_radius import spectral_radius
 from .base import Prepared
@@ -85,9 +84,7 @@ class Hypergradient:
         self._upper_outputs = [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y), ca.jacobian(G, x),
                                ca.jacobian(G, y), ca.jacobian(H, x), ca.jacobian(H, y)]
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
-        self._squares = None if canon.spectral is not None else numeric_squares(canon.F, y,
-                                                                                ca.vertcat(x, canon.params.sym))
-        """F as NumericSquares (a numeric matrix written into an objective of y alone): evaluated by BLAS, not swept."""
+        self._squares = canon.squares  # F by BLAS where it is numeric squares of y, not swept
         swept = self._upper_outputs if self._squares is None else \
             [ca.SX(1, 1), G, H, ca.SX(nx, 1), ca.SX(ny, 1), *self._upper_outputs[5:]]
         self._upper = canon.params.function("upper", [x, y], swept)

@@ -294,6 +294,7 @@ def test_an_upper_objective_with_a_numeric_matrix_is_evaluated_by_blas(sense: st
     sign = 1.0 if sense == "min" else -1.0  # the canonical form minimizes
     r = A @ x0 - b
     assert ev.F == pytest.approx(sign * (r @ r / 3 + 2), rel=1e-12)
+    assert float(prepare(p).canon.functions(x0, ev.lower.y)[0][0, 0]) == pytest.approx(ev.F, rel=1e-12)  # the probe's
     assert np.abs(oracle.gradient(ev)[0] - sign * 2 * A.T @ r / 3).max() <= 1e-10 * np.abs(A.T @ r).max()
 
 
