@@ -227,12 +227,13 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], s
     balls = prep.balls
     oracle = shared_oracle(prep, float(penalty), projected_rows=tuple(b.row for b in balls))
     S = exact.ball.block
-    rest = np.ones(int(prep.canon.x.numel()), dtype=bool)
-    rest[S] = False
+    n = int(prep.canon.x.numel())
+    rest: slice | np.ndarray = slice(S.stop, n) if S.start == 0 else slice(0, S.start) if S.stop == n else \
+        np.flatnonzero((np.arange(n) < S.start) | (np.arange(n) >= S.stop))  # the other entries (a view if it can)
     weights = budget_scale(prep.canon, balls)[rest]
 
     def full(xr: np.ndarray) -> np.ndarray:
-        x = np.empty(rest.size)
+        x = np.empty(n)
         x[rest], x[S] = xr, exact.ball.center
         return x
 
@@ -259,7 +260,9 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], s
 
         def stop(ev: Evaluation, k: int = k, calls: list[int] = calls) -> bool:
             """Progress at the start and each accepted point; the deadline."""
-            progress(verbose, label, f"start {k + 1}/{starts}, iteration {calls[0]}: phi = {prep.declared(ev.phi):.8g}")
+            if verbose:
+                progress(verbose, label, f"start {k + 1}/{starts}, iteration {calls[0]}: phi = "
+                         f"{prep.declared(ev.phi):.8g}")
             calls[0] += 1
             return limit.expired()
 
