@@ -94,16 +94,16 @@ def vrft_seeds(seeds: int) -> None:
         own = attack_alternating(atk, seed=seed)
         rows.append((first, t_again, t_one, ref.wall_time, ref1.wall_time, own.wall_time, again.upper_objective,
                      attack_value(ref), one.upper_objective, attack_value(ref1)))
-        print(f"seed {seed:2d}: declare + first solve {first:.3f} s, re-solve {t_again:.3f} s ({again.nit} steps) vs "
-              f"structured {ref.wall_time:.4f} s ({ref.nit}); starts=1 {t_one:.3f} s ({one.nit}) vs {ref1.wall_time:.4f} s "
-              f"({ref1.nit}); structured at its defaults {own.wall_time:.4f} s ({own.nit}) | J {again.upper_objective:.5f} "
-              f"vs {attack_value(ref):.5f}, starts=1 {one.upper_objective:.5f} vs {attack_value(ref1):.5f} "
-              f"[{again.status.value}]", flush=True)
+        print(f"seed {seed:2d}: declare + first solve {first:.3f} s, re-solve {t_again:.3f} s ({again.nit} steps) "
+              f"vs structured {ref.wall_time:.4f} s ({ref.nit}); starts=1 {t_one:.3f} s ({one.nit}) vs "
+              f"{ref1.wall_time:.4f} s ({ref1.nit}); structured at its defaults {own.wall_time:.4f} s ({own.nit}) | "
+              f"J {again.upper_objective:.5f} vs {attack_value(ref):.5f}, starts=1 {one.upper_objective:.5f} vs "
+              f"{attack_value(ref1):.5f} [{again.status.value}]", flush=True)
     r = np.array(rows, dtype=float)
     med = np.median(r, axis=0)
     print(f"median declaration + first solve {med[0]:.3f} s (max {r[:, 0].max():.3f} s)")
-    print(f"median re-solve {med[1] * 1e3:.1f} ms = {med[1] / med[3]:.2f}x the structured attack's {med[3] * 1e3:.1f} ms "
-          f"({STARTS} starts each); starts=1 {med[2] * 1e3:.1f} ms = {med[2] / med[4]:.2f}x its {med[4] * 1e3:.1f} ms; "
+    print(f"median re-solve {med[1] * 1e3:.1f} ms = {med[1] / med[3]:.2f}x the structured attack's "
+          f"{med[3] * 1e3:.1f} ms ({STARTS} starts each); starts=1 {med[2] * 1e3:.1f} ms = {med[2] / med[4]:.2f}x its {med[4] * 1e3:.1f} ms; "
           f"(the structured attack at its defaults, 1 start and tol 1e-4: {med[5] * 1e3:.1f} ms)")
     ratio, ratio1 = r[:, 6] / r[:, 7], r[:, 8] / r[:, 9]
     print(f"objective >= 0.98x structured on {np.mean(ratio >= 0.98) * 100:.0f}% of seeds (min ratio {ratio.min():.4f}, "

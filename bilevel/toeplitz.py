@@ -15,8 +15,9 @@ import scipy.sparse as sp
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.fft import irfft, next_fast_len, rfft
 
-MIN_ENTRIES = 65_536
-"""Matrices with fewer entries stay dense (a BLAS product of a 256 x 256 matrix costs about what two FFTs do)."""
+MIN_ENTRIES, MIN_SIDE = 65_536, 64
+"""Matrices with fewer entries, or fewer rows or columns, stay dense (a BLAS product of a 256 x 256 matrix costs about
+what two FFTs do; a thin one is cheaper than a transform of its length)."""
 ROUNDING = 2.0 ** -46
 """Differences from the Toeplitz part up to this fraction of max|A| are rounding, not corrections."""
 CORRECTION_PER_EDGE = 8
@@ -27,7 +28,7 @@ def toeplitz_split(A: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix] | None:
     """(t, R) with A = T(t) + R, T(t)[i, j] = t[i - j + n - 1] and R sparse with few entries, or None when A is no
     such matrix or too small to gain."""
     m, n = A.shape
-    if m * n < MIN_ENTRIES:
+    if m * n < MIN_ENTRIES or min(m, n) < MIN_SIDE:
         return None
     tol = ROUNDING * float(np.abs(A).max(initial=0.0))
     mid = m // 2  # one row against the next first: most matrices that are not Toeplitz are rejected in O(n)

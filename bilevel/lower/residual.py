@@ -171,9 +171,10 @@ class ResidualLeastSquares(LowerLevel):
                                      + ca.jtimes(self.r, self.x, b, True)])
 
     def _affine_data(self, data: ca.SX) -> tuple[sp.csr_matrix, np.ndarray, sp.csr_matrix] | None:
-        """(J, b, J') with [vec C(x); d(x)] = J x + b when the data are affine in x, read no parameters and J has at most
-        AFFINE_FILL nonzeros per operation of their expressions (signals the leader moves, sliced or mapped): then C
-        and d cost one sparse product, their x-adjoint one transposed one; else None (the expressions are evaluated)."""
+        """(J, b, J') with [vec C(x); d(x)] = J x + b when the data are affine in x, read no parameters and J has at
+        most AFFINE_FILL nonzeros per operation of their expressions (signals the leader moves, sliced or mapped): then
+        C and d cost one sparse product, their x-adjoint one transposed one; else None (the expressions are
+        evaluated)."""
         if ca.depends_on(data, self.params.sym):
             return None
         if ca.jacobian_sparsity(data, self.x).nnz() > AFFINE_FILL * self._data.n_instructions():

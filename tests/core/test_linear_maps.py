@@ -320,8 +320,8 @@ def test_residual_data_follow_a_parameter_at_the_same_point() -> None:
 
 @pytest.mark.parametrize("columns", [1, 3, 512])
 def test_factor_solve_solves_for_any_number_of_columns(columns: int) -> None:
-    """P^{-1} B from the Cholesky factor: by potrs, or by transposed triangular solves for wide B; P X = B either way,
-    on an ill-conditioned P too."""
+    """P^{-1} B from the Cholesky factor (the exact block solves for a 6 x N matrix): P X = B to rounding, on an
+    ill-conditioned P too."""
     rng = np.random.default_rng(6)
     Q = np.linalg.qr(rng.standard_normal((6, 6)))[0]
     P = Q @ np.diag(np.logspace(0, -8, 6)) @ Q.T

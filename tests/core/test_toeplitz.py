@@ -35,6 +35,7 @@ def test_split_finds_the_diagonals_and_the_corrections_at_either_corner(m: int, 
     assert np.array_equal(t_found, t) and R.nnz == 12
     assert toeplitz_split(rng.standard_normal((m, n))) is None
     assert toeplitz_split(A[:100, :100]) is None  # too small to gain
+    assert toeplitz_split(_toeplitz(rng.standard_normal(7_009), 10, 7_000)) is None  # too thin
 
 
 @pytest.mark.parametrize("rows, boundary", [((260, 300), "columns"), ((280, 280), "columns"), ((260, 300), "rows")])
