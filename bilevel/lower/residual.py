@@ -70,17 +70,20 @@ def sum_of_squares(f: ca.SX, y: ca.SX) -> tuple[ca.SX, ca.SX] | None:
 
 
 NUMERIC_SQUARES_SIZE = 1_000
-"""An objective of y alone written as a sum of squares with at least this many coefficients (rows x n_y) is evaluated
-by BLAS (NumericSquares): a sweep costs about 18 ns per coefficient (57 us at the VRFT objective's 512 x 6, value and
+"""An objective of y alone written as a sum of squares with at least this many nonzero coefficients is evaluated by
+BLAS (NumericSquares): a sweep costs about 18 ns per coefficient (57 us at the VRFT objective's 512 x 6, value and
 gradient), a numpy call a few microseconds."""
+SPARSE_SQUARES = 0.25
+"""Below this fraction of nonzero coefficients the matrix of NumericSquares is kept sparse (||w - w0||^2 over 2,000
+entries: a diagonal, 2,000 of 4,000,000)."""
 
 
 @dataclass(frozen=True)
 class NumericSquares:
-    """f(y) = sign * (1/2 ||A y + r0||^2 + c) with numeric A, r0 and c."""
+    """f(y) = sign * (1/2 ||A y + r0||^2 + c) with numeric A (dense, or sparse when mostly zeros), r0 and c."""
 
     sign: float
-    A: np.ndarray
+    A: np.ndarray | sp.csr_matrix
     r0: np.ndarray
     c: float
 
@@ -99,9 +102,11 @@ def numeric_squares(f: ca.SX, y: ca.SX, others: ca.SX) -> NumericSquares | None:
         form = sum_of_squares(sign * f, y)
         if form is not None:
             r, c = form
-            if int(r.numel()) * int(y.numel()) < NUMERIC_SQUARES_SIZE:
+            jac = ca.jacobian(r, y)
+            if jac.nnz() < NUMERIC_SQUARES_SIZE:
                 return None
-            A = np.asarray(ca.evalf(ca.jacobian(r, y)), dtype=float)
+            A = sp.csr_matrix(ca.evalf(jac).sparse())
+            A = A if jac.nnz() < SPARSE_SQUARES * jac.numel() else A.toarray()
             r0 = np.asarray(ca.evalf(ca.substitute(r, y, ca.DM.zeros(int(y.numel())))), dtype=float).ravel()
             return NumericSquares(sign, A, r0, float(ca.evalf(c)))
     return None

@@ -329,3 +329,15 @@ def test_factor_solve_solves_for_any_number_of_columns(columns: int) -> None:
     X = factor_solve(hessian_factor(P), B)
     assert X.shape == B.shape
     assert np.abs(P @ X - B).max() <= 1e-12 * (1.0 + np.abs(X).max())  # backward stable: eps ||P|| ||X||
+
+
+def test_numeric_squares_keep_a_diagonal_sparse() -> None:
+    """||y - c||^2 / 2 over 1,500 entries (a diagonal of 1,500 coefficients) is read as sparse numeric squares; its
+    value and gradient are the closed form."""
+    rng = np.random.default_rng(7)
+    y, c, v = ca.SX.sym("y", 1500), rng.standard_normal(1500), rng.standard_normal(1500)
+    squares = residual.numeric_squares(-0.5 * ca.sumsqr(y - c), y, ca.SX.sym("x", 2))
+    assert squares is not None and sp.issparse(squares.A)
+    F, g = squares(v)
+    assert F[0, 0] == pytest.approx(-0.5 * np.sum((v - c) ** 2), rel=1e-13)
+    assert np.abs(g.ravel() + (v - c)).max() <= 1e-13
