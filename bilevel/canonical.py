@@ -14,7 +14,7 @@ from .lower import LowerLevel, LowerSolution, build_lower
 from .linear_maps import Images
 from .lower.images import ImageLower, Lift
 from .lower.matrix import MatrixLower
-from .lower.residual import sum_of_squares
+from .lower.residual import NumericSquares, numeric_squares, sum_of_squares
 from .model import BilevelProblem, LowerQP, Variable, check_depends, unflatten_all
 from .parameters import ParameterSet, scalar
 from .reduction import KKTPoint, Reduction
@@ -88,9 +88,21 @@ class CanonicalBilevel:
         return low if lift is None else ImageLower(low, lift, self.x, self.params)
 
     @cached_property
-    def functions(self) -> ca.Function:
-        """F, G, H at (x, y)."""
-        return self.params.function("canon", [self.x, self.y], [self.F, self.G, self.H])
+    def squares(self) -> NumericSquares | None:
+        """F as NumericSquares where it is a sum of squares of y alone with a numeric matrix written into it (value
+        and y-gradient by BLAS; a sweep walks the matrix's entries), else None."""
+        if self.spectral is not None:
+            return None
+        return numeric_squares(self.F, self.y, ca.vertcat(self.x, self.params.sym))
+
+    @cached_property
+    def functions(self) -> Callable[[np.ndarray, np.ndarray], list[np.ndarray]]:
+        """F, G, H at (x, y) (F by `squares` where it is numeric)."""
+        squares = self.squares
+        sweep = self.params.function("canon", [self.x, self.y], [ca.SX(1, 1) if squares else self.F, self.G, self.H])
+        if squares is None:
+            return sweep
+        return lambda x, y: [squares(np.asarray(y, dtype=float).ravel())[0], *sweep(x, y)[1:]]
 
     @cached_property
     def _upper(self) -> ca.Function:

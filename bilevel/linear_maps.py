@@ -4,7 +4,8 @@ product, and the matrix stays data.
 Written into a CasADi expression (`ca.mtimes(ca.DM(T), x)`), a numeric N x N matrix becomes N^2 scalar nodes that
 every derivative and every evaluation walks. A linear map keeps it a matrix (numpy, scipy.sparse or a scipy
 LinearOperator): the engine computes `T @ arg(x)` and the adjoint products `T' v` with BLAS or the operator's own
-code, and the expressions stay as small as the symbols they are written with.
+code, and the expressions stay as small as the symbols they are written with. A dense matrix that is Toeplitz up to a
+few entries (a filter matrix) is applied by FFT convolution (bilevel.toeplitz).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import LinearOperator
 
 from .errors import InvalidData, ModelError
+from .toeplitz import ToeplitzBank, toeplitz_split
 
 if TYPE_CHECKING:  # pragma: no cover
     from .model import BilevelProblem
@@ -27,7 +29,8 @@ DENSE_LIMIT = 25_000_000
 
 
 class Operator:
-    """A numeric matrix or linear operator with products by columns: apply (A X) and adjoint (A' Y)."""
+    """A numeric matrix or linear operator with products by columns: apply (A X) and adjoint (A' Y). kind: "dense",
+    "sparse", "operator" (a LinearOperator) or "toeplitz" (a dense matrix applied as a ToeplitzBank of one, `bank`)."""
 
     def __init__(self, matrix: Any, what: str) -> None:
         if isinstance(matrix, LinearOperator):
@@ -49,20 +52,43 @@ class Operator:
         values = self.data.data if self.kind == "sparse" else self.data if self.kind == "dense" else np.zeros(0)
         if not np.all(np.isfinite(values)):
             raise InvalidData(f"{what}: the matrix contains NaN or inf; clean the data first")
+        split = toeplitz_split(self.data) if self.kind == "dense" else None
+        if split is not None:
+            self.kind, self.bank = "toeplitz", ToeplitzBank([split], self.shape[1])
+
+    @classmethod
+    def stacked(cls, operators: list["Operator"]) -> "Operator | ToeplitzBank | None":
+        """[A_1; A_2; ...] with apply and adjoint, for operators that are all dense or all toeplitz with equal column
+        counts (a filter bank applied to one signal: one product each way), else None."""
+        kinds = {op.kind for op in operators}
+        if len(kinds) != 1 or len({op.shape[1] for op in operators}) != 1:
+            return None
+        if kinds == {"toeplitz"}:
+            return ToeplitzBank.stack([op.bank for op in operators])
+        if kinds != {"dense"}:
+            return None
+        out = cls.__new__(cls)
+        out.kind, out.data = "dense", np.vstack([op.data for op in operators])
+        out.shape = out.data.shape
+        return out
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """A X (X of shape (n,) or (n, k))."""
+        if self.kind == "toeplitz":
+            return self.bank.apply(X)
         return self.data.matmat(X) if self.kind == "operator" and X.ndim == 2 else self.data @ X
 
     def adjoint(self, Y: np.ndarray) -> np.ndarray:
         """A' Y (Y of shape (m,) or (m, k))."""
         if self.kind == "operator":
             return self.data.rmatmat(Y) if Y.ndim == 2 else self.data.rmatvec(Y)
+        if self.kind == "toeplitz":
+            return self.bank.adjoint(Y)
         return self.data.T @ Y
 
     def dense(self, what: str) -> np.ndarray:
         """The matrix as a dense array (an operator is applied to the identity, up to DENSE_LIMIT entries)."""
-        if self.kind == "dense":
+        if self.kind in ("dense", "toeplitz"):
             return self.data
         if self.kind == "sparse":
             return self.data.toarray()

@@ -11,9 +11,11 @@ from functools import cached_property
 
 import casadi as ca
 import numpy as np
+import scipy.sparse as sp
 
 from ..errors import ModelError
-from ..linear_maps import Images
+from ..linear_maps import Images, Operator
+from ..toeplitz import ToeplitzBank
 from ..parameters import ParameterSet
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 
@@ -22,7 +24,8 @@ class Lift:
     """x -> [x; z(x)] and the pull-back of [x; z]-gradients to x: g_x + J_arg(x)' A' g_z.
 
     Images of the same argument (a filter bank applied to one attacked signal) share it: the argument is evaluated
-    and pulled back once, and their dense matrices are stacked into one, so the bank costs one BLAS product each way.
+    and pulled back once, and their matrices are stacked into one (Operator.stacked), so the bank costs one product
+    each way (one BLAS product, or one FFT convolution for filter matrices).
     """
 
     def __init__(self, x: ca.SX, images: Images, params: ParameterSet) -> None:
@@ -42,29 +45,46 @@ class Lift:
         v = ca.SX.sym("v", int(flat.numel()))
         self._args = params.function("image_args", [x], [flat])
         self._args_adjoint = params.function("image_args_adjoint", [x, v], [ca.jtimes(flat, x, v, True)])
+        jac = ca.jacobian(flat, x)
+        self._affine = None
+        """(J, b, J') where the arguments are J x + b (signals the leader moves, sliced or shifted): a sparse
+        product each way instead of a sweep."""
+        if not ca.depends_on(flat, params.sym) and not ca.depends_on(jac, x):
+            J = sp.csr_matrix(ca.evalf(jac).sparse())
+            offset = np.asarray(ca.evalf(ca.substitute(flat, x, ca.DM.zeros(self.n_x))), dtype=float).ravel()
+            self._affine = (J, offset, J.T.tocsr())
         self._arg_shapes = [a.shape for a in args]
         self._cuts = np.cumsum([0] + [int(a.numel()) for a in args])
         self._zcuts = np.cumsum([0] + [int(i.sym.numel()) for i in images.items])
+        self._item_shapes = [i.sym.shape for i in images.items]
+        self._zindex = [self._z_entries(group) for group in self._groups]
         self._last: tuple[bytes, np.ndarray] | None = None
         self._point: tuple[tuple[bytes, int], np.ndarray] | None = None
         self._params = params
 
-    def _stack(self, group: list[int]) -> np.ndarray | None:
-        """The group's dense matrices stacked (one product for all), None unless every one is dense and the shared
-        argument is a single column."""
+    def _stack(self, group: list[int]) -> Operator | ToeplitzBank | None:
+        """The group's matrices stacked (one product for all: Operator.stacked), None unless there are several, of
+        one stackable kind, and the shared argument is a single column."""
         items = [self.images.items[k] for k in group]
-        if len(items) < 2 or any(i.operator.kind != "dense" or i.arg.shape[1] != 1 for i in items):
+        if len(items) < 2 or any(i.arg.shape[1] != 1 for i in items):
             return None
-        return np.vstack([i.operator.data for i in items])
+        return Operator.stacked([i.operator for i in items])
+
+    def _z_entries(self, group: list[int]) -> slice | np.ndarray:
+        """The entries of z that hold the group's images, in order (a slice where they are consecutive)."""
+        if all(self._zcuts[k + 1] == self._zcuts[b] for k, b in zip(group, group[1:])):
+            return slice(int(self._zcuts[group[0]]), int(self._zcuts[group[-1] + 1]))
+        return np.concatenate([np.arange(self._zcuts[k], self._zcuts[k + 1]) for k in group])
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        """[x; z(x)]; z is kept for the last arguments of the maps (a step that moves only entries the maps do not
-        read, e.g. an exact block, costs no product)."""
+        """[x; z(x)], read-only (the same array for repeated calls at a point); z is kept for the last arguments of the
+        maps (a step that moves only entries the maps do not read, e.g. an exact block, costs no product)."""
         x = np.asarray(x, dtype=float).ravel()
         point = (x.tobytes(), self._params.revision)  # the arguments may read parameters too
         if self._point is not None and self._point[0] == point:
-            return self._point[1].copy()
-        args = np.asarray(self._args(x), dtype=float).ravel()
+            return self._point[1]
+        args = (np.asarray(self._args(x), dtype=float).ravel() if self._affine is None
+                else self._affine[0] @ x + self._affine[1])
         key = args.tobytes()
         if self._last is None or self._last[0] != key:
             z = np.empty(self.n_z)
@@ -72,15 +92,16 @@ class Lift:
                 a = args[self._cuts[g]:self._cuts[g + 1]].reshape(self._arg_shapes[g], order="F")
                 a = a if a.shape[1] > 1 else a[:, 0]
                 if self._stacked[g] is not None:  # the images of one argument: one product
-                    products = np.split(self._stacked[g] @ a, np.cumsum(
-                        [self.images.items[k].operator.shape[0] for k in group])[:-1])
-                else:
-                    products = [self.images.items[k].operator.apply(a) for k in group]
-                for k, prod in zip(group, products):
+                    z[self._zindex[g]] = self._stacked[g].apply(a)
+                    continue
+                for k in group:
+                    prod = self.images.items[k].operator.apply(a)
                     z[self._zcuts[k]:self._zcuts[k + 1]] = np.asarray(prod, dtype=float).reshape(-1, order="F")
             self._last = (key, z)
-        self._point = (point, np.concatenate([x, self._last[1]]))
-        return self._point[1].copy()
+        lifted = np.concatenate([x, self._last[1]])
+        lifted.flags.writeable = False
+        self._point = (point, lifted)
+        return lifted
 
     def pullback(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
         """d/dx of <g, [x; z(x)]> for g over [x; z] (a vector, or columns of a matrix)."""
@@ -91,16 +112,18 @@ class Lift:
             gz = cols[self.n_x:, j]
             back = []
             for grp, group in enumerate(self._groups):
-                parts = [gz[self._zcuts[k]:self._zcuts[k + 1]].reshape(self.images.items[k].sym.shape, order="F")
-                         for k in group]
                 if self._stacked[grp] is not None:
-                    total = self._stacked[grp].T @ np.concatenate([p[:, 0] for p in parts])
+                    total = self._stacked[grp].adjoint(gz[self._zindex[grp]])
                 else:
+                    parts = [gz[self._zcuts[k]:self._zcuts[k + 1]].reshape(self._item_shapes[k], order="F")
+                             for k in group]
                     total = sum(np.asarray(self.images.items[k].operator.adjoint(p if p.shape[1] > 1 else p[:, 0]),
                                            dtype=float).reshape(self._arg_shapes[grp], order="F")
                                 for k, p in zip(group, parts))
                 back.append(np.asarray(total, dtype=float).reshape(-1, order="F"))
-            out[:, j] += np.asarray(self._args_adjoint(x, np.concatenate(back)), dtype=float).ravel()
+            back = np.concatenate(back)
+            out[:, j] += (np.asarray(self._args_adjoint(x, back), dtype=float).ravel() if self._affine is None
+                          else self._affine[2] @ back)
         return out.reshape((self.n_x,) + g.shape[1:])
 
     def expanded(self) -> ca.SX:

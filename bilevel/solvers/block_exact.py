@@ -21,6 +21,7 @@ from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
+import scipy.sparse as sp
 
 from ..canonical import CanonicalBilevel
 from ..errors import BilevelError
@@ -109,19 +110,8 @@ def _block_data(canon: CanonicalBilevel, S: slice, hess_F: ca.SX, q: ca.SX) -> C
     zero = ca.DM.zeros(int(y.numel()))
     grad0 = ca.substitute(ca.gradient(canon.F, y), y, zero)
     inner = low.inner if isinstance(low, ImageLower) else low
-    if isinstance(inner, ResidualLeastSquares):  # dq/dx_S = -C' dd/dx_S by a reverse sweep seeded with C's columns
-        lift = low.lift if isinstance(low, ImageLower) else (lambda xv: xv)
-        V = ca.SX.sym("V", int(inner.d_expr.numel()), inner.n_y)
-        sweep = canon.params.function("exact_block_data", [inner.x, V], [ca.jtimes(inner.d_expr, x[S], V, True),
-                                                                         grad0, hess_F])
-
-        def residual_data(xv: np.ndarray) -> tuple:
-            xt = lift(xv)
-            C, d, _ = inner.data(xt)
-            jd, g0, hF = sweep(xt, C)
-            return C.T @ C, -(C.T @ d), -np.asarray(jd).T, g0, hF
-
-        return residual_data
+    if isinstance(inner, ResidualLeastSquares):  # dq/dx_S = -C' dd/dx_S
+        return _residual_block_data(canon, inner, S, grad0, hess_F)
     if isinstance(low, ImageLower):  # the block does not reach the maps (find_exact_block): data of [x; z] at lift(x)
         fun = canon.params.function("exact_block_data", [low.inner.x], [ca.substitute(low.inner.hess_f, y, zero), q,
                                                                         ca.jacobian(q, x[S]), grad0, hess_F])
@@ -137,6 +127,41 @@ def _block_data(canon: CanonicalBilevel, S: slice, hess_F: ca.SX, q: ca.SX) -> C
         return low.hess, q.ravel() - low.C.T @ d.ravel(), jac_q - low.C.T @ jac_d, g0, hF
 
     return data
+
+
+def _residual_block_data(canon: CanonicalBilevel, inner: ResidualLeastSquares, S: slice, grad0: ca.SX,
+                         hess_F: ca.SX) -> Callable:
+    """ExactBlock.data for a residual-form learner: C and d by its own evaluation; dd/dx_S a constant matrix where d
+    is affine in x_S (else a reverse sweep seeded with C's columns); grad0 and hess_F evaluated once per parameter
+    revision where they do not depend on x (else with the sweep)."""
+    low, x = canon.lower, canon.x
+    lift = low.lift if isinstance(low, ImageLower) else (lambda xv: xv)
+    jac_d = ca.jacobian(inner.d_expr, x[S])
+    constant_jac = not ca.depends_on(jac_d, inner.x) and not ca.depends_on(jac_d, canon.params.sym)
+    jac_d_t = sp.csr_matrix(ca.evalf(jac_d).sparse().T) if constant_jac else None  # (dd/dx_S)'
+    constant_F = not ca.depends_on(ca.vertcat(grad0, ca.vec(hess_F)), x)
+    V = ca.SX.sym("V", int(inner.d_expr.numel()), inner.n_y)
+    outputs = ([] if constant_jac else [ca.jtimes(inner.d_expr, x[S], V, True)]) + ([] if constant_F else
+                                                                                    [grad0, hess_F])
+    sweep = canon.params.function("exact_block_data", [inner.x, V], outputs) if outputs else None
+    upper_parts = canon.params.function("exact_block_upper", [], [grad0, hess_F]) if constant_F else None
+    kept: dict[str, Any] = {}
+
+    def residual_data(xv: np.ndarray) -> tuple:
+        xt = lift(xv)
+        C, d, _ = inner.data(xt)
+        swept = [] if sweep is None else sweep(xt, C)
+        swept = swept if isinstance(swept, list) else [swept]
+        jd = (jac_d_t @ C).T if constant_jac else np.asarray(swept.pop(0)).T
+        if constant_F:
+            if kept.get("revision") != canon.params.revision:
+                kept.update(revision=canon.params.revision, parts=upper_parts())
+            g0, hF = kept["parts"]
+        else:
+            g0, hF = swept
+        return C.T @ C, -(C.T @ d), -jd, g0, hF
+
+    return residual_data
 
 
 def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactBlock | None, list[str]]:
@@ -202,12 +227,13 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], s
     balls = prep.balls
     oracle = shared_oracle(prep, float(penalty), projected_rows=tuple(b.row for b in balls))
     S = exact.ball.block
-    rest = np.ones(int(prep.canon.x.numel()), dtype=bool)
-    rest[S] = False
+    n = int(prep.canon.x.numel())
+    rest: slice | np.ndarray = slice(S.stop, n) if S.start == 0 else slice(0, S.start) if S.stop == n else \
+        np.flatnonzero((np.arange(n) < S.start) | (np.arange(n) >= S.stop))  # the other entries (a view if it can)
     weights = budget_scale(prep.canon, balls)[rest]
 
     def full(xr: np.ndarray) -> np.ndarray:
-        x = np.empty(rest.size)
+        x = np.empty(n)
         x[rest], x[S] = xr, exact.ball.center
         return x
 
@@ -234,7 +260,9 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], s
 
         def stop(ev: Evaluation, k: int = k, calls: list[int] = calls) -> bool:
             """Progress at the start and each accepted point; the deadline."""
-            progress(verbose, label, f"start {k + 1}/{starts}, iteration {calls[0]}: phi = {prep.declared(ev.phi):.8g}")
+            if verbose:
+                progress(verbose, label, f"start {k + 1}/{starts}, iteration {calls[0]}: phi = "
+                         f"{prep.declared(ev.phi):.8g}")
             calls[0] += 1
             return limit.expired()
 

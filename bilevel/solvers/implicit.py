@@ -83,8 +83,11 @@ class Hypergradient:
         G = ca.vertcat(*[canon.G[i] for i in kept]) if kept else ca.SX(0, 1)  # projected rows need no penalty
         self._upper_outputs = [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y), ca.jacobian(G, x),
                                ca.jacobian(G, y), ca.jacobian(H, x), ca.jacobian(H, y)]
-        self._upper = canon.params.function("upper", [x, y], self._upper_outputs)
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
+        self._squares = canon.squares  # F by BLAS where it is numeric squares of y, not swept
+        swept = self._upper_outputs if self._squares is None else \
+            [ca.SX(1, 1), G, H, ca.SX(nx, 1), ca.SX(ny, 1), *self._upper_outputs[5:]]
+        self._upper = canon.params.function("upper", [x, y], swept)
         self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
         self._fixed: tuple[int, LowerSolution, KKTValues | None] | None = None  # (parameter revision, ...)
         self._batches: dict[int, ca.Function] = {}  # batch_phi's mapped sweeps, by batch size
@@ -195,7 +198,12 @@ class Hypergradient:
         else:
             if np.isnan(sol.objective):  # the matrix form evaluates f numerically
                 sol.objective = float(self.low.evaluate(x, sol.y)[0])
-            upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
+            if self._squares is None or self._upper_shapes[1][0] + self._upper_shapes[2][0] > 0:
+                upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
+            else:  # F is all there is: nothing to sweep
+                upper = [np.zeros(shape) for shape in self._upper_shapes]
+            if self._squares is not None:
+                upper[0], upper[4] = self._squares(sol.y)
         if self._spectral is not None:
             upper = self._with_spectral(x, sol.y, upper)
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()

@@ -17,6 +17,7 @@ from bilevel.problems.vrft_instance import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating
 from bilevel.errors import ModelError
 from bilevel.lower.images import ImageLower
+from bilevel.lower.least_squares import factor_solve, hessian_factor
 from bilevel.lower.residual import ResidualLeastSquares, sum_of_squares
 from bilevel.solvers.base import prepare
 from bilevel.solvers.implicit import Hypergradient
@@ -272,3 +273,71 @@ def test_residual_form_with_affine_data_keeps_the_terms_free_of_y(monkeypatch) -
     x, th = rng.standard_normal(T), rng.standard_normal(2)
     expected = float(ca.evalf(ca.substitute(ca.substitute(f, dy, ca.DM(x)), theta, ca.DM(th))))
     assert low.evaluate(x, th)[0] == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("sense", ["min", "max"])
+def test_an_upper_objective_with_a_numeric_matrix_is_evaluated_by_blas(sense: str) -> None:
+    """F = ||A y - b||^2 / 3 + 2 with A written into the graph is read as numeric squares (residual.NumericSquares);
+    with y* = x, F and its gradient are checked against the closed form."""
+    rng = np.random.default_rng(5)
+    A, b = rng.standard_normal((200, 6)), rng.standard_normal(200)
+    p = bl.BilevelProblem("squares")
+    x = p.upper_variable("x", 6)
+    y = p.lower_variable("y", 6)
+    p.minimize_lower(ca.sumsqr(y - x))
+    F = ca.sumsqr(ca.mtimes(ca.DM(A), y) - b) / 3 + 2
+    (p.minimize_upper if sense == "min" else p.maximize_upper)(F)
+    oracle = Hypergradient(prepare(p))
+    assert oracle._squares is not None
+    x0 = rng.standard_normal(6)
+    ev = oracle.evaluate(x0)
+    sign = 1.0 if sense == "min" else -1.0  # the canonical form minimizes
+    r = A @ x0 - b
+    assert ev.F == pytest.approx(sign * (r @ r / 3 + 2), rel=1e-12)
+    assert float(prepare(p).canon.functions(x0, ev.lower.y)[0][0, 0]) == pytest.approx(ev.F, rel=1e-12)  # the probe's
+    assert np.abs(oracle.gradient(ev)[0] - sign * 2 * A.T @ r / 3).max() <= 1e-10 * np.abs(A.T @ r).max()
+
+
+def test_residual_data_follow_a_parameter_at_the_same_point() -> None:
+    """The residual form's data are kept per point and parameter revision: after set_value the learner at the same x
+    is numpy's fit of the new data."""
+    rng = np.random.default_rng(4)
+    A, b = rng.standard_normal((400, 6)), rng.standard_normal(400)
+    p = bl.BilevelProblem("ridge")
+    db = p.upper_variable("db", 400)
+    scale = p.parameter("scale", value=1.0)
+    w = p.lower_variable("w", 6)
+    p.minimize_lower(ca.sumsqr(scale * ca.mtimes(ca.DM(A), w) - b - db))
+    p.upper_constraint(ca.sumsqr(db) <= 1.0)
+    p.maximize_upper(ca.sumsqr(w))
+    low = prepare(p).canon.lower
+    assert isinstance(low, ResidualLeastSquares)
+    x = 0.01 * rng.standard_normal(400)
+    for s in (1.0, 2.0):
+        p.set_value("scale", s)
+        assert np.allclose(low.solve(x).y, np.linalg.lstsq(s * A, b + x, rcond=None)[0], rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("columns", [1, 3, 512])
+def test_factor_solve_solves_for_any_number_of_columns(columns: int) -> None:
+    """P^{-1} B from the Cholesky factor (the exact block solves for a 6 x N matrix): P X = B to rounding, on an
+    ill-conditioned P too."""
+    rng = np.random.default_rng(6)
+    Q = np.linalg.qr(rng.standard_normal((6, 6)))[0]
+    P = Q @ np.diag(np.logspace(0, -8, 6)) @ Q.T
+    B = rng.standard_normal((6, columns))
+    X = factor_solve(hessian_factor(P), B)
+    assert X.shape == B.shape
+    assert np.abs(P @ X - B).max() <= 1e-12 * (1.0 + np.abs(X).max())  # backward stable: eps ||P|| ||X||
+
+
+def test_numeric_squares_keep_a_diagonal_sparse() -> None:
+    """||y - c||^2 / 2 over 1,500 entries (a diagonal of 1,500 coefficients) is read as sparse numeric squares; its
+    value and gradient are the closed form."""
+    rng = np.random.default_rng(7)
+    y, c, v = ca.SX.sym("y", 1500), rng.standard_normal(1500), rng.standard_normal(1500)
+    squares = residual.numeric_squares(-0.5 * ca.sumsqr(y - c), y, ca.SX.sym("x", 2))
+    assert squares is not None and sp.issparse(squares.A)
+    F, g = squares(v)
+    assert F[0, 0] == pytest.approx(-0.5 * np.sum((v - c) ** 2), rel=1e-13)
+    assert np.abs(g.ravel() + (v - c)).max() <= 1e-13
