@@ -11,6 +11,7 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
+from ..errors import ModelError
 from ..vech import unvech, vech, vech_sx
 from .base import LowerSolution
 from .convexity import psd_violation
@@ -89,6 +90,10 @@ class SemidefiniteLower(QuadraticLower):
             outs += [ca.substitute(m, self.y, zero), ca.substitute(ca.jacobian(ca.vec(m), self.y), self.y, zero)]
         self._lmi = self.params.function("lmi_coeffs", [self.x], outs)
         self._last_point: tuple[tuple, QPData, tuple] | None = None
+        self._chosen: tuple[int, LowerSolution] | None = None  # (parameter revision, the learner's own solution)
+        self.min_norm = True
+        """Whether the hypergradient engine applies select_min_norm to its solutions (False: the polished solver's
+        point, e.g. the exact ridge solution of a regularized learner as its solver returns it)."""
 
     def lmi_data(self, x: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
         """(M_k0, d vec(M_k)/dy) for every LMI at upper point x."""
@@ -97,13 +102,27 @@ class SemidefiniteLower(QuadraticLower):
                      for k in range(len(self.psd)))
 
     def reference_solve(self, x: np.ndarray) -> LowerSolution:
-        """The kind's own conic solve (cvxpy + Clarabel with the LMIs)."""
-        return self.solve(x)
-
-    def solve(self, x: np.ndarray) -> LowerSolution:
-        """Solve the SDP at x with cvxpy + Clarabel; Z_k are the LMI multipliers (L = f - sum <Z_k, M_k>)."""
+        """The SDP solved at x with cvxpy + Clarabel, always afresh (the certificate's independent re-solve); Z_k are
+        the LMI multipliers (L = f - sum <Z_k, M_k>)."""
         return solve_qp_clarabel(self.data(x), f"at x = {np.array2string(np.asarray(x), precision=4)}",
                                  self.lmi_data(x))
+
+    def solve(self, x: np.ndarray) -> LowerSolution:
+        """The chosen solution (choose) where the SDP ignores x and one is chosen, else reference_solve(x)."""
+        chosen = self.chosen()
+        return chosen if chosen is not None else self.reference_solve(x)
+
+    def choose(self, sol: LowerSolution) -> None:
+        """Make sol the solution of this SDP, which must not depend on x, until a parameter changes: a learner's own
+        choice among non-unique optima (e.g. one conic solver's answer), used by every method, the hypergradient
+        engine (unpolished, unselected) and the local probe; the certificate still re-solves independently."""
+        if not self.fixed:
+            raise ModelError("choose: this SDP depends on the upper variables, so no one solution serves every x")
+        self._chosen = (self.params.revision, sol)
+
+    def chosen(self) -> LowerSolution | None:
+        """The solution set by choose, while the parameter values it was chosen at hold; else None."""
+        return self._chosen[1] if self._chosen is not None and self._chosen[0] == self.params.revision else None
 
     @cached_property
     def conic_kkt(self) -> ConicKKT:

@@ -14,7 +14,8 @@ lam * g, h and vech((M_k Z_k + Z_k M_k) / 2), bilevel.lower.sdp.ConicKKT, and Se
 same code as the Willems attacks; a new point's solution is first sought by Newton continuation from the last one,
 SemidefiniteLower.continue_from), after which y is projected off the directions the SDP sees only through a ridge
 (SemidefiniteLower.select_min_norm: the minimum-norm selection of a non-unique solution, or the exact ridge
-solution); it needs a strictly complementary lower solution, unique up to those directions.
+solution; not where SemidefiniteLower.min_norm is off), unless the SDP ignores x and a solution is chosen for it
+(SemidefiniteLower.choose); it needs a strictly complementary lower solution, unique up to those directions.
 
 A spectral-radius upper objective (BilevelProblem.maximize_spectral_radius) is evaluated and differentiated
 numerically, F = sign * rho(M(x, y)) with d rho / dM from the top eigenvectors (bilevel.spectral_radius), chained
@@ -180,10 +181,12 @@ class Hypergradient:
             _, sol, vals = self._fixed
         elif lower is not None:
             sol, vals = lower, kkt
+        elif self.conic and self.low.chosen() is not None:  # the learner's own choice (SemidefiniteLower.choose)
+            sol, vals = self.low.chosen(), None
         elif self.conic:  # Newton continuation from the last point's solution, else a conic solve and its polish
             near = None if self._last_conic is None else self.low.continue_from(x, self._last_conic)
             sol = near[0] if near is not None else self.low.newton_polish(x, self.low.solve(x))[0]
-            sol, vals = self.low.select_min_norm(x, sol), None
+            sol, vals = self.low.select_min_norm(x, sol) if self.low.min_norm else sol, None
             self._last_conic = sol
         else:
             sol, vals = self.polish(x, self.low.solve(x))
