@@ -15,7 +15,7 @@ from ..errors import ModelError
 from ..vech import unvech, vech, vech_sx
 from .base import LowerSolution
 from .convexity import psd_violation
-from .quadratic import QPData, QuadraticLower, solve_qp_clarabel
+from .quadratic import QPData, QuadraticLower, clarabel_solution, solve_qp_clarabel
 
 PSD_TOL = 1e-9
 """Relative PSD violation of M_k and Z_k tolerated in a polished iterate."""
@@ -91,6 +91,7 @@ class SemidefiniteLower(QuadraticLower):
         self._lmi = self.params.function("lmi_coeffs", [self.x], outs)
         self._last_point: tuple[tuple, QPData, tuple] | None = None
         self._chosen: tuple[int, LowerSolution] | None = None  # (parameter revision, the learner's own solution)
+        self._solved: dict[str, tuple[int, LowerSolution]] = {}  # conic solves of an SDP that ignores x, by role
         self.min_norm = True
         """Whether the hypergradient engine applies select_min_norm to its solutions (False: the polished solver's
         point, e.g. the exact ridge solution of a regularized learner as its solver returns it)."""
@@ -102,15 +103,38 @@ class SemidefiniteLower(QuadraticLower):
                      for k in range(len(self.psd)))
 
     def reference_solve(self, x: np.ndarray) -> LowerSolution:
-        """The SDP solved at x with cvxpy + Clarabel, always afresh (the certificate's independent re-solve); Z_k are
-        the LMI multipliers (L = f - sum <Z_k, M_k>)."""
-        return solve_qp_clarabel(self.data(x), f"at x = {np.array2string(np.asarray(x), precision=4)}",
-                                 self.lmi_data(x))
+        """The SDP solved at x with cvxpy + Clarabel and polished onto its optimal face (the certificate's independent
+        re-solve; where the SDP ignores x, once per parameter values); Z_k are the LMI multipliers
+        (L = f - sum <Z_k, M_k>)."""
+        return self._once("reference", x, lambda: solve_qp_clarabel(self.data(x), self._context(x), self.lmi_data(x)))
 
     def solve(self, x: np.ndarray) -> LowerSolution:
-        """The chosen solution (choose) where the SDP ignores x and one is chosen, else reference_solve(x)."""
+        """The learner's solution at x: the chosen one (choose), else Clarabel's point Newton-polished on this SDP's
+        KKT system and selected (select); where the SDP ignores x, once per parameter values (apart from
+        reference_solve)."""
         chosen = self.chosen()
-        return chosen if chosen is not None else self.reference_solve(x)
+        if chosen is not None:
+            return chosen
+        return self._once("solve", x, lambda: self.select(x, self.newton_polish(
+            x, clarabel_solution(self.data(x), self._context(x), self.lmi_data(x)))[0]))
+
+    def select(self, x: np.ndarray, sol: LowerSolution) -> LowerSolution:
+        """select_min_norm(x, sol), or sol where min_norm is off."""
+        return self.select_min_norm(x, sol) if self.min_norm else sol
+
+    @staticmethod
+    def _context(x: np.ndarray) -> str:
+        return f"at x = {np.array2string(np.asarray(x), precision=4)}"
+
+    def _once(self, role: str, x: np.ndarray, compute: Callable[[], LowerSolution]) -> LowerSolution:
+        """compute(), kept under `role` while the SDP ignores x and the parameter values hold."""
+        kept = self._solved.get(role)
+        if self.fixed and kept is not None and kept[0] == self.params.revision:
+            return dataclasses.replace(kept[1])
+        sol = compute()
+        if self.fixed:
+            self._solved[role] = (self.params.revision, dataclasses.replace(sol))
+        return sol
 
     def choose(self, sol: LowerSolution) -> None:
         """Make sol the solution of this SDP, which must not depend on x, until a parameter changes: a learner's own

@@ -10,12 +10,11 @@ then not differentiable there and the result is one element of a generalized der
 is computed by the adjoint: grad phi = grad_x phi - R' z with K' z = (grad_y phi, 0), K the KKT matrix
 and R its x-derivative, which equals grad_x phi + (dy/dx)' grad_y phi without forming dy/dx.
 A lower level with LMIs is polished and differentiated through its conic KKT system instead (stationarity,
-lam * g, h and vech((M_k Z_k + Z_k M_k) / 2), bilevel.lower.sdp.ConicKKT, and SemidefiniteLower.adjoint: the
-same code as the Willems attacks; a new point's solution is first sought by Newton continuation from the last one,
-SemidefiniteLower.continue_from), after which y is projected off the directions the SDP sees only through a ridge
-(SemidefiniteLower.select_min_norm: the minimum-norm selection of a non-unique solution, or the exact ridge
-solution; not where SemidefiniteLower.min_norm is off), unless the SDP ignores x and a solution is chosen for it
-(SemidefiniteLower.choose); it needs a strictly complementary lower solution, unique up to those directions.
+lam * g, h and vech((M_k Z_k + Z_k M_k) / 2), bilevel.lower.sdp.ConicKKT, and SemidefiniteLower.adjoint; a new
+point's solution is first sought by Newton continuation from the last one (SemidefiniteLower.continue_from, else
+SemidefiniteLower.solve: Newton-polished, once where the SDP ignores x, or the learner's chosen solution), after
+which y is projected off the directions the SDP sees only through a ridge (SemidefiniteLower.select: the minimum-norm selection of a non-unique solution, or the exact ridge solution, unless
+min_norm is off); it needs a strictly complementary lower solution, unique up to those directions.
 
 A spectral-radius upper objective (BilevelProblem.maximize_spectral_radius) is evaluated and differentiated
 numerically, F = sign * rho(M(x, y)) with d rho / dM from the top eigenvectors (bilevel.spectral_radius), chained
@@ -181,12 +180,9 @@ class Hypergradient:
             _, sol, vals = self._fixed
         elif lower is not None:
             sol, vals = lower, kkt
-        elif self.conic and self.low.chosen() is not None:  # the learner's own choice (SemidefiniteLower.choose)
-            sol, vals = self.low.chosen(), None
-        elif self.conic:  # Newton continuation from the last point's solution, else a conic solve and its polish
+        elif self.conic:  # Newton continuation from the last point's solution, else the SDP's own solve
             near = None if self._last_conic is None else self.low.continue_from(x, self._last_conic)
-            sol = near[0] if near is not None else self.low.newton_polish(x, self.low.solve(x))[0]
-            sol, vals = self.low.select_min_norm(x, sol) if self.low.min_norm else sol, None
+            sol, vals = (self.low.solve(x) if near is None else self.low.select(x, near[0])), None
             self._last_conic = sol
         else:
             sol, vals = self.polish(x, self.low.solve(x))
