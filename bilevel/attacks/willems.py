@@ -32,7 +32,7 @@ import numpy as np
 
 from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller
 from ..ddc.plants import batch_reactor
-from ..errors import ModelError
+from ..errors import ModelError, SolverFailed
 from ..model import BilevelProblem
 from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, WillemsSetting, build_attack, criterion_values
 from ..reduction import KKTPoint
@@ -40,7 +40,7 @@ from ..result import BilevelResult, Status
 from ..solvers.ascent import batched_box_ascent
 from ..solvers.base import MethodRun, Prepared, check_options, prepare
 from ..solvers.budget_search import BudgetSearch, smallest_budget
-from ..solvers.implicit import shared_oracle
+from ..solvers.implicit import Hypergradient, shared_oracle
 from ..solvers.options import check_common_options, check_counts
 from ..solvers.registry import solve
 from ..threads import single_threaded_call
@@ -55,13 +55,25 @@ def _loop(attack: WillemsAttack) -> ca.Function:
     return attack.__dict__["_loop"]
 
 
+def loop(attack: WillemsAttack, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The gain K and the attacker's identified loop A_id + B_id K at poisoning x (flat) and learner solution y."""
+    gain, acl = _loop(attack)(x, y)
+    return np.asarray(gain, dtype=float), np.asarray(acl, dtype=float)
+
+
 def _radius(acl: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(acl))))
 
 
 def identified_radius(attack: WillemsAttack, x: np.ndarray, y: np.ndarray) -> float:
     """Spectral radius of the attacker's identified closed loop A_id + B_id K at poisoning x, learner solution y."""
-    return _radius(np.asarray(_loop(attack)(x, y)[1], dtype=float))
+    return _radius(loop(attack, x, y)[1])
+
+
+def engine(attack: WillemsAttack, radius: bool = False) -> Hypergradient:
+    """The engine's implicit oracle on the attack's problem (radius: its spectral-radius form), the learner with the
+    attack's selection; `engine(attack).low` is the learner's SDP lower level."""
+    return shared_oracle(prepare(_problem(attack, radius)))
 
 
 def _problem(attack: WillemsAttack, radius: bool) -> BilevelProblem:
@@ -96,14 +108,17 @@ def _goal(attack: WillemsAttack, stop_when_unstable: bool, counter: dict[str, in
     return callback
 
 
-def willems_stats(attack: WillemsAttack, result: BilevelResult, evaluations: int) -> dict[str, Any]:
+def willems_stats(attack: WillemsAttack, result: BilevelResult, evaluations: int,
+                  relearn: bool = False) -> dict[str, Any]:
     """The Willems quantities of an attack's result: x, gain, eigenvalues and spectral radius of the true loop, the
     identified radius, the criterion (numerically; +inf for an unstable max-min loop), the budget violation and the
-    learner's largest scaled KKT residual (certificate)."""
+    learner's largest scaled KKT residual (certificate); relearn: the gain of the engine's learner solved at x, not
+    of the result's y (a KKT method's y need not be the learner's response)."""
     p, cert = attack.problem, result.certificate
     x = np.concatenate([np.asarray(result.x[v.name], dtype=float).reshape(-1, order="F") for v in p.upper_variables])
-    y = np.concatenate([np.asarray(result.y[v.name], dtype=float).reshape(-1, order="F") for v in p.lower_variables])
-    gain, acl = (np.asarray(v, dtype=float) for v in _loop(attack)(x, y))
+    y = engine(attack).evaluate(x).lower.y if relearn else \
+        np.concatenate([np.asarray(result.y[v.name], dtype=float).reshape(-1, order="F") for v in p.lower_variables])
+    gain, acl = loop(attack, x, y)
     plant = batch_reactor()
     eig = np.linalg.eigvals(plant.A + plant.B @ gain)
     criterion = float(criterion_values(acl, gain, attack.setting.objective, attack.qx, attack.cost_weight))
@@ -115,7 +130,8 @@ def willems_stats(attack: WillemsAttack, result: BilevelResult, evaluations: int
                         "certificate_failed": list(cert.failed)}}
 
 
-def _run(attack: WillemsAttack, name: str, method: Any, radius: bool = False, **options: Any) -> BilevelResult:
+def _run(attack: WillemsAttack, name: str, method: Any, radius: bool = False, relearn: bool = False,
+         **options: Any) -> BilevelResult:
     """solve(the attack's problem, method, options) as attack `name`, with willems_stats; the whole call's time."""
     t0 = time.perf_counter()
     counter = {"evaluations": 0}
@@ -123,10 +139,10 @@ def _run(attack: WillemsAttack, name: str, method: Any, radius: bool = False, **
         options["callback"] = _goal(attack, options.pop("stop_when_unstable"), counter)
     result = solve(_problem(attack, radius), method=method, **options)
     if result.certificate is None:
-        raise ModelError(f"{name} attack: {result.status.value}: {result.message}")
+        raise SolverFailed(f"{name} attack: {result.status.value}: {result.message}", result=result)
     evaluations = int(result.stats.get("evaluations", counter["evaluations"] or 1))
     return dataclasses.replace(result, method=name, wall_time=time.perf_counter() - t0,
-                               stats={**result.stats, **willems_stats(attack, result, evaluations)})
+                               stats={**result.stats, **willems_stats(attack, result, evaluations, relearn)})
 
 
 @single_threaded_call
@@ -221,8 +237,9 @@ def destabilize_attack(attack: WillemsAttack, starts: int = 64, seed: Any = 0, m
 @single_threaded_call
 def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> BilevelResult:
     """The generic route: bilevel.solve on the declared problem with a KKT method (reformulation, PSD pairs
-    factored); its answer is certified and probed like every attack's."""
-    return _run(attack, f"kkt-{method}", method, **options)
+    factored); its answer is certified and probed like every attack's; the gain in stats is the learner's, re-solved
+    at the answer's poisoning."""
+    return _run(attack, f"kkt-{method}", method, relearn=True, **options)
 
 
 def willems_row(result: BilevelResult) -> dict[str, Any]:

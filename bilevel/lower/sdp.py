@@ -11,7 +11,7 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
-from ..errors import ModelError
+from ..errors import ModelError, SolverFailed
 from ..vech import unvech, vech, vech_sx
 from .base import LowerSolution
 from .convexity import psd_violation
@@ -22,6 +22,8 @@ PSD_TOL = 1e-9
 CONTINUATION_TOL, CONTINUATION_STEPS = 1e-9, 6
 """KKT residual that a Newton continuation from a nearby solution must reach (no worse than a polished conic solve),
 and its Newton steps."""
+POLISHED_TOL = 1e-6
+"""Largest KKT residual of a polished solution of an SDP that moves with x (its implicit derivative needs a KKT point)."""
 FREE_RTOL = 1e-10
 """Singular values below FREE_RTOL times the largest count as zero when finding the directions the SDP sees."""
 
@@ -113,10 +115,17 @@ class SemidefiniteLower(QuadraticLower):
         KKT system and selected (select); where the SDP ignores x, once per parameter values (apart from
         reference_solve)."""
         chosen = self.chosen()
-        if chosen is not None:
-            return chosen
-        return self._once("solve", x, lambda: self.select(x, self.newton_polish(
-            x, clarabel_solution(self.data(x), self._context(x), self.lmi_data(x)))[0]))
+        return chosen if chosen is not None else self._once("solve", x, lambda: self._polished(x))
+
+    def _polished(self, x: np.ndarray) -> LowerSolution:
+        """Clarabel's point Newton-polished and selected; SolverFailed where the SDP moves with x and the polish stays
+        above POLISHED_TOL (no strictly complementary solution: y*(x) has no derivative there)."""
+        sol, residual = self.newton_polish(x, clarabel_solution(self.data(x), self._context(x), self.lmi_data(x)))
+        if residual > POLISHED_TOL and not self.fixed:
+            raise SolverFailed(f"the SDP {self._context(x)} has KKT residual {residual:.1e} > {POLISHED_TOL:g} after "
+                               "Newton polishing (no strictly complementary solution found): its solution's derivative "
+                               "is not defined there; move x or regularize the lower objective (e.g. raise reg)")
+        return self.select(x, sol)
 
     def select(self, x: np.ndarray, sol: LowerSolution) -> LowerSolution:
         """select_min_norm(x, sol), or sol where min_norm is off."""
