@@ -15,7 +15,7 @@ from ..errors import ModelError, SolverFailed
 from ..vech import unvech, vech, vech_sx
 from .base import LowerSolution
 from .convexity import psd_violation
-from .quadratic import QPData, QuadraticLower, clarabel_solution, solve_qp_clarabel
+from .quadratic import QPData, QuadraticLower, clarabel_direct, solve_qp_clarabel
 
 PSD_TOL = 1e-9
 """Relative PSD violation of M_k and Z_k tolerated in a polished iterate."""
@@ -23,7 +23,7 @@ CONTINUATION_TOL, CONTINUATION_STEPS = 1e-9, 6
 """KKT residual that a Newton continuation from a nearby solution must reach (no worse than a polished conic solve),
 and its Newton steps."""
 POLISHED_TOL = 1e-6
-"""Largest KKT residual of a polished solution of an SDP that moves with x (its implicit derivative needs a KKT point)."""
+"""Largest KKT residual of a polished solution of an SDP that moves with x (its derivative needs a KKT point)."""
 FREE_RTOL = 1e-10
 """Singular values below FREE_RTOL times the largest count as zero when finding the directions the SDP sees."""
 
@@ -118,9 +118,9 @@ class SemidefiniteLower(QuadraticLower):
         return chosen if chosen is not None else self._once("solve", x, lambda: self._polished(x))
 
     def _polished(self, x: np.ndarray) -> LowerSolution:
-        """Clarabel's point Newton-polished and selected; SolverFailed where the SDP moves with x and the polish stays
-        above POLISHED_TOL (no strictly complementary solution: y*(x) has no derivative there)."""
-        sol, residual = self.newton_polish(x, clarabel_solution(self.data(x), self._context(x), self.lmi_data(x)))
+        """Clarabel's point (its own interface) Newton-polished and selected; SolverFailed where the SDP moves with x
+        and the polish stays above POLISHED_TOL (no strictly complementary solution: y*(x) has no derivative there)."""
+        sol, residual = self.newton_polish(x, clarabel_direct(self.data(x), self._context(x), lmis=self.lmi_data(x)))
         if residual > POLISHED_TOL and not self.fixed:
             raise SolverFailed(f"the SDP {self._context(x)} has KKT residual {residual:.1e} > {POLISHED_TOL:g} after "
                                "Newton polishing (no strictly complementary solution found): its solution's derivative "

@@ -196,8 +196,8 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
         return MethodRun(None, Status.ERROR, f"the lower level could not be solved at any of the {out.nfev} points "
                          "differential evolution tried", int(out.nit))
     found = best["ev"]
-    searched = limit.reached() if limit.hit else "stopped by the callback (the caller's goal)" if goal else \
-        str(out.message)
+    searched = (limit.reached() if limit.hit else "stopped by the callback (the caller's goal)" if goal
+                else str(out.message))
     stats = {"generations": int(out.nit), "evaluations": int(out.nfev), "evolution_objective": found.F,
              "evolution_message": searched, "members": members, "penalty": penalty}
     record = {"start": 0, "objective": found.F, "residual": found.violation, "generations": int(out.nit)}

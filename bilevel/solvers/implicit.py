@@ -14,7 +14,8 @@ lam * g, h and vech((M_k Z_k + Z_k M_k) / 2), bilevel.lower.sdp.ConicKKT, and Se
 point's solution is first sought by Newton continuation from the last one (SemidefiniteLower.continue_from, else
 SemidefiniteLower.solve: Newton-polished, once where the SDP ignores x, or the learner's chosen solution), after
 which y is projected off the directions the SDP sees only through a ridge (SemidefiniteLower.select: the
-minimum-norm selection of a non-unique solution, or the exact ridge solution, unless min_norm is off); it needs a strictly complementary lower solution, unique up to those directions.
+minimum-norm selection of a non-unique solution, or the exact ridge solution, unless min_norm is off); it needs a
+strictly complementary lower solution, unique up to those directions.
 
 A spectral-radius upper objective (BilevelProblem.maximize_spectral_radius) is evaluated and differentiated
 numerically, F = sign * rho(M(x, y)) with d rho / dM from the top eigenvectors (bilevel.spectral_radius), chained

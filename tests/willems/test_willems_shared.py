@@ -72,8 +72,9 @@ def test_a_learner_that_ignores_the_poisoning_is_solved_once_per_role(monkeypatc
     import bilevel.lower.sdp as sdp
 
     counts = {"method": 0, "reference": 0}
-    raw, faced = sdp.clarabel_solution, sdp.solve_qp_clarabel
-    monkeypatch.setattr(sdp, "clarabel_solution", lambda *a: counts.__setitem__("method", counts["method"] + 1) or raw(*a))
+    raw, faced = sdp.clarabel_direct, sdp.solve_qp_clarabel
+    monkeypatch.setattr(sdp, "clarabel_direct",
+                        lambda *a, **k: counts.__setitem__("method", counts["method"] + 1) or raw(*a, **k))
     monkeypatch.setattr(sdp, "solve_qp_clarabel",
                         lambda *a: counts.__setitem__("reference", counts["reference"] + 1) or faced(*a))
     attack = build_attack(objective="destabilize", horizon=15, seed=4, delta_u=0.2)
