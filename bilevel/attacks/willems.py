@@ -76,14 +76,26 @@ def engine(attack: WillemsAttack, radius: bool = False) -> Hypergradient:
     return shared_oracle(prepare(_problem(attack, radius)))
 
 
+SHARED_KEPT = 4
+"""Declarations (WillemsAttack.declaration: data, learner, criterion) whose prepared problems a process keeps."""
+_SHARED: dict[tuple, BilevelProblem] = {}
+
+
 def _problem(attack: WillemsAttack, radius: bool) -> BilevelProblem:
-    """The attack's declared problem, or its spectral-radius form (kept on attack: a second attack on it reuses the
-    engine's preparation), with the learner's selection given to its SDP lower level."""
-    key = "_radius_problem" if radius else "_problem"
-    if key not in attack.__dict__:
-        attack.__dict__[key] = attack.radius_problem() if radius else attack.problem
-    problem = attack.__dict__[key]
-    low = prepare(problem).canon.lower
+    """The problem of the attack's declaration (or its spectral-radius form), prepared once per process for the last
+    SHARED_KEPT declarations and given this attack's box (Prepared.rebox): attacks on one data set at several budgets
+    or by several methods share the engine's preparation and the learner's solves. The learner's selection is given
+    to its SDP lower level."""
+    key = (attack.declaration, radius)
+    problem = _SHARED.pop(key, None) or (attack.radius_problem() if radius else attack.problem)
+    _SHARED[key] = problem
+    while len(_SHARED) > SHARED_KEPT:
+        del _SHARED[next(iter(_SHARED))]
+    prep = prepare(problem)
+    bound = attack.budget()
+    if not (np.array_equal(prep.canon.x_ub, bound) and np.array_equal(prep.canon.x_lb, -bound)):
+        prep.rebox(-bound, bound)
+    low = prep.canon.lower
     low.min_norm = attack.setting.selection == "min-norm"
     if attack.setting.selection in SOLVER_SELECTIONS and low.chosen() is None:
         zero = np.zeros(low.n_x)
@@ -166,11 +178,27 @@ def _inputs_only(attack: WillemsAttack, who: str) -> None:
 @single_threaded_call
 def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize: int = 5, tol: float = 1e-8,
               stop_when_unstable: bool = True) -> BilevelResult:
-    """The engine's differential evolution on the input poisoning inside the box, without its descent (a heuristic);
-    with stop_when_unstable it stops once the incumbent's identified loop is unstable."""
+    """The engine's differential evolution on the input poisoning inside the box, without its descent (a heuristic),
+    a generation scored at once where the learner ignores the poisoning (_criteria); with stop_when_unstable it stops
+    once the incumbent's identified loop is unstable."""
     _inputs_only(attack, "de_attack")
+    twin = {} if attack.setting.design == "lqr-r" else {"batch_objective": lambda xs, y: _criteria(attack, xs, y)}
     return _run(attack, "differential-evolution", "differential-evolution", seed=seed, max_iter=maxiter,
-                popsize=popsize, tol=tol, polish=False, stop_when_unstable=stop_when_unstable)
+                popsize=popsize, tol=tol, polish=False, stop_when_unstable=stop_when_unstable, **twin)
+
+
+def _criteria(attack: WillemsAttack, xs: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The criterion at each column of xs for a learner that ignores the poisoning: K = K0 + dK/dx x is affine in x
+    (K0 and dK/dx from the declared gain, once per attack), the criterion numerically (criterion_values)."""
+    if "_affine" not in attack.__dict__:
+        y_sym = ca.vertcat(*[ca.vec(v.sym) for v in attack.problem.lower_variables])
+        affine = ca.Function("affine", [attack.upper, y_sym], [attack.gain, ca.jacobian(ca.vec(attack.gain),
+                                                                                         attack.upper)])
+        attack.__dict__["_affine"] = tuple(np.asarray(v, dtype=float) for v in affine(np.zeros(xs.shape[0]), y))
+    k0, jac = attack.__dict__["_affine"]
+    gains = k0[None] + (xs.T @ jac.T).reshape(xs.shape[1], attack.n_states, attack.n_inputs).transpose(0, 2, 1)
+    return criterion_values(attack.a_id + attack.b_id @ gains, gains, attack.setting.objective, attack.qx,
+                            attack.cost_weight)
 
 
 def random_signs(prep: Prepared, *, seed: Any = 0, **unknown: Any) -> MethodRun:

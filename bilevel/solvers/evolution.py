@@ -121,11 +121,14 @@ def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, 
 
 def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
     """Differential evolution over the upper box (options: starts, seed, max_iter generations, popsize, tol, penalty,
-    polish, time_limit, verbose, callback; default budget in the module docstring), then the engine's descent from
-    its best point unless polish=False. callback(intermediate) sees each generation's best point (x, y, fun declared)
-    and, with polish, every point of the descent; raising StopIteration ends the method there (the caller's goal)."""
+    polish, time_limit, verbose, callback, batch_objective; default budget in the module docstring), then the engine's
+    descent from its best point unless polish=False. callback(intermediate) sees each generation's best point (x, y,
+    fun declared) and, with polish, every point of the descent; raising StopIteration ends the method there (the
+    caller's goal). batch_objective(xs, y) -> the declared upper objective at each column of xs (n_x x S) with lower
+    solution y: where the lower level ignores x and only the box constrains x, it scores a generation in one numeric
+    call instead of the engine's mapped sweep (the caller's vectorized twin of its objective)."""
     check_options("differential-evolution", options, {"starts", "seed", "max_iter", "popsize", "tol", "penalty",
-                                                      "polish", "time_limit", "verbose", "callback"})
+                                                      "polish", "time_limit", "verbose", "callback", "batch_objective"})
     canon = prep.canon
     lb, ub = canon.x_lb, canon.x_ub
     if not (np.all(np.isfinite(lb)) and np.all(np.isfinite(ub))):
@@ -144,7 +147,7 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
     limit, verbose = deadline(options), options.get("verbose")
     seeded = [np.clip(x, lb, ub) for x in start_points(prep, int(options.get("starts", 1)), rng, 1.0)][:members]
     population = np.array(seeded + [rng.uniform(lb, ub) for _ in range(members - len(seeded))])
-    best: dict[str, Evaluation] = {}
+    best: dict[str, Any] = {}
 
     def ranked(phi: Any) -> Any:
         """phi as differential evolution ranks it: NaN and +inf (and anything beyond) as UNSOLVED."""
@@ -166,7 +169,10 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
         if "ev" in best and limit.expired():
             return np.full(xs.shape[1], UNSOLVED)
         try:
-            phi = ranked(oracle.batch_phi(xs))
+            if twin is not None and "y" not in best:
+                best["y"] = oracle.evaluate(xs[:, 0]).lower  # the lower solution, the same at every x
+            phi = ranked(oracle.batch_phi(xs) if twin is None else
+                         prep.declared(twin(xs, best["y"].y)))  # declared -> minimized
         except BilevelError:  # the (one) lower solve failed: nowhere to go
             return np.full(xs.shape[1], UNSOLVED)
         i = int(np.argmin(phi))
@@ -188,7 +194,10 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
                 return True
         return limit.expired()
 
-    fixed = oracle.low.fixed
+    fixed, twin = oracle.low.fixed, options.get("batch_objective")
+    if twin is not None and (not callable(twin) or not fixed or canon.G.numel() + canon.H.numel()):
+        raise ModelError("option batch_objective must be a callable(xs, y), for a lower level that ignores the upper "
+                         "variables and a problem without upper constraints besides the box; drop it otherwise")
     progress(verbose, "differential-evolution", f"{members} members, up to {generations} generations")
     out = evolve(batch if fixed else value, lb, ub, rng, generations, 15, float(options.get("tol", 1e-8)),
                  stop=generation, vectorized=fixed, init=population)

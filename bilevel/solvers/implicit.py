@@ -88,7 +88,7 @@ class Hypergradient:
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
         self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
         self._fixed: tuple[int, LowerSolution, KKTValues | None] | None = None  # (parameter revision, ...)
-        self._batches: dict[int, ca.Function] = {}  # batch_phi's mapped sweeps, by batch size
+        self._batches: dict[tuple[int, int], ca.Function] = {}  # batch_phi's sweep, by batch size and revision
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
         self._last_conic: LowerSolution | None = None  # the last conic solution, where continuation starts
         self._spectral: CompiledFunction | None = None  # a spectral objective's M and dM/dx (vec M rows)
@@ -244,12 +244,14 @@ class Hypergradient:
                              "the points one by one")
         y = self.evaluate(xs[:, 0]).lower.y
         canon, n = self.canon, xs.shape[1]
-        shared = [canon.params.value] if canon.params.items else []
-        if n not in self._batches:  # F, G, H of every column
-            args = [canon.x, canon.y] + ([canon.params.sym] if shared else [])
-            sweep = ca.Function("upper_FGH", args, self._upper_outputs[:3])
-            self._batches[n] = sweep.map(n, [False] + [True] * (len(args) - 1), [False] * 3)
-        F, G, H = (np.asarray(v, dtype=float) for v in self._batches[n](xs, y, *shared))
+        key = (n, self.low.params.revision)
+        if key not in self._batches:  # F, G, H of every column, y and the parameters folded in as numbers
+            known = ca.vertcat(canon.y, canon.params.sym)
+            values = ca.DM(np.concatenate([y, canon.params.value]))
+            sweep = ca.Function("upper_FGH", [canon.x], [ca.substitute(e, known, values)
+                                                          for e in self._upper_outputs[:3]])
+            self._batches = {key: sweep.map(n)}
+        F, G, H = (np.asarray(v, dtype=float) for v in self._batches[key](xs))
         if self._spectral is not None:
             F = self.spectral_batch(xs)[0]
         return self.penalized(F.reshape(1, n), G.reshape(-1, n), H.reshape(-1, n))
