@@ -243,6 +243,7 @@ class SemidefiniteLower(QuadraticLower):
         w = self.pack(sol)
         r, jac = (np.asarray(v) for v in kkt.residual(x, w))
         best = last = float(np.abs(r).max(initial=0.0))
+        label = sol.solver if sol.solver.endswith(" + KKT Newton polish") else f"{sol.solver} + KKT Newton polish"
         for _ in range(steps):
             w = w + solve_square(jac, -r.ravel())[0]
             r, jac = (np.asarray(v) for v in kkt.residual(x, w))
@@ -250,7 +251,7 @@ class SemidefiniteLower(QuadraticLower):
             if not value < last:
                 break
             last = value
-            trial = self.unpack(w, sol, x, f"{sol.solver} + KKT Newton polish")
+            trial = self.unpack(w, sol, x, label)
             if value < best and self.in_cones(x, trial):
                 sol, best = trial, value
             if value < 1e-14:
