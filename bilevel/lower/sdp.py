@@ -120,7 +120,9 @@ class SemidefiniteLower(QuadraticLower):
     def _polished(self, x: np.ndarray) -> LowerSolution:
         """Clarabel's point (its own interface) Newton-polished and selected; SolverFailed where the SDP moves with x
         and the polish stays above POLISHED_TOL (no strictly complementary solution: y*(x) has no derivative there)."""
-        sol, residual = self.newton_polish(x, clarabel_direct(self.data(x), self._context(x), lmis=self.lmi_data(x)))
+        verified = self.constant_hessian and self.convexity_probe is not None  # the declaration's PSD check
+        raw = clarabel_direct(self.data(x), self._context(x), verified, self.lmi_data(x))
+        sol, residual = self.newton_polish(x, raw)
         if residual > POLISHED_TOL and not self.fixed:
             raise SolverFailed(f"the SDP {self._context(x)} has KKT residual {residual:.1e} > {POLISHED_TOL:g} after "
                                "Newton polishing (no strictly complementary solution found): its solution's derivative "
