@@ -205,8 +205,8 @@ def random_signs(prep: Prepared, *, seed: Any = 0, **unknown: Any) -> MethodRun:
     """Method: every upper entry at a bound, the side drawn by a fair coin (a budget-matched baseline)."""
     check_options("random-signs", unknown, {"seed"})
     canon = prep.canon
-    side = np.random.default_rng(seed).random(canon.x_lb.size) < 0.5
-    ev = shared_oracle(prep).evaluate(np.where(side, canon.x_lb, canon.x_ub))
+    sign = np.random.default_rng(seed).choice([-1.0, 1.0], size=canon.x_lb.size)
+    ev = shared_oracle(prep).evaluate(np.where(sign > 0, canon.x_ub, canon.x_lb))
     w = prep.pack(KKTPoint(ev.x, ev.lower.y, ev.lower.lam, ev.lower.mu, ev.lower.Z))
     return MethodRun(w, Status.INACCURATE, "random signs at the budget (a baseline, not an optimizer)")
 
