@@ -29,7 +29,7 @@ from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, check_options
 from .hypergradient import DESCENT_FTOL, DESCENT_MAX_ITER, DESCENT_TOL, Arc, Descent, descend, intermediate
-from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, shared_oracle
+from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, shared_oracle
 from .limits import deadline, progress
 from .options import check_counts
 from .starts import start_points

@@ -2,22 +2,13 @@
 
 from __future__ import annotations
 
-import casadi as ca
 import numpy as np
 import pytest
 
 import bilevel as bl
 from bilevel.solvers.base import prepare
 
-
-def _wavy(start: float = 1.5) -> bl.BilevelProblem:
-    """y*(x) = x, F = sin(3y) + 0.1 y^2 on [-3, 3]: local minima near -2.6, -0.51 (global) and 1.54."""
-    p = bl.BilevelProblem("wavy")
-    x = p.upper_variable("x", lb=-3, ub=3, start=start)
-    y = p.lower_variable("y")
-    p.minimize_lower((y - x) ** 2)
-    p.minimize_upper(ca.sin(3 * y) + 0.1 * y ** 2)
-    return p
+from .test_evolution import _wavy
 
 
 @pytest.mark.parametrize("method", ["hypergradient", "differential-evolution"])
@@ -33,7 +24,7 @@ def test_callback_stops_the_method_at_the_callers_goal(method: str) -> None:
         if point.fun < 0.5:
             raise StopIteration
 
-    res = bl.solve(_wavy(), method=method, callback=goal, starts=1, seed=0)
+    res = bl.solve(_wavy(1.5), method=method, callback=goal, starts=1, seed=0)
     x = float(np.ravel(res.x["x"])[0])
     assert res.upper_objective < 0.5 and res.upper_objective == pytest.approx(np.sin(3 * x) + 0.1 * x * x, abs=1e-9)
     assert seen[-1] == pytest.approx(res.upper_objective, abs=1e-9) and res.status is not bl.Status.SOLVED
@@ -56,7 +47,7 @@ def test_prefer_breaks_near_ties_between_starts() -> None:
 def test_rebox_gives_every_later_solve_the_new_box() -> None:
     """After rebox to [0.5, 3] the wavy problem's minimum is the local one near 1.54 (the global one, -0.51, is cut
     off; checked on a 250,001-point grid of the box), and its certificate checks the new box."""
-    p = _wavy()
+    p = _wavy(1.5)
     prep = prepare(p)
     prep.rebox(np.array([0.5]), np.array([3.0]))
     res = bl.solve(p, method="hypergradient", starts=3, seed=0)
