@@ -324,7 +324,10 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
             break
         t0 = time.perf_counter()
 
+        seen: list[dict[str, Any]] = []  # this start's iterate records, kept where the callback ends the run
+
         def report(record: dict[str, Any], k: int = k) -> None:
+            seen.append(record)
             progress(verbose, "hypergradient", f"start {k + 1}/{starts}, iteration {record['iter']}: phi = "
                      f"{prep.declared(record['objective']):.8g}, projected step {record['projected_step_norm']:.2e}")
 
@@ -335,9 +338,10 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
                                 "message": "no upper point near the start where the lower level can be solved",
                                 "time": time.perf_counter() - t0})
                 continue
-            run = descend(arc, start, tol, ftol, max_iter, limit, report if verbose else None)
+            run = descend(arc, start, tol, ftol, max_iter, limit, report)
         except StopIteration:
-            run = Descent(arc.last, Status.INACCURATE, "stopped by the callback (the caller's goal)", 0, [])
+            run = Descent(arc.last, Status.INACCURATE, "stopped by the callback (the caller's goal)",
+                          max(len(seen) - 1, 0), seen)
             goal = k
         p = run.point
         w = prep.pack(KKTPoint(p.x, p.lower.y, p.lower.lam, p.lower.mu, p.lower.Z))
