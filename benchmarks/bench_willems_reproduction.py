@@ -2,8 +2,8 @@
 
 Runs the first SIMS simulations of each sweep of the 256-simulation plan (paper, remark, designs: every cell, so the
 subset has the full plan's mix of methods, horizons and budgets) in task order through attack_task, as two local
-workers would take them (tasks dealt alternately to two workers, each with its own per-process caches: the shared
-oracles and reference learners). Reports CPU seconds (time.process_time: robust to other jobs on the machine, which
+workers would take them (tasks dealt alternately to two workers, each with its own per-process cache of reference
+learners). Reports CPU seconds (time.process_time: robust to other jobs on the machine, which
 wall time is not) per task by sweep and method, and the full plan's estimate: CPU per task x tasks, over 2 workers.
 Usage: bench_willems_reproduction.py [PAPER_SIMS] [REMARK_SIMS] [DESIGN_SIMS] (default 4 2 2).
 """
@@ -16,7 +16,6 @@ import sys
 import time
 from collections import defaultdict
 
-import bilevel.attacks.willems as attacks
 import bilevel.experiments.willems as experiment
 from bilevel.threads import single_threaded
 
@@ -33,7 +32,7 @@ def main() -> None:
     plan = experiment.make_plan(256, False)
     sweeps = {"paper": experiment.paper_tasks(plan, 0), "remark": experiment.remark_tasks(plan, 0),
               "designs": experiment.design_tasks(plan, 0)}
-    workers = [({}, {}), ({}, {})]  # per worker: shared oracles, reference learners
+    workers = [{}, {}]  # per worker: reference learners
     total_cpu = 0.0
     print(f"{'sweep':>8} {'group':>24} {'tasks run':>9} {'CPU s/task':>10} {'tasks (256 plan)':>16} {'CPU s (plan)':>12}")
     for name, tasks in sweeps.items():
@@ -41,7 +40,7 @@ def main() -> None:
         cpu: dict[str, list[float]] = defaultdict(list)
         with single_threaded():
             for i, task in enumerate(subset):
-                attacks._ORACLES, experiment._REFERENCES = workers[i % 2]
+                experiment._REFERENCES = workers[i % 2]
                 t0 = time.process_time()
                 row = experiment.attack_task(task)
                 cpu[f"N={task['horizon']} {task['method']}" if name == "paper" else

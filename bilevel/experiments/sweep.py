@@ -32,7 +32,7 @@ try:
     _PACKAGE = metadata.version("bilevel")
 except metadata.PackageNotFoundError:  # pragma: no cover - running from a source tree without install
     _PACKAGE = "unknown"
-ALGORITHM_VERSION = f"bilevel-{_PACKAGE}/sweep-3"
+ALGORITHM_VERSION = f"bilevel-{_PACKAGE}/sweep-4"
 """Part of every row's digest: bump the suffix when an attack changes its numbers for the same task."""
 
 

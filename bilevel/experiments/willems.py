@@ -128,7 +128,7 @@ def _task(plan: Plan, root_seed: int, experiment: str, i: int, seeds: tuple[int,
 def paper_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict[str, Any]]:
     """Input poisoning of the appendix SDP: every (N, sim, delta_u) for the eigenvalue criterion (ours and DE)
     and for the destabilizing attack (its own criterion). A data set's tasks are consecutive, so a worker reuses
-    its learner across budgets and methods (bilevel.attacks.willems.shared_oracle)."""
+    its reference learner across budgets and methods (_reference_radius)."""
     return [_task(plan, seed, "paper", i, s, method, horizon=n, delta_u=d, delta_x=0.0, poison="u", design="lqr",
                   criterion="destabilize" if method == "destabilize" else "eigen", selection=selection)
             for n in plan.horizons for i, s in enumerate(sim_seeds(seed, plan.sims)) for d in plan.deltas

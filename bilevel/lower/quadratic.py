@@ -80,20 +80,37 @@ def _convex_hessian(d: QPData, context: str, psd_verified: bool) -> np.ndarray |
     return 0.5 * (d.P + d.P.T) if psd_verified else require_psd(d.P, "the lower objective", context)
 
 
-def clarabel_direct(d: QPData, context: str, psd_verified: bool = False) -> LowerSolution:
-    """A QP/LP without LMIs handed to Clarabel's own interface (no cvxpy canonicalization per solve: the methods solve
-    at every upper point): A y + s = -b, s >= 0 and E y + s = -e, s = 0; its duals are lam and mu directly."""
+def _svec(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Clarabel's PSD-triangle order: the vec positions of the upper triangle, column by column, and their weights
+    (sqrt 2 off the diagonal, so svec(A)'svec(B) = <A, B>)."""
+    i, j = np.triu_indices(k)
+    order = np.lexsort((i, j))
+    i, j = i[order], j[order]
+    return i + k * j, np.where(i == j, 1.0, np.sqrt(2.0))
+
+
+def clarabel_direct(d: QPData, context: str, psd_verified: bool = False, lmis: tuple[Lmi, ...] = ()) -> LowerSolution:
+    """A QP/LP, with LMIs M0 + sum_j y_j M_j >= 0 if given, handed to Clarabel's own interface (no cvxpy
+    canonicalization per solve: the methods solve at every upper point): A y + s = -b, s >= 0, E y + s = -e, s = 0
+    and svec(M(y)) = s in the PSD triangle cone; its duals are lam, mu and Z_k = smat(z_k) directly."""
     n = d.q.size
     P = _convex_hessian(d, context, psd_verified)
     P = sp.csc_matrix((n, n)) if P is None else sp.triu(sp.csc_matrix(P), format="csc")
-    A = sp.csc_matrix(np.vstack([d.E, d.A])) if d.b.size + d.e.size else sp.csc_matrix((0, n))
+    rows, rhs = [d.E, d.A], [-d.e, -d.b]
     cones = ([clarabel.ZeroConeT(d.e.size)] if d.e.size else []) + \
         ([clarabel.NonnegativeConeT(d.b.size)] if d.b.size else [])
+    for m0, jac in lmis:
+        k = m0.shape[0]
+        at, weight = _svec(k)
+        rows.append(-weight[:, None] * jac[at])
+        rhs.append(weight * np.asarray(m0).ravel(order="F")[at])
+        cones.append(clarabel.PSDTriangleConeT(k))
+    A = sp.csc_matrix(np.vstack(rows)) if sum(r.shape[0] for r in rows) else sp.csc_matrix((0, n))
     settings = clarabel.DefaultSettings()
     settings.verbose = False
     for name, value in CLARABEL_TOLERANCES.items():
         setattr(settings, name, value)
-    out = clarabel.DefaultSolver(P, d.q, A, -np.concatenate([d.e, d.b]), cones, settings).solve()
+    out = clarabel.DefaultSolver(P, d.q, A, np.concatenate(rhs), cones, settings).solve()
     status = str(out.status)
     where = f"the lower level {context}"
     if status in ("PrimalInfeasible", "AlmostPrimalInfeasible"):
@@ -103,7 +120,16 @@ def clarabel_direct(d: QPData, context: str, psd_verified: bool = False) -> Lowe
     if status not in ("Solved", "AlmostSolved"):
         raise SolverFailed(f"Clarabel returned status {status!r} on {where}, no usable point; rescale the data")
     y, z = np.asarray(out.x, dtype=float), np.asarray(out.z, dtype=float)
-    return LowerSolution(y, d.objective(y), np.maximum(z[d.e.size:], 0.0), z[:d.e.size], [],
+    zs, start = [], d.e.size + d.b.size
+    for m0, _ in lmis:
+        k = m0.shape[0]
+        at, weight = _svec(k)
+        z_k = np.zeros(k * k)
+        z_k[at] = z[start: start + at.size] / weight
+        z_k = z_k.reshape(k, k, order="F")
+        zs.append(z_k + np.triu(z_k, 1).T)
+        start += at.size
+    return LowerSolution(y, d.objective(y), np.maximum(z[d.e.size:d.e.size + d.b.size], 0.0), z[:d.e.size], zs,
                          "optimal" if status == "Solved" else "optimal_inaccurate", "clarabel")
 
 

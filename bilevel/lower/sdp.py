@@ -11,16 +11,19 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
+from ..errors import ModelError, SolverFailed
 from ..vech import unvech, vech, vech_sx
 from .base import LowerSolution
 from .convexity import psd_violation
-from .quadratic import QPData, QuadraticLower, solve_qp_clarabel
+from .quadratic import QPData, QuadraticLower, clarabel_direct, solve_qp_clarabel
 
 PSD_TOL = 1e-9
 """Relative PSD violation of M_k and Z_k tolerated in a polished iterate."""
 CONTINUATION_TOL, CONTINUATION_STEPS = 1e-9, 6
 """KKT residual that a Newton continuation from a nearby solution must reach (no worse than a polished conic solve),
 and its Newton steps."""
+POLISHED_TOL = 1e-6
+"""Largest KKT residual of a polished solution of an SDP that moves with x (its derivative needs a KKT point)."""
 FREE_RTOL = 1e-10
 """Singular values below FREE_RTOL times the largest count as zero when finding the directions the SDP sees."""
 
@@ -89,6 +92,11 @@ class SemidefiniteLower(QuadraticLower):
             outs += [ca.substitute(m, self.y, zero), ca.substitute(ca.jacobian(ca.vec(m), self.y), self.y, zero)]
         self._lmi = self.params.function("lmi_coeffs", [self.x], outs)
         self._last_point: tuple[tuple, QPData, tuple] | None = None
+        self._chosen: tuple[int, LowerSolution] | None = None  # (parameter revision, the learner's own solution)
+        self._solved: dict[str, tuple[int, LowerSolution]] = {}  # conic solves of an SDP that ignores x, by role
+        self.min_norm = True
+        """Whether the hypergradient engine applies select_min_norm to its solutions (False: the polished solver's
+        point, e.g. the exact ridge solution of a regularized learner as its solver returns it)."""
 
     def lmi_data(self, x: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
         """(M_k0, d vec(M_k)/dy) for every LMI at upper point x."""
@@ -97,13 +105,59 @@ class SemidefiniteLower(QuadraticLower):
                      for k in range(len(self.psd)))
 
     def reference_solve(self, x: np.ndarray) -> LowerSolution:
-        """The kind's own conic solve (cvxpy + Clarabel with the LMIs)."""
-        return self.solve(x)
+        """The SDP solved at x with cvxpy + Clarabel and polished onto its optimal face (the certificate's independent
+        re-solve; where the SDP ignores x, once per parameter values); Z_k are the LMI multipliers
+        (L = f - sum <Z_k, M_k>)."""
+        return self._once("reference", x, lambda: solve_qp_clarabel(self.data(x), self._context(x), self.lmi_data(x)))
 
     def solve(self, x: np.ndarray) -> LowerSolution:
-        """Solve the SDP at x with cvxpy + Clarabel; Z_k are the LMI multipliers (L = f - sum <Z_k, M_k>)."""
-        return solve_qp_clarabel(self.data(x), f"at x = {np.array2string(np.asarray(x), precision=4)}",
-                                 self.lmi_data(x))
+        """The learner's solution at x: the chosen one (choose), else Clarabel's point Newton-polished on this SDP's
+        KKT system and selected (select); where the SDP ignores x, once per parameter values (apart from
+        reference_solve)."""
+        chosen = self.chosen()
+        return chosen if chosen is not None else self._once("solve", x, lambda: self._polished(x))
+
+    def _polished(self, x: np.ndarray) -> LowerSolution:
+        """Clarabel's point (its own interface) Newton-polished and selected; SolverFailed where the SDP moves with x
+        and the polish stays above POLISHED_TOL (no strictly complementary solution: y*(x) has no derivative there)."""
+        verified = self.constant_hessian and self.convexity_probe is not None  # the declaration's PSD check
+        raw = clarabel_direct(self.data(x), self._context(x), verified, self.lmi_data(x))
+        sol, residual = self.newton_polish(x, raw)
+        if residual > POLISHED_TOL and not self.fixed:
+            raise SolverFailed(f"the SDP {self._context(x)} has KKT residual {residual:.1e} > {POLISHED_TOL:g} after "
+                               "Newton polishing (no strictly complementary solution found): its solution's derivative "
+                               "is not defined there; move x or regularize the lower objective (e.g. raise reg)")
+        return self.select(x, sol)
+
+    def select(self, x: np.ndarray, sol: LowerSolution) -> LowerSolution:
+        """select_min_norm(x, sol), or sol where min_norm is off."""
+        return self.select_min_norm(x, sol) if self.min_norm else sol
+
+    @staticmethod
+    def _context(x: np.ndarray) -> str:
+        return f"at x = {np.array2string(np.asarray(x), precision=4)}"
+
+    def _once(self, role: str, x: np.ndarray, compute: Callable[[], LowerSolution]) -> LowerSolution:
+        """compute(), kept under `role` while the SDP ignores x and the parameter values hold."""
+        kept = self._solved.get(role)
+        if self.fixed and kept is not None and kept[0] == self.params.revision:
+            return dataclasses.replace(kept[1])
+        sol = compute()
+        if self.fixed:
+            self._solved[role] = (self.params.revision, dataclasses.replace(sol))
+        return sol
+
+    def choose(self, sol: LowerSolution) -> None:
+        """Make sol the solution of this SDP, which must not depend on x, until a parameter changes: a learner's own
+        choice among non-unique optima (e.g. one conic solver's answer), used by every method, the hypergradient
+        engine (unpolished, unselected) and the local probe; the certificate still re-solves independently."""
+        if not self.fixed:
+            raise ModelError("choose: this SDP depends on the upper variables, so no one solution serves every x")
+        self._chosen = (self.params.revision, sol)
+
+    def chosen(self) -> LowerSolution | None:
+        """The solution set by choose, while the parameter values it was chosen at hold; else None."""
+        return self._chosen[1] if self._chosen is not None and self._chosen[0] == self.params.revision else None
 
     @cached_property
     def conic_kkt(self) -> ConicKKT:
@@ -191,6 +245,7 @@ class SemidefiniteLower(QuadraticLower):
         w = self.pack(sol)
         r, jac = (np.asarray(v) for v in kkt.residual(x, w))
         best = last = float(np.abs(r).max(initial=0.0))
+        label = sol.solver if sol.solver.endswith(" + KKT Newton polish") else f"{sol.solver} + KKT Newton polish"
         for _ in range(steps):
             w = w + solve_square(jac, -r.ravel())[0]
             r, jac = (np.asarray(v) for v in kkt.residual(x, w))
@@ -198,7 +253,7 @@ class SemidefiniteLower(QuadraticLower):
             if not value < last:
                 break
             last = value
-            trial = self.unpack(w, sol, x, f"{sol.solver} + KKT Newton polish")
+            trial = self.unpack(w, sol, x, label)
             if value < best and self.in_cones(x, trial):
                 sol, best = trial, value
             if value < 1e-14:

@@ -55,6 +55,24 @@ class Prepared:
                 self.__dict__.pop(name, None)
             self.values_revision = canon.params.revision
 
+    def rebox(self, lb: np.ndarray, ub: np.ndarray) -> None:
+        """Give the upper variables the box [lb, ub] (flat), in the declaration and here: every later method, the
+        certificate and the probe use it, while the symbolic set-ups, the lower level and its solutions are kept
+        (attacks on one instance at several budgets)."""
+        canon = self.canon
+        lb, ub = np.asarray(lb, dtype=float), np.asarray(ub, dtype=float)
+        if lb.shape != canon.x_lb.shape or ub.shape != canon.x_ub.shape or np.any(lb > ub):
+            raise ModelError(f"rebox: lb and ub must be {canon.x_lb.size} bounds with lb <= ub")
+        start = 0
+        for v in canon.upper_vars:
+            v.lb[:], v.ub[:] = lb[start: start + v.size], ub[start: start + v.size]  # the declared (frozen) variable
+            start += v.size
+        canon.x_lb, canon.x_ub = lb.copy(), ub.copy()
+        canon.x_start = np.clip(canon.x_start, lb, ub)
+        for name in ("balls", "projection", "reduction"):
+            self.__dict__.pop(name, None)
+        self.refresh()
+
     @cached_property
     def balls(self) -> list[Ball]:
         """Upper constraints recognized as Euclidean balls on blocks of x (projected on, not penalized)."""

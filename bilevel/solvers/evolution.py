@@ -28,8 +28,8 @@ from ..errors import BilevelError, ModelError
 from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, check_options
-from .hypergradient import DESCENT_FTOL, DESCENT_MAX_ITER, DESCENT_TOL, Arc, descend
-from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, shared_oracle
+from .hypergradient import DESCENT_FTOL, DESCENT_MAX_ITER, DESCENT_TOL, Arc, Descent, descend, intermediate
+from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, shared_oracle
 from .limits import deadline, progress
 from .options import check_counts
 from .starts import start_points
@@ -121,10 +121,14 @@ def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, 
 
 def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
     """Differential evolution over the upper box (options: starts, seed, max_iter generations, popsize, tol, penalty,
-    polish, time_limit, verbose; default budget in the module docstring), then the engine's descent from its best
-    point unless polish=False."""
+    polish, time_limit, verbose, callback, batch_objective; default budget in the module docstring), then the engine's
+    descent from its best point unless polish=False. callback(intermediate) sees each generation's best point (x, y,
+    fun declared) and, with polish, every point of the descent; raising StopIteration ends the method there (the
+    caller's goal). batch_objective(xs, y) -> the declared upper objective at each column of xs (n_x x S) with lower
+    solution y: where the lower level ignores x and only the box constrains x, it scores a generation in one numeric
+    call instead of the engine's mapped sweep (the caller's vectorized twin of its objective)."""
     check_options("differential-evolution", options, {"starts", "seed", "max_iter", "popsize", "tol", "penalty",
-                                                      "polish", "time_limit", "verbose"})
+                                                      "polish", "time_limit", "verbose", "callback", "batch_objective"})
     canon = prep.canon
     lb, ub = canon.x_lb, canon.x_ub
     if not (np.all(np.isfinite(lb)) and np.all(np.isfinite(ub))):
@@ -143,7 +147,7 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
     limit, verbose = deadline(options), options.get("verbose")
     seeded = [np.clip(x, lb, ub) for x in start_points(prep, int(options.get("starts", 1)), rng, 1.0)][:members]
     population = np.array(seeded + [rng.uniform(lb, ub) for _ in range(members - len(seeded))])
-    best: dict[str, Evaluation] = {}
+    best: dict[str, Any] = {}
 
     def ranked(phi: Any) -> Any:
         """phi as differential evolution ranks it: NaN and +inf (and anything beyond) as UNSOLVED."""
@@ -165,7 +169,10 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
         if "ev" in best and limit.expired():
             return np.full(xs.shape[1], UNSOLVED)
         try:
-            phi = ranked(oracle.batch_phi(xs))
+            if twin is not None and "y" not in best:
+                best["y"] = oracle.evaluate(xs[:, 0]).lower  # the lower solution, the same at every x
+            phi = ranked(oracle.batch_phi(xs) if twin is None else
+                         prep.declared(twin(xs, best["y"].y)))  # declared -> minimized
         except BilevelError:  # the (one) lower solve failed: nowhere to go
             return np.full(xs.shape[1], UNSOLVED)
         i = int(np.argmin(phi))
@@ -173,13 +180,24 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
             best["ev"] = oracle.evaluate(xs[:, i])
         return phi
 
+    callback, goal = options.get("callback"), []
+
     def generation(intermediate_result: scipy.optimize.OptimizeResult) -> bool:  # scipy passes it by this name
-        """One progress line per generation; True (stop) at the deadline."""
+        """One progress line per generation; True (stop) at the deadline or where the callback raises StopIteration."""
         progress(verbose, "differential-evolution", f"generation {intermediate_result.nit}/{generations}: best phi = "
                  f"{prep.declared(intermediate_result.fun):.6g} ({intermediate_result.nfev} evaluations)")
+        if callback is not None and "ev" in best:
+            try:
+                callback(intermediate(prep, best["ev"]))
+            except StopIteration:
+                goal.append(best["ev"])
+                return True
         return limit.expired()
 
-    fixed = oracle.low.fixed
+    fixed, twin = oracle.low.fixed, options.get("batch_objective")
+    if twin is not None and (not callable(twin) or not fixed or canon.G.numel() + canon.H.numel()):
+        raise ModelError("option batch_objective must be a callable(xs, y), for a lower level that ignores the upper "
+                         "variables and a problem without upper constraints besides the box; drop it otherwise")
     progress(verbose, "differential-evolution", f"{members} members, up to {generations} generations")
     out = evolve(batch if fixed else value, lb, ub, rng, generations, 15, float(options.get("tol", 1e-8)),
                  stop=generation, vectorized=fixed, init=population)
@@ -187,15 +205,19 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
         return MethodRun(None, Status.ERROR, f"the lower level could not be solved at any of the {out.nfev} points "
                          "differential evolution tried", int(out.nit))
     found = best["ev"]
-    searched = limit.reached() if limit.hit else str(out.message)
+    searched = (limit.reached() if limit.hit else "stopped by the callback (the caller's goal)" if goal
+                else str(out.message))
     stats = {"generations": int(out.nit), "evaluations": int(out.nfev), "evolution_objective": found.F,
              "evolution_message": searched, "members": members, "penalty": penalty}
     record = {"start": 0, "objective": found.F, "residual": found.violation, "generations": int(out.nit)}
     start = None
-    if options.get("polish", True):  # the descent's own oracle: recognized balls projected on, not penalized
+    if options.get("polish", True) and not goal:  # the descent's oracle: recognized balls projected on, not penalized
         polish = shared_oracle(prep, penalty, ACTIVE_TOL, tuple(b.row for b in prep.balls))
-        arc = Arc(prep, polish, prep.projection)
-        start = arc(found.x)
+        arc = Arc(prep, polish, prep.projection, callback)
+        try:
+            start = arc(found.x)
+        except StopIteration:
+            found = arc.last
     if start is None:
         w = prep.pack(KKTPoint(found.x, found.lower.y, found.lower.lam, found.lower.mu, found.lower.Z))
         message = (f"best of {out.nfev} points of differential evolution ({searched}); a heuristic: no optimality "
@@ -207,7 +229,10 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
         progress(verbose, "differential-evolution", f"descent iteration {rec['iter']}: phi = "
                  f"{prep.declared(rec['objective']):.8g}, projected step {rec['projected_step_norm']:.2e}")
 
-    run = descend(arc, start, DESCENT_TOL, DESCENT_FTOL, DESCENT_MAX_ITER, limit, report if verbose else None)
+    try:
+        run = descend(arc, start, DESCENT_TOL, DESCENT_FTOL, DESCENT_MAX_ITER, limit, report if verbose else None)
+    except StopIteration:
+        run = Descent(arc.last, Status.INACCURATE, "stopped by the callback (the caller's goal)", 0, [])
     p = run.point
     w = prep.pack(KKTPoint(p.x, p.lower.y, p.lower.lam, p.lower.mu, p.lower.Z))
     message = f"descent from the best of {out.nfev} points of differential evolution ({searched}): {run.message}"

@@ -29,12 +29,13 @@ from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
+import scipy.optimize
 
 from ..errors import BilevelError, LowerLevelInfeasible, ModelError
 from ..lower.nlp import NLPSOL_QUIET
 from ..reduction import KKTPoint
 from ..result import Status
-from .base import MethodRun, Prepared, best_of, check_options
+from .base import FEASIBILITY_TOL, MethodRun, Prepared, best_of, check_options
 from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, Hypergradient, shared_oracle
 from .ascent import projected_ascent
 from .block_exact import ExactBlock, ascend_with_exact_block, exact_block_of
@@ -81,17 +82,34 @@ class _Restoration:
         return np.asarray(sol["x"]).ravel()[: self._nx]
 
 
-class Arc:
-    """Points P(v) of the projection arc, evaluated; restored into the lower level's domain when needed."""
+def intermediate(prep: Prepared, ev: Evaluation) -> scipy.optimize.OptimizeResult:
+    """What option `callback` receives: an evaluated point's x, lower solution y (flat, canonical order) and upper
+    objective `fun` in the declared sense."""
+    return scipy.optimize.OptimizeResult(x=ev.x, y=ev.lower.y, fun=prep.declared(ev.F))
 
-    def __init__(self, prep: Prepared, oracle: Hypergradient, projection: Projection) -> None:
-        self.prep, self.oracle, self.project = prep, oracle, projection
+
+class Arc:
+    """Points P(v) of the projection arc, evaluated; restored into the lower level's domain when needed. Every
+    evaluated point goes to `callback` (option callback), which may raise StopIteration: `last` is then that point."""
+
+    def __init__(self, prep: Prepared, oracle: Hypergradient, projection: Projection,
+                 callback: Callable[[scipy.optimize.OptimizeResult], Any] | None = None) -> None:
+        self.prep, self.oracle, self.project, self.callback = prep, oracle, projection, callback
         self._restoration: _Restoration | None = None
+        self.last: Evaluation | None = None
         self.error: BilevelError | None = None
         """Why the last point that could not be evaluated could not be (for the message when no start can be)."""
 
     def __call__(self, v: np.ndarray) -> Evaluation | None:
-        """The evaluated point P(v), or None if no lower-feasible point was found near it."""
+        """The evaluated point P(v), or None if no lower-feasible point was found near it; raises StopIteration where
+        the callback does."""
+        ev = self._point(v)
+        if ev is not None and self.callback is not None:
+            self.last = ev
+            self.callback(intermediate(self.prep, ev))
+        return ev
+
+    def _point(self, v: np.ndarray) -> Evaluation | None:
         x = self.project(v)
         try:
             return self.oracle.evaluate(x)
@@ -220,9 +238,9 @@ def _projection(prep: Prepared, projection: Any) -> Projection:
 
 
 HYPERGRADIENT_OPTIONS = frozenset({"starts", "seed", "scale", "projection", "penalty", "tol", "ftol", "max_iter",
-                                   "active_tol", "time_limit", "verbose", "exact_block"})
+                                   "active_tol", "time_limit", "verbose", "exact_block", "callback", "prefer"})
 """The options method `hypergradient` accepts."""
-DESCENT_ONLY = ("projection", "ftol", "active_tol")
+DESCENT_ONLY = ("projection", "ftol", "active_tol", "callback", "prefer")
 """Options of the descent that the exact-block mode does not take."""
 AUTO_EXACT_DIMENSION = 256
 """exact_block="auto" takes an exact block whose trust-region subproblem has at most this dimension (a dense
@@ -263,11 +281,29 @@ def chosen_exact_block(prep: Prepared, mode: Any, options: dict[str, Any]) -> tu
     return exact, why
 
 
+TIE_RTOL = 1e-6
+"""Option prefer breaks ties among starts whose objectives are within this relative distance of the best."""
+
+
+def _preferred(prep: Prepared, i: int, candidates: list[tuple[np.ndarray, float, float]], points: list[Evaluation],
+               prefer: Callable[[scipy.optimize.OptimizeResult], float] | None) -> int:
+    """Among the feasible candidates tied with candidate i (within TIE_RTOL), the one `prefer` rates highest."""
+    top = candidates[i][1]
+    ties = [j for j, (_, F, r) in enumerate(candidates)
+            if r <= FEASIBILITY_TOL and F - top <= TIE_RTOL * max(1.0, abs(top))]
+    if prefer is None or i not in ties:
+        return i
+    return max(ties, key=lambda j: (prefer(intermediate(prep, points[j])), -j))
+
+
 def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     """Multistart projected hypergradient ascent (options: starts, seed, scale, penalty, tol, max_iter, time_limit,
-    verbose, exact_block = "auto" | True | False; the descent also projection, ftol, active_tol): with the exact
-    block where the declared structure has one, else descent with recognized balls projected on, other upper
-    constraints penalized. At time_limit the starts not begun are skipped and the status is MAX_ITERATIONS."""
+    verbose, exact_block = "auto" | True | False; the descent also projection, ftol, active_tol, callback, prefer):
+    with the exact block where the declared structure has one, else descent with recognized balls projected on, other
+    upper constraints penalized. At time_limit the starts not begun are skipped and the status is MAX_ITERATIONS.
+    callback(intermediate) sees every evaluated point (x, y, fun declared); raising StopIteration ends the method
+    there, with that point as its answer (the caller's goal, never `solved`). prefer(intermediate) -> float breaks
+    near-ties (TIE_RTOL) between the starts' end points, the highest value winning."""
     check_options("hypergradient", options, HYPERGRADIENT_OPTIONS)
     check_numbers(options, positive=("active_tol",), nonnegative=("penalty", "ftol"))
     exact, why = chosen_exact_block(prep, options.pop("exact_block", "auto"), options)
@@ -277,28 +313,36 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
     projected = tuple(b.row for b in prep.balls) if options.get("projection") is None else ()
     active_tol = float(options.get("active_tol", ACTIVE_TOL))
     oracle = shared_oracle(prep, penalty, active_tol, projected)
-    arc = Arc(prep, oracle, _projection(prep, options.get("projection")))
+    arc = Arc(prep, oracle, _projection(prep, options.get("projection")), options.get("callback"))
     tol, ftol = float(options.get("tol", DESCENT_TOL)), float(options.get("ftol", DESCENT_FTOL))
     max_iter = int(options.get("max_iter", DESCENT_MAX_ITER))
     rng = np.random.default_rng(options.get("seed", 0))
     limit, verbose = deadline(options), options.get("verbose")
-    records, runs, candidates = [], [], []
+    records, runs, candidates, goal = [], [], [], None
     for k, x0 in enumerate(start_points(prep, starts, rng, float(options.get("scale", 10.0)))):
         if k and limit.expired():
             break
         t0 = time.perf_counter()
 
+        seen: list[dict[str, Any]] = []  # this start's iterate records, kept where the callback ends the run
+
         def report(record: dict[str, Any], k: int = k) -> None:
+            seen.append(record)
             progress(verbose, "hypergradient", f"start {k + 1}/{starts}, iteration {record['iter']}: phi = "
                      f"{prep.declared(record['objective']):.8g}, projected step {record['projected_step_norm']:.2e}")
 
-        start = arc(x0)
-        if start is None:
-            records.append({"start": k, "x0": x0.tolist(), "status": Status.ERROR.value, "iterations": 0,
-                            "message": "no upper point near the start where the lower level can be solved",
-                            "time": time.perf_counter() - t0})
-            continue
-        run = descend(arc, start, tol, ftol, max_iter, limit, report if verbose else None)
+        try:
+            start = arc(x0)
+            if start is None:
+                records.append({"start": k, "x0": x0.tolist(), "status": Status.ERROR.value, "iterations": 0,
+                                "message": "no upper point near the start where the lower level can be solved",
+                                "time": time.perf_counter() - t0})
+                continue
+            run = descend(arc, start, tol, ftol, max_iter, limit, report)
+        except StopIteration:
+            run = Descent(arc.last, Status.INACCURATE, "stopped by the callback (the caller's goal)",
+                          max(len(seen) - 1, 0), seen)
+            goal = k
         p = run.point
         w = prep.pack(KKTPoint(p.x, p.lower.y, p.lower.lam, p.lower.mu, p.lower.Z))
         runs.append((k, run))
@@ -308,15 +352,19 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
                         "time": time.perf_counter() - t0})
         progress(verbose, "hypergradient", f"start {k + 1}/{starts}: {run.status.value}, F = "
                  f"{prep.declared(p.F):.6g}, upper violation {p.violation:.1e} ({run.message})")
+        if goal is not None:
+            break
     nit = sum(r["iterations"] for r in records)
     if not runs:
         return MethodRun(None, Status.ERROR, f"all {starts} starts failed: the lower level could not be solved "
                          f"near any start ({type(arc.error).__name__}: {arc.error})", nit, [], records)
-    i = best_of(candidates)
+    i = len(runs) - 1 if goal is not None else _preferred(prep, best_of(candidates), candidates,
+                                                            [r.point for _, r in runs], options.get("prefer"))
     k, best = runs[i]
     run = MethodRun(candidates[i][0], best.status, f"best of {starts} starts: start {k} ({best.message})", nit,
                     best.history, records, {"best_start": k, "penalty": penalty, "exact_block": None,
                                             "not_exact": why,
-                                            "projected_gradient_norm": best.history[-1]["projected_step_norm"]},
+                                            "projected_gradient_norm": best.history[-1]["projected_step_norm"]
+                                            if best.history else None},
                     feasible_set=None if options.get("projection") is None else arc.project)
     return stopped(run, limit, len(records), starts)

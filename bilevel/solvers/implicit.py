@@ -10,11 +10,12 @@ then not differentiable there and the result is one element of a generalized der
 is computed by the adjoint: grad phi = grad_x phi - R' z with K' z = (grad_y phi, 0), K the KKT matrix
 and R its x-derivative, which equals grad_x phi + (dy/dx)' grad_y phi without forming dy/dx.
 A lower level with LMIs is polished and differentiated through its conic KKT system instead (stationarity,
-lam * g, h and vech((M_k Z_k + Z_k M_k) / 2), bilevel.lower.sdp.ConicKKT, and SemidefiniteLower.adjoint: the
-same code as the Willems attacks; a new point's solution is first sought by Newton continuation from the last one,
-SemidefiniteLower.continue_from), after which y is projected off the directions the SDP sees only through a ridge
-(SemidefiniteLower.select_min_norm: the minimum-norm selection of a non-unique solution, or the exact ridge
-solution); it needs a strictly complementary lower solution, unique up to those directions.
+lam * g, h and vech((M_k Z_k + Z_k M_k) / 2), bilevel.lower.sdp.ConicKKT, and SemidefiniteLower.adjoint; a new
+point's solution is first sought by Newton continuation from the last one (SemidefiniteLower.continue_from, else
+SemidefiniteLower.solve: Newton-polished, once where the SDP ignores x, or the learner's chosen solution), after
+which y is projected off the directions the SDP sees only through a ridge (SemidefiniteLower.select: the
+minimum-norm selection of a non-unique solution, or the exact ridge solution, unless min_norm is off); it needs a
+strictly complementary lower solution, unique up to those directions.
 
 A spectral-radius upper objective (BilevelProblem.maximize_spectral_radius) is evaluated and differentiated
 numerically, F = sign * rho(M(x, y)) with d rho / dM from the top eigenvectors (bilevel.spectral_radius), chained
@@ -90,7 +91,7 @@ class Hypergradient:
         self._upper = canon.params.function("upper", [x, y], swept)
         self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
         self._fixed: tuple[int, LowerSolution, KKTValues | None] | None = None  # (parameter revision, ...)
-        self._batches: dict[int, ca.Function] = {}  # batch_phi's mapped sweeps, by batch size
+        self._batches: dict[tuple[int, int], ca.Function] = {}  # batch_phi's sweep, by batch size and revision
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
         self._last_conic: LowerSolution | None = None  # the last conic solution, where continuation starts
         self._spectral: CompiledFunction | None = None  # a spectral objective's M and dM/dx (vec M rows)
@@ -183,10 +184,9 @@ class Hypergradient:
             _, sol, vals = self._fixed
         elif lower is not None:
             sol, vals = lower, kkt
-        elif self.conic:  # Newton continuation from the last point's solution, else a conic solve and its polish
+        elif self.conic:  # Newton continuation from the last point's solution, else the SDP's own solve
             near = None if self._last_conic is None else self.low.continue_from(x, self._last_conic)
-            sol = near[0] if near is not None else self.low.newton_polish(x, self.low.solve(x))[0]
-            sol, vals = self.low.select_min_norm(x, sol), None
+            sol, vals = (self.low.solve(x) if near is None else self.low.select(x, near[0])), None
             self._last_conic = sol
         else:
             sol, vals = self.polish(x, self.low.solve(x))
@@ -252,12 +252,14 @@ class Hypergradient:
                              "the points one by one")
         y = self.evaluate(xs[:, 0]).lower.y
         canon, n = self.canon, xs.shape[1]
-        shared = [canon.params.value] if canon.params.items else []
-        if n not in self._batches:  # F, G, H of every column
-            args = [canon.x, canon.y] + ([canon.params.sym] if shared else [])
-            sweep = ca.Function("upper_FGH", args, self._upper_outputs[:3])
-            self._batches[n] = sweep.map(n, [False] + [True] * (len(args) - 1), [False] * 3)
-        F, G, H = (np.asarray(v, dtype=float) for v in self._batches[n](xs, y, *shared))
+        key = (n, self.low.params.revision)
+        if key not in self._batches:  # F, G, H of every column, y and the parameters folded in as numbers
+            known = ca.vertcat(canon.y, canon.params.sym)
+            values = ca.DM(np.concatenate([y, canon.params.value]))
+            sweep = ca.Function("upper_FGH", [canon.x], [ca.substitute(e, known, values)
+                                                          for e in self._upper_outputs[:3]])
+            self._batches = {key: sweep.map(n)}
+        F, G, H = (np.asarray(v, dtype=float) for v in self._batches[key](xs))
         if self._spectral is not None:
             F = self.spectral_batch(xs)[0]
         return self.penalized(F.reshape(1, n), G.reshape(-1, n), H.reshape(-1, n))

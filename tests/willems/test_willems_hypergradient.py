@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
-from bilevel.attacks.willems import SDPHypergradient
+from bilevel.attacks.willems import engine, loop
 from bilevel.errors import SolverFailed
 from bilevel.problems.willems import build_attack
 
@@ -29,21 +29,21 @@ def test_hypergradient_matches_central_differences(case: int, selection: str) ->
     The implicit (adjoint) part is not negligible: it is at least 0.89 of the gradient's norm in every case."""
     with threadpool_limits(1):
         attack = build_attack(horizon=15, seed=10 + case, selection=selection, **CASES[case])
-        oracle = SDPHypergradient(attack)
-        assert not oracle.lower_fixed
+        oracle = engine(attack)
+        assert not oracle.low.fixed
         rng = np.random.default_rng(case)
-        x = 0.5 * rng.uniform(-1, 1, oracle.n_x) * attack.budget()
+        x = 0.5 * rng.uniform(-1, 1, oracle.low.n_x) * attack.budget()
         ev = oracle.evaluate(x)
-        assert np.isfinite(ev.phi) and ev.kkt_residual < 1e-10
-        grad = oracle.gradient(ev)
-        assert np.linalg.norm(grad - ev.grad_x) >= 0.5 * np.linalg.norm(grad)
+        assert np.isfinite(ev.phi) and oracle.low.kkt_residual(x, ev.lower) < 1e-10
+        grad = oracle.gradient(ev)[0]
+        assert np.linalg.norm(grad - ev.upper[3].ravel()) >= 0.5 * np.linalg.norm(grad)
 
         def central(v: np.ndarray, h: float) -> float:
             return (oracle.evaluate(x + h * v).phi - oracle.evaluate(x - h * v).phi) / (2 * h)
 
         worst = 0.0
         for _ in range(3):
-            v = rng.standard_normal(oracle.n_x) * attack.budget()
+            v = rng.standard_normal(oracle.low.n_x) * attack.budget()
             v /= np.linalg.norm(v)
             fd = (4 * central(v, 1e-6) - central(v, 2e-6)) / 3
             worst = max(worst, abs(fd - grad @ v) / abs(grad @ v))
@@ -55,25 +55,36 @@ def test_lower_level_solved_once_when_it_ignores_the_poisoning() -> None:
     """Input poisoning of the appendix SDP: the SDP does not contain U, so it is solved once and the gradient
     is the direct one (the paper's corollary: K = (U0 + Du) Q (X0 Q)^-1 with Q fixed)."""
     attack = build_attack(horizon=15, seed=0, design="lqr", poison="u", delta_u=0.5)
-    oracle = SDPHypergradient(attack)
-    assert oracle.lower_fixed
+    oracle = engine(attack)
+    assert oracle.low.fixed
+    calls = []
+    solve = oracle.low.solve
+    oracle.low.solve = lambda x: calls.append(1) or solve(x)
     rng = np.random.default_rng(0)
+    y0 = oracle.evaluate(np.zeros(30)).lower.y
     for _ in range(3):
         x = rng.uniform(-0.5, 0.5, 30)
-        phi, grad = oracle(x)
+        phi, grad, lower = oracle(x)
+        np.testing.assert_array_equal(lower.y, y0)
         v = rng.standard_normal(30)
         fd = (oracle.evaluate(x + 1e-6 * v).phi - oracle.evaluate(x - 1e-6 * v).phi) / 2e-6
         assert fd == pytest.approx(grad @ v, rel=1e-6)
-    assert oracle.lower_solves == 1
+        # K = (U0 + Du) Q (X0 Q)^-1 with the clean data's Q, written here
+        q = y0.reshape((15, 4), order="F")
+        du, _ = attack.split(x)
+        s = attack.x[:, :15] @ q
+        np.testing.assert_allclose(loop(attack, x, y0)[0], (attack.u + du) @ q @ np.linalg.inv((s + s.T) / 2),
+                                   rtol=1e-9, atol=1e-9)
+    assert len(calls) <= 1
     xs = rng.uniform(-0.5, 0.5, (4, 30))
-    np.testing.assert_allclose(oracle.objectives(xs), [oracle.evaluate(x).phi for x in xs], rtol=1e-10)
+    np.testing.assert_allclose(oracle.batch_phi(xs.T), [oracle.evaluate(x).phi for x in xs], rtol=1e-10)
 
 
 def test_unpolishable_learner_is_reported() -> None:
     """reg = 0 and poisoned U in the R-term design: the SDP's optimal Q is unbounded in size (~1/delta) and not
-    unique; Clarabel's point cannot be polished to a KKT point, and the oracle says so instead of returning
+    unique; Clarabel's point cannot be polished to a KKT point, and the engine says so instead of returning
     a wrong gradient."""
     attack = build_attack(horizon=15, seed=14, design="lqr-r", poison="u", objective="maxmin", delta_u=1e-5, reg=0.0)
-    oracle = SDPHypergradient(attack)
+    oracle = engine(attack)
     with pytest.raises(SolverFailed, match="raise reg"):
         oracle.evaluate(0.5 * np.random.default_rng(4).uniform(-1, 1, 30) * attack.budget())

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from bilevel.attacks.willems import SDPHypergradient
+from bilevel.attacks.willems import engine, loop
 from bilevel.ddc.depersis_tesi import lqr_controller, stabilizing_controller
 from bilevel.ddc.plants import batch_reactor
 from bilevel.errors import InvalidData, ModelError
@@ -16,6 +16,13 @@ from bilevel.problems import registry
 from bilevel.problems.willems import WillemsSetting, build_attack, criterion_values
 
 PLANT = batch_reactor()
+
+
+def _learner(attack, x: np.ndarray) -> tuple:
+    """The engine's learner at poisoning x: its solution, gain and KKT residual."""
+    oracle = engine(attack)
+    lower = oracle.evaluate(x).lower
+    return lower, loop(attack, x, lower.y)[0], oracle.low.kkt_residual(x, lower)
 
 
 @pytest.mark.parametrize("name", ["willems-maxmin", "willems-eigen"])
@@ -50,10 +57,10 @@ def test_lower_level_gain_equals_depersis_tesi_learner(design: str, seed: int) -
     of bilevel.ddc.lqr_controller (appendix form for lqr, Thm 4 with R = I for lqr-r) to 2e-5: Clarabel's own
     accuracy in K (raw or column-balanced data: up to 1.6e-5 / 1.3e-5 from the Riccati gain over 8 seeds)."""
     attack = build_attack(horizon=15, seed=seed, design=design)
-    ev = SDPHypergradient(attack).evaluate(np.zeros(30))
+    _, gain, residual = _learner(attack, np.zeros(30))
     ref = lqr_controller(attack.x, attack.u, input_cost=design == "lqr-r")
-    np.testing.assert_allclose(ev.gain, ref.k, atol=2e-5)
-    assert ev.kkt_residual < 1e-9
+    np.testing.assert_allclose(gain, ref.k, atol=2e-5)
+    assert residual < 1e-9
 
 
 @pytest.mark.parametrize(("design", "r", "value"), [("lqr", 1e-14, None), ("lqr-r", 1.0, 29.1262)])
@@ -62,22 +69,22 @@ def test_lower_level_gain_equals_riccati_at_n50(design: str, r: float, value: fl
     bilevel.ddc.lqr_controller is 2.1e-5 off here: Clarabel's accuracy on these badly scaled data), and for
     Thm 4 the optimal value trace(P_DARE) = 29.1262 (DESIGN.md)."""
     attack = build_attack(horizon=50, seed=2, design=design)
-    ev = SDPHypergradient(attack).evaluate(np.zeros(100))
-    np.testing.assert_allclose(ev.gain, _riccati_gain(r * np.eye(2)), atol=1e-6)
+    lower, gain, _ = _learner(attack, np.zeros(100))
+    np.testing.assert_allclose(gain, _riccati_gain(r * np.eye(2)), atol=1e-6)
     if value is not None:
-        q = ev.lower.y[:200]
-        assert ev.lower.objective - 0.5 * attack.setting.reg * float(q @ q) == pytest.approx(value, abs=1e-4)
+        q = lower.y[:200]
+        assert lower.objective - 0.5 * attack.setting.reg * float(q @ q) == pytest.approx(value, abs=1e-4)
 
 
 def test_stabilizing_design_matches_theorem_3_value() -> None:
     """The Thm 3 SDP has a non-unique optimal gain (its optimal face is not a point): the declared lower
     level reaches the optimal value of bilevel.ddc.stabilizing_controller and a Schur-stable gain."""
     attack = build_attack(horizon=15, seed=0, design="stabilizing")
-    ev = SDPHypergradient(attack).evaluate(np.zeros(30))
+    lower, gain, _ = _learner(attack, np.zeros(30))
     ref = stabilizing_controller(attack.x, attack.u)
-    q = ev.lower.y.reshape((15, 4), order="F")
+    q = lower.y.reshape((15, 4), order="F")
     assert float(np.trace(attack.x[:, :-1] @ q)) == pytest.approx(ref.value, rel=1e-7)
-    assert np.max(np.abs(np.linalg.eigvals(PLANT.A + PLANT.B @ ev.gain))) < 1
+    assert np.max(np.abs(np.linalg.eigvals(PLANT.A + PLANT.B @ gain))) < 1
 
 
 def test_identified_model_is_the_plant() -> None:
@@ -95,7 +102,7 @@ def test_numeric_criterion_equals_declared_objective(objective: str, design: str
     problem = attack.problem
     y = ca.vertcat(*[ca.vec(v.sym) for v in problem.lower_variables])
     fn = ca.Function("f", [attack.upper, y], [problem.upper_objective.expr, attack.gain, attack.closed_loop])
-    y0 = SDPHypergradient(attack).evaluate(np.zeros(30)).lower.y
+    y0 = _learner(attack, np.zeros(30))[0].y
     rng = np.random.default_rng(0)
     seen_stable = False
     for scale in (0.01, 0.03, 0.1, 0.3, 1.0):

@@ -10,7 +10,7 @@ import numpy as np
 
 from bilevel.ddc.data import batch_reactor_data
 from bilevel.ddc.depersis_tesi import lqr_controller, min_norm_q
-from bilevel.attacks.willems import SDPHypergradient
+from bilevel.attacks.willems import engine
 from bilevel.experiments.willems_selection import input_gains
 from bilevel.lower.quadratic import clarabel_solution, solve_qp_clarabel
 from bilevel.problems.willems import WillemsAttack, build_attack
@@ -40,15 +40,14 @@ def test_minimum_norm_selection_has_no_null_space_part_and_same_clean_gain() -> 
 def _learner_from_two_starts(attack: WillemsAttack, x: np.ndarray) -> list[tuple[np.ndarray, float]]:
     """Q and KKT residual of the attack oracle's learner at x, polished from Clarabel's raw point and from its
     face-polished point; for the min-norm selection also checks that the projection keeps D Q and lowers f."""
-    oracle = SDPHypergradient(attack)
-    level, shape = oracle.lower_level, (attack.setting.horizon, attack.n_states)
+    level, shape = engine(attack).low, (attack.setting.horizon, attack.n_states)
     seen = np.asarray(ca.Function("seen", [attack.upper], [attack.seen])(x))
     out = []
     for start in (clarabel_solution, solve_qp_clarabel):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
             sol = start(level.data(x), "of the learner", level.lmi_data(x))
-        sol, res = oracle.polish(x, sol)
+        sol, res = level.newton_polish(x, sol)
         if attack.setting.selection == "min-norm":
             projected = level.select_min_norm(x, sol)  # the engine's selection, from the SDP's coefficients
             res = level.kkt_residual(x, projected)
