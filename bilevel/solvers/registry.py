@@ -7,6 +7,8 @@ import dataclasses
 import time
 from typing import Any, Callable
 
+import casadi as ca
+
 from ..certificate import DEFAULT_TOL
 from ..errors import ModelError
 from ..model import BilevelProblem
@@ -72,10 +74,17 @@ AUTO_MIN_UPPER = 20
 level); below it IPOPT's Newton steps on the KKT system cost less than the first-order iterations."""
 
 
+def coupled_upper_rows(prep: Prepared) -> int:
+    """The number of upper constraint rows (G <= 0, H = 0) that depend on the lower variables y."""
+    canon = prep.canon
+    rows = ca.vertcat(canon.G, canon.H)
+    return len(set(ca.jacobian_sparsity(rows, canon.y).get_triplet()[0])) if rows.numel() else 0
+
+
 def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
-    """The method "auto" runs, and why: `hypergradient` where the lower level is least squares (solved in closed
-    form, y*(x) smooth) or does not depend on x (solved once), with at least AUTO_MIN_UPPER upper entries, or where the
-    upper objective is a spectral radius; `ipopt`
+    """The method "auto" runs, and why: `hypergradient` where the upper objective is a spectral radius, or where the
+    lower level is least squares (solved in closed form, y*(x) smooth) or does not depend on x (solved once), with at
+    least AUTO_MIN_UPPER upper entries and no upper constraint on the lower solution; `ipopt`
     otherwise (constrained lower levels whose solution depends on x: its KKT system is solved with the upper level in
     one NLP). Options only one of the two accepts decide for it."""
     low, n = prep.canon.lower, int(prep.canon.x.numel())
@@ -86,6 +95,10 @@ def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
         return "hypergradient", f"option(s) {', '.join(sorted(given - IPOPT_OPTIONS))} belong to hypergradient"
     if prep.canon.spectral is not None:
         return "hypergradient", "a spectral-radius objective (the KKT methods cannot use it)"
+    coupled = coupled_upper_rows(prep)
+    if coupled:
+        return "ipopt", (f"{coupled} upper constraint(s) on the lower solution, which ipopt keeps as constraints and "
+                         "hypergradient would only penalize")
     closed = "a least-squares lower level" if low.kind == "least-squares" else (
         "a lower level independent of x" if low.fixed else "")
     if closed and n >= AUTO_MIN_UPPER:
