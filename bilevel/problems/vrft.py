@@ -5,7 +5,7 @@ variables' bounds; l1, for the structured attacks: a constraint on sum |a_i|); l
 solving the VRFT least squares on the poisoned data. The regressor Phi(y + a_y) is written as
 filter recursions (O(N) expression nodes per column, no N x N blocks), each a definition: the KKT
 reformulation keeps the filtered signals as variables bound by their difference equations, so IPOPT's
-exact Hessian is sparse. The instance (setting, data, budgets, objective) is bilevel.problems.vrft_instance's
+exact Hessian is sparse; or, on request (FILTERS), as LinearOperators. The instance (setting, data, budgets, objective) is bilevel.problems.vrft_instance's
 VRFTAttack; the structured attacks on the declared problem are in bilevel.attacks.vrft_methods.
 """
 
@@ -17,13 +17,15 @@ from weakref import WeakKeyDictionary
 
 import casadi as ca
 import numpy as np
+from scipy.sparse.linalg import LinearOperator
 
 from ..ddc.operators import LTIOperator
+from ..ddc.vrft import VRFTRegressor
 from ..errors import ModelError
 from ..model import BilevelProblem
 from .registry import register
 from .surrogates import gelfand_log_radius
-from .vrft_instance import VRFTAttack, VRFTSetting, attack_instance, conditioning_start
+from .vrft_instance import VRFTAttack, VRFTSetting, attack_instance
 
 SOURCE = "Russo & Proutiere, Poisoning Attacks against Data-Driven Control Methods (extended), "
 DEFAULTS = {"scenario": "B", "eps_u": 0.1, "eps_y": 0.057, "seed": 0, "N": 64, "convention": "paper"}
@@ -78,7 +80,30 @@ def filtered(problem: BilevelProblem, name: str, op: LTIOperator, x: ca.SX) -> c
     return z[op.advance:]
 
 
-def attack_problem(atk: VRFTAttack) -> BilevelProblem:
+def filter_bank(reg: VRFTRegressor, N: int) -> LinearOperator:
+    """a_y -> vec(Phi(a_y)) (column-major, rows x nk) as a LinearOperator: the regressor's filters, O(N nk) per
+    product."""
+    rows, k = reg.rows(N), reg.n_params
+    return LinearOperator((rows * k, N), dtype=float,
+                          matvec=lambda v: reg(np.asarray(v).ravel()).reshape(-1, order="F"),
+                          rmatvec=lambda g: reg.adjoint(np.asarray(g).reshape(rows, k, order="F")))
+
+
+def target_map(reg: VRFTRegressor, N: int) -> LinearOperator:
+    """a_u -> targets(a_u) (the learner's prefilter L on the regression rows) as a LinearOperator."""
+    return LinearOperator((reg.rows(N), N), dtype=float, matvec=lambda v: reg.targets(np.asarray(v).ravel()),
+                          rmatvec=lambda g: reg.targets_adjoint(np.asarray(g).ravel(), N))
+
+
+FILTERS = ("recursions", "operators")
+"""How a declaration writes the learner's filters: "recursions", difference-equation definitions (the KKT
+reformulation keeps the filtered signals as variables: a sparse Hessian); "operators", scipy LinearOperators
+(bilevel.linear_maps: a first declaration and preparation several times faster at large N, each later evaluation a
+little slower; the KKT reformulation forms them as dense matrices). benchmarks/bench_vrft_declarations.py measures
+both."""
+
+
+def attack_problem(atk: VRFTAttack, filters: str = "recursions") -> BilevelProblem:
     """The bilevel program of an attack instance (l2 budgets as balls, linf budgets as bounds), declared with the
     generic API.
 
@@ -87,13 +112,15 @@ def attack_problem(atk: VRFTAttack) -> BilevelProblem:
     rebuilding it (with linf budgets only to one with the same radii: bounds are fixed at declaration).
     """
     _check_budgets(atk)
-    return declare(atk)
+    return declare(atk, filters)
 
 
-def declare(atk: VRFTAttack) -> BilevelProblem:
+def declare(atk: VRFTAttack, filters: str = "recursions") -> BilevelProblem:
     """attack_problem without its check of the budgets: an l1 budget becomes the constraint ||a||_1 <= delta, and a
     sparsity fraction rho is left out (the declared set is the norm ball; a method that keeps the sparsity searches
-    the narrower set and says so: MethodRun.feasible_set)."""
+    the narrower set and says so: MethodRun.feasible_set). filters: one of FILTERS."""
+    if filters not in FILTERS:
+        raise ModelError(f"filters={filters!r} is not one of {', '.join(FILTERS)}")
     reg = atk.setting.regressor
     N, k = atk.N, reg.n_params
     rows = reg.rows(N)
@@ -105,12 +132,16 @@ def declare(atk: VRFTAttack) -> BilevelProblem:
     a_u, a_y = signals["a_u"], signals["a_y"]
     theta = p.lower_variable("theta", k, start=atk.theta0)
     t0, phi0 = p.parameter("t0", rows), p.parameter("phi0", (rows, k))
-    err = filtered(p, "e_y", reg.error, a_y)
-    if reg.prefilter is not None:
-        err = filtered(p, "le_y", reg.prefilter, err)
-    phi_a = ca.horzcat(*[filtered(p, f"phi_{j}", beta, err)[:rows] for j, beta in enumerate(reg.basis)])
-    t_a = a_u if reg.prefilter is None else filtered(p, "lu", reg.prefilter, a_u)
-    residual = t0 + t_a[:rows] - ca.mtimes(phi0 + phi_a, theta)
+    if filters == "operators":
+        phi_a = ca.reshape(p.linear_map(filter_bank(reg, N), "Phi") @ a_y, rows, k)
+        t_a = a_u[:rows] if reg.prefilter is None else p.linear_map(target_map(reg, N), "L") @ a_u
+    else:
+        err = filtered(p, "e_y", reg.error, a_y)
+        if reg.prefilter is not None:
+            err = filtered(p, "le_y", reg.prefilter, err)
+        phi_a = ca.horzcat(*[filtered(p, f"phi_{j}", beta, err)[:rows] for j, beta in enumerate(reg.basis)])
+        t_a = (a_u if reg.prefilter is None else filtered(p, "lu", reg.prefilter, a_u))[:rows]
+    residual = t0 + t_a - ca.mtimes(phi0 + phi_a, theta)
     p.minimize_lower(ca.sumsqr(residual) / rows)
     for name, budget in (("u", atk.budget_u), ("y", atk.budget_y)):
         if budget.norm == "l2":
@@ -215,8 +246,7 @@ def _load(problem: BilevelProblem, atk: VRFTAttack) -> None:
     for name, value in values.items():
         problem.set_value(name, value)
     _NORMS[problem] = norms
-    problem.starts.clear()  # a_y = 0 is stationary: start where the regressor is ill-conditioned
-    problem.suggest_start(a_y=conditioning_start(atk))
+    problem.starts.clear()  # a_y = 0 is stationary: the engine's first start is its conditioning start
     _INSTANCES[problem] = atk
 
 

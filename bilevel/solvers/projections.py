@@ -282,15 +282,16 @@ class Blocks(Projection):
             if not isinstance(proj, Projection):
                 raise ModelError(f"block {key!r}: {type(proj).__name__} is not a Projection "
                                  "(use Box, NormBall, SparseNormBall or Blocks)")
-            idx = np.arange(total_size)[_block_slice(key, layout)]
+            block = _block_slice(key, layout)
+            idx = np.arange(total_size)[block]
             if idx.size == 0:
                 raise ModelError(f"block {key!r} selects no entries of a vector of size {total_size}")
             if owner[idx].any():
                 raise ModelError(f"block {key!r} overlaps another block; blocks must be disjoint")
             owner[idx] = True
-            parts.append((idx, proj))
+            parts.append((block if block.step in (None, 1) else idx, proj))  # a slice reads a view, not a copy
         self.total_size = int(total_size)
-        self._parts: tuple[tuple[np.ndarray, Projection], ...] = tuple(parts)
+        self._parts: tuple[tuple[np.ndarray | slice, Projection], ...] = tuple(parts)
 
     @classmethod
     def for_problem(cls, problem: BilevelProblem, blocks: BlockSpec) -> "Blocks":
@@ -316,6 +317,12 @@ class Blocks(Projection):
         """Whether every block lies in its set."""
         v = self._check(v)
         return all(proj.contains(v[idx], tol) for idx, proj in self._parts)
+
+    def without(self, block: slice) -> "Blocks":
+        """The same projection with the part on exactly `block` dropped (its entries left unchanged)."""
+        out = Blocks((), self.total_size)
+        out._parts = tuple(p for p in self._parts if not (isinstance(p[0], slice) and p[0] == block))
+        return out
 
     def with_box(self, lb: np.ndarray, ub: np.ndarray) -> "Blocks":
         """Each block intersected with its part of the box; the entries in no block get the box itself."""
