@@ -184,14 +184,19 @@ def attack_summary(result: BilevelResult) -> dict[str, Any]:
             "refit_distance": cert.y_distance, "unstable": unstable(result), "certified": cert.passed}
 
 
-def save_attack(result: BilevelResult, atk: VRFTAttack, path: str) -> None:
-    """Write clean data, attack signals, clean/poisoned theta and closed-loop poles to an .npz file."""
-    attack_stat(result, "theta_clean")
+def save_path(path: str) -> str:
+    """The .npz file save_attack writes for `path`; ModelError if its directory does not exist."""
     folder = os.path.dirname(os.path.abspath(os.fspath(path)))
     if not os.path.isdir(folder):
         raise ModelError(f"save_attack: directory {folder!r} of {path!r} does not exist; create it first")
+    return os.fspath(path) if os.fspath(path).endswith(".npz") else os.fspath(path) + ".npz"  # as np.savez names it
+
+
+def save_attack(result: BilevelResult, atk: VRFTAttack, path: str) -> None:
+    """Write clean data, attack signals, clean/poisoned theta and closed-loop poles to an .npz file."""
+    attack_stat(result, "theta_clean")
+    target = save_path(path)
     loop, theta, theta0 = atk.setting.loop, result.y["theta"], result.stats["theta_clean"]
-    target = os.fspath(path) if os.fspath(path).endswith(".npz") else os.fspath(path) + ".npz"  # as np.savez names it
     with atomic_path(target) as tmp:
         np.savez(tmp, u=atk.u, y=atk.y, a_u=result.x["a_u"], a_y=result.x["a_y"], theta_clean=theta0,
                  theta_poisoned=theta, poles_clean=loop.poles(theta0), poles_poisoned=loop.poles(theta),

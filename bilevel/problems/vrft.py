@@ -12,7 +12,7 @@ VRFTAttack; the structured attacks on the declared problem are in bilevel.attack
 from __future__ import annotations
 
 from collections import OrderedDict
-from typing import Any
+from typing import Any, Callable, Literal
 from weakref import WeakKeyDictionary
 
 import casadi as ca
@@ -28,7 +28,8 @@ from .surrogates import gelfand_log_radius
 from .vrft_instance import VRFTAttack, VRFTSetting, attack_instance
 
 SOURCE = "Russo & Proutiere, Poisoning Attacks against Data-Driven Control Methods (extended), "
-DEFAULTS = {"scenario": "B", "eps_u": 0.1, "eps_y": 0.057, "seed": 0, "N": 64, "convention": "paper"}
+DEFAULTS = {"scenario": "B", "eps_u": 0.1, "eps_y": 0.057, "seed": 0, "N": 64, "convention": "paper", "norm": "l2"}
+"""The registered problems' parameters (their builders' keyword defaults); the structured attacks take the same."""
 
 
 def _recursion(op: LTIOperator, x: ca.SX) -> tuple[ca.SX, np.ndarray, np.ndarray]:
@@ -260,25 +261,26 @@ def gelfand_radius(base: np.ndarray | ca.SX, slopes: np.ndarray | ca.SX, theta: 
     return gelfand_log_radius(C, power)
 
 
-@register("vrft-maxmin", source=SOURCE + "Sec. 4.4, eq. (op_maxmin)", tags=("attack", "vrft"), defaults=DEFAULTS,
-          description="max-min poisoning of VRFT on the flexible transmission (maximize the learner's loss)")
-def vrft_maxmin(**params) -> BilevelProblem:
-    """Max-min attack on VRFT: maximize the learner's clean-data loss at the poisoned theta."""
-    return attack_problem(attack_instance("maxmin", **params))
+def _builder(objective: str, doc: str) -> Callable[..., BilevelProblem]:
+    """The registered builder of vrft-<objective>: the paper's instance (attack_instance) declared by attack_problem."""
+    def build(scenario: Literal["A", "B"] = "B", eps_u: float = 0.1, eps_y: float = 0.057, seed: int = 0, N: int = 64,
+              convention: Literal["paper", "prefiltered-drop", "raw", "raw-drop"] = "paper",
+              norm: Literal["l2", "linf", "l1"] = "l2") -> BilevelProblem:
+        return attack_problem(attack_instance(objective, scenario, eps_u, eps_y, seed, N, convention, norm))
+    build.__name__, build.__doc__ = f"vrft_{objective}", doc
+    return build
 
 
-@register("vrft-targeted", source=SOURCE + "appendix A, eq. (op_vrft_targeted), theta_a = 3 theta_0",
-          tags=("attack", "vrft"), defaults=DEFAULTS,
-          description="targeted poisoning of VRFT: drive theta towards theta_a = 3 theta_0")
-def vrft_targeted(**params) -> BilevelProblem:
-    """Targeted attack on VRFT: minimize ||theta_a - theta'||^2 / nk."""
-    return attack_problem(attack_instance("targeted", **params))
-
-
-@register("vrft-destabilize", source=SOURCE + "beyond the paper: the attacker fits an ARX model to the clean data "
-          "and maximizes a smooth spectral radius of the modelled closed loop", tags=("attack", "vrft"),
-          defaults=DEFAULTS, description="destabilizing poisoning of VRFT (maximize the modelled closed-loop "
-          "spectral radius)")
-def vrft_destabilize(**params) -> BilevelProblem:
-    """Destabilizing attack: maximize log ||C(theta')^16||_F / 16 for the ARX-modelled closed loop."""
-    return attack_problem(attack_instance("destabilize", **params))
+vrft_maxmin = register(
+    "vrft-maxmin", source=SOURCE + "Sec. 4.4, eq. (op_maxmin)", tags=("attack", "vrft"), defaults=DEFAULTS,
+    description="max-min poisoning of VRFT on the flexible transmission (maximize the learner's loss)")(_builder(
+        "maxmin", "Max-min attack on VRFT: maximize the learner's clean-data loss at the poisoned theta."))
+vrft_targeted = register(
+    "vrft-targeted", source=SOURCE + "appendix A, eq. (op_vrft_targeted), theta_a = 3 theta_0", tags=("attack", "vrft"),
+    defaults=DEFAULTS, description="targeted poisoning of VRFT: drive theta towards theta_a = 3 theta_0")(_builder(
+        "targeted", "Targeted attack on VRFT: minimize ||theta_a - theta'||^2 / nk."))
+vrft_destabilize = register(
+    "vrft-destabilize", source=SOURCE + "beyond the paper: the attacker fits an ARX model to the clean data and "
+    "maximizes a smooth spectral radius of the modelled closed loop", tags=("attack", "vrft"), defaults=DEFAULTS,
+    description="destabilizing poisoning of VRFT (maximize the modelled closed-loop spectral radius)")(_builder(
+        "destabilize", "Destabilizing attack: maximize log ||C(theta')^16||_F / 16 for the ARX-modelled closed loop."))

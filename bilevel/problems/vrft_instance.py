@@ -93,6 +93,8 @@ CONVENTIONS = {
 
 PAPER_THETA0 = np.array([0.33, -0.61, 0.72, -0.66, 0.48, -0.13])
 """theta_0 of Campi et al. (2002) as quoted by the paper; its targeted attack aims at 3 * theta_0."""
+PAPER_EPS_Y = (0.01, 0.023, 0.037, 0.05, 0.057)
+"""The paper's output budgets (Table 1's columns)."""
 
 
 def scenario_data(setting: VRFTSetting, scenario: Literal["A", "B"], n: int = 512,

@@ -253,15 +253,15 @@ def test_quick_reproduction_end_to_end_and_resumes(tmp_path) -> None:
 
 
 def test_cli_reruns_a_budget_path_cell_of_the_reproduction(tmp_path) -> None:
-    """`bilevel solve vrft-maxmin --path --seed S` reproduces the sweep's cell (same theta, same a_y)."""
+    """`bilevel solve vrft-maxmin --param seed=S --option path=true` reproduces the sweep's cell (same theta)."""
     from bilevel.cli import main
     from bilevel.experiments.vrft import attack_task, cell_tasks
 
     task = next(t for t in cell_tasks(1, 0, "paper", "maxmin", "path") if t["scenario"] == "A" and t["eps_u"] == 0.2)
     cell = attack_task(task)["cells"][3]
     save = tmp_path / "cell.npz"
-    assert main(["solve", "vrft-maxmin", "--scenario", "A", "--eps-u", "0.2", "--eps-y", str(cell["eps_y"]),
-                 "--seed", str(task["seed"]), "--path", "--save", str(save)]) == 0
+    main(["solve", "vrft-maxmin", "--param", "scenario=A", "--param", "eps_u=0.2", "--param", f"eps_y={cell['eps_y']}",
+          "--param", "N=512", "--param", f"seed={task['seed']}", "--option", "path=true", "--option", f"save={save}"])
     saved = np.load(save)
     np.testing.assert_allclose(saved["theta_poisoned"], cell["theta_poisoned"], rtol=1e-12, atol=1e-14)
     assert float(saved["value"]) == pytest.approx(cell["value"], rel=1e-12)
