@@ -24,7 +24,7 @@ Method = Callable[..., MethodRun]
 SMALL_LOWER = 256
 """Lower levels with at most this many variables are solved with one BLAS thread."""
 
-METHODS_VERSION = "methods-7"
+METHODS_VERSION = "methods-8"
 """Part of every `bilevel compare` task, so a resumed comparison never reuses a row of an older method: bump it when a
 registered method changes its answers for the same call (methods-2: hypergradient takes the exact block by default;
 methods-3: the structured vrft-targeted attack runs to convergence; methods-4: SDP lower levels get the engine's
@@ -32,7 +32,9 @@ minimum-norm selection; methods-5: exact-block ties broken towards the current p
 declared box and balls, statuses no longer `solved` where lower-level convexity or local optimality is not shown;
 methods-6: the conditioning start of least-squares learners, differential-evolution's budget by dimension, time
 limits; methods-7: the structured VRFT attacks go through the engine's finalize, so their statuses come from its probe,
-and least squares from 10,000 Hessian terms are solved in residual form)."""
+and least squares from 10,000 Hessian terms are solved in residual form; methods-8: the structured VRFT attacks run
+on the engine's multistart ascent from its start sequence (the joint attack starts at the conditioning start, not at
+zero poisoning) and attack the registry's instance (N = 64 by default) in a comparison)."""
 
 METHODS: dict[str, Method] = {
     "ipopt": solve_ipopt,
