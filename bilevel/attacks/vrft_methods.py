@@ -42,16 +42,18 @@ TOL = 1e-4
 OPTIONS = {"starts", "seed", "max_iter", "tol", "time_limit", "verbose"}
 
 
-def _budgets(atk: VRFTAttack) -> Projection:
-    """Projection onto both budgets, a_u the first N entries of the upper vector and a_y the last N."""
+def _searched(atk: VRFTAttack) -> Projection | None:
+    """Projection onto both budgets (a_u the first N entries, a_y the last N) where the declared problem relaxes them
+    (l1, sparsity: the searched set, MethodRun.feasible_set), else None (the declared set)."""
+    if all(b.norm in ("l2", "linf") and b.rho is None for b in (atk.budget_u, atk.budget_y)):
+        return None
     N = atk.N
     return Blocks([(slice(0, N), atk.budget_u.projection(atk.u)), (slice(N, 2 * N), atk.budget_y.projection(atk.y))],
                   2 * N)
 
 
 def _ascend(prep: Prepared, joint: bool, options: dict[str, Any]) -> MethodRun:
-    """The engine's multistart ascent on the problem's VRFT instance: with the exact input step unless `joint`; the
-    budget sets as the searched set where the declared problem relaxes them (l1, sparsity)."""
+    """The engine's multistart ascent on the problem's VRFT instance, with the exact input step unless `joint`."""
     atk = instance_of(prep.problem)
     options = {"starts": 1, "max_iter": MAX_ITER[atk.objective], "tol": TOL} | options
     check_common_options(options)
@@ -60,10 +62,9 @@ def _ascend(prep: Prepared, joint: bool, options: dict[str, Any]) -> MethodRun:
         if why := exact_input(atk):
             raise ModelError(f"the alternating attack needs the exact input step: {why}; use the joint attack")
         step = InputStep(atk, next(b for b in prep.balls if b.block.start == 0))
-    exact = all(b.norm in ("l2", "linf") and b.rho is None for b in (atk.budget_u, atk.budget_y))
     weights = np.concatenate([np.full(atk.N, atk.delta_u), np.full(atk.N, atk.delta_y)])
-    return ascend_with_exact_block(prep, step, [], oracle=Oracle(atk), projection=None if exact else _budgets(atk),
-                                   weights=weights, **options)
+    return ascend_with_exact_block(prep, step, [], oracle=Oracle(atk), projection=_searched(atk), weights=weights,
+                                   **options)
 
 
 def alternating(prep: Prepared, **options: Any) -> MethodRun:
@@ -89,11 +90,10 @@ def white_noise(prep: Prepared, *, seed: int = 0, **unknown: Any) -> MethodRun:
     for budget, signal, radius in ((atk.budget_u, atk.u, atk.delta_u), (atk.budget_y, atk.y, atk.delta_y)):
         z = rng.standard_normal(atk.N)
         signals.append(budget.projection(signal)(z * radius / max(np.linalg.norm(z, budget.order), 1e-300)))
-    s = state(atk, *signals)
-    exact = all(b.norm in ("l2", "linf") and b.rho is None for b in (atk.budget_u, atk.budget_y))
-    return MethodRun(prep.pack(KKTPoint(np.concatenate(signals), s.theta, np.zeros(0), np.zeros(0), [])),
+    theta = state(atk, *signals).theta
+    return MethodRun(prep.pack(KKTPoint(np.concatenate(signals), theta, np.zeros(0), np.zeros(0), [])),
                      Status.INACCURATE, "a sample at the budget (a baseline, not an optimizer)",
-                     feasible_set=None if exact else _budgets(atk))
+                     feasible_set=_searched(atk))
 
 
 METHODS: dict[str, Callable[..., MethodRun]] = {"alternating": alternating, "joint": joint, "white-noise": white_noise}
