@@ -59,11 +59,3 @@ class Budget:
         if k is None:
             return NormBall(self.radius(signal), self.order)
         return SparseNormBall(self.radius(signal), k, self.order)
-        if self.norm == "linf":
-            out[keep] = radius * np.sign(g[keep])
-        elif self.norm == "l1":
-            i = keep[0]
-            out[i] = radius * np.sign(g[i])
-        else:
-            out[keep] = radius * g[keep] / np.linalg.norm(g[keep])
-        return out
