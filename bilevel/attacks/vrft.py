@@ -7,6 +7,7 @@ Everything is O(N nk) per evaluation (the instance, its data and objective: bile
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import scipy.linalg
@@ -150,6 +151,22 @@ class Oracle:
     def gradient(self, p: Point) -> tuple[np.ndarray]:
         """(grad of -J in x,)."""
         return (-np.concatenate(hypergradient(self.atk, p.state)),)
+
+    @property
+    def hessian_parts(self) -> tuple[Callable, Callable]:
+        """The learner's Hessian Phi'^T Phi' (up to its factor 2/n) and the x-gradient of v' Phi'^T Phi' v, for the
+        engine's conditioning start (bilevel.solvers.starts)."""
+        atk, N, last = self.atk, self.atk.N, {}
+
+        def regressor(x: np.ndarray) -> np.ndarray:  # the engine asks for both parts at each point
+            if last.get("x") is None or not np.array_equal(last["x"], x):
+                last.update(x=x.copy(), phi=atk.phi0 + atk.setting.regressor(x[N:]))
+            return last["phi"]
+
+        def adjoint(x: np.ndarray, v: np.ndarray) -> np.ndarray:
+            return np.concatenate([np.zeros(N), 2.0 * atk.setting.regressor.adjoint(np.outer(regressor(x) @ v, v))])
+
+        return lambda x: regressor(x).T @ regressor(x), adjoint
 
 
 @dataclass

@@ -202,7 +202,7 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
     exact block at its global optimum at every evaluation (exact None: every upper variable ascends); tol: relative
     gain over the loop's window; at time_limit (seconds) the best point so far, status MAX_ITERATIONS.
     A structured problem passes its own oracle (evaluate(*exact.solve(x)) or evaluate(x) -> a point with x, phi, F
-    and lower; gradient(point)[0] = grad phi), projection (a set narrower than the declared one, then the run's
+    and lower; gradient(point)[0] = grad phi; optionally hessian_parts for the conditioning start), projection (a set narrower than the declared one, then the run's
     feasible_set) and weights (per-entry length scales; default: ball radii, else 1)."""
     starts, scale, tol, max_iter = int(starts), float(scale), float(tol), int(max_iter)
     balls = prep.balls
@@ -230,16 +230,18 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
             return -np.inf, None
         return -ev.phi, ev
 
+    squared = weights ** 2
+
     def direction(ev: Evaluation) -> tuple[np.ndarray, np.ndarray]:
         g = -oracle.gradient(ev)[0][rest]  # Danskin: the block is at its optimum
         unit = float(np.linalg.norm(g * weights))
-        return g, (g * weights ** 2 / unit if unit > 0 else np.zeros_like(g))
+        return g, (g * squared / unit if unit > 0 else np.zeros_like(g))
 
     project = lambda xr: project_full(full(xr))[rest]  # noqa: E731  (blocks are disjoint)
     rng = np.random.default_rng(seed)
     limit, label = Deadline(time_limit), "hypergradient" + ("" if exact is None else ", exact block")
     ends, records, nit = [], [], 0
-    for k, x0 in enumerate(start_points(prep, starts, rng, scale)):
+    for k, x0 in enumerate(start_points(prep, starts, rng, scale, getattr(oracle, "hessian_parts", None))):
         if k and limit.expired():
             break
         t0, history, reason, calls = time.perf_counter(), [], {}, [0]
