@@ -177,6 +177,7 @@ class InputStep:
     ball: Ball
 
     def solve(self, x: np.ndarray) -> tuple[np.ndarray, State, None]:
-        """x with a_u replaced by the best input poisoning, and the fit there."""
+        """x (overwritten) with a_u replaced by the best input poisoning, and the fit there."""
         a_u, s = best_input_attack(self.atk, x[self.atk.N:])
-        return np.concatenate([a_u, s.a_y]), s, None
+        x[: self.atk.N] = a_u
+        return x, s, None

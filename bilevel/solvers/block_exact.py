@@ -209,8 +209,10 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
     if oracle is None:
         oracle = shared_oracle(prep, float(penalty), projected_rows=tuple(b.row for b in balls))
     S = slice(0, 0) if exact is None else exact.ball.block
-    rest = np.ones(int(prep.canon.x.numel()), dtype=bool)
-    rest[S] = False
+    mask = np.ones(int(prep.canon.x.numel()), dtype=bool)
+    mask[S] = False
+    kept = np.flatnonzero(mask)  # the other variables, as a slice where contiguous (a view, not a copy)
+    rest = slice(kept[0], kept[-1] + 1) if kept.size and kept[-1] - kept[0] + 1 == kept.size else mask
     weights = (budget_scale(prep.canon, balls) if weights is None else np.asarray(weights, dtype=float))[rest]
     project_full = prep.projection if projection is None else projection
     if exact is not None and isinstance(project_full, Blocks):  # the block is set at its optimum, not projected
@@ -219,7 +221,7 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
     def full(xr: np.ndarray) -> np.ndarray:
         if exact is None:
             return xr
-        x = np.empty(rest.size)
+        x = np.empty(mask.size)
         x[rest], x[S] = xr, exact.ball.center
         return x
 
