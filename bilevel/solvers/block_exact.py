@@ -215,8 +215,6 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
     rest = slice(kept[0], kept[-1] + 1) if kept.size and kept[-1] - kept[0] + 1 == kept.size else mask
     weights = (budget_scale(prep.canon, balls) if weights is None else np.asarray(weights, dtype=float))[rest]
     project_full = prep.projection if projection is None else projection
-    if exact is not None and isinstance(project_full, Blocks):  # the block is set at its optimum, not projected
-        project_full = project_full.without(S)
 
     def full(xr: np.ndarray) -> np.ndarray:
         if exact is None:
@@ -239,7 +237,8 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
         unit = float(np.linalg.norm(g * weights))
         return g, (g * squared / unit if unit > 0 else np.zeros_like(g))
 
-    project = lambda xr: project_full(full(xr))[rest]  # noqa: E731  (blocks are disjoint)
+    own = project_full.on(rest) if isinstance(project_full, Blocks) and isinstance(rest, slice) else None
+    project = own if own is not None else lambda xr: project_full(full(xr))[rest]  # the other variables' sets
     rng = np.random.default_rng(seed)
     limit, label = Deadline(time_limit), "hypergradient" + ("" if exact is None else ", exact block")
     ends, records, nit = [], [], 0

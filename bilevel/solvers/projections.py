@@ -318,10 +318,22 @@ class Blocks(Projection):
         v = self._check(v)
         return all(proj.contains(v[idx], tol) for idx, proj in self._parts)
 
-    def without(self, block: slice) -> "Blocks":
-        """The same projection with the part on exactly `block` dropped (its entries left unchanged)."""
-        out = Blocks((), self.total_size)
-        out._parts = tuple(p for p in self._parts if not (isinstance(p[0], slice) and p[0] == block))
+    def on(self, block: slice) -> Projection | None:
+        """The projection of the entries in `block` alone (its parts shifted; one part covering it: that part's own
+        projection), or None where a part is not a slice inside it or outside it."""
+        inside = []
+        for idx, proj in self._parts:
+            if not isinstance(idx, slice):
+                return None
+            if idx.start >= block.start and idx.stop <= block.stop:
+                inside.append((slice(idx.start - block.start, idx.stop - block.start), proj))
+            elif idx.start < block.stop and idx.stop > block.start:
+                return None
+        size = block.stop - block.start
+        if len(inside) == 1 and inside[0][0] == slice(0, size):
+            return inside[0][1]
+        out = Blocks((), size)
+        out._parts = tuple(inside)
         return out
 
     def with_box(self, lb: np.ndarray, ub: np.ndarray) -> "Blocks":
