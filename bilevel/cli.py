@@ -72,6 +72,11 @@ def _list_params(name: str) -> int:
     for k, kind, default in rows:
         print(f"  {k.ljust(widths[0])}  {kind.ljust(widths[1])}  {default}")
     forwards = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
+    if (attack := _structured(name)) is not None:
+        signature, types = inspect.signature(attack).parameters, typing.get_type_hints(attack)
+        own = [f"{k} ({_type_name(types.get(k))}, default {text(signature[k].default)})" for k in _own_options(attack)]
+        print(f"structured attack (--method {STRUCTURED}, the default; default starts "
+              f"{signature['starts'].default}): options {'; '.join(own) or 'none'}, given as --option NAME=VALUE")
     if not rows:
         print("no parameters" + (" listed; its builder takes keyword parameters (see its documentation)" if forwards
                                  else ""))
@@ -166,116 +171,63 @@ def _method_options(raw: dict[str, str]) -> dict[str, object]:
     return {k: _convert("--option", k, v, None) for k, v in raw.items()}
 
 
-VRFT_FLAGS = {"scenario": ("scenario", "B"), "eps_u": ("eps_u", 0.1), "eps_y": ("eps_y", 0.057),
-              "norm": ("norm", "l2"), "n": ("N", 512), "convention": ("convention", "paper")}
-"""vrft-* flags: argparse name -> (problem parameter, the structured attack's default)."""
+STRUCTURED = "structured"
+"""--method of a registered attack problem's own attack (bilevel.attacks.registry), its default."""
 
 
-def _vrft_params(args: argparse.Namespace) -> dict[str, object]:
-    """The vrft-* flags the user gave, as problem parameters."""
-    return {param: getattr(args, flag) for flag, (param, _) in VRFT_FLAGS.items() if getattr(args, flag) is not None}
+def _structured(name: str) -> Callable[..., Any] | None:
+    """Problem `name`'s structured attack, or None."""
+    from .attacks.registry import STRUCTURED as ATTACKS
+
+    return ATTACKS.get(name)
 
 
-def _cmd_attack(args: argparse.Namespace) -> int:
-    from .problems.vrft_instance import attack_instance
-    from .attacks.vrft_methods import ATTACKS, attack_budget_path, attack_summary, save_attack
-    from .experiments.vrft import EPS_Y
-
-    if args.param or args.option:
-        raise ModelError("the structured vrft attacks take --scenario/--eps-u/--eps-y/--norm/--n/--convention/"
-                         "--starts/--seed, not --param/--option; name a generic --method to use those")
-    for flag, (_, default) in VRFT_FLAGS.items():
-        if getattr(args, flag) is None:
-            setattr(args, flag, default)
-    objective = args.problem.removeprefix("vrft-")
-    atk = attack_instance(objective, args.scenario, args.eps_u, args.eps_y, args.seed, args.n, args.convention,
-                          args.norm)
-    method = args.method if args.method in ATTACKS else ("joint" if objective == "destabilize" else "alternating")
-    starts = 1 if args.starts is None else args.starts  # 1: the reproduction's setting
-    if args.path:
-        if method != "alternating":
-            raise SystemExit(f"--path runs the alternating attack; method {method!r} has no budget path")
-        grid = [e for e in EPS_Y if e < args.eps_y] + [args.eps_y]
-        result = attack_budget_path(atk, grid, seed=args.seed, starts=starts)[-1]
-    elif method == "white-noise":
-        result = ATTACKS[method](atk, seed=args.seed)
-    else:
-        result = ATTACKS[method](atk, seed=args.seed, starts=starts)
-    for key, value in attack_summary(result).items():
-        print(f"{key:>22}: {value}")
-    print(f"{'theta_clean':>22}: {np.array2string(result.stats['theta_clean'], precision=5)}")
-    print(f"{'theta_poisoned':>22}: {np.array2string(result.y['theta'], precision=5)}")
-    if args.save:
-        save_attack(result, atk, args.save)
-        written = args.save if args.save.endswith(".npz") else args.save + ".npz"  # np.savez appends .npz
-        print(f"wrote {written} (clean data, attack signals, clean/poisoned theta, closed-loop poles)")
-    if args.json:
-        arrays = {"theta_clean": result.stats["theta_clean"].tolist(), "theta_poisoned": result.y["theta"].tolist(),
-                  **{k: v.tolist() for k, v in result.x.items()}}
-        with atomic_open(args.json) as fh:
-            json.dump({"problem": args.problem, **attack_summary(result), **arrays}, fh, indent=2)
-        print(f"wrote {args.json}")
-    return 0
+def _attack_options(name: str, attack: Callable[..., Any], raw: dict[str, str]) -> dict[str, object]:
+    """--option values of a structured attack, typed by its signature (its keywords other than starts and seed)."""
+    accepted = _own_options(attack)
+    if unknown := sorted(set(raw) - set(accepted)):
+        raise ModelError(f"--option {', '.join(unknown)}: the structured attack of {name} takes "
+                         f"{', '.join(accepted) or 'no options'}; name a generic --method for method options")
+    types = typing.get_type_hints(attack)
+    return {k: _convert("--option", k, v, types.get(k)) for k, v in raw.items()}
 
 
-def _cmd_willems_destabilize(args: argparse.Namespace) -> int:
-    """willems-destabilize without a generic --method: the structured attack (largest spectral radius reached)."""
-    import dataclasses
-
-    from .attacks.willems import destabilize_attack, willems_row
-    from .problems.willems import WillemsSetting, build_attack
-
-    if args.option:
-        raise ModelError("the willems-destabilize attack takes --starts/--seed and --param NAME=VALUE, not --option; "
-                         "name a generic --method to use options")
-    raw = _pairs(args.param, "--param")
-    allowed = sorted(f.name for f in dataclasses.fields(WillemsSetting) if f.name != "objective")
-    if unknown := sorted(set(raw) - set(allowed)):
-        raise ModelError(f"--param {', '.join(unknown)}: willems-destabilize takes {', '.join(allowed)}")
-    types = typing.get_type_hints(WillemsSetting)
-    params = {k: _convert("--param", k, v, types[k]) for k, v in raw.items()}
-    attack = build_attack(WillemsSetting(objective="destabilize", **params))
-    result = destabilize_attack(attack, starts=16 if args.starts is None else args.starts, seed=args.seed)
-    row = willems_row(result)
-    summary = {"status": result.status.value, "spectral_radius": row["spectral_radius"], "unstable": row["unstable"],
-               "identified_radius": result.stats["identified_radius"], "wall_time": result.wall_time,
-               "budget_violation": row["budget_violation"], "message": result.message}
-    for key, value in summary.items():
-        print(f"{key:>18}: {value}")
-    print(f"{'gain':>18}: {np.array2string(result.stats['gain'], precision=5)}")
-    if args.json:
-        with atomic_open(args.json) as fh:
-            json.dump({"problem": args.problem, "setting": dataclasses.asdict(attack.setting), **row},
-                      fh, indent=2)
-        print(f"wrote {args.json}")
-    return 0
+def _own_options(attack: Callable[..., Any]) -> list[str]:
+    """A structured attack's own options: its named keywords other than starts and seed."""
+    return [k for k, p in inspect.signature(attack).parameters.items()
+            if k not in ("starts", "seed") and p.kind is inspect.Parameter.POSITIONAL_OR_KEYWORD]
 
 
 def _cmd_solve(args: argparse.Namespace) -> int:
-    if args.problem == "willems-destabilize" and args.method in (None, "destabilize"):
-        return _cmd_willems_destabilize(args)
-    if "vrft" in registry.spec(args.problem).tags and args.method not in (*METHODS, AUTO):
-        if args.method is not None and args.method not in _attack_methods():
-            raise ModelError(f"unknown method {args.method!r} for {args.problem}; choose one of "
-                             f"{', '.join(sorted(set(METHODS) | set(_attack_methods())))}")
-        return _cmd_attack(args)
-    if args.save:
-        raise ModelError(f"--save writes a VRFT attack's signals; {args.problem} is not a vrft-* problem "
-                         "(use --json to save the result)")
-    args.method = args.method or AUTO
-    args.starts = 8 if args.starts is None else args.starts
+    attack = _structured(args.problem)
+    if args.method not in (None, AUTO, STRUCTURED, *METHODS):
+        raise ModelError(f"unknown method {args.method!r}; choose {AUTO}, {STRUCTURED} (a problem's own attack: "
+                         f"vrft-*, willems-*) or a registered method: {', '.join(sorted(METHODS))}")
     params = _problem_params(args.problem, _pairs(args.param, "--param"))
-    options = _method_options(_pairs(args.option, "--option"))
-    if "vrft" in registry.spec(args.problem).tags:
-        flags = _vrft_params(args)
-        if clash := sorted(set(flags) & set(params)):
-            raise ModelError(f"{', '.join(clash)} given both as a flag and as --param; give it once")
-        params = {"seed": args.seed, **flags, **params}
-    elif given := [f"--{flag.replace('_', '-')}" for flag in VRFT_FLAGS if getattr(args, flag) is not None]:
-        raise ModelError(f"{', '.join(given)} only apply to vrft-* problems; {args.problem} takes --param NAME=VALUE")
-    problem = registry.get(args.problem, **params)
-    result = solve(problem, method=args.method, **{"starts": args.starts, "seed": args.seed, **options})
+    raw_options = _pairs(args.option, "--option")
+    structured = attack is not None and args.method in (None, STRUCTURED)
+    if structured:
+        options = _attack_options(args.problem, attack, raw_options)
+        starts = {} if args.starts is None else {"starts": args.starts}
+        if "seed" in params and args.seed is not None and args.seed != params["seed"]:
+            raise ModelError(f"--seed {args.seed} and --param seed={params['seed']}: a structured attack's seed is also "
+                             "its data's; give one")
+        seed = params.pop("seed", args.seed or 0)
+        result = attack(seed=seed, **starts, **registry.params_for(args.problem, params), **options)
+    else:
+        if args.method == STRUCTURED:
+            raise ModelError(f"{args.problem} has no structured attack; choose {AUTO} or a registered method: "
+                             f"{', '.join(sorted(METHODS))}")
+        problem = registry.get(args.problem, **params)
+        options = _method_options(raw_options)
+        result = solve(problem, method=args.method or AUTO,
+                       **{"starts": 8 if args.starts is None else args.starts, "seed": args.seed or 0, **options})
     print(result)
+    if "spectral_radius" in result.stats:  # an attack's outcome on the true closed loop
+        from .attacks.outcome import unstable
+
+        print(f"spectral radius of the true closed loop {result.stats['spectral_radius']:.6g} (unstable: "
+              f"{unstable(result)})")
     if not args.json and any(np.size(v) > SHOWN for v in (*result.x.values(), *result.y.values())):
         print(f"(arrays of more than {SHOWN} entries are summarized; --json PATH writes every value)")
     known = registry.spec(args.problem).optimum
@@ -285,11 +237,11 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     if args.json:
         result.to_json(args.json)
         print(f"wrote {args.json}")
-    return 0 if result.success else 1
+    certified = result.certificate is not None and result.certificate.passed
+    return 0 if result.success or (structured and certified) else 1  # an attack's certified point is its answer
 
 
-INTEGER_FLAGS = {"sims": (1, 10**6), "starts": (1, 10**6), "workers": (1, 1024), "seed": (0, 2**63 - 1),
-                 "n": (1, 10**6)}
+INTEGER_FLAGS = {"sims": (1, 10**6), "starts": (1, 10**6), "workers": (1, 1024), "seed": (0, 2**63 - 1)}
 """Integer flags -> (smallest, largest) accepted value: sane maxima, so that a typo is refused rather than run."""
 
 
@@ -299,10 +251,6 @@ def _check_numbers(args: argparse.Namespace) -> None:
         value = getattr(args, flag, None)
         if value is not None and not low <= value <= high:
             raise ModelError(f"--{flag}: {flag}={value} is invalid; give an integer in [{low}, {high}]")
-    for flag in ("eps_u", "eps_y"):
-        value = getattr(args, flag, None)
-        if value is not None and not (math.isfinite(value) and value >= 0):
-            raise ModelError(f"--{flag.replace('_', '-')} {value}: a budget must be a finite number >= 0")
     if getattr(args, "dask", None) is not None:
         from .experiments.executor import check_dask_address
 
@@ -420,29 +368,17 @@ def build_parser() -> argparse.ArgumentParser:
     p_solve = sub.add_parser("solve", help="solve a registered problem and print its certificate", epilog=USER_CODE)
     p_solve.add_argument("problem", help="a registered name (bilevel list) or MODULE:FUNCTION, your own builder")
     p_solve.add_argument("--method", default=None,
-                         help=f"{', '.join([AUTO, *sorted(METHODS)])} (default {AUTO}: chosen by structure); vrft-* "
-                              "and willems-destabilize "
-                              "default to their structured attack (vrft: alternating, joint, white-noise) unless a "
-                              "generic method is named")
+                         help=f"{', '.join([AUTO, STRUCTURED, *sorted(METHODS)])} (default: {STRUCTURED} for a problem "
+                              f"with a structured attack (vrft-*, willems-*), else {AUTO}: chosen by structure)")
     p_solve.add_argument("--starts", type=int, default=None,
-                         help="multistart count (default 8; vrft-* attacks 1; willems-destabilize 16)")
-    p_solve.add_argument("--seed", type=int, default=0)
-    p_solve.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="problem parameter")
-    p_solve.add_argument("--option", action="append", default=[], metavar="NAME=VALUE", help="method option")
+                         help="multistart count (default 8; a structured attack: its own)")
+    p_solve.add_argument("--seed", type=int, default=None, help="the method's random seed (default 0; a problem's "
+                         "data seed is --param seed=S where it has one; a structured attack's seed is its data's too)")
+    p_solve.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                         help="problem parameter (bilevel list --params NAME lists them)")
+    p_solve.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
+                         help="method option, or the structured attack's (bilevel list --params NAME lists them)")
     p_solve.add_argument("--json", default=None, metavar="PATH", help="write the result as JSON")
-    p_solve.add_argument("--scenario", default=None, choices=["A", "B"],
-                         help="vrft-*: step (A) or white noise (B, default)")
-    p_solve.add_argument("--eps-u", type=float, default=None, help="vrft-*: relative budget on u (default 0.1)")
-    p_solve.add_argument("--eps-y", type=float, default=None, help="vrft-*: relative budget on y (default 0.057)")
-    p_solve.add_argument("--norm", default=None, choices=["l2", "linf", "l1"], help="vrft-*: budget norm (default l2)")
-    p_solve.add_argument("--n", type=int, default=None,
-                         help="vrft-*: number of samples (default 512; 64 for a generic --method)")
-    p_solve.add_argument("--convention", default=None,
-                         help="vrft-*: paper (default), prefiltered-drop, raw, raw-drop")
-    p_solve.add_argument("--path", action="store_true",
-                         help="vrft-*: attack the paper's eps_y grid below --eps-y first, warm-starting each budget "
-                              "from the last (as the reproduction does)")
-    p_solve.add_argument("--save", default=None, metavar="PATH.npz", help="vrft-*: save data, signals, thetas, poles")
     p_solve.set_defaults(run=_cmd_solve)
     p_cmp = sub.add_parser("compare", help="run solvers on problems; write CSV and Markdown (resumable)",
                            epilog=USER_CODE)
@@ -480,12 +416,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _attack_methods() -> list[str]:
-    from .attacks.vrft_methods import ATTACKS
-
-    return list(ATTACKS)
-
-
 TARGET_FILES = {"vrft": "maxmin-paper.jsonl", "willems": "paper.jsonl", "willems-budget": "budget.jsonl"}
 """The sweep file only `bilevel reproduce TARGET` writes: a directory holding another target's is that target's run."""
 
@@ -512,7 +442,7 @@ def _probe_directory(flag: str, path: str, directory: str) -> None:
 
 def _check_paths(args: argparse.Namespace) -> None:
     """Output paths are checked (and probed for writing) before any work, so a long run never ends in a traceback."""
-    for flag in ("json", "save"):
+    for flag in ("json",):
         path = getattr(args, flag, None)
         if path:
             parent = os.path.dirname(os.path.abspath(path))
@@ -540,7 +470,7 @@ USAGE_ERRORS = (ModelError, InvalidData, UnknownName, UnknownOption)
 def _error_line(exc: BaseException) -> str:
     """One line describing a named error (an OSError names its path, a MemoryError the flags that size a run)."""
     if isinstance(exc, MemoryError):
-        return "out of memory; give smaller sizes (--sims, --n, --starts, --param sizes) or fewer --workers"
+        return "out of memory; give smaller sizes (--sims, --starts, --param sizes) or fewer --workers"
     if isinstance(exc, OSError) and exc.filename:
         return f"{exc.strerror}: {exc.filename!r}; check the path"
     return " ".join(str(exc).split()) or type(exc).__name__

@@ -104,11 +104,12 @@ CASES: dict[str, tuple[list[str], str]] = {
     "--sims above a million": (["reproduce", "willems", "--sims", "1000001"], "give an integer in [1, 1000000]"),
     "negative --sims": (["reproduce", "willems-budget", "--sims", "-5"], "sims=-5 is invalid"),
     "--sims not an integer": (["reproduce", "vrft", "--sims", "1e3"], "invalid int value"),
-    "--n 0": (["solve", "vrft-maxmin", "--n", "0"], "n=0 is invalid"),
-    "--n negative (generic method)": (["solve", "vrft-maxmin", "--method", "ipopt", "--n", "-4"], "n=-4 is invalid"),
-    "--eps-u NaN": (["solve", "vrft-maxmin", "--eps-u", "nan"], "a budget must be a finite number >= 0"),
-    "--eps-u inf": (["solve", "vrft-targeted", "--eps-u", "inf"], "a budget must be a finite number >= 0"),
-    "--eps-y negative": (["solve", "vrft-maxmin", "--eps-y", "-0.1"], "a budget must be a finite number >= 0"),
+    "--param N=0": (["solve", "vrft-maxmin", "--param", "N=0"], "N=0 samples"),
+    "--param N negative (generic method)": (["solve", "vrft-maxmin", "--method", "ipopt", "--param", "N=-4"],
+                                            "N=-4 samples"),
+    "--param eps_u NaN": (["solve", "vrft-maxmin", "--param", "eps_u=NaN"], "expected a finite number"),
+    "--param eps_u inf": (["solve", "vrft-targeted", "--param", "eps_u=inf"], "expected a finite number"),
+    "--param eps_y negative": (["solve", "vrft-maxmin", "--param", "eps_y=-0.1"], "eps"),
     "negative seed": (["solve", "macmpec-bard1", "--seed", "-1"], "seed=-1 is invalid"),
     "seed beyond 64 bits": (["compare", "--seed", str(2**64)], "is invalid"),
     "negative --starts": (["solve", "macmpec-bard1", "--starts", "-3"], "starts=-3 is invalid"),
@@ -125,7 +126,8 @@ CASES: dict[str, tuple[list[str], str]] = {
     "compare param of wrong type": (["compare", "--problems", "vrft-maxmin", "--param", "N=abc"],
                                     "expected an integer"),
     # paths
-    "--save unwritable": (["solve", "vrft-maxmin", "--save", "/proc/attack.npz"], "cannot write in '/proc'"),
+    "attack's save in a missing directory": (["solve", "vrft-maxmin", "--option", "save={tmp}/nodir/a.npz"],
+                                             "does not exist"),
     "--json unwritable": (["solve", "macmpec-bard1", "--json", "/sys/r.json"], "cannot write in '/sys'"),
     "--json in a missing directory": (["solve", "macmpec-bard1", "--json", "{tmp}/nodir/r.json"], "does not exist"),
     "--json is a directory": (["solve", "macmpec-bard1", "--json", "{tmp}"], "is a directory"),
@@ -142,13 +144,18 @@ CASES: dict[str, tuple[list[str], str]] = {
     "misspelt tag": (["list", "--tag", "textbok"], "did you mean 'textbook'?"),
     "list --params with --tag": (["list", "--params", "vrft-maxmin", "--tag", "vrft"], "give one"),
     "unknown method": (["solve", "macmpec-bard1", "--method", "newton"], "unknown method 'newton'"),
-    "vrft flag on a textbook problem": (["solve", "macmpec-bard1", "--eps-u", "0.1"], "only apply to vrft-*"),
+    "vrft parameter on a textbook problem": (["solve", "macmpec-bard1", "--param", "eps_u=0.1"],
+                                             "rejected its parameters"),
+    "structured on a textbook problem": (["solve", "macmpec-bard1", "--method", "structured"],
+                                         "has no structured attack"),
+    "unknown structured attack option": (["solve", "vrft-maxmin", "--option", "tol=1"], "takes attack, path, save"),
+    "data seed twice": (["solve", "vrft-maxmin", "--seed", "2", "--param", "seed=3"], "give one"),
     "--quick on vrft": (["reproduce", "vrft", "--quick"], "only `reproduce willems` takes it"),
     "bad dask address": (["reproduce", "vrft", "--dask", "nowhere"], "--dask"),
     "unknown command": (["frobnicate"], "invalid choice"),
     "unknown flag": (["solve", "macmpec-bard1", "--frob"], "unrecognized arguments"),
     "missing problem": (["solve"], "the following arguments are required"),
-    "bad scenario": (["solve", "vrft-maxmin", "--scenario", "C"], "invalid choice"),
+    "bad scenario": (["solve", "vrft-maxmin", "--param", "scenario=C"], "expected one of A, B"),
     "unknown reproduce target": (["reproduce", "nosuch"], "invalid choice"),
     "no command": ([], "the following arguments are required"),
 }
@@ -245,10 +252,14 @@ def test_list_params_reads_the_registry_and_the_builders_signature(workdir: Path
     from bilevel.problems import registry
 
     assert main(["list", "--params", "vrft-maxmin"]) == 0
-    rows = {line.split()[0]: line.split()[1:] for line in capsys.readouterr().out.splitlines()[1:-1]}
+    out = capsys.readouterr().out.splitlines()
+    rows = {line.split()[0]: re.split(r"\s{2,}", line.strip())[1:] for line in out[1:-2]}
     defaults = registry.spec("vrft-maxmin").defaults
-    assert set(rows) == set(defaults) and rows["N"] == ["int", str(defaults["N"])]
-    assert rows["eps_y"] == ["float", str(defaults["eps_y"])] and rows["scenario"] == ["str", defaults["scenario"]]
+    assert set(rows) == set(defaults) >= {"norm", "N", "seed", "eps_u", "eps_y", "scenario", "convention"}
+    assert rows["N"] == ["int", str(defaults["N"])] and rows["eps_y"] == ["float", str(defaults["eps_y"])]
+    assert rows["scenario"] == ["one of A, B", "B"] and rows["norm"] == ["one of l2, linf, l1", "l2"]
+    assert out[-2].startswith("structured attack (--method structured, the default; default starts 1): options "
+                              "attack (one of alternating, joint, white-noise or none, default null); path (bool")
     assert main(["list", "--params", f"{OWN_REF}:bard"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert [re.split(r"\s{2,}", line.strip()) for line in out[1:5]] == [

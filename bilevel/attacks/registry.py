@@ -1,22 +1,47 @@
 """The structured attack of each registered attack problem, by problem name: attack(starts=, seed=, **params) ->
-BilevelResult with the problem's parameters (`bilevel compare`'s method "structured", the CLI's default for them)."""
+BilevelResult, params the problem's (bilevel.problems.registry) with its data seed `seed` (the attack's seed too),
+any further keyword the attack's own option
+(`bilevel compare`'s method "structured", `bilevel solve`'s default for these problems, options given there as
+--option NAME=VALUE)."""
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, Literal
 
-from ..problems.vrft_instance import attack_instance
+from ..errors import ModelError
+from ..problems import registry
+from ..problems.vrft_instance import PAPER_EPS_Y, attack_instance
 from ..result import BilevelResult
-from .vrft_methods import attack_alternating, attack_joint
+from .vrft_methods import ATTACKS, attack_budget_path, save_attack, save_path
 
 Attack = Callable[..., BilevelResult]
 
 
 def _vrft(objective: str) -> Attack:
-    """The alternating attack (its exact input step) on vrft-<objective>, joint ascent for 'destabilize'."""
-    def run(starts: int = 1, seed: int = 0, **params: Any) -> BilevelResult:
-        method = attack_joint if objective == "destabilize" else attack_alternating
-        return method(attack_instance(objective, **params), starts=starts, seed=seed)
+    """The structured attack on vrft-<objective>."""
+    def run(starts: int = 1, seed: int = 0, attack: Literal["alternating", "joint", "white-noise"] | None = None,
+            path: bool = False, save: str | None = None, **params: Any) -> BilevelResult:
+        """The alternating attack (joint for 'destabilize'), or `attack`, on the instance of these parameters with data
+        seed `seed`; path: first at the paper's eps_y below
+        eps_y, each budget warm-starting the next (as the reproduction's budget paths); save: write the attack's data
+        and signals to this .npz file (save_attack)."""
+        name = attack or ("joint" if objective == "destabilize" else "alternating")
+        if save:
+            save_path(save)  # before the attack
+        if name not in ATTACKS:
+            raise ModelError(f"attack={name!r} is not one of {', '.join(ATTACKS)}")
+        atk = attack_instance(objective, **{**registry.spec(f"vrft-{objective}").defaults, **params, "seed": seed})
+        if path and name != "alternating":
+            raise ModelError(f"path=true runs the alternating attack's budget path; attack {name!r} has none")
+        if path:
+            eps = atk.budget_y.eps
+            result = attack_budget_path(atk, [e for e in PAPER_EPS_Y if e < eps] + [eps], seed=seed,
+                                        starts=starts)[-1]
+        else:
+            result = ATTACKS[name](atk, seed=seed, **({} if name == "white-noise" else {"starts": starts}))
+        if save:
+            save_attack(result, atk, save)
+        return result
     return run
 
 
@@ -27,7 +52,7 @@ def _willems(objective: str) -> Attack:
         from ..problems.willems import WillemsSetting, build_attack
         from .willems import destabilize_attack, hypergradient_attack
 
-        built = build_attack(WillemsSetting(objective=objective, **params))
+        built = build_attack(WillemsSetting(objective=objective, **{**params, "seed": seed}))
         if objective == "destabilize":
             return destabilize_attack(built, starts=starts, seed=seed)
         return hypergradient_attack(built, starts=starts, seed=seed, stop_when_unstable=False)

@@ -1,13 +1,13 @@
-"""The learner of a VRFT instance in structured form: its least-squares fit on poisoned data, the attacker's
-hypergradient by implicit differentiation, and the exact input step.
+"""The VRFT learner in structured form, as the engine's oracle: its least-squares fit on poisoned data by a thin QR,
+the attacker's hypergradient by the adjoint of the filters, and the exact input step (a trust-region subproblem).
 
-Everything is O(N nk) per evaluation: Phi by filtering, theta by a thin QR, gradients by adjoints
-(the instance, its data and objective: bilevel.problems.vrft_instance).
+Everything is O(N nk) per evaluation (the instance, its data and objective: bilevel.problems.vrft_instance).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import scipy.linalg
@@ -15,14 +15,18 @@ import scipy.linalg.lapack
 
 from ..ddc.vrft import thin_qr
 from ..errors import ModelError, RankDeficientRegressor
+from ..lower.base import LowerSolution
 from ..lower.least_squares import factor_solve
 from ..problems.vrft_instance import VRFTAttack
 from ..solvers.block_exact import quadratic_block_step
+from ..solvers.structure import Ball
+
+EMPTY = np.zeros(0)
 
 
 @dataclass
 class State:
-    """The learner's fit on poisoned data: Phi', targets t', theta' and the thin QR of Phi'."""
+    """The learner's fit on poisoned data: regressor Phi', targets t', theta' and the thin QR of Phi'."""
 
     a_u: np.ndarray
     a_y: np.ndarray
@@ -35,8 +39,7 @@ class State:
 
 def state(atk: VRFTAttack, a_u: np.ndarray, a_y: np.ndarray) -> State:
     """The learner's least-squares fit on (u + a_u, y + a_y)."""
-    reg = atk.setting.regressor
-    target = atk.t0 + reg.targets(a_u) if np.any(a_u) else atk.t0
+    target = atk.t0 + atk.setting.regressor.targets(a_u) if np.any(a_u) else atk.t0
     return _fit(atk, a_u, a_y, target)
 
 
@@ -51,13 +54,6 @@ def _fit(atk: VRFTAttack, a_u: np.ndarray, a_y: np.ndarray, target: np.ndarray) 
     return State(a_u, a_y, phi, target, theta, R, Q)
 
 
-def targets_adjoint(atk: VRFTAttack, g: np.ndarray) -> np.ndarray:
-    """Adjoint of a -> targets(a) (applied to a vector or to columns): pad the dropped rows, then L^T."""
-    reg = atk.setting.regressor
-    padded = np.concatenate([g, np.zeros((atk.N - g.shape[0],) + g.shape[1:])])
-    return padded if reg.prefilter is None else reg.prefilter.adjoint(padded)
-
-
 def hypergradient(atk: VRFTAttack, s: State) -> tuple[np.ndarray, np.ndarray]:
     """(dJ/da_u, dJ/da_y) at state s, by implicit differentiation of the normal equations.
 
@@ -68,7 +64,16 @@ def hypergradient(atk: VRFTAttack, s: State) -> tuple[np.ndarray, np.ndarray]:
     pw = s.phi @ w
     residual = s.target - s.phi @ s.theta
     g_y = atk.setting.regressor.adjoint(residual[:, None] * w - pw[:, None] * s.theta)
-    return targets_adjoint(atk, pw), g_y
+    return atk.setting.regressor.targets_adjoint(pw, atk.N), g_y
+
+
+def exact_input(atk: VRFTAttack) -> str:
+    """Why the exact input step does not apply to `atk` ("" where it does)."""
+    if atk.objective == "destabilize":
+        return "the destabilize objective is not quadratic in theta"
+    if atk.budget_u.norm != "l2" or atk.budget_u.rho is not None:
+        return f"the input budget {atk.budget_u} is not a plain l2 ball"
+    return ""
 
 
 def best_input_attack(atk: VRFTAttack, a_y: np.ndarray) -> tuple[np.ndarray, State]:
@@ -77,9 +82,9 @@ def best_input_attack(atk: VRFTAttack, a_y: np.ndarray) -> tuple[np.ndarray, Sta
     theta' = theta'_0 + S v and a_u = B v with ||a_u|| = ||v||, where Phi' = QR, W = targets^T Q,
     S = R^{-1} (W'W)^{1/2}, B = W (W'W)^{-1/2}; a k-dimensional trust-region subproblem in v.
     """
-    if atk.objective == "destabilize" or atk.budget_u.norm != "l2" or atk.budget_u.rho is not None:
-        raise ModelError("the exact input step needs a quadratic objective (maxmin/targeted) and a plain l2 "
-                         "budget on a_u; use the conditional-gradient step otherwise")
+    if why := exact_input(atk):
+        raise ModelError(f"the exact input step needs a quadratic objective (maxmin/targeted) and a plain l2 budget on "
+                         f"a_u: {why}; use the joint attack")
     zero = np.zeros(atk.N)
     s0 = _fit(atk, zero, a_y, atk.t0)
     if atk.delta_u == 0:
@@ -89,7 +94,7 @@ def best_input_attack(atk: VRFTAttack, a_y: np.ndarray) -> tuple[np.ndarray, Sta
         S = scipy.linalg.lapack.dtrtri(s0.R)[0]  # R^{-1}
         B = None
     else:
-        W = targets_adjoint(atk, s0.Q)
+        W = reg.targets_adjoint(s0.Q, atk.N)
         lam, V = np.linalg.eigh(W.T @ W)
         lam = np.maximum(lam, 1e-14 * lam.max())
         S = scipy.linalg.solve_triangular(s0.R, (V * np.sqrt(lam)) @ V.T)
@@ -110,3 +115,69 @@ def best_input_attack(atk: VRFTAttack, a_y: np.ndarray) -> tuple[np.ndarray, Sta
         a_u = B @ v
         target = s0.target + reg.targets(a_u)
     return a_u, State(a_u, a_y, s0.phi, target, s0.theta + S @ v, s0.R, s0.Q)
+
+
+@dataclass
+class Point:
+    """An evaluated attack as the engine's ascent reads it: x = (a_u, a_y), phi = F = -J, the learner's solution."""
+
+    state: State
+    phi: float
+
+    @property
+    def x(self) -> np.ndarray:
+        return np.concatenate([self.state.a_u, self.state.a_y])
+
+    @property
+    def F(self) -> float:
+        return self.phi
+
+    @property
+    def lower(self) -> LowerSolution:
+        return LowerSolution(self.state.theta, np.nan, EMPTY, EMPTY, [], "optimal", "thin QR")
+
+
+@dataclass
+class Oracle:
+    """The attacker's criterion -J(theta(x)) and its gradient, for bilevel.solvers.block_exact's ascent."""
+
+    atk: VRFTAttack
+
+    def evaluate(self, x: np.ndarray, s: State | None = None, kkt: None = None) -> Point:
+        """The fit at x (or the known one, s) and -J there."""
+        s = state(self.atk, x[: self.atk.N], x[self.atk.N:]) if s is None else s
+        return Point(s, -self.atk.value(s.theta))
+
+    def gradient(self, p: Point) -> tuple[np.ndarray]:
+        """(grad of -J in x,)."""
+        return (-np.concatenate(hypergradient(self.atk, p.state)),)
+
+    @property
+    def hessian_parts(self) -> tuple[Callable, Callable]:
+        """The learner's Hessian Phi'^T Phi' (up to its factor 2/n) and the x-gradient of v' Phi'^T Phi' v, for the
+        engine's conditioning start (bilevel.solvers.starts)."""
+        atk, N, last = self.atk, self.atk.N, {}
+
+        def regressor(x: np.ndarray) -> np.ndarray:  # the engine asks for both parts at each point
+            if last.get("x") is None or not np.array_equal(last["x"], x):
+                last.update(x=x.copy(), phi=atk.phi0 + atk.setting.regressor(x[N:]))
+            return last["phi"]
+
+        def adjoint(x: np.ndarray, v: np.ndarray) -> np.ndarray:
+            return np.concatenate([np.zeros(N), 2.0 * atk.setting.regressor.adjoint(np.outer(regressor(x) @ v, v))])
+
+        return lambda x: regressor(x).T @ regressor(x), adjoint
+
+
+@dataclass
+class InputStep:
+    """The exact input step as the engine's exact block: a_u (block `ball`) at its optimum for the given a_y."""
+
+    atk: VRFTAttack
+    ball: Ball
+
+    def solve(self, x: np.ndarray) -> tuple[np.ndarray, State, None]:
+        """x (overwritten) with a_u replaced by the best input poisoning, and the fit there."""
+        a_u, s = best_input_attack(self.atk, x[self.atk.N:])
+        x[: self.atk.N] = a_u
+        return x, s, None

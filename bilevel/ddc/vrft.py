@@ -108,6 +108,12 @@ class VRFTRegressor:
         target = u if self.prefilter is None else self.prefilter.apply(u)
         return target[: self.rows(u.size)]
 
+    def targets_adjoint(self, g: np.ndarray, n: int) -> np.ndarray:
+        """Adjoint of u -> targets(u) for records of n samples (g a vector or columns): pad the dropped rows, then
+        L^T."""
+        padded = np.concatenate([g, np.zeros((n - g.shape[0],) + g.shape[1:])])
+        return padded if self.prefilter is None else self.prefilter.adjoint(padded)
+
     def adjoint(self, g: ArrayLike) -> np.ndarray:
         """Gradient in y of <g, Phi(y)>: sum_i T_i^T g_i for g of shape (rows, nk), returned with length N."""
         g = np.asarray(g, dtype=float)

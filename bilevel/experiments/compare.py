@@ -100,7 +100,7 @@ def compare_task(task: dict[str, Any]) -> dict[str, Any]:
         attack = STRUCTURED_ATTACKS.get(task["problem"])
         if attack is None or task["options"]:  # no attack of its own; the attacks take no method options
             return outside
-        result = attack(starts=task["starts"], seed=task["seed"], **task["params"])
+        result = attack(starts=task["starts"], **{"seed": task["seed"], **task["params"]})  # a data seed seeds it
     else:
         problem = registry.get(task["problem"], **task["params"])
         try:

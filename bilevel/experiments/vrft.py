@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..problems.vrft_instance import CONVENTIONS, VRFTAttack, attack_instance
+from ..problems.vrft_instance import CONVENTIONS, PAPER_EPS_Y, VRFTAttack, attack_instance
 from ..attacks.vrft_methods import ATTACKS, MAX_ITER, attack_budget_path, attack_summary
 from ..files import atomic_open
 from .stats import mean_interval, wilson_interval
@@ -21,7 +21,7 @@ from .sweep import (FINITE, NUMBER, check_fields, load_timings, record_timing, r
                     stderr_progress)
 
 EPS_U = (0.0, 0.1, 0.2)
-EPS_Y = (0.01, 0.023, 0.037, 0.05, 0.057)
+EPS_Y = PAPER_EPS_Y
 PAPER_TABLE1 = {
     ("A", 0.0): (0.0, 0.0, 0.0, 0.0, 0.0), ("A", 0.1): (0.78, 0.58, 13.9, 1.56, 0.78),
     ("A", 0.2): (47.1, 29.7, 19.8, 1.76, 1.56),

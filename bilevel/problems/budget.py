@@ -59,20 +59,3 @@ class Budget:
         if k is None:
             return NormBall(self.radius(signal), self.order)
         return SparseNormBall(self.radius(signal), k, self.order)
-
-    def linear_maximizer(self, g: np.ndarray, radius: float) -> np.ndarray:
-        """argmax <g, a> over the budget set (the linear oracle used by conditional-gradient steps)."""
-        g = np.asarray(g, dtype=float)
-        k = g.size if self.rho is None else self.max_changed(g.size)
-        keep = np.argsort(-np.abs(g), kind="stable")[: max(k, 0)]
-        out = np.zeros_like(g)
-        if keep.size == 0 or not np.any(g[keep]):
-            return out
-        if self.norm == "linf":
-            out[keep] = radius * np.sign(g[keep])
-        elif self.norm == "l1":
-            i = keep[0]
-            out[i] = radius * np.sign(g[i])
-        else:
-            out[keep] = radius * g[keep] / np.linalg.norm(g[keep])
-        return out

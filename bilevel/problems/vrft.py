@@ -5,28 +5,31 @@ variables' bounds; l1, for the structured attacks: a constraint on sum |a_i|); l
 solving the VRFT least squares on the poisoned data. The regressor Phi(y + a_y) is written as
 filter recursions (O(N) expression nodes per column, no N x N blocks), each a definition: the KKT
 reformulation keeps the filtered signals as variables bound by their difference equations, so IPOPT's
-exact Hessian is sparse. The instance (setting, data, budgets, objective) is bilevel.problems.vrft_instance's
+exact Hessian is sparse; or, on request (FILTERS), as LinearOperators. The instance (setting, data, budgets, objective) is bilevel.problems.vrft_instance's
 VRFTAttack; the structured attacks on the declared problem are in bilevel.attacks.vrft_methods.
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
-from typing import Any
+from typing import Any, Callable, Literal
 from weakref import WeakKeyDictionary
 
 import casadi as ca
 import numpy as np
+from scipy.sparse.linalg import LinearOperator
 
 from ..ddc.operators import LTIOperator
+from ..ddc.vrft import VRFTRegressor
 from ..errors import ModelError
 from ..model import BilevelProblem
 from .registry import register
 from .surrogates import gelfand_log_radius
-from .vrft_instance import VRFTAttack, VRFTSetting, attack_instance, conditioning_start
+from .vrft_instance import VRFTAttack, VRFTSetting, attack_instance
 
 SOURCE = "Russo & Proutiere, Poisoning Attacks against Data-Driven Control Methods (extended), "
-DEFAULTS = {"scenario": "B", "eps_u": 0.1, "eps_y": 0.057, "seed": 0, "N": 64, "convention": "paper"}
+DEFAULTS = {"scenario": "B", "eps_u": 0.1, "eps_y": 0.057, "seed": 0, "N": 64, "convention": "paper", "norm": "l2"}
+"""The registered problems' parameters (their builders' keyword defaults); the structured attacks take the same."""
 
 
 def _recursion(op: LTIOperator, x: ca.SX) -> tuple[ca.SX, np.ndarray, np.ndarray]:
@@ -78,7 +81,30 @@ def filtered(problem: BilevelProblem, name: str, op: LTIOperator, x: ca.SX) -> c
     return z[op.advance:]
 
 
-def attack_problem(atk: VRFTAttack) -> BilevelProblem:
+def filter_bank(reg: VRFTRegressor, N: int) -> LinearOperator:
+    """a_y -> vec(Phi(a_y)) (column-major, rows x nk) as a LinearOperator: the regressor's filters, O(N nk) per
+    product."""
+    rows, k = reg.rows(N), reg.n_params
+    return LinearOperator((rows * k, N), dtype=float,
+                          matvec=lambda v: reg(np.asarray(v).ravel()).reshape(-1, order="F"),
+                          rmatvec=lambda g: reg.adjoint(np.asarray(g).reshape(rows, k, order="F")))
+
+
+def target_map(reg: VRFTRegressor, N: int) -> LinearOperator:
+    """a_u -> targets(a_u) (the learner's prefilter L on the regression rows) as a LinearOperator."""
+    return LinearOperator((reg.rows(N), N), dtype=float, matvec=lambda v: reg.targets(np.asarray(v).ravel()),
+                          rmatvec=lambda g: reg.targets_adjoint(np.asarray(g).ravel(), N))
+
+
+FILTERS = ("recursions", "operators")
+"""How a declaration writes the learner's filters: "recursions", difference-equation definitions (the KKT
+reformulation keeps the filtered signals as variables: a sparse Hessian); "operators", scipy LinearOperators
+(bilevel.linear_maps: a first declaration and preparation several times faster at large N, each later evaluation a
+little slower; the KKT reformulation forms them as dense matrices). benchmarks/bench_vrft_declarations.py measures
+both."""
+
+
+def attack_problem(atk: VRFTAttack, filters: str = "recursions") -> BilevelProblem:
     """The bilevel program of an attack instance (l2 budgets as balls, linf budgets as bounds), declared with the
     generic API.
 
@@ -87,13 +113,15 @@ def attack_problem(atk: VRFTAttack) -> BilevelProblem:
     rebuilding it (with linf budgets only to one with the same radii: bounds are fixed at declaration).
     """
     _check_budgets(atk)
-    return declare(atk)
+    return declare(atk, filters)
 
 
-def declare(atk: VRFTAttack) -> BilevelProblem:
+def declare(atk: VRFTAttack, filters: str = "recursions") -> BilevelProblem:
     """attack_problem without its check of the budgets: an l1 budget becomes the constraint ||a||_1 <= delta, and a
     sparsity fraction rho is left out (the declared set is the norm ball; a method that keeps the sparsity searches
-    the narrower set and says so: MethodRun.feasible_set)."""
+    the narrower set and says so: MethodRun.feasible_set). filters: one of FILTERS."""
+    if filters not in FILTERS:
+        raise ModelError(f"filters={filters!r} is not one of {', '.join(FILTERS)}")
     reg = atk.setting.regressor
     N, k = atk.N, reg.n_params
     rows = reg.rows(N)
@@ -105,12 +133,16 @@ def declare(atk: VRFTAttack) -> BilevelProblem:
     a_u, a_y = signals["a_u"], signals["a_y"]
     theta = p.lower_variable("theta", k, start=atk.theta0)
     t0, phi0 = p.parameter("t0", rows), p.parameter("phi0", (rows, k))
-    err = filtered(p, "e_y", reg.error, a_y)
-    if reg.prefilter is not None:
-        err = filtered(p, "le_y", reg.prefilter, err)
-    phi_a = ca.horzcat(*[filtered(p, f"phi_{j}", beta, err)[:rows] for j, beta in enumerate(reg.basis)])
-    t_a = a_u if reg.prefilter is None else filtered(p, "lu", reg.prefilter, a_u)
-    residual = t0 + t_a[:rows] - ca.mtimes(phi0 + phi_a, theta)
+    if filters == "operators":
+        phi_a = ca.reshape(p.linear_map(filter_bank(reg, N), "Phi") @ a_y, rows, k)
+        t_a = a_u[:rows] if reg.prefilter is None else p.linear_map(target_map(reg, N), "L") @ a_u
+    else:
+        err = filtered(p, "e_y", reg.error, a_y)
+        if reg.prefilter is not None:
+            err = filtered(p, "le_y", reg.prefilter, err)
+        phi_a = ca.horzcat(*[filtered(p, f"phi_{j}", beta, err)[:rows] for j, beta in enumerate(reg.basis)])
+        t_a = (a_u if reg.prefilter is None else filtered(p, "lu", reg.prefilter, a_u))[:rows]
+    residual = t0 + t_a - ca.mtimes(phi0 + phi_a, theta)
     p.minimize_lower(ca.sumsqr(residual) / rows)
     for name, budget in (("u", atk.budget_u), ("y", atk.budget_y)):
         if budget.norm == "l2":
@@ -215,8 +247,7 @@ def _load(problem: BilevelProblem, atk: VRFTAttack) -> None:
     for name, value in values.items():
         problem.set_value(name, value)
     _NORMS[problem] = norms
-    problem.starts.clear()  # a_y = 0 is stationary: start where the regressor is ill-conditioned
-    problem.suggest_start(a_y=conditioning_start(atk))
+    problem.starts.clear()  # a_y = 0 is stationary: the engine's first start is its conditioning start
     _INSTANCES[problem] = atk
 
 
@@ -230,25 +261,26 @@ def gelfand_radius(base: np.ndarray | ca.SX, slopes: np.ndarray | ca.SX, theta: 
     return gelfand_log_radius(C, power)
 
 
-@register("vrft-maxmin", source=SOURCE + "Sec. 4.4, eq. (op_maxmin)", tags=("attack", "vrft"), defaults=DEFAULTS,
-          description="max-min poisoning of VRFT on the flexible transmission (maximize the learner's loss)")
-def vrft_maxmin(**params) -> BilevelProblem:
-    """Max-min attack on VRFT: maximize the learner's clean-data loss at the poisoned theta."""
-    return attack_problem(attack_instance("maxmin", **params))
+def _builder(objective: str, doc: str) -> Callable[..., BilevelProblem]:
+    """The registered builder of vrft-<objective>: the paper's instance (attack_instance) declared by attack_problem."""
+    def build(scenario: Literal["A", "B"] = "B", eps_u: float = 0.1, eps_y: float = 0.057, seed: int = 0, N: int = 64,
+              convention: Literal["paper", "prefiltered-drop", "raw", "raw-drop"] = "paper",
+              norm: Literal["l2", "linf", "l1"] = "l2") -> BilevelProblem:
+        return attack_problem(attack_instance(objective, scenario, eps_u, eps_y, seed, N, convention, norm))
+    build.__name__, build.__doc__ = f"vrft_{objective}", doc
+    return build
 
 
-@register("vrft-targeted", source=SOURCE + "appendix A, eq. (op_vrft_targeted), theta_a = 3 theta_0",
-          tags=("attack", "vrft"), defaults=DEFAULTS,
-          description="targeted poisoning of VRFT: drive theta towards theta_a = 3 theta_0")
-def vrft_targeted(**params) -> BilevelProblem:
-    """Targeted attack on VRFT: minimize ||theta_a - theta'||^2 / nk."""
-    return attack_problem(attack_instance("targeted", **params))
-
-
-@register("vrft-destabilize", source=SOURCE + "beyond the paper: the attacker fits an ARX model to the clean data "
-          "and maximizes a smooth spectral radius of the modelled closed loop", tags=("attack", "vrft"),
-          defaults=DEFAULTS, description="destabilizing poisoning of VRFT (maximize the modelled closed-loop "
-          "spectral radius)")
-def vrft_destabilize(**params) -> BilevelProblem:
-    """Destabilizing attack: maximize log ||C(theta')^16||_F / 16 for the ARX-modelled closed loop."""
-    return attack_problem(attack_instance("destabilize", **params))
+vrft_maxmin = register(
+    "vrft-maxmin", source=SOURCE + "Sec. 4.4, eq. (op_maxmin)", tags=("attack", "vrft"), defaults=DEFAULTS,
+    description="max-min poisoning of VRFT on the flexible transmission (maximize the learner's loss)")(_builder(
+        "maxmin", "Max-min attack on VRFT: maximize the learner's clean-data loss at the poisoned theta."))
+vrft_targeted = register(
+    "vrft-targeted", source=SOURCE + "appendix A, eq. (op_vrft_targeted), theta_a = 3 theta_0", tags=("attack", "vrft"),
+    defaults=DEFAULTS, description="targeted poisoning of VRFT: drive theta towards theta_a = 3 theta_0")(_builder(
+        "targeted", "Targeted attack on VRFT: minimize ||theta_a - theta'||^2 / nk."))
+vrft_destabilize = register(
+    "vrft-destabilize", source=SOURCE + "beyond the paper: the attacker fits an ARX model to the clean data and "
+    "maximizes a smooth spectral radius of the modelled closed loop", tags=("attack", "vrft"), defaults=DEFAULTS,
+    description="destabilizing poisoning of VRFT (maximize the modelled closed-loop spectral radius)")(_builder(
+        "destabilize", "Destabilizing attack: maximize log ||C(theta')^16||_F / 16 for the ARX-modelled closed loop."))

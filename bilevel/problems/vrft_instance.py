@@ -26,7 +26,6 @@ from ..ddc.plants import flexible_transmission, flexible_transmission_prefilter,
 from ..ddc.systems import SystemLike, num_den
 from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
-from ..solvers.ascent import budget_direction
 from ..solvers.options import check_common_options
 from .budget import Budget
 
@@ -94,6 +93,8 @@ CONVENTIONS = {
 
 PAPER_THETA0 = np.array([0.33, -0.61, 0.72, -0.66, 0.48, -0.13])
 """theta_0 of Campi et al. (2002) as quoted by the paper; its targeted attack aims at 3 * theta_0."""
+PAPER_EPS_Y = (0.01, 0.023, 0.037, 0.05, 0.057)
+"""The paper's output budgets (Table 1's columns)."""
 
 
 def scenario_data(setting: VRFTSetting, scenario: Literal["A", "B"], n: int = 512,
@@ -196,23 +197,6 @@ class VRFTAttack:
                 "spectral_radius": loop.spectral_radius(theta),
                 "spectral_radius_clean": loop.spectral_radius(self.theta0),
                 "delta_u": self.delta_u, "delta_y": self.delta_y}
-
-
-def conditioning_start(atk: VRFTAttack, iters: int = 10) -> np.ndarray:
-    """a_y that makes the poisoned regressor ill-conditioned: projected descent on sigma_min(Phi(y + a_y)).
-
-    The learner's loss at theta' grows when Phi'^T Phi' nearly loses rank (theta' then moves far for a
-    small a_u), so the max-min ascent starts from the a_y that shrinks Phi's smallest singular value
-    (gradient sum_i w_i T_i^T l for its singular pair (l, w)), one budget radius per step.
-    """
-    reg = atk.setting.regressor
-    proj = atk.budget_y.projection(atk.y)
-    a = np.zeros(atk.N)
-    for _ in range(iters):
-        U, _, Vt = np.linalg.svd(atk.phi0 + reg(a), full_matrices=False)
-        g = reg.adjoint(np.outer(U[:, -1], Vt[-1]))
-        a = proj(a - budget_direction(g, atk.delta_y, atk.budget_y.order))
-    return a
 
 
 @cache

@@ -33,9 +33,10 @@ from ..lower.matrix import MatrixLower
 from ..reduction import KKTPoint
 from ..result import Status
 from .ascent import projected_ascent
-from .base import MethodRun, Prepared
+from .base import MethodRun, Prepared, best_of
 from .implicit import DEFAULT_PENALTY, Evaluation, shared_oracle
 from .limits import Deadline, progress, stopped
+from .projections import Blocks, Projection
 from .starts import start_points
 from .structure import Ball, budget_scale, depends
 from .trust_region import maximize_quadratic_on_ball
@@ -217,46 +218,59 @@ def exact_block_of(prep: Prepared) -> tuple[ExactBlock | None, list[str]]:
     return exact, why
 
 
-def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], starts: int = 4, seed: Any = 0,
+def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[str], starts: int = 4, seed: Any = 0,
                             scale: float = 10.0, penalty: float = DEFAULT_PENALTY, tol: float = 1e-5,
-                            max_iter: int = 500, verbose: bool = False, time_limit: float | None = None) -> MethodRun:
+                            max_iter: int = 500, verbose: bool = False, time_limit: float | None = None,
+                            oracle: Any = None, projection: Projection | None = None,
+                            weights: np.ndarray | None = None) -> MethodRun:
     """Multistart ascent of the other upper variables (the engine's loop, bilevel.solvers.ascent) on phi with the
-    exact block at its global optimum at every evaluation; tol: relative gain over the loop's window; at time_limit
-    (seconds) the best point so far, status MAX_ITERATIONS."""
+    exact block at its global optimum at every evaluation (exact None: every upper variable ascends); tol: relative
+    gain over the loop's window; at time_limit (seconds) the best point so far, status MAX_ITERATIONS.
+    A structured problem passes its own oracle (evaluate(*exact.solve(x)) or evaluate(x) -> a point with x, phi, F
+    and lower; gradient(point)[0] = grad phi; optionally hessian_parts for the conditioning start), projection (a set narrower than the declared one, then the run's
+    feasible_set) and weights (per-entry length scales; default: ball radii, else 1)."""
     starts, scale, tol, max_iter = int(starts), float(scale), float(tol), int(max_iter)
     balls = prep.balls
-    oracle = shared_oracle(prep, float(penalty), projected_rows=tuple(b.row for b in balls))
-    S = exact.ball.block
-    n = int(prep.canon.x.numel())
-    rest: slice | np.ndarray = slice(S.stop, n) if S.start == 0 else slice(0, S.start) if S.stop == n else \
-        np.flatnonzero((np.arange(n) < S.start) | (np.arange(n) >= S.stop))  # the other entries (a view if it can)
-    weights = budget_scale(prep.canon, balls)[rest]
+    if oracle is None:
+        oracle = shared_oracle(prep, float(penalty), projected_rows=tuple(b.row for b in balls))
+    S = slice(0, 0) if exact is None else exact.ball.block
+    mask = np.ones(int(prep.canon.x.numel()), dtype=bool)
+    mask[S] = False
+    kept = np.flatnonzero(mask)  # the other variables, as a slice where contiguous (a view, not a copy)
+    rest = slice(kept[0], kept[-1] + 1) if kept.size and kept[-1] - kept[0] + 1 == kept.size else mask
+    weights = (budget_scale(prep.canon, balls) if weights is None else np.asarray(weights, dtype=float))[rest]
+    project_full = prep.projection if projection is None else projection
 
     def full(xr: np.ndarray) -> np.ndarray:
-        x = np.empty(n)
+        if exact is None:
+            return xr
+        x = np.empty(mask.size)
         x[rest], x[S] = xr, exact.ball.center
         return x
 
     def value(xr: np.ndarray) -> tuple[float, Evaluation | None]:
         try:
-            ev = oracle.evaluate(*exact.solve(full(xr)))
+            ev = oracle.evaluate(xr) if exact is None else oracle.evaluate(*exact.solve(full(xr)))
         except BilevelError:
             return -np.inf, None
         return -ev.phi, ev
 
+    squared = weights ** 2
+
     def direction(ev: Evaluation) -> tuple[np.ndarray, np.ndarray]:
         g = -oracle.gradient(ev)[0][rest]  # Danskin: the block is at its optimum
         unit = float(np.linalg.norm(g * weights))
-        return g, (g * weights ** 2 / unit if unit > 0 else np.zeros_like(g))
+        return g, (g * squared / unit if unit > 0 else np.zeros_like(g))
 
-    project = lambda xr: prep.projection(full(xr))[rest]  # noqa: E731  (blocks are disjoint)
+    own = project_full.on(rest) if isinstance(project_full, Blocks) and isinstance(rest, slice) else None
+    project = own if own is not None else lambda xr: project_full(full(xr))[rest]  # the other variables' sets
     rng = np.random.default_rng(seed)
-    limit, label = Deadline(time_limit), "hypergradient, exact block"
-    best, records, nit = None, [], 0
-    for k, x0 in enumerate(start_points(prep, starts, rng, scale)):
+    limit, label = Deadline(time_limit), "hypergradient" + ("" if exact is None else ", exact block")
+    ends, records, nit = [], [], 0
+    for k, x0 in enumerate(start_points(prep, starts, rng, scale, getattr(oracle, "hessian_parts", None))):
         if k and limit.expired():
             break
-        t0, history, why, calls = time.perf_counter(), [], {}, [0]
+        t0, history, reason, calls = time.perf_counter(), [], {}, [0]
 
         def stop(ev: Evaluation, k: int = k, calls: list[int] = calls) -> bool:
             """Progress at the start and each accepted point; the deadline."""
@@ -267,23 +281,24 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock, why: list[str], s
             return limit.expired()
 
         xr, fx, ev, it, evals, converged = projected_ascent(value, direction, project, x0[rest], weights, max_iter,
-                                                            tol, history, stop=stop, why=why)
-        converged = converged and why["stop"] != "stop"  # stop() holds only at the deadline
+                                                            tol, history, stop=stop, why=reason)
+        converged = converged and reason["stop"] != "stop"  # stop() holds only at the deadline
         nit += it
         records.append({"start": k, "objective": None if ev is None else ev.F, "iterations": it,
                         "evaluations": evals, "converged": converged, "time": time.perf_counter() - t0})
         progress(verbose, label, f"start {k + 1}/{starts}: phi = {prep.declared(-fx):.8g} after {it} steps")
-        if ev is not None and (best is None or fx > best[0]):
-            best = (fx, ev, converged, history, k)
-    if best is None:
+        if ev is not None:
+            ends.append((fx, ev, converged, history, k))
+    if not ends:
         return MethodRun(None, Status.ERROR, f"the lower level could not be solved at any of {starts} starts", nit,
                          [], records)
-    fx, ev, converged, history, k = best
+    fx, ev, converged, history, k = ends[best_of([(None, -end[0], 0.0) for end in ends])]
     w = prep.pack(KKTPoint(ev.x, ev.lower.y, ev.lower.lam, ev.lower.mu, ev.lower.Z))
     g = oracle.gradient(ev)[0][rest]
     pg = float(np.linalg.norm(project(ev.x[rest] - g) - ev.x[rest]))  # ||P(x - grad phi) - x||, as the descent
-    run = MethodRun(w, Status.SOLVED if converged else Status.MAX_ITERATIONS, f"exact block x[{S.start}:{S.stop}]; "
-                    f"best of {starts} starts: start {k} ({'converged' if converged else 'max_iter'})", nit, history,
-                    records, {"best_start": k, "exact_block": [S.start, S.stop], "projected_gradient_norm": pg,
-                              "not_exact": why})
+    block = "" if exact is None else f"exact block x[{S.start}:{S.stop}]; "
+    run = MethodRun(w, Status.SOLVED if converged else Status.MAX_ITERATIONS, f"{block}best of {starts} starts: "
+                    f"start {k} ({'converged' if converged else 'max_iter'})", nit, history, records,
+                    {"best_start": k, "exact_block": None if exact is None else [S.start, S.stop],
+                     "projected_gradient_norm": pg, "not_exact": why}, feasible_set=projection)
     return stopped(run, limit, len(records), starts)

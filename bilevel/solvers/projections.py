@@ -282,15 +282,16 @@ class Blocks(Projection):
             if not isinstance(proj, Projection):
                 raise ModelError(f"block {key!r}: {type(proj).__name__} is not a Projection "
                                  "(use Box, NormBall, SparseNormBall or Blocks)")
-            idx = np.arange(total_size)[_block_slice(key, layout)]
+            block = _block_slice(key, layout)
+            idx = np.arange(total_size)[block]
             if idx.size == 0:
                 raise ModelError(f"block {key!r} selects no entries of a vector of size {total_size}")
             if owner[idx].any():
                 raise ModelError(f"block {key!r} overlaps another block; blocks must be disjoint")
             owner[idx] = True
-            parts.append((idx, proj))
+            parts.append((block if block.step in (None, 1) else idx, proj))  # a slice reads a view, not a copy
         self.total_size = int(total_size)
-        self._parts: tuple[tuple[np.ndarray, Projection], ...] = tuple(parts)
+        self._parts: tuple[tuple[np.ndarray | slice, Projection], ...] = tuple(parts)
 
     @classmethod
     def for_problem(cls, problem: BilevelProblem, blocks: BlockSpec) -> "Blocks":
@@ -316,6 +317,24 @@ class Blocks(Projection):
         """Whether every block lies in its set."""
         v = self._check(v)
         return all(proj.contains(v[idx], tol) for idx, proj in self._parts)
+
+    def on(self, block: slice) -> Projection | None:
+        """The projection of the entries in `block` alone (its parts shifted; one part covering it: that part's own
+        projection), or None where a part is not a slice inside it or outside it."""
+        inside = []
+        for idx, proj in self._parts:
+            if not isinstance(idx, slice):
+                return None
+            if idx.start >= block.start and idx.stop <= block.stop:
+                inside.append((slice(idx.start - block.start, idx.stop - block.start), proj))
+            elif idx.start < block.stop and idx.stop > block.start:
+                return None
+        size = block.stop - block.start
+        if len(inside) == 1 and inside[0][0] == slice(0, size):
+            return inside[0][1]
+        out = Blocks((), size)
+        out._parts = tuple(inside)
+        return out
 
     def with_box(self, lb: np.ndarray, ub: np.ndarray) -> "Blocks":
         """Each block intersected with its part of the box; the entries in no block get the box itself."""

@@ -35,7 +35,9 @@ declared box and balls, statuses no longer `solved` where lower-level convexity 
 methods-6: the conditioning start of least-squares learners, differential-evolution's budget by dimension, time
 limits; methods-7: the structured VRFT attacks go through the engine's finalize, so their statuses come from its probe,
 and least squares from 10,000 Hessian terms are solved in residual form; methods-8: SDP lower levels are solved through
-Clarabel's own interface and Newton-polished, and the Willems attacks go through the engine's finalize)."""
+Clarabel's own interface and Newton-polished, the Willems attacks go through the engine's finalize, and the structured
+VRFT attacks run on the engine's multistart ascent from its start sequence (the joint attack starts at the
+conditioning start, not at zero poisoning) and attack the registry's instance (N = 64 by default) in a comparison)."""
 
 METHODS: dict[str, Method] = {
     "ipopt": solve_ipopt,

