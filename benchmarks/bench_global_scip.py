@@ -28,12 +28,12 @@ import scipy
 
 import bilevel as bl
 from bilevel.problems import registry
+from bench_global import REPEATS, timed  # the same timing of a registered problem (run from benchmarks/)
 from bilevel.problems.random_bilinear import (
     build_bilinear_bilevel,
     random_bilinear_data,
 )
 
-REPEATS = 3
 SEEDS = 3
 TIME_LIMIT = 60.0
 SIZES = (4, 8, 12, 16, 20, 24, 32)
@@ -48,16 +48,6 @@ def header() -> None:
     print("# NOTE: the machine may be shared with other jobs; compare the ratio column, not absolute times")
     print(f"# python {platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}, pyscipopt "
           f"{pyscipopt.__version__} (SCIP {pyscipopt.Model().version()}), bilevel {sys.modules['bilevel'].__file__}")
-
-
-def timed(name: str, method: str, **options: object) -> tuple[float, bl.BilevelResult]:
-    """Median wall time over REPEATS solves, and the last result."""
-    times, res = [], None
-    for _ in range(REPEATS):
-        t0 = time.perf_counter()
-        res = bl.solve(registry.get(name), method=method, **options)
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), res
 
 
 def random_table() -> None:
