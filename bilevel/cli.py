@@ -150,16 +150,18 @@ def _declared_types(build: Callable[..., object], defaults: dict[str, Any]) -> d
 
 
 def _problem_params(name: str, raw: dict[str, str]) -> dict[str, object]:
-    """The --param values problem `name` has, typed as its builder declares; a name its builder's signature
-    cannot take is refused before the builder runs."""
+    """The --param values problem `name` has, typed as its builder declares; a name that is neither in its builder's
+    signature nor (for a builder taking **params) among the registry's listed parameters is refused before it runs."""
     s = registry.spec(name)
     types = _declared_types(s.build, s.defaults)
     parameters = inspect.signature(s.build).parameters.values()
-    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
-        accepted = {p.name for p in parameters if p.kind is not inspect.Parameter.VAR_POSITIONAL}
-        if unknown := sorted(set(raw) - accepted):
-            raise ModelError(f"problem {name!r} rejected its parameters: --param {', '.join(unknown)} is not one of "
-                             f"them ({', '.join(sorted(accepted)) or 'it has none'})")
+    accepted = {p.name for p in parameters if p.kind not in (inspect.Parameter.VAR_POSITIONAL,
+                                                             inspect.Parameter.VAR_KEYWORD)}
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
+        accepted |= set(s.defaults)
+    if unknown := sorted(set(raw) - accepted):
+        raise ModelError(f"problem {name!r} rejected its parameters: --param {', '.join(unknown)} is not one of "
+                         f"them ({', '.join(sorted(accepted)) or 'it has none'})")
     return {k: _convert("--param", k, v, types.get(k)) for k, v in raw.items()}
 
 

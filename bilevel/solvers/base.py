@@ -38,6 +38,9 @@ class Prepared:
     memo: dict[str, Any] = field(default_factory=dict)
     """Methods' symbolic set-ups (compiled functions), built once per declaration."""
     values_revision: int = 0
+    runs: int = 0
+    """Solves begun on this preparation (bilevel.solve counts them): state a method keeps between evaluations, such as
+    the SDP continuation's last solution, is not carried into another solve, so a result depends on its call only."""
 
     def cached(self, key: tuple[Any, ...], build: Any) -> Any:
         """memo[key], built by build() on first use (a method's symbolic set-up, shared by later solves)."""

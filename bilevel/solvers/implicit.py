@@ -79,6 +79,7 @@ class Hypergradient:
         if not penalty >= 0:
             raise ModelError(f"penalty must be >= 0, got {penalty}")
         self.canon, self.low, self.penalty, self.active_tol = canon, low, float(penalty), float(active_tol)
+        self._prep = prep
         x, y, H = canon.x, canon.y, canon.H
         kept = [i for i in range(int(canon.G.numel())) if i not in set(projected_rows)]
         G = ca.vertcat(*[canon.G[i] for i in kept]) if kept else ca.SX(0, 1)  # projected rows need no penalty
@@ -93,7 +94,7 @@ class Hypergradient:
         self._fixed: tuple[int, LowerSolution, KKTValues | None] | None = None  # (parameter revision, ...)
         self._batches: dict[tuple[int, int], ca.Function] = {}  # batch_phi's sweep, by batch size and revision
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
-        self._last_conic: LowerSolution | None = None  # the last conic solution, where continuation starts
+        self._last_conic: tuple[int, LowerSolution] | None = None  # (prep.runs, the last conic solution of that run)
         self._spectral: CompiledFunction | None = None  # a spectral objective's M and dM/dx (vec M rows)
         self._affine: tuple[int, np.ndarray, np.ndarray] | None = None  # (revision, M(0, y*), dM/dx) when fixed
         if canon.spectral is not None:
@@ -184,10 +185,11 @@ class Hypergradient:
             _, sol, vals = self._fixed
         elif lower is not None:
             sol, vals = lower, kkt
-        elif self.conic:  # Newton continuation from the last point's solution, else the SDP's own solve
-            near = None if self._last_conic is None else self.low.continue_from(x, self._last_conic)
+        elif self.conic:  # Newton continuation from this run's last solution, else the SDP's own solve
+            last = self._last_conic
+            near = None if last is None or last[0] != self._prep.runs else self.low.continue_from(x, last[1])
             sol, vals = (self.low.solve(x) if near is None else self.low.select(x, near[0])), None
-            self._last_conic = sol
+            self._last_conic = (self._prep.runs, sol)
         else:
             sol, vals = self.polish(x, self.low.solve(x))
         if self.low.fixed:  # y* constant in x: solved once, no adjoint

@@ -130,6 +130,7 @@ def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol:
     check_common_options(options, certificate_tol)
     t0 = time.perf_counter()
     prep: Prepared = prepare(problem)
+    prep.runs += 1
     if auto:
         name, why = choose_method(prep, options)
         fn = METHODS[name]

@@ -120,8 +120,9 @@ def test_corner_is_never_certified_at_the_followers_worst_point(method: str) -> 
 
 
 def test_corner_global_refuses_instead_of_proving_zero() -> None:
-    """Before: method 'global' could not see the x-dependence of the Hessian; it must refuse, never bound it [0, 0]."""
-    with pytest.raises(ModelError, match="Hessian in y"):
+    """Method 'global' must refuse, never bound it [0, 0]: the Hessian is affine in x, so it is checked at the upper
+    box's vertices, and at x = 1 it is -0.06."""
+    with pytest.raises(ModelError, match=r"not convex at x = \[1\.\] \(lower Hessian eigenvalue -0\.06\)"):
         _corner().solve("global")
 
 

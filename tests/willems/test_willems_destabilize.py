@@ -160,11 +160,12 @@ def test_cli_solves_willems_destabilize_with_json(tmp_path, capsys) -> None:
                  "--json", str(path)])
     assert code == 0
     data = json.loads(path.read_text())
-    assert data["setting"]["delta_u"] == 0.3 and data["method"] == "destabilize"
-    assert data["unstable"] is True and data["spectral_radius"] == pytest.approx(1.0214, abs=1e-3)
-    assert "spectral_radius" in capsys.readouterr().out
+    assert data["x"]["Du"] and np.max(np.abs(data["x"]["Du"])) == pytest.approx(0.3, rel=1e-12)
+    assert data["method"] == "destabilize" and data["certificate"]["passed"]
+    assert data["upper_objective"] == pytest.approx(1.0214, abs=1e-3)  # identified rho = true rho (no noise)
+    assert "spectral radius of the true closed loop 1.021" in capsys.readouterr().out
     assert main(["solve", "willems-destabilize", "--param", "budget=1"]) == 2
-    assert "willems-destabilize takes data, delta_u" in capsys.readouterr().err
+    assert "--param budget is not one of them (data, delta_u" in capsys.readouterr().err
 
 
 def test_smallest_destabilizing_budget_brackets_the_first_unstable_budget() -> None:
