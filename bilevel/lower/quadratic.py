@@ -14,6 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
+from ..vech import smat, svec
 from .base import ExpressionLower, LowerSolution
 from .convexity import require_psd
 from .polish import Lmi, polish
@@ -80,15 +81,6 @@ def _convex_hessian(d: QPData, context: str, psd_verified: bool) -> np.ndarray |
     return 0.5 * (d.P + d.P.T) if psd_verified else require_psd(d.P, "the lower objective", context)
 
 
-def _svec(k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Clarabel's PSD-triangle order: the vec positions of the upper triangle, column by column, and their weights
-    (sqrt 2 off the diagonal, so svec(A)'svec(B) = <A, B>)."""
-    i, j = np.triu_indices(k)
-    order = np.lexsort((i, j))
-    i, j = i[order], j[order]
-    return i + k * j, np.where(i == j, 1.0, np.sqrt(2.0))
-
-
 def clarabel_direct(d: QPData, context: str, psd_verified: bool = False, lmis: tuple[Lmi, ...] = ()) -> LowerSolution:
     """A QP/LP, with LMIs M0 + sum_j y_j M_j >= 0 if given, handed to Clarabel's own interface (no cvxpy
     canonicalization per solve: the methods solve at every upper point): A y + s = -b, s >= 0, E y + s = -e, s = 0
@@ -99,11 +91,10 @@ def clarabel_direct(d: QPData, context: str, psd_verified: bool = False, lmis: t
     rows, rhs = [d.E, d.A], [-d.e, -d.b]
     cones = ([clarabel.ZeroConeT(d.e.size)] if d.e.size else []) + \
         ([clarabel.NonnegativeConeT(d.b.size)] if d.b.size else [])
-    for m0, jac in lmis:
+    for m0, jac in lmis:  # Clarabel reads the upper triangle column by column: svec (row by row) of the transpose
         k = m0.shape[0]
-        at, weight = _svec(k)
-        rows.append(-weight[:, None] * jac[at])
-        rhs.append(weight * np.asarray(m0).ravel(order="F")[at])
+        rows.append(-svec(jac.T.reshape(-1, k, k)).T)  # row j of jac.T is vec(M_j), so its C-order reshape is M_j'
+        rhs.append(svec(np.asarray(m0).T))
         cones.append(clarabel.PSDTriangleConeT(k))
     A = sp.csc_matrix(np.vstack(rows)) if sum(r.shape[0] for r in rows) else sp.csc_matrix((0, n))
     settings = clarabel.DefaultSettings()
@@ -123,12 +114,9 @@ def clarabel_direct(d: QPData, context: str, psd_verified: bool = False, lmis: t
     zs, start = [], d.e.size + d.b.size
     for m0, _ in lmis:
         k = m0.shape[0]
-        at, weight = _svec(k)
-        z_k = np.zeros(k * k)
-        z_k[at] = z[start: start + at.size] / weight
-        z_k = z_k.reshape(k, k, order="F")
-        zs.append(z_k + np.triu(z_k, 1).T)
-        start += at.size
+        size = k * (k + 1) // 2
+        zs.append(smat(z[start: start + size], k))
+        start += size
     return LowerSolution(y, d.objective(y), np.maximum(z[d.e.size:d.e.size + d.b.size], 0.0), z[:d.e.size], zs,
                          "optimal" if status == "Solved" else "optimal_inaccurate", "clarabel")
 
