@@ -28,6 +28,20 @@ DENSE_LIMIT = 25_000_000
 """Entries up to which an operator given only by its products is formed as a matrix (for the KKT reformulation)."""
 
 
+def affine_parts(expr: ca.SX, x: ca.SX, fixed: ca.SX) -> tuple[sp.csr_matrix, np.ndarray, sp.csr_matrix] | None:
+    """(J, b, J') with expr = J x + b, J sparse, when expr reads none of the symbols `fixed` (parameters) and is affine
+    in x (signals the leader moves, sliced, shifted or mapped): one sparse product each way instead of a sweep; else
+    None."""
+    if ca.depends_on(expr, fixed):
+        return None
+    jac = ca.jacobian(expr, x)
+    if ca.depends_on(jac, x):
+        return None
+    J = sp.csr_matrix(ca.evalf(jac).sparse())
+    offset = np.asarray(ca.evalf(ca.substitute(expr, x, ca.DM.zeros(int(x.numel())))), dtype=float).ravel()
+    return J, offset, J.T.tocsr()
+
+
 class Operator:
     """A numeric matrix or linear operator with products by columns: apply (A X) and adjoint (A' Y). kind: "dense",
     "sparse", "operator" (a LinearOperator) or "toeplitz" (a dense matrix applied as a ToeplitzBank of one, `bank`)."""

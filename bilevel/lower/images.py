@@ -11,10 +11,9 @@ from functools import cached_property
 
 import casadi as ca
 import numpy as np
-import scipy.sparse as sp
 
 from ..errors import ModelError
-from ..linear_maps import Images, Operator
+from ..linear_maps import Images, Operator, affine_parts
 from ..toeplitz import ToeplitzBank
 from ..parameters import ParameterSet
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
@@ -45,14 +44,8 @@ class Lift:
         v = ca.SX.sym("v", int(flat.numel()))
         self._args = params.function("image_args", [x], [flat])
         self._args_adjoint = params.function("image_args_adjoint", [x, v], [ca.jtimes(flat, x, v, True)])
-        jac = ca.jacobian(flat, x)
-        self._affine = None
-        """(J, b, J') where the arguments are J x + b (signals the leader moves, sliced or shifted): a sparse
-        product each way instead of a sweep."""
-        if not ca.depends_on(flat, params.sym) and not ca.depends_on(jac, x):
-            J = sp.csr_matrix(ca.evalf(jac).sparse())
-            offset = np.asarray(ca.evalf(ca.substitute(flat, x, ca.DM.zeros(self.n_x))), dtype=float).ravel()
-            self._affine = (J, offset, J.T.tocsr())
+        self._affine = affine_parts(flat, x, params.sym)
+        """(J, b, J') where the arguments are J x + b: a sparse product each way instead of a sweep."""
         self._arg_shapes = [a.shape for a in args]
         self._cuts = np.cumsum([0] + [int(a.numel()) for a in args])
         self._zcuts = np.cumsum([0] + [int(i.sym.numel()) for i in images.items])

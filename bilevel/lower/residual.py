@@ -18,6 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import BilevelError
+from ..linear_maps import affine_parts
 from ..parameters import CompiledFunction, ParameterSet, scalar
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
@@ -180,16 +181,9 @@ class ResidualLeastSquares(LowerLevel):
         most AFFINE_FILL nonzeros per operation of their expressions (signals the leader moves, sliced or mapped): then
         C and d cost one sparse product, their x-adjoint one transposed one; else None (the expressions are
         evaluated)."""
-        if ca.depends_on(data, self.params.sym):
-            return None
         if ca.jacobian_sparsity(data, self.x).nnz() > AFFINE_FILL * self._data.n_instructions():
             return None  # e.g. a recursive filter: a few operations per sample, a dense lower-triangular Jacobian
-        J = ca.jacobian(data, self.x)
-        if ca.depends_on(J, self.x):
-            return None
-        offset = ca.substitute(data, self.x, ca.DM.zeros(self.n_x))
-        J = sp.csr_matrix(ca.evalf(J).sparse())
-        return J, np.asarray(ca.evalf(offset), dtype=float).ravel(), J.T.tocsr()
+        return affine_parts(data, self.x, self.params.sym)
 
     def _x_adjoint(self, x: np.ndarray, y: np.ndarray, v: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """d/dx of a'C(x)v + b'(C(x)y - d(x))."""

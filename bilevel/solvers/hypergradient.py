@@ -328,8 +328,10 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
 
         def report(record: dict[str, Any], k: int = k) -> None:
             seen.append(record)
-            progress(verbose, "hypergradient", f"start {k + 1}/{starts}, iteration {record['iter']}: phi = "
-                     f"{prep.declared(record['objective']):.8g}, projected step {record['projected_step_norm']:.2e}")
+            if verbose:  # the text is built only when it is shown (this runs at every iteration)
+                progress(verbose, "hypergradient", f"start {k + 1}/{starts}, iteration {record['iter']}: phi = "
+                         f"{prep.declared(record['objective']):.8g}, projected step "
+                         f"{record['projected_step_norm']:.2e}")
 
         try:
             start = arc(x0)
