@@ -19,7 +19,7 @@ from ..files import atomic_open
 from ..problems.identification import problem_for
 from ..problems.identification_instance import attack_instance, least_squares_fit
 from .executor import open_executor
-from .sweep import FINITE, NUMBER, check_fields, run_sweep, stderr_progress
+from .sweep import FINITE, NUMBER, check_fields, run_sweep, sim_seeds, stderr_progress
 
 DELTAS = (0.01, 0.025, 0.05, 0.075, 0.1)
 HORIZONS = (100, 500)
@@ -28,11 +28,6 @@ METHOD = {"method": "ipopt", "starts": 1, "max_iter": 300, "ipopt": {"hessian_ap
 its solved runs take 10 to 100 iterations, the ones it does not solve run to the limit."""
 ROW_SCHEMA = {"norm2": NUMBER, "frobenius": NUMBER, "status": str, "certified": bool, "wall_time": FINITE,
               "before": dict, "after": dict}
-
-
-def sim_seeds(seed: int, sims: int) -> list[int]:
-    """One integer seed per simulation, from SeedSequence(seed).spawn(sims)."""
-    return [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(sims)]
 
 
 def attack_task(task: dict[str, Any]) -> dict[str, Any]:

@@ -25,6 +25,8 @@ from contextlib import contextmanager
 from importlib import metadata
 from typing import Any, Callable, Hashable, Iterable, Iterator
 
+import numpy as np
+
 from ..files import atomic_open
 from .executor import Executor, LocalExecutor
 
@@ -42,6 +44,11 @@ class SweepInterrupted(KeyboardInterrupt):
     def __init__(self, signum: int) -> None:
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
+
+
+def sim_seeds(seed: int, sims: int) -> list[int]:
+    """One integer seed per simulation, from SeedSequence(seed).spawn(sims)."""
+    return [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(sims)]
 
 
 def task_digest(task: dict[str, Any]) -> str:

@@ -17,7 +17,7 @@ from ..attacks.vrft_methods import ATTACKS, MAX_ITER, attack_budget_path, attack
 from ..files import atomic_open
 from .stats import mean_interval, wilson_interval
 from .executor import open_executor
-from .sweep import (FINITE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of,
+from .sweep import (FINITE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of, sim_seeds,
                     stderr_progress)
 
 EPS_U = (0.0, 0.1, 0.2)
@@ -32,11 +32,6 @@ PAPER_TABLE1 = {
 N_SAMPLES, NORM = 512, "l2"
 ROW_SCHEMA = {"value": NUMBER, "unstable": bool, "learner_loss": NUMBER, "wall_time": FINITE, "theta_poisoned": list}
 """The fields of a row (of each cell of a budget-path row) that the summaries read."""
-
-def sim_seeds(seed: int, sims: int) -> list[int]:
-    """One integer seed per simulation, from SeedSequence(seed).spawn(sims)."""
-    return [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(sims)]
-
 
 def make_attack(task: dict[str, Any]) -> VRFTAttack:
     """The VRFTAttack instance described by a task dict."""
