@@ -13,11 +13,12 @@ hypergradient_attack: the engine's method `hypergradient` (clean data first, the
 attacker's goal (an unstable identified loop, where the max-min criterion is +inf by the paper's convention) is its
 callback, which stops it there; near-ties between starts go to the larger identified spectral radius (the criteria
 have flat optimal faces: log|det(A + B K)| is one scalar of the m T poisoned inputs).
-destabilize_attack: the method `destabilize` below on radius_problem (rho(A_id + B_id K) exactly): a pool of box
-points screened and the best ascending together (bilevel.solvers.ascent.batched_box_ascent, one stacked evaluation per
-step, bilevel.solvers.implicit.Hypergradient.spectral_batch).
+destabilize_attack: the method `destabilize` (bilevel.solvers.box_methods) on radius_problem (rho(A_id + B_id K)
+exactly): a pool of box points screened and the best ascending together (bilevel.solvers.ascent.batched_box_ascent,
+one stacked evaluation per step, bilevel.solvers.implicit.Hypergradient.spectral_batch).
 de_attack: the engine's `differential-evolution` without its descent, the goal as its callback. random_attack: random
-signs at the budget. kkt_attack: the KKT reformulation (IPOPT or the relaxation sequence) on the declared problem.
+signs at the budget (bilevel.solvers.box_methods.random_signs). kkt_attack: the KKT reformulation (IPOPT or the
+relaxation sequence) on the declared problem.
 Each result carries the Willems quantities in stats (willems_stats): gain, true and identified spectral radius.
 """
 
@@ -34,13 +35,12 @@ from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller
 from ..errors import ModelError, SolverFailed
 from ..model import BilevelProblem
 from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, WillemsSetting, build_attack, criterion_values
-from ..reduction import KKTPoint
-from ..result import BilevelResult, Status
-from ..solvers.ascent import batched_box_ascent
-from ..solvers.base import MethodRun, Prepared, check_options, prepare
+from ..result import BilevelResult
+from ..solvers.base import prepare
+from ..solvers.box_methods import destabilize, random_signs
 from ..solvers.budget_search import BudgetSearch, smallest_budget
 from ..solvers.implicit import Hypergradient, shared_oracle
-from ..solvers.options import check_common_options, check_counts
+from ..solvers.options import check_common_options
 from ..solvers.registry import solve
 from ..threads import single_threaded_call
 from .outcome import attack_stat, unstable
@@ -199,53 +199,11 @@ def _criteria(attack: WillemsAttack, xs: np.ndarray, y: np.ndarray) -> np.ndarra
                             attack.cost_weight)
 
 
-def random_signs(prep: Prepared, *, seed: Any = 0, **unknown: Any) -> MethodRun:
-    """Method: every upper entry at a bound, the side drawn by a fair coin (a budget-matched baseline)."""
-    check_options("random-signs", unknown, {"seed"})
-    canon = prep.canon
-    sign = np.random.default_rng(seed).choice([-1.0, 1.0], size=canon.x_lb.size)
-    ev = shared_oracle(prep).evaluate(np.where(sign > 0, canon.x_ub, canon.x_lb))
-    w = prep.pack(KKTPoint(ev.x, ev.lower.y, ev.lower.lam, ev.lower.mu, ev.lower.Z))
-    return MethodRun(w, Status.INACCURATE, "random signs at the budget (a baseline, not an optimizer)")
-
-
 @single_threaded_call
 def random_attack(attack: WillemsAttack, seed: Any = 0) -> BilevelResult:
     """A budget-matched, non-adaptive baseline: every poisoned entry +-budget with a fair random sign."""
     check_common_options({"seed": seed})
     return _run(attack, "random", random_signs, seed=seed)
-
-
-def destabilize(prep: Prepared, *, starts: int = 64, seed: Any = 0, max_iter: int = 100, pool: int = 512,
-                **unknown: Any) -> MethodRun:
-    """Method: maximize a spectral-radius objective over a symmetric box where the lower level ignores x: `starts`
-    points ascend together (batched_box_ascent), the box's centre and the largest-rho points of a pool of `pool`
-    random ones (half uniform, half vertices). Returns the ascents' best point (not a certified local maximum)."""
-    check_options("destabilize", unknown, {"starts", "seed", "max_iter", "pool"})
-    check_common_options({"starts": starts, "seed": seed, "max_iter": max_iter})
-    check_counts({"pool": pool}, ("pool",))
-    engine, bound = shared_oracle(prep), prep.canon.x_ub
-    if prep.canon.spectral is None or not engine.low.fixed or not np.array_equal(prep.canon.x_lb, -bound):
-        raise ModelError("destabilize needs a spectral-radius objective, a lower level that ignores the upper "
-                         "variables (Willems: poison='u' with design 'lqr' or 'stabilizing') and a box |x| <= b; "
-                         "otherwise use method='hypergradient'")
-    candidates = np.random.default_rng(seed).uniform(-1.0, 1.0, (max(pool, starts - 1), bound.size)) * bound
-    candidates[: candidates.shape[0] // 2] = np.sign(candidates[: candidates.shape[0] // 2]) * bound
-    screened = np.argsort(engine.spectral_batch(candidates.T)[0], kind="stable")[: starts - 1]  # F minimized
-
-    def values(xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # the objective maximized, -F, and its gradient
-        f, g, _ = engine.spectral_batch(xs.T)
-        return -f, -g.T
-
-    xs, rho, iters, evaluations = batched_box_ascent(values, bound, np.vstack([np.zeros(bound.size),
-                                                                              candidates[screened]]), max_iter)
-    best = int(np.nanargmax(rho))
-    ev = engine.evaluate(xs[best])
-    w = prep.pack(KKTPoint(ev.x, ev.lower.y, ev.lower.lam, ev.lower.mu, ev.lower.Z))
-    return MethodRun(w, Status.INACCURATE, f"largest objective {rho[best]:.6g} over {starts} batched ascents (their "
-                     "best point, not a certified local maximum)", iters,
-                     stats={"best_start": best, "start_values": rho.tolist(),
-                            "evaluations": evaluations + candidates.shape[0]})
 
 
 @single_threaded_call
