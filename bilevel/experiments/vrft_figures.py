@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import matplotlib
 
@@ -36,12 +37,13 @@ def _budget_text() -> str:
     return f"eps_u = {BUDGET[0]}, eps_y = {BUDGET[1]}"
 
 
-def _band_legend(ax: plt.Axes, n: int) -> None:
-    """The axes' legend, with the shaded bands named: each line's 95% t-interval of the mean (stats.mean_interval)."""
+def _band_legend(ax: plt.Axes, n: int, where: plt.Axes | plt.Figure | None = None, **kwargs: Any) -> None:
+    """The legend of ax's lines (drawn on `where`, default ax), with the shaded bands named: each line's 95%
+    t-interval of the mean (stats.mean_interval)."""
     handles, labels = ax.get_legend_handles_labels()
     band = Patch(color="grey", alpha=0.2)
-    ax.legend([*handles, band], [*labels, f"shaded: 95% confidence interval of the mean over {n} simulations"],
-              fontsize=7)
+    (where or ax).legend([*handles, band], [*labels, f"shaded: 95% confidence interval of the mean over {n} "
+                                            "simulations"], fontsize=kwargs.pop("fontsize", 7), **kwargs)
 
 
 def _instance(scenario: str, objective: str, seed: int, eps_u: float = BUDGET[0], eps_y: float = BUDGET[1]):
@@ -88,7 +90,9 @@ def figure_loss(summaries: dict, out_dir: str) -> str:
         ax.set_title(f"Scenario {scenario}")
         ax.set_xlabel("eps_y")
         ax.set_ylabel("learner's loss L(u, y, theta')")
-        _band_legend(ax, main[(scenario, EPS_U[0], EPS_Y[0])]["n"])
+    # one legend below both panels: inside, it hid scenario B's curves
+    _band_legend(axes[0], main[("A", EPS_U[0], EPS_Y[0])]["n"], where=fig, loc="lower center", ncol=3, fontsize=8)
+    fig.subplots_adjust(bottom=0.3, wspace=0.3)
     return _save(fig, out_dir, "fig3a_loss")
 
 

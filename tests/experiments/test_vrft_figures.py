@@ -42,7 +42,11 @@ def test_shaded_bands_are_named_in_the_legend(drawn) -> None:
     vrft_figures.figure_loss(summaries, "")
     vrft_figures.figure_targeted_losses(summaries, "")
     for name in ("fig3a_loss", "fig6_targeted_losses"):
-        for ax in drawn[name].axes:
+        fig = drawn[name]
+        for ax in fig.axes:
             assert ax.collections, name  # the bands
-            labels = [t.get_text() for t in ax.get_legend().get_texts()]
+        legends = [ax.get_legend() for ax in fig.axes if ax.get_legend()] + list(fig.legends)  # per axes or shared
+        assert legends, name
+        for legend in legends:
+            labels = [t.get_text() for t in legend.get_texts()]
             assert "shaded: 95% confidence interval of the mean over 8 simulations" in labels, (name, labels)
