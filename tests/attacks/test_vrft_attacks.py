@@ -191,13 +191,13 @@ def test_kkt_formulation_certificate_passes() -> None:
 
 
 def test_warm_started_nlp_that_fails_keeps_the_first_order_answer() -> None:
-    """With the default warm="auto", a limited-memory IPOPT started at hypergradient's answer on vrft-maxmin
-    (N = 48) leaves the budget and stops at max_iter (measured: F = 156.6 at an upper-infeasible point); the method
-    then returns hypergradient's certified point, says so in stats, and never the failed NLP's."""
+    """With the default warm="auto", an IPOPT stopped after one iteration from hypergradient's answer on
+    vrft-maxmin (N = 48) fails by construction (max_iter; its barrier step leaves the KKT point: measured residual
+    2e-3 against 1e-14); the method then returns hypergradient's certified point, says so in stats, and never the
+    failed NLP's."""
     p = registry.get("vrft-maxmin", N=48, seed=1)
     hg = bl.solve(p, method="hypergradient", starts=2)
-    res = bl.solve(p, method="ipopt", starts=2, polish=False,
-                   ipopt={"hessian_approximation": "limited-memory", "max_iter": 500})
+    res = bl.solve(p, method="ipopt", starts=2, polish=False, ipopt={"max_iter": 1})
     assert res.stats["warm"]["kept"] and res.certificate.passed
     assert res.status is bl.Status.SOLVED and res.upper_objective == pytest.approx(hg.upper_objective, rel=1e-12)
 
