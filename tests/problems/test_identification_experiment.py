@@ -76,9 +76,9 @@ def test_slsqp_baseline_and_comparison() -> None:
     verdict = judge(atk, signals)
     if verdict["stealthy"]:
         check_stealthy(atk, signals, 0.01)
-    row = {"key": "a", "task": {"T": 100, "delta": 0.01}, "stealthy": True, "wall_time": 1.0}
+    row = {"key": "a", "task": {"T": 100, "delta": 0.01}, "stealthy": True, "cpu_time": 1.0}
     rows = [{**row, "norm2": 2.0}, {**row, "key": "b", "norm2": 1.0}]
-    base = [{**row, "norm2": 1.5, "wall_time": 10.0}, {**row, "key": "b", "norm2": 1.5, "wall_time": 30.0}]
+    base = [{**row, "norm2": 1.5, "cpu_time": 10.0}, {**row, "key": "b", "norm2": 1.5, "cpu_time": 30.0}]
     assert compare(rows, base)[(100, 0.01)] == {"n": 2, "at_least_baseline": 1, "time_ratio": 20.0}
 
 
