@@ -100,3 +100,13 @@ def test_quick_command_writes_the_report(tmp_path) -> None:
     assert main(["reproduce", "identification", "--quick", "--out", out, "--workers", "1"]) == 0  # resumes: no rerun
     with open(os.path.join(out, "stealthy.jsonl")) as fh:
         assert len(fh.readlines()) == 4
+
+
+def test_stealth_start_is_inside_the_stealth_constraints() -> None:
+    for delta, seed in ((0.01, 0), (0.1, 1)):
+        atk = attack_instance("ss", T=100, eps=delta, stealth=delta, seed=seed)
+        problem = problem_for(atk)
+        start = problem.starts[0]
+        signals = {k: atk.signals[k] + np.reshape(start[f"d{k}"], atk.signals[k].shape, order="F") for k in ("X", "U")}
+        assert np.linalg.norm(start["dX"]) > 0  # not the clean point, where the attacker's gradient vanishes
+        check_stealthy(atk, signals, delta)
