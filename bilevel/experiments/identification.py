@@ -1,92 +1,160 @@
-"""Stealthy poisoning of state-space identification over data sets and budgets (issue 28's experiment, without figures).
+"""`bilevel reproduce identification`: stealthy poisoning of state-space identification over data sets and budgets
+(issue 28's experiment), the SLSQP baseline beside it, figures and report.md.
 
 One task per (T, delta, simulation): the flexible transmission's data (seed from SeedSequence(seed).spawn(sims), the
 same data in every delta cell), budgets ||dX||_F <= delta ||X||_F and ||dU||_F <= delta ||U||_F, stealth delta on the
 three residual statistics; the engine's attack (METHOD) on the problem declared once per worker process
-(bilevel.problems.identification.problem_for). A row keeps ||d[A B]||_2 and ||d[A B]||_F of the numpy refit on the
-poisoned data, the status and certificate, each test's statistic and p-value before and after, and the wall time.
+(bilevel.problems.identification.problem_for). The baseline sweep runs SLSQP (identification_baseline) on the first
+`baseline_sims` simulations of every cell. Every row is judged by the defender's tests on a numpy refit of the
+returned data (identification_baseline.judge). Both sweeps are resumable JSONL files written as rows finish.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import time
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
 
 from ..files import atomic_open
 from ..problems.identification import problem_for
-from ..problems.identification_instance import attack_instance, least_squares_fit
+from ..problems.identification_instance import IdentificationAttack, attack_instance
 from .executor import open_executor
-from .sweep import FINITE, NUMBER, check_fields, run_sweep, sim_seeds, stderr_progress
+from .identification_baseline import SLSQP_ITERATIONS, START_SCALE, judge, slsqp_attack
+from .sweep import FINITE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of, sim_seeds, \
+    stderr_progress
 
 DELTAS = (0.01, 0.025, 0.05, 0.075, 0.1)
 HORIZONS = (100, 500)
+LAGS = 10
 METHOD = {"method": "ipopt", "starts": 1, "max_iter": 300, "ipopt": {"hessian_approximation": "limited-memory"}}
-"""IPOPT with a limited-memory Hessian (the exact one takes minutes to prepare at T = 100, docs/identification.md);
-its solved runs take 10 to 100 iterations, the ones it does not solve run to the limit."""
-ROW_SCHEMA = {"norm2": NUMBER, "frobenius": NUMBER, "status": str, "certified": bool, "wall_time": FINITE,
-              "before": dict, "after": dict}
+"""IPOPT on the KKT form with a limited-memory Hessian (the exact one takes minutes to prepare at T = 100,
+docs/identification.md), from the start load_instance suggests (problems.identification.stealth_start)."""
+JUDGED = {"norm2": NUMBER, "frobenius": NUMBER, "stealthy": bool, "max_relative_change": NUMBER, "budget_used": dict,
+          "residual_norm": dict, "before": dict, "after": dict, "wall_time": FINITE, "cpu_time": FINITE}
+"""wall_time: the solve's (engine: problem_for's re-targeting excluded) or the baseline's; cpu_time: the process's
+CPU seconds in problem_for and the solve, or in the baseline (comparable under other load)."""
+ROW_SCHEMA = {**JUDGED, "status": str, "certified": bool}
+BASELINE_SCHEMA = {**JUDGED, "iterations": int}
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Sizes of one reproduction run."""
+
+    sims: int
+    baseline_sims: int
+    horizons: tuple[int, ...]
+    deltas: tuple[float, ...]
+
+
+def make_plan(sims: int, quick: bool, baseline_sims: int | None = None) -> Plan:
+    """The issue's grid (T = 100, 500; five deltas; SLSQP on max(2, sims // 20) simulations per cell), or the CI
+    grid when quick (T = 100, delta = 0.01 and 0.05, at most 2 simulations, SLSQP on 1)."""
+    if sims < 1 or (baseline_sims is not None and baseline_sims < 0):
+        raise ValueError(f"identification reproduction: sims must be >= 1 and baseline_sims >= 0, got sims={sims}, "
+                         f"baseline_sims={baseline_sims}")
+    if quick:
+        sims = min(sims, 2)
+        return Plan(sims, min(sims, 1 if baseline_sims is None else baseline_sims), (100,), (0.01, 0.05))
+    base = max(2, sims // 20) if baseline_sims is None else baseline_sims
+    return Plan(sims, min(sims, base), HORIZONS, DELTAS)
+
+
+def instance(task: dict[str, Any]) -> IdentificationAttack:
+    """The stealthy state-space instance of a task."""
+    return attack_instance("ss", T=task["T"], eps=task["delta"], stealth=task["delta"], seed=task["seed"],
+                           lags=task["lags"])
 
 
 def attack_task(task: dict[str, Any]) -> dict[str, Any]:
-    """Run one stealthy attack and judge it with the defender's tests on the returned data."""
-    atk = attack_instance("ss", T=task["T"], eps=task["delta"], stealth=task["delta"], seed=task["seed"],
-                          lags=task["lags"])
+    """Run the engine's stealthy attack on one task and judge its data with the defender's tests."""
+    atk = instance(task)
+    cpu = time.process_time()
     result = problem_for(atk).solve(**METHOD, seed=0)
+    cpu = time.process_time() - cpu
     signals = {k: atk.signals[k] + np.reshape(result.x[f"d{k}"], atk.signals[k].shape) for k in atk.signals}
-    Y, Z = atk.regression(signals)
-    d = least_squares_fit(Y, Z) - atk.theta0
-    tests = {"before": atk.tests(), "after": atk.tests(signals)}
-    return {"norm2": float(np.linalg.norm(d, 2)), "frobenius": float(np.linalg.norm(d)),
-            "status": result.status.value, "certified": bool(result.certificate.passed),
-            "wall_time": float(result.wall_time),
-            **{when: {k: {"statistic": t.statistic, "p_value": t.p_value} for k, t in ts.items()}
-               for when, ts in tests.items()}}
+    return {**judge(atk, signals), "status": result.status.value, "certified": bool(result.certificate.passed),
+            "wall_time": float(result.wall_time), "cpu_time": cpu}
+
+
+def baseline_task(task: dict[str, Any]) -> dict[str, Any]:
+    """Run the SLSQP baseline on one task (its start drawn from the task's seed) and judge its data."""
+    atk = instance(task)
+    cpu = time.process_time()
+    signals, seconds, iterations = slsqp_attack(atk, task["seed"], task["maxiter"], task["start_scale"])
+    cpu = time.process_time() - cpu
+    return {**judge(atk, signals), "iterations": iterations, "wall_time": seconds, "cpu_time": cpu}
 
 
 def cell_tasks(sims: int, seed: int, horizons: tuple[int, ...] = HORIZONS, deltas: tuple[float, ...] = DELTAS,
-               lags: int = 10) -> list[dict[str, Any]]:
-    """Tasks T x delta x sims (simulation i has the same data in every delta cell of a T)."""
+               lags: int = LAGS, baseline: bool = False) -> list[dict[str, Any]]:
+    """Tasks T x delta x sims (simulation i has the same data in every delta cell of a T) of the engine's attack, or
+    of the SLSQP baseline."""
+    method = {"maxiter": SLSQP_ITERATIONS, "start_scale": START_SCALE} if baseline \
+        else {"method": json.dumps(METHOD, sort_keys=True)}
     return [{"key": f"ss/{T}/{delta}/{i}", "T": T, "delta": delta, "sim": i, "seed": s, "root_seed": seed,
-             "lags": lags, "method": json.dumps(METHOD, sort_keys=True)}
+             "lags": lags, **method}
             for T in horizons for delta in deltas for i, s in enumerate(sim_seeds(seed, sims))]
 
 
-def summarize(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
-    """Per (T, delta) cell: quartiles of ||d[A B]||_2 over the certified solved rows, how many those are, and the
-    median p-value of each test before and after."""
-    cells: dict[str, list[dict[str, Any]]] = {}
+def cells(rows: list[dict[str, Any]]) -> dict[tuple[int, float], list[dict[str, Any]]]:
+    """Rows by (T, delta), in the rows' order."""
+    out: dict[tuple[int, float], list[dict[str, Any]]] = {}
     for r in rows:
-        cells.setdefault(f"T={r['task']['T']}, delta={r['task']['delta']}", []).append(r)
-    out = {}
-    for cell, rs in cells.items():
-        good = [r for r in rs if r["certified"] and r["status"] == "solved"]
-        norms = np.array([r["norm2"] for r in good]) if good else np.full(1, np.nan)
-        out[cell] = {"runs": len(rs), "solved_certified": len(good),
-                     "norm2_quartiles": np.quantile(norms, [0.25, 0.5, 0.75]).tolist(),
-                     **{f"median_p_{when}": {k: float(np.median([r[when][k]["p_value"] for r in rs]))
-                                             for k in rs[0][when]} for when in ("before", "after")}}
+        out.setdefault((r["task"]["T"], r["task"]["delta"]), []).append(r)
     return out
 
 
-def run_identification(sims: int = 100, out_dir: str = "out/identification", seed: int = 0,
-                       workers: int | None = None, horizons: tuple[int, ...] = HORIZONS,
-                       deltas: tuple[float, ...] = DELTAS, progress: Callable[[str], None] | None = stderr_progress,
-                       dask: str | None = None) -> str:
-    """The sweep (resumable rows in out_dir/stealthy.jsonl) and its summary (out_dir/summary.json); returns the
-    summary's path. Tasks run on `workers` local processes or on the Dask cluster `dask`."""
-    if sims < 1 or seed < 0:
-        raise ValueError(f"identification sweep: sims must be >= 1 and seed >= 0, got sims={sims}, seed={seed}")
+def compare(rows: list[dict[str, Any]], baseline: list[dict[str, Any]]) -> dict[tuple[int, float], dict[str, Any]]:
+    """Per (T, delta) cell with baseline rows, over the data sets both ran: how many, on how many the engine's attack
+    is stealthy and reaches at least the baseline's ||d[A B]||_2 (or the baseline is not stealthy), and the median
+    CPU-time ratio baseline / engine."""
+    engine = {r["key"]: r for r in rows}
+    out = {}
+    for cell, bs in cells(baseline).items():
+        pairs = [(engine[b["key"]], b) for b in bs if b["key"] in engine]
+        if not pairs:
+            continue
+        wins = sum(e["stealthy"] and (e["norm2"] >= b["norm2"] * (1 - 1e-6) or not b["stealthy"]) for e, b in pairs)
+        out[cell] = {"n": len(pairs), "at_least_baseline": wins,
+                     "time_ratio": float(np.median([b["cpu_time"] / e["cpu_time"] for e, b in pairs]))}
+    return out
+
+
+def run_reproduction(sims: int = 100, out_dir: str = "out/identification", quick: bool = False, seed: int = 0,
+                     workers: int | None = None, baseline_sims: int | None = None,
+                     progress: Callable[[str], None] | None = stderr_progress, dask: str | None = None) -> str:
+    """The engine's sweep (out_dir/stealthy.jsonl), the SLSQP baseline's (out_dir/slsqp.jsonl), figures and
+    report.md; returns the report's path. Tasks run on `workers` local processes or on the Dask cluster `dask`."""
+    from . import identification_figures
+
+    plan = make_plan(sims, quick, baseline_sims)
+    if seed < 0:
+        raise ValueError(f"identification reproduction: seed must be >= 0, got {seed}")
     os.makedirs(out_dir, exist_ok=True)
+    timings_path = os.path.join(out_dir, "timings.json")
+    timings = load_timings(timings_path, progress)
+    sweeps = {"stealthy": (attack_task, plan.sims, False, ROW_SCHEMA),
+              "slsqp": (baseline_task, plan.baseline_sims, True, BASELINE_SCHEMA)}
+    runs: dict[str, list[dict[str, Any]]] = {}
     with open_executor(workers, dask) as executor:
-        rows = run_sweep(attack_task, cell_tasks(sims, seed, horizons, deltas),
-                         os.path.join(out_dir, "stealthy.jsonl"), executor, progress, "identification",
-                         valid=lambda row: check_fields(row, ROW_SCHEMA))
-    path = os.path.join(out_dir, "summary.json")
+        for name, (fn, n, baseline, schema) in sweeps.items():
+            tasks = cell_tasks(n, seed, plan.horizons, plan.deltas, baseline=baseline) if n else []
+            runs[name] = run_sweep(fn, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress, name,
+                                   lambda ran, seconds, name=name: record_timing(timings_path, timings, name,
+                                                                                 len(ran), seconds),
+                                   lambda row, schema=schema: check_fields(row, schema)) if tasks else []
+    figures = identification_figures.make_all(runs["stealthy"], runs["slsqp"], out_dir)
+    settings = settings_of(runs["stealthy"], "root_seed", "lags", "method") \
+        | {"version": sorted({r["version"] for rs in runs.values() for r in rs})}
+    path = os.path.join(out_dir, "report.md")
     with atomic_open(path) as fh:
-        json.dump(summarize(rows), fh, indent=1)
+        fh.write(identification_figures.report(runs["stealthy"], runs["slsqp"], figures, plan, timings,
+                                               executor.description, settings))
     if progress:
         progress(f"wrote {path}")
     return path

@@ -7,7 +7,8 @@ attacker maximizes ||Theta - Theta_clean||_F^2 ("frobenius") or ||Theta - Theta_
 spectral radius of dTheta dTheta'). With stealth = delta, upper constraints 1 - delta <= stat'/stat <= 1 + delta keep
 each residual statistic of bilevel.ddc.residual_tests (variance, whiteness, input F) within delta of its clean value;
 the F statistic's restricted model (Y regressed on Z without its input rows) is a second least-squares block of the
-lower level. The clean data and statistics are parameters: load_instance re-targets a declared problem.
+lower level. The clean data and statistics are parameters: load_instance re-targets a declared problem, and with
+stealth suggests a start inside the stealth constraints (stealth_start).
 """
 
 from __future__ import annotations
@@ -16,9 +17,12 @@ from collections import OrderedDict
 from typing import Any
 
 import casadi as ca
+import numpy as np
 
 from ..errors import ModelError
 from ..model import BilevelProblem
+from ..solvers.base import prepare
+from ..solvers.starts import conditioning_start
 from .identification_instance import IdentificationAttack, Objective, arx_regression, attack_instance, ss_regression
 from .registry import register
 
@@ -113,6 +117,33 @@ def load_instance(problem: BilevelProblem, atk: IdentificationAttack) -> None:
         values |= {"stealth": atk.stealth} | {f"{name}_clean": clean[name].statistic for name in STATISTICS}
     for name, value in values.items():
         problem.set_value(name, value)
+    problem.starts.clear()  # a start suggested for the previous instance
+    if atk.stealth is not None:
+        start = stealth_start(problem, atk)
+        layout = problem.upper_layout()
+        problem.suggest_start(**{f"d{k}": start[layout[f"d{k}"]] for k in atk.signals})
+
+
+STEALTH_HALVINGS = 8
+"""stealth_start tries the conditioning start times 1, 1/2, .., 2^-STEALTH_HALVINGS."""
+
+
+def stealth_start(problem: BilevelProblem, atk: IdentificationAttack) -> np.ndarray:
+    """The engine's conditioning start (bilevel.solvers.starts) of the loaded problem, scaled by the largest 2^-k at
+    which every statistic is within delta of its clean value (zero if none): at its full budget the conditioning
+    start breaks the stealth constraints, and IPOPT from there ran to its iteration limit on some data sets."""
+    x = conditioning_start(prepare(problem))
+    if x is None:
+        raise ModelError(f"problem {problem.name!r} has no conditioning start (its lower level does not move with x)")
+    layout, clean = problem.upper_layout(), atk.tests()
+    for k in range(STEALTH_HALVINGS + 1):
+        v = 2.0 ** -k * x
+        signals = {s: atk.signals[s] + v[layout[f"d{s}"]].reshape(atk.signals[s].shape, order="F")
+                   for s in atk.signals}
+        after = atk.tests(signals)
+        if all(abs(1 - after[n].statistic / clean[n].statistic) <= atk.stealth for n in STATISTICS):
+            return v
+    return np.zeros_like(x)
 
 
 @register("ident-ss", source=SOURCE, tags=("attack", "identification"), defaults=DEFAULTS,
