@@ -318,11 +318,12 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    unused = [flag for flag, given, used in (("--quick", args.quick, args.target == "willems"),
+    unused = [flag for flag, given, used in (("--quick", args.quick, args.target in ("willems", "defenses")),
                                              ("--selection", args.selection is not None, args.target == "willems"))
               if given and not used]
     if unused:
-        raise ModelError(f"{', '.join(unused)}: only `reproduce willems` takes it, not `reproduce {args.target}`"
+        raise ModelError(f"{', '.join(unused)}: only `reproduce willems` takes it (--quick: defenses too), not "
+                         f"`reproduce {args.target}`"
                          + (" (which runs the selections min-norm, clarabel and scs)" if args.target == "willems-budget"
                             else ""))
     out = args.out or f"out/{args.target}"
@@ -331,6 +332,10 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
         from .experiments.vrft import run_reproduction
 
         return _run_sweeps(lambda: run_reproduction(args.sims, out, args.seed, args.workers, dask=args.dask))
+    if args.target == "defenses":
+        from .experiments.defenses import run_defenses
+
+        return _run_sweeps(lambda: run_defenses(args.sims, out, args.quick, args.seed, args.workers, args.dask))
     if args.target == "willems-budget":
         from .experiments.willems_budget import run_budget
 
@@ -399,8 +404,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="run on a Dask cluster: tcp://HOST:PORT of its scheduler, or 'local' (docs/clusters.md)")
     p_cmp.set_defaults(run=_cmd_compare)
     p_rep = sub.add_parser("reproduce", help="reproduce the paper's tables and figures (resumable)")
-    p_rep.add_argument("target", choices=["vrft", "willems", "willems-budget"],
-                       help="willems-budget: delta_u*, the smallest destabilizing input budget, per data set")
+    p_rep.add_argument("target", choices=["vrft", "willems", "willems-budget", "defenses"],
+                       help="willems-budget: delta_u*, the smallest destabilizing input budget, per data set; "
+                            "defenses: the defended learners' clean cost against delta* (docs/defenses.md)")
     p_rep.add_argument("--sims", type=int, default=32, help="simulations per cell (the paper: 512 vrft, 256 willems)")
     p_rep.add_argument("--out", default=None, help="output directory (default out/<target>); one holding another "
                        "target's run is refused")
@@ -410,7 +416,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_rep.add_argument("--workers", type=int, default=None, help="local processes (default: all cores)")
     p_rep.add_argument("--dask", default=None, metavar="ADDRESS",
                        help="run on a Dask cluster: tcp://HOST:PORT of its scheduler, or 'local' (docs/clusters.md)")
-    p_rep.add_argument("--quick", action="store_true", help="willems: the small CI-sized grid (4 sims, 3 budgets)")
+    p_rep.add_argument("--quick", action="store_true", help="willems: the small CI-sized grid (4 sims, 3 budgets); "
+                       "defenses: 4 sims, VRFT N = 128, De Persis-Tesi T = 15")
     p_rep.add_argument("--selection", choices=WILLEMS_SELECTIONS, default=None,
                        help="willems: the learner's choice among its optimal Q (tikhonov: the session-1 sweep's; "
                             "clarabel, scs: the solver's own Q, input poisoning only; default min-norm)")
@@ -418,7 +425,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-TARGET_FILES = {"vrft": "maxmin-paper.jsonl", "willems": "paper.jsonl", "willems-budget": "budget.jsonl"}
+TARGET_FILES = {"vrft": "maxmin-paper.jsonl", "willems": "paper.jsonl", "willems-budget": "budget.jsonl",
+                "defenses": "defenses.jsonl"}
 """The sweep file only `bilevel reproduce TARGET` writes: a directory holding another target's is that target's run."""
 
 

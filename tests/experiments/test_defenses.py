@@ -1,0 +1,55 @@
+"""The defenses frontier's summaries: the median interval, the per-setting table and figure, and one sweep task."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from bilevel.experiments.defenses import frontier_task, summarize, summary_markdown, write_outputs
+from bilevel.experiments.stats import median_interval
+
+
+def test_median_interval_order_statistics():
+    values = np.arange(1.0, 65.0)
+    median, low, high = median_interval(values)
+    assert median == 32.5
+    k = int(low)  # the k-th smallest value: coverage 1 - 2 P(Binomial(64, 1/2) <= k - 1)
+    assert 1 - 2 * stats.binom.cdf(k - 1, 64, 0.5) >= 0.95 > 1 - 2 * stats.binom.cdf(k, 64, 0.5)
+    assert high == 64 - k + 1
+    assert median_interval([1.0, 2.0, 3.0]) == (2.0, -math.inf, math.inf)  # no 95% interval from 3 values
+    assert median_interval(np.r_[np.arange(10.0), np.full(10, np.inf)])[0] == math.inf
+
+
+def _rows():
+    rng = np.random.default_rng(0)
+    return [{"learner": "vrft", "defense": d, "param": p, "N": 128, "data_seed": i, "clean_cost": c + 0.01 * rng.random(),
+             "delta_star": (math.inf if i == 0 and d == "iv" else delta * (1 + 0.1 * i)), "attacks": 5}
+            for d, p, c, delta in (("none", 0.0, 0.02, 0.1), ("ridge", 1e-3, 0.03, 0.2), ("iv", 0.0, 0.025, 0.05))
+            for i in range(12)]
+
+
+def test_summary_per_setting(tmp_path):
+    rows = _rows()
+    summary = summarize(rows)
+    assert [(s["defense"], s["data_sets"]) for s in summary] == [("iv", 12), ("none", 12), ("ridge", 12)]
+    ridge = summary[2]
+    assert ridge["delta_star"] == pytest.approx(np.median([0.2 * (1 + 0.1 * i) for i in range(12)]))
+    assert ridge["clean_cost_low"] < ridge["clean_cost"] < ridge["clean_cost_high"]
+    assert summary[0]["not_destabilized"] == 1
+    table = write_outputs(rows, str(tmp_path))
+    assert table == summary_markdown(summary) and "| vrft | ridge | 0.001 | 128 | 12 |" in table
+    assert (tmp_path / "fig_frontier.png").stat().st_size > 0
+    assert (tmp_path / "frontier.csv").read_text().count("\n") == len(rows) + 1
+
+
+def test_willems_task_matches_its_parts():
+    from bilevel.attacks.willems import smallest_destabilizing_budget
+    from bilevel.problems.willems import WillemsSetting
+
+    task = {"learner": "willems", "defense": "ridge", "param": 1e-2, "N": 15, "seed": 3, "attack_seed": 1}
+    row = frontier_task(task)
+    found = smallest_destabilizing_budget(WillemsSetting(objective="destabilize", horizon=15, seed=3, reg=1e-2),
+                                          rel_tol=0.1, starts=8, seed=1)
+    assert row["delta_star"] == found.delta and 0 < row["delta_star"] <= 1.0
+    assert 7.0 < row["clean_cost"] < 20.0  # the batch reactor's trace(Qx W) near the SDP optimum (7.70 at reg 1e-8)
