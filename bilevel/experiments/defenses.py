@@ -33,6 +33,7 @@ from ..problems.defended_willems import clean_performance  # noqa: E402
 from ..problems.willems import WillemsSetting, build_attack  # noqa: E402
 from ..solvers.budget_search import smallest_budget  # noqa: E402
 from ..solvers.registry import solve  # noqa: E402
+from .defenses_detection import run_detection  # noqa: E402
 from .executor import open_executor  # noqa: E402
 from .stats import mean_interval, median_interval  # noqa: E402
 from .sweep import NUMBER, check_fields, run_sweep, sim_seeds, stderr_progress  # noqa: E402
@@ -58,9 +59,10 @@ class Plan:
 
 
 def make_plan(sims: int, quick: bool) -> Plan:
-    """The issue's plan (N = 512; horizons 15 and 50; `sims` data sets), or the CI plan (<= 4 sims, N = 128, T = 15)."""
+    """The issue's plan (N = 512; horizons 15 and 50; `sims` data sets), or the small plan (<= 8 sims: the fewest with
+    a finite 95% interval of the median; N = 128, T = 15)."""
     if quick:
-        return Plan(min(sims, 4), 128, (15,))
+        return Plan(min(sims, 8), 128, (15,))
     return Plan(sims, 512, (15, 50))
 
 
@@ -183,13 +185,15 @@ def write_outputs(rows: list[dict[str, Any]], out_dir: str) -> str:
 def run_defenses(sims: int = 64, out_dir: str = "out/defenses", quick: bool = False, seed: int = 0,
                  workers: int | None = None, dask: str | None = None,
                  progress: Callable[[str], None] | None = stderr_progress) -> str:
-    """`bilevel reproduce defenses`: the frontier sweep (resumable, defenses.jsonl), then its table and figure;
-    returns the path of frontier.md."""
+    """`bilevel reproduce defenses`: the frontier sweep (resumable, defenses.jsonl), its table and figure, then the
+    detection sweep (bilevel.experiments.defenses_detection: detection.jsonl, detection.md); returns the path of
+    frontier.md."""
     plan = make_plan(sims, quick)
     with open_executor(workers, dask) as executor:
         rows = run_sweep(frontier_task, frontier_tasks(plan, seed), os.path.join(out_dir, "defenses.jsonl"), executor,
                          progress, "defenses", valid=lambda r: check_fields(r, ROW_SCHEMA))
-    write_outputs(rows, out_dir)
+        write_outputs(rows, out_dir)
+        run_detection(plan.sims, plan.vrft_n, plan.horizons[0], out_dir, seed, executor, progress)
     path = os.path.join(out_dir, "frontier.md")
     if progress:
         progress(f"wrote {path}")

@@ -23,7 +23,8 @@ def test_median_interval_order_statistics():
 
 def _rows():
     rng = np.random.default_rng(0)
-    return [{"learner": "vrft", "defense": d, "param": p, "N": 128, "data_seed": i, "clean_cost": c + 0.01 * rng.random(),
+    return [{"learner": "vrft", "defense": d, "param": p, "N": 128, "data_seed": i,
+             "clean_cost": c + 0.01 * rng.random(),
              "delta_star": (math.inf if i == 0 and d == "iv" else delta * (1 + 0.1 * i)), "attacks": 5}
             for d, p, c, delta in (("none", 0.0, 0.02, 0.1), ("ridge", 1e-3, 0.03, 0.2), ("iv", 0.0, 0.025, 0.05))
             for i in range(12)]
@@ -53,3 +54,29 @@ def test_willems_task_matches_its_parts():
                                           rel_tol=0.1, starts=8, seed=1)
     assert row["delta_star"] == found.delta and 0 < row["delta_star"] <= 1.0
     assert 7.0 < row["clean_cost"] < 20.0  # the batch reactor's trace(Qx W) near the SDP optimum (7.70 at reg 1e-8)
+
+
+def test_input_integrity_deviance():
+    from bilevel.ddc.input_integrity import filtered_white_spectrum, whittle_deviance
+
+    rng = np.random.default_rng(0)
+    n = 256
+    flat = filtered_white_spectrum(None, n)
+    clean = [whittle_deviance(rng.standard_normal(n), flat) for _ in range(200)]
+    # r_k ~ Exp(1) on the 127 inner frequencies: E[r - 1 - log r] = Euler's gamma each
+    assert np.mean(clean) == pytest.approx(127 * np.euler_gamma, rel=0.05)
+    assert whittle_deviance(2 * rng.standard_normal(n), flat) > max(clean)  # four times the power
+    u = rng.standard_normal(n)
+    spectrum = np.abs(np.fft.rfft(u)) ** 2 / n  # the periodogram itself: zero deviance
+    assert whittle_deviance(u, spectrum) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_detection_table():
+    from bilevel.experiments.defenses_detection import detection_markdown
+
+    rows = [{"case": "vrft-ignores", "data_seed": i, "statistic": float(i), "succeeded": i > 1} for i in range(4)]
+    rows += [{"case": "ident-respects", "data_seed": i, "statistic": 0.01 * i, "succeeded": True} for i in range(4)]
+    table = detection_markdown(rows, {"vrft": 1.5, "ident": 0.015})
+    assert "| vrft-ignores | input integrity (Whittle deviance) | 1.5 | 4 | 2/4 " in table  # statistics 2, 3 > 1.5
+    assert "| ident-respects | variance/whiteness tests (min p) | 0.015 | 4 | 2/4 " in table  # p 0, 0.01 < 0.015
+    assert "| 2/4 |" in table and "| 4/4 |" in table
