@@ -41,7 +41,7 @@ from .sweep import NUMBER, check_fields, run_sweep, sim_seeds, stderr_progress  
 ROW_SCHEMA = {"learner": str, "defense": str, "param": NUMBER, "N": int, "data_seed": int, "clean_cost": NUMBER,
               "delta_star": NUMBER, "attacks": int}
 """A row's fields (delta_star inf: not destabilized on the budget path)."""
-VRFT_SETTINGS = (("none", 0.0), ("ridge", 1e-4), ("ridge", 1e-3), ("ridge", 1e-2), ("iv", 0.0))
+VRFT_SETTINGS = (("none", 0.0), ("ridge", 1e-4), ("ridge", 1e-3), ("ridge", 1e-2), ("iv", 0.0), ("iv-trusted", 0.0))
 WILLEMS_REGS = (1e-8, 1e-2, 1e-1, 1.0)
 VRFT_PATH = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
 """Relative l2 budgets eps (= eps_u = eps_y) tried in order before bisection."""

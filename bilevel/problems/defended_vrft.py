@@ -8,7 +8,8 @@ Defenses (the learner's problem on the poisoned data u' = u + a_u, y' = y + a_y)
            input gives y2 and the instrument Z = Phi(y2'); theta solves Z' (Phi(y') theta - t(u')) = 0, a square
            linear system, declared as the least squares min ||Z' (t - Phi theta)||^2 / n^2 (its unique minimizer
            where Z' Phi is invertible). The attacker poisons both experiments: a_u (the one input record), a_y and
-           a_y2, each output in its own l2 ball eps_y ||y_k||.
+           a_y2, each output in its own l2 ball eps_y ||y_k||;
+  "iv-trusted"  the same learner with a second experiment the attacker cannot reach (a_y2 = 0).
 Data: the paper's flexible-transmission instance (bilevel.problems.vrft_instance) with independent white measurement
 noise of std noise * std(y) on each recorded output (IV needs noise to differ from least squares on clean data).
 The attacker's criterion is the undefended instance's: the clean-data VRFT loss (maxmin), the targeted distance, or
@@ -35,8 +36,9 @@ from .registry import register
 from .vrft import filtered
 from .vrft_instance import VRFTAttack, VRFTSetting, attack_instance
 
-Defense = Literal["none", "ridge", "iv"]
-DEFENSES = ("none", "ridge", "iv")
+Defense = Literal["none", "ridge", "iv", "iv-trusted"]
+DEFENSES = ("none", "ridge", "iv", "iv-trusted")
+INSTRUMENTAL = ("iv", "iv-trusted")
 MODEL_REFERENCE_HORIZON = 4000
 """Samples of the impulse response summed in the model-reference cost (the reference model's poles are e^-0.5)."""
 
@@ -44,7 +46,7 @@ MODEL_REFERENCE_HORIZON = 4000
 @dataclass
 class DefendedVRFT:
     """A defended VRFT instance: the undefended instance `atk` (data of experiment 1, budgets, criterion), the defense
-    and its parameter lam (ridge), and the second experiment's output y2 (iv; None otherwise)."""
+    and its parameter lam (ridge), and the second experiment's output y2 (iv, iv-trusted; None otherwise)."""
 
     atk: VRFTAttack
     defense: Defense
@@ -56,7 +58,7 @@ class DefendedVRFT:
             raise ModelError(f"VRFT defense {self.defense!r} is not one of {', '.join(DEFENSES)}")
         if not (np.isfinite(self.lam) and self.lam >= 0):
             raise ModelError(f"ridge weight lam must be finite and >= 0, got {self.lam}")
-        if self.defense == "iv" and (self.y2 is None or np.shape(self.y2) != self.atk.y.shape):
+        if self.defense in INSTRUMENTAL and (self.y2 is None or np.shape(self.y2) != self.atk.y.shape):
             raise InvalidData("the IV learner needs the second experiment's output y2, of the first's length")
         reg = self.atk.setting.regressor
         self.scale = float(np.trace(self.atk.gram0)) / (self.atk.n * reg.n_params)
@@ -67,14 +69,15 @@ class DefendedVRFT:
         """The defended learner's theta on data (u, y) (and y2 for iv), in closed form (no engine code)."""
         reg = self.atk.setting.regressor
         phi, t = reg(y), reg.targets(u)
-        if self.defense == "iv":
+        if self.defense in INSTRUMENTAL:
             return instrumental_variables(phi, reg(y2), t)[0]
         ridge = self.lam * self.scale * self.atk.n if self.defense == "ridge" else 0.0
         return np.linalg.solve(phi.T @ phi + ridge * np.eye(phi.shape[1]), phi.T @ t)
 
     def poisoned(self, a_u: np.ndarray, a_y: np.ndarray, a_y2: np.ndarray | None = None) -> np.ndarray:
         """The defended learner's theta under poisoning (a_u, a_y, a_y2), e.g. an attack computed for another
-        learner and transferred."""
+        learner and transferred (a_y2 is ignored for iv-trusted)."""
+        a_y2 = None if self.defense == "iv-trusted" else a_y2
         y2 = None if self.y2 is None else self.y2 + (0.0 if a_y2 is None else a_y2)
         return self.learn(self.atk.u + a_u, self.atk.y + a_y, y2)
 
@@ -118,10 +121,12 @@ def declare(d: DefendedVRFT) -> BilevelProblem:
     t_a = (a_u if reg.prefilter is None else filtered(p, "lu", reg.prefilter, a_u))[:rows]
     residual = ca.DM(atk.t0) + t_a - ca.mtimes(phi, theta)
     budgets = [("u", a_u, atk.delta_u), ("y", a_y, atk.delta_y)]
-    if d.defense == "iv":
-        a_y2 = p.upper_variable("a_y2", N)
-        budgets.append(("y2", a_y2, d.delta_y2))
-        instrument = ca.DM(reg(d.y2)) + _regressor(p, atk.setting, a_y2, "_2")[:rows, :]
+    if d.defense in INSTRUMENTAL:
+        instrument = ca.DM(reg(d.y2))
+        if d.defense == "iv":
+            a_y2 = p.upper_variable("a_y2", N)
+            budgets.append(("y2", a_y2, d.delta_y2))
+            instrument = instrument + _regressor(p, atk.setting, a_y2, "_2")[:rows, :]
         p.minimize_lower(ca.sumsqr(ca.mtimes(instrument.T, residual)) / rows ** 2)
     else:
         ridge = d.lam * d.scale if d.defense == "ridge" else 0.0
@@ -157,7 +162,7 @@ def defended_instance(defense: Defense, objective: str = "destabilize", lam: flo
     std = noise * float(np.std(base.y))
     y1, y2 = (base.y + std * rng.standard_normal(base.N) for _ in range(2))
     atk = VRFTAttack(base.setting, base.u, y1, base.budget_u, Budget(eps_y), objective, base.theta_target)
-    return DefendedVRFT(atk, defense, lam, y2 if defense == "iv" else None)
+    return DefendedVRFT(atk, defense, lam, y2 if defense in INSTRUMENTAL else None)
 
 
 SOURCE = ("issue 29 (defended learners); Campi, Lecchini & Savaresi, Virtual reference feedback tuning, Automatica 38 "
@@ -175,9 +180,12 @@ def defense_vrft_ridge(objective: str = "destabilize", lam: float = 0.001, scena
     return declare(defended_instance("ridge", objective, lam, scenario, eps_u, eps_y, seed, N, noise))
 
 
-@register("defense-vrft-iv", source=SOURCE, tags=("defense", "vrft", "attack"), defaults=DEFAULTS,
-          description="instrumental-variable VRFT (second experiment as instrument), both experiments poisoned")
+@register("defense-vrft-iv", source=SOURCE, tags=("defense", "vrft", "attack"),
+          defaults={**DEFAULTS, "trusted_instrument": False},
+          description="instrumental-variable VRFT (second experiment as instrument; poisoned too unless trusted)")
 def defense_vrft_iv(objective: str = "destabilize", scenario: str = "B", eps_u: float = 0.1, eps_y: float = 0.057,
-                    seed: int = 0, N: int = 512, noise: float = 0.02) -> BilevelProblem:
-    """IV VRFT under poisoning of (u, y, y2)."""
-    return declare(defended_instance("iv", objective, 0.0, scenario, eps_u, eps_y, seed, N, noise))
+                    seed: int = 0, N: int = 512, noise: float = 0.02,
+                    trusted_instrument: bool = False) -> BilevelProblem:
+    """IV VRFT under poisoning of (u, y, y2), or of (u, y) with trusted_instrument."""
+    defense = "iv-trusted" if trusted_instrument else "iv"
+    return declare(defended_instance(defense, objective, 0.0, scenario, eps_u, eps_y, seed, N, noise))

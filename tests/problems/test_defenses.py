@@ -95,7 +95,7 @@ def _vrft_transfer(defense: str, lam: float) -> tuple[float, float]:
     return radius(d.poisoned(**x)), transferred
 
 
-@pytest.mark.parametrize("defense,lam", [("ridge", 1e-3), ("iv", 0.0)])
+@pytest.mark.parametrize("defense,lam", [("ridge", 1e-3), ("iv", 0.0), ("iv-trusted", 0.0)])
 def test_vrft_adaptive_beats_transferred(defense, lam):
     adaptive, transferred = _vrft_transfer(defense, lam)
     assert adaptive >= transferred - MARGIN * abs(transferred)
