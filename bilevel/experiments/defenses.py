@@ -106,31 +106,54 @@ def frontier_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
             for learner, defense, param, n in settings for i, (data_seed, attack_seed) in seeds]
 
 
+def _baseline(learner: str, N: int, rows: list[dict[str, Any]]) -> dict[int, dict[str, Any]]:
+    """The undefended setting's rows by data seed: VRFT without defense, De Persis–Tesi at its smallest reg."""
+    own = [r for r in rows if (r["learner"], r["N"]) == (learner, N)]
+    if learner == "vrft":
+        own = [r for r in own if r["defense"] == "none"]
+    else:
+        own = [r for r in own if r["param"] == min(q["param"] for q in own)]
+    return {r["data_seed"]: r for r in own}
+
+
 def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per setting: data sets, mean clean cost with its 95% t interval, median delta* with its 95% interval, and how
-    many data sets were not destabilized on the path."""
+    """Per setting: data sets, mean clean cost with its 95% t interval, median delta* with its 95% interval, how
+    many data sets were not destabilized on the path, and paired with the undefended learner on the same data sets
+    (_baseline): the median ratios of clean cost and of delta*, and on how many data sets delta* is larger."""
     out = []
     for key in sorted({(r["learner"], r["defense"], r["param"], r["N"]) for r in rows}):
         rs = [r for r in rows if (r["learner"], r["defense"], r["param"], r["N"]) == key]
         cost = mean_interval(np.array([r["clean_cost"] for r in rs]))
         delta = np.array([r["delta_star"] for r in rs])
+        base = _baseline(key[0], key[3], rows)
+        pairs = [(r, base[r["data_seed"]]) for r in rs if r["data_seed"] in base]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratios = np.array([[r["clean_cost"] / b["clean_cost"], r["delta_star"] / b["delta_star"]]
+                               for r, b in pairs])
         out.append({"learner": key[0], "defense": key[1], "param": key[2], "N": key[3], "data_sets": len(rs),
                     "clean_cost": cost[0], "clean_cost_low": cost[1], "clean_cost_high": cost[2],
                     "unstable_clean": int(sum(not np.isfinite(r["clean_cost"]) for r in rs)),
                     **dict(zip(("delta_star", "delta_star_low", "delta_star_high"), median_interval(delta))),
-                    "not_destabilized": int(np.isinf(delta).sum())})
+                    "not_destabilized": int(np.isinf(delta).sum()),
+                    "paired": len(pairs), "cost_ratio": float(np.median(ratios[:, 0])) if pairs else float("nan"),
+                    "delta_ratio": float(np.median(ratios[:, 1])) if pairs else float("nan"),
+                    "delta_larger": int(sum(r["delta_star"] > b["delta_star"] for r, b in pairs)),
+                    "delta_smaller": int(sum(r["delta_star"] < b["delta_star"] for r, b in pairs))})
     return out
 
 
 def summary_markdown(summary: list[dict[str, Any]]) -> str:
     """The frontier table: one line per setting."""
     lines = ["| learner | defense | parameter | N | data sets | clean cost (mean, 95% CI) | median delta* (95% CI) | "
-             "not destabilized |", "|---|---|---|---|---|---|---|---|"]
+             "not destabilized | paired with undefended: cost ratio, delta* ratio (medians) | "
+             "delta* larger / smaller |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for s in summary:
         lines.append(f"| {s['learner']} | {s['defense']} | {s['param']:g} | {s['N']} | {s['data_sets']} | "
                      f"{s['clean_cost']:.4g} ({s['clean_cost_low']:.4g} - {s['clean_cost_high']:.4g}) | "
                      f"{s['delta_star']:.3g} ({s['delta_star_low']:.3g} - {s['delta_star_high']:.3g}) | "
-                     f"{s['not_destabilized']} |")
+                     f"{s['not_destabilized']} | {s['cost_ratio']:.3g}, {s['delta_ratio']:.3g} | "
+                     f"{s['delta_larger']} / {s['delta_smaller']} of {s['paired']} |")
     return "\n".join(lines) + "\n"
 
 

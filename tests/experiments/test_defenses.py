@@ -38,6 +38,9 @@ def test_summary_per_setting(tmp_path):
     assert ridge["delta_star"] == pytest.approx(np.median([0.2 * (1 + 0.1 * i) for i in range(12)]))
     assert ridge["clean_cost_low"] < ridge["clean_cost"] < ridge["clean_cost_high"]
     assert summary[0]["not_destabilized"] == 1
+    assert ridge["delta_ratio"] == pytest.approx(2.0) and (ridge["delta_larger"], ridge["paired"]) == (12, 12)
+    assert summary[1]["cost_ratio"] == 1.0 and summary[1]["delta_smaller"] == 0  # the baseline against itself
+    assert summary[0]["delta_ratio"] == pytest.approx(0.5)  # iv: 0.05 against 0.1 (its inf on set 0 counts high)
     table = write_outputs(rows, str(tmp_path))
     assert table == summary_markdown(summary) and "| vrft | ridge | 0.001 | 128 | 12 |" in table
     assert (tmp_path / "fig_frontier.png").stat().st_size > 0
