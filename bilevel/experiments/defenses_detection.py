@@ -17,6 +17,7 @@ sets drawn with seeds independent of the attacked ones.
 
 from __future__ import annotations
 
+import csv
 import os
 from typing import Any, Callable
 
@@ -125,12 +126,17 @@ def detection_markdown(rows: list[dict[str, Any]], limits: dict[str, float]) -> 
 
 def run_detection(sims: int, N: int, T: int, out_dir: str, seed: int = 0, executor: Any = None,
                   progress: Callable[[str], None] | None = stderr_progress, calibration: int = CALIBRATION) -> str:
-    """The detection sweep (resumable, detection.jsonl) and detection.md; returns the table."""
+    """The detection sweep (resumable, detection.jsonl), detection.csv (one row per attack) and detection.md; returns
+    the table."""
     seeds = list(enumerate(zip(sim_seeds(seed, sims), sim_seeds(seed + 1, sims))))
     tasks = [{"key": f"{case}|N={N}|T={T}|sim={i}", "case": case, "N": N, "T": T, "seed": data_seed,
               "attack_seed": attack_seed, "root_seed": seed} for case in CASES for i, (data_seed, attack_seed) in seeds]
     rows = run_sweep(detection_task, tasks, os.path.join(out_dir, "detection.jsonl"), executor, progress,
                      "defenses-detection", valid=lambda r: check_fields(r, ROW_SCHEMA))
+    with atomic_open(os.path.join(out_dir, "detection.csv"), newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(ROW_SCHEMA))
+        writer.writeheader()
+        writer.writerows({k: r[k] for k in ROW_SCHEMA} for r in rows)
     table = detection_markdown(rows, thresholds(N, T, seed, calibration))
     with atomic_open(os.path.join(out_dir, "detection.md")) as fh:
         fh.write(table)
