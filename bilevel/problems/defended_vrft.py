@@ -34,7 +34,7 @@ from ..model import BilevelProblem
 from .budget import Budget
 from .registry import register
 from .vrft import filtered
-from .vrft_instance import VRFTAttack, VRFTSetting, attack_instance
+from .vrft_instance import Objective, VRFTAttack, VRFTSetting, attack_instance
 
 Defense = Literal["none", "ridge", "iv", "iv-trusted"]
 DEFENSES = ("none", "ridge", "iv", "iv-trusted")
@@ -150,7 +150,7 @@ def companion(base: np.ndarray, slopes: np.ndarray, theta: ca.SX) -> ca.SX:
     return ca.vertcat(-(coeffs[1:] / coeffs[0]).T, ca.horzcat(ca.SX.eye(n - 1), ca.SX.zeros(n - 1, 1)))
 
 
-def defended_instance(defense: Defense, objective: str = "destabilize", lam: float = 0.0, scenario: str = "B",
+def defended_instance(defense: Defense, objective: Objective = "destabilize", lam: float = 0.0, scenario: str = "B",
                       eps_u: float = 0.1, eps_y: float = 0.057, seed: int = 0, N: int = 512,
                       noise: float = 0.02) -> DefendedVRFT:
     """The paper's instance (attack_instance) with measurement noise of relative std `noise` on each experiment's
@@ -174,8 +174,9 @@ DEFAULTS = {"objective": "destabilize", "scenario": "B", "eps_u": 0.1, "eps_y": 
 @register("defense-vrft-ridge", source=SOURCE, tags=("defense", "vrft", "attack"),
           defaults={**DEFAULTS, "lam": 0.001},
           description="VRFT with a Tikhonov term lam * (mean regressor power) * ||theta||^2, attacked adaptively")
-def defense_vrft_ridge(objective: str = "destabilize", lam: float = 0.001, scenario: str = "B", eps_u: float = 0.1,
-                       eps_y: float = 0.057, seed: int = 0, N: int = 512, noise: float = 0.02) -> BilevelProblem:
+def defense_vrft_ridge(objective: Objective = "destabilize", lam: float = 0.001, scenario: str = "B",
+                       eps_u: float = 0.1, eps_y: float = 0.057, seed: int = 0, N: int = 512,
+                       noise: float = 0.02) -> BilevelProblem:
     """Ridge VRFT under poisoning of (u, y)."""
     return declare(defended_instance("ridge", objective, lam, scenario, eps_u, eps_y, seed, N, noise))
 
@@ -183,7 +184,7 @@ def defense_vrft_ridge(objective: str = "destabilize", lam: float = 0.001, scena
 @register("defense-vrft-iv", source=SOURCE, tags=("defense", "vrft", "attack"),
           defaults={**DEFAULTS, "trusted_instrument": False},
           description="instrumental-variable VRFT (second experiment as instrument; poisoned too unless trusted)")
-def defense_vrft_iv(objective: str = "destabilize", scenario: str = "B", eps_u: float = 0.1, eps_y: float = 0.057,
+def defense_vrft_iv(objective: Objective = "destabilize", scenario: str = "B", eps_u: float = 0.1, eps_y: float = 0.057,
                     seed: int = 0, N: int = 512, noise: float = 0.02,
                     trusted_instrument: bool = False) -> BilevelProblem:
     """IV VRFT under poisoning of (u, y, y2), or of (u, y) with trusted_instrument."""

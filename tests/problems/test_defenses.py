@@ -35,6 +35,21 @@ def test_defenses_registered():
     assert registry.spec("defense-vrft-ridge").defaults["lam"] > 0
 
 
+def test_bad_parameters_are_named():
+    from bilevel.errors import ModelError
+
+    with pytest.raises(ModelError, match="noise"):
+        vrft_instance("ridge", noise=-1.0, N=128)
+    with pytest.raises(ModelError, match="lam"):
+        vrft_instance("ridge", lam=-1.0, N=128)
+    with pytest.raises(ModelError, match="not one of"):
+        vrft_instance("lasso", N=128)
+    with pytest.raises(ModelError, match="loss"):
+        ident_instance("l3", T=30)
+    with pytest.raises(ModelError, match="objective"):
+        registry.get("defense-vrft-ridge", objective="worst", N=128)
+
+
 def test_model_reference_cost_matches_python_control():
     d = vrft_instance("none", "maxmin", N=256, noise=0.0)
     theta = d.theta_clean
