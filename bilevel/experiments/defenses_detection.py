@@ -6,7 +6,8 @@ Tests and attacks:
             spectrum of the prefiltered white excitation). "ignores": the engine's destabilizing attack on (u, y) at
             eps_u = eps_y = VRFT_EPS; "respects": the same attack on y alone (eps_u = 0: the input passes unchanged).
   willems   input integrity against the white excitation (std 1). "ignores": destabilize_attack at delta_u =
-            WILLEMS_DELTA (linf box on U); no input-respecting attack is run (state poisoning: another learner path).
+            WILLEMS_DELTA (linf box on U); "respects": the hypergradient attack (stopping once the identified loop is
+            unstable) on the states alone, |Dx| <= WILLEMS_DELTA_X, x_0 clean (the paper's output-poisoning remark).
   ident     the residual tests whose null hypothesis is a well-fitted model (bilevel.ddc.residual_tests: variance and
             whiteness; the input F-test rejects on clean data by design); flagged when the smaller p-value is below its
             clean 5% quantile. "ignores": the ident-ss attack without stealth; "respects": with stealth =
@@ -23,7 +24,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..attacks.willems import destabilize_attack
+from ..attacks.willems import destabilize_attack, hypergradient_attack
 from ..ddc.input_integrity import filtered_white_spectrum, whittle_deviance
 from ..ddc.plants import flexible_transmission_prefilter
 from ..files import atomic_open
@@ -37,7 +38,7 @@ from .stats import wilson_interval
 from .sweep import FINITE, check_fields, run_sweep, sim_seeds, stderr_progress
 
 VRFT_EPS = 0.2
-WILLEMS_DELTA = 0.5
+WILLEMS_DELTA, WILLEMS_DELTA_X = 0.5, 0.1
 IDENT_EPS, IDENT_STEALTH, IDENT_T = 0.05, 0.05, 100
 CALIBRATION = 500
 FALSE_ALARM = 0.05
@@ -45,7 +46,7 @@ ROW_SCHEMA = {"case": str, "data_seed": int, "statistic": FINITE, "succeeded": b
 """statistic: the Whittle deviance (vrft, willems) or the smallest residual-test p-value (ident); succeeded: the true
 loop unstable (vrft, willems) or ||d[A B]||_2 > IDENT_DAMAGE (ident)."""
 IDENT_DAMAGE = 0.1
-CASES = ("vrft-ignores", "vrft-respects", "willems-ignores", "ident-ignores", "ident-respects")
+CASES = ("vrft-ignores", "vrft-respects", "willems-ignores", "willems-respects", "ident-ignores", "ident-respects")
 
 
 def _vrft_spectrum(N: int) -> np.ndarray:
@@ -96,6 +97,13 @@ def detection_task(task: dict[str, Any]) -> dict[str, Any]:
         du, _ = attack.split(result.stats["x"])
         return {"case": case, "data_seed": seed,
                 "statistic": whittle_deviance(attack.u + du, filtered_white_spectrum(None, task["T"])),
+                "succeeded": bool(result.stats["spectral_radius"] >= 1.0)}
+    if case == "willems-respects":
+        attack = build_attack(WillemsSetting(objective="destabilize", horizon=task["T"], seed=seed, poison="x",
+                                             delta_u=0.0, delta_x=WILLEMS_DELTA_X))
+        result = hypergradient_attack(attack, starts=4, seed=task["attack_seed"])
+        return {"case": case, "data_seed": seed,
+                "statistic": whittle_deviance(attack.u, filtered_white_spectrum(None, task["T"])),
                 "succeeded": bool(result.stats["spectral_radius"] >= 1.0)}
     atk = attack_instance("ss", IDENT_T, IDENT_EPS, stealth=IDENT_STEALTH if case == "ident-respects" else None,
                           seed=seed)
