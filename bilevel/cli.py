@@ -317,7 +317,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     return _run_sweeps(work)
 
 
-REPRODUCE_FLAGS = {"--quick": ("willems", "identification"), "--selection": ("willems",)}
+REPRODUCE_FLAGS = {"--quick": ("willems", "identification", "defenses"), "--selection": ("willems",)}
 """The `reproduce` flags that only some targets take."""
 
 
@@ -326,7 +326,9 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     unused = [flag for flag, takers in REPRODUCE_FLAGS.items() if given[flag] and args.target not in takers]
     if unused:
         flag = unused[0]
-        raise ModelError(f"{flag}: only " + " and ".join(f"`reproduce {t}`" for t in REPRODUCE_FLAGS[flag])
+        takers = [f"`reproduce {t}`" for t in REPRODUCE_FLAGS[flag]]
+        raise ModelError(f"{flag}: only " + " and ".join([", ".join(takers[:-1]), takers[-1]] if len(takers) > 1
+                                                         else takers)
                          + f" take{'s' if len(REPRODUCE_FLAGS[flag]) == 1 else ''} it, not `reproduce {args.target}`"
                          + (" (which runs the selections min-norm, clarabel and scs)" if args.target == "willems-budget"
                             else ""))
@@ -341,6 +343,10 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
 
         return _run_sweeps(lambda: run_identification(args.sims, out, args.quick, args.seed, args.workers,
                                                       dask=args.dask))
+    if args.target == "defenses":
+        from .experiments.defenses import run_defenses
+
+        return _run_sweeps(lambda: run_defenses(args.sims, out, args.quick, args.seed, args.workers, args.dask))
     if args.target == "willems-budget":
         from .experiments.willems_budget import run_budget
 
@@ -409,9 +415,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="run on a Dask cluster: tcp://HOST:PORT of its scheduler, or 'local' (docs/clusters.md)")
     p_cmp.set_defaults(run=_cmd_compare)
     p_rep = sub.add_parser("reproduce", help="reproduce the paper's tables and figures (resumable)")
-    p_rep.add_argument("target", choices=["vrft", "willems", "willems-budget", "identification"],
+    p_rep.add_argument("target", choices=["vrft", "willems", "willems-budget", "identification", "defenses"],
                        help="willems-budget: delta_u*, the smallest destabilizing input budget, per data set; "
-                            "identification: stealthy poisoning of state-space least squares (issue 28)")
+                            "identification: stealthy poisoning of state-space least squares; defenses: the defended "
+                            "learners' clean cost against delta* (docs/defenses.md)")
     p_rep.add_argument("--sims", type=int, default=32, help="simulations per cell (the paper: 512 vrft, 256 willems; "
                        "identification: 100)")
     p_rep.add_argument("--out", default=None, help="output directory (default out/<target>); one holding another "
@@ -423,7 +430,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_rep.add_argument("--dask", default=None, metavar="ADDRESS",
                        help="run on a Dask cluster: tcp://HOST:PORT of its scheduler, or 'local' (docs/clusters.md)")
     p_rep.add_argument("--quick", action="store_true", help="willems: the small CI-sized grid (4 sims, 3 budgets); "
-                       "identification: T = 100, delta 0.01 and 0.05, 2 sims")
+                       "identification: T = 100, delta 0.01 and 0.05, 2 sims; defenses: 8 sims, VRFT N = 128, "
+                       "De Persis-Tesi T = 15")
     p_rep.add_argument("--selection", choices=WILLEMS_SELECTIONS, default=None,
                        help="willems: the learner's choice among its optimal Q (tikhonov: the session-1 sweep's; "
                             "clarabel, scs: the solver's own Q, input poisoning only; default min-norm)")
@@ -432,7 +440,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 TARGET_FILES = {"vrft": "maxmin-paper.jsonl", "willems": "paper.jsonl", "willems-budget": "budget.jsonl",
-                "identification": "stealthy.jsonl"}
+                "identification": "stealthy.jsonl", "defenses": "defenses.jsonl"}
 """The sweep file only `bilevel reproduce TARGET` writes: a directory holding another target's is that target's run."""
 
 

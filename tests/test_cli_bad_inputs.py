@@ -150,7 +150,7 @@ CASES: dict[str, tuple[list[str], str]] = {
                                          "has no structured attack"),
     "unknown structured attack option": (["solve", "vrft-maxmin", "--option", "tol=1"], "takes attack, path, save"),
     "data seed twice": (["solve", "vrft-maxmin", "--seed", "2", "--param", "seed=3"], "give one"),
-    "--quick on vrft": (["reproduce", "vrft", "--quick"], "only `reproduce willems` and `reproduce identification` take it"),
+    "--quick on vrft": (["reproduce", "vrft", "--quick"], "only `reproduce willems`, `reproduce identification` and `reproduce defenses` take it"),
     "bad dask address": (["reproduce", "vrft", "--dask", "nowhere"], "--dask"),
     "unknown command": (["frobnicate"], "invalid choice"),
     "unknown flag": (["solve", "macmpec-bard1", "--frob"], "unrecognized arguments"),

@@ -28,3 +28,19 @@ def mean_interval(values: np.ndarray, level: float = 0.95) -> tuple[float, float
         return (m, m, m)
     half = float(stats.t.ppf(0.5 + level / 2, values.size - 1) * values.std(ddof=1) / np.sqrt(values.size))
     return (m, m - half, m + half)
+
+
+def median_interval(values: np.ndarray, level: float = 0.95) -> tuple[float, float, float]:
+    """(median, low, high): the distribution-free interval of the median from order statistics (binomial(n, 1/2)
+    ranks, at least `level` coverage; (-inf, inf) when n is too small for any); values may hold +inf."""
+    values = np.sort(np.asarray(values, dtype=float))
+    values = values[~np.isnan(values)]
+    n = values.size
+    if n == 0:
+        return (float("nan"),) * 3
+    median = float(np.median(values)) if np.isfinite(values[(n - 1) // 2]) and np.isfinite(values[n // 2]) \
+        else float("inf")
+    k = int(stats.binom.ppf((1 - level) / 2, n, 0.5))  # the largest k with P(B <= k - 1) <= (1 - level) / 2
+    if k == 0:
+        return (median, -float("inf"), float("inf"))
+    return (median, float(values[k - 1]), float(values[n - k]))

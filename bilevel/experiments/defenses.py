@@ -1,0 +1,239 @@
+"""The robustness frontier of the defended learners (issue 29): per learner x defense setting, the clean-data
+performance cost against the poisoning margin delta*, the smallest budget at which the adaptive attack (the generic
+engine on the defended lower level) makes the true closed loop unstable, with confidence intervals over data sets.
+
+VRFT (scenario B, measurement noise 2% of std(y), the destabilizing criterion: the ARX-modelled loop's spectral
+radius): budgets eps_u = eps_y = eps (relative l2), the attack `solve(defended problem, starts=2)`, judged by the true
+loop of the defended learner re-solved in closed form at the attack's poisoning; clean cost: the model-reference cost.
+De Persis–Tesi (batch reactor, design lqr, input poisoning): delta_u* by bilevel.attacks.willems.
+smallest_destabilizing_budget on the regularized learner; clean cost: the true loop's H2 cost trace(Qx W).
+delta* per data set comes from the package's budget search (bilevel.solvers.budget_search: an increasing path, then
+bisection); a setting's margin is the median of delta* over data sets (half of the data sets destabilized), with its
+order-statistic interval; the clean cost's mean has a t interval. One resumable sweep task per data set and setting.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import matplotlib
+
+matplotlib.use("Agg")
+import numpy as np  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+
+from ..attacks.willems import engine, loop, smallest_destabilizing_budget  # noqa: E402
+from ..errors import RankDeficientRegressor  # noqa: E402
+from ..files import atomic_open, atomic_path  # noqa: E402
+from ..problems.defended_vrft import declare, defended_instance, model_reference_cost  # noqa: E402
+from ..problems.willems import WillemsAttack, WillemsSetting, build_attack, criterion_values  # noqa: E402
+from ..solvers.budget_search import smallest_budget  # noqa: E402
+from ..solvers.registry import solve  # noqa: E402
+from .defenses_detection import run_detection  # noqa: E402
+from .executor import open_executor  # noqa: E402
+from .stats import mean_interval, median_interval  # noqa: E402
+from .sweep import NUMBER, check_fields, run_sweep, sim_seeds, stderr_progress  # noqa: E402
+
+ROW_SCHEMA = {"learner": str, "defense": str, "param": NUMBER, "N": int, "data_seed": int, "clean_cost": NUMBER,
+              "delta_star": NUMBER, "attacks": int}
+"""A row's fields (delta_star inf: not destabilized on the budget path)."""
+VRFT_SETTINGS = (("none", 0.0), ("ridge", 1e-4), ("ridge", 1e-3), ("ridge", 1e-2), ("iv", 0.0), ("iv-trusted", 0.0))
+WILLEMS_REGS = (1e-8, 1e-2, 1e-1, 1.0)
+VRFT_PATH = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
+"""Relative l2 budgets eps (= eps_u = eps_y) tried in order before bisection."""
+REL_TOL = 0.1
+"""The budget search's final bracket, relative to its top."""
+
+
+def clean_gain(attack: WillemsAttack) -> np.ndarray:
+    """The learner's gain on the clean data (the engine's SDP lower level solved at zero poisoning)."""
+    zero = np.zeros(int(attack.upper.numel()))
+    return loop(attack, zero, engine(attack).evaluate(zero).lower.y)[0]
+
+
+def h2_cost(attack: WillemsAttack, gain: np.ndarray) -> float:
+    """The true closed loop's H2 cost trace((Qx + K' R K) W), W = Acl W Acl' + I, with the learner's Qx and R (R = 0
+    for the designs without an input cost: the cost the SDP minimizes); inf where A + B K is unstable."""
+    return float(criterion_values(attack.true_closed_loop(gain), gain, "maxmin", attack.qx, attack.cost_weight))
+
+
+def clean_performance(attack: WillemsAttack) -> float:
+    """h2_cost of the gain learned from the clean data."""
+    return h2_cost(attack, clean_gain(attack))
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The run's size: data sets per setting, the VRFT record length, the De Persis–Tesi horizons."""
+
+    sims: int
+    vrft_n: int
+    horizons: tuple[int, ...]
+
+
+def make_plan(sims: int, quick: bool) -> Plan:
+    """The issue's plan (N = 512; horizons 15 and 50; `sims` data sets), or the small plan (<= 8 sims: the fewest with
+    a finite 95% interval of the median; N = 128, T = 15)."""
+    if quick:
+        return Plan(min(sims, 8), 128, (15,))
+    return Plan(sims, 512, (15, 50))
+
+
+def vrft_radius(defense: str, lam: float, N: int, seed: int, eps: float, attack_seed: int) -> float:
+    """The true closed loop's spectral radius after the adaptive attack at budget eps; inf where the attack makes the
+    learner's system singular (the IV matrix Z' Phi: the engine stops with RankDeficientRegressor, the learner
+    returns no controller)."""
+    d = defended_instance(defense, "destabilize", lam, "B", eps, eps, seed, N)
+    try:
+        result = solve(declare(d), starts=2, seed=attack_seed)
+        x = {k: np.asarray(v, dtype=float).ravel() for k, v in result.x.items()}
+        return d.atk.setting.loop.spectral_radius(d.poisoned(**x))
+    except RankDeficientRegressor:
+        return float("inf")
+
+
+def frontier_task(task: dict[str, Any]) -> dict[str, Any]:
+    """Clean cost and delta* of one data set under one setting (task: learner, defense, param, N, seed,
+    attack_seed)."""
+    if task["learner"] == "vrft":
+        d = defended_instance(task["defense"], "destabilize", task["param"], "B", 0.1, 0.1, task["seed"], task["N"])
+        cost = model_reference_cost(d.atk.setting, d.theta_clean)
+        found = smallest_budget(lambda eps: vrft_radius(task["defense"], task["param"], task["N"], task["seed"], eps,
+                                                        task["attack_seed"]), lambda rho: rho >= 1.0, VRFT_PATH,
+                                REL_TOL)
+    else:
+        setting = WillemsSetting(objective="destabilize", horizon=task["N"], seed=task["seed"], reg=task["param"])
+        cost = clean_performance(build_attack(setting))
+        found = smallest_destabilizing_budget(setting, rel_tol=REL_TOL, starts=8, seed=task["attack_seed"])
+    return {"learner": task["learner"], "defense": task["defense"], "param": task["param"], "N": task["N"],
+            "data_seed": task["seed"], "clean_cost": cost, "delta_star": found.delta, "attacks": len(found.runs)}
+
+
+def frontier_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
+    """One task per (setting, data set); data set i has the same seeds in every setting."""
+    seeds = list(enumerate(zip(sim_seeds(seed, plan.sims), sim_seeds(seed + 1, plan.sims))))
+    settings = [("vrft", defense, lam, plan.vrft_n) for defense, lam in VRFT_SETTINGS]
+    settings += [("willems", "ridge", reg, n) for n in plan.horizons for reg in WILLEMS_REGS]
+    return [{"key": f"{learner}|{defense}|{param:g}|N={n}|sim={i}", "learner": learner, "defense": defense,
+             "param": param, "N": n, "seed": data_seed, "attack_seed": attack_seed, "root_seed": seed}
+            for learner, defense, param, n in settings for i, (data_seed, attack_seed) in seeds]
+
+
+def _baseline(learner: str, N: int, rows: list[dict[str, Any]]) -> dict[int, dict[str, Any]]:
+    """The undefended setting's rows by data seed: VRFT without defense, De Persis–Tesi at its smallest reg."""
+    own = [r for r in rows if (r["learner"], r["N"]) == (learner, N)]
+    if learner == "vrft":
+        own = [r for r in own if r["defense"] == "none"]
+    else:
+        own = [r for r in own if r["param"] == min(q["param"] for q in own)]
+    return {r["data_seed"]: r for r in own}
+
+
+def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per setting: data sets, mean clean cost with its 95% t interval, median delta* with its 95% interval, how
+    many data sets were not destabilized on the path, and paired with the undefended learner on the same data sets
+    (_baseline): the median ratios of clean cost and of delta*, and on how many data sets delta* is larger."""
+    out = []
+    for key in sorted({(r["learner"], r["defense"], r["param"], r["N"]) for r in rows}):
+        rs = [r for r in rows if (r["learner"], r["defense"], r["param"], r["N"]) == key]
+        cost = mean_interval(np.array([r["clean_cost"] for r in rs]))
+        delta = np.array([r["delta_star"] for r in rs])
+        base = _baseline(key[0], key[3], rows)
+        pairs = [(r, base[r["data_seed"]]) for r in rs if r["data_seed"] in base]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratios = np.array([[r["clean_cost"] / b["clean_cost"], r["delta_star"] / b["delta_star"]]
+                               for r, b in pairs])
+        out.append({"learner": key[0], "defense": key[1], "param": key[2], "N": key[3], "data_sets": len(rs),
+                    "clean_cost": cost[0], "clean_cost_low": cost[1], "clean_cost_high": cost[2],
+                    "unstable_clean": int(sum(not np.isfinite(r["clean_cost"]) for r in rs)),
+                    **dict(zip(("delta_star", "delta_star_low", "delta_star_high"), median_interval(delta))),
+                    "not_destabilized": int(np.isinf(delta).sum()),
+                    "paired": len(pairs), "cost_ratio": float(np.median(ratios[:, 0])) if pairs else float("nan"),
+                    "delta_ratio": float(np.median(ratios[:, 1])) if pairs else float("nan"),
+                    "delta_larger": int(sum(r["delta_star"] > b["delta_star"] for r, b in pairs)),
+                    "delta_smaller": int(sum(r["delta_star"] < b["delta_star"] for r, b in pairs))})
+    return out
+
+
+def summary_markdown(summary: list[dict[str, Any]]) -> str:
+    """The frontier table: one line per setting."""
+    lines = ["| learner | defense | parameter | N | data sets | clean cost (mean, 95% CI) | median delta* (95% CI) | "
+             "not destabilized | paired with undefended: cost ratio, delta* ratio (medians) | "
+             "delta* larger / smaller |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for s in summary:
+        lines.append(f"| {s['learner']} | {s['defense']} | {s['param']:g} | {s['N']} | {s['data_sets']} | "
+                     f"{s['clean_cost']:.4g} ({s['clean_cost_low']:.4g} - {s['clean_cost_high']:.4g}) | "
+                     f"{s['delta_star']:.3g} ({s['delta_star_low']:.3g} - {s['delta_star_high']:.3g}) | "
+                     f"{s['not_destabilized']} | {s['cost_ratio']:.3g}, {s['delta_ratio']:.3g} | "
+                     f"{s['delta_larger']} / {s['delta_smaller']} of {s['paired']} |")
+    return "\n".join(lines) + "\n"
+
+
+def frontier_figure(summary: list[dict[str, Any]]) -> Figure:
+    """Median delta* against mean clean cost, one panel per learner, with both 95% intervals (an infinite end is
+    drawn to the panel's edge)."""
+    learners = sorted({s["learner"] for s in summary})
+    fig = Figure(figsize=(5.0 * len(learners), 3.8))
+    for i, learner in enumerate(learners):
+        ax = fig.add_subplot(1, len(learners), i + 1)
+        groups = sorted({(s["defense"], s["N"]) for s in summary if s["learner"] == learner})
+        for defense, n in groups:
+            ss = [s for s in summary if (s["learner"], s["defense"], s["N"]) == (learner, defense, n)]
+            x = np.array([s["clean_cost"] for s in ss])
+            y = np.array([s["delta_star"] for s in ss])
+            top = 1.5 * max([v for s in ss for v in (s["delta_star"], s["delta_star_high"]) if np.isfinite(v)],
+                            default=1.0)
+            ylo = y - np.array([s["delta_star_low"] if np.isfinite(s["delta_star_low"]) else 0.0 for s in ss])
+            yhi = np.array([min(s["delta_star_high"], top) for s in ss]) - y
+            xerr = [x - [s["clean_cost_low"] for s in ss], [s["clean_cost_high"] for s in ss] - x]
+            ax.errorbar(x, np.minimum(y, top), yerr=[np.maximum(ylo, 0), np.maximum(yhi, 0)], xerr=xerr, fmt="o-",
+                        capsize=3, label=f"{defense}, N = {n}")
+            for s, xi, yi in zip(ss, x, y):
+                ax.annotate(f"{s['param']:g}", (xi, min(yi, top)), fontsize=7, textcoords="offset points",
+                            xytext=(4, 4))
+        ax.set_title(learner)
+        ax.set_xlabel("clean cost (VRFT: model-reference; DPT: H2)")
+        ax.set_ylabel("median delta* (destabilizing budget)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def write_outputs(rows: list[dict[str, Any]], out_dir: str) -> str:
+    """frontier.csv (per data set), frontier.md (summary_markdown) and fig_frontier.png; returns the table."""
+    os.makedirs(out_dir, exist_ok=True)
+    with atomic_open(os.path.join(out_dir, "frontier.csv"), newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(ROW_SCHEMA))
+        writer.writeheader()
+        writer.writerows({k: r[k] for k in ROW_SCHEMA} for r in rows)
+    summary = summarize(rows)
+    fig = frontier_figure(summary)
+    with atomic_path(os.path.join(out_dir, "fig_frontier.png")) as tmp:
+        fig.savefig(tmp, dpi=150)
+    table = summary_markdown(summary)
+    with atomic_open(os.path.join(out_dir, "frontier.md")) as fh:
+        fh.write(table)
+    return table
+
+
+def run_defenses(sims: int = 64, out_dir: str = "out/defenses", quick: bool = False, seed: int = 0,
+                 workers: int | None = None, dask: str | None = None,
+                 progress: Callable[[str], None] | None = stderr_progress) -> str:
+    """`bilevel reproduce defenses`: the frontier sweep (resumable, defenses.jsonl), its table and figure, then the
+    detection sweep (bilevel.experiments.defenses_detection: detection.jsonl, detection.md); returns the path of
+    frontier.md."""
+    plan = make_plan(sims, quick)
+    with open_executor(workers, dask) as executor:
+        rows = run_sweep(frontier_task, frontier_tasks(plan, seed), os.path.join(out_dir, "defenses.jsonl"), executor,
+                         progress, "defenses", valid=lambda r: check_fields(r, ROW_SCHEMA))
+        write_outputs(rows, out_dir)
+        run_detection(plan.sims, plan.vrft_n, plan.horizons[0], out_dir, seed, executor, progress)
+    path = os.path.join(out_dir, "frontier.md")
+    if progress:
+        progress(f"wrote {path}")
+    return path

@@ -1,0 +1,96 @@
+"""The defenses frontier's summaries: the median interval, the per-setting table and figure, and one sweep task."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from bilevel.experiments.defenses import frontier_task, summarize, summary_markdown, write_outputs
+from bilevel.experiments.stats import median_interval
+
+
+def test_median_interval_order_statistics():
+    values = np.arange(1.0, 65.0)
+    median, low, high = median_interval(values)
+    assert median == 32.5
+    k = int(low)  # the k-th smallest value: coverage 1 - 2 P(Binomial(64, 1/2) <= k - 1)
+    assert 1 - 2 * stats.binom.cdf(k - 1, 64, 0.5) >= 0.95 > 1 - 2 * stats.binom.cdf(k, 64, 0.5)
+    assert high == 64 - k + 1
+    assert median_interval([1.0, 2.0, 3.0]) == (2.0, -math.inf, math.inf)  # no 95% interval from 3 values
+    assert median_interval(np.r_[np.arange(10.0), np.full(10, np.inf)])[0] == math.inf
+
+
+def _rows():
+    rng = np.random.default_rng(0)
+    return [{"learner": "vrft", "defense": d, "param": p, "N": 128, "data_seed": i,
+             "clean_cost": c + 0.01 * rng.random(),
+             "delta_star": (math.inf if i == 0 and d == "iv" else delta * (1 + 0.1 * i)), "attacks": 5}
+            for d, p, c, delta in (("none", 0.0, 0.02, 0.1), ("ridge", 1e-3, 0.03, 0.2), ("iv", 0.0, 0.025, 0.05))
+            for i in range(12)]
+
+
+def test_summary_per_setting(tmp_path):
+    rows = _rows()
+    summary = summarize(rows)
+    assert [(s["defense"], s["data_sets"]) for s in summary] == [("iv", 12), ("none", 12), ("ridge", 12)]
+    ridge = summary[2]
+    assert ridge["delta_star"] == pytest.approx(np.median([0.2 * (1 + 0.1 * i) for i in range(12)]))
+    assert ridge["clean_cost_low"] < ridge["clean_cost"] < ridge["clean_cost_high"]
+    assert summary[0]["not_destabilized"] == 1
+    assert ridge["delta_ratio"] == pytest.approx(2.0) and (ridge["delta_larger"], ridge["paired"]) == (12, 12)
+    assert summary[1]["cost_ratio"] == 1.0 and summary[1]["delta_smaller"] == 0  # the baseline against itself
+    assert summary[0]["delta_ratio"] == pytest.approx(0.5)  # iv: 0.05 against 0.1 (its inf on set 0 counts high)
+    table = write_outputs(rows, str(tmp_path))
+    assert table == summary_markdown(summary) and "| vrft | ridge | 0.001 | 128 | 12 |" in table
+    assert (tmp_path / "fig_frontier.png").stat().st_size > 0
+    assert (tmp_path / "frontier.csv").read_text().count("\n") == len(rows) + 1
+
+
+def test_willems_task_matches_its_parts():
+    from bilevel.attacks.willems import smallest_destabilizing_budget
+    from bilevel.problems.willems import WillemsSetting
+
+    task = {"learner": "willems", "defense": "ridge", "param": 1e-2, "N": 15, "seed": 3, "attack_seed": 1}
+    row = frontier_task(task)
+    found = smallest_destabilizing_budget(WillemsSetting(objective="destabilize", horizon=15, seed=3, reg=1e-2),
+                                          rel_tol=0.1, starts=8, seed=1)
+    assert row["delta_star"] == found.delta and 0 < row["delta_star"] <= 1.0
+    assert 7.0 < row["clean_cost"] < 20.0  # the batch reactor's trace(Qx W) near the SDP optimum (7.70 at reg 1e-8)
+
+
+def test_input_integrity_deviance():
+    from bilevel.ddc.input_integrity import filtered_white_spectrum, whittle_deviance
+
+    rng = np.random.default_rng(0)
+    n = 256
+    flat = filtered_white_spectrum(None, n)
+    clean = [whittle_deviance(rng.standard_normal(n), flat) for _ in range(200)]
+    # r_k ~ Exp(1) on the 127 inner frequencies: E[r - 1 - log r] = Euler's gamma each
+    assert np.mean(clean) == pytest.approx(127 * np.euler_gamma, rel=0.05)
+    assert whittle_deviance(2 * rng.standard_normal(n), flat) > max(clean)  # four times the power
+    u = rng.standard_normal(n)
+    spectrum = np.abs(np.fft.rfft(u)) ** 2 / n  # the periodogram itself: zero deviance
+    assert whittle_deviance(u, spectrum) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_detection_table():
+    from bilevel.experiments.defenses_detection import detection_markdown
+
+    rows = [{"case": "vrft-ignores", "data_seed": i, "statistic": float(i), "succeeded": i > 1} for i in range(4)]
+    rows += [{"case": "ident-respects", "data_seed": i, "statistic": 0.01 * i, "succeeded": True} for i in range(4)]
+    table = detection_markdown(rows, {"vrft": 1.5, "ident": 0.015})
+    assert "| vrft-ignores | input integrity (Whittle deviance) | 1.5 | 4 | 2/4 " in table  # statistics 2, 3 > 1.5
+    assert "| ident-respects | variance/whiteness tests (min p) | 0.015 | 4 | 2/4 " in table  # p 0, 0.01 < 0.015
+    assert "| 2/4 |" in table and "| 4/4 |" in table
+
+
+def test_attack_respecting_the_input_check_leaves_the_input_clean():
+    from bilevel.ddc.input_integrity import filtered_white_spectrum, whittle_deviance
+    from bilevel.experiments.defenses_detection import detection_task
+    from bilevel.problems.willems import WillemsSetting
+
+    row = detection_task({"case": "willems-respects", "N": 128, "T": 15, "seed": 5, "attack_seed": 2})
+    _, u = WillemsSetting(horizon=15, seed=5).experiment()
+    assert row["statistic"] == pytest.approx(whittle_deviance(u, filtered_white_spectrum(None, 15)), rel=1e-12)
+    assert row["succeeded"]  # 0.1 per state entry destabilizes this data set's true loop
