@@ -51,7 +51,7 @@ def register(name: str, *, source: str, optimum: float | None = None, solution: 
 
 
 def _load_builtin() -> None:
-    from . import identification, literature, vrft, willems  # noqa: F401  (registers on import)
+    from . import deepc, identification, literature, vrft, willems  # noqa: F401  (registers on import)
 
 
 BUILDER_MARK = "__bilevel_problem_builder__"
