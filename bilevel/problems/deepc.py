@@ -9,11 +9,16 @@ deviation of its first action from the clean plan's.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any, NamedTuple
+
 import casadi as ca
 
 from ..model import BilevelProblem
 from .deepc_instance import DeePCAttack, Norm, Objective, attack_instance, hankel
 from .registry import register
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..frontends.cvxpy_lower import CvxpyLower
 
 SOURCE = ("beyond the paper: DeePC (Coulson, Lygeros & Doerfler, Data-Enabled Predictive Control: In the Shallows of "
           "the DeePC, 2019) on the flexible transmission")
@@ -21,8 +26,22 @@ DEFAULTS = {"T": 200, "eps": 0.05, "norm": "l2", "seed": 0, "noise_std": 0.01, "
             "horizon": 10, "lambda_g": 0.1, "lambda_y": 1000.0, "u_max": None}
 
 
+class Declared(NamedTuple):
+    """A declared attack: the problem, its lower level (ll[v] is cvxpy Variable v as a CasADi expression) and the
+    learner's cvxpy Parameters and Variables by name (DeePCAttack.learner)."""
+
+    problem: BilevelProblem
+    lower: CvxpyLower
+    learner: dict[str, Any]
+
+
 def declare(atk: DeePCAttack) -> BilevelProblem:
     """The bilevel program of an attack instance, declared with the public API (lower_cvxpy)."""
+    return declaration(atk).problem
+
+
+def declaration(atk: DeePCAttack) -> Declared:
+    """The bilevel program of an attack instance with its lower level and the learner's cvxpy leaves."""
     p = BilevelProblem(f"deepc-{atk.objective}")
     learner, v = atk.learner()
     depth = atk.t_ini + atk.horizon
@@ -37,7 +56,7 @@ def declare(atk: DeePCAttack) -> BilevelProblem:
         bound[param] = hankel(ca.DM(getattr(atk, name)) + d, depth)
     ll = p.lower_cvxpy(learner, parameters=bound)
     p.maximize_upper(atk.value(ll[v["u"]]))
-    return p
+    return Declared(p, ll, v)
 
 
 def _build(objective: Objective, T: int, eps: float, norm: Norm, seed: int, noise_std: float, past_std: float,

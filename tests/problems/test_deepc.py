@@ -1,0 +1,113 @@
+"""DeePC attacks (deepc-tracking, deepc-first-action): the engine's learner is an independent cvxpy DeePC written here,
+the attack's value is recomputed by re-solving that DeePC on the poisoned data and simulating the true plant, budgets
+hold, and the attack beats random poisoning of the same budget."""
+
+from __future__ import annotations
+
+import cvxpy as cp
+import numpy as np
+import pytest
+from scipy.signal import lfilter
+
+from bilevel.errors import InvalidData, ModelError, NotPersistentlyExciting
+from bilevel.problems import registry
+from bilevel.problems.budget import Budget
+from bilevel.problems.deepc import declaration
+from bilevel.problems.deepc_instance import DeePCAttack, attack_instance
+
+SMALL = {"T": 60, "horizon": 6}
+"""A small instance (55 Hankel columns) that solves in about a second."""
+
+
+def own_deepc(atk, u_data: np.ndarray, y_data: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(optimal value, g, u) of DeePC written out here: Hankel columns by slicing, the l1 term by bounds s <= t."""
+    L, k = atk.t_ini + atk.horizon, atk.t_ini
+    cols = u_data.size - L + 1
+    Hu = np.array([u_data[j:j + L] for j in range(cols)]).T
+    Hy = np.array([y_data[j:j + L] for j in range(cols)]).T
+    g, s, t = cp.Variable(cols), cp.Variable(k), cp.Variable(k)
+    u, y = Hu[k:] @ g, Hy[k:] @ g
+    cost = (atk.q * cp.sum_squares(y - atk.reference) + atk.r_weight * cp.sum_squares(u)
+            + atk.lambda_g * cp.sum_squares(g) + atk.lambda_y * cp.sum(t))
+    constraints = [Hu[:k] @ g == atk.past_u[-k:], Hy[:k] @ g == atk.past_y[-k:] + s, s <= t, -s <= t]
+    if atk.u_max is not None:
+        constraints.append(cp.abs(u) <= atk.u_max)
+    problem = cp.Problem(cp.Minimize(cost), constraints)
+    problem.solve(solver=cp.CLARABEL, tol_gap_abs=1e-10, tol_gap_rel=1e-10, tol_feas=1e-10)
+    assert problem.status == cp.OPTIMAL
+    return problem.value, g.value, Hu[k:] @ g.value
+
+
+def true_cost(atk, plan: np.ndarray) -> float:
+    """The flexible transmission simulated by lfilter over its past then the plan: q ||y - r||^2 + r_w ||u||^2."""
+    num, den = np.asarray(atk.plant.num[0][0], float), np.asarray(atk.plant.den[0][0], float)
+    b = np.concatenate([np.zeros(den.size - num.size), num])
+    y = lfilter(b, den, np.concatenate([atk.past_u, plan]))[atk.past_u.size:]
+    return float(atk.q * np.sum((y - atk.reference) ** 2) + atk.r_weight * np.sum(plan ** 2))
+
+
+def test_clean_learner_is_the_independent_deepc() -> None:
+    """With a zero budget the engine's lower solution (g, u) and value are those of the DeePC written here."""
+    atk = attack_instance(**SMALL, eps=0.0, norm="linf", past_std=0.5, seed=2)
+    problem, ll, v = declaration(atk)
+    result = problem.solve("ipopt", starts=1)
+    assert result.status.value == "solved" and result.certificate.passed, result.message
+    value, g, u = own_deepc(atk, atk.u, atk.y)
+    assert result.lower_objective == pytest.approx(value, rel=1e-6)
+    np.testing.assert_allclose(np.ravel(result.value(ll[v["g"]])), g, atol=1e-5 * np.abs(g).max())
+    np.testing.assert_allclose(np.ravel(result.value(ll[v["u"]])), u, atol=1e-5 * np.abs(u).max())
+    assert result.upper_objective == pytest.approx(true_cost(atk, u), rel=1e-6)
+    assert atk.u0_clean == pytest.approx(u[0], abs=1e-5 * np.abs(u).max())
+
+
+def poisoned(atk, result) -> tuple[np.ndarray, np.ndarray]:
+    return atk.u + np.ravel(result.x["du"]), atk.y + np.ravel(result.x["dy"])
+
+
+def random_poisoning(atk, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A random change of each signal on its budget's boundary (sign vertex for linf, sphere for l2)."""
+    out = []
+    for s in (atk.u, atk.y):
+        if atk.budget.norm == "linf":
+            out.append(s + atk.budget.radius(s) * rng.choice([-1.0, 1.0], s.size))
+        else:
+            d = rng.standard_normal(s.size)
+            out.append(s + atk.budget.radius(s) * d / np.linalg.norm(d))
+    return out[0], out[1]
+
+
+@pytest.mark.parametrize("name,norm", [("deepc-tracking", "l2"), ("deepc-tracking", "linf"),
+                                       ("deepc-first-action", "l2")])
+def test_attack_is_recomputed_independently_and_beats_random_poisoning(name: str, norm: str) -> None:
+    atk = attack_instance(**SMALL, norm=norm, objective=name.removeprefix("deepc-"), seed=1)
+    result = registry.get(name, **SMALL, norm=norm, seed=1).solve(starts=1, seed=0)
+    assert result.status.value == "solved" and result.certificate.passed, result.message
+    u_p, y_p = poisoned(atk, result)
+    order = 2 if norm == "l2" else np.inf
+    for clean, bad, label in ((atk.u, u_p, "u"), (atk.y, y_p, "y")):
+        assert np.linalg.norm(bad - clean, order) <= 0.05 * np.linalg.norm(clean, order) * (1 + 1e-7), label
+    _, _, plan = own_deepc(atk, u_p, y_p)
+    value = true_cost(atk, plan) if atk.objective == "tracking" else (plan[0] - atk.u0_clean) ** 2
+    assert result.upper_objective == pytest.approx(value, rel=1e-5, abs=1e-8)
+    _, _, clean_plan = own_deepc(atk, atk.u, atk.y)
+    clean = true_cost(atk, clean_plan) if atk.objective == "tracking" else 0.0
+    rng = np.random.default_rng(3)
+    randoms = []
+    for _ in range(20):
+        plan = own_deepc(atk, *random_poisoning(atk, rng))[2]
+        randoms.append(true_cost(atk, plan) if atk.objective == "tracking" else (plan[0] - atk.u0_clean) ** 2)
+    assert value > clean and value > 1.5 * max(randoms), (value, clean, max(randoms))
+
+
+def test_bad_parameters_are_refused() -> None:
+    with pytest.raises(ModelError, match="objective"):
+        attack_instance(objective="cost")
+    with pytest.raises(ModelError, match="l2 or linf"):
+        attack_instance(norm="l1")
+    with pytest.raises(InvalidData, match="record at least"):
+        attack_instance(T=30)
+    with pytest.raises(ModelError, match="u_max"):
+        attack_instance(u_max=-1.0)
+    with pytest.raises(NotPersistentlyExciting):
+        atk = attack_instance(**SMALL)
+        DeePCAttack(atk.plant, np.ones(60), atk.y, atk.past_u, atk.past_y, Budget(0.05))
