@@ -76,11 +76,13 @@ def random_poisoning(atk, rng: np.random.Generator) -> tuple[np.ndarray, np.ndar
     return out[0], out[1]
 
 
-@pytest.mark.parametrize("name,norm", [("deepc-tracking", "l2"), ("deepc-tracking", "linf"),
-                                       ("deepc-first-action", "l2")])
-def test_attack_is_recomputed_independently_and_beats_random_poisoning(name: str, norm: str) -> None:
-    atk = attack_instance(**SMALL, norm=norm, objective=name.removeprefix("deepc-"), seed=1)
-    result = registry.get(name, **SMALL, norm=norm, seed=1).solve(starts=1, seed=0)
+@pytest.mark.parametrize("name,norm,extra", [("deepc-tracking", "l2", {}),
+                                             ("deepc-tracking", "linf", {"u_max": 1.5, "past_std": 0.5}),
+                                             ("deepc-first-action", "l2", {})])
+def test_attack_is_recomputed_independently_and_beats_random_poisoning(name: str, norm: str, extra: dict) -> None:
+    """Also with an input bound and a past that leaves the plant moving (linf case)."""
+    atk = attack_instance(**SMALL, **extra, norm=norm, objective=name.removeprefix("deepc-"), seed=1)
+    result = registry.get(name, **SMALL, **extra, norm=norm, seed=1).solve(starts=1, seed=0)
     assert result.status.value == "solved" and result.certificate.passed, result.message
     u_p, y_p = poisoned(atk, result)
     order = 2 if norm == "l2" else np.inf
