@@ -103,38 +103,52 @@ class DeePCAttack:
         self.step = toeplitz(impulse, np.zeros(N))
         self.u0_clean = float(self.plan(self.u, self.y)[0])
 
-    @property
-    def u_ini(self) -> np.ndarray:
-        return self.past_u[-self.t_ini:]
-
-    @property
-    def y_ini(self) -> np.ndarray:
-        return self.past_y[-self.t_ini:]
-
     def learner(self) -> tuple[cp.Problem, dict[str, cp.Parameter | cp.Variable]]:
-        """The DeePC QP as a cvxpy Problem with Hankel Parameters "Hu", "Hy" (depth t_ini + horizon; values: the
-        clean data's), and its variables "g", "u", "y", "sigma_y"."""
-        depth, cols = self.t_ini + self.horizon, self.u.size - self.t_ini - self.horizon + 1
+        """The DeePC QP as a cvxpy Problem with Parameters "Hu", "Hy" (the depth t_ini + horizon Hankel matrices;
+        values: the clean data's) and "u_ini", "y_ini" (values: the past's), and its variables "g", "u", "y",
+        "sigma_y"."""
+        depth, cols, k = self.t_ini + self.horizon, self.u.size - self.t_ini - self.horizon + 1, self.t_ini
         Hu = cp.Parameter((depth, cols), name="Hu", value=np.array(hankel(self.u, depth)))
         Hy = cp.Parameter((depth, cols), name="Hy", value=np.array(hankel(self.y, depth)))
-        g, u, y, s = cp.Variable(cols), cp.Variable(self.horizon), cp.Variable(self.horizon), cp.Variable(self.t_ini)
-        k = self.t_ini
-        constraints = [Hu[:k] @ g == self.u_ini, Hy[:k] @ g == self.y_ini + s, Hu[k:] @ g == u, Hy[k:] @ g == y]
+        u_ini = cp.Parameter(k, name="u_ini", value=self.past_u[-k:])
+        y_ini = cp.Parameter(k, name="y_ini", value=self.past_y[-k:])
+        g, u, y, s = cp.Variable(cols), cp.Variable(self.horizon), cp.Variable(self.horizon), cp.Variable(k)
+        constraints = [Hu[:k] @ g == u_ini, Hy[:k] @ g == y_ini + s, Hu[k:] @ g == u, Hy[k:] @ g == y]
         if self.u_max is not None:
             constraints += [u <= self.u_max, u >= -self.u_max]
         cost = (self.q * cp.sum_squares(y - self.reference) + self.r_weight * cp.sum_squares(u)
                 + self.lambda_g * cp.sum_squares(g) + self.lambda_y * cp.norm1(s))
-        return cp.Problem(cp.Minimize(cost), constraints), {"Hu": Hu, "Hy": Hy, "g": g, "u": u, "y": y, "sigma_y": s}
+        return cp.Problem(cp.Minimize(cost), constraints), {"Hu": Hu, "Hy": Hy, "u_ini": u_ini, "y_ini": y_ini,
+                                                            "g": g, "u": u, "y": y, "sigma_y": s}
 
     def plan(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
         """The planned inputs of the learner on recorded data (u, y) (cvxpy + Clarabel)."""
+        return self.closed_loop(u, y, 0)[2]
+
+    def closed_loop(self, u: np.ndarray, y: np.ndarray, steps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Receding horizon on the true plant with the learner fitted to recorded data (u, y): at each of `steps`
+        steps it re-solves DeePC from the last t_ini inputs and outputs and applies the first planned input.
+        Returns the applied inputs, the outputs at the same times (y_t before u_t acts) and the last plan."""
         problem, v = self.learner()
-        depth = self.t_ini + self.horizon
+        depth, k = self.t_ini + self.horizon, self.t_ini
         v["Hu"].value, v["Hy"].value = np.array(hankel(u, depth)), np.array(hankel(y, depth))
-        problem.solve(solver=cp.CLARABEL)
-        if problem.status != cp.OPTIMAL:
-            raise InvalidData(f"the DeePC learner on these data ended {problem.status}; check the data and u_max")
-        return np.asarray(v["u"].value, dtype=float)
+        inputs, outputs = list(self.past_u), list(self.past_y)
+        for t in range(steps + 1):
+            v["u_ini"].value, v["y_ini"].value = np.array(inputs[-k:]), np.array(outputs[-k:])
+            problem.solve(solver=cp.CLARABEL)
+            if problem.status != cp.OPTIMAL:
+                raise InvalidData(f"the DeePC learner on these data ended {problem.status} at step {t}; check the "
+                                  "data and u_max")
+            if t < steps:
+                inputs.append(float(v["u"].value[0]))
+                outputs.append(float(simulate(self.plant, np.array(inputs))[-1]))
+        P = self.past_u.size
+        return np.array(inputs[P:]), np.array(outputs[P:]), np.asarray(v["u"].value, dtype=float)
+
+    def closed_loop_cost(self, u: np.ndarray, y: np.ndarray, steps: int) -> float:
+        """q sum (y_t - r)^2 + r_weight sum u_t^2 over `steps` receding-horizon steps (closed_loop)."""
+        applied, outputs, _ = self.closed_loop(u, y, steps)
+        return float(self.q * np.sum((outputs - self.reference) ** 2) + self.r_weight * applied @ applied)
 
     def true_output(self, plan: np.ndarray | ca.SX) -> np.ndarray | ca.SX:
         """The true plant's outputs under planned inputs, from the state its past left it in: free + S u."""

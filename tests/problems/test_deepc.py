@@ -19,8 +19,10 @@ SMALL = {"T": 60, "horizon": 6}
 """A small instance (55 Hankel columns) that solves in about a second."""
 
 
-def own_deepc(atk, u_data: np.ndarray, y_data: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """(optimal value, g, u) of DeePC written out here: Hankel columns by slicing, the l1 term by bounds s <= t."""
+def own_deepc(atk, u_data: np.ndarray, y_data: np.ndarray, u_ini: np.ndarray | None = None,
+              y_ini: np.ndarray | None = None) -> tuple[float, np.ndarray, np.ndarray]:
+    """(optimal value, g, u) of DeePC written out here: Hankel columns by slicing, the l1 term by bounds s <= t;
+    u_ini, y_ini default to the instance's past."""
     L, k = atk.t_ini + atk.horizon, atk.t_ini
     cols = u_data.size - L + 1
     Hu = np.array([u_data[j:j + L] for j in range(cols)]).T
@@ -29,7 +31,9 @@ def own_deepc(atk, u_data: np.ndarray, y_data: np.ndarray) -> tuple[float, np.nd
     u, y = Hu[k:] @ g, Hy[k:] @ g
     cost = (atk.q * cp.sum_squares(y - atk.reference) + atk.r_weight * cp.sum_squares(u)
             + atk.lambda_g * cp.sum_squares(g) + atk.lambda_y * cp.sum(t))
-    constraints = [Hu[:k] @ g == atk.past_u[-k:], Hy[:k] @ g == atk.past_y[-k:] + s, s <= t, -s <= t]
+    u_ini = atk.past_u[-k:] if u_ini is None else u_ini
+    y_ini = atk.past_y[-k:] if y_ini is None else y_ini
+    constraints = [Hu[:k] @ g == u_ini, Hy[:k] @ g == y_ini + s, s <= t, -s <= t]
     if atk.u_max is not None:
         constraints.append(cp.abs(u) <= atk.u_max)
     problem = cp.Problem(cp.Minimize(cost), constraints)
@@ -38,12 +42,26 @@ def own_deepc(atk, u_data: np.ndarray, y_data: np.ndarray) -> tuple[float, np.nd
     return problem.value, g.value, Hu[k:] @ g.value
 
 
-def true_cost(atk, plan: np.ndarray) -> float:
-    """The flexible transmission simulated by lfilter over its past then the plan: q ||y - r||^2 + r_w ||u||^2."""
+def plant_output(atk, u: np.ndarray) -> np.ndarray:
+    """The flexible transmission's output from rest by lfilter (B(z)/A(z) in powers of 1/z)."""
     num, den = np.asarray(atk.plant.num[0][0], float), np.asarray(atk.plant.den[0][0], float)
-    b = np.concatenate([np.zeros(den.size - num.size), num])
-    y = lfilter(b, den, np.concatenate([atk.past_u, plan]))[atk.past_u.size:]
+    return lfilter(np.concatenate([np.zeros(den.size - num.size), num]), den, u)
+
+
+def true_cost(atk, plan: np.ndarray) -> float:
+    """The plant simulated over its past then the plan: q ||y - r||^2 + r_w ||u||^2 over the plan."""
+    y = plant_output(atk, np.concatenate([atk.past_u, plan]))[atk.past_u.size:]
     return float(atk.q * np.sum((y - atk.reference) ** 2) + atk.r_weight * np.sum(plan ** 2))
+
+
+def own_closed_loop_cost(atk, steps: int) -> float:
+    """Receding horizon on clean data written out here: re-solve, apply the first input, measure, repeat."""
+    k, u, y = atk.t_ini, list(atk.past_u), list(atk.past_y)
+    for _ in range(steps):
+        u.append(own_deepc(atk, atk.u, atk.y, np.array(u[-k:]), np.array(y[-k:]))[2][0])
+        y.append(plant_output(atk, np.array(u))[-1])
+    applied, outputs = np.array(u[atk.past_u.size:]), np.array(y[atk.past_u.size:])
+    return float(atk.q * np.sum((outputs - atk.reference) ** 2) + atk.r_weight * applied @ applied)
 
 
 def test_clean_learner_is_the_independent_deepc() -> None:
@@ -99,6 +117,16 @@ def test_attack_is_recomputed_independently_and_beats_random_poisoning(name: str
         plan = own_deepc(atk, *random_poisoning(atk, rng))[2]
         randoms.append(true_cost(atk, plan) if atk.objective == "tracking" else (plan[0] - atk.u0_clean) ** 2)
     assert value > clean and value > 1.5 * max(randoms), (value, clean, max(randoms))
+    if atk.objective == "first-action":  # the receding-horizon loop on the poisoned data goes unstable
+        assert atk.closed_loop_cost(u_p, y_p, 60) > 100 * atk.closed_loop_cost(atk.u, atk.y, 60)
+
+
+def test_closed_loop_is_the_independent_receding_horizon() -> None:
+    """Receding horizon on clean data: the cost equals the loop written here, and the output settles near r."""
+    atk = attack_instance(**SMALL, seed=1)
+    assert atk.closed_loop_cost(atk.u, atk.y, 30) == pytest.approx(own_closed_loop_cost(atk, 30), rel=1e-6)
+    outputs = atk.closed_loop(atk.u, atk.y, 60)[1]
+    assert np.all(np.abs(outputs[-10:] - atk.reference) < 0.05)
 
 
 def test_bad_parameters_are_refused() -> None:
