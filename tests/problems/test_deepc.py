@@ -141,3 +141,10 @@ def test_bad_parameters_are_refused() -> None:
     with pytest.raises(NotPersistentlyExciting):
         atk = attack_instance(**SMALL)
         DeePCAttack(atk.plant, np.ones(60), atk.y, atk.past_u, atk.past_y, Budget(0.05))
+
+
+def test_deepc_page_runs() -> None:
+    """docs/deepc.md's code prints what the page says."""
+    from tests.docs_pages import run_page
+
+    run_page("deepc.md")
