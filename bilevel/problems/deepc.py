@@ -61,8 +61,9 @@ def declaration(atk: DeePCAttack) -> Declared:
 
 def _build(objective: Objective, T: int, eps: float, norm: Norm, seed: int, noise_std: float, past_std: float,
            t_ini: int, horizon: int, lambda_g: float, lambda_y: float, u_max: float | None) -> BilevelProblem:
-    return declare(attack_instance(T, eps, norm, objective, seed, noise_std, past_std, t_ini, horizon, lambda_g,
-                                   lambda_y, u_max))
+    return declare(attack_instance(T=T, eps=eps, norm=norm, objective=objective, seed=seed, noise_std=noise_std,
+                                   past_std=past_std, t_ini=t_ini, horizon=horizon, lambda_g=lambda_g,
+                                   lambda_y=lambda_y, u_max=u_max))
 
 
 @register("deepc-tracking", source=SOURCE, tags=("attack", "deepc"), defaults=DEFAULTS,
