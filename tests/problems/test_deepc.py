@@ -99,8 +99,20 @@ def random_poisoning(atk, rng: np.random.Generator) -> tuple[np.ndarray, np.ndar
                                              ("deepc-first-action", "l2", {})])
 def test_attack_is_recomputed_independently_and_beats_random_poisoning(name: str, norm: str, extra: dict) -> None:
     """Also with an input bound and a past that leaves the plant moving (linf case)."""
-    atk = attack_instance(**SMALL, **extra, norm=norm, objective=name.removeprefix("deepc-"), seed=1)
-    result = registry.get(name, **SMALL, **extra, norm=norm, seed=1).solve(starts=1, seed=0)
+    check_attack(name, norm, {**SMALL, **extra})
+
+
+@pytest.mark.slow
+def test_attack_at_the_registered_defaults() -> None:
+    """T = 200, horizon 10: the same checks at the size the benchmark runs."""
+    check_attack("deepc-tracking", "l2", {})
+
+
+def check_attack(name: str, norm: str, params: dict) -> None:
+    """One start of `name`: certified, budgets hold, the value is recomputed independently, beats random poisoning;
+    a first-action attack also destabilizes the receding-horizon loop."""
+    atk = attack_instance(**params, norm=norm, objective=name.removeprefix("deepc-"), seed=1)
+    result = registry.get(name, **params, norm=norm, seed=1).solve(starts=1, seed=0)
     assert result.status.value == "solved" and result.certificate.passed, result.message
     u_p, y_p = poisoned(atk, result)
     order = 2 if norm == "l2" else np.inf
