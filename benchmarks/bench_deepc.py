@@ -7,13 +7,16 @@ y_d + dy, the attacker changing ATTACKED samples within an l_inf budget |dy_t| <
 true plant's tracking cost of the planned inputs (the plant's response from the same past, an affine map of u).
 
 Every applicable method runs on it (time, objective, status) and the default; the best objective is the reference.
+The registered DeePC attacks (deepc-tracking, deepc-first-action) get the same table at their defaults.
 Usage: python benchmarks/bench_deepc.py > benchmarks/results/bench_deepc.txt
+       python benchmarks/bench_deepc.py family   (the registered attacks' tables only)
 """
 
 from __future__ import annotations
 
 import os
 import platform
+import sys
 import time
 from datetime import datetime, timezone
 
@@ -80,11 +83,11 @@ def dense_least_squares(n: int, rows: int = 60, k: int = 20, seed: int = 0) -> b
     return p
 
 
-def run(problem: bl.BilevelProblem, method: str) -> tuple[str, str, float | None, float, str]:
+def run(problem: bl.BilevelProblem, method: str, **options: object) -> tuple[str, str, float | None, float, str]:
     """(method that ran, status, objective, seconds, message) of one solve; a refusal is a status 'refused'."""
     t0 = time.perf_counter()
     try:
-        r = problem.solve(method=method, time_limit=LIMIT)
+        r = problem.solve(method=method, time_limit=LIMIT, **options)
     except bl.BilevelError as exc:
         return method, "refused", None, time.perf_counter() - t0, str(exc)
     return r.method, r.status.value, r.upper_objective, time.perf_counter() - t0, r.message
@@ -119,6 +122,18 @@ def deepc_section() -> None:
         rows.append((method, *run(problem, method)))
     table(rows, "max")
     print("  auto's reason:", next(r[5] for r in rows if r[0] == "auto").split(";")[0])
+
+
+def family_section() -> None:
+    """The registered DeePC attacks (bilevel/problems/deepc.py: the flexible transmission, T = 200, both signals
+    poisoned, l2 budgets of 5%) at their defaults, every applicable method."""
+    from bilevel.problems import registry
+
+    for name in ("deepc-tracking", "deepc-first-action"):
+        print(f"\n{name} (registered, defaults {registry.spec(name).defaults}); time_limit {LIMIT:g} s each:")
+        rows = [(m, *run(registry.get(name), m)) for m in ("auto", "ipopt", "relaxation", "hypergradient")]
+        rows.append(("auto starts=1", *run(registry.get(name), "auto", starts=1)))
+        table(rows, "max")
 
 
 def evaluation_cost() -> None:
@@ -173,7 +188,11 @@ def main() -> None:
           f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, python {platform.python_version()}")
     print("Times are wall clock in one process: compare ratios (/auto: seconds over the default's "
           "seconds in the same table), not absolute seconds; gap: relative to the best objective in the table.\n")
+    if sys.argv[1:] == ["family"]:
+        family_section()
+        return
     deepc_section()
+    family_section()
     evaluation_cost()
     auto_section()
 

@@ -52,7 +52,7 @@ def register(name: str, *, source: str, optimum: float | None = None, solution: 
 
 def _load_builtin() -> None:
     from . import defended_identification, defended_vrft, defended_willems  # noqa: F401  (registers on import)
-    from . import identification, literature, vrft, willems  # noqa: F401
+    from . import deepc, identification, literature, vrft, willems  # noqa: F401
 
 
 BUILDER_MARK = "__bilevel_problem_builder__"
