@@ -25,13 +25,13 @@ from ..problems.vrft import instance_of, problem_for
 from ..problems.vrft_instance import VRFTAttack
 from ..reduction import KKTPoint
 from ..result import BilevelResult, Status
+from ..solvers.affine_ls import Oracle, TargetBlock
 from ..solvers.base import MethodRun, Prepared, check_options
 from ..solvers.block_exact import ascend_with_exact_block
 from ..solvers.options import check_common_options
 from ..solvers.projections import Blocks, Projection
 from ..solvers.registry import solve
 from .outcome import attack_stat, unstable
-from .vrft import InputStep, Oracle, exact_input, state
 
 MAX_ITER = {"maxmin": 60, "targeted": 500, "destabilize": 200}
 """Iteration limit by objective: 60 for max-min (the setting of the committed Table 1); 500 for targeted, which at 60
@@ -59,12 +59,15 @@ def _ascend(prep: Prepared, joint: bool, options: dict[str, Any]) -> MethodRun:
     check_common_options(options)
     step = None
     if not joint:
-        if why := exact_input(atk):
+        why = ("the destabilize objective is not quadratic in theta" if atk.upper.hessian is None else
+               f"the input budget {atk.budget_u} is not a plain l2 ball"
+               if atk.budget_u.norm != "l2" or atk.budget_u.rho is not None else "")
+        if why:
             raise ModelError(f"the alternating attack needs the exact input step: {why}; use the joint attack")
-        step = InputStep(atk, next(b for b in prep.balls if b.block.start == 0))
+        step = TargetBlock(atk.learner, atk.upper, next(b for b in prep.balls if b.block.start == 0), atk.delta_u)
     weights = np.concatenate([np.full(atk.N, atk.delta_u), np.full(atk.N, atk.delta_y)])
-    return ascend_with_exact_block(prep, step, [], oracle=Oracle(atk), projection=_searched(atk), weights=weights,
-                                   **options)
+    return ascend_with_exact_block(prep, step, [], oracle=Oracle(atk.learner, atk.upper), projection=_searched(atk),
+                                   weights=weights, **options)
 
 
 def alternating(prep: Prepared, **options: Any) -> MethodRun:
@@ -90,7 +93,7 @@ def white_noise(prep: Prepared, *, seed: int = 0, **unknown: Any) -> MethodRun:
     for budget, signal, radius in ((atk.budget_u, atk.u, atk.delta_u), (atk.budget_y, atk.y, atk.delta_y)):
         z = rng.standard_normal(atk.N)
         signals.append(budget.projection(signal)(z * radius / max(np.linalg.norm(z, budget.order), 1e-300)))
-    theta = state(atk, *signals).theta
+    theta = atk.learner.fit(*signals).theta
     return MethodRun(prep.pack(KKTPoint(np.concatenate(signals), theta, np.zeros(0), np.zeros(0), [])),
                      Status.INACCURATE, "a sample at the budget (a baseline, not an optimizer)",
                      feasible_set=_searched(atk))

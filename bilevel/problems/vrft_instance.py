@@ -7,7 +7,8 @@ a_u, a_y. J is one of
   "targeted"    -(1/nk) ||theta_a - theta||^2 (paper appendix A; maximizing minus the distance);
   "destabilize" a smooth max of the closed-loop pole moduli of an ARX model the attacker fits
                 from the clean data (it does not know the plant).
-bilevel.problems.vrft declares the instance as a BilevelProblem; bilevel.attacks.vrft solves it in structured form.
+bilevel.problems.vrft declares the instance as a BilevelProblem; `VRFTAttack.learner` is its learner as the engine's
+affine least squares (bilevel.lower.affine_least_squares), which bilevel.attacks.vrft_methods attacks.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from ..ddc.plants import flexible_transmission, flexible_transmission_prefilter,
 from ..ddc.systems import SystemLike, num_den
 from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
+from ..lower.affine_least_squares import AffineLeastSquares, AffineMaps
+from ..solvers.affine_ls import UpperObjective
 from ..solvers.options import check_common_options
 from .budget import Budget
 
@@ -187,6 +190,21 @@ class VRFTAttack:
         if self.objective == "targeted":
             return 2.0 / theta.size * (self.theta_target - theta)
         return self.model_loop.surrogate(theta, self.surrogate_beta)[1]
+
+    @cached_property
+    def learner(self) -> AffineLeastSquares:
+        """The learner's least squares on (u + a_u, y + a_y) as the engine's affine kind: C = Phi(y) + Phi(a_y),
+        d = t(u) + t(a_u), the regressor's filters and prefilter as its maps."""
+        reg, N = self.setting.regressor, self.N
+        target = None if reg.prefilter is None else (reg.targets, lambda g: reg.targets_adjoint(g, N))
+        return AffineLeastSquares(self.phi0, self.t0, AffineMaps(reg, reg.adjoint, *(target or (None, None))), N, N)
+
+    @cached_property
+    def upper(self) -> UpperObjective:
+        """J as the engine's affine-least-squares ascent reads it (a constant Hessian for the quadratic objectives)."""
+        k = self.theta0.size
+        hessian = {"maxmin": 2.0 * self.gram0 / self.n, "targeted": -2.0 * np.eye(k) / k}.get(self.objective)
+        return UpperObjective(self.value, self.grad_theta, hessian)
 
     def stats(self, theta: np.ndarray) -> dict[str, Any]:
         """What an attack result adds at the poisoned theta: the attack's own criterion (value), the learner's loss on
