@@ -1,7 +1,6 @@
-"""Structured attacks on a VRFT instance, as methods of the engine on its declared problem vrft-<objective>
-(bilevel.problems.vrft): the engine's multistart ascent (bilevel.solvers.block_exact.ascend_with_exact_block: its
-starts, spectral projected gradient loop and best-start rule) with the learner's structured oracle
-(bilevel.attacks.vrft), then `bilevel.solvers.solve`'s finalize (independent re-solve of the learner, local probe).
+"""Structured attacks on a VRFT instance: the engine's multistart ascent (ascend_with_exact_block) on its declared
+problem vrft-<objective> with the learner as an affine least squares (VRFTAttack.learner, bilevel.solvers.affine_ls),
+then `bilevel.solve`'s finalize (independent re-solve of the learner, local probe).
 
 alternating (the paper's Algorithm 1, strengthened): ascend V(a_y) = max_{a_u} J(theta(u + a_u, y + a_y)) with the
   inner max solved globally at every evaluation (the exact input step; quadratic objectives, plain l2 input budget);
@@ -31,12 +30,10 @@ from ..solvers.block_exact import ascend_with_exact_block
 from ..solvers.options import check_common_options
 from ..solvers.projections import Blocks, Projection
 from ..solvers.registry import solve
-from .outcome import attack_stat, unstable
+from .outcome import attack_stat
 
 MAX_ITER = {"maxmin": 60, "targeted": 500, "destabilize": 200}
-"""Iteration limit by objective: 60 for max-min (the setting of the committed Table 1); 500 for targeted, which at 60
-ended at the limit on 40 of 40 data sets (scenario B, N = 512) and converges in 118-195 iterations
-(benchmarks/results/bench_vrft_iterations.txt); 200 for destabilize."""
+"""Iteration limit by objective (targeted converges in 118-195: benchmarks/results/bench_vrft_iterations.txt)."""
 TOL = 1e-4
 """The ascent stops when the relative gain over its window of steps is below TOL."""
 OPTIONS = {"starts", "seed", "max_iter", "tol", "time_limit", "verbose"}
@@ -173,18 +170,6 @@ def attack_value(result: BilevelResult) -> float:
     """The attack's own criterion at the poisoned theta (maximized): -distance for 'targeted', the log-sum-exp
     of the modelled poles for 'destabilize'; upper_objective is the registered problem's F."""
     return attack_stat(result, "value")
-
-
-def attack_summary(result: BilevelResult) -> dict[str, Any]:
-    """Scalars of a VRFT attack result, one row of the reproduction's tables and of the CLI's output."""
-    attack_stat(result, "learner_loss")
-    st, cert = result.stats, result.certificate
-    return {"method": result.method, "objective": st["objective"], "status": result.status.value,
-            "value": attack_value(result), "value_clean": st["value_clean"], "learner_loss": st["learner_loss"],
-            "spectral_radius": st["spectral_radius"], "spectral_radius_clean": st["spectral_radius_clean"],
-            "delta_u": st["delta_u"], "delta_y": st["delta_y"], "wall_time": result.wall_time,
-            "iterations": result.nit, "evaluations": st["evaluations"], "learner_stationarity": cert.stationarity,
-            "refit_distance": cert.y_distance, "unstable": unstable(result), "certified": cert.passed}
 
 
 def save_path(path: str) -> str:

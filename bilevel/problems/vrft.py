@@ -281,4 +281,5 @@ vrft_destabilize = register(
     "vrft-destabilize", source=SOURCE + "beyond the paper: the attacker fits an ARX model to the clean data and "
     "maximizes the spectral radius of the modelled closed loop", tags=("attack", "vrft"), defaults=DEFAULTS,
     description="destabilizing poisoning of VRFT (maximize the modelled closed-loop spectral radius)")(_builder(
-        "destabilize", "Destabilizing attack: maximize the spectral radius of the ARX-modelled closed loop (its companion matrix)."))
+        "destabilize", "Destabilizing attack: maximize the spectral radius of the ARX-modelled closed loop's companion "
+        "matrix."))

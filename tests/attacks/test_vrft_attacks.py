@@ -17,8 +17,10 @@ from bilevel.problems.budget import Budget
 from bilevel.solvers.trust_region import maximize_quadratic_on_ball
 from bilevel.ddc.loop import arx_orders_for
 from bilevel.problems.vrft_instance import CONVENTIONS, PAPER_THETA0, VRFTAttack, VRFTSetting, attack_instance
-from bilevel.attacks.vrft_methods import (attack_alternating, attack_budget_path, attack_joint, attack_summary,
-                                         attack_value, attack_white_noise, unstable)
+from bilevel.attacks.outcome import unstable
+from bilevel.attacks.vrft_methods import (attack_alternating, attack_budget_path, attack_joint, attack_value,
+                                         attack_white_noise)
+from bilevel.experiments.vrft import attack_summary
 from bilevel.solvers.affine_ls import TargetBlock
 from bilevel.solvers.ascent import projected_ascent
 from bilevel.solvers.projections import NormBall
@@ -419,6 +421,7 @@ def test_conditioning_start_from_the_oracles_filters_is_the_declared_problems(co
 
     atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=2, N=128, convention=convention)
     prep = prepare(problem_for(atk))
-    declared, structured = conditioning_start(prep), conditioning_start(prep, Oracle(atk.learner, atk.upper).hessian_parts)
+    declared = conditioning_start(prep)
+    structured = conditioning_start(prep, Oracle(atk.learner, atk.upper).hessian_parts)
     assert np.linalg.norm(declared[atk.N:]) == pytest.approx(atk.delta_y, rel=1e-9)  # it moved to the budget sphere
     np.testing.assert_allclose(structured, declared, rtol=0, atol=1e-8 * atk.delta_y)
