@@ -1,5 +1,6 @@
 """Time per attack of this tree against a baseline tree (default /work/main), measured in the same run: for each
-attack, a fresh process per tree (PYTHONPATH=tree) runs one warm-up attack and then the attack on SEEDS data sets,
+attack, a fresh process per tree (PYTHONPATH=tree) runs one warm-up attack and then the attack on SEEDS data sets
+(time: the process's CPU time per attack, single-threaded BLAS, so that other load on the machine counts less),
 the two trees alternating ROUNDS times; per attack the median time of each tree and their ratio, and how many results
 agree (VRFT: the attack's criterion to 1e-9 relative and the same unstable verdict; Willems: the criterion to 1e-9
 relative and the same verdict).
@@ -49,9 +50,9 @@ def worker(name: str, seeds: int) -> None:
     rows = []
     for seed in range(seeds):
         atk = make(seed)
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         res = run(atk)
-        rows.append((time.perf_counter() - t0, *read(res)))
+        rows.append((time.process_time() - t0, *read(res)))
     print(json.dumps(rows))
 
 
@@ -70,7 +71,7 @@ def main(seeds: int = 10, rounds: int = 2, baseline: str = "/work/main") -> None
     print(f"# bench_attack_time.py, {time.strftime('%Y-%m-%d %H:%M:%S %Z')}; {platform.platform()}; nproc "
           f"{os.cpu_count()}; python {platform.python_version()}; load average {os.getloadavg()[0]:.2f}")
     print(f"# this tree {HERE} vs baseline {baseline}; {seeds} data sets, {rounds} rounds alternating, one process per "
-          "tree and round, single-threaded BLAS; time: median over data sets of the per-round minimum")
+          "tree and round, single-threaded BLAS; time: CPU time per attack, median over data sets of the per-round minimum")
     for name in ATTACKS:
         times = {"this": [], "base": []}
         results = {}

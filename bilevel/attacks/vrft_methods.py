@@ -28,25 +28,13 @@ from ..solvers.affine_ls import Oracle, TargetBlock
 from ..solvers.base import MethodRun, Prepared, check_options
 from ..solvers.block_exact import ascend_with_exact_block
 from ..solvers.options import check_common_options
-from ..solvers.projections import Blocks, Projection
-from ..solvers.registry import solve
-from .outcome import attack_stat
+from .outcome import attack_result, attack_stat
 
 MAX_ITER = {"maxmin": 60, "targeted": 500, "destabilize": 200}
 """Iteration limit by objective (targeted converges in 118-195: benchmarks/results/bench_vrft_iterations.txt)."""
 TOL = 1e-4
 """The ascent stops when the relative gain over its window of steps is below TOL."""
 OPTIONS = {"starts", "seed", "max_iter", "tol", "time_limit", "verbose"}
-
-
-def _searched(atk: VRFTAttack) -> Projection | None:
-    """Projection onto both budgets (a_u the first N entries, a_y the last N) where the declared problem relaxes them
-    (l1, sparsity: the searched set, MethodRun.feasible_set), else None (the declared set)."""
-    if all(b.norm in ("l2", "linf") and b.rho is None for b in (atk.budget_u, atk.budget_y)):
-        return None
-    N = atk.N
-    return Blocks([(slice(0, N), atk.budget_u.projection(atk.u)), (slice(N, 2 * N), atk.budget_y.projection(atk.y))],
-                  2 * N)
 
 
 def _ascend(prep: Prepared, joint: bool, options: dict[str, Any]) -> MethodRun:
@@ -56,14 +44,11 @@ def _ascend(prep: Prepared, joint: bool, options: dict[str, Any]) -> MethodRun:
     check_common_options(options)
     step = None
     if not joint:
-        why = ("the destabilize objective is not quadratic in theta" if atk.upper.hessian is None else
-               f"the input budget {atk.budget_u} is not a plain l2 ball"
-               if atk.budget_u.norm != "l2" or atk.budget_u.rho is not None else "")
-        if why:
+        if why := atk.no_exact_input:
             raise ModelError(f"the alternating attack needs the exact input step: {why}; use the joint attack")
         step = TargetBlock(atk.learner, atk.upper, next(b for b in prep.balls if b.block.start == 0), atk.delta_u)
     weights = np.concatenate([np.full(atk.N, atk.delta_u), np.full(atk.N, atk.delta_y)])
-    return ascend_with_exact_block(prep, step, [], oracle=Oracle(atk.learner, atk.upper), projection=_searched(atk),
+    return ascend_with_exact_block(prep, step, [], oracle=Oracle(atk.learner, atk.upper), projection=atk.searched,
                                    weights=weights, **options)
 
 
@@ -93,7 +78,7 @@ def white_noise(prep: Prepared, *, seed: int = 0, **unknown: Any) -> MethodRun:
     theta = atk.learner.fit(*signals).theta
     return MethodRun(prep.pack(KKTPoint(np.concatenate(signals), theta, np.zeros(0), np.zeros(0), [])),
                      Status.INACCURATE, "a sample at the budget (a baseline, not an optimizer)",
-                     feasible_set=_searched(atk))
+                     feasible_set=atk.searched)
 
 
 METHODS: dict[str, Callable[..., MethodRun]] = {"alternating": alternating, "joint": joint, "white-noise": white_noise}
@@ -113,12 +98,11 @@ def attack(atk: VRFTAttack, method: str | Callable[..., MethodRun], warm_start: 
             raise ModelError(f"warm_start must have shape ({atk.N},), got {np.shape(warm_start)}")
         problem.suggest_start(a_y=atk.budget_y.projection(atk.y)(np.asarray(warm_start, dtype=float)))
         options["starts"] = options.get("starts", 1) + 1
-    fn = method if callable(method) else METHODS[method]
-    result = solve(problem, method=fn, **{k: v for k, v in options.items() if v is not None})
-    evaluations = sum(r.get("evaluations", 0) for r in result.starts) or 1  # a white-noise sample: one
-    stats = {**result.stats, **atk.stats(result.y["theta"]), "evaluations": evaluations}
-    return dataclasses.replace(result, method=method if isinstance(method, str) else result.method,
-                               wall_time=time.perf_counter() - t0, stats=stats)
+    return attack_result(problem, method if callable(method) else METHODS[method],
+                         method if isinstance(method, str) else None,
+                         lambda r: {**atk.stats(r.y["theta"]),  # evaluations: a white-noise sample is one
+                                    "evaluations": sum(s.get("evaluations", 0) for s in r.starts) or 1},
+                         t0, **{k: v for k, v in options.items() if v is not None})
 
 
 def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int | None = None,

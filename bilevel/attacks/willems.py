@@ -19,7 +19,7 @@ import casadi as ca
 import numpy as np
 
 from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller
-from ..errors import ModelError, SolverFailed
+from ..errors import ModelError
 from ..model import BilevelProblem
 from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, criterion_values
 from ..result import BilevelResult
@@ -27,8 +27,8 @@ from ..solvers.base import prepare
 from ..solvers.box_methods import destabilize, random_signs
 from ..solvers.implicit import Hypergradient, shared_oracle
 from ..solvers.options import check_common_options
-from ..solvers.registry import solve
 from ..threads import single_threaded_call
+from .outcome import attack_result
 
 
 def _loop(attack: WillemsAttack) -> ca.Function:
@@ -128,16 +128,11 @@ def willems_stats(attack: WillemsAttack, result: BilevelResult, evaluations: int
 def _run(attack: WillemsAttack, name: str, method: Any, radius: bool = False, relearn: bool = False,
          **options: Any) -> BilevelResult:
     """solve(the attack's problem, method, options) as attack `name`, with willems_stats; the whole call's time."""
-    t0 = time.perf_counter()
-    counter = {"evaluations": 0}
+    t0, counter = time.perf_counter(), {"evaluations": 0}
     if "stop_when_unstable" in options:
         options["callback"] = _goal(attack, options.pop("stop_when_unstable"), counter)
-    result = solve(_problem(attack, radius), method=method, **options)
-    if result.certificate is None:
-        raise SolverFailed(f"{name} attack: {result.status.value}: {result.message}", result=result)
-    evaluations = int(result.stats.get("evaluations", counter["evaluations"] or 1))
-    return dataclasses.replace(result, method=name, wall_time=time.perf_counter() - t0,
-                               stats={**result.stats, **willems_stats(attack, result, evaluations, relearn)})
+    return attack_result(_problem(attack, radius), method, name, lambda r: willems_stats(
+        attack, r, int(r.stats.get("evaluations", counter["evaluations"] or 1)), relearn), t0, **options)
 
 
 @single_threaded_call

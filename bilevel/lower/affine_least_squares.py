@@ -7,8 +7,8 @@ Toeplitz banks: O(rows k) per product, no rows x n matrix). The VRFT learner (T 
 R its filter bank) and ARX identification (T a slice of the outputs, R the lagged signals) are of this kind.
 
 Solved by a thin QR of C = C0 + R(b); the implicit derivative of theta* by the adjoints of T and R; and for fixed b
-the target block in closed form: theta = theta_c + S v and T a = Q W'... with a = B v, ||a|| = ||v||, so an upper
-objective quadratic in theta over a ball on a is a trust-region subproblem in v (bilevel.solvers.affine_ls).
+the target block in closed form: theta*(B v, b) = theta_c + S v with ||B v|| = ||v||, so an upper objective quadratic
+in theta over a ball on a is a trust-region subproblem in v of dimension k (bilevel.solvers.affine_ls).
 """
 
 from __future__ import annotations

@@ -29,6 +29,7 @@ from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
 from ..lower.affine_least_squares import AffineLeastSquares, AffineMaps
 from ..solvers.affine_ls import UpperObjective
+from ..solvers.projections import Blocks, Projection
 from ..solvers.options import check_common_options
 from .budget import Budget
 
@@ -205,6 +206,24 @@ class VRFTAttack:
         k = self.theta0.size
         hessian = {"maxmin": 2.0 * self.gram0 / self.n, "targeted": -2.0 * np.eye(k) / k}.get(self.objective)
         return UpperObjective(self.value, self.grad_theta, hessian)
+
+    @property
+    def searched(self) -> Projection | None:
+        """Projection onto both budgets (a_u the first N entries, a_y the last N) where the declared problem relaxes
+        them (l1, sparsity: the set the structured attacks search, MethodRun.feasible_set), else None (declared)."""
+        if all(b.norm in ("l2", "linf") and b.rho is None for b in (self.budget_u, self.budget_y)):
+            return None
+        N = self.N
+        return Blocks([(slice(0, N), self.budget_u.projection(self.u)),
+                       (slice(N, 2 * N), self.budget_y.projection(self.y))], 2 * N)
+
+    @property
+    def no_exact_input(self) -> str:
+        """Why the exact input step (J quadratic in theta, a plain l2 ball on a_u) does not apply ("" where it does)."""
+        if self.upper.hessian is None:
+            return f"the {self.objective} objective is not quadratic in theta"
+        plain = self.budget_u.norm == "l2" and self.budget_u.rho is None
+        return "" if plain else f"the input budget {self.budget_u} is not a plain l2 ball"
 
     def stats(self, theta: np.ndarray) -> dict[str, Any]:
         """What an attack result adds at the poisoned theta: the attack's own criterion (value), the learner's loss on
