@@ -10,12 +10,12 @@ from ..problems.budget import Budget
 from ..problems.vrft_instance import (PAPER_THETA0, VRFTAttack, VRFTSetting, attack_instance,
                                       flexible_transmission_setting)
 from .outcome import unstable
-from .vrft_methods import (ATTACKS, attack_alternating, attack_budget_path, attack_joint, attack_value,
+from .vrft_methods import (METHODS, attack, attack_alternating, attack_budget_path, attack_joint, attack_value,
                            attack_white_noise, save_attack)
 
 __all__ = [
-    "ATTACKS", "Budget", "LoopPolynomial", "PAPER_THETA0", "VRFTAttack", "VRFTSetting",
-    "arx_orders_for", "attack_alternating", "attack_budget_path", "attack_instance", "attack_joint",
+    "METHODS", "Budget", "LoopPolynomial", "PAPER_THETA0", "VRFTAttack", "VRFTSetting",
+    "arx_orders_for", "attack", "attack_alternating", "attack_budget_path", "attack_instance", "attack_joint",
     "attack_value", "attack_white_noise", "fit_arx", "flexible_transmission_setting",
     "save_attack", "unstable",
 ]

@@ -87,10 +87,8 @@ METHODS: dict[str, Callable[..., MethodRun]] = {"alternating": alternating, "joi
 
 def attack(atk: VRFTAttack, method: str | Callable[..., MethodRun], warm_start: np.ndarray | None = None,
            **options: Any) -> BilevelResult:
-    """Run a structured method (a name in METHODS, or a function(prepared, **options) -> MethodRun) on instance `atk`
-    through the engine's solve (its certificate, probe and inversion), with warm_start (an a_y) as one more start;
-    the result carries the instance's stats (VRFTAttack.stats) and the whole call's wall time (the problem's
-    declaration or re-load included)."""
+    """A structured method (a name in METHODS, or a function(prepared, **options) -> MethodRun) on instance `atk`
+    through the engine's solve, warm_start (an a_y) one more start; the instance's stats (VRFTAttack.stats)."""
     t0 = time.perf_counter()
     problem = problem_for(atk)
     if warm_start is not None:
@@ -125,12 +123,8 @@ def attack_white_noise(atk: VRFTAttack, seed: int = 0) -> BilevelResult:
 
 
 def attack_budget_path(atk: VRFTAttack, eps_y: Sequence[float], **options: Any) -> list[BilevelResult]:
-    """attack_alternating at each output budget eps_y in increasing order (same data and a_u budget).
-
-    From the second budget on, the previous budget's best a_y (feasible in the larger ball) is an extra
-    start, so the objective never decreases along the path (V is monotone in the budget; a single
-    start can miss that on a multimodal V). Returns one result per budget, in increasing eps_y.
-    """
+    """attack_alternating at each output budget eps_y in increasing order (same data and a_u budget), from the second
+    on with the previous best a_y as one more start: V grows with the budget along the path, as it must."""
     if atk.objective == "destabilize":
         raise ModelError("the budget path runs the alternating attack; 'destabilize' needs attack_joint")
     if len(eps_y) == 0:
@@ -140,14 +134,6 @@ def attack_budget_path(atk: VRFTAttack, eps_y: Sequence[float], **options: Any) 
         stage = dataclasses.replace(atk, budget_y=dataclasses.replace(atk.budget_y, eps=eps))
         results.append(attack_alternating(stage, warm_start=results[-1].x["a_y"] if results else None, **options))
     return results
-
-
-ATTACKS: dict[str, Callable[..., BilevelResult]] = {
-    "alternating": attack_alternating,
-    "joint": attack_joint,
-    "white-noise": attack_white_noise,
-}
-"""Attack functions by name: function(instance, **options) -> BilevelResult."""
 
 
 def attack_value(result: BilevelResult) -> float:

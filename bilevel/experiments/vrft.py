@@ -13,7 +13,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..attacks.outcome import attack_stat, unstable
-from ..attacks.vrft_methods import ATTACKS, MAX_ITER, attack_budget_path, attack_value
+from ..attacks.vrft_methods import MAX_ITER, attack, attack_budget_path, attack_value
 from ..files import atomic_open
 from ..problems.vrft_instance import CONVENTIONS, PAPER_EPS_Y, VRFTAttack, attack_instance
 from ..result import BilevelResult
@@ -60,7 +60,7 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
         return {"cells": [{**attack_summary(r), "eps_y": eps, "theta_poisoned": r.y["theta"].tolist()}
                           for eps, r in zip(task["eps_y"], attack_budget_path(atk, task["eps_y"], seed=task["seed"]))]}
     limit = {"max_iter": task["max_iter"]} if "max_iter" in task else {}  # part of the task, so of its digest
-    res = ATTACKS[task["method"]](make_attack(task), seed=task["seed"], **limit)
+    res = attack(make_attack(task), task["method"], seed=task["seed"], **limit)
     return {**attack_summary(res), "theta_poisoned": res.y["theta"].tolist()}
 
 
