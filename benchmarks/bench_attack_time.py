@@ -9,7 +9,8 @@ Attacks: VRFT (N = 512, scenario B, eps = (0.1, 0.057)) maxmin, targeted (altern
 (the alternating attack along the paper's five output budgets); Willems (horizon 15, delta_u = 0.3) eigen
 (hypergradient_attack, 8 starts) and destabilize (destabilize_attack, 64 starts).
 
-Run: python benchmarks/bench_attack_time.py [SEEDS [ROUNDS [BASELINE]]]   (defaults 10, 2, /work/main)
+Run: python benchmarks/bench_attack_time.py [SEEDS [ROUNDS [BASELINE [ATTACK,...]]]]   (defaults 10, 2, /work/main,
+all)
 """
 
 from __future__ import annotations
@@ -67,12 +68,12 @@ def same(a: float, b: float) -> bool:
     return a == b or abs(a - b) <= 1e-9 * max(abs(a), abs(b))
 
 
-def main(seeds: int = 10, rounds: int = 2, baseline: str = "/work/main") -> None:
+def main(seeds: int = 10, rounds: int = 2, baseline: str = "/work/main", only: str = ",".join(ATTACKS)) -> None:
     print(f"# bench_attack_time.py, {time.strftime('%Y-%m-%d %H:%M:%S %Z')}; {platform.platform()}; nproc "
           f"{os.cpu_count()}; python {platform.python_version()}; load average {os.getloadavg()[0]:.2f}")
     print(f"# this tree {HERE} vs baseline {baseline}; {seeds} data sets, {rounds} rounds alternating, one process per "
           "tree and round, single-threaded BLAS; time: CPU time per attack, median over data sets of the per-round minimum")
-    for name in ATTACKS:
+    for name in only.split(","):
         times = {"this": [], "base": []}
         results = {}
         for _ in range(rounds):
@@ -93,4 +94,4 @@ if __name__ == "__main__":
     if sys.argv[1:2] == ["--worker"]:
         worker(sys.argv[2], int(sys.argv[3]))
     else:
-        main(*(int(a) for a in sys.argv[1:3]), *sys.argv[3:4])
+        main(*(int(a) for a in sys.argv[1:3]), *sys.argv[3:5])

@@ -182,7 +182,15 @@ class VRFTAttack:
         if self.objective == "targeted":
             d = self.theta_target - theta
             return -float(d @ d / d.size)
-        return self.model_loop.surrogate(theta, self.surrogate_beta)[0]
+        return self._surrogate(theta)[0]
+
+    def _surrogate(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """The modelled loop's log-sum-exp and its gradient at theta, the last theta's kept (an ascent reads both at
+        each point: one root finding, not two)."""
+        key = (np.asarray(theta, dtype=float).tobytes(), self.surrogate_beta)
+        if self.__dict__.get("_last_surrogate", (None,))[0] != key:
+            self.__dict__["_last_surrogate"] = (key, self.model_loop.surrogate(theta, self.surrogate_beta))
+        return self.__dict__["_last_surrogate"][1]
 
     def grad_theta(self, theta: np.ndarray) -> np.ndarray:
         """dJ/dtheta."""
@@ -190,7 +198,7 @@ class VRFTAttack:
             return -2.0 / self.n * (self.cross0 - self.gram0 @ theta)
         if self.objective == "targeted":
             return 2.0 / theta.size * (self.theta_target - theta)
-        return self.model_loop.surrogate(theta, self.surrogate_beta)[1]
+        return self._surrogate(theta)[1]
 
     @cached_property
     def learner(self) -> AffineLeastSquares:
