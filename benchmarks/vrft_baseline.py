@@ -12,20 +12,20 @@ import cvxpy as cp
 import dccp  # noqa: F401  (registers the "dccp" solve method on cvxpy problems)
 import numpy as np
 
-from bilevel.attacks.vrft import hypergradient, state
-from bilevel.attacks.vrft_methods import attack, method_run
+from bilevel.attacks.vrft_methods import attack
 from bilevel.problems.vrft_instance import VRFTAttack
-from bilevel.result import BilevelResult
+from bilevel.reduction import KKTPoint
+from bilevel.result import BilevelResult, Status
 from bilevel.solvers.base import MethodRun, Prepared
 
 
 def dccp_input_step(atk: VRFTAttack, a_y: np.ndarray, seed: int) -> np.ndarray:
     """max_a (1/n)||t0 - Phi0 P'(t' + targets(a))||^2 s.t. ||a||_2 <= delta_u, by DCCP (prefiltered data)."""
-    s = state(atk, np.zeros(atk.N), a_y)
+    s = atk.learner.fit(np.zeros(atk.N), a_y)
     pinv = np.linalg.solve(s.R, s.Q.T)  # theta' = pinv @ target'
     a = cp.Variable(atk.N)
     rows = atk.n
-    theta = pinv @ (s.target + a[:rows])
+    theta = pinv @ (s.d + a[:rows])
     prob = cp.Problem(cp.Maximize(cp.sum_squares(atk.t0 - atk.phi0 @ theta) / rows), [cp.norm(a, 2) <= atk.delta_u])
     prob.solve(method="dccp", solver=cp.CLARABEL, seed=seed)  # seeded random initial point: reproducible
     return np.zeros(atk.N) if a.value is None else np.asarray(a.value).ravel()
@@ -40,23 +40,27 @@ def paper_baseline(atk: VRFTAttack, seed: int = 0, eta: float = 1e-4, pga_steps:
     def paper_baseline_method(prep: Prepared, **options: object) -> MethodRun:
         proj = atk.budget_y.projection(atk.y)
         a_u, a_y = np.zeros(atk.N), np.zeros(atk.N)
-        J = atk.value(state(atk, a_u, a_y).theta)
+        J = atk.value(atk.learner.fit(a_u, a_y).theta)
         history, it, converged = [], 0, False
         for it in range(1, max_outer + 1):
             a_u = dccp_input_step(atk, a_y, seed + it)
             for _ in range(pga_steps):
-                g = hypergradient(atk, state(atk, a_u, a_y))[1]
+                s = atk.learner.fit(a_u, a_y)
+                g = atk.learner.gradient(s, atk.grad_theta(s.theta))[1]
                 norm = np.linalg.norm(g)
                 if norm == 0:
                     break
                 a_y = proj(a_y + gamma * atk.delta_y * g / norm)
-            J_new = atk.value(state(atk, a_u, a_y).theta)
+            J_new = atk.value(atk.learner.fit(a_u, a_y).theta)
             history.append({"iter": it, "value": J_new})
             if abs(J_new - J) < eta:
                 J, converged = J_new, True
                 break
             J = J_new
-        return method_run(prep, atk, state(atk, a_u, a_y), converged, "converged" if converged else "max_outer reached",
-                          [{"start": 0, "iterations": it}], history, it * (pga_steps + 1))
+        theta = atk.learner.fit(a_u, a_y).theta
+        return MethodRun(prep.pack(KKTPoint(np.concatenate([a_u, a_y]), theta, np.zeros(0), np.zeros(0), [])),
+                         Status.SOLVED if converged else Status.MAX_ITERATIONS,
+                         "converged" if converged else "max_outer reached", it, history,
+                         [{"start": 0, "iterations": it, "evaluations": it * (pga_steps + 1)}])
 
     return attack(atk, paper_baseline_method)

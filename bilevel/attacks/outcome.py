@@ -1,11 +1,28 @@
-"""What every attack result (a BilevelResult of its registered problem) adds in stats: the true closed loop."""
+"""Every attack's result: the engine's solve of the attack's problem (its finalize: certificate, probe), with the
+instance's quantities in stats (the true closed loop)."""
 
 from __future__ import annotations
 
-from typing import Any
+import dataclasses
+import time
+from typing import Any, Callable
 
-from ..errors import ModelError
+from ..errors import ModelError, SolverFailed
+from ..model import BilevelProblem
 from ..result import BilevelResult
+from ..solvers.registry import solve
+
+
+def attack_result(problem: BilevelProblem, method: Any, name: str | None, stats: Callable[[BilevelResult], dict],
+                  started: float, **options: Any) -> BilevelResult:
+    """solve(problem, method, **options) as attack `name` (None: the method's own), its stats extended by
+    stats(result) and its wall time counted from `started` (perf_counter: the instance's set-up included);
+    SolverFailed where the method found no point to certify."""
+    result = solve(problem, method=method, **options)
+    if result.certificate is None:
+        raise SolverFailed(f"{name or result.method} attack: {result.status.value}: {result.message}", result=result)
+    return dataclasses.replace(result, method=name or result.method, wall_time=time.perf_counter() - started,
+                               stats={**result.stats, **stats(result)})
 
 
 def attack_stat(result: BilevelResult, key: str) -> Any:

@@ -1,8 +1,6 @@
-"""The structured attack of each registered attack problem, by problem name: attack(starts=, seed=, **params) ->
-BilevelResult, params the problem's (bilevel.problems.registry) with its data seed `seed` (the attack's seed too),
-any further keyword the attack's own option
-(`bilevel compare`'s method "structured", `bilevel solve`'s default for these problems, options given there as
---option NAME=VALUE)."""
+"""The structured attack of each registered attack problem by name: attack(starts=, seed=, **params) -> BilevelResult,
+params the problem's (seed: the data's and the attack's), other keywords the attack's options (`bilevel compare`'s
+method "structured", `bilevel solve`'s default for these problems, `--option NAME=VALUE`)."""
 
 from __future__ import annotations
 
@@ -12,7 +10,8 @@ from ..errors import ModelError
 from ..problems import registry
 from ..problems.vrft_instance import PAPER_EPS_Y, attack_instance
 from ..result import BilevelResult
-from .vrft_methods import ATTACKS, attack_budget_path, save_attack, save_path
+from . import vrft_methods
+from .vrft_methods import METHODS, attack_budget_path, save_attack, save_path
 
 Attack = Callable[..., BilevelResult]
 
@@ -21,15 +20,14 @@ def _vrft(objective: str) -> Attack:
     """The structured attack on vrft-<objective>."""
     def run(starts: int = 1, seed: int = 0, attack: Literal["alternating", "joint", "white-noise"] | None = None,
             path: bool = False, save: str | None = None, **params: Any) -> BilevelResult:
-        """The alternating attack (joint for 'destabilize'), or `attack`, on the instance of these parameters with data
-        seed `seed`; path: first at the paper's eps_y below
-        eps_y, each budget warm-starting the next (as the reproduction's budget paths); save: write the attack's data
-        and signals to this .npz file (save_attack)."""
+        """The alternating attack (joint for 'destabilize'), or `attack`, on the instance of these parameters; path:
+        first at the paper's eps_y below eps_y, each warm-starting the next (the reproduction's budget paths); save:
+        write the attack's data and signals to this .npz file (save_attack)."""
         name = attack or ("joint" if objective == "destabilize" else "alternating")
         if save:
             save_path(save)  # before the attack
-        if name not in ATTACKS:
-            raise ModelError(f"attack={name!r} is not one of {', '.join(ATTACKS)}")
+        if name not in METHODS:
+            raise ModelError(f"attack={name!r} is not one of {', '.join(METHODS)}")
         atk = attack_instance(objective, **{**registry.spec(f"vrft-{objective}").defaults, **params, "seed": seed})
         if path and name != "alternating":
             raise ModelError(f"path=true runs the alternating attack's budget path; attack {name!r} has none")
@@ -38,7 +36,7 @@ def _vrft(objective: str) -> Attack:
             result = attack_budget_path(atk, [e for e in PAPER_EPS_Y if e < eps] + [eps], seed=seed,
                                         starts=starts)[-1]
         else:
-            result = ATTACKS[name](atk, seed=seed, **({} if name == "white-noise" else {"starts": starts}))
+            result = vrft_methods.attack(atk, name, seed=seed, **({} if name == "white-noise" else {"starts": starts}))
         if save:
             save_attack(result, atk, save)
         return result

@@ -1,7 +1,6 @@
-"""Structured attacks on a VRFT instance, as methods of the engine on its declared problem vrft-<objective>
-(bilevel.problems.vrft): the engine's multistart ascent (bilevel.solvers.block_exact.ascend_with_exact_block: its
-starts, spectral projected gradient loop and best-start rule) with the learner's structured oracle
-(bilevel.attacks.vrft), then `bilevel.solvers.solve`'s finalize (independent re-solve of the learner, local probe).
+"""Structured attacks on a VRFT instance: the engine's multistart ascent (ascend_with_exact_block) on its declared
+problem vrft-<objective> with the learner as an affine least squares (VRFTAttack.learner, bilevel.solvers.affine_ls),
+then `bilevel.solve`'s finalize (independent re-solve of the learner, local probe).
 
 alternating (the paper's Algorithm 1, strengthened): ascend V(a_y) = max_{a_u} J(theta(u + a_u, y + a_y)) with the
   inner max solved globally at every evaluation (the exact input step; quadratic objectives, plain l2 input budget);
@@ -25,31 +24,17 @@ from ..problems.vrft import instance_of, problem_for
 from ..problems.vrft_instance import VRFTAttack
 from ..reduction import KKTPoint
 from ..result import BilevelResult, Status
+from ..solvers.affine_ls import Oracle, TargetBlock
 from ..solvers.base import MethodRun, Prepared, check_options
 from ..solvers.block_exact import ascend_with_exact_block
 from ..solvers.options import check_common_options
-from ..solvers.projections import Blocks, Projection
-from ..solvers.registry import solve
-from .outcome import attack_stat, unstable
-from .vrft import InputStep, Oracle, exact_input, state
+from .outcome import attack_result, attack_stat
 
 MAX_ITER = {"maxmin": 60, "targeted": 500, "destabilize": 200}
-"""Iteration limit by objective: 60 for max-min (the setting of the committed Table 1); 500 for targeted, which at 60
-ended at the limit on 40 of 40 data sets (scenario B, N = 512) and converges in 118-195 iterations
-(benchmarks/results/bench_vrft_iterations.txt); 200 for destabilize."""
+"""Iteration limit by objective (targeted converges in 118-195: benchmarks/results/bench_vrft_iterations.txt)."""
 TOL = 1e-4
 """The ascent stops when the relative gain over its window of steps is below TOL."""
 OPTIONS = {"starts", "seed", "max_iter", "tol", "time_limit", "verbose"}
-
-
-def _searched(atk: VRFTAttack) -> Projection | None:
-    """Projection onto both budgets (a_u the first N entries, a_y the last N) where the declared problem relaxes them
-    (l1, sparsity: the searched set, MethodRun.feasible_set), else None (the declared set)."""
-    if all(b.norm in ("l2", "linf") and b.rho is None for b in (atk.budget_u, atk.budget_y)):
-        return None
-    N = atk.N
-    return Blocks([(slice(0, N), atk.budget_u.projection(atk.u)), (slice(N, 2 * N), atk.budget_y.projection(atk.y))],
-                  2 * N)
 
 
 def _ascend(prep: Prepared, joint: bool, options: dict[str, Any]) -> MethodRun:
@@ -59,12 +44,12 @@ def _ascend(prep: Prepared, joint: bool, options: dict[str, Any]) -> MethodRun:
     check_common_options(options)
     step = None
     if not joint:
-        if why := exact_input(atk):
+        if why := atk.no_exact_input:
             raise ModelError(f"the alternating attack needs the exact input step: {why}; use the joint attack")
-        step = InputStep(atk, next(b for b in prep.balls if b.block.start == 0))
+        step = TargetBlock(atk.learner, atk.upper, next(b for b in prep.balls if b.block.start == 0), atk.delta_u)
     weights = np.concatenate([np.full(atk.N, atk.delta_u), np.full(atk.N, atk.delta_y)])
-    return ascend_with_exact_block(prep, step, [], oracle=Oracle(atk), projection=_searched(atk), weights=weights,
-                                   **options)
+    return ascend_with_exact_block(prep, step, [], oracle=Oracle(atk.learner, atk.upper), projection=atk.searched,
+                                   weights=weights, **options)
 
 
 def alternating(prep: Prepared, **options: Any) -> MethodRun:
@@ -90,10 +75,10 @@ def white_noise(prep: Prepared, *, seed: int = 0, **unknown: Any) -> MethodRun:
     for budget, signal, radius in ((atk.budget_u, atk.u, atk.delta_u), (atk.budget_y, atk.y, atk.delta_y)):
         z = rng.standard_normal(atk.N)
         signals.append(budget.projection(signal)(z * radius / max(np.linalg.norm(z, budget.order), 1e-300)))
-    theta = state(atk, *signals).theta
+    theta = atk.learner.fit(*signals).theta
     return MethodRun(prep.pack(KKTPoint(np.concatenate(signals), theta, np.zeros(0), np.zeros(0), [])),
                      Status.INACCURATE, "a sample at the budget (a baseline, not an optimizer)",
-                     feasible_set=_searched(atk))
+                     feasible_set=atk.searched)
 
 
 METHODS: dict[str, Callable[..., MethodRun]] = {"alternating": alternating, "joint": joint, "white-noise": white_noise}
@@ -102,10 +87,8 @@ METHODS: dict[str, Callable[..., MethodRun]] = {"alternating": alternating, "joi
 
 def attack(atk: VRFTAttack, method: str | Callable[..., MethodRun], warm_start: np.ndarray | None = None,
            **options: Any) -> BilevelResult:
-    """Run a structured method (a name in METHODS, or a function(prepared, **options) -> MethodRun) on instance `atk`
-    through the engine's solve (its certificate, probe and inversion), with warm_start (an a_y) as one more start;
-    the result carries the instance's stats (VRFTAttack.stats) and the whole call's wall time (the problem's
-    declaration or re-load included)."""
+    """A structured method (a name in METHODS, or a function(prepared, **options) -> MethodRun) on instance `atk`
+    through the engine's solve, warm_start (an a_y) one more start; the instance's stats (VRFTAttack.stats)."""
     t0 = time.perf_counter()
     problem = problem_for(atk)
     if warm_start is not None:
@@ -113,12 +96,11 @@ def attack(atk: VRFTAttack, method: str | Callable[..., MethodRun], warm_start: 
             raise ModelError(f"warm_start must have shape ({atk.N},), got {np.shape(warm_start)}")
         problem.suggest_start(a_y=atk.budget_y.projection(atk.y)(np.asarray(warm_start, dtype=float)))
         options["starts"] = options.get("starts", 1) + 1
-    fn = method if callable(method) else METHODS[method]
-    result = solve(problem, method=fn, **{k: v for k, v in options.items() if v is not None})
-    evaluations = sum(r.get("evaluations", 0) for r in result.starts) or 1  # a white-noise sample: one
-    stats = {**result.stats, **atk.stats(result.y["theta"]), "evaluations": evaluations}
-    return dataclasses.replace(result, method=method if isinstance(method, str) else result.method,
-                               wall_time=time.perf_counter() - t0, stats=stats)
+    return attack_result(problem, method if callable(method) else METHODS[method],
+                         method if isinstance(method, str) else None,
+                         lambda r: {**atk.stats(r.y["theta"]),  # evaluations: a white-noise sample is one
+                                    "evaluations": sum(s.get("evaluations", 0) for s in r.starts) or 1},
+                         t0, **{k: v for k, v in options.items() if v is not None})
 
 
 def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int | None = None,
@@ -141,12 +123,8 @@ def attack_white_noise(atk: VRFTAttack, seed: int = 0) -> BilevelResult:
 
 
 def attack_budget_path(atk: VRFTAttack, eps_y: Sequence[float], **options: Any) -> list[BilevelResult]:
-    """attack_alternating at each output budget eps_y in increasing order (same data and a_u budget).
-
-    From the second budget on, the previous budget's best a_y (feasible in the larger ball) is an extra
-    start, so the objective never decreases along the path (V is monotone in the budget; a single
-    start can miss that on a multimodal V). Returns one result per budget, in increasing eps_y.
-    """
+    """attack_alternating at each output budget eps_y in increasing order (same data and a_u budget), from the second
+    on with the previous best a_y as one more start: V grows with the budget along the path, as it must."""
     if atk.objective == "destabilize":
         raise ModelError("the budget path runs the alternating attack; 'destabilize' needs attack_joint")
     if len(eps_y) == 0:
@@ -158,30 +136,10 @@ def attack_budget_path(atk: VRFTAttack, eps_y: Sequence[float], **options: Any) 
     return results
 
 
-ATTACKS: dict[str, Callable[..., BilevelResult]] = {
-    "alternating": attack_alternating,
-    "joint": attack_joint,
-    "white-noise": attack_white_noise,
-}
-"""Attack functions by name: function(instance, **options) -> BilevelResult."""
-
-
 def attack_value(result: BilevelResult) -> float:
     """The attack's own criterion at the poisoned theta (maximized): -distance for 'targeted', the log-sum-exp
     of the modelled poles for 'destabilize'; upper_objective is the registered problem's F."""
     return attack_stat(result, "value")
-
-
-def attack_summary(result: BilevelResult) -> dict[str, Any]:
-    """Scalars of a VRFT attack result, one row of the reproduction's tables and of the CLI's output."""
-    attack_stat(result, "learner_loss")
-    st, cert = result.stats, result.certificate
-    return {"method": result.method, "objective": st["objective"], "status": result.status.value,
-            "value": attack_value(result), "value_clean": st["value_clean"], "learner_loss": st["learner_loss"],
-            "spectral_radius": st["spectral_radius"], "spectral_radius_clean": st["spectral_radius_clean"],
-            "delta_u": st["delta_u"], "delta_y": st["delta_y"], "wall_time": result.wall_time,
-            "iterations": result.nit, "evaluations": st["evaluations"], "learner_stationarity": cert.stationarity,
-            "refit_distance": cert.y_distance, "unstable": unstable(result), "certified": cert.passed}
 
 
 def save_path(path: str) -> str:

@@ -1,25 +1,12 @@
-"""Attacks on the De Persis–Tesi learners (WillemsAttack, bilevel.problems.willems), as runs of the engine.
+"""Attacks on the De Persis–Tesi learners (WillemsAttack, bilevel.problems.willems) as `bilevel.solve` runs on the
+attack's declared problem (`radius_problem`, rho(A_id + B_id K) exactly, for destabilize_attack): the engine's
+implicit oracle on the learner's SDP, its methods and finalize (independent re-solve, local probe), with the
+learner's selection (`WillemsSetting.selection`) given to the SDP lower level.
 
-Every attack solves the attack's declared problem (`WillemsAttack.problem`, or its spectral-radius form
-`radius_problem` for the destabilizing attack) with `bilevel.solve`: the engine's implicit oracle on the learner's SDP
-(bilevel.solvers.implicit, bilevel.lower.sdp: solved once where it ignores the poisoning, else Newton continuation,
-the minimum-norm selection), its multistart and ascent loops, and its finalize (a certificate with an independent
-re-solve of the learner, the local probe). The learner's selection (`WillemsSetting.selection`) reaches the engine:
-"tikhonov" keeps the polished solver point (SemidefiniteLower.min_norm off), "clarabel"/"scs" fix the unregularized
-learner's own Q (SemidefiniteLower.choose, with the multipliers of the regularized solve, which has the same SDP
-value and constraints).
-
-hypergradient_attack: the engine's method `hypergradient` (clean data first, then uniform points of the box); the
-attacker's goal (an unstable identified loop, where the max-min criterion is +inf by the paper's convention) is its
-callback, which stops it there; near-ties between starts go to the larger identified spectral radius (the criteria
-have flat optimal faces: log|det(A + B K)| is one scalar of the m T poisoned inputs).
-destabilize_attack: the method `destabilize` (bilevel.solvers.box_methods) on radius_problem (rho(A_id + B_id K)
-exactly): a pool of box points screened and the best ascending together (bilevel.solvers.ascent.batched_box_ascent,
-one stacked evaluation per step, bilevel.solvers.implicit.Hypergradient.spectral_batch).
-de_attack: the engine's `differential-evolution` without its descent, the goal as its callback. random_attack: random
-signs at the budget (bilevel.solvers.box_methods.random_signs). kkt_attack: the KKT reformulation (IPOPT or the
-relaxation sequence) on the declared problem.
-Each result carries the Willems quantities in stats (willems_stats): gain, true and identified spectral radius.
+hypergradient_attack: method `hypergradient`, the attacker's goal (an unstable identified loop; +inf for max-min) as
+its callback, near-ties between starts to the larger identified radius; destabilize_attack: method `destabilize`
+(bilevel.solvers.box_methods); de_attack: `differential-evolution` without its descent; random_attack: method
+`random_signs`; kkt_attack: a KKT method. Each result carries willems_stats (gain, true and identified radius).
 """
 
 from __future__ import annotations
@@ -32,18 +19,16 @@ import casadi as ca
 import numpy as np
 
 from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller
-from ..errors import ModelError, SolverFailed
+from ..errors import ModelError
 from ..model import BilevelProblem
-from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, WillemsSetting, build_attack, criterion_values
+from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, criterion_values
 from ..result import BilevelResult
 from ..solvers.base import prepare
 from ..solvers.box_methods import destabilize, random_signs
-from ..solvers.budget_search import BudgetSearch, smallest_budget
 from ..solvers.implicit import Hypergradient, shared_oracle
 from ..solvers.options import check_common_options
-from ..solvers.registry import solve
 from ..threads import single_threaded_call
-from .outcome import attack_stat, unstable
+from .outcome import attack_result
 
 
 def _loop(attack: WillemsAttack) -> ca.Function:
@@ -143,16 +128,11 @@ def willems_stats(attack: WillemsAttack, result: BilevelResult, evaluations: int
 def _run(attack: WillemsAttack, name: str, method: Any, radius: bool = False, relearn: bool = False,
          **options: Any) -> BilevelResult:
     """solve(the attack's problem, method, options) as attack `name`, with willems_stats; the whole call's time."""
-    t0 = time.perf_counter()
-    counter = {"evaluations": 0}
+    t0, counter = time.perf_counter(), {"evaluations": 0}
     if "stop_when_unstable" in options:
         options["callback"] = _goal(attack, options.pop("stop_when_unstable"), counter)
-    result = solve(_problem(attack, radius), method=method, **options)
-    if result.certificate is None:
-        raise SolverFailed(f"{name} attack: {result.status.value}: {result.message}", result=result)
-    evaluations = int(result.stats.get("evaluations", counter["evaluations"] or 1))
-    return dataclasses.replace(result, method=name, wall_time=time.perf_counter() - t0,
-                               stats={**result.stats, **willems_stats(attack, result, evaluations, relearn)})
+    return attack_result(_problem(attack, radius), method, name, lambda r: willems_stats(
+        attack, r, int(r.stats.get("evaluations", counter["evaluations"] or 1)), relearn), t0, **options)
 
 
 @single_threaded_call
@@ -165,21 +145,15 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, 
                 stop_when_unstable=stop_when_unstable, prefer=prefer)
 
 
-def _inputs_only(attack: WillemsAttack, who: str) -> None:
-    if attack.setting.poison != "u":
-        raise ModelError(f"{who} poisons the inputs only (the paper's corollary); got poison="
-                         f"{attack.setting.poison!r}: build the attack with poison='u'")
-    if attack.setting.delta_u <= 0:
-        raise ModelError(f"{who}: delta_u = 0 leaves nothing to search; use delta_u > 0")
-
-
 @single_threaded_call
 def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize: int = 5, tol: float = 1e-8,
               stop_when_unstable: bool = True) -> BilevelResult:
     """The engine's differential evolution on the input poisoning inside the box, without its descent (a heuristic),
     a generation scored at once where the learner ignores the poisoning (_criteria); with stop_when_unstable it stops
     once the incumbent's identified loop is unstable."""
-    _inputs_only(attack, "de_attack")
+    if attack.setting.poison != "u" or attack.setting.delta_u <= 0:
+        raise ModelError(f"de_attack poisons the inputs only (the paper's corollary) with delta_u > 0; got poison="
+                         f"{attack.setting.poison!r}, delta_u={attack.setting.delta_u}")
     twin = {} if attack.setting.design == "lqr-r" else {"batch_objective": lambda xs, y: _criteria(attack, xs, y)}
     return _run(attack, "differential-evolution", "differential-evolution", seed=seed, max_iter=maxiter,
                 popsize=popsize, tol=tol, polish=False, stop_when_unstable=stop_when_unstable, **twin)
@@ -224,33 +198,3 @@ def kkt_attack(attack: WillemsAttack, method: str = "ipopt", **options: Any) -> 
     factored); its answer is certified and probed like every attack's; the gain in stats is the learner's, re-solved
     at the answer's poisoning."""
     return _run(attack, f"kkt-{method}", method, relearn=True, **options)
-
-
-def willems_row(result: BilevelResult) -> dict[str, Any]:
-    """JSON-ready summary, one row of the reproduction (objective: the criterion, inf for an unstable max-min loop;
-    eigenvalues as [re, im])."""
-    attack_stat(result, "eigenvalues")
-    st = result.stats
-    eig = st["eigenvalues"]
-    return {"method": result.method, "status": result.status.value, "objective": st["criterion"],
-            "spectral_radius": st["spectral_radius"], "eig_abs_sum": float(np.sum(np.abs(eig))),
-            "unstable": unstable(result), "gain": st["gain"].tolist(),
-            "eigenvalues": [[float(v.real), float(v.imag)] for v in eig], "wall_time": result.wall_time,
-            "evaluations": st["evaluations"], "iterations": result.nit, "message": result.message,
-            "budget_violation": st["budget_violation"], "kkt_residual": st["kkt_residual"], "x": st["x"].tolist(),
-            "details": st["details"]}
-
-
-def smallest_destabilizing_budget(setting: WillemsSetting, path: tuple[float, ...] = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0),
-                                  rel_tol: float = 0.05, **options: Any) -> BudgetSearch:
-    """delta_u* of one data set: the framework's budget search (bilevel.solvers.budget_search) with destabilize_attack
-    (options passed on) as the attack and an unstable true loop (spectral radius >= 1) as the goal."""
-    if setting.poison != "u":
-        raise ModelError(f"smallest_destabilizing_budget searches delta_u with input poisoning; got poison="
-                         f"{setting.poison!r}: use poison='u'")
-
-    def radius(delta: float) -> float:
-        attack = build_attack(dataclasses.replace(setting, objective="destabilize", delta_u=delta))
-        return destabilize_attack(attack, **options).stats["spectral_radius"]
-
-    return smallest_budget(radius, lambda rho: rho >= 1.0, path, rel_tol)

@@ -21,7 +21,6 @@ from typing import Literal
 import control
 import numpy as np
 import scipy.linalg
-import scipy.linalg.lapack
 import scipy.signal
 from numpy.typing import ArrayLike
 
@@ -29,6 +28,7 @@ from bilevel.errors import InvalidData, RankDeficientRegressor, UnknownOption
 from bilevel.ddc.bases import Basis, basis_polynomials, controller_tf
 from bilevel.ddc.operators import LTIOperator, virtual_error_operator
 from bilevel.ddc.systems import SystemLike, as_tf
+from bilevel.lower.least_squares import thin_qr
 
 Boundary = Literal["zero-final", "drop"]
 BOUNDARIES: tuple[str, ...] = ("zero-final", "drop")
@@ -188,19 +188,6 @@ def _rank_check(what: str, singular_values: np.ndarray, rows: int, rcond: float 
             "longer input, or fewer / linearly independent basis functions"
         )
     return cond
-
-
-def thin_qr(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(Q, R) with phi = Q R, Q (rows x cols) orthonormal, R upper triangular, for a tall phi: LAPACK geqrf and orgqr
-    called directly (what np.linalg.qr computes, without its per-call overhead, which the attacks pay per step)."""
-    qr, tau, _, info = scipy.linalg.lapack.dgeqrf(phi)
-    if info != 0:  # pragma: no cover - geqrf fails only on malformed arguments
-        raise ValueError(f"LAPACK geqrf failed with info = {info}")
-    r = np.triu(qr[: phi.shape[1]])
-    q, _, info = scipy.linalg.lapack.dorgqr(qr, tau, overwrite_a=True)
-    if info != 0:  # pragma: no cover
-        raise ValueError(f"LAPACK orgqr failed with info = {info}")
-    return q, r
 
 
 def least_squares(

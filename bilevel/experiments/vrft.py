@@ -12,9 +12,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..problems.vrft_instance import CONVENTIONS, PAPER_EPS_Y, VRFTAttack, attack_instance
-from ..attacks.vrft_methods import ATTACKS, MAX_ITER, attack_budget_path, attack_summary
+from ..attacks.outcome import attack_stat, unstable
+from ..attacks.vrft_methods import MAX_ITER, attack, attack_budget_path, attack_value
 from ..files import atomic_open
+from ..problems.vrft_instance import CONVENTIONS, PAPER_EPS_Y, VRFTAttack, attack_instance
+from ..result import BilevelResult
 from .stats import mean_interval, wilson_interval
 from .executor import open_executor
 from .sweep import (FINITE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of, sim_seeds,
@@ -33,6 +35,18 @@ N_SAMPLES, NORM = 512, "l2"
 ROW_SCHEMA = {"value": NUMBER, "unstable": bool, "learner_loss": NUMBER, "wall_time": FINITE, "theta_poisoned": list}
 """The fields of a row (of each cell of a budget-path row) that the summaries read."""
 
+def attack_summary(result: BilevelResult) -> dict[str, Any]:
+    """Scalars of a VRFT attack result, one row of the reproduction's tables and of the CLI's output."""
+    attack_stat(result, "learner_loss")
+    st, cert = result.stats, result.certificate
+    return {"method": result.method, "objective": st["objective"], "status": result.status.value,
+            "value": attack_value(result), "value_clean": st["value_clean"], "learner_loss": st["learner_loss"],
+            "spectral_radius": st["spectral_radius"], "spectral_radius_clean": st["spectral_radius_clean"],
+            "delta_u": st["delta_u"], "delta_y": st["delta_y"], "wall_time": result.wall_time,
+            "iterations": result.nit, "evaluations": st["evaluations"], "learner_stationarity": cert.stationarity,
+            "refit_distance": cert.y_distance, "unstable": unstable(result), "certified": cert.passed}
+
+
 def make_attack(task: dict[str, Any]) -> VRFTAttack:
     """The VRFTAttack instance described by a task dict."""
     return attack_instance(task["objective"], task["scenario"], task["eps_u"], task["eps_y"], task["seed"],
@@ -46,7 +60,7 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
         return {"cells": [{**attack_summary(r), "eps_y": eps, "theta_poisoned": r.y["theta"].tolist()}
                           for eps, r in zip(task["eps_y"], attack_budget_path(atk, task["eps_y"], seed=task["seed"]))]}
     limit = {"max_iter": task["max_iter"]} if "max_iter" in task else {}  # part of the task, so of its digest
-    res = ATTACKS[task["method"]](make_attack(task), seed=task["seed"], **limit)
+    res = attack(make_attack(task), task["method"], seed=task["seed"], **limit)
     return {**attack_summary(res), "theta_poisoned": res.y["theta"].tolist()}
 
 

@@ -12,7 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
-from ..attacks.vrft_methods import ATTACKS  # noqa: E402
+from ..attacks.vrft_methods import attack  # noqa: E402
 from ..ddc.analysis import closed_loop_bode, closed_loop_step  # noqa: E402
 from ..ddc.bases import controller_tf  # noqa: E402
 from ..ddc.data import simulate  # noqa: E402
@@ -51,7 +51,7 @@ def _instance(scenario: str, objective: str, seed: int, eps_u: float = BUDGET[0]
             "seed": sim_seeds(seed, 1)[0]}
     atk = make_attack(task)
     method = "joint" if objective == "destabilize" else "alternating"
-    return atk, ATTACKS[method](atk, seed=task["seed"])
+    return atk, attack(atk, method, seed=task["seed"])
 
 
 def figure_data(seed: int, out_dir: str) -> str:

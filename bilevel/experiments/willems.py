@@ -27,8 +27,8 @@ import numpy as np  # noqa: E402
 import scipy.linalg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from ..attacks.willems import (de_attack, destabilize_attack, hypergradient_attack, willems_row,  # noqa: E402
-                               random_attack)
+from ..attacks.outcome import attack_stat, unstable  # noqa: E402
+from ..attacks.willems import de_attack, destabilize_attack, hypergradient_attack, random_attack  # noqa: E402
 from ..ddc.data import batch_reactor_data  # noqa: E402
 from ..ddc.depersis_tesi import (check_persistency, lqr_controller, stabilizing_controller,  # noqa: E402
                                  state_data)
@@ -37,6 +37,7 @@ from ..errors import BilevelError  # noqa: E402
 from ..files import atomic_open, atomic_path  # noqa: E402
 from ..problems.willems import (DEFAULT_REG, SOLVER_SELECTIONS, WillemsSetting, build_attack,  # noqa: E402
                                 selection_applies)
+from ..result import BilevelResult  # noqa: E402
 from .stats import mean_interval, wilson_interval  # noqa: E402
 from .executor import open_executor  # noqa: E402
 from .sweep import (FINITE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of,  # noqa: E402
@@ -215,6 +216,21 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
     if task["experiment"] == "paper":
         row["du"] = du.tolist()
     return row
+
+
+def willems_row(result: BilevelResult) -> dict[str, Any]:
+    """JSON-ready summary, one row of the reproduction (objective: the criterion, inf for an unstable max-min loop;
+    eigenvalues as [re, im])."""
+    attack_stat(result, "eigenvalues")
+    st = result.stats
+    eig = st["eigenvalues"]
+    return {"method": result.method, "status": result.status.value, "objective": st["criterion"],
+            "spectral_radius": st["spectral_radius"], "eig_abs_sum": float(np.sum(np.abs(eig))),
+            "unstable": unstable(result), "gain": st["gain"].tolist(),
+            "eigenvalues": [[float(v.real), float(v.imag)] for v in eig], "wall_time": result.wall_time,
+            "evaluations": st["evaluations"], "iterations": result.nit, "message": result.message,
+            "budget_violation": st["budget_violation"], "kkt_residual": st["kkt_residual"], "x": st["x"].tolist(),
+            "details": st["details"]}
 
 
 # -- summaries and tables -------------------------------------------------------------------------------------

@@ -1,11 +1,12 @@
 """How much input poisoning it takes (issue 12): the distribution over data sets of delta_u*, the smallest linf input
-budget at which the destabilizing attack makes the true closed loop unstable (bilevel.attacks.willems.
-smallest_destabilizing_budget: the budget path, then bisection), with its median, quartiles and CDF figure, per
+budget at which the destabilizing attack makes the true closed loop unstable (smallest_destabilizing_budget: the
+budget path, then bisection), with its median, quartiles and CDF figure, per
 horizon and learner selection. One resumable sweep task per data set (bilevel.experiments.sweep)."""
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import os
 from typing import Any, Callable
 
@@ -15,9 +16,11 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from ..attacks.willems import smallest_destabilizing_budget  # noqa: E402
+from ..attacks.willems import destabilize_attack  # noqa: E402
+from ..errors import ModelError  # noqa: E402
 from ..files import atomic_open, atomic_path  # noqa: E402
-from ..problems.willems import WillemsSetting  # noqa: E402
+from ..problems.willems import WillemsSetting, build_attack  # noqa: E402
+from ..solvers.budget_search import BudgetSearch, smallest_budget  # noqa: E402
 from .executor import open_executor  # noqa: E402
 from .sweep import NUMBER, check_fields, run_sweep, stderr_progress  # noqa: E402
 from .willems import sim_seeds  # noqa: E402
@@ -28,6 +31,21 @@ HORIZONS = (15, 50)
 SELECTIONS = ("min-norm", "clarabel", "scs")
 """The learners delta_u* is reported for: the default and the two SDP solvers' own Q (tikhonov is the
 session-1 sweep's selection, kept for reruns of it, not a learner a user would pick)."""
+
+
+def smallest_destabilizing_budget(setting: WillemsSetting, path: tuple[float, ...] = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0),
+                                  rel_tol: float = 0.05, **options: Any) -> BudgetSearch:
+    """delta_u* of one data set: the framework's budget search (bilevel.solvers.budget_search) with destabilize_attack
+    (options passed on) as the attack and an unstable true loop (spectral radius >= 1) as the goal."""
+    if setting.poison != "u":
+        raise ModelError(f"smallest_destabilizing_budget searches delta_u with input poisoning; got poison="
+                         f"{setting.poison!r}: use poison='u'")
+
+    def radius(delta: float) -> float:
+        attack = build_attack(dataclasses.replace(setting, objective="destabilize", delta_u=delta))
+        return destabilize_attack(attack, **options).stats["spectral_radius"]
+
+    return smallest_budget(radius, lambda rho: rho >= 1.0, path, rel_tol)
 
 
 def budget_task(task: dict[str, Any]) -> dict[str, Any]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg.lapack
 from scipy.linalg.lapack import dpotrf, dpotrs
 
 from ..errors import RankDeficientRegressor
@@ -33,6 +34,19 @@ def factor_solve(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     if info != 0:  # pragma: no cover - potrs fails only on malformed arguments
         raise ValueError(f"LAPACK potrs failed with info = {info}")
     return solution
+
+
+def thin_qr(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Q, R) with phi = Q R, Q (rows x cols) orthonormal, R upper triangular, for a tall phi: LAPACK geqrf and orgqr
+    called directly (what np.linalg.qr computes, without its per-call overhead, which the attacks pay per step)."""
+    qr, tau, _, info = scipy.linalg.lapack.dgeqrf(phi)
+    if info != 0:  # pragma: no cover - geqrf fails only on malformed arguments
+        raise ValueError(f"LAPACK geqrf failed with info = {info}")
+    r = np.triu(qr[: phi.shape[1]])
+    q, _, info = scipy.linalg.lapack.dorgqr(qr, tau, overwrite_a=True)
+    if info != 0:  # pragma: no cover
+        raise ValueError(f"LAPACK orgqr failed with info = {info}")
+    return q, r
 
 
 @dataclass

@@ -24,7 +24,6 @@ from ..ddc.vrft import VRFTRegressor
 from ..errors import ModelError
 from ..model import BilevelProblem
 from .registry import register
-from .surrogates import gelfand_log_radius
 from .vrft_instance import VRFTAttack, VRFTSetting, attack_instance
 
 SOURCE = "Russo & Proutiere, Poisoning Attacks against Data-Driven Control Methods (extended), "
@@ -158,8 +157,8 @@ def declare(atk: VRFTAttack, filters: str = "recursions") -> BilevelProblem:
         p.minimize_upper(ca.sumsqr(p.parameter("theta_target", k) - theta) / k)
     else:
         loop = atk.model_loop
-        p.maximize_upper(gelfand_radius(p.parameter("loop_base", loop.base.size),
-                                        p.parameter("loop_slopes", loop.slopes.shape), theta))
+        p.maximize_spectral_radius(companion(p.parameter("loop_base", loop.base.size),
+                                             p.parameter("loop_slopes", loop.slopes.shape), theta))
     _load(p, atk)
     return p
 
@@ -251,14 +250,13 @@ def _load(problem: BilevelProblem, atk: VRFTAttack) -> None:
     _INSTANCES[problem] = atk
 
 
-def gelfand_radius(base: np.ndarray | ca.SX, slopes: np.ndarray | ca.SX, theta: ca.SX, power: int = 16) -> ca.SX:
-    """Smooth spectral-radius surrogate log(||C(theta)^p||_F) / p (Gelfand: -> log rho as p -> inf),
-    C the companion matrix of the closed-loop polynomial base + theta' slopes; p a power of two."""
+def companion(base: np.ndarray | ca.SX, slopes: np.ndarray | ca.SX, theta: ca.SX) -> ca.SX:
+    """The companion matrix of the closed-loop polynomial base + theta' slopes (highest power first): its
+    eigenvalues are the polynomial's roots, the modelled closed-loop poles."""
     coeffs = ca.SX(base) + ca.mtimes(ca.SX(slopes).T, theta)
     n = int(coeffs.numel()) - 1
     monic = coeffs[1:] / coeffs[0]
-    C = ca.vertcat(-monic.T, ca.horzcat(ca.SX.eye(n - 1), ca.SX.zeros(n - 1, 1)))
-    return gelfand_log_radius(C, power)
+    return ca.vertcat(-monic.T, ca.horzcat(ca.SX.eye(n - 1), ca.SX.zeros(n - 1, 1)))
 
 
 def _builder(objective: str, doc: str) -> Callable[..., BilevelProblem]:
@@ -281,6 +279,7 @@ vrft_targeted = register(
         "targeted", "Targeted attack on VRFT: minimize ||theta_a - theta'||^2 / nk."))
 vrft_destabilize = register(
     "vrft-destabilize", source=SOURCE + "beyond the paper: the attacker fits an ARX model to the clean data and "
-    "maximizes a smooth spectral radius of the modelled closed loop", tags=("attack", "vrft"), defaults=DEFAULTS,
+    "maximizes the spectral radius of the modelled closed loop", tags=("attack", "vrft"), defaults=DEFAULTS,
     description="destabilizing poisoning of VRFT (maximize the modelled closed-loop spectral radius)")(_builder(
-        "destabilize", "Destabilizing attack: maximize log ||C(theta')^16||_F / 16 for the ARX-modelled closed loop."))
+        "destabilize", "Destabilizing attack: maximize the spectral radius of the ARX-modelled closed loop's companion "
+        "matrix."))

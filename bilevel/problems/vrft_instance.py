@@ -7,7 +7,8 @@ a_u, a_y. J is one of
   "targeted"    -(1/nk) ||theta_a - theta||^2 (paper appendix A; maximizing minus the distance);
   "destabilize" a smooth max of the closed-loop pole moduli of an ARX model the attacker fits
                 from the clean data (it does not know the plant).
-bilevel.problems.vrft declares the instance as a BilevelProblem; bilevel.attacks.vrft solves it in structured form.
+bilevel.problems.vrft declares the instance as a BilevelProblem; `VRFTAttack.learner` is its learner as the engine's
+affine least squares (bilevel.lower.affine_least_squares), which bilevel.attacks.vrft_methods attacks.
 """
 
 from __future__ import annotations
@@ -26,6 +27,9 @@ from ..ddc.plants import flexible_transmission, flexible_transmission_prefilter,
 from ..ddc.systems import SystemLike, num_den
 from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
+from ..lower.affine_least_squares import AffineLeastSquares, AffineMaps
+from ..solvers.affine_ls import UpperObjective
+from ..solvers.projections import Blocks, Projection
 from ..solvers.options import check_common_options
 from .budget import Budget
 
@@ -178,7 +182,15 @@ class VRFTAttack:
         if self.objective == "targeted":
             d = self.theta_target - theta
             return -float(d @ d / d.size)
-        return self.model_loop.surrogate(theta, self.surrogate_beta)[0]
+        return self._surrogate(theta)[0]
+
+    def _surrogate(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """The modelled loop's log-sum-exp and its gradient at theta, the last theta's kept (an ascent reads both at
+        each point: one root finding, not two)."""
+        key = (np.asarray(theta, dtype=float).tobytes(), self.surrogate_beta)
+        if self.__dict__.get("_last_surrogate", (None,))[0] != key:
+            self.__dict__["_last_surrogate"] = (key, self.model_loop.surrogate(theta, self.surrogate_beta))
+        return self.__dict__["_last_surrogate"][1]
 
     def grad_theta(self, theta: np.ndarray) -> np.ndarray:
         """dJ/dtheta."""
@@ -186,7 +198,40 @@ class VRFTAttack:
             return -2.0 / self.n * (self.cross0 - self.gram0 @ theta)
         if self.objective == "targeted":
             return 2.0 / theta.size * (self.theta_target - theta)
-        return self.model_loop.surrogate(theta, self.surrogate_beta)[1]
+        return self._surrogate(theta)[1]
+
+    @cached_property
+    def learner(self) -> AffineLeastSquares:
+        """The learner's least squares on (u + a_u, y + a_y) as the engine's affine kind: C = Phi(y) + Phi(a_y),
+        d = t(u) + t(a_u), the regressor's filters and prefilter as its maps."""
+        reg, N = self.setting.regressor, self.N
+        target = None if reg.prefilter is None else (reg.targets, lambda g: reg.targets_adjoint(g, N))
+        return AffineLeastSquares(self.phi0, self.t0, AffineMaps(reg, reg.adjoint, *(target or (None, None))), N, N)
+
+    @cached_property
+    def upper(self) -> UpperObjective:
+        """J as the engine's affine-least-squares ascent reads it (a constant Hessian for the quadratic objectives)."""
+        k = self.theta0.size
+        hessian = {"maxmin": 2.0 * self.gram0 / self.n, "targeted": -2.0 * np.eye(k) / k}.get(self.objective)
+        return UpperObjective(self.value, self.grad_theta, hessian)
+
+    @property
+    def searched(self) -> Projection | None:
+        """Projection onto both budgets (a_u the first N entries, a_y the last N) where the declared problem relaxes
+        them (l1, sparsity: the set the structured attacks search, MethodRun.feasible_set), else None (declared)."""
+        if all(b.norm in ("l2", "linf") and b.rho is None for b in (self.budget_u, self.budget_y)):
+            return None
+        N = self.N
+        return Blocks([(slice(0, N), self.budget_u.projection(self.u)),
+                       (slice(N, 2 * N), self.budget_y.projection(self.y))], 2 * N)
+
+    @property
+    def no_exact_input(self) -> str:
+        """Why the exact input step (J quadratic in theta, a plain l2 ball on a_u) does not apply ("" where it does)."""
+        if self.upper.hessian is None:
+            return f"the {self.objective} objective is not quadratic in theta"
+        plain = self.budget_u.norm == "l2" and self.budget_u.rho is None
+        return "" if plain else f"the input budget {self.budget_u} is not a plain l2 ball"
 
     def stats(self, theta: np.ndarray) -> dict[str, Any]:
         """What an attack result adds at the poisoned theta: the attack's own criterion (value), the learner's loss on

@@ -20,6 +20,8 @@ from bilevel import attacks as atk
 from bilevel.attacks import willems
 from bilevel.errors import (BilevelError, InvalidData, ModelError, NotPersistentlyExciting,
                             RankDeficientRegressor, UnknownName, UnknownOption)
+from bilevel.experiments.vrft import attack_summary
+from bilevel.experiments.willems import willems_row
 from bilevel.problems import registry
 from bilevel.problems.willems import WillemsSetting, build_attack
 from bilevel.solvers.base import MethodRun
@@ -314,7 +316,7 @@ CASES: dict[str, tuple[Callable[[], Any], Any, str]] = {
                                                      "seed=-1 is invalid"),
     "registered Willems problem with a negative seed": (lambda: registry.get("willems-eigen", seed=-2), ModelError,
                                                         "seed=-2 is invalid"),
-    "Willems row of None": (lambda: willems.willems_row(None), ModelError, "stats\\['eigenvalues'\\]"),
+    "Willems row of None": (lambda: willems_row(None), ModelError, "stats\\['eigenvalues'\\]"),
     # -- methods ---------------------------------------------------------------------------------------------------
     "replace a built-in method": (_register("ipopt", lambda prep, **o: None), ModelError,
                                   "built-in method 'ipopt' is already registered.*replace=True"),
@@ -368,7 +370,7 @@ CASES: dict[str, tuple[Callable[[], Any], Any, str]] = {
                                   "needs at least one output budget"),
     "attack_value of None": (lambda: atk.attack_value(None), ModelError, "expected the BilevelResult of a VRFT"),
     "unstable of a dict": (lambda: atk.unstable({"spectral_radius": 2.0}), ModelError, "got dict"),
-    "attack_summary of a solve": (lambda: atk.attack_summary(bard_511().solve("ipopt", starts=1)), ModelError,
+    "attack_summary of a solve": (lambda: attack_summary(bard_511().solve("ipopt", starts=1)), ModelError,
                                   "stats\\['learner_loss'\\]"),
     "save_attack to a missing directory": (_saved_to_missing_dir, ModelError, "does not exist; create it"),
     "fit_arx on too few samples": (lambda: atk.fit_arx(*_vrft_data(3), 4, 2, 3), RankDeficientRegressor,

@@ -12,9 +12,9 @@ import pytest
 
 from bilevel import BilevelProblem, solve
 from bilevel.attacks.outcome import unstable
-from bilevel.attacks.willems import (destabilize_attack, engine, hypergradient_attack, loop,
-                                     smallest_destabilizing_budget)
+from bilevel.attacks.willems import destabilize_attack, engine, hypergradient_attack, loop
 from bilevel.cli import main
+from bilevel.experiments.willems_budget import smallest_destabilizing_budget
 from bilevel.ddc.plants import batch_reactor
 from bilevel.solvers.base import prepare
 from bilevel.solvers.implicit import Hypergradient

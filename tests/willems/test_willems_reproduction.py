@@ -97,7 +97,7 @@ def test_cli_offers_every_learner_selection() -> None:
 def test_budget_sweep_is_resumable_and_matches_the_search_per_data_set(tmp_path) -> None:
     """`reproduce willems-budget`'s sweep: one row per data set, equal to smallest_destabilizing_budget on that data
     set's seeds; a rerun recomputes nothing."""
-    from bilevel.attacks.willems import smallest_destabilizing_budget
+    from bilevel.experiments.willems_budget import smallest_destabilizing_budget
     from bilevel.experiments.willems_budget import budget_distribution
     from bilevel.problems.willems import WillemsSetting
 
