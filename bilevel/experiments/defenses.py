@@ -25,7 +25,7 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from ..attacks.willems import engine, loop, smallest_destabilizing_budget  # noqa: E402
+from ..attacks.willems import engine, loop  # noqa: E402
 from ..errors import RankDeficientRegressor  # noqa: E402
 from ..files import atomic_open, atomic_path  # noqa: E402
 from ..problems.defended_vrft import declare, defended_instance, model_reference_cost  # noqa: E402
@@ -35,6 +35,7 @@ from ..solvers.registry import solve  # noqa: E402
 from .defenses_detection import run_detection  # noqa: E402
 from .executor import open_executor  # noqa: E402
 from .stats import mean_interval, median_interval  # noqa: E402
+from .willems_budget import smallest_destabilizing_budget  # noqa: E402
 from .sweep import NUMBER, check_fields, run_sweep, sim_seeds, stderr_progress  # noqa: E402
 
 ROW_SCHEMA = {"learner": str, "defense": str, "param": NUMBER, "N": int, "data_seed": int, "clean_cost": NUMBER,

@@ -48,7 +48,7 @@ def test_summary_per_setting(tmp_path):
 
 
 def test_willems_task_matches_its_parts():
-    from bilevel.attacks.willems import smallest_destabilizing_budget
+    from bilevel.experiments.willems_budget import smallest_destabilizing_budget
     from bilevel.problems.willems import WillemsSetting
 
     task = {"learner": "willems", "defense": "ridge", "param": 1e-2, "N": 15, "seed": 3, "attack_seed": 1}

@@ -94,7 +94,7 @@ def test_moved_points_and_the_reason_for_stopping_are_reported() -> None:
     """`at` places the iterate where f evaluated (here f moves every point onto the plane x0 = x1, as the descent's
     restoration moves a point into the lower level's domain): the loop then ascends on that plane and every iterate
     lies on it. `why` names the stop: the gain window, the iteration limit, or a failed line search (min_step)."""
-    c, mu, b = np.array([1.0, 3.0]), np.ones(2), np.full(2, 10.0)
+    c, b = np.array([1.0, 3.0]), np.full(2, 10.0)
     onto = lambda x: np.full(2, x.mean())  # noqa: E731
     f = lambda x: (float(c @ onto(x) - 0.5 * onto(x) @ onto(x)), onto(x))  # noqa: E731  (max on the plane at (2, 2): 4)
     direction = lambda x: (c - x, c - x)  # noqa: E731
