@@ -40,7 +40,7 @@ from ..solvers.base import prepare
 from ..solvers.box_methods import destabilize, random_signs
 from ..solvers.budget_search import BudgetSearch, smallest_budget
 from ..solvers.implicit import Hypergradient, shared_oracle
-from ..solvers.options import check_common_options
+from ..solvers.options import check_common_options, reject_renamed
 from ..solvers.registry import solve
 from ..threads import single_threaded_call
 from .outcome import attack_stat, unstable
@@ -174,15 +174,16 @@ def _inputs_only(attack: WillemsAttack, who: str) -> None:
 
 
 @single_threaded_call
-def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize: int = 5, tol: float = 1e-8,
-              stop_when_unstable: bool = True) -> BilevelResult:
+def de_attack(attack: WillemsAttack, seed: Any = 0, max_iter: int = 300, popsize: int = 5, pop_tol: float = 1e-8,
+              stop_when_unstable: bool = True, **renamed: Any) -> BilevelResult:
     """The engine's differential evolution on the input poisoning inside the box, without its descent (a heuristic),
     a generation scored at once where the learner ignores the poisoning (_criteria); with stop_when_unstable it stops
     once the incumbent's identified loop is unstable."""
+    reject_renamed("de_attack", renamed, {"maxiter": "max_iter", "tol": "pop_tol"})
     _inputs_only(attack, "de_attack")
     twin = {} if attack.setting.design == "lqr-r" else {"batch_objective": lambda xs, y: _criteria(attack, xs, y)}
-    return _run(attack, "differential-evolution", "differential-evolution", seed=seed, max_iter=maxiter,
-                popsize=popsize, tol=tol, polish=False, stop_when_unstable=stop_when_unstable, **twin)
+    return _run(attack, "differential-evolution", "differential-evolution", seed=seed, max_iter=max_iter,
+                popsize=popsize, pop_tol=pop_tol, polish=False, stop_when_unstable=stop_when_unstable, **twin)
 
 
 def _criteria(attack: WillemsAttack, xs: np.ndarray, y: np.ndarray) -> np.ndarray:

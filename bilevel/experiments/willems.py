@@ -63,7 +63,7 @@ class Plan:
     deltas: tuple[float, ...]
     horizons: tuple[int, ...]
     de_popsize: int
-    de_maxiter: int
+    de_max_iter: int
     starts: int
     remark_sims: int
     remark_horizons: tuple[int, ...]
@@ -121,7 +121,7 @@ def _task(plan: Plan, root_seed: int, experiment: str, i: int, seeds: tuple[int,
     fields = "|".join(f"{k}={setting[k]}" for k in sorted(setting))
     return {"key": f"{experiment}|{method}|{fields}|sim={i}", "experiment": experiment, "method": method,
             "sim": i, "seed": seeds[0], "attack_seed": seeds[1], **setting, "root_seed": root_seed,
-            "reg": DEFAULT_REG, "starts": plan.starts, "de_popsize": plan.de_popsize, "de_maxiter": plan.de_maxiter,
+            "reg": DEFAULT_REG, "starts": plan.starts, "de_popsize": plan.de_popsize, "de_max_iter": plan.de_max_iter,
             "rho_iter": plan.rho_iter, "rho_starts": plan.rho_starts}
 
 
@@ -201,7 +201,7 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
             res = destabilize_attack(attack, starts=task["rho_starts"], seed=task["attack_seed"],
                                      max_iter=task["rho_iter"])
         elif task["method"] == "de":
-            res = de_attack(attack, seed=task["attack_seed"], maxiter=task["de_maxiter"], popsize=task["de_popsize"])
+            res = de_attack(attack, seed=task["attack_seed"], max_iter=task["de_max_iter"], popsize=task["de_popsize"])
         else:
             res = random_attack(attack, seed=task["attack_seed"])
     except BilevelError as exc:
@@ -491,7 +491,7 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
         "derivatives, the learner solved once) and reports the largest radius it reached.",
         f"- Ours: projected hypergradient ascent, {plan.starts} starts (clean data + uniform in the box). "
         "DE: differential evolution (bilevel.solvers.evolution.evolve: scipy's algorithm and defaults), best1bin, "
-        f"popsize {plan.de_popsize} x dim, {plan.de_maxiter} "
+        f"popsize {plan.de_popsize} x dim, {plan.de_max_iter} "
         "generations, no gradient polish, same box and seeds (the paper used MATLAB's particle swarm).",
         "- Stability is judged on the true plant: unstable iff max |eig(A + B K)| >= 1.", "",
         "## Fraction of unstable closed loops (paper setting)", "",

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any
+from typing import Any, Callable, Iterable
 
 import casadi as ca
 import numpy as np
@@ -12,12 +13,13 @@ import numpy as np
 from ..canonical import (CanonicalBilevel, Canonicalize, NormalizeSense, in_sense, kkt_solution, objectives,
                          suggested_starts)
 from ..certificate import DEFAULT_TOL, LOCAL_EVIDENCE, Certificate, GlobalBound, certify
-from ..errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption
+from ..errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption, did_you_mean
 from ..model import BilevelProblem
 from ..mpcc import MPCC
 from ..reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
 from ..result import BilevelResult, Status
 from .optimistic import optimistic_selection
+from .options import RENAMED_OPTIONS
 from .probe import improving_neighbour
 from .projections import Projection
 from .structure import Ball, ball_forms, find_balls, upper_projection
@@ -189,12 +191,24 @@ def best_of(candidates: list[tuple[np.ndarray, float, float]]) -> int:
     return min(range(len(candidates)), key=lambda i: candidates[i][2])
 
 
-def check_options(method: str, given: dict[str, Any], allowed: set[str]) -> None:
-    """Raise UnknownOption naming the unknown keys and the accepted ones (typos must not run silently)."""
-    unknown = sorted(set(given) - allowed)
-    if unknown:
-        raise UnknownOption(f"method {method!r} does not take option(s) {', '.join(unknown)}; "
-                            f"it accepts: {', '.join(sorted(allowed))}")
+def options_of(method: Callable[..., Any]) -> frozenset[str]:
+    """The options a method accepts: the keyword-only parameters of its signature (scipy's _minimize_* style)."""
+    return frozenset(name for name, p in inspect.signature(method).parameters.items()
+                     if p.kind is inspect.Parameter.KEYWORD_ONLY)
+
+
+def check_options(method: str, unknown: dict[str, Any], accepted: Callable[..., Any] | Iterable[str]) -> None:
+    """Raise UnknownOption naming the options a method did not take and those it accepts (the keyword-only parameters
+    of `accepted` where it is the method's function); an option renamed within the last release names its new name."""
+    allowed = options_of(accepted) if callable(accepted) else frozenset(accepted)
+    if not unknown:
+        return
+    renamed = [f"{old} was renamed: use {RENAMED_OPTIONS[method][old]}" for old in sorted(unknown)
+               if old in RENAMED_OPTIONS.get(method, {})]
+    if renamed:
+        raise UnknownOption(f"method {method!r}: option {'; option '.join(renamed)}")
+    raise UnknownOption(f"method {method!r} does not take option(s) {', '.join(sorted(unknown))}; "
+                        f"{did_you_mean(sorted(unknown)[0], allowed)}it accepts: {', '.join(sorted(allowed))}")
 
 
 def _final_status(run: MethodRun, passed: bool) -> tuple[Status, str]:
