@@ -649,7 +649,9 @@ class BilevelProblem:
         - "global": a proven global optimum (bounds and gap) for LP and convex-QP lower levels;
         - "differential-evolution": a search of the boxed upper level on the same implicit map, then descent.
 
-        Options are the method's keywords; a misspelt one raises UnknownOption naming the accepted ones."""
+        Options are the method's keyword arguments: bilevel.show_options(method) (or help() on its function,
+        bilevel.METHODS[method]) lists them with their defaults, an option left None taking the registry's value
+        (bilevel.defaults, docs/options.md); a misspelt one raises UnknownOption naming the accepted ones."""
         from .solvers.registry import solve
 
         return solve(self, method=method, **options)

@@ -12,7 +12,8 @@ import numpy as np
 
 from ..canonical import (CanonicalBilevel, Canonicalize, NormalizeSense, in_sense, kkt_solution, objectives,
                          suggested_starts)
-from ..certificate import DEFAULT_TOL, LOCAL_EVIDENCE, Certificate, GlobalBound, certify
+from ..certificate import LOCAL_EVIDENCE, Certificate, GlobalBound, certify
+from ..defaults import param
 from ..errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption, did_you_mean
 from ..model import BilevelProblem
 from ..mpcc import MPCC
@@ -178,14 +179,11 @@ def unbounded_lower(prep: Prepared, x: np.ndarray) -> str | None:
     return None
 
 
-FEASIBILITY_TOL = 1e-6
-"""Largest residual at which a method's candidate counts as feasible when the best start is chosen."""
-
-
 def best_of(candidates: list[tuple[np.ndarray, float, float]]) -> int:
-    """Index of the feasible candidate (residual <= FEASIBILITY_TOL) with the lowest objective, else the least
-    infeasible one."""
-    feasible = [i for i, (_, _, r) in enumerate(candidates) if r <= FEASIBILITY_TOL]
+    """Index of the feasible candidate (residual <= defaults["solvers.feasibility_tol"]) with the lowest objective, else
+    the least infeasible one."""
+    tol = param("solvers.feasibility_tol")
+    feasible = [i for i, (_, _, r) in enumerate(candidates) if r <= tol]
     if feasible:
         return min(feasible, key=lambda i: candidates[i][1])
     return min(range(len(candidates)), key=lambda i: candidates[i][2])
@@ -257,8 +255,9 @@ def _declared_records(prep: Prepared, records: list[dict[str, Any]]) -> tuple[di
                  for r in records)
 
 
-def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol: float = DEFAULT_TOL) -> BilevelResult:
-    """Certify the run's point, map it back to declared names and senses, and decide the status."""
+def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol: float | None = None) -> BilevelResult:
+    """Certify the run's point (up to tol; None: defaults["certificate.tol"]), map it back to declared names and
+    senses, and decide the status."""
     run = replace(run, history=list(_declared_records(prep, run.history)),
                   starts=list(_declared_records(prep, run.starts)))
     if run.w is None or not np.all(np.isfinite(run.w)):
