@@ -195,18 +195,20 @@ def options_of(method: Callable[..., Any]) -> frozenset[str]:
                      if p.kind is inspect.Parameter.KEYWORD_ONLY)
 
 
-def check_options(method: str, unknown: dict[str, Any], accepted: Callable[..., Any] | Iterable[str]) -> None:
-    """Raise UnknownOption naming the options a method did not take and those it accepts (the keyword-only parameters
-    of `accepted` where it is the method's function); an option renamed within the last release names its new name."""
+def check_options(method: str, given: dict[str, Any], accepted: Callable[..., Any] | Iterable[str]) -> None:
+    """Raise UnknownOption naming the options `given` that a method does not accept, and those it accepts: the
+    keyword-only parameters of `accepted` where it is the method's function (given: what its **unknown collected),
+    else the names listed; an option renamed within the last release names its new name (RENAMED_OPTIONS)."""
     allowed = options_of(accepted) if callable(accepted) else frozenset(accepted)
+    unknown = sorted(set(given) - allowed)
     if not unknown:
         return
-    renamed = [f"{old} was renamed: use {RENAMED_OPTIONS[method][old]}" for old in sorted(unknown)
+    renamed = [f"{old} was renamed: use {RENAMED_OPTIONS[method][old]}" for old in unknown
                if old in RENAMED_OPTIONS.get(method, {})]
     if renamed:
         raise UnknownOption(f"method {method!r}: option {'; option '.join(renamed)}")
-    raise UnknownOption(f"method {method!r} does not take option(s) {', '.join(sorted(unknown))}; "
-                        f"{did_you_mean(sorted(unknown)[0], allowed)}it accepts: {', '.join(sorted(allowed))}")
+    raise UnknownOption(f"method {method!r} does not take option(s) {', '.join(unknown)}; "
+                        f"{did_you_mean(unknown[0], allowed)}it accepts: {', '.join(sorted(allowed))}")
 
 
 def _final_status(run: MethodRun, passed: bool) -> tuple[Status, str]:

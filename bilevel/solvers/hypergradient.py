@@ -213,9 +213,9 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int,
     if reason in ("line search", "stationary") and not _domain_stationary(arc, cur, grad, tol):
         return Descent(cur, Status.INACCURATE, "line search found no decrease (x is likely at a kink of "
                        "y*(x), where the generalized gradient is not a descent direction)", nit, history)
-    message = {"tol": f"projected gradient step {pstep:.2e} <= tol",
+    message = {"tol": f"projected gradient step {pstep:.2e} <= gtol",
                "ftol": "relative decrease in one step <= ftol",
-               "zero step": "zero gradient"}.get(reason, "projected gradient step <= tol on the lower level's domain")
+               "zero step": "zero gradient"}.get(reason, "projected gradient step <= gtol on the lower level's domain")
     return Descent(cur, Status.SOLVED, message, nit, history)
 
 
