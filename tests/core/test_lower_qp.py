@@ -80,7 +80,7 @@ def test_matrix_least_squares_reaches_trust_region_optimum():
     singular direction; the trust-region subproblem, More & Sorensen 1983)."""
     M = np.linalg.solve(C_LS.T @ C_LS + REG * np.eye(N_LS), C_LS.T)
     best = RADIUS ** 2 * np.linalg.norm(M, 2) ** 2
-    res = ridge(True).solve(method="hypergradient", starts=4, gtol=1e-10)
+    res = ridge(True).solve(method="hypergradient", starts=4, gain_tol=1e-10)
     assert res.certificate.passed
     assert res.upper_objective == pytest.approx(best, rel=1e-6)
     assert prepare(ridge(True)).canon.lower.kind == "least-squares"
