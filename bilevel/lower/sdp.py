@@ -11,21 +11,16 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
+from ..defaults import param
 from ..errors import ModelError, SolverFailed
 from ..vech import unvech, vech, vech_sx
 from .base import LowerSolution
 from .convexity import psd_violation
 from .quadratic import QPData, QuadraticLower, clarabel_direct, solve_qp_clarabel
 
-PSD_TOL = 1e-9
-"""Relative PSD violation of M_k and Z_k tolerated in a polished iterate."""
 CONTINUATION_TOL, CONTINUATION_STEPS = 1e-9, 6
 """KKT residual that a Newton continuation from a nearby solution must reach (no worse than a polished conic solve),
 and its Newton steps."""
-POLISHED_TOL = 1e-6
-"""Largest KKT residual of a polished solution of an SDP that moves with x (its derivative needs a KKT point)."""
-FREE_RTOL = 1e-10
-"""Singular values below FREE_RTOL times the largest count as zero when finding the directions the SDP sees."""
 
 
 def range_basis(matrix: np.ndarray, rtol: float) -> np.ndarray:
@@ -119,12 +114,13 @@ class SemidefiniteLower(QuadraticLower):
 
     def _polished(self, x: np.ndarray) -> LowerSolution:
         """Clarabel's point (its own interface) Newton-polished and selected; SolverFailed where the SDP moves with x
-        and the polish stays above POLISHED_TOL (no strictly complementary solution: y*(x) has no derivative there)."""
+        and the polish stays above defaults["sdp.polished_tol"] (no strictly complementary solution: y*(x) has no
+        derivative there)."""
         verified = self.constant_hessian and self.convexity_probe is not None  # the declaration's PSD check
         raw = clarabel_direct(self.data(x), self._context(x), verified, self.lmi_data(x))
         sol, residual = self.newton_polish(x, raw)
-        if residual > POLISHED_TOL and not self.fixed:
-            raise SolverFailed(f"the SDP {self._context(x)} has KKT residual {residual:.1e} > {POLISHED_TOL:g} after "
+        if residual > (tol := param("sdp.polished_tol")) and not self.fixed:
+            raise SolverFailed(f"the SDP {self._context(x)} has KKT residual {residual:.1e} > {tol:g} after "
                                "Newton polishing (no strictly complementary solution found): its solution's derivative "
                                "is not defined there; move x or regularize the lower objective (e.g. raise reg)")
         return self.select(x, sol)
@@ -232,10 +228,10 @@ class SemidefiniteLower(QuadraticLower):
         return float(np.abs(np.asarray(self.conic_kkt.residual(x, self.pack(sol))[0])).max(initial=0.0))
 
     def in_cones(self, x: np.ndarray, sol: LowerSolution) -> bool:
-        """Whether g <= 0, lam >= 0 and every M_k, Z_k is PSD up to PSD_TOL (relative)."""
+        """Whether g <= 0, lam >= 0 and every M_k, Z_k is PSD up to defaults["sdp.psd_tol"] (relative)."""
         _, g, _, mats = self.evaluate(x, sol.y)
-        scalar = np.all(g <= PSD_TOL * (1.0 + np.abs(g))) and np.all(sol.lam >= -PSD_TOL)
-        return bool(scalar) and all(psd_violation(m) <= PSD_TOL * (1.0 + float(np.abs(m).max()))
+        scalar = np.all(g <= param("sdp.psd_tol") * (1.0 + np.abs(g))) and np.all(sol.lam >= -param("sdp.psd_tol"))
+        return bool(scalar) and all(psd_violation(m) <= param("sdp.psd_tol") * (1.0 + float(np.abs(m).max()))
                                     for m in list(mats) + list(sol.Z))
 
     def newton_polish(self, x: np.ndarray, sol: LowerSolution, steps: int = 4) -> tuple[LowerSolution, float]:
@@ -273,17 +269,17 @@ class SemidefiniteLower(QuadraticLower):
         LMI coefficient d vec(M_k)/dy: the SDP sees y only through S'y and a ridge on the rest. Along the rest
         stationarity reads (T'PT) T'y = 0 (T spans the rest), so the exact solution of a ridge-regularized SDP lies
         in span S, and without a ridge its projection S S'y is the minimum-norm point of the optimal set (singular
-        values below FREE_RTOL times the largest count as zero)."""
+        values below defaults["sdp.free_rtol"] times the largest count as zero)."""
         d = self.data(x)
         rows = np.vstack([d.A, d.E, d.q[None, :], *(jac for _, jac in self.lmi_data(x))])
-        basis = range_basis(rows.T, FREE_RTOL)
+        basis = range_basis(rows.T, param("sdp.free_rtol"))
         p_scale = float(np.abs(d.P).max(initial=0.0))
         while basis.shape[1] < self.n_y:  # close under P (Krylov): then the rest is P-invariant too
             moved = d.P @ basis
             leak = moved - basis @ (basis.T @ moved)
-            if not np.abs(leak).max(initial=0.0) > FREE_RTOL * p_scale:
+            if not np.abs(leak).max(initial=0.0) > param("sdp.free_rtol") * p_scale:
                 break
-            basis = range_basis(np.hstack([basis, leak / p_scale]), FREE_RTOL)
+            basis = range_basis(np.hstack([basis, leak / p_scale]), param("sdp.free_rtol"))
         return basis
 
     def select_min_norm(self, x: np.ndarray, sol: LowerSolution) -> LowerSolution:
