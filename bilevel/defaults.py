@@ -18,7 +18,8 @@ from .errors import ModelError, did_you_mean
 
 ENTRIES: dict[str, tuple[Any, str]] = {
     # the certificate (bilevel.certificate)
-    "certificate.tol": (1e-6, "largest scaled KKT residual and lower-level gap a certificate accepts (relative)"),
+    "certificate.tol": (1e-6, "tolerance of the certificate's scaled checks: lower KKT residuals, feasibility, gap to"
+                              " the re-solve"),
     "certificate.nlp_starts": (8, "starts of the independent re-solve of a nonlinear lower level (count)"),
     # method hypergradient (and block-exact, the descent after differential-evolution)
     "hypergradient.starts": (4, "multistart starts of hypergradient and block-exact (count)"),
@@ -36,13 +37,15 @@ ENTRIES: dict[str, tuple[Any, str]] = {
                                    "(relative)"),
     # the implicit-differentiation engine (bilevel.solvers.implicit)
     "implicit.penalty": (1e4, "weight of the upper constraints' violation added to phi where they are penalized"),
-    "implicit.active_tol": (1e-6, "a lower constraint (or multiplier) within this of zero counts as active (absolute)"),
-    "implicit.kink_tol": (1e-9, "a constraint and its multiplier both within this of zero mark a kink of y*(x)"),
+    "implicit.active_tol": (1e-6, "a lower inequality is active where lam_i > this or |g_i| <= this (absolute)"),
+    "implicit.kink_tol": (1e-9, "where some |G_i| or |H_j| <= this the penalty is not differentiable (least-norm "
+                                "element used)"),
     # the engine's ascent loop (bilevel.solvers.ascent)
     "ascent.armijo": (1e-4, "sufficient-increase constant of the Armijo backtracking (fraction)"),
     "ascent.window": (5, "the ascent's gain stop is measured over this many accepted steps (count)"),
     # the start sequence (bilevel.solvers.starts)
-    "starts.conditioning_steps": (10, "gradient steps of a least-squares learner's conditioning start (count)"),
+    "starts.conditioning_steps": (10, "projected steps of the conditioning start, one budget radius or half-width "
+                                      "each (count)"),
     # the KKT methods ipopt and relaxation (bilevel.solvers.ipopt)
     "ipopt.starts": (8, "multistart starts of ipopt and relaxation (count)"),
     "ipopt.scale": (10.0, "half-width of the random starts' box where a bound is infinite (units of x)"),
@@ -70,50 +73,65 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "global.time_limit": (60.0, "wall-clock limit of method global (seconds)"),
     "global.node_limit": (100_000, "branch-and-bound nodes of method global (count)"),
     "global.gap": (1e-6, "method global stops when (upper - lower bound) / max(1, |best|) is below this"),
-    "global.bigm_safety": (1e-6, "relative margin added to each big-M bound derived by LP"),
-    "global.fix_tol": (1e-6, "a pair whose derived bound is within this of zero is fixed to its side (absolute)"),
-    "global.complementarity_tol": (1e-9, "branch-and-bound accepts a node whose complementarity products are all "
-                                         "below this (absolute)"),
-    "global.convexity_tol": (1e-9, "smallest Hessian eigenvalue still taken as convex by the scope check"),
-    "global.max_box_vertices": (4096, "vertices of the upper box the scope check enumerates at most (count)"),
-    "global.scip_feastol": (1e-9, "SCIP's feasibility tolerance (absolute)"),
+    "global.bigm_safety": (1e-6, "relative and absolute margin added to each LP maximum so that LP tolerances cannot "
+                                 "make M too small"),
+    "global.fix_tol": (1e-6, "a pair's side is fixed only if the other side's minimum exceeds this * max(1, its "
+                             "maximum)"),
+    "global.complementarity_tol": (1e-9, "branch-and-bound takes a node as complementary when its worst min(G_i, H_i)"
+                                         " is below this * (1 + max |w|)"),
+    "global.convexity_tol": (1e-9, "a Hessian counts as convex when its smallest eigenvalue >= -this * max(1, max "
+                                   "|entry|)"),
+    "global.max_box_vertices": (4096, "vertices of the upper box on which an x-dependent lower Hessian is checked, at"
+                                      " most (count)"),
+    "global.scip_feastol": (1e-9, "SCIP's feasibility tolerance (SCIP's own default is 1e-6; absolute)"),
     # multistart selection and dispatch (bilevel.solvers.base, bilevel.solvers.registry)
     "solvers.feasibility_tol": (1e-6, "largest residual at which a start's end point counts as feasible"),
     "solvers.small_lower": (256, "lower levels with at most this many variables run with one BLAS thread (count)"),
     "auto.min_upper": (20, "method auto takes hypergradient from this many upper entries on (count)"),
     # the local probe and the optimistic selection (bilevel.solvers.probe, bilevel.solvers.optimistic)
-    "probe.directions": (4, "random directions the probe tries at each radius (count)"),
-    "probe.coordinates": (16, "coordinate directions the probe tries, largest gradient entries first (count)"),
-    "probe.rel_tol": (1e-8, "a neighbour must beat the objective by this (relative) to count as better"),
-    "probe.feas_tol": (1e-9, "largest upper violation of a neighbour that counts as feasible (absolute)"),
-    "probe.descent_rel_tol": (1e-5, "a neighbour that the descent from it improves by less than this (relative) "
-                                    "is not reported"),
-    "optimistic.slack": (1e-9, "slack of the lower-optimality constraint of the optimistic selection (relative)"),
-    "optimistic.row_tol": (1e-8, "constraint rows within this are taken as active by the optimistic selection"),
-    "optimistic.improve_rel_tol": (1e-5, "the optimistic selection must improve F by this (relative) to count"),
+    "probe.directions": (4, "random directions the local probe tries at each radius (count)"),
+    "probe.coordinates": (16, "up to this many upper variables the probe tries +/- each coordinate and the adjacent "
+                              "pieces at a kink (count)"),
+    "probe.rel_tol": (1e-8, "along random directions a neighbour is better only by more than this (relative)"),
+    "probe.feas_tol": (1e-9, "largest upper violation (G > 0, |H|) of a probed point that counts as feasible "
+                             "(absolute)"),
+    "probe.descent_rel_tol": (1e-5, "along first-order directions a neighbour is better only by more than this "
+                                    "(relative)"),
+    "optimistic.slack": (1e-9, "slack of the optimistic selection's lower optimality row, f <= f* + slack (1 + |f*|) "
+                               "(relative)"),
+    "optimistic.row_tol": (1e-8, "largest row violation, relative to 1 + max |y|, at which a selection counts as "
+                                 "feasible"),
+    "optimistic.improve_rel_tol": (1e-5, "F must drop by more than this (relative to max(1, |F|)) for a better "
+                                         "selection"),
     # box methods (bilevel.solvers.box_methods)
     "destabilize.starts": (64, "points ascending together in method destabilize (count)"),
     "destabilize.max_iter": (100, "ascent steps of method destabilize (count)"),
     "destabilize.pool": (512, "random points screened for destabilize's starts (count)"),
     # lower levels (bilevel.lower)
-    "classify.y_probes": (16, "random lower points at which the lower level's kind is probed (count)"),
-    "convexity.psd_tol": (1e-9, "smallest Hessian eigenvalue (scaled) still taken as convex"),
-    "sdp.psd_tol": (1e-9, "smallest eigenvalue of an LMI taken as PSD (relative)"),
-    "sdp.polished_tol": (1e-6, "largest KKT residual at which the Newton polish of an SDP solution is accepted"),
-    "sdp.free_rtol": (1e-10, "singular values below this (relative) span the free directions of an SDP solution"),
-    "polish.active_tol": (1e-6, "the lower polish takes a constraint within this as active (absolute)"),
-    "polish.flip_tol": (1e-13, "a multiplier or slack this close to zero may change sides in the polish"),
-    "polish.max_steps": (8, "Newton steps of the lower polish (count)"),
-    "polish.max_faces": (4, "active sets the lower polish tries (count)"),
-    "residual.form_size": (10_000, "a least squares with at least this many Hessian terms is kept in residual "
-                                   "form (count)"),
-    "residual.affine_fill": (4, "residual form needs the affine map's nonzeros <= this * its rows (count)"),
-    "residual.numeric_squares_size": (1_000, "least squares up to this size are solved from numeric matrices "
-                                             "(count)"),
-    "residual.sparse_squares": (0.25, "density below which a least squares' matrices are kept sparse (fraction)"),
-    "linear_maps.dense_limit": (25_000_000, "largest entry count a linear map is densified to (count)"),
-    "spectral_radius.defective_cond": (1e12, "eigenvector condition number above which a matrix counts as "
-                                             "defective"),
+    "classify.y_probes": (16, "lower points drawn per upper sample when a lower Hessian depends on y (count)"),
+    "convexity.psd_tol": (1e-9, "a Hessian counts as PSD when its smallest eigenvalue >= -this * max(1, its largest "
+                                "entry)"),
+    "sdp.psd_tol": (1e-9, "relative PSD violation of M_k and Z_k tolerated in a polished SDP iterate"),
+    "sdp.polished_tol": (1e-6, "largest KKT residual of a polished solution of an SDP that moves with x (its "
+                               "derivative needs it)"),
+    "sdp.free_rtol": (1e-10, "singular values below this times the largest count as zero (the directions an SDP sees)"),
+    "polish.active_tol": (1e-6, "a row or LMI eigenvalue is active when within this * (1 + its scale) of zero"),
+    "polish.flip_tol": (1e-13, "a face's solution violating a sign condition by more than this * (1 + scale) moves "
+                               "that constraint"),
+    "polish.max_steps": (8, "Newton steps per face of the lower polish (count)"),
+    "polish.max_faces": (4, "faces the lower polish tries: the first guess and active-set corrections (count)"),
+    "residual.form_size": (10_000, "least squares whose symbolic Hessian would have more than rows x n_y^2 = this "
+                                   "many terms use the residual form (count)"),
+    "residual.affine_fill": (4, "residual data are a sparse product when its matrix has at most this many nonzeros "
+                                "per operation of their expressions (count)"),
+    "residual.numeric_squares_size": (1_000, "a sum of squares of y with at least this many nonzero coefficients is "
+                                             "evaluated by BLAS (count)"),
+    "residual.sparse_squares": (0.25, "below this fraction of nonzero coefficients a sum of squares' matrix is kept "
+                                      "sparse"),
+    "linear_maps.dense_limit": (25_000_000, "entries up to which an operator given only by its products is formed as "
+                                            "a matrix (count)"),
+    "spectral_radius.defective_cond": (1e12, "eigenvector matrices with a larger condition number are treated as "
+                                             "singular (a defective top eigenvalue)"),
 }
 """The registry's entries: key -> (default value, what it is and its unit)."""
 
@@ -168,9 +186,15 @@ class Defaults(MutableMapping):
     def __repr__(self) -> str:
         return f"Defaults({self._values!r})"
 
+    def describe(self, prefix: str = "") -> str:
+        """One line per default whose key starts with `prefix`: key = current value: what it is and its unit."""
+        return "\n".join(f"{key} = {self._values[key]!r}: {doc}" for key, (_, doc) in ENTRIES.items()
+                         if key.startswith(prefix))
+
 
 defaults = Defaults()
-"""The one registry every method and certificate reads (through param)."""
+"""The one registry every method and certificate reads (through param); `bilevel.defaults` is this object (the
+package exports it under the module's name), so `bilevel.defaults.describe("probe")` lists the probe's entries."""
 
 
 def param(key: str, given: Any = None) -> Any:
@@ -194,9 +218,3 @@ def reset_defaults() -> None:
     """Restore every default to the value it has in ENTRIES."""
     for key, (value, _) in ENTRIES.items():
         defaults._values[key] = value
-
-
-def describe(prefix: str = "") -> str:
-    """One line per default whose key starts with `prefix`: key = current value, what it is and its unit."""
-    return "\n".join(f"{key} = {defaults[key]!r}: {doc}" for key, (_, doc) in ENTRIES.items()
-                     if key.startswith(prefix))

@@ -20,7 +20,8 @@ from .options import check_common_options, check_counts
 
 
 def random_signs(prep: Prepared, *, seed: Any = 0, **unknown: Any) -> MethodRun:
-    """Method: every upper entry at a bound, the side drawn by a fair coin (a budget-matched baseline)."""
+    """Method: every upper entry at a bound, the side drawn by a fair coin seeded by `seed` (a budget-matched
+    baseline)."""
     check_options("random-signs", unknown, random_signs)
     canon = prep.canon
     sign = np.random.default_rng(seed).choice([-1.0, 1.0], size=canon.x_lb.size)
@@ -33,7 +34,7 @@ def destabilize(prep: Prepared, *, starts: int | None = None, seed: Any = 0, max
                 pool: int | None = None, **unknown: Any) -> MethodRun:
     """Method: maximize a spectral-radius objective over a symmetric box where the lower level ignores x: `starts`
     points ascend together (batched_box_ascent) for up to max_iter steps, the box's centre and the largest-rho points
-    of a pool of `pool` random ones (half uniform, half vertices). Returns the ascents' best point (not a certified
+    of a pool of `pool` random ones (half uniform, half vertices, drawn from `seed`). Returns the ascents' best point (not a certified
     local maximum). None takes the registry's value, defaults["destabilize.NAME"] (bilevel.defaults)."""
     check_options("destabilize", unknown, destabilize)
     starts, max_iter = param("destabilize.starts", starts), param("destabilize.max_iter", max_iter)

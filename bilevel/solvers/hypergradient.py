@@ -240,8 +240,9 @@ DESCENT_ONLY = ("projection", "gtol", "ftol", "active_tol", "callback", "prefer"
 def solve_block_exact(prep: Prepared, *, starts: int | None = None, seed: Any = 0, scale: float | None = None,
                       penalty: float | None = None, gain_tol: float | None = None, max_iter: int | None = None,
                       time_limit: float | None = None, verbose: bool = False, **unknown: Any) -> MethodRun:
-    """Method `block-exact`: `hypergradient` with exact_block=True (an error where the structure has no exact block);
-    its options are hypergradient's exact-block ones (None: the registry's value, bilevel.defaults)."""
+    """Method `block-exact`: `hypergradient` with exact_block=True (an error where the structure has no exact block).
+    Its options are hypergradient's exact-block ones: starts, seed, scale, penalty, gain_tol, max_iter, time_limit,
+    verbose (None: the registry's value, bilevel.defaults)."""
     if "exact_block" in unknown:
         raise ModelError("method 'block-exact' is hypergradient with exact_block=True; it takes no exact_block option")
     check_options("block-exact", unknown, solve_block_exact)
