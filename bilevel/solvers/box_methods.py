@@ -33,9 +33,9 @@ def random_signs(prep: Prepared, *, seed: Any = 0, **unknown: Any) -> MethodRun:
 def destabilize(prep: Prepared, *, starts: int | None = None, seed: Any = 0, max_iter: int | None = None,
                 pool: int | None = None, **unknown: Any) -> MethodRun:
     """Method: maximize a spectral-radius objective over a symmetric box where the lower level ignores x: `starts`
-    points ascend together (batched_box_ascent) for up to max_iter steps, the box's centre and the largest-rho points
-    of a pool of `pool` random ones (half uniform, half vertices, drawn from `seed`). Returns the ascents' best point (not a certified
-    local maximum). None takes the registry's value, defaults["destabilize.NAME"] (bilevel.defaults)."""
+    points ascend together (batched_box_ascent) for up to max_iter steps, the box's centre and the largest-rho points of
+    a pool of `pool` random ones (half uniform, half vertices, drawn from `seed`). Returns the ascents' best point (not
+    a certified local maximum). None takes the registry's value, defaults["destabilize.NAME"] (bilevel.defaults)."""
     check_options("destabilize", unknown, destabilize)
     starts, max_iter = param("destabilize.starts", starts), param("destabilize.max_iter", max_iter)
     pool = param("destabilize.pool", pool)
