@@ -115,7 +115,7 @@ def attack(atk: VRFTAttack, method: str | Callable[..., MethodRun], warm_start: 
         options["starts"] = options.get("starts", 1) + 1
     fn = method if callable(method) else METHODS[method]
     result = solve(problem, method=fn, **{k: v for k, v in options.items() if v is not None})
-    evaluations = sum(r.get("evaluations", 0) for r in result.starts) or 1  # a white-noise sample: one
+    evaluations = sum(r.get("evaluations", 0) for r in result.start_records) or 1  # a white-noise sample: one
     stats = {**result.stats, **atk.stats(result.y["theta"]), "evaluations": evaluations}
     return dataclasses.replace(result, method=method if isinstance(method, str) else result.method,
                                wall_time=time.perf_counter() - t0, stats=stats)

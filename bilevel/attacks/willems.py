@@ -136,7 +136,7 @@ def willems_stats(attack: WillemsAttack, result: BilevelResult, evaluations: int
             "spectral_radius": float(np.max(np.abs(eig))), "identified_radius": _radius(acl), "criterion": criterion,
             "evaluations": evaluations, "budget_violation": cert.upper_feasibility,
             "kkt_residual": max(cert.stationarity, cert.lower_feasibility, cert.dual_feasibility, cert.complementarity),
-            "details": {"starts": len(result.starts), "best_start": result.stats.get("best_start"),
+            "details": {"starts": len(result.start_records), "best_start": result.stats.get("best_start"),
                         "certificate_failed": list(cert.failed)}}
 
 

@@ -152,14 +152,15 @@ def prepare(problem: BilevelProblem) -> Prepared:
 @dataclass
 class MethodRun:
     """A method's raw outcome: its best MPCC vector (or None) and its own view of convergence. The "objective" of its
-    history and starts records is the canonical (minimized) upper objective; finalize reports it declared."""
+    history and start_records (one per multistart start) is the canonical (minimized) upper objective; finalize
+    reports it declared."""
 
     w: np.ndarray | None
     status: Status
     message: str
     nit: int = 0
     history: list[dict[str, Any]] = field(default_factory=list)
-    starts: list[dict[str, Any]] = field(default_factory=list)
+    start_records: list[dict[str, Any]] = field(default_factory=list)
     stats: dict[str, Any] = field(default_factory=dict)
     feasible_set: Projection | None = None
     """The upper set the method searched when narrower than the declared one (a `projection` option)."""
@@ -261,11 +262,11 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
     """Certify the run's point (up to tol; None: defaults["certificate.tol"]), map it back to declared names and
     senses, and decide the status."""
     run = replace(run, history=list(_declared_records(prep, run.history)),
-                  starts=list(_declared_records(prep, run.starts)))
+                  start_records=list(_declared_records(prep, run.start_records)))
     if run.w is None or not np.all(np.isfinite(run.w)):
         return BilevelResult(run.status if run.status is not Status.SOLVED else Status.ERROR, run.message, method,
                              prep.problem.name, {}, {}, {}, None, None, None, wall_time, run.nit,
-                             tuple(run.history), tuple(run.starts), run.stats)
+                             tuple(run.history), tuple(run.start_records), run.stats)
     point = prep.point(run.w)
     try:
         cert = certify(prep.canon, point, tol)
@@ -274,7 +275,7 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
     except BilevelError as exc:  # evaluation failed: keep the point, say why
         cert = None
         run = MethodRun(run.w, Status.ERROR, f"certificate could not be computed: {exc}", run.nit, run.history,
-                        run.starts, run.stats)
+                        run.start_records, run.stats)
     status, message = _final_status(run, cert is not None and cert.passed)
     if status is Status.SOLVED and cert is not None and not cert.convexity_proven:
         status, message = Status.INACCURATE, f"{message}; {LOCAL_EVIDENCE}"
@@ -301,4 +302,4 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
 
     return BilevelResult(status, message, method, prep.problem.name, sol.x, sol.y, sol.multipliers,
                          sol.upper_objective, sol.lower_objective, cert, wall_time, run.nit, tuple(run.history),
-                         tuple(run.starts), stats, evaluate)
+                         tuple(run.start_records), stats, evaluate)
