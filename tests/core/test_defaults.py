@@ -123,3 +123,21 @@ def test_renamed_options_name_their_new_name(method: str, option: str, new: str)
 def test_a_misspelt_option_is_rejected_with_the_accepted_ones() -> None:
     with pytest.raises(UnknownOption, match="did you mean 'max_iter'.*it accepts: .*gtol"):
         bard().solve("hypergradient", maxiter=3)
+
+
+def test_renamed_attributes_and_keywords_name_their_new_names() -> None:
+    from bilevel.attacks.willems import de_attack
+
+    p = bard()
+    p.suggest_start(x=4.0)
+    res = p.solve("hypergradient", starts=2)
+    assert len(p.suggested_starts) == 1 and len(res.start_records) == 2
+    with pytest.raises(AttributeError, match="use suggested_starts"):
+        _ = p.starts
+    with pytest.raises(AttributeError, match="use start_records"):
+        _ = res.starts
+    old = {k: v for k, v in res.to_dict().items() if k != "start_records"} | {"starts": list(res.start_records)}
+    assert bl.BilevelResult.from_dict(old).start_records == bl.BilevelResult.from_dict(res.to_dict()).start_records
+    for old_name, new in (("maxiter", "max_iter"), ("tol", "pop_tol")):
+        with pytest.raises(UnknownOption, match=f"{old_name} was renamed: use {new}"):
+            de_attack(None, **{old_name: 3})

@@ -60,13 +60,13 @@ def test_eigen_attack_destabilizes_no_later_than_de() -> None:
     firsts = []
     for data_seed, attack_seed in sim_seeds(0, 3):
         first = {}
-        for name, fn in (("ours", hypergradient_attack), ("de", de_attack)):
+        for name, fn in (("ours", hypergradient_attack), ("differential-evolution", de_attack)):
             first[name] = next((d for d in SHORT_GRID
                                 if unstable(fn(build_attack(horizon=15, seed=data_seed, delta_u=d), seed=attack_seed))),
                                np.inf)
         firsts.append(first)
     print(firsts)
-    assert all(f["ours"] <= f["de"] for f in firsts)
+    assert all(f["ours"] <= f["differential-evolution"] for f in firsts)
     assert all(np.isfinite(f["ours"]) for f in firsts)
 
 
