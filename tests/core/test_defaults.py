@@ -13,6 +13,7 @@ from bilevel.defaults import ENTRIES, param
 from bilevel.errors import ModelError, UnknownOption
 from bilevel.solvers.base import options_of
 from bilevel.solvers.box_methods import destabilize, random_signs
+from tests.docs_pages import run_page
 
 
 def bard() -> bl.BilevelProblem:
@@ -141,3 +142,10 @@ def test_renamed_attributes_and_keywords_name_their_new_names() -> None:
     for old_name, new in (("maxiter", "max_iter"), ("tol", "pop_tol")):
         with pytest.raises(UnknownOption, match=f"{old_name} was renamed: use {new}"):
             de_attack(None, **{old_name: 3})
+
+
+def test_options_page_runs_as_printed() -> None:
+    try:
+        run_page("options.md")
+    finally:
+        bl.reset_defaults()
