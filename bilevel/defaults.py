@@ -115,6 +115,9 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "sdp.polished_tol": (1e-6, "largest KKT residual of a polished solution of an SDP that moves with x (its "
                                "derivative needs it)"),
     "sdp.free_rtol": (1e-10, "singular values below this times the largest count as zero (the directions an SDP sees)"),
+    "sdp.continuation_tol": (1e-9, "KKT residual a Newton continuation from a nearby SDP solution must reach (no worse "
+                                   "than a polished conic solve)"),
+    "sdp.continuation_steps": (6, "Newton steps of the continuation from a nearby SDP solution (count)"),
     "polish.active_tol": (1e-6, "a row or LMI eigenvalue is active when within this * (1 + its scale) of zero"),
     "polish.flip_tol": (1e-13, "a face's solution violating a sign condition by more than this * (1 + scale) moves "
                                "that constraint"),
@@ -198,8 +201,15 @@ package exports it under the module's name), so `bilevel.defaults.describe("prob
 
 
 def param(key: str, given: Any = None) -> Any:
-    """The value to use: `given` where the caller passed one (not None), else defaults[key]."""
-    return defaults[key] if given is None else given
+    """The value to use: `given` where the caller passed one (not None), else defaults[key] (read directly: this runs
+    inside the methods' loops)."""
+    if given is not None:
+        return given
+    try:
+        return defaults._values[key]
+    except KeyError:
+        _check_key(key)
+        raise
 
 
 def set_defaults(module: str, **values: Any) -> None:

@@ -18,11 +18,6 @@ from .base import LowerSolution
 from .convexity import psd_violation
 from .quadratic import QPData, QuadraticLower, clarabel_direct, solve_qp_clarabel
 
-CONTINUATION_TOL, CONTINUATION_STEPS = 1e-9, 6
-"""KKT residual that a Newton continuation from a nearby solution must reach (no worse than a polished conic solve),
-and its Newton steps."""
-
-
 def range_basis(matrix: np.ndarray, rtol: float) -> np.ndarray:
     """Orthonormal basis (columns) of the column space of matrix: singular values <= rtol * the largest count as
     zero."""
@@ -257,12 +252,13 @@ class SemidefiniteLower(QuadraticLower):
         return sol, best
 
     def continue_from(self, x: np.ndarray, near: LowerSolution,
-                      steps: int = CONTINUATION_STEPS) -> tuple[LowerSolution, float] | None:
-        """The solution at x by Newton steps on r(w; x) = 0 from `near`, a solution at a nearby upper point
-        (continuation, no conic solve), with its residual; None unless an iterate inside the cones reaches
-        CONTINUATION_TOL (then solve afresh). A KKT point inside the cones is optimal (the SDP is convex)."""
-        sol, residual = self.newton_polish(x, near, steps)
-        return (sol, residual) if sol is not near and residual <= CONTINUATION_TOL else None
+                      steps: int | None = None) -> tuple[LowerSolution, float] | None:
+        """The solution at x by `steps` Newton steps (None: defaults["sdp.continuation_steps"]) on r(w; x) = 0 from
+        `near`, a solution at a nearby upper point (continuation, no conic solve), with its residual; None unless an
+        iterate inside the cones reaches defaults["sdp.continuation_tol"] (then solve afresh). A KKT point inside the
+        cones is optimal (the SDP is convex)."""
+        sol, residual = self.newton_polish(x, near, param("sdp.continuation_steps", steps))
+        return (sol, residual) if sol is not near and residual <= param("sdp.continuation_tol") else None
 
     def seen_directions(self, x: np.ndarray) -> np.ndarray:
         """Orthonormal basis S (n_y x k) of the smallest P-invariant subspace holding the rows of A, E, q' and every

@@ -46,6 +46,7 @@ BEFORE = {  # the module constants and option defaults the registry replaced, as
     "optimistic.slack": 1e-9, "optimistic.row_tol": 1e-8, "optimistic.improve_rel_tol": 1e-5,
     "destabilize.starts": 64, "destabilize.max_iter": 100, "destabilize.pool": 512, "classify.y_probes": 16,
     "convexity.psd_tol": 1e-9, "sdp.psd_tol": 1e-9, "sdp.polished_tol": 1e-6, "sdp.free_rtol": 1e-10,
+    "sdp.continuation_tol": 1e-9, "sdp.continuation_steps": 6,
     "polish.active_tol": 1e-6, "polish.flip_tol": 1e-13, "polish.max_steps": 8, "polish.max_faces": 4,
     "residual.form_size": 10_000, "residual.affine_fill": 4, "residual.numeric_squares_size": 1_000,
     "residual.sparse_squares": 0.25, "linear_maps.dense_limit": 25_000_000, "spectral_radius.defective_cond": 1e12,
