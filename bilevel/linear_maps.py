@@ -26,7 +26,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from .model import BilevelProblem
 
 
-
 def affine_parts(expr: ca.SX, x: ca.SX, fixed: ca.SX) -> tuple[sp.csr_matrix, np.ndarray, sp.csr_matrix] | None:
     """(J, b, J') with expr = J x + b, J sparse, when expr reads none of the symbols `fixed` (parameters) and is affine
     in x (signals the leader moves, sliced, shifted or mapped): one sparse product each way instead of a sweep; else

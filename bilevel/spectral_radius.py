@@ -18,7 +18,6 @@ from .defaults import param
 from .errors import ModelError
 
 
-
 @dataclass
 class SpectralRadius:
     """rho(M) and d rho / dM for a stack of matrices (..., n, n); ties: top branches per matrix (1: smooth)."""

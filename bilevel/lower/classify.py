@@ -18,7 +18,6 @@ from .residual import ResidualLeastSquares
 from .sdp import SemidefiniteLower
 
 
-
 def _probe(hessians: list[tuple[CompiledFunction, str]],
            points: list[tuple[np.ndarray, np.ndarray]]) -> tuple[ConvexityProbe, float]:
     """The sampled check of these Hessians (one y per x when they are constant in y, one point when constant in x and

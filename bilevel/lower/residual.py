@@ -25,9 +25,6 @@ from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
 
 
-
-
-
 def sum_of_squares(f: ca.SX, y: ca.SX) -> tuple[ca.SX, ca.SX] | None:
     """(r, c) with f = 1/2 ||r||^2 + c, r affine in y and c free of y, read from f's top-level sum of weighted squares
     (a least squares); None if f is not of that form (a term with y that is not a square, a square with a negative
@@ -62,8 +59,6 @@ def sum_of_squares(f: ca.SX, y: ca.SX) -> tuple[ca.SX, ca.SX] | None:
     if any(ca.which_depends(r, y, 2, False)):
         return None
     return r * ca.DM(scales), (ca.sum1(ca.vertcat(*rest)) if rest else ca.SX(0.0))  # one elementwise product
-
-
 
 
 @dataclass(frozen=True)

@@ -8,12 +8,12 @@ search then backtracks. batched_box_ascent climbs many starts at once where valu
 """
 
 from __future__ import annotations
-from ..defaults import param
 
 from typing import Any, Callable, Literal
 
 import numpy as np
 
+from ..defaults import param
 
 
 def budget_direction(g: np.ndarray, radius: float, order: float) -> np.ndarray:

@@ -22,7 +22,6 @@ from ..defaults import param
 from .global_nodes import G_SIDE, H_SIDE, Relaxation
 
 
-
 @dataclass
 class SearchOutcome:
     """Best point found, proven bounds on the optimal value (minimization form), and how the search ended.

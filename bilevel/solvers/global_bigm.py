@@ -20,8 +20,6 @@ from ..defaults import param
 from .global_nodes import G_SIDE, H_SIDE, Relaxation
 
 
-
-
 @dataclass(frozen=True)
 class BigM:
     """Bounds on each pair's slack G_i and multiplier H_i over R (inf where the LP is unbounded), and the sides

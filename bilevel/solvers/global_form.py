@@ -155,8 +155,6 @@ def _nonlinear_slacks(G: ca.SX, w: ca.SX, first: int, slacks: list[tuple[int, ca
     return J, r
 
 
-
-
 def _require_convex_on_box(low: LowerLevel, x_lb: np.ndarray, x_ub: np.ndarray) -> None:
     """An x-dependent lower Hessian P(x) is PSD at every x of the declared box: proven when P is affine in x (its
     smallest eigenvalue is then concave in x, so its minimum over the box is at a vertex) and PSD at each vertex;

@@ -93,7 +93,6 @@ def scip_expressions(exprs: ca.SX, w: ca.SX, variables: list[Any]) -> list[Any]:
     return out
 
 
-
 def unbounded_nonconvex(leader: Leader, box: tuple[np.ndarray, np.ndarray], blocks: dict[str, slice]) -> list[str]:
     """Names (block[index] of the MPCC vector, e.g. x[0]) of the variables in a nonlinear term of the leader whose
     derived box is infinite: SCIP's relaxation of such a term has no finite bound."""

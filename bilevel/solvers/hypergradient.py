@@ -15,7 +15,7 @@ arc. A trial point at which the lower level is infeasible is moved to
 the nearest upper point (in the box) where it is feasible, found by IPOPT on
 min ||x - v||^2 s.t. g(x, y) <= 0, h(x, y) = 0, then projected again: with the default box projection
 and jointly convex lower constraints this makes P the projection onto the lower level's domain.
-Stops when ||x - P(x - grad phi)|| <= tol (P without the lower solve of the restoration; with it, asked only
+Stops when ||x - P(x - grad phi)|| <= gtol (P without the lower solve of the restoration; with it, asked only
 when the line search fails) or the relative decrease of phi in one step is <= ftol (SOLVED), at
 max_iter (MAX_ITERATIONS), or when backtracking finds no decrease (INACCURATE: x is then typically at a
 kink of y*(x), where the generalized gradient is not a descent direction).
@@ -31,11 +31,11 @@ import casadi as ca
 import numpy as np
 import scipy.optimize
 
+from ..defaults import param
 from ..errors import BilevelError, LowerLevelInfeasible, ModelError
 from ..lower.nlp import NLPSOL_QUIET
 from ..reduction import KKTPoint
 from ..result import Status
-from ..defaults import param
 from .base import MethodRun, Prepared, best_of, check_options
 from .implicit import Evaluation, Hypergradient, shared_oracle
 from .ascent import projected_ascent
@@ -44,8 +44,6 @@ from .options import check_numbers
 from .limits import Deadline, progress, stopped
 from .starts import start_points
 from .projections import Projection
-
-
 
 
 class _Restoration:

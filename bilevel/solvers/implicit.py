@@ -45,7 +45,6 @@ from ..spectral_radius import spectral_radius
 from .base import Prepared
 
 
-
 @dataclass
 class Evaluation:
     """An upper point with its (polished) lower solution, penalized objective phi, F and upper violation.

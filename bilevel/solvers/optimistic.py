@@ -23,7 +23,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from .base import Prepared
 
 
-
 @dataclass(frozen=True)
 class Selection:
     """A verified lower solution y at x, its upper objective (canonical sense), and price: the optimality row's

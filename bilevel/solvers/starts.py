@@ -28,7 +28,6 @@ from .base import Prepared
 from .structure import depends
 
 
-
 def _hessian_and_adjoint(prep: Prepared) -> tuple[Callable, Callable] | None:
     """(x -> P(x), (x, v) -> d(v'P(x)v)/dx) for a least-squares lower level whose Hessian P depends on x, else None;
     a lower level with linear maps is differentiated over [x; z] and pulled back to x."""
