@@ -36,10 +36,10 @@ from bilevel.attacks.willems import hypergradient_attack
 from bilevel.problems.vrft import attack_problem, load_instance
 from bilevel.problems.willems import build_attack
 
-GENERIC = {"hypergradient": ("hypergradient", {}), "hg tol=1e-4": ("hypergradient", {"tol": 1e-4}),
+GENERIC = {"hypergradient": ("hypergradient", {}), "hg gain_tol=1e-4": ("hypergradient", {"gain_tol": 1e-4}),
            "descent": ("hypergradient", {"exact_block": False})}
 """Row label -> (method, options): hypergradient as a user calls it (its default exact_block="auto" takes the exact
-input block it finds in the declared structure; tol 1e-5), the same with the structured attack's stopping tolerance
+input block it finds in the declared structure; gain_tol 1e-5), the same with the structured attack's stopping tolerance
 (relative gain 1e-4 over 5 steps), and its first-order descent alone (exact_block=False)."""
 KKT = {m: (m, {}) for m in ("ipopt", "relaxation")}
 

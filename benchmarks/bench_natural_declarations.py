@@ -19,7 +19,6 @@ Run: python benchmarks/bench_natural_declarations.py [seeds] [sections, e.g. 12]
 
 from __future__ import annotations
 
-import inspect
 import os
 import platform
 import sys
@@ -33,11 +32,11 @@ from scipy.sparse.linalg import LinearOperator
 from bilevel import BilevelProblem
 from bilevel.problems.vrft_instance import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating, attack_value
-from bilevel.solvers.block_exact import ascend_with_exact_block
+from bilevel.defaults import param
 
-_EXACT = inspect.signature(ascend_with_exact_block).parameters
-STARTS, TOL, MAX_ITER = (_EXACT[name].default for name in ("starts", "tol", "max_iter"))
-"""The generic exact-block ascent's defaults (starts, tol, max_iter): the structured attack is compared at the same
+STARTS, TOL, MAX_ITER = (param(key) for key in ("hypergradient.starts", "block_exact.gain_tol",
+                                                "hypergradient.max_iter"))
+"""The generic exact-block ascent's defaults (starts, gain_tol, max_iter): the structured attack is compared at the same
 ones (its own max_iter for max-min is 60, where it stops on some seeds before the tolerance)."""
 
 
@@ -89,8 +88,8 @@ def vrft_seeds(seeds: int) -> None:
         first = time.perf_counter() - t0
         again, t_again = timed(lambda: p.solve("hypergradient"))
         one, t_one = timed(lambda: p.solve("hypergradient", starts=1))
-        ref = attack_alternating(atk, seed=seed, starts=STARTS, tol=TOL, max_iter=MAX_ITER)
-        ref1 = attack_alternating(atk, seed=seed, starts=1, tol=TOL, max_iter=MAX_ITER)
+        ref = attack_alternating(atk, seed=seed, starts=STARTS, gain_tol=TOL, max_iter=MAX_ITER)
+        ref1 = attack_alternating(atk, seed=seed, starts=1, gain_tol=TOL, max_iter=MAX_ITER)
         own = attack_alternating(atk, seed=seed)
         rows.append((first, t_again, t_one, ref.wall_time, ref1.wall_time, own.wall_time, again.upper_objective,
                      attack_value(ref), one.upper_objective, attack_value(ref1)))
@@ -131,7 +130,7 @@ def growth(max_n: int = 65536) -> None:
         res = p.solve("hypergradient", starts=1)
         first = time.perf_counter() - t0
         again_res, again = timed(lambda: p.solve("hypergradient", starts=1))
-        ref = attack_alternating(atk, seed=0, tol=TOL, max_iter=MAX_ITER)
+        ref = attack_alternating(atk, seed=0, gain_tol=TOL, max_iter=MAX_ITER)
         print(f"filter bank  N = {N:6d}: {first:.3f} s, re-solve {again:.3f} s ({again_res.nit} steps, "
               f"{1e3 * again / max(again_res.nit, 1):.2f} ms/step), J {res.upper_objective:.5f} [{res.status.value}]; "
               f"structured {ref.wall_time:.3f} s ({ref.nit} steps, {1e3 * ref.wall_time / max(ref.nit, 1):.2f} ms/step) "

@@ -211,7 +211,7 @@ def suggested_starts(problem: BilevelProblem, x_start: np.ndarray, x_lb: np.ndar
     """The problem's suggested starts as flat upper points (unnamed variables at x_start), clipped to the box."""
     layout = problem.upper_layout()
     return [np.clip(np.concatenate([s.get(v.name, x_start[layout[v.name]]) for v in problem.upper_variables]),
-                    x_lb, x_ub) for s in problem.starts]
+                    x_lb, x_ub) for s in problem.suggested_starts]
 
 
 def _least_squares_matrices(problem: BilevelProblem, allowed: set[int]) -> LowerQP:

@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .defaults import param
 from .errors import BilevelError
 from .lower.convexity import convexity_violation, proven_convex, psd_violation
 from .sampling import sample_in_bounds
@@ -47,10 +48,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .canonical import CanonicalBilevel
     from .reduction import KKTPoint
 
-DEFAULT_TOL = 1e-6
 LOCAL_EVIDENCE = "lower-level optimality is local evidence (convexity not proven)"
-NLP_STARTS = 8
-"""Starts of the independent re-solve of a nonlinear lower level (the point's y, the default, and random)."""
 
 
 @dataclass(frozen=True)
@@ -148,7 +146,7 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
     rng = np.random.default_rng(0)
     lb, ub = canon.y_lb, canon.y_ub
     starts = [np.clip(y, lb, ub), np.clip(np.zeros_like(y), lb, ub)]
-    starts += [sample_in_bounds(lb, ub, rng, 3.0) for _ in range(NLP_STARTS - 2)]
+    starts += [sample_in_bounds(lb, ub, rng, 3.0) for _ in range(param("certificate.nlp_starts") - 2)]
     sols, errors = [], []
     for y0 in starts:
         try:
@@ -200,8 +198,11 @@ def _reduced_hessian_unique(low, x: np.ndarray, ref, tol: float) -> bool | None:
     return True
 
 
-def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float = DEFAULT_TOL) -> Certificate:
-    """Scaled KKT residuals of the lower level at `point` and its gap to an independent lower-level solve."""
+def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | None = None) -> Certificate:
+    """Scaled KKT residuals of the lower level at `point` and its gap to an independent lower-level solve, accepted
+    up to tol (None: defaults["certificate.tol"]). The independent re-solve of a nonlinear lower level starts from
+    the point's y, the default and random points (defaults["certificate.nlp_starts"] in all)."""
+    tol = float(param("certificate.tol", tol))
     low = canon.lower
     x, y = point.x, point.y
     f, g, h, mats = low.evaluate(x, y)

@@ -18,14 +18,12 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import LinearOperator
 
+from .defaults import param
 from .errors import InvalidData, ModelError
 from .toeplitz import ToeplitzBank, toeplitz_split
 
 if TYPE_CHECKING:  # pragma: no cover
     from .model import BilevelProblem
-
-DENSE_LIMIT = 25_000_000
-"""Entries up to which an operator given only by its products is formed as a matrix (for the KKT reformulation)."""
 
 
 def affine_parts(expr: ca.SX, x: ca.SX, fixed: ca.SX) -> tuple[sp.csr_matrix, np.ndarray, sp.csr_matrix] | None:
@@ -101,12 +99,13 @@ class Operator:
         return self.data.T @ Y
 
     def dense(self, what: str) -> np.ndarray:
-        """The matrix as a dense array (an operator is applied to the identity, up to DENSE_LIMIT entries)."""
+        """The matrix as a dense array (an operator is applied to the identity, up to
+        defaults["linear_maps.dense_limit"] entries)."""
         if self.kind in ("dense", "toeplitz"):
             return self.data
         if self.kind == "sparse":
             return self.data.toarray()
-        if self.shape[0] * self.shape[1] > DENSE_LIMIT:
+        if self.shape[0] * self.shape[1] > param("linear_maps.dense_limit"):
             raise ModelError(f"{what} is a LinearOperator of shape {self.shape}, too large to form as a matrix for the "
                              "KKT reformulation; use method='hypergradient', which applies it by its products")
         return np.asarray(self.data.matmat(np.eye(self.shape[1])), dtype=float)

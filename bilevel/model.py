@@ -240,7 +240,7 @@ class BilevelProblem:
         self.lower_constraints: list[Constraint] = []
         self.lower_psd_constraints: list[PSDConstraint] = []
         self.definitions: list[Definition] = []
-        self.starts: list[dict[str, np.ndarray]] = []
+        self.suggested_starts: list[dict[str, np.ndarray]] = []
         self.parameters = ParameterSet()
         self.revision = 0
         """Incremented by every declaration (not by set_value or suggest_start): solves reuse their preparation
@@ -414,7 +414,13 @@ class BilevelProblem:
             if not np.all(np.isfinite(arr)):
                 raise ModelError(f"suggested start of {name!r} contains inf; give finite values")
             start[name] = arr
-        self.starts.append(start)
+        self.suggested_starts.append(start)
+
+    @property
+    def starts(self) -> None:
+        """Renamed: the starts given by suggest_start are suggested_starts (`starts` is the methods' count option)."""
+        raise AttributeError("BilevelProblem.starts was renamed: use suggested_starts (the starts given by "
+                             "suggest_start; the option starts is the number of multistart starts)")
 
     def upper_layout(self) -> dict[str, slice]:
         """Where each upper variable sits in the flat upper vector x (declaration order, column-major)."""
@@ -649,7 +655,9 @@ class BilevelProblem:
         - "global": a proven global optimum (bounds and gap) for LP and convex-QP lower levels;
         - "differential-evolution": a search of the boxed upper level on the same implicit map, then descent.
 
-        Options are the method's keywords; a misspelt one raises UnknownOption naming the accepted ones."""
+        Options are the method's keyword arguments: bilevel.show_options(method) (or help() on its function,
+        bilevel.METHODS[method]) lists them with their defaults, an option left None taking the registry's value
+        (bilevel.defaults, docs/options.md); a misspelt one raises UnknownOption naming the accepted ones."""
         from .solvers.registry import solve
 
         return solve(self, method=method, **options)

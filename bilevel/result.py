@@ -47,7 +47,7 @@ class BilevelResult:
     """A solve's outcome. x, y and multipliers are keyed by declared names; objectives in declared senses.
 
     history: per-iteration (or per-relaxation-step) records of the method; stats: raw backend output,
-    with no stability promise; starts: one summary per multistart start.
+    with no stability promise; start_records: one summary per multistart start (option `starts` is their count).
     """
 
     status: Status
@@ -63,13 +63,19 @@ class BilevelResult:
     wall_time: float
     nit: int
     history: tuple[dict[str, Any], ...] = ()
-    starts: tuple[dict[str, Any], ...] = ()
+    start_records: tuple[dict[str, Any], ...] = ()
     stats: dict[str, Any] = field(default_factory=dict)
     _evaluate: Any = field(default=None, repr=False, compare=False)
 
     @property
     def success(self) -> bool:
         return self.status is Status.SOLVED
+
+    @property
+    def starts(self) -> None:
+        """Renamed: the per-start records are start_records (`starts` is the option that counts them)."""
+        raise AttributeError("BilevelResult.starts was renamed: use start_records (the per-start records; the "
+                             "option starts is their count)")
 
     def value(self, expr: Any) -> float | np.ndarray:
         """Evaluate any CasADi expression of the problem's variables at the solution."""
@@ -97,7 +103,7 @@ class BilevelResult:
 
         d = {k: getattr(self, k) for k in ("status", "message", "method", "problem", "upper_objective",
                                             "lower_objective", "wall_time", "nit", "x", "y", "multipliers",
-                                            "history", "starts", "stats")}
+                                            "history", "start_records", "stats")}
         d["success"] = self.success
         d["certificate"] = None if self.certificate is None else asdict(self.certificate)
         return clean(d)
@@ -131,7 +137,7 @@ class BilevelResult:
                    None if d.get("upper_objective") is None else float(d["upper_objective"]),
                    None if d.get("lower_objective") is None else float(d["lower_objective"]), cert,
                    float(d.get("wall_time") or 0.0), int(d.get("nit") or 0), tuple(d.get("history", ())),
-                   tuple(d.get("starts", ())), dict(d.get("stats", {})))
+                   tuple(d.get("start_records", d.get("starts", ()))), dict(d.get("stats", {})))
 
     @classmethod
     def from_json(cls, source: str) -> "BilevelResult":

@@ -14,10 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .defaults import param
 from .errors import ModelError
-
-DEFECTIVE_COND = 1e12
-"""Eigenvector matrices with a larger condition number are treated as singular (a defective top eigenvalue)."""
 
 
 @dataclass
@@ -43,13 +41,14 @@ def spectral_radius(m: np.ndarray) -> SpectralRadius:
         cond = np.linalg.norm(v, axis=(-2, -1)) * np.linalg.norm(w, axis=(-2, -1))  # Frobenius: >= the 2-norm's
     except np.linalg.LinAlgError:  # some V exactly singular: invert the others one by one
         cond = np.linalg.cond(v)
-        w = np.linalg.inv(np.where((cond <= DEFECTIVE_COND)[..., None, None], v, np.eye(m.shape[-1])))
+        defective = param("spectral_radius.defective_cond")
+        w = np.linalg.inv(np.where((cond <= defective)[..., None, None], v, np.eye(m.shape[-1])))
     # branch i: d|lambda_i|/dM_jk = Re(conj(lambda_i)/|lambda_i| * w_ij v_ki), w = V^-1 (rows: left vectors)
     phase = np.where(top, np.conj(lam) / np.where(modulus > 0, modulus, 1.0), 0.0)
     grad = np.real(np.einsum("...i,...ij,...ki->...jk", phase, w, v))
     branches = top & (np.imag(lam) >= 0)  # a complex pair is one branch (the member with Im > 0)
     ties = branches.sum(axis=-1)
     grad = grad / top.sum(axis=-1)[..., None, None]
-    bad = (cond > DEFECTIVE_COND) | (rho == 0)
+    bad = (cond > param("spectral_radius.defective_cond")) | (rho == 0)
     grad = np.where(bad[..., None, None], np.nan, grad)
     return SpectralRadius(rho, grad, ties)

@@ -34,13 +34,13 @@ MAX_ITER = {"maxmin": 60, "targeted": 500, "destabilize": 200}
 """Iteration limit by objective (targeted converges in 118-195: benchmarks/results/bench_vrft_iterations.txt)."""
 TOL = 1e-4
 """The ascent stops when the relative gain over its window of steps is below TOL."""
-OPTIONS = {"starts", "seed", "max_iter", "tol", "time_limit", "verbose"}
+OPTIONS = {"starts", "seed", "max_iter", "gain_tol", "time_limit", "verbose"}
 
 
 def _ascend(prep: Prepared, joint: bool, options: dict[str, Any]) -> MethodRun:
     """The engine's multistart ascent on the problem's VRFT instance, with the exact input step unless `joint`."""
     atk = instance_of(prep.problem)
-    options = {"starts": 1, "max_iter": MAX_ITER[atk.objective], "tol": TOL} | options
+    options = {"starts": 1, "max_iter": MAX_ITER[atk.objective], "gain_tol": TOL} | options
     check_common_options(options)
     step = None
     if not joint:
@@ -53,7 +53,7 @@ def _ascend(prep: Prepared, joint: bool, options: dict[str, Any]) -> MethodRun:
 
 
 def alternating(prep: Prepared, **options: Any) -> MethodRun:
-    """The alternating attack (module docstring); options starts, seed, max_iter (MAX_ITER by objective), tol,
+    """The alternating attack (module docstring); options starts, seed, max_iter (MAX_ITER by objective), gain_tol,
     time_limit, verbose."""
     check_options("alternating", options, OPTIONS)
     return _ascend(prep, False, options)
@@ -99,22 +99,22 @@ def attack(atk: VRFTAttack, method: str | Callable[..., MethodRun], warm_start: 
     return attack_result(problem, method if callable(method) else METHODS[method],
                          method if isinstance(method, str) else None,
                          lambda r: {**atk.stats(r.y["theta"]),  # evaluations: a white-noise sample is one
-                                    "evaluations": sum(s.get("evaluations", 0) for s in r.starts) or 1},
+                                    "evaluations": sum(s.get("evaluations", 0) for s in r.start_records) or 1},
                          t0, **{k: v for k, v in options.items() if v is not None})
 
 
 def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int | None = None,
-                       tol: float = TOL, warm_start: np.ndarray | None = None) -> BilevelResult:
+                       gain_tol: float = TOL, warm_start: np.ndarray | None = None) -> BilevelResult:
     """The alternating attack (module docstring) on `atk`. V(a_y) is multimodal: the engine's first start makes the
     poisoned regressor ill-conditioned, further starts are seeded random points, and warm_start (an a_y, e.g. the best
     one at a smaller budget) is one more; the best end point is kept. max_iter: MAX_ITER by objective."""
-    return attack(atk, "alternating", warm_start, starts=starts, seed=seed, max_iter=max_iter, tol=tol)
+    return attack(atk, "alternating", warm_start, starts=starts, seed=seed, max_iter=max_iter, gain_tol=gain_tol)
 
 
 def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int | None = None,
-                 tol: float = TOL) -> BilevelResult:
+                 gain_tol: float = TOL) -> BilevelResult:
     """Joint projected hypergradient ascent on (a_u, a_y) of `atk`, each block scaled to its budget (multistart)."""
-    return attack(atk, "joint", starts=starts, seed=seed, max_iter=max_iter, tol=tol)
+    return attack(atk, "joint", starts=starts, seed=seed, max_iter=max_iter, gain_tol=gain_tol)
 
 
 def attack_white_noise(atk: VRFTAttack, seed: int = 0) -> BilevelResult:

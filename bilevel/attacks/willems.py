@@ -26,7 +26,7 @@ from ..result import BilevelResult
 from ..solvers.base import prepare
 from ..solvers.box_methods import destabilize, random_signs
 from ..solvers.implicit import Hypergradient, shared_oracle
-from ..solvers.options import check_common_options
+from ..solvers.options import check_common_options, reject_renamed
 from ..threads import single_threaded_call
 from .outcome import attack_result
 
@@ -121,7 +121,7 @@ def willems_stats(attack: WillemsAttack, result: BilevelResult, evaluations: int
             "spectral_radius": float(np.max(np.abs(eig))), "identified_radius": _radius(acl), "criterion": criterion,
             "evaluations": evaluations, "budget_violation": cert.upper_feasibility,
             "kkt_residual": max(cert.stationarity, cert.lower_feasibility, cert.dual_feasibility, cert.complementarity),
-            "details": {"starts": len(result.starts), "best_start": result.stats.get("best_start"),
+            "details": {"starts": len(result.start_records), "best_start": result.stats.get("best_start"),
                         "certificate_failed": list(cert.failed)}}
 
 
@@ -146,17 +146,18 @@ def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, 
 
 
 @single_threaded_call
-def de_attack(attack: WillemsAttack, seed: Any = 0, maxiter: int = 300, popsize: int = 5, tol: float = 1e-8,
-              stop_when_unstable: bool = True) -> BilevelResult:
+def de_attack(attack: WillemsAttack, seed: Any = 0, max_iter: int = 300, popsize: int = 5, pop_tol: float = 1e-8,
+              stop_when_unstable: bool = True, **renamed: Any) -> BilevelResult:
     """The engine's differential evolution on the input poisoning inside the box, without its descent (a heuristic),
     a generation scored at once where the learner ignores the poisoning (_criteria); with stop_when_unstable it stops
     once the incumbent's identified loop is unstable."""
+    reject_renamed("de_attack", renamed, {"maxiter": "max_iter", "tol": "pop_tol"})
     if attack.setting.poison != "u" or attack.setting.delta_u <= 0:
         raise ModelError(f"de_attack poisons the inputs only (the paper's corollary) with delta_u > 0; got poison="
                          f"{attack.setting.poison!r}, delta_u={attack.setting.delta_u}")
     twin = {} if attack.setting.design == "lqr-r" else {"batch_objective": lambda xs, y: _criteria(attack, xs, y)}
-    return _run(attack, "differential-evolution", "differential-evolution", seed=seed, max_iter=maxiter,
-                popsize=popsize, tol=tol, polish=False, stop_when_unstable=stop_when_unstable, **twin)
+    return _run(attack, "differential-evolution", "differential-evolution", seed=seed, max_iter=max_iter,
+                popsize=popsize, pop_tol=pop_tol, polish=False, stop_when_unstable=stop_when_unstable, **twin)
 
 
 def _criteria(attack: WillemsAttack, xs: np.ndarray, y: np.ndarray) -> np.ndarray:

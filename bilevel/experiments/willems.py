@@ -46,7 +46,7 @@ from .willems_selection import selection_table  # noqa: E402
 
 DELTA_Y = 1e-3
 METHODS = {"hypergradient": "hypergradient (ours)", "destabilize": "destabilizing (ours, max rho)",
-           "de": "differential evolution", "random": "random signs"}
+           "differential-evolution": "differential evolution", "random": "random signs"}
 PAPER_CLAIMS = (
     ("small budgets suffice", "\"For very small values of delta_u we can get the system unstable.\""),
     ("more data is more fragile", "\"increasing the number of points N makes the closed-loop system unstable "
@@ -64,7 +64,7 @@ class Plan:
     deltas: tuple[float, ...]
     horizons: tuple[int, ...]
     de_popsize: int
-    de_maxiter: int
+    de_max_iter: int
     starts: int
     remark_sims: int
     remark_horizons: tuple[int, ...]
@@ -122,7 +122,7 @@ def _task(plan: Plan, root_seed: int, experiment: str, i: int, seeds: tuple[int,
     fields = "|".join(f"{k}={setting[k]}" for k in sorted(setting))
     return {"key": f"{experiment}|{method}|{fields}|sim={i}", "experiment": experiment, "method": method,
             "sim": i, "seed": seeds[0], "attack_seed": seeds[1], **setting, "root_seed": root_seed,
-            "reg": DEFAULT_REG, "starts": plan.starts, "de_popsize": plan.de_popsize, "de_maxiter": plan.de_maxiter,
+            "reg": DEFAULT_REG, "starts": plan.starts, "de_popsize": plan.de_popsize, "de_max_iter": plan.de_max_iter,
             "rho_iter": plan.rho_iter, "rho_starts": plan.rho_starts}
 
 
@@ -133,7 +133,7 @@ def paper_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict
     return [_task(plan, seed, "paper", i, s, method, horizon=n, delta_u=d, delta_x=0.0, poison="u", design="lqr",
                   criterion="destabilize" if method == "destabilize" else "eigen", selection=selection)
             for n in plan.horizons for i, s in enumerate(sim_seeds(seed, plan.sims)) for d in plan.deltas
-            for method in ("hypergradient", "de", "destabilize")]
+            for method in ("hypergradient", "differential-evolution", "destabilize")]
 
 
 def remark_tasks(plan: Plan, seed: int, selection: str = "min-norm") -> list[dict[str, Any]]:
@@ -201,8 +201,8 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
         elif task["method"] == "destabilize":
             res = destabilize_attack(attack, starts=task["rho_starts"], seed=task["attack_seed"],
                                      max_iter=task["rho_iter"])
-        elif task["method"] == "de":
-            res = de_attack(attack, seed=task["attack_seed"], maxiter=task["de_maxiter"], popsize=task["de_popsize"])
+        elif task["method"] == "differential-evolution":
+            res = de_attack(attack, seed=task["attack_seed"], max_iter=task["de_max_iter"], popsize=task["de_popsize"])
         else:
             res = random_attack(attack, seed=task["attack_seed"])
     except BilevelError as exc:
@@ -281,7 +281,8 @@ def paper_table(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
     head = " | ".join(f"N={n} {m}" for n in plan.horizons for m in ("ours log det", "ours max rho", "DE"))
     lines = [f"| delta_u | {head} |", "|---" * (1 + 3 * len(plan.horizons)) + "|"]
     for d in plan.deltas:
-        cells = [_rate(summary.get((n, m, d))) for n in plan.horizons for m in ("hypergradient", "destabilize", "de")]
+        cells = [_rate(summary.get((n, m, d))) for n in plan.horizons
+                 for m in ("hypergradient", "destabilize", "differential-evolution")]
         lines.append(f"| {d:g} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -357,7 +358,7 @@ def _series(summary: dict[tuple, dict[str, float]], n: int, method: str, deltas:
 def figure_eigenvalues(summary: dict[tuple, dict[str, float]], plan: Plan, out_dir: str) -> str:
     """Fig. 7: mean max |eig(A+BK)| (black, left) and mean sum |eig| (red, right) vs delta_u (N=15 solid, 50 dashed)."""
     fig = Figure(figsize=(12, 4), layout="constrained")
-    for ax, method in zip(fig.subplots(1, 2, sharey=True), ("hypergradient", "de")):
+    for ax, method in zip(fig.subplots(1, 2, sharey=True), ("hypergradient", "differential-evolution")):
         twin = ax.twinx()
         for n, style in zip(plan.horizons, ("-", "--")):
             for axis, name, color in ((ax, "spectral_radius", "k"), (twin, "eig_abs_sum", "tab:red")):
@@ -377,7 +378,7 @@ def figure_objective(summary: dict[tuple, dict[str, float]], plan: Plan, out_dir
     """Fig. 8: the attacker's criterion log det((A+BK)(A+BK)') vs delta_u, mean and 95% CI."""
     fig = Figure(figsize=(6, 4))
     ax = fig.subplots()
-    for method, color in (("hypergradient", "tab:blue"), ("de", "tab:orange")):
+    for method, color in (("hypergradient", "tab:blue"), ("differential-evolution", "tab:orange")):
         for n, style in zip(plan.horizons, ("-", "--")):
             d, m, lo, hi = _series(summary, n, method, plan.deltas, "objective")
             ax.plot(d, m, style, color=color, marker="o", ms=3, label=f"{METHODS[method]}, N={n}")
@@ -444,7 +445,7 @@ def _timing(summary: dict[tuple, dict[str, float]], plan: Plan) -> str:
              "|---|---|---|---|---|---|"]
     for n in plan.horizons:
         hg = [c for (m_n, m, _), c in summary.items() if m_n == n and m == "hypergradient"]
-        de = [c for (m_n, m, _), c in summary.items() if m_n == n and m == "de"]
+        de = [c for (m_n, m, _), c in summary.items() if m_n == n and m == "differential-evolution"]
         if not hg or not de:
             continue
         t_hg = float(np.median([c["time_median"] for c in hg]))
@@ -462,8 +463,9 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
     seed, learner, reg = (", ".join(map(str, settings[k])) for k in ("root_seed", "selection", "reg"))
     paper = summaries["paper"]
     hz = plan.horizons
-    first = {(n, m, lv): _first(paper, n, m, plan.deltas, lv) for n in hz for m in ("hypergradient", "de")
-             for lv in (1e-9, 0.5)}
+    first = {(n, m, lv): _first(paper, n, m, plan.deltas, lv) for n in hz
+             for m in ("hypergradient", "differential-evolution") for lv in (1e-9, 0.5)}
+    de = {(n, lv): first[(n, "differential-evolution", lv)] for n in hz for lv in (1e-9, 0.5)}
     remark = summaries["remark"]
     remark_rates = "; ".join(f"N={n}: {_rate(c)} unstable" for (n, method, crit), c in remark.items()
                              if method == "hypergradient" and crit == "maxmin") or f"not run for `{learner}`"
@@ -476,9 +478,9 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
     lqr_r = ", ".join(f"delta={d:g}: {_rate(lr.get(('lqr-r', 'u', 'eigen', d)))}" for d in plan.design_deltas)
     claims = [
         f"ours: N={hz[0]}: first unstable loop at delta_u = {first[(hz[0], 'hypergradient', 1e-9)]}, >= 50% at "
-        f"{first[(hz[0], 'hypergradient', 0.5)]} (DE: {first[(hz[0], 'de', 1e-9)]}, {first[(hz[0], 'de', 0.5)]}); "
+        f"{first[(hz[0], 'hypergradient', 0.5)]} (DE: {de[(hz[0], 1e-9)]}, {de[(hz[0], 0.5)]}); "
         f"N={hz[-1]}: {first[(hz[-1], 'hypergradient', 1e-9)]}, {first[(hz[-1], 'hypergradient', 0.5)]} "
-        f"(DE: {first[(hz[-1], 'de', 1e-9)]}, {first[(hz[-1], 'de', 0.5)]}); for scale, u ~ N(0, 1). The R-term "
+        f"(DE: {de[(hz[-1], 1e-9)]}, {de[(hz[-1], 0.5)]}); for scale, u ~ N(0, 1). The R-term "
         f"design (Thm 4, eigenvalue attack, N=15): {lqr_r}.",
         f"ours (% unstable, N={hz[0]} vs N={hz[-1]}, our attack): " + "; ".join(more_data) + ".",
         f"ours (max-min attack on the states, delta_y = 1e-3, x_0 clean): {remark_rates}; see the table below.",
@@ -507,7 +509,7 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
         "derivatives, the learner solved once) and reports the largest radius it reached.",
         f"- Ours: projected hypergradient ascent, {plan.starts} starts (clean data + uniform in the box). "
         "DE: differential evolution (bilevel.solvers.evolution.evolve: scipy's algorithm and defaults), best1bin, "
-        f"popsize {plan.de_popsize} x dim, {plan.de_maxiter} "
+        f"popsize {plan.de_popsize} x dim, {plan.de_max_iter} "
         "generations, no gradient polish, same box and seeds (the paper used MATLAB's particle swarm).",
         "- Stability is judged on the true plant: unstable iff max |eig(A + B K)| >= 1.", "",
         "## Fraction of unstable closed loops (paper setting)", "",

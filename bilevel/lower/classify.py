@@ -5,19 +5,17 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from ..defaults import param
 from ..errors import ModelError, NonConvexLowerLevel
 from ..parameters import CompiledFunction, ParameterSet
 from ..sampling import sample_in_bounds
 from .base import LowerLevel
-from .convexity import PSD_TOL, ConvexityProbe
+from .convexity import ConvexityProbe
 from .least_squares import LeastSquaresLower
 from .nlp import ConvexNLPLower
 from .quadratic import LinearLower, QuadraticLower
 from .residual import ResidualLeastSquares
 from .sdp import SemidefiniteLower
-
-Y_PROBES = 16
-"""Lower points drawn (inside the declared bounds of y) per upper sample when a Hessian depends on y."""
 
 
 def _probe(hessians: list[tuple[CompiledFunction, str]],
@@ -37,8 +35,8 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
                 assume_convex: bool = False, params: ParameterSet | None = None) -> LowerLevel:
     """Classify as least squares, LP, QP or convex NLP and build it.
 
-    Convexity in y is probed at the upper samples times Y_PROBES lower points inside the declared bounds
-    [y_lb, y_ub] (a probe, not a proof: the certificate's re-solve is the second line of defence);
+    Convexity in y is probed at the upper samples times defaults["classify.y_probes"] lower points inside the declared
+    bounds [y_lb, y_ub] (a probe, not a proof: the certificate's re-solve is the second line of defence);
     assume_convex=True skips the probe for a nonlinear lower level (a quadratic one is checked exactly).
     """
     if not ca.depends_on(f, y):
@@ -58,7 +56,8 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
         if residual is not None:  # a large least squares: its Hessian C'C formed numerically, never symbolically
             return residual
     rng = np.random.default_rng(0)
-    points = [(xs, sample_in_bounds(y_lb, y_ub, rng, 3.0)) for xs in x_samples for _ in range(Y_PROBES)]
+    probes = param("classify.y_probes")
+    points = [(xs, sample_in_bounds(y_lb, y_ub, rng, 3.0)) for xs in x_samples for _ in range(probes)]
     hess_f = ca.hessian(f, y)[0]
     nonlinear_f = np.asarray(ca.which_depends(f, y, 2, False), dtype=bool)  # sparsity propagation, no simplify
     affine_g = not (g.numel() and any(ca.which_depends(g, y, 2, False)))
@@ -76,7 +75,7 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
         if not nonlinear_f.any():
             return LinearLower(*args, hess_f=hess_f, params=params)
         probe, worst = _probe(objective, points)
-        if not g.numel() and not h.numel() and worst > PSD_TOL:
+        if not g.numel() and not h.numel() and worst > param("convexity.psd_tol"):
             return _with_probe(LeastSquaresLower(*args, hess_f=hess_f, params=params), probe)
         return _with_probe(QuadraticLower(*args, hess_f=hess_f, params=params), probe)
     if assume_convex:  # a Hessian that varies with y: convexity is the user's claim, checked by the certificate

@@ -10,14 +10,13 @@ from typing import TYPE_CHECKING, Callable
 import casadi as ca
 import numpy as np
 
+from ..defaults import param
 from ..errors import NonConvexLowerLevel
 from .interval import enclose
 
 if TYPE_CHECKING:  # pragma: no cover
     from .base import LowerLevel
 
-PSD_TOL = 1e-9
-"""A Hessian counts as PSD when its smallest eigenvalue is >= -PSD_TOL * max(1, its largest entry)."""
 
 CONVEX_FIX = ("a convex lower level is required (minimize a convex function, or maximize a concave one, over a "
               "convex set)")
@@ -57,7 +56,7 @@ def require_psd(matrix: np.ndarray, what: str, where: str) -> np.ndarray:
     NonConvexLowerLevel naming the eigenvalue: what a convex solver may be told to trust."""
     sym = 0.5 * (matrix + matrix.T)
     value, lam = scaled_violation(sym)
-    if value > PSD_TOL:
+    if value > param("convexity.psd_tol"):
         raise NonConvexLowerLevel(f"the lower level is not convex {where}: the Hessian of {what} has eigenvalue "
                                   f"{lam:.3g}; {CONVEX_FIX}")
     w, v = np.linalg.eigh(sym)
@@ -79,7 +78,7 @@ class ConvexityProbe:
             for xs, ys in self.points:
                 hess = np.asarray(fun(xs, ys))
                 value, lam = scaled_violation(hess)
-                if value > PSD_TOL:
+                if value > param("convexity.psd_tol"):
                     raise NonConvexLowerLevel(
                         f"the lower level is not convex in the lower variables: the Hessian of {what} has eigenvalue "
                         f"{lam:.3g} at x = {np.array2string(xs, precision=3)}, y = "
@@ -95,7 +94,7 @@ def require_convex_everywhere(low: "LowerLevel", x: np.ndarray) -> None:
     stationarity affine in (x, y), checked first) makes the Hessians constant in x and y, so one evaluation at any
     x proves it for the whole box; NonConvexLowerLevel naming the eigenvalue otherwise."""
     value, text = convexity_violation(low, x, np.zeros(low.n_y))
-    if value > PSD_TOL:
+    if value > param("convexity.psd_tol"):
         raise NonConvexLowerLevel(f"the lower level is not convex at the parameters' current values ({text}, the "
                                   f"same at every upper point); method 'global' proves nothing for it; {CONVEX_FIX}")
 
@@ -109,13 +108,13 @@ def _dense(fun: ca.Function, k: int, nonzeros: np.ndarray) -> np.ndarray:
 
 
 def _gershgorin_psd(lo: np.ndarray, hi: np.ndarray) -> bool:
-    """Every symmetric matrix with entries in [lo, hi] is PSD (up to PSD_TOL): each diagonal lower bound covers the
-    row's largest possible off-diagonal sum."""
+    """Every symmetric matrix with entries in [lo, hi] is PSD (up to defaults["convexity.psd_tol"]): each diagonal lower
+    bound covers the row's largest possible off-diagonal sum."""
     size = np.maximum(np.abs(lo), np.abs(hi))
     off = np.where(np.eye(size.shape[0], dtype=bool), 0.0, size).sum(axis=1)
     finite = size[np.isfinite(size)]
     scale = max(1.0, float(finite.max(initial=0.0)))
-    return bool(np.all(np.diag(lo) - off >= -PSD_TOL * scale))
+    return bool(np.all(np.diag(lo) - off >= -param("convexity.psd_tol") * scale))
 
 
 def proven_convex(low: "LowerLevel", x: np.ndarray, y_lb: np.ndarray, y_ub: np.ndarray) -> bool:

@@ -16,13 +16,13 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import linprog
 
+from ..defaults import param
 from ..errors import (InvalidData, LowerLevelInfeasible, LowerLevelUnbounded, ModelError, RankDeficientRegressor,
                       SolverFailed)
 from ..model import LowerQP
 from ..parameters import ParameterSet
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
-from .polish import ACTIVE_TOL
 from .quadratic import LinearLower, QPData, QuadraticLower, clarabel_solution, solve_qp_clarabel
 
 
@@ -134,7 +134,7 @@ class MatrixLower(LowerLevel):
         if sol is None:
             sol = (self._solve_highs(x) if self.kind == "lp"
                    else solve_qp_clarabel(self.data(x), "(a matrix QP)", psd_verified=True))
-            self._active = np.flatnonzero(sol.lam > ACTIVE_TOL)
+            self._active = np.flatnonzero(sol.lam > param("polish.active_tol"))
         return sol
 
     def _from_active_set(self, x: np.ndarray) -> LowerSolution | None:
@@ -155,7 +155,8 @@ class MatrixLower(LowerLevel):
             return None
         y, lam_b = w[:n], w[n:n + na]
         scale = 1.0 + np.abs(b)
-        if np.any(lam_b < -ACTIVE_TOL) or np.any(self.A @ y - b > 1e-9 * scale) or not np.all(np.isfinite(w)):
+        active_tol = param("polish.active_tol")
+        if np.any(lam_b < -active_tol) or np.any(self.A @ y - b > 1e-9 * scale) or not np.all(np.isfinite(w)):
             return None
         lam = np.zeros(self.A.shape[0])
         lam[rows] = np.maximum(lam_b, 0.0)

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..defaults import param
 from ..threads import single_threaded_call
 from ..vech import smat, svec
 from .base import LowerSolution
@@ -22,14 +23,6 @@ from .convexity import psd_violation
 if TYPE_CHECKING:  # pragma: no cover
     from .quadratic import QPData
 
-ACTIVE_TOL = 1e-6
-"""A row or LMI eigenvalue is taken as active when within ACTIVE_TOL * (1 + its scale) of zero."""
-FLIP_TOL = 1e-13
-"""A face's solution violating a sign condition by more than FLIP_TOL * (1 + scale) moves that constraint."""
-MAX_STEPS = 8
-"""Newton steps per face (convergence is quadratic: 2-3 steps from Clarabel's point)."""
-MAX_FACES = 4
-"""Faces tried: the first guess and up to three active-set corrections."""
 Lmi = tuple[np.ndarray, np.ndarray]
 """(M0, d vec(M)/dy) of an LMI M(y) = M0 + sum_j y_j M_j >= 0 (column-major vec)."""
 
@@ -75,7 +68,7 @@ def _face(d: QPData, mats: list[tuple[np.ndarray, np.ndarray]], sol: LowerSoluti
     lam_a, na, ne = sol.lam[rows].copy(), rows.size, d.e.size
     cuts = np.cumsum([n, na, ne] + [r * (r + 1) // 2 for r in ranks])[:-1]
     size = np.inf
-    for _ in range(MAX_STEPS):
+    for _ in range(param("polish.max_steps")):
         H, blocks, rhs, bases, lams = d.P.copy(), [], [], [], []
         for mat, r, z in zip(mats, ranks, zs):
             mj = mat[1]
@@ -114,25 +107,27 @@ def _flip(d: QPData, mats: list[tuple[np.ndarray, np.ndarray]], cand: LowerSolut
     """The next face guess: add rows/LMI eigenvalues cand violates, drop those whose multiplier came out < 0."""
     g, scale = d.A @ cand.y + d.b, 1.0 + np.abs(d.A) @ np.abs(cand.y) + np.abs(d.b)
     active = np.zeros(d.b.size, dtype=bool)
-    active[rows] = cand.lam[rows] >= -FLIP_TOL * (1.0 + np.abs(cand.lam).max(initial=0.0))
-    active |= g > FLIP_TOL * scale
+    active[rows] = cand.lam[rows] >= -param("polish.flip_tol") * (1.0 + np.abs(cand.lam).max(initial=0.0))
+    active |= g > param("polish.flip_tol") * scale
     new_ranks = []
     for mat, r, z in zip(mats, ranks, cand.Z):
         w, wz = np.linalg.eigvalsh(_at(mat, cand.y)), np.linalg.eigvalsh(z)
-        grow = r < w.size and w[r] < -FLIP_TOL * (1.0 + np.abs(w).max())
-        shrink = r > 0 and wz[0] < -FLIP_TOL * (1.0 + np.abs(wz).max())
+        grow = r < w.size and w[r] < -param("polish.flip_tol") * (1.0 + np.abs(w).max())
+        shrink = r > 0 and wz[0] < -param("polish.flip_tol") * (1.0 + np.abs(wz).max())
         new_ranks.append(r + int(grow) - int(shrink and not grow))
     return np.flatnonzero(active), new_ranks
 
 
 @single_threaded_call  # small dense linear algebra: threaded BLAS only adds overhead
-def polish(d: QPData, lmis: tuple[Lmi, ...], sol: LowerSolution, tol: float = ACTIVE_TOL) -> LowerSolution:
-    """The lowest-KKT-residual point among sol and Newton solutions on up to MAX_FACES guessed faces.
+def polish(d: QPData, lmis: tuple[Lmi, ...], sol: LowerSolution, tol: float | None = None) -> LowerSolution:
+    """The lowest-KKT-residual point among sol and Newton solutions on up to defaults["polish.max_faces"] guessed faces.
 
     First guess: rows with a_i'y + b_i >= -tol (1 + |a_i||y| + |b_i|) and, per LMI, its eigenvalues <= tol (1 + |M_k|)
     at sol. Then constraints the face's solution violates join it and those with negative multipliers leave
-    (a primal-dual active-set step), which settles solutions Clarabel leaves ambiguous (slack ~ multiplier).
+    (a primal-dual active-set step), which settles solutions Clarabel leaves ambiguous (slack ~ multiplier). tol: None
+    takes defaults["polish.active_tol"].
     """
+    tol = param("polish.active_tol", tol)
     mats = [_split(lmi, d.q.size) for lmi in lmis]
     y = sol.y
     rows = np.flatnonzero(d.A @ y + d.b >= -tol * (1.0 + np.abs(d.A) @ np.abs(y) + np.abs(d.b)))
@@ -141,7 +136,7 @@ def polish(d: QPData, lmis: tuple[Lmi, ...], sol: LowerSolution, tol: float = AC
         w = np.linalg.eigvalsh(_at(mat, y))
         ranks.append(int(np.sum(w <= tol * (1.0 + np.abs(w).max()))))
     best, best_res = sol, kkt_residual(d, lmis, sol)
-    for _ in range(MAX_FACES):
+    for _ in range(param("polish.max_faces")):
         cand = _face(d, mats, sol, rows, ranks)
         res = kkt_residual(d, lmis, cand)
         if res < best_res:

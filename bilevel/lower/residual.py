@@ -17,21 +17,12 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
+from ..defaults import param
 from ..errors import BilevelError
 from ..linear_maps import affine_parts
 from ..parameters import CompiledFunction, ParameterSet, scalar
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
-
-RESIDUAL_FORM_SIZE = 10_000
-"""Least squares whose symbolic Hessian would have more than rows x n_y^2 = this many terms use the residual form
-(measured on the VRFT learner, n_y = 6: a solve in residual form takes 0.6-0.7 of the symbolic Hessian's time from
-2,000 terms up, at the same build time; at 18,000 terms, N = 512, 95 us against 157 us)."""
-
-
-AFFINE_FILL = 4
-"""The residual data are evaluated as a sparse product when its matrix has at most this many nonzeros per operation
-of their expressions (a nonzero costs about a quarter of an operation of CasADi's evaluator)."""
 
 
 def sum_of_squares(f: ca.SX, y: ca.SX) -> tuple[ca.SX, ca.SX] | None:
@@ -70,15 +61,6 @@ def sum_of_squares(f: ca.SX, y: ca.SX) -> tuple[ca.SX, ca.SX] | None:
     return r * ca.DM(scales), (ca.sum1(ca.vertcat(*rest)) if rest else ca.SX(0.0))  # one elementwise product
 
 
-NUMERIC_SQUARES_SIZE = 1_000
-"""An objective of y alone written as a sum of squares with at least this many nonzero coefficients is evaluated by
-BLAS (NumericSquares): a sweep costs about 18 ns per coefficient (57 us at the VRFT objective's 512 x 6, value and
-gradient), a numpy call a few microseconds."""
-SPARSE_SQUARES = 0.25
-"""Below this fraction of nonzero coefficients the matrix of NumericSquares is kept sparse (||w - w0||^2 over 2,000
-entries: a diagonal, 2,000 of 4,000,000)."""
-
-
 @dataclass(frozen=True)
 class NumericSquares:
     """f(y) = sign * (1/2 ||A y + r0||^2 + c) with numeric A (dense, or sparse when mostly zeros), r0 and c."""
@@ -96,7 +78,7 @@ class NumericSquares:
 
 def numeric_squares(f: ca.SX, y: ca.SX, others: ca.SX) -> NumericSquares | None:
     """f as NumericSquares when it reads none of `others` and is (minus) a sum of squares of expressions affine in y
-    (sum_of_squares) with at least NUMERIC_SQUARES_SIZE coefficients, else None."""
+    (sum_of_squares) with at least defaults["residual.numeric_squares_size"] coefficients, else None."""
     if ca.depends_on(f, others):
         return None
     for sign in (1.0, -1.0):
@@ -104,10 +86,10 @@ def numeric_squares(f: ca.SX, y: ca.SX, others: ca.SX) -> NumericSquares | None:
         if form is not None:
             r, c = form
             jac = ca.jacobian(r, y)
-            if jac.nnz() < NUMERIC_SQUARES_SIZE:
+            if jac.nnz() < param("residual.numeric_squares_size"):
                 return None
             A = sp.csr_matrix(ca.evalf(jac).sparse())
-            A = A if jac.nnz() < SPARSE_SQUARES * jac.numel() else A.toarray()
+            A = A if jac.nnz() < param("residual.sparse_squares") * jac.numel() else A.toarray()
             r0 = np.asarray(ca.evalf(ca.substitute(r, y, ca.DM.zeros(int(y.numel())))), dtype=float).ravel()
             return NumericSquares(sign, A, r0, float(ca.evalf(c)))
     return None
@@ -133,10 +115,11 @@ class ResidualLeastSquares(LowerLevel):
     @classmethod
     def recognize(cls, x: ca.SX, y: ca.SX, f: ca.SX, x_samples: list[np.ndarray],
                   params: ParameterSet) -> "ResidualLeastSquares | None":
-        """The residual form of an unconstrained lower objective when f is a sum of squares of expressions affine in
-        y with more than RESIDUAL_FORM_SIZE Hessian terms and C'C positive definite at the samples; else None."""
+        """The residual form of an unconstrained lower objective when f is a sum of squares of expressions affine in y
+        with more than defaults["residual.form_size"] Hessian terms and C'C positive definite at the samples; else
+        None."""
         form = sum_of_squares(f, y)
-        if form is None or int(form[0].numel()) * int(y.numel()) ** 2 <= RESIDUAL_FORM_SIZE:
+        if form is None or int(form[0].numel()) * int(y.numel()) ** 2 <= param("residual.form_size"):
             return None
         low = cls(x, y, f, *form, params=params)
         check = params.function("residual_check", [x, y], [f])
@@ -178,10 +161,10 @@ class ResidualLeastSquares(LowerLevel):
 
     def _affine_data(self, data: ca.SX) -> tuple[sp.csr_matrix, np.ndarray, sp.csr_matrix] | None:
         """(J, b, J') with [vec C(x); d(x)] = J x + b when the data are affine in x, read no parameters and J has at
-        most AFFINE_FILL nonzeros per operation of their expressions (signals the leader moves, sliced or mapped): then
-        C and d cost one sparse product, their x-adjoint one transposed one; else None (the expressions are
-        evaluated)."""
-        if ca.jacobian_sparsity(data, self.x).nnz() > AFFINE_FILL * self._data.n_instructions():
+        most defaults["residual.affine_fill"] nonzeros per operation of their expressions (signals the leader moves,
+        sliced or mapped): then C and d cost one sparse product, their x-adjoint one transposed one; else None (the
+        expressions are evaluated)."""
+        if ca.jacobian_sparsity(data, self.x).nnz() > param("residual.affine_fill") * self._data.n_instructions():
             return None  # e.g. a recursive filter: a few operations per sample, a dense lower-triangular Jacobian
         return affine_parts(data, self.x, self.params.sym)
 

@@ -11,22 +11,12 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
+from ..defaults import param
 from ..errors import ModelError, SolverFailed
 from ..vech import unvech, vech, vech_sx
 from .base import LowerSolution
 from .convexity import psd_violation
 from .quadratic import QPData, QuadraticLower, clarabel_direct, solve_qp_clarabel
-
-PSD_TOL = 1e-9
-"""Relative PSD violation of M_k and Z_k tolerated in a polished iterate."""
-CONTINUATION_TOL, CONTINUATION_STEPS = 1e-9, 6
-"""KKT residual that a Newton continuation from a nearby solution must reach (no worse than a polished conic solve),
-and its Newton steps."""
-POLISHED_TOL = 1e-6
-"""Largest KKT residual of a polished solution of an SDP that moves with x (its derivative needs a KKT point)."""
-FREE_RTOL = 1e-10
-"""Singular values below FREE_RTOL times the largest count as zero when finding the directions the SDP sees."""
-
 
 def range_basis(matrix: np.ndarray, rtol: float) -> np.ndarray:
     """Orthonormal basis (columns) of the column space of matrix: singular values <= rtol * the largest count as
@@ -119,12 +109,13 @@ class SemidefiniteLower(QuadraticLower):
 
     def _polished(self, x: np.ndarray) -> LowerSolution:
         """Clarabel's point (its own interface) Newton-polished and selected; SolverFailed where the SDP moves with x
-        and the polish stays above POLISHED_TOL (no strictly complementary solution: y*(x) has no derivative there)."""
+        and the polish stays above defaults["sdp.polished_tol"] (no strictly complementary solution: y*(x) has no
+        derivative there)."""
         verified = self.constant_hessian and self.convexity_probe is not None  # the declaration's PSD check
         raw = clarabel_direct(self.data(x), self._context(x), verified, self.lmi_data(x))
         sol, residual = self.newton_polish(x, raw)
-        if residual > POLISHED_TOL and not self.fixed:
-            raise SolverFailed(f"the SDP {self._context(x)} has KKT residual {residual:.1e} > {POLISHED_TOL:g} after "
+        if residual > (tol := param("sdp.polished_tol")) and not self.fixed:
+            raise SolverFailed(f"the SDP {self._context(x)} has KKT residual {residual:.1e} > {tol:g} after "
                                "Newton polishing (no strictly complementary solution found): its solution's derivative "
                                "is not defined there; move x or regularize the lower objective (e.g. raise reg)")
         return self.select(x, sol)
@@ -232,10 +223,10 @@ class SemidefiniteLower(QuadraticLower):
         return float(np.abs(np.asarray(self.conic_kkt.residual(x, self.pack(sol))[0])).max(initial=0.0))
 
     def in_cones(self, x: np.ndarray, sol: LowerSolution) -> bool:
-        """Whether g <= 0, lam >= 0 and every M_k, Z_k is PSD up to PSD_TOL (relative)."""
+        """Whether g <= 0, lam >= 0 and every M_k, Z_k is PSD up to defaults["sdp.psd_tol"] (relative)."""
         _, g, _, mats = self.evaluate(x, sol.y)
-        scalar = np.all(g <= PSD_TOL * (1.0 + np.abs(g))) and np.all(sol.lam >= -PSD_TOL)
-        return bool(scalar) and all(psd_violation(m) <= PSD_TOL * (1.0 + float(np.abs(m).max()))
+        scalar = np.all(g <= param("sdp.psd_tol") * (1.0 + np.abs(g))) and np.all(sol.lam >= -param("sdp.psd_tol"))
+        return bool(scalar) and all(psd_violation(m) <= param("sdp.psd_tol") * (1.0 + float(np.abs(m).max()))
                                     for m in list(mats) + list(sol.Z))
 
     def newton_polish(self, x: np.ndarray, sol: LowerSolution, steps: int = 4) -> tuple[LowerSolution, float]:
@@ -261,29 +252,30 @@ class SemidefiniteLower(QuadraticLower):
         return sol, best
 
     def continue_from(self, x: np.ndarray, near: LowerSolution,
-                      steps: int = CONTINUATION_STEPS) -> tuple[LowerSolution, float] | None:
-        """The solution at x by Newton steps on r(w; x) = 0 from `near`, a solution at a nearby upper point
-        (continuation, no conic solve), with its residual; None unless an iterate inside the cones reaches
-        CONTINUATION_TOL (then solve afresh). A KKT point inside the cones is optimal (the SDP is convex)."""
-        sol, residual = self.newton_polish(x, near, steps)
-        return (sol, residual) if sol is not near and residual <= CONTINUATION_TOL else None
+                      steps: int | None = None) -> tuple[LowerSolution, float] | None:
+        """The solution at x by `steps` Newton steps (None: defaults["sdp.continuation_steps"]) on r(w; x) = 0 from
+        `near`, a solution at a nearby upper point (continuation, no conic solve), with its residual; None unless an
+        iterate inside the cones reaches defaults["sdp.continuation_tol"] (then solve afresh). A KKT point inside the
+        cones is optimal (the SDP is convex)."""
+        sol, residual = self.newton_polish(x, near, param("sdp.continuation_steps", steps))
+        return (sol, residual) if sol is not near and residual <= param("sdp.continuation_tol") else None
 
     def seen_directions(self, x: np.ndarray) -> np.ndarray:
         """Orthonormal basis S (n_y x k) of the smallest P-invariant subspace holding the rows of A, E, q' and every
         LMI coefficient d vec(M_k)/dy: the SDP sees y only through S'y and a ridge on the rest. Along the rest
         stationarity reads (T'PT) T'y = 0 (T spans the rest), so the exact solution of a ridge-regularized SDP lies
         in span S, and without a ridge its projection S S'y is the minimum-norm point of the optimal set (singular
-        values below FREE_RTOL times the largest count as zero)."""
+        values below defaults["sdp.free_rtol"] times the largest count as zero)."""
         d = self.data(x)
         rows = np.vstack([d.A, d.E, d.q[None, :], *(jac for _, jac in self.lmi_data(x))])
-        basis = range_basis(rows.T, FREE_RTOL)
+        basis = range_basis(rows.T, param("sdp.free_rtol"))
         p_scale = float(np.abs(d.P).max(initial=0.0))
         while basis.shape[1] < self.n_y:  # close under P (Krylov): then the rest is P-invariant too
             moved = d.P @ basis
             leak = moved - basis @ (basis.T @ moved)
-            if not np.abs(leak).max(initial=0.0) > FREE_RTOL * p_scale:
+            if not np.abs(leak).max(initial=0.0) > param("sdp.free_rtol") * p_scale:
                 break
-            basis = range_basis(np.hstack([basis, leak / p_scale]), FREE_RTOL)
+            basis = range_basis(np.hstack([basis, leak / p_scale]), param("sdp.free_rtol"))
         return basis
 
     def select_min_norm(self, x: np.ndarray, sol: LowerSolution) -> LowerSolution:

@@ -246,7 +246,7 @@ def _load(problem: BilevelProblem, atk: VRFTAttack) -> None:
     for name, value in values.items():
         problem.set_value(name, value)
     _NORMS[problem] = norms
-    problem.starts.clear()  # a_y = 0 is stationary: the engine's first start is its conditioning start
+    problem.suggested_starts.clear()  # a_y = 0 is stationary: the engine's first start is its conditioning start
     _INSTANCES[problem] = atk
 
 

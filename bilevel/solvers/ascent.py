@@ -13,8 +13,7 @@ from typing import Any, Callable, Literal
 
 import numpy as np
 
-ARMIJO = 1e-4
-WINDOW = 5
+from ..defaults import param
 
 
 def budget_direction(g: np.ndarray, radius: float, order: float) -> np.ndarray:
@@ -33,17 +32,16 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]],
                      min_step: float = 1e-8) -> tuple[np.ndarray, float, Any, int, int, bool]:
     """Monotone spectral projected gradient ascent (Birgin, Martinez & Raydan 2000) in budget units z = x / scale.
 
-    direction(aux) returns (gradient, first direction): the first step is step0 * that direction (about one
-    budget radius), later ones P(x + lam * alpha * scale^2 * g) with alpha a Barzilai-Borwein length in z (bb:
-    "short" s'y/y'y, suits smooth ball-constrained ascents; "long" s's/s'y, Birgin et al.'s choice, reaches the
-    vertices of a box in fewer steps; it grows the last step 4x where the ascent sees no negative curvature),
-    and lam halved until an Armijo increase (the line search fails below lam = min_step).
-    Stops when the relative gain over the last `WINDOW` accepted steps is below tol, or no step is accepted, or
-    the projection holds x still, or stop(aux) holds at the start or at an accepted point (the caller's goal).
-    at(aux), if given, is where f actually evaluated (a callback that moves an unevaluable point, e.g. into the
-    lower level's domain); why, if given, receives the reason under "stop": "window", "line search", "stationary",
-    "stop", "zero step" or "max_iter".
-    Returns x, f, aux, iterations, evaluations, converged.
+    direction(aux) returns (gradient, first direction): the first step is step0 * that direction (about one budget
+    radius), later ones P(x + lam * alpha * scale^2 * g) with alpha a Barzilai-Borwein length in z (bb: "short" s'y/y'y,
+    suits smooth ball-constrained ascents; "long" s's/s'y, Birgin et al.'s choice, reaches the vertices of a box in
+    fewer steps; it grows the last step 4x where the ascent sees no negative curvature), and lam halved until an Armijo
+    increase (the line search fails below lam = min_step). Stops when the relative gain over the last
+    `defaults["ascent.window"]` accepted steps is below tol, or no step is accepted, or the projection holds x still, or
+    stop(aux) holds at the start or at an accepted point (the caller's goal). at(aux), if given, is where f actually
+    evaluated (a callback that moves an unevaluable point, e.g. into the lower level's domain); why, if given, receives
+    the reason under "stop": "window", "line search", "stationary", "stop", "zero step" or "max_iter". Returns x, f,
+    aux, iterations, evaluations, converged.
     """
     why = {} if why is None else why
     x = project(x0)
@@ -73,7 +71,7 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]],
             evals += 1
             if at is not None and np.isfinite(fn):
                 xn = at(auxn)
-            if fn >= fx + ARMIJO * float(g @ (xn - x)) and fn >= fx:
+            if fn >= fx + param("ascent.armijo") * float(g @ (xn - x)) and fn >= fx:
                 break
             lam *= 0.5
             if lam < min_step:
@@ -96,7 +94,7 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]],
             alpha = curvature / yy if curvature > 0 and yy > 0 else None
         x, fx, aux, g, d = xn, fn, auxn, gn, dn
         history.append({"iter": it, "value": fx, "step": lam})
-        if it >= WINDOW and fx - history[-WINDOW]["value"] <= tol * max(abs(fx), 1e-12):
+        if it >= param("ascent.window") and fx - history[-param("ascent.window")]["value"] <= tol * max(abs(fx), 1e-12):
             converged, why["stop"] = True, "window"
             break
     return x, fx, aux, it, evals, converged

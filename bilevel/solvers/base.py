@@ -2,22 +2,25 @@
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any
+from typing import Any, Callable, Iterable
 
 import casadi as ca
 import numpy as np
 
 from ..canonical import (CanonicalBilevel, Canonicalize, NormalizeSense, in_sense, kkt_solution, objectives,
                          suggested_starts)
-from ..certificate import DEFAULT_TOL, LOCAL_EVIDENCE, Certificate, GlobalBound, certify
-from ..errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption
+from ..certificate import LOCAL_EVIDENCE, Certificate, GlobalBound, certify
+from ..defaults import param
+from ..errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption, did_you_mean
 from ..model import BilevelProblem
 from ..mpcc import MPCC
 from ..reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
 from ..result import BilevelResult, Status
 from .optimistic import optimistic_selection
+from .options import RENAMED_OPTIONS
 from .probe import improving_neighbour
 from .projections import Projection
 from .structure import Ball, ball_forms, find_balls, upper_projection
@@ -149,14 +152,15 @@ def prepare(problem: BilevelProblem) -> Prepared:
 @dataclass
 class MethodRun:
     """A method's raw outcome: its best MPCC vector (or None) and its own view of convergence. The "objective" of its
-    history and starts records is the canonical (minimized) upper objective; finalize reports it declared."""
+    history and start_records (one per multistart start) is the canonical (minimized) upper objective; finalize
+    reports it declared."""
 
     w: np.ndarray | None
     status: Status
     message: str
     nit: int = 0
     history: list[dict[str, Any]] = field(default_factory=list)
-    starts: list[dict[str, Any]] = field(default_factory=list)
+    start_records: list[dict[str, Any]] = field(default_factory=list)
     stats: dict[str, Any] = field(default_factory=dict)
     feasible_set: Projection | None = None
     """The upper set the method searched when narrower than the declared one (a `projection` option)."""
@@ -176,25 +180,36 @@ def unbounded_lower(prep: Prepared, x: np.ndarray) -> str | None:
     return None
 
 
-FEASIBILITY_TOL = 1e-6
-"""Largest residual at which a method's candidate counts as feasible when the best start is chosen."""
-
-
 def best_of(candidates: list[tuple[np.ndarray, float, float]]) -> int:
-    """Index of the feasible candidate (residual <= FEASIBILITY_TOL) with the lowest objective, else the least
-    infeasible one."""
-    feasible = [i for i, (_, _, r) in enumerate(candidates) if r <= FEASIBILITY_TOL]
+    """Index of the feasible candidate (residual <= defaults["solvers.feasibility_tol"]) with the lowest objective, else
+    the least infeasible one."""
+    tol = param("solvers.feasibility_tol")
+    feasible = [i for i, (_, _, r) in enumerate(candidates) if r <= tol]
     if feasible:
         return min(feasible, key=lambda i: candidates[i][1])
     return min(range(len(candidates)), key=lambda i: candidates[i][2])
 
 
-def check_options(method: str, given: dict[str, Any], allowed: set[str]) -> None:
-    """Raise UnknownOption naming the unknown keys and the accepted ones (typos must not run silently)."""
+def options_of(method: Callable[..., Any]) -> frozenset[str]:
+    """The options a method accepts: the keyword-only parameters of its signature (scipy's _minimize_* style)."""
+    return frozenset(name for name, p in inspect.signature(method).parameters.items()
+                     if p.kind is inspect.Parameter.KEYWORD_ONLY)
+
+
+def check_options(method: str, given: dict[str, Any], accepted: Callable[..., Any] | Iterable[str]) -> None:
+    """Raise UnknownOption naming the options `given` that a method does not accept, and those it accepts: the
+    keyword-only parameters of `accepted` where it is the method's function (given: what its **unknown collected),
+    else the names listed; an option renamed within the last release names its new name (RENAMED_OPTIONS)."""
+    allowed = options_of(accepted) if callable(accepted) else frozenset(accepted)
     unknown = sorted(set(given) - allowed)
-    if unknown:
-        raise UnknownOption(f"method {method!r} does not take option(s) {', '.join(unknown)}; "
-                            f"it accepts: {', '.join(sorted(allowed))}")
+    if not unknown:
+        return
+    renamed = [f"{old} was renamed: use {RENAMED_OPTIONS[method][old]}" for old in unknown
+               if old in RENAMED_OPTIONS.get(method, {})]
+    if renamed:
+        raise UnknownOption(f"method {method!r}: option {'; option '.join(renamed)}")
+    raise UnknownOption(f"method {method!r} does not take option(s) {', '.join(unknown)}; "
+                        f"{did_you_mean(unknown[0], allowed)}it accepts: {', '.join(sorted(allowed))}")
 
 
 def _final_status(run: MethodRun, passed: bool) -> tuple[Status, str]:
@@ -243,14 +258,15 @@ def _declared_records(prep: Prepared, records: list[dict[str, Any]]) -> tuple[di
                  for r in records)
 
 
-def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol: float = DEFAULT_TOL) -> BilevelResult:
-    """Certify the run's point, map it back to declared names and senses, and decide the status."""
+def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol: float | None = None) -> BilevelResult:
+    """Certify the run's point (up to tol; None: defaults["certificate.tol"]), map it back to declared names and
+    senses, and decide the status."""
     run = replace(run, history=list(_declared_records(prep, run.history)),
-                  starts=list(_declared_records(prep, run.starts)))
+                  start_records=list(_declared_records(prep, run.start_records)))
     if run.w is None or not np.all(np.isfinite(run.w)):
         return BilevelResult(run.status if run.status is not Status.SOLVED else Status.ERROR, run.message, method,
                              prep.problem.name, {}, {}, {}, None, None, None, wall_time, run.nit,
-                             tuple(run.history), tuple(run.starts), run.stats)
+                             tuple(run.history), tuple(run.start_records), run.stats)
     point = prep.point(run.w)
     try:
         cert = certify(prep.canon, point, tol)
@@ -259,7 +275,7 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
     except BilevelError as exc:  # evaluation failed: keep the point, say why
         cert = None
         run = MethodRun(run.w, Status.ERROR, f"certificate could not be computed: {exc}", run.nit, run.history,
-                        run.starts, run.stats)
+                        run.start_records, run.stats)
     status, message = _final_status(run, cert is not None and cert.passed)
     if status is Status.SOLVED and cert is not None and not cert.convexity_proven:
         status, message = Status.INACCURATE, f"{message}; {LOCAL_EVIDENCE}"
@@ -286,4 +302,4 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
 
     return BilevelResult(status, message, method, prep.problem.name, sol.x, sol.y, sol.multipliers,
                          sol.upper_objective, sol.lower_objective, cert, wall_time, run.nit, tuple(run.history),
-                         tuple(run.starts), stats, evaluate)
+                         tuple(run.start_records), stats, evaluate)

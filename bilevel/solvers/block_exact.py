@@ -24,6 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..canonical import CanonicalBilevel
+from ..defaults import param
 from ..errors import BilevelError
 from ..lower.base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from ..lower.images import ImageLower
@@ -34,7 +35,7 @@ from ..reduction import KKTPoint
 from ..result import Status
 from .ascent import projected_ascent
 from .base import MethodRun, Prepared, best_of
-from .implicit import DEFAULT_PENALTY, Evaluation, shared_oracle
+from .implicit import Evaluation, shared_oracle
 from .limits import Deadline, progress, stopped
 from .projections import Blocks, Projection
 from .starts import start_points
@@ -218,21 +219,25 @@ def exact_block_of(prep: Prepared) -> tuple[ExactBlock | None, list[str]]:
     return exact, why
 
 
-def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[str], starts: int = 4, seed: Any = 0,
-                            scale: float = 10.0, penalty: float = DEFAULT_PENALTY, tol: float = 1e-5,
-                            max_iter: int = 500, verbose: bool = False, time_limit: float | None = None,
+def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[str], starts: int | None = None,
+                            seed: Any = 0, scale: float | None = None, penalty: float | None = None,
+                            gain_tol: float | None = None, max_iter: int | None = None, verbose: bool = False,
+                            time_limit: float | None = None,
                             oracle: Any = None, projection: Projection | None = None,
                             weights: np.ndarray | None = None) -> MethodRun:
     """Multistart ascent of the other upper variables (the engine's loop, bilevel.solvers.ascent) on phi with the
-    exact block at its global optimum at every evaluation (exact None: every upper variable ascends); tol: relative
-    gain over the loop's window; at time_limit (seconds) the best point so far, status MAX_ITERATIONS.
+    exact block at its global optimum at every evaluation (exact None: every upper variable ascends); gain_tol:
+    relative gain over the loop's window; at time_limit (seconds) the best point so far, status MAX_ITERATIONS. None
+    takes the registry's value (hypergradient.starts, .scale, .max_iter, implicit.penalty, block_exact.gain_tol).
     A structured problem passes its own oracle (evaluate(*exact.solve(x)) or evaluate(x) -> a point with x, phi, F
     and lower; gradient(point)[0] = grad phi; optionally hessian_parts for the conditioning start), projection (a set narrower than the declared one, then the run's
     feasible_set) and weights (per-entry length scales; default: ball radii, else 1)."""
-    starts, scale, tol, max_iter = int(starts), float(scale), float(tol), int(max_iter)
+    starts, scale = int(param("hypergradient.starts", starts)), float(param("hypergradient.scale", scale))
+    tol, max_iter = float(param("block_exact.gain_tol", gain_tol)), int(param("hypergradient.max_iter", max_iter))
     balls = prep.balls
     if oracle is None:
-        oracle = shared_oracle(prep, float(penalty), projected_rows=tuple(b.row for b in balls))
+        oracle = shared_oracle(prep, float(param("implicit.penalty", penalty)),
+                               projected_rows=tuple(b.row for b in balls))
     S = slice(0, 0) if exact is None else exact.ball.block
     mask = np.ones(int(prep.canon.x.numel()), dtype=bool)
     mask[S] = False

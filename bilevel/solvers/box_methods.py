@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from ..defaults import param
 from ..errors import ModelError
 from ..reduction import KKTPoint
 from ..result import Status
@@ -19,8 +20,9 @@ from .options import check_common_options, check_counts
 
 
 def random_signs(prep: Prepared, *, seed: Any = 0, **unknown: Any) -> MethodRun:
-    """Method: every upper entry at a bound, the side drawn by a fair coin (a budget-matched baseline)."""
-    check_options("random-signs", unknown, {"seed"})
+    """Method: every upper entry at a bound, the side drawn by a fair coin seeded by `seed` (a budget-matched
+    baseline)."""
+    check_options("random-signs", unknown, random_signs)
     canon = prep.canon
     sign = np.random.default_rng(seed).choice([-1.0, 1.0], size=canon.x_lb.size)
     ev = shared_oracle(prep).evaluate(np.where(sign > 0, canon.x_ub, canon.x_lb))
@@ -28,12 +30,15 @@ def random_signs(prep: Prepared, *, seed: Any = 0, **unknown: Any) -> MethodRun:
     return MethodRun(w, Status.INACCURATE, "random signs at the budget (a baseline, not an optimizer)")
 
 
-def destabilize(prep: Prepared, *, starts: int = 64, seed: Any = 0, max_iter: int = 100, pool: int = 512,
-                **unknown: Any) -> MethodRun:
+def destabilize(prep: Prepared, *, starts: int | None = None, seed: Any = 0, max_iter: int | None = None,
+                pool: int | None = None, **unknown: Any) -> MethodRun:
     """Method: maximize a spectral-radius objective over a symmetric box where the lower level ignores x: `starts`
-    points ascend together (batched_box_ascent), the box's centre and the largest-rho points of a pool of `pool`
-    random ones (half uniform, half vertices). Returns the ascents' best point (not a certified local maximum)."""
-    check_options("destabilize", unknown, {"starts", "seed", "max_iter", "pool"})
+    points ascend together (batched_box_ascent) for up to max_iter steps, the box's centre and the largest-rho points of
+    a pool of `pool` random ones (half uniform, half vertices, drawn from `seed`). Returns the ascents' best point (not
+    a certified local maximum). None takes the registry's value, defaults["destabilize.NAME"] (bilevel.defaults)."""
+    check_options("destabilize", unknown, destabilize)
+    starts, max_iter = param("destabilize.starts", starts), param("destabilize.max_iter", max_iter)
+    pool = param("destabilize.pool", pool)
     check_common_options({"starts": starts, "seed": seed, "max_iter": max_iter})
     check_counts({"pool": pool}, ("pool",))
     engine, bound = shared_oracle(prep), prep.canon.x_ub

@@ -12,7 +12,8 @@ without it the best member is a heuristic's answer, never `solved`.
 Default budget, for n upper entries: min(15 n, MEMBERS) members (scipy's popsize 15, capped so a generation costs a
 bounded number of lower solves on 80-1,000 upper variables) and min(100, max(20, EVALUATIONS // members))
 generations (100 up to 30 members, as scipy's default), so a default run costs at most about EVALUATIONS + 2 MEMBERS
-lower solves whatever n is (then the descent). Option popsize sets popsize * n members (scipy's meaning), max_iter
+lower solves whatever n is (then the descent); MEMBERS and EVALUATIONS are defaults["evolution.members"] and
+defaults["evolution.evaluations"]. Option popsize sets popsize * n members (scipy's meaning), max_iter
 the generations. Option time_limit stops the search between evaluations once one point has been scored (the members left in that
 generation score UNSOLVED) and bounds the descent; verbose reports each generation.
 """
@@ -24,26 +25,25 @@ from typing import Any, Callable
 import numpy as np
 import scipy.optimize
 
+from ..defaults import param
 from ..errors import BilevelError, ModelError
 from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, check_options
-from .hypergradient import DESCENT_FTOL, DESCENT_MAX_ITER, DESCENT_TOL, Arc, Descent, descend, intermediate
-from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, shared_oracle
-from .limits import deadline, progress
+from .hypergradient import Arc, Descent, descend, intermediate
+from .implicit import shared_oracle
+from .limits import Deadline, progress
 from .options import check_counts
 from .starts import start_points
 
 UNSOLVED = 1e20
 """phi's stand-in where the lower level cannot be solved (differential evolution ranks finite values only)."""
-MEMBERS, EVALUATIONS = 64, 3000
-"""The default budget's caps: members of the population, and evaluations the generations are sized to."""
 
 
 def default_budget(n: int) -> tuple[int, int]:
     """(members, generations) of a default run on n upper entries (module docstring)."""
-    members = max(5, min(15 * n, MEMBERS))
-    return members, min(100, max(20, EVALUATIONS // members))
+    members = max(5, min(15 * n, param("evolution.members")))
+    return members, min(100, max(20, param("evolution.evaluations") // members))
 
 
 MUTATION, RECOMBINATION = (0.5, 1.0), 0.7
@@ -119,16 +119,25 @@ def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, 
                                          message=message, success=success)
 
 
-def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
-    """Differential evolution over the upper box (options: starts, seed, max_iter generations, popsize, tol, penalty,
-    polish, time_limit, verbose, callback, batch_objective; default budget in the module docstring), then the engine's
-    descent from its best point unless polish=False. callback(intermediate) sees each generation's best point (x, y,
-    fun declared) and, with polish, every point of the descent; raising StopIteration ends the method there (the
-    caller's goal). batch_objective(xs, y) -> the declared upper objective at each column of xs (n_x x S) with lower
-    solution y: where the lower level ignores x and only the box constrains x, it scores a generation in one numeric
-    call instead of the engine's mapped sweep (the caller's vectorized twin of its objective)."""
-    check_options("differential-evolution", options, {"starts", "seed", "max_iter", "popsize", "tol", "penalty",
-                                                      "polish", "time_limit", "verbose", "callback", "batch_objective"})
+def solve_evolution(prep: Prepared, *, starts: int | None = None, seed: Any = 0, popsize: int | None = None,
+                    max_iter: int | None = None, pop_tol: float | None = None, penalty: float | None = None,
+                    polish: bool = True, callback: Callable[[scipy.optimize.OptimizeResult], Any] | None = None,
+                    batch_objective: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                    time_limit: float | None = None, verbose: bool = False, **unknown: Any) -> MethodRun:
+    """Differential evolution over the upper box, then the engine's descent from its best point unless polish=False.
+    An option left None takes the registry's value (bilevel.defaults: evolution.NAME, implicit.penalty) or the
+    default budget of the module docstring.
+
+    starts: multistart points seeded into the population; seed: the random stream's seed; popsize: popsize * n
+    members; max_iter: generations; pop_tol: the search stops when the population's values spread by at most pop_tol
+    relative to their mean; penalty: weight of the penalized upper violation; polish: run the descent
+    (hypergradient's defaults) from the best member; time_limit (seconds); verbose: one line per generation.
+    callback(intermediate) sees each generation's best point (x, y, fun declared) and, with polish, every point of the
+    descent; raising StopIteration ends the method there (the caller's goal). batch_objective(xs, y) -> the declared
+    upper objective at each column of xs (n_x x S) with lower solution y: where the lower level ignores x and only the
+    box constrains x, it scores a generation in one numeric call instead of the engine's mapped sweep (the caller's
+    vectorized twin of its objective)."""
+    check_options("differential-evolution", unknown, solve_evolution)
     canon = prep.canon
     lb, ub = canon.x_lb, canon.x_ub
     if not (np.all(np.isfinite(lb)) and np.all(np.isfinite(ub))):
@@ -136,16 +145,16 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
         raise ModelError(f"differential-evolution searches the upper box, but {free} of the {lb.size} upper entries "
                          "have no finite bound on some side: declare lb and ub on every upper variable, or use "
                          "method 'hypergradient'")
-    check_counts(options, ("popsize",))
+    check_counts({} if popsize is None else {"popsize": popsize}, ("popsize",))
     members, generations = default_budget(lb.size)
-    if "popsize" in options:
-        members = max(5, options["popsize"] * lb.size)
-    generations = int(options.get("max_iter", generations))
-    penalty = float(options.get("penalty", DEFAULT_PENALTY))
+    if popsize is not None:
+        members = max(5, popsize * lb.size)
+    generations = int(generations if max_iter is None else max_iter)
+    penalty = float(param("implicit.penalty", penalty))
     oracle = shared_oracle(prep, penalty)
-    rng = np.random.default_rng(options.get("seed", 0))
-    limit, verbose = deadline(options), options.get("verbose")
-    seeded = [np.clip(x, lb, ub) for x in start_points(prep, int(options.get("starts", 1)), rng, 1.0)][:members]
+    rng = np.random.default_rng(seed)
+    limit = Deadline(time_limit)
+    seeded = [np.clip(x, lb, ub) for x in start_points(prep, int(param("evolution.starts", starts)), rng, 1.0)][:members]
     population = np.array(seeded + [rng.uniform(lb, ub) for _ in range(members - len(seeded))])
     best: dict[str, Any] = {}
 
@@ -180,7 +189,7 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
             best["ev"] = oracle.evaluate(xs[:, i])
         return phi
 
-    callback, goal = options.get("callback"), []
+    goal = []
 
     def generation(intermediate_result: scipy.optimize.OptimizeResult) -> bool:  # scipy passes it by this name
         """One progress line per generation; True (stop) at the deadline or where the callback raises StopIteration."""
@@ -194,12 +203,12 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
                 return True
         return limit.expired()
 
-    fixed, twin = oracle.low.fixed, options.get("batch_objective")
+    fixed, twin = oracle.low.fixed, batch_objective
     if twin is not None and (not callable(twin) or not fixed or canon.G.numel() + canon.H.numel()):
         raise ModelError("option batch_objective must be a callable(xs, y), for a lower level that ignores the upper "
                          "variables and a problem without upper constraints besides the box; drop it otherwise")
     progress(verbose, "differential-evolution", f"{members} members, up to {generations} generations")
-    out = evolve(batch if fixed else value, lb, ub, rng, generations, 15, float(options.get("tol", 1e-8)),
+    out = evolve(batch if fixed else value, lb, ub, rng, generations, 15, float(param("evolution.pop_tol", pop_tol)),
                  stop=generation, vectorized=fixed, init=population)
     if "ev" not in best:
         return MethodRun(None, Status.ERROR, f"the lower level could not be solved at any of the {out.nfev} points "
@@ -211,9 +220,9 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
              "evolution_message": searched, "members": members, "penalty": penalty}
     record = {"start": 0, "objective": found.F, "residual": found.violation, "generations": int(out.nit)}
     start = None
-    if options.get("polish", True) and not goal:  # the descent's oracle: recognized balls projected on, not penalized
-        polish = shared_oracle(prep, penalty, ACTIVE_TOL, tuple(b.row for b in prep.balls))
-        arc = Arc(prep, polish, prep.projection, callback)
+    if polish and not goal:  # the descent's oracle: recognized balls projected on, not penalized
+        descent = shared_oracle(prep, penalty, param("implicit.active_tol"), tuple(b.row for b in prep.balls))
+        arc = Arc(prep, descent, prep.projection, callback)
         try:
             start = arc(found.x)
         except StopIteration:
@@ -230,7 +239,8 @@ def solve_evolution(prep: Prepared, **options: Any) -> MethodRun:
                  f"{prep.declared(rec['objective']):.8g}, projected step {rec['projected_step_norm']:.2e}")
 
     try:
-        run = descend(arc, start, DESCENT_TOL, DESCENT_FTOL, DESCENT_MAX_ITER, limit, report if verbose else None)
+        run = descend(arc, start, param("hypergradient.gtol"), param("hypergradient.ftol"),
+                      param("hypergradient.max_iter"), limit, report if verbose else None)
     except StopIteration:
         run = Descent(arc.last, Status.INACCURATE, "stopped by the callback (the caller's goal)", 0, [])
     p = run.point

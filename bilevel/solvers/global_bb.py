@@ -18,9 +18,8 @@ from typing import Callable
 
 import numpy as np
 
+from ..defaults import param
 from .global_nodes import G_SIDE, H_SIDE, Relaxation
-
-COMPLEMENTARITY_TOL = 1e-9
 
 
 @dataclass
@@ -123,7 +122,7 @@ def branch_and_bound(relax: Relaxation, gap_tol: float, time_limit: float, node_
         violation = {i: min(G[i], H[i]) for i in free}
         scale = 1.0 + float(np.abs(w).max(initial=0.0))
         worst = max(violation, key=violation.get) if free else None
-        if worst is None or violation[worst] <= COMPLEMENTARITY_TOL * scale:
+        if worst is None or violation[worst] <= param("global.complementarity_tol") * scale:
             exact = {**sides_of(relax, w), **fixed}
             try_incumbent(exact)
             if upper <= sol.value + tolerance() or not free:

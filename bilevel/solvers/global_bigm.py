@@ -16,13 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..defaults import param
 from .global_nodes import G_SIDE, H_SIDE, Relaxation
-
-SAFETY = 1e-6
-"""Relative and absolute margin added to each LP maximum so that LP tolerances cannot make M too small."""
-
-FIX_TOL = 1e-6
-"""A side is fixed only if the other side's minimum over R exceeds FIX_TOL * max(1, its maximum)."""
 
 
 @dataclass(frozen=True)
@@ -70,7 +65,8 @@ def _extreme(relax: Relaxation, row: np.ndarray, const: float, fixed: dict[int, 
 
 
 def _widen(value: float) -> float:
-    return max(value, 0.0) * (1.0 + SAFETY) + SAFETY if np.isfinite(value) else np.inf
+    safety = param("global.bigm_safety")
+    return max(value, 0.0) * (1.0 + safety) + safety if np.isfinite(value) else np.inf
 
 
 def derive_big_m(relax: Relaxation) -> BigM | None:
@@ -91,9 +87,10 @@ def derive_big_m(relax: Relaxation) -> BigM | None:
         for i in range(f.n_pairs):
             if i in fixed:
                 continue
-            if i not in nonlinear and _extreme(relax, f.G[i], f.g[i], fixed, -1.0) > FIX_TOL * max(1.0, slack[i]):
+            fix_tol = param("global.fix_tol")
+            if i not in nonlinear and _extreme(relax, f.G[i], f.g[i], fixed, -1.0) > fix_tol * max(1.0, slack[i]):
                 new[i] = H_SIDE
-            elif _extreme(relax, f.H[i], f.h[i], fixed, -1.0) > FIX_TOL * max(1.0, mult[i]):
+            elif _extreme(relax, f.H[i], f.h[i], fixed, -1.0) > fix_tol * max(1.0, mult[i]):
                 new[i] = G_SIDE
         if not new:
             break
@@ -110,5 +107,5 @@ def derive_bounds(relax: Relaxation, fixed: dict[int, int]) -> tuple[np.ndarray,
     eye = np.eye(relax.form.n)
     hi = np.array([_extreme(relax, e, 0.0, fixed, 1.0) for e in eye])
     lo = np.array([_extreme(relax, e, 0.0, fixed, -1.0) for e in eye])
-    margin = SAFETY * (1.0 + np.maximum(np.abs(lo), np.abs(hi)))
+    margin = param("global.bigm_safety") * (1.0 + np.maximum(np.abs(lo), np.abs(hi)))
     return np.maximum(lo - margin, relax.form.lb), np.minimum(hi + margin, relax.form.ub)

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
+from ..defaults import param
 from ..errors import ModelError, NonConvexLowerLevel
 from ..lower.convexity import require_convex_everywhere
 from ..mpcc import ScalarPair
@@ -31,7 +32,6 @@ LOCAL_METHODS = "use a local method instead: method='relaxation' (most robust) o
 SCIP_FIX = ("algorithm='scip' of method 'global' proves this class with SCIP's spatial branch-and-bound once pyscipopt is "
             "installed (pip install pyscipopt, or pip install 'bilevel[global]')")
 NOT_IN_SCIP = "algorithm 'scip' does not cover this class yet"
-CONVEXITY_TOL = 1e-9
 
 
 @dataclass(frozen=True)
@@ -132,7 +132,7 @@ def _objective(F: ca.SX, w: ca.SX, params: ParameterSet) -> tuple[np.ndarray, np
     Q = 0.5 * (Q + Q.T)
     if np.any(Q):
         low = float(np.linalg.eigvalsh(Q).min())
-        if low < -CONVEXITY_TOL * max(1.0, float(np.abs(Q).max())):
+        if low < -param("global.convexity_tol") * max(1.0, float(np.abs(Q).max())):
             return ("a nonconvex upper objective (the convex algorithms need a convex upper objective in minimization "
                     f"form; its Hessian in (x, y) has eigenvalue {low:.3g}, e.g. a bilinear x*y term)")
     return Q, np.asarray(c, dtype=float).ravel(), scalar(c0)
@@ -155,10 +155,6 @@ def _nonlinear_slacks(G: ca.SX, w: ca.SX, first: int, slacks: list[tuple[int, ca
     return J, r
 
 
-MAX_BOX_VERTICES = 4096
-"""Largest number of vertices of the upper box on which an x-dependent lower Hessian is checked."""
-
-
 def _require_convex_on_box(low: LowerLevel, x_lb: np.ndarray, x_ub: np.ndarray) -> None:
     """An x-dependent lower Hessian P(x) is PSD at every x of the declared box: proven when P is affine in x (its
     smallest eigenvalue is then concave in x, so its minimum over the box is at a vertex) and PSD at each vertex;
@@ -170,18 +166,18 @@ def _require_convex_on_box(low: LowerLevel, x_lb: np.ndarray, x_ub: np.ndarray) 
                          "(class: x-dependent lower Hessian, nonlinear in x; algorithm 'scip' does not cover this "
                          f"class yet); {LOCAL_METHODS}")
     varying = np.flatnonzero([ca.depends_on(hess, low.x[i]) for i in range(low.n_x)])
-    if not (np.all(np.isfinite(x_lb[varying])) and np.all(np.isfinite(x_ub[varying]))) or 2 ** varying.size > \
-            MAX_BOX_VERTICES:
+    vertices = param("global.max_box_vertices")
+    if not (np.all(np.isfinite(x_lb[varying])) and np.all(np.isfinite(x_ub[varying]))) or 2 ** varying.size > vertices:
         raise ModelError("method 'global' with an x-dependent lower Hessian proves the lower level convex on the box "
                          f"of the upper variables it depends on; declare finite bounds on them (at most "
-                         f"{int(np.log2(MAX_BOX_VERTICES))} such variables); {LOCAL_METHODS}")
+                         f"{int(np.log2(vertices))} such variables); {LOCAL_METHODS}")
     fun = ca.Function("lower_hessian", [low.x], [hess])
     for corner in itertools.product(*[(x_lb[i], x_ub[i]) for i in varying]):
         x = np.clip(np.zeros(low.n_x), x_lb, x_ub)
         x[varying] = corner
         P = np.asarray(fun(x), dtype=float)
         low_eig = float(np.linalg.eigvalsh(0.5 * (P + P.T)).min()) if P.size else 0.0
-        if low_eig < -CONVEXITY_TOL * max(1.0, float(np.abs(P).max(initial=0.0))):
+        if low_eig < -param("global.convexity_tol") * max(1.0, float(np.abs(P).max(initial=0.0))):
             raise NonConvexLowerLevel(f"the lower level is not convex at x = {np.array2string(x, precision=4)} "
                                       f"(lower Hessian eigenvalue {low_eig:.3g}), a vertex of the upper box; method "
                                       "'global' proves nothing for it")

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..certificate import GlobalBound
+from ..defaults import param
 from ..errors import BilevelError, ModelError
 from ..result import Status
 from .base import MethodRun, Prepared, check_options, unbounded_lower
@@ -49,21 +50,6 @@ def lower_response_guess(prep: Prepared, relax: Relaxation) -> Guess:
     return guess
 
 
-def _options(options: dict[str, Any]) -> tuple[float, int, float, str]:
-    """(time_limit, node_limit, gap, algorithm), checked."""
-    check_options("global", options, {"time_limit", "node_limit", "gap", "algorithm", "starts", "seed", "verbose"})
-    time_limit = float(options.get("time_limit", 60.0))
-    node_limit = int(options.get("node_limit", 100_000))
-    gap_tol = float(options.get("gap", 1e-6))
-    algorithm = str(options.get("algorithm", "auto"))
-    if algorithm not in ALGORITHMS:
-        raise ModelError(f"unknown algorithm {algorithm!r} for method 'global'; choose one of {', '.join(ALGORITHMS)}")
-    if time_limit <= 0 or node_limit <= 0 or not 0 < gap_tol < 1:
-        raise ModelError("method 'global' needs time_limit > 0, node_limit > 0 and 0 < gap < 1; got "
-                         f"{time_limit}, {node_limit}, {gap_tol}")
-    return time_limit, node_limit, gap_tol, algorithm
-
-
 def _verdict(outcome: SearchOutcome, name: str, summary: str, proven: bool) -> tuple[Status, str]:
     """Status and message of a finished search."""
     if outcome.ended == "infeasible":
@@ -78,11 +64,24 @@ def _verdict(outcome: SearchOutcome, name: str, summary: str, proven: bool) -> t
     return Status.MAX_ITERATIONS, f"stopped ({outcome.ended}) before the gap closed: {summary}"
 
 
-def solve_global(prep: Prepared, **options: Any) -> MethodRun:
-    """Global optimum with a proof (options: time_limit [s, 60], node_limit [100000], gap [1e-6 relative],
-    algorithm [auto | milp | branch-and-bound | scip; auto takes scip for a nonconvex leader when pyscipopt is
-    installed], verbose: a line per phase; starts and seed are accepted and unused: it is deterministic)."""
-    time_limit, node_limit, gap_tol, algorithm = _options(options)
+def solve_global(prep: Prepared, *, algorithm: str = "auto", time_limit: float | None = None,
+                 node_limit: int | None = None, gap: float | None = None, starts: int | None = None, seed: Any = None,
+                 verbose: bool = False, **unknown: Any) -> MethodRun:
+    """Global optimum with a proof. An option left None takes the registry's value, defaults["global.NAME"]
+    (bilevel.defaults).
+
+    algorithm: "auto" | "milp" | "branch-and-bound" | "scip" (auto takes scip for a nonconvex leader when pyscipopt
+    is installed); time_limit (seconds) and node_limit: the search stops there, status MAX_ITERATIONS; gap: it stops
+    once (upper - lower bound) / max(1, |best|) is below this; verbose: a line per phase; starts and seed are
+    accepted (the other methods' options, e.g. in a comparison) and unused: the method is deterministic."""
+    check_options("global", unknown, solve_global)
+    time_limit, node_limit = float(param("global.time_limit", time_limit)), int(param("global.node_limit", node_limit))
+    gap_tol = float(param("global.gap", gap))
+    if algorithm not in ALGORITHMS:
+        raise ModelError(f"unknown algorithm {algorithm!r} for method 'global'; choose one of {', '.join(ALGORITHMS)}")
+    if time_limit <= 0 or node_limit <= 0 or not 0 < gap_tol < 1:
+        raise ModelError("method 'global' needs time_limit > 0, node_limit > 0 and 0 < gap < 1; got "
+                         f"{time_limit}, {node_limit}, {gap_tol}")
     if algorithm == "scip":
         require_scip()
     t0 = time.perf_counter()
@@ -99,7 +98,7 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
         return MethodRun(None, Status.INFEASIBLE, "the KKT reformulation is infeasible: some pair has both its slack "
                          "and its multiplier bounded away from zero on the relaxed KKT polyhedron")
     relax = Relaxation(form, big_m.slack, big_m.multiplier)
-    progress(options.get("verbose"), "global", f"big-M bounds derived for {form.n_pairs} pairs "
+    progress(verbose, "global", f"big-M bounds derived for {form.n_pairs} pairs "
              f"({time.perf_counter() - t0:.1f} s)")
     use_milp = form.linear and big_m.finite and form.n_pairs > 0 and not use_scip
     if algorithm == "milp" and not use_milp:
@@ -155,6 +154,6 @@ def solve_global(prep: Prepared, **options: Any) -> MethodRun:
         summary += (f"; {', '.join(free)} enter nonconvex terms with no finite bound, which SCIP's relaxation needs: "
                     "declare bounds on them")
     status, message = _verdict(outcome, name, summary, proven)
-    progress(options.get("verbose"), "global", f"{summary} ({outcome.ended}, {time.perf_counter() - t0:.1f} s)")
+    progress(verbose, "global", f"{summary} ({outcome.ended}, {time.perf_counter() - t0:.1f} s)")
     w = None if outcome.w is None or status is Status.INFEASIBLE else np.asarray(outcome.w, dtype=float)
     return MethodRun(w, status, message, outcome.nodes, history, [], stats, global_bound=bound)

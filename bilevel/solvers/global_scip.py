@@ -23,14 +23,13 @@ import casadi as ca
 import numpy as np
 from scipy.optimize import linprog
 
+from ..defaults import param
 from ..errors import ModelError
 from .global_bb import SearchOutcome, sides_of
 from .global_bigm import BigM
 from .global_form import Leader
 from .global_nodes import G_SIDE, H_SIDE, Relaxation
 
-FEASTOL = 1e-9
-"""SCIP's feasibility tolerance (default 1e-6): nonlinear upper rows are not re-projected after the solve."""
 
 INSTALL = "pip install pyscipopt (or pip install 'bilevel[global]')"
 
@@ -92,7 +91,6 @@ def scip_expressions(exprs: ca.SX, w: ca.SX, variables: list[Any]) -> list[Any]:
                              "level to SCIP (supported: + - * /, powers with constant exponents, exp, log, sqrt, sin, "
                              "cos); rewrite the expression or use a local method")
     return out
-
 
 
 def unbounded_nonconvex(leader: Leader, box: tuple[np.ndarray, np.ndarray], blocks: dict[str, slice]) -> list[str]:
@@ -196,7 +194,7 @@ def solve_scip(relax: Relaxation, big_m: BigM, box: tuple[np.ndarray, np.ndarray
     model, w = _build(scip, relax, leader, big_m, *box)
     model.setParam("limits/time", max(time_limit - (time.perf_counter() - t0), 1e-3))
     model.setParam("limits/nodes", int(node_limit))
-    model.setParam("numerics/feastol", FEASTOL)
+    model.setParam("numerics/feastol", param("global.scip_feastol"))
     model.setParam("limits/gap", gap_tol)      # SCIP's relative gap divides by min(|primal|, |dual|): it closing
     model.setParam("limits/absgap", gap_tol)   # implies ours, which divides by max(1, |upper|)
     model.optimize()

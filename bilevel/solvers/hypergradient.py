@@ -15,7 +15,7 @@ arc. A trial point at which the lower level is infeasible is moved to
 the nearest upper point (in the box) where it is feasible, found by IPOPT on
 min ||x - v||^2 s.t. g(x, y) <= 0, h(x, y) = 0, then projected again: with the default box projection
 and jointly convex lower constraints this makes P the projection onto the lower level's domain.
-Stops when ||x - P(x - grad phi)|| <= tol (P without the lower solve of the restoration; with it, asked only
+Stops when ||x - P(x - grad phi)|| <= gtol (P without the lower solve of the restoration; with it, asked only
 when the line search fails) or the relative decrease of phi in one step is <= ftol (SOLVED), at
 max_iter (MAX_ITERATIONS), or when backtracking finds no decrease (INACCURATE: x is then typically at a
 kink of y*(x), where the generalized gradient is not a descent direction).
@@ -31,25 +31,19 @@ import casadi as ca
 import numpy as np
 import scipy.optimize
 
+from ..defaults import param
 from ..errors import BilevelError, LowerLevelInfeasible, ModelError
 from ..lower.nlp import NLPSOL_QUIET
 from ..reduction import KKTPoint
 from ..result import Status
-from .base import FEASIBILITY_TOL, MethodRun, Prepared, best_of, check_options
-from .implicit import ACTIVE_TOL, DEFAULT_PENALTY, Evaluation, Hypergradient, shared_oracle
+from .base import MethodRun, Prepared, best_of, check_options
+from .implicit import Evaluation, Hypergradient, shared_oracle
 from .ascent import projected_ascent
 from .block_exact import ExactBlock, ascend_with_exact_block, exact_block_of
 from .options import check_numbers
-from .limits import Deadline, deadline, progress, stopped
+from .limits import Deadline, progress, stopped
 from .starts import start_points
 from .projections import Projection
-
-
-DESCENT_TOL, DESCENT_FTOL, DESCENT_MAX_ITER = 1e-7, 1e-12, 500
-"""The descent's defaults (options tol, ftol, max_iter): projected step norm, relative decrease in one step, steps."""
-MIN_STEP = 2.0 ** -60
-"""The descent's line search fails below this fraction of its trial step (60 halvings): near a stationary point
-tiny steps still decrease phi, and the relative-decrease stop (ftol) then ends the run as solved."""
 
 
 class _Restoration:
@@ -200,7 +194,7 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int,
     steps: list[dict[str, float]] = []
     _, _, cur, nit, _, _ = projected_ascent(value, direction, arc.project, start.x, 1.0, max_iter, 0.0, steps,
                                             stop=stop, bb="long", at=lambda ev: ev.x, why=why,
-                                            min_step=MIN_STEP)
+                                            min_step=param("hypergradient.min_step"))
     for record, step in zip(history[1:], steps):
         record["step"] = step["step"]
     grad, pstep = gradient(cur)
@@ -217,9 +211,9 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int,
     if reason in ("line search", "stationary") and not _domain_stationary(arc, cur, grad, tol):
         return Descent(cur, Status.INACCURATE, "line search found no decrease (x is likely at a kink of "
                        "y*(x), where the generalized gradient is not a descent direction)", nit, history)
-    message = {"tol": f"projected gradient step {pstep:.2e} <= tol",
+    message = {"tol": f"projected gradient step {pstep:.2e} <= gtol",
                "ftol": "relative decrease in one step <= ftol",
-               "zero step": "zero gradient"}.get(reason, "projected gradient step <= tol on the lower level's domain")
+               "zero step": "zero gradient"}.get(reason, "projected gradient step <= gtol on the lower level's domain")
     return Descent(cur, Status.SOLVED, message, nit, history)
 
 
@@ -237,22 +231,21 @@ def _projection(prep: Prepared, projection: Any) -> Projection:
     return proj
 
 
-HYPERGRADIENT_OPTIONS = frozenset({"starts", "seed", "scale", "projection", "penalty", "tol", "ftol", "max_iter",
-                                   "active_tol", "time_limit", "verbose", "exact_block", "callback", "prefer"})
-"""The options method `hypergradient` accepts."""
-DESCENT_ONLY = ("projection", "ftol", "active_tol", "callback", "prefer")
+DESCENT_ONLY = ("projection", "gtol", "ftol", "active_tol", "callback", "prefer")
 """Options of the descent that the exact-block mode does not take."""
-AUTO_EXACT_DIMENSION = 256
-"""exact_block="auto" takes an exact block whose trust-region subproblem has at most this dimension (a dense
-eigendecomposition per evaluation); a larger one only with exact_block=True. Measured on the 2,010 x 2,000 least
-squares (whole x one block, subproblem dimension 2,000): one exact step 45 s, the descent 23 s, on a loaded machine."""
 
 
-def solve_block_exact(prep: Prepared, **options: Any) -> MethodRun:
-    """Method `block-exact`: `hypergradient` with exact_block=True (an error where the structure has no exact block)."""
-    if "exact_block" in options:
+def solve_block_exact(prep: Prepared, *, starts: int | None = None, seed: Any = 0, scale: float | None = None,
+                      penalty: float | None = None, gain_tol: float | None = None, max_iter: int | None = None,
+                      time_limit: float | None = None, verbose: bool = False, **unknown: Any) -> MethodRun:
+    """Method `block-exact`: `hypergradient` with exact_block=True (an error where the structure has no exact block).
+    Its options are hypergradient's exact-block ones: starts, seed, scale, penalty, gain_tol, max_iter, time_limit,
+    verbose (None: the registry's value, bilevel.defaults)."""
+    if "exact_block" in unknown:
         raise ModelError("method 'block-exact' is hypergradient with exact_block=True; it takes no exact_block option")
-    return solve_hypergradient(prep, exact_block=True, **options)
+    check_options("block-exact", unknown, solve_block_exact)
+    return solve_hypergradient(prep, exact_block=True, starts=starts, seed=seed, scale=scale, penalty=penalty,
+                               gain_tol=gain_tol, max_iter=max_iter, time_limit=time_limit, verbose=verbose)
 
 
 def chosen_exact_block(prep: Prepared, mode: Any, options: dict[str, Any]) -> tuple[ExactBlock | None, list[str]]:
@@ -275,51 +268,68 @@ def chosen_exact_block(prep: Prepared, mode: Any, options: dict[str, Any]) -> tu
         return exact, why
     S = exact.ball.block
     dimension = min(int(prep.canon.y.numel()), S.stop - S.start)
-    if dimension > AUTO_EXACT_DIMENSION:
+    if dimension > (limit := param("hypergradient.auto_exact_dimension")):
         return None, why + [f"x[{S.start}:{S.stop}] is exact, but its subproblem has dimension {dimension} > "
-                            f"{AUTO_EXACT_DIMENSION}: the descent is cheaper (exact_block=True forces it)"]
+                            f"{limit}: the descent is cheaper (exact_block=True forces it)"]
     return exact, why
-
-
-TIE_RTOL = 1e-6
-"""Option prefer breaks ties among starts whose objectives are within this relative distance of the best."""
 
 
 def _preferred(prep: Prepared, i: int, candidates: list[tuple[np.ndarray, float, float]], points: list[Evaluation],
                prefer: Callable[[scipy.optimize.OptimizeResult], float] | None) -> int:
-    """Among the feasible candidates tied with candidate i (within TIE_RTOL), the one `prefer` rates highest."""
-    top = candidates[i][1]
-    ties = [j for j, (_, F, r) in enumerate(candidates)
-            if r <= FEASIBILITY_TOL and F - top <= TIE_RTOL * max(1.0, abs(top))]
+    """Among the feasible candidates tied with candidate i (within defaults["hypergradient.tie_rtol"]), the one
+    `prefer` rates highest."""
+    top, feasible, rtol = candidates[i][1], param("solvers.feasibility_tol"), param("hypergradient.tie_rtol")
+    ties = [j for j, (_, F, r) in enumerate(candidates) if r <= feasible and F - top <= rtol * max(1.0, abs(top))]
     if prefer is None or i not in ties:
         return i
     return max(ties, key=lambda j: (prefer(intermediate(prep, points[j])), -j))
 
 
-def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
-    """Multistart projected hypergradient ascent (options: starts, seed, scale, penalty, tol, max_iter, time_limit,
-    verbose, exact_block = "auto" | True | False; the descent also projection, ftol, active_tol, callback, prefer):
-    with the exact block where the declared structure has one, else descent with recognized balls projected on, other
-    upper constraints penalized. At time_limit the starts not begun are skipped and the status is MAX_ITERATIONS.
-    callback(intermediate) sees every evaluated point (x, y, fun declared); raising StopIteration ends the method
-    there, with that point as its answer (the caller's goal, never `solved`). prefer(intermediate) -> float breaks
-    near-ties (TIE_RTOL) between the starts' end points, the highest value winning."""
-    check_options("hypergradient", options, HYPERGRADIENT_OPTIONS)
-    check_numbers(options, positive=("active_tol",), nonnegative=("penalty", "ftol"))
-    exact, why = chosen_exact_block(prep, options.pop("exact_block", "auto"), options)
+def solve_hypergradient(prep: Prepared, *, starts: int | None = None, seed: Any = 0, scale: float | None = None,
+                        exact_block: bool | str = "auto", penalty: float | None = None, max_iter: int | None = None,
+                        gtol: float | None = None, ftol: float | None = None, gain_tol: float | None = None,
+                        projection: Projection | None = None, active_tol: float | None = None,
+                        callback: Callable[[scipy.optimize.OptimizeResult], Any] | None = None,
+                        prefer: Callable[[scipy.optimize.OptimizeResult], float] | None = None,
+                        time_limit: float | None = None, verbose: bool = False, **unknown: Any) -> MethodRun:
+    """Multistart projected hypergradient ascent: with the exact block where the declared structure has one, else
+    descent with recognized balls projected on, other upper constraints penalized. An option left None takes the
+    registry's value, defaults["hypergradient.NAME"] (bilevel.defaults; penalty and active_tol: "implicit.NAME",
+    gain_tol: "block_exact.gain_tol").
+
+    starts: multistart starts; seed: random starts' seed; scale: half-width of the random starts' box where a bound
+    is infinite; exact_block: "auto" | True | False (module docstring); penalty: weight of the penalized upper
+    violation; max_iter: steps per start; time_limit (seconds): the starts not begun are skipped, status
+    MAX_ITERATIONS; verbose: progress lines on stderr.
+    Exact-block mode only: gain_tol, the relative gain over the ascent's window of steps below which it stops.
+    Descent only: gtol (projected step norm) and ftol (relative decrease in one step) stop it; projection (a set
+    narrower than the declared one); active_tol (lower constraints taken as active); callback(intermediate) sees every
+    evaluated point (x, y, fun declared), raising StopIteration ends the method there with that point as its answer
+    (the caller's goal, never `solved`); prefer(intermediate) -> float breaks near-ties (hypergradient.tie_rtol)
+    between the starts' end points, the highest value winning."""
+    check_options("hypergradient", unknown, solve_hypergradient)
+    given = {name: value for name, value in dict(projection=projection, gtol=gtol, ftol=ftol, active_tol=active_tol,
+                                                 callback=callback, prefer=prefer).items() if value is not None}
+    check_numbers(given, positive=("active_tol",), nonnegative=("ftol",))
+    check_numbers({} if penalty is None else {"penalty": penalty}, nonnegative=("penalty",))
+    exact, why = chosen_exact_block(prep, exact_block, given)
     if exact is not None:
-        return ascend_with_exact_block(prep, exact, why, **options)
-    starts, penalty = int(options.get("starts", 4)), float(options.get("penalty", DEFAULT_PENALTY))
-    projected = tuple(b.row for b in prep.balls) if options.get("projection") is None else ()
-    active_tol = float(options.get("active_tol", ACTIVE_TOL))
+        return ascend_with_exact_block(prep, exact, why, starts=starts, seed=seed, scale=scale, penalty=penalty,
+                                       gain_tol=gain_tol, max_iter=max_iter, time_limit=time_limit, verbose=verbose)
+    if gain_tol is not None:
+        raise ModelError("option gain_tol belongs to hypergradient's exact-block mode, which does not run here "
+                         f"({'; '.join(why) or 'exact_block=False'}); the descent stops by gtol and ftol")
+    starts, penalty = int(param("hypergradient.starts", starts)), float(param("implicit.penalty", penalty))
+    projected = tuple(b.row for b in prep.balls) if projection is None else ()
+    active_tol = float(param("implicit.active_tol", active_tol))
     oracle = shared_oracle(prep, penalty, active_tol, projected)
-    arc = Arc(prep, oracle, _projection(prep, options.get("projection")), options.get("callback"))
-    tol, ftol = float(options.get("tol", DESCENT_TOL)), float(options.get("ftol", DESCENT_FTOL))
-    max_iter = int(options.get("max_iter", DESCENT_MAX_ITER))
-    rng = np.random.default_rng(options.get("seed", 0))
-    limit, verbose = deadline(options), options.get("verbose")
+    arc = Arc(prep, oracle, _projection(prep, projection), callback)
+    tol, ftol = float(param("hypergradient.gtol", gtol)), float(param("hypergradient.ftol", ftol))
+    max_iter = int(param("hypergradient.max_iter", max_iter))
+    rng = np.random.default_rng(seed)
+    limit = Deadline(time_limit)
     records, runs, candidates, goal = [], [], [], None
-    for k, x0 in enumerate(start_points(prep, starts, rng, float(options.get("scale", 10.0)))):
+    for k, x0 in enumerate(start_points(prep, starts, rng, float(param("hypergradient.scale", scale)))):
         if k and limit.expired():
             break
         t0 = time.perf_counter()
@@ -361,12 +371,12 @@ def solve_hypergradient(prep: Prepared, **options: Any) -> MethodRun:
         return MethodRun(None, Status.ERROR, f"all {starts} starts failed: the lower level could not be solved "
                          f"near any start ({type(arc.error).__name__}: {arc.error})", nit, [], records)
     i = len(runs) - 1 if goal is not None else _preferred(prep, best_of(candidates), candidates,
-                                                            [r.point for _, r in runs], options.get("prefer"))
+                                                            [r.point for _, r in runs], prefer)
     k, best = runs[i]
     run = MethodRun(candidates[i][0], best.status, f"best of {starts} starts: start {k} ({best.message})", nit,
                     best.history, records, {"best_start": k, "penalty": penalty, "exact_block": None,
                                             "not_exact": why,
                                             "projected_gradient_norm": best.history[-1]["projected_step_norm"]
                                             if best.history else None},
-                    feasible_set=None if options.get("projection") is None else arc.project)
+                    feasible_set=None if projection is None else arc.project)
     return stopped(run, limit, len(records), starts)

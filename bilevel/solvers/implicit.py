@@ -37,15 +37,12 @@ import casadi as ca
 import numpy as np
 from scipy.optimize import lsq_linear
 
+from ..defaults import param
 from ..errors import ModelError
 from ..lower.base import ExpressionLower, KKTValues, LowerSolution
 from ..parameters import CompiledFunction
 from ..spectral_radius import spectral_radius
 from .base import Prepared
-
-DEFAULT_PENALTY = 1e4
-ACTIVE_TOL = 1e-6
-KINK_TOL = 1e-9
 
 
 @dataclass
@@ -72,8 +69,10 @@ def _shaped(values: list[ca.DM], shapes: list[tuple[int, int]]) -> list[np.ndarr
 class Hypergradient:
     """The reduced objective phi(x) = F(x, y*(x)) + penalty * (sum max(G, 0) + sum |H|) and its gradient."""
 
-    def __init__(self, prep: Prepared, penalty: float = DEFAULT_PENALTY, active_tol: float = ACTIVE_TOL,
+    def __init__(self, prep: Prepared, penalty: float | None = None, active_tol: float | None = None,
                  projected_rows: tuple[int, ...] = ()) -> None:
+        """penalty and active_tol: None takes defaults["implicit.penalty"] and defaults["implicit.active_tol"]."""
+        penalty, active_tol = param("implicit.penalty", penalty), param("implicit.active_tol", active_tol)
         canon = prep.canon
         low = canon.lower
         if not penalty >= 0:
@@ -273,8 +272,8 @@ class Hypergradient:
     def gradient(self, ev: Evaluation) -> tuple[np.ndarray, bool, int]:
         """grad phi at an evaluated point, whether the active set was degenerate, and its size.
 
-        Where some |G_i| or |H_j| <= KINK_TOL the penalty is not differentiable: the least-norm element of
-        its subdifferential (coefficients in [0, penalty] or [-penalty, penalty]) is returned.
+        Where some |G_i| or |H_j| <= defaults["implicit.kink_tol"] the penalty is not differentiable: the least-norm
+        element of its subdifferential (coefficients in [0, penalty] or [-penalty, penalty]) is returned.
         """
         _, G, H, gxF, gyF, Gx, Gy, Hx, Hy = ev.upper
         total = np.hstack([gxF, Gx.T, Hx.T])  # columns: d/dx of F, G_i, H_j along y*(x)
@@ -294,7 +293,7 @@ class Hypergradient:
             total = total - adjoint
             weak = weak or singular
         values = np.concatenate([G, H]).ravel()
-        kink = np.abs(values) <= KINK_TOL
+        kink = np.abs(values) <= param("implicit.kink_tol")
         coef = self.penalty * np.concatenate([(G.ravel() > 0).astype(float), np.sign(H.ravel())])
         grad = total[:, 0] + total[:, 1:] @ np.where(kink, 0.0, coef)
         if kink.any():
@@ -309,15 +308,17 @@ class Hypergradient:
         return ev.phi, self.gradient(ev)[0], ev.lower
 
 
-def hypergradient(prep: Prepared, x: np.ndarray, penalty: float = DEFAULT_PENALTY,
-                  active_tol: float = ACTIVE_TOL) -> tuple[float, np.ndarray, LowerSolution]:
+def hypergradient(prep: Prepared, x: np.ndarray, penalty: float | None = None,
+                  active_tol: float | None = None) -> tuple[float, np.ndarray, LowerSolution]:
     """(phi(x), d phi/dx, lower solution) at x (raises if the lower level cannot be solved there); the compiled
     functions are kept on `prep` for later calls."""
     return shared_oracle(prep, penalty, active_tol)(x)
 
 
-def shared_oracle(prep: Prepared, penalty: float = DEFAULT_PENALTY, active_tol: float = ACTIVE_TOL,
+def shared_oracle(prep: Prepared, penalty: float | None = None, active_tol: float | None = None,
                   projected_rows: tuple[int, ...] = ()) -> Hypergradient:
-    """The Hypergradient of these settings kept on `prep`: its compiled functions serve every later solve."""
+    """The Hypergradient of these settings (None: the registry's implicit.penalty and implicit.active_tol) kept on
+    `prep`: its compiled functions serve every later solve."""
+    penalty, active_tol = param("implicit.penalty", penalty), param("implicit.active_tol", active_tol)
     key = ("hypergradient", float(penalty), float(active_tol), tuple(projected_rows))
     return prep.cached(key, lambda: Hypergradient(prep, penalty, active_tol, projected_rows))

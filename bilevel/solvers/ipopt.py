@@ -10,7 +10,7 @@ IPOPT finds a local solution near its start. Option warm="hypergradient" (also f
 `hypergradient` over the same starts and hands its answer to one IPOPT solve: a Newton-accurate KKT point at the
 first-order method's (usually better) local solution. The default warm="auto" does so where hypergradient has an
 exact block (a block of upper variables it optimizes globally: vrft-maxmin's input poisoning), and starts from the
-start points elsewhere. Each NLP solve stops after MAX_WALL_TIME seconds by default.
+start points elsewhere. Each NLP solve stops after defaults["ipopt.max_wall_time"] seconds by default.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from ..defaults import param
 from ..errors import BilevelError, ModelError
 from ..lower.base import LowerSolution
 from ..lower.nlp import NLPSOL_QUIET
@@ -31,7 +32,7 @@ from ..result import Status
 from .base import MethodRun, Prepared, best_of, check_options, unbounded_lower
 from .hypergradient import chosen_exact_block, solve_hypergradient
 from .implicit import shared_oracle
-from .limits import Deadline, deadline, progress, stopped
+from .limits import Deadline, progress, stopped
 from .starts import start_points
 
 IPOPT_STATUS: dict[str, Status] = {
@@ -45,19 +46,10 @@ IPOPT_STATUS: dict[str, Status] = {
 }
 """IPOPT return_status -> Status; anything not listed (restoration failure, errors) is Status.ERROR."""
 
-MAX_WALL_TIME = 300.0
-"""Default IPOPT max_wall_time (s) per NLP solve: a diverging solve (vrft-maxmin N = 512, seed 21, from its
-conditioning start: objective -2.7e5 at infeasible points) ends as max_iterations instead of running for hours.
-IPOPT checks the limit between iterations, so a solve can overrun it (158 s with a 60 s limit there)."""
 WARM = ("auto", None, "hypergradient")
 """Values of option `warm` of the KKT methods: start from method hypergradient's answer ("hypergradient"), from the
 start points (None), or "auto" (default): from hypergradient's answer where it has an exact block (a ball of upper
 variables optimized globally in closed form, bilevel.solvers.block_exact), else from the start points."""
-WARM_LIMITS = {"max_iter": 50, "max_wall_time": 10.0}
-"""IPOPT limits of an NLP started from the warm phase's answer, where options max_iter and ipopt do not set them.
-From that near-KKT point IPOPT converged in 4-20 iterations on vrft-maxmin (N = 512, seeds 0-39) but one, 115 (to a
-point below the warm one); on seed 26 it wandered, at up to 1.5 s per iteration, to the 300 s cap. A stopped NLP
-keeps the warm point (kept_warm_point)."""
 
 
 @dataclass
@@ -73,24 +65,29 @@ class NLPRun:
 
 
 def ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> dict[str, Any]:
-    """CasADi nlpsol options for a quiet IPOPT with the given tolerance and iteration limit."""
-    ipopt = {"print_level": 0, "sb": "yes", "tol": tol, "max_iter": max_iter, "acceptable_tol": 1e-7,
-             "mu_strategy": "adaptive", "max_wall_time": MAX_WALL_TIME}
+    """CasADi nlpsol options for a quiet IPOPT with the given tolerance and iteration limit (acceptable_tol and
+    max_wall_time from the registry, ipopt.NAME)."""
+    ipopt = {"print_level": 0, "sb": "yes", "tol": tol, "max_iter": max_iter,
+             "acceptable_tol": param("ipopt.acceptable_tol"), "mu_strategy": "adaptive",
+             "max_wall_time": param("ipopt.max_wall_time")}
     ipopt.update(extra or {})
     return {**NLPSOL_QUIET, "ipopt": ipopt}
 
 
-def kkt_nlp_options(options: dict[str, Any], warm: dict[str, Any]) -> dict[str, Any]:
-    """IPOPT options of a KKT method from its options tol, max_iter and ipopt, with WARM_LIMITS where its NLPs start
-    from the warm phase's answer (stats `warm` from kkt_starts) and the options do not set those limits."""
-    extra = options.get("ipopt")
+def kkt_nlp_options(nlp_tol: float | None, max_iter: int | None, extra: dict[str, Any] | None,
+                    warm: dict[str, Any]) -> dict[str, Any]:
+    """IPOPT options of a KKT method from its options nlp_tol, max_iter and ipopt (None: the registry's ipopt.NAME),
+    with the warm limits (ipopt.warm_max_iter, ipopt.warm_max_wall_time) where its NLPs start from the warm phase's
+    answer (stats `warm` from kkt_starts) and the options do not set those limits: from that near-KKT point IPOPT
+    converges in a few iterations or wanders (a stopped NLP keeps the warm point, kept_warm_point)."""
     if extra is not None and not (isinstance(extra, dict) and all(isinstance(k, str) for k in extra)):
         raise ModelError(f"option ipopt={extra!r} is invalid: it must be a dict of IPOPT options, e.g. "
                          "{'max_cpu_time': 60}")
-    opts = ipopt_options(float(options.get("tol", 1e-10)), int(options.get("max_iter", 3000)), extra)
+    opts = ipopt_options(float(param("ipopt.nlp_tol", nlp_tol)), int(param("ipopt.max_iter", max_iter)), extra)
     if warm.get("warm", {}).get("used"):
-        given = set(options.get("ipopt") or {}) | ({"max_iter"} & set(options))
-        opts["ipopt"].update({k: v for k, v in WARM_LIMITS.items() if k not in given})
+        given = set(extra or {}) | ({"max_iter"} if max_iter is not None else set())
+        limits = {"max_iter": param("ipopt.warm_max_iter"), "max_wall_time": param("ipopt.warm_max_wall_time")}
+        opts["ipopt"].update({k: v for k, v in limits.items() if k not in given})
     return opts
 
 
@@ -103,7 +100,7 @@ def within(options: dict[str, Any], limit: Deadline) -> dict[str, Any]:
     left = max(limit.remaining(), 1e-3)
     level = limit.seconds * 2.0 ** -math.ceil(max(math.log2(limit.seconds / left), 0.0)) if left < limit.seconds \
         else limit.seconds
-    wall = min(float(options["ipopt"].get("max_wall_time", MAX_WALL_TIME)), max(level, 1e-3))
+    wall = min(float(options["ipopt"].get("max_wall_time", param("ipopt.max_wall_time"))), max(level, 1e-3))
     return {**options, "ipopt": {**options["ipopt"], "max_wall_time": wall}}
 
 
@@ -148,10 +145,6 @@ def polish(prep: Prepared, w: np.ndarray, options: dict[str, Any], limit: Deadli
     return run if run.status is Status.SOLVED else None
 
 
-POLISH_TIE = 1e-6
-"""polish_best polishes a further candidate only if it beats the polished one by more than this (relative)."""
-
-
 def polish_best(prep: Prepared, candidates: list[tuple[np.ndarray, float, float]], runs: list[NLPRun],
                 records: list[dict[str, Any]], options: dict[str, Any],
                 limit: Deadline | None = None) -> tuple[int, int]:
@@ -162,7 +155,7 @@ def polish_best(prep: Prepared, candidates: list[tuple[np.ndarray, float, float]
     tried: set[int] = set()
     iterations, polished = 0, None
     while (i := best_of(candidates)) not in tried:
-        if polished is not None and candidates[i][1] >= candidates[polished][1] - POLISH_TIE * (
+        if polished is not None and candidates[i][1] >= candidates[polished][1] - param("ipopt.polish_tie") * (
                 1.0 + abs(candidates[polished][1])):
             return polished, iterations  # no better than the polished one beyond the relaxation's own accuracy
         tried.add(i)
@@ -190,13 +183,12 @@ def warm_start(prep: Prepared, x0: np.ndarray) -> np.ndarray:
                                   [np.zeros((n, n)) for n in prep.layout.psd_sizes]))
 
 
-def kkt_starts(prep: Prepared, method: str, options: dict[str, Any],
-               limit: Deadline | None = None) -> tuple[list[np.ndarray], str, dict[str, Any]]:
-    """The MPCC start vectors of a KKT method (options starts, seed, scale, warm, verbose), a label for its message,
-    and its stats on the warm phase (if hypergradient returns no point: the start points, stats["warm"]["used"]
-    False); the warm phase stops at the deadline `limit`."""
-    starts, seed, scale = int(options.get("starts", 8)), options.get("seed", 0), float(options.get("scale", 10.0))
-    warm = options.get("warm", "auto")
+def kkt_starts(prep: Prepared, method: str, starts: int | None, seed: Any, scale: float | None, warm: str | None,
+               verbose: bool, limit: Deadline | None = None) -> tuple[list[np.ndarray], str, dict[str, Any]]:
+    """The MPCC start vectors of a KKT method (its options starts, seed, scale, warm, verbose; None: the registry's
+    ipopt.NAME), a label for its message, and its stats on the warm phase (if hypergradient returns no point: the
+    start points, stats["warm"]["used"] False); the warm phase stops at the deadline `limit`."""
+    starts, scale = int(param("ipopt.starts", starts)), float(param("ipopt.scale", scale))
     if warm not in WARM:
         raise ModelError(f"option warm={warm!r} of method {method!r} is invalid: it must be 'auto', None or "
                          "'hypergradient'")
@@ -208,14 +200,13 @@ def kkt_starts(prep: Prepared, method: str, options: dict[str, Any],
         return [warm_start(prep, x0) for x0 in points], plain, {}
     t0 = time.perf_counter()
     budget = {} if limit is None or limit.seconds is None else {"time_limit": max(limit.remaining(), 1e-3)}
-    run = solve_hypergradient(prep, starts=starts, seed=seed, scale=scale, verbose=bool(options.get("verbose")),
-                              **budget)
+    run = solve_hypergradient(prep, starts=starts, seed=seed, scale=scale, verbose=bool(verbose), **budget)
     info = {"warm": {"method": "hypergradient", "status": run.status.value, "message": run.message,
                      "objective": None if run.w is None else prep.declared(prep.mpcc.objective_value(run.w)),
                      "iterations": run.nit,
                      "time": time.perf_counter() - t0, "used": run.w is not None}}
     if run.w is None:
-        return kkt_starts(prep, method, {**options, "warm": None}, limit)[0], plain, info
+        return kkt_starts(prep, method, starts, seed, scale, None, verbose, limit)[0], plain, info
     return [run.w], "from hypergradient's answer", info
 
 
@@ -275,23 +266,27 @@ def _lower_moved_to(prep: Prepared, point: KKTPoint, x: np.ndarray) -> KKTPoint:
     return KKTPoint(x, sol.y, sol.lam, sol.mu, list(sol.Z))
 
 
-IPOPT_OPTIONS = frozenset({"starts", "seed", "mode", "polish", "tol", "max_iter", "ipopt", "scale", "time_limit",
-                           "verbose", "warm"})
-"""The options method `ipopt` accepts."""
+def solve_ipopt(prep: Prepared, *, starts: int | None = None, seed: Any = 0, scale: float | None = None,
+                warm: str | None = "auto", mode: ComplementarityMode | None = None, branch_polish: bool = True,
+                nlp_tol: float | None = None, max_iter: int | None = None, ipopt: dict[str, Any] | None = None,
+                time_limit: float | None = None, verbose: bool = False, **unknown: Any) -> MethodRun:
+    """Multistart IPOPT on the KKT reformulation. An option left None takes the registry's value,
+    defaults["ipopt.NAME"] (bilevel.defaults).
 
-
-def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
-    """Multistart IPOPT on the KKT reformulation (options: starts, seed, mode, polish, tol, max_iter,
-    ipopt, scale, time_limit, verbose, warm). At time_limit each NLP is stopped by IPOPT's max_wall_time, the starts
-    not begun are skipped, and the status is MAX_ITERATIONS."""
-    check_options("ipopt", options, IPOPT_OPTIONS)
-    mode: ComplementarityMode = options.get("mode") or Scholtes(1e-9)
+    starts: multistart starts; seed: random starts' seed; scale: half-width of the random starts' box where a bound
+    is infinite; warm: "auto" | None | "hypergradient" (module docstring); mode: the complementarity mode (None:
+    Scholtes(ipopt.complementarity_t)); branch_polish: re-solve the best start on its MPCC branch; nlp_tol and
+    max_iter: IPOPT's tol and max_iter on each NLP; ipopt: further IPOPT options (a dict); time_limit (seconds): each
+    NLP is stopped by IPOPT's max_wall_time, the starts not begun are skipped, and the status is MAX_ITERATIONS;
+    verbose: progress lines on stderr."""
+    check_options("ipopt", unknown, solve_ipopt)
+    mode = Scholtes(param("ipopt.complementarity_t")) if mode is None else mode
     if not isinstance(mode, ComplementarityMode):
         raise ModelError(f"option mode={mode!r} is invalid: it must be a complementarity mode such as "
                          "bilevel.Scholtes(1e-9), bilevel.Product() or bilevel.Branch(...)")
-    limit = deadline(options)
-    points, source, warm = kkt_starts(prep, "ipopt", options, limit)
-    nlp_opts = kkt_nlp_options(options, warm)
+    limit = Deadline(time_limit)
+    points, source, warm = kkt_starts(prep, "ipopt", starts, seed, scale, warm, verbose, limit)
+    nlp_opts = kkt_nlp_options(nlp_tol, max_iter, ipopt, warm)
     nlp = prep.mpcc.transcribe(mode)
     records, candidates, traces = [], [], []
     for k, w0 in enumerate(points):
@@ -305,10 +300,10 @@ def solve_ipopt(prep: Prepared, **options: Any) -> MethodRun:
         records.append({"start": k, "x0": prep.point(w0).x.tolist(), "status": run.raw_status,
                         "objective": run.objective, "residual": res, "polished": False,
                         "iterations": run.iterations, "time": time.perf_counter() - t0})
-        progress(options.get("verbose"), "ipopt", f"start {k + 1}/{len(points)}: {run.raw_status}, F = "
+        progress(verbose, "ipopt", f"start {k + 1}/{len(points)}: {run.raw_status}, F = "
                  f"{prep.declared(run.objective):.6g}, residual {res:.1e}, {run.iterations} iterations")
     i, _ = (polish_best(prep, candidates, traces, records, nlp_opts, limit)
-            if options.get("polish", True) and prep.mpcc.pairs else (best_of(candidates), 0))
+            if branch_polish and prep.mpcc.pairs else (best_of(candidates), 0))
     total_iter = sum(r["iterations"] for r in records)
     best = traces[i]
     kept = kept_warm_point(prep, points, candidates[i], best.raw_status, total_iter, records,

@@ -42,11 +42,6 @@ class Deadline:
         return f"time_limit = {self.seconds:g} s reached"
 
 
-def deadline(options: dict[str, Any]) -> Deadline:
-    """The deadline of option time_limit (validated by check_common_options), starting now."""
-    return Deadline(options.get("time_limit"))
-
-
 def progress(verbose: Any, method: str, text: str) -> None:
     """One progress line "[method] text" on stderr when verbose."""
     if verbose:

@@ -1,11 +1,11 @@
 """The optimistic selection at an upper point: the best upper objective over the lower level's solution set.
 
-Where the lower solution is not unique, the bilevel problem's value at x is min F(x, y) over the lower solutions y
-(the optimistic convention; the leader picks among the follower's optimal responses); a method's y is one of them
-and need not be that one. IPOPT (CasADi; independent of the methods' lower solves and of the MPCC) solves
-min_y F(x, y) s.t. g <= 0, h = 0, the upper rows that involve y, and f(x, y) <= f*(x) + SLACK (1 + |f*|) from
-the given starts; an answer counts only once verified at its y (rows within ROW_TOL, lower gap within
-10 SLACK). Lower levels with LMIs are not handled (IPOPT does not take them): the caller gets None.
+Where the lower solution is not unique, the bilevel problem's value at x is min F(x, y) over the lower solutions y (the
+optimistic convention; the leader picks among the follower's optimal responses); a method's y is one of them and need
+not be that one. IPOPT (CasADi; independent of the methods' lower solves and of the MPCC) solves min_y F(x, y) s.t. g <=
+0, h = 0, the upper rows that involve y, and f(x, y) <= f*(x) + defaults["optimistic.slack"] (1 + |f*|) from the given
+starts; an answer counts only once verified at its y (rows within defaults["optimistic.row_tol"], lower gap within 10
+defaults["optimistic.slack"]). Lower levels with LMIs are not handled (IPOPT does not take them): the caller gets None.
 """
 
 from __future__ import annotations
@@ -16,19 +16,11 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
+from ..defaults import param
 from ..lower.nlp import NLPSOL_QUIET
 
 if TYPE_CHECKING:  # pragma: no cover
     from .base import Prepared
-
-SLACK = 1e-9
-"""Relative slack on the lower optimality row: the accuracy of the independent re-solves (Clarabel at 1e-10), far
-below the certificate's gap tolerance, so the slack alone buys at most (that row's multiplier) * SLACK in F."""
-ROW_TOL = 1e-8
-"""Largest row violation, relative to 1 + max |y|, at which a selection counts as lower- and upper-feasible."""
-IMPROVE_REL_TOL = 1e-5
-"""F must drop by more than this (relative to max(1, |F|)), plus what the slack can buy, for a better selection:
-the scale of the methods' default stopping tolerances (as the probe's DESCENT_REL_TOL)."""
 
 
 @dataclass(frozen=True)
@@ -41,8 +33,9 @@ class Selection:
     price: float
 
     def improves(self, F: float) -> bool:
-        """Whether this selection's F is below F by more than IMPROVE_REL_TOL max(1, |F|) + price."""
-        return self.objective < F - IMPROVE_REL_TOL * max(1.0, abs(F)) - self.price
+        """Whether this selection's F is below F by more than defaults["optimistic.improve_rel_tol"] max(1, |F|) +
+        price."""
+        return self.objective < F - param("optimistic.improve_rel_tol") * max(1.0, abs(F)) - self.price
 
 
 class _SelectionNLP:
@@ -73,7 +66,7 @@ def optimistic_selection(prep: "Prepared", x: np.ndarray, f_star: float,
     if prep.canon.lower.psd or not np.isfinite(f_star):
         return None
     nlp: _SelectionNLP = prep.cached(("optimistic-selection",), lambda: _SelectionNLP(prep))
-    slack = SLACK * (1.0 + abs(f_star))
+    slack = param("optimistic.slack") * (1.0 + abs(f_star))
     p = np.concatenate([x, [f_star + slack], nlp.params.value])
     best: Selection | None = None
     for y0 in starts:
@@ -82,7 +75,7 @@ def optimistic_selection(prep: "Prepared", x: np.ndarray, f_star: float,
             continue
         y = np.asarray(sol["x"], dtype=float).ravel()
         F, g, h, f = (np.asarray(v, dtype=float).ravel() for v in nlp.check(x, y))
-        feas = ROW_TOL * (1.0 + float(np.max(np.abs(y), initial=0.0)))
+        feas = param("optimistic.row_tol") * (1.0 + float(np.max(np.abs(y), initial=0.0)))
         if (np.any(g > feas) or np.any(np.abs(h) > feas) or f[0] - f_star > 10.0 * slack
                 or not np.isfinite(F[0])):
             continue

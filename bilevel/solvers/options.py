@@ -9,8 +9,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from ..certificate import DEFAULT_TOL
-from ..errors import ModelError
+from ..errors import ModelError, UnknownOption
 
 
 def _bad(name: str, value: Any, want: str) -> ModelError:
@@ -49,16 +48,42 @@ def check_flags(options: dict[str, Any], names: Iterable[str]) -> None:
             raise _bad(name, options[name], "True or False")
 
 
-def check_common_options(options: dict[str, Any], certificate_tol: Any = DEFAULT_TOL) -> None:
-    """Validate the options every method (and every attack) shares, once, before dispatch: starts, max_iter, tol,
-    scale, time_limit (seconds), seed, certificate_tol, and the switches polish and verbose."""
+RENAMED_OPTIONS: dict[str, dict[str, str]] = {
+    "hypergradient": {"tol": "gtol (the descent's projected step norm) or gain_tol (the exact-block mode's relative "
+                             "gain over its window of steps)"},
+    "block-exact": {"tol": "gain_tol (the relative gain over the ascent's window of steps)"},
+    "ipopt": {"tol": "nlp_tol (IPOPT's tol on each NLP)", "polish": "branch_polish"},
+    "relaxation": {"tol": "nlp_tol (IPOPT's tol on each NLP)", "polish": "branch_polish"},
+    "differential-evolution": {"tol": "pop_tol (the population's relative spread)"},
+}
+"""Options renamed so that one name means one thing: method -> old name -> what to use (check_options says so)."""
+
+def reject_renamed(who: str, given: dict[str, Any], renamed: dict[str, str]) -> None:
+    """Raise UnknownOption for keywords `given` to `who` beyond its signature: "renamed: use NEW" for an old name in
+    `renamed`, else not accepted."""
+    if given:
+        name = sorted(given)[0]
+        raise UnknownOption(f"{who}: keyword {name} was renamed: use {renamed[name]}" if name in renamed else
+                            f"{who} does not take keyword(s) {', '.join(sorted(given))}")
+
+
+TOLERANCES = ("gtol", "ftol", "gain_tol", "nlp_tol", "pop_tol")
+"""The methods' stopping tolerances (bilevel.defaults documents each)."""
+
+
+def check_common_options(options: dict[str, Any], certificate_tol: Any = None) -> None:
+    """Validate the options every method (and every attack) shares, once, before dispatch: starts, max_iter, the
+    tolerances (TOLERANCES), scale, time_limit (seconds), seed, certificate_tol (None: defaults["certificate.tol"]),
+    and the switches polish, branch_polish and verbose."""
     if "starts" in options and not (_integer(options["starts"]) and options["starts"] >= 1):
         raise _bad("starts", options["starts"], "an integer >= 1 (the number of multistart starts)")
     if "max_iter" in options and not (_integer(options["max_iter"]) and options["max_iter"] >= 0):
         raise _bad("max_iter", options["max_iter"], "an integer >= 0")
-    check_numbers(options, positive=("tol", "scale", "time_limit"))
-    check_flags(options, ("polish", "verbose"))
-    check_numbers({"certificate_tol": certificate_tol}, positive=("certificate_tol",))
+    check_numbers(options, positive=("scale", "time_limit", *(t for t in TOLERANCES if t != "ftol")),
+                  nonnegative=("ftol",))
+    check_flags(options, ("polish", "branch_polish", "verbose"))
+    if certificate_tol is not None:
+        check_numbers({"certificate_tol": certificate_tol}, positive=("certificate_tol",))
     seed = options.get("seed")
     if not (seed is None or isinstance(seed, (np.random.Generator, np.random.SeedSequence))
             or (_integer(seed) and seed >= 0)):

@@ -1,18 +1,18 @@
 """Local evidence that a returned point is a local solution: feasible points around it, none better.
 
-A stationary point of the reduced objective need not be a minimum: zero poisoning is stationary for every
-attack (the clean learner minimizes the attacker's loss) and is its *worst* point; a method may stop short
-of stationarity (IPOPT on the Willems KKT route, 1.6e-4 below the vertex next to it), or at a kink of y*(x) where
-two LP vertices tie and F still decreases along the kink, in a cone that random directions miss. Around x the
-probe tries seeded random directions, the negative hypergradient, +/- each coordinate (up to COORDINATES upper
-variables) and, at a kink (a degenerate lower active set), the descent directions of the adjacent pieces; each is
-scaled per entry (a recognized ball's radius on its block, else 1). It projects x + h d onto the box and balls
-for a few radii h, solves the lower level there independently (and at x itself, the baseline: with a non-unique
-lower solution F depends on the solver's choice; with `optimistic`, F is taken at the best lower solution, as
-in bilevel.solvers.optimistic), and reports the best upper-feasible point whose upper objective is lower than
-both F at x and the baseline by more than REL_TOL (relative) along random directions, where at a stationary
-point the change is second order (the tolerance sits at the lower solves' noise, not above it), and by more
-than DESCENT_REL_TOL along the first-order ones.
+A stationary point of the reduced objective need not be a minimum: zero poisoning is stationary for every attack (the
+clean learner minimizes the attacker's loss) and is its *worst* point; a method may stop short of stationarity (IPOPT on
+the Willems KKT route, 1.6e-4 below the vertex next to it), or at a kink of y*(x) where two LP vertices tie and F still
+decreases along the kink, in a cone that random directions miss. Around x the probe tries seeded random directions, the
+negative hypergradient, +/- each coordinate (up to defaults["probe.coordinates"] upper variables) and, at a kink (a
+degenerate lower active set), the descent directions of the adjacent pieces; each is scaled per entry (a recognized
+ball's radius on its block, else 1). It projects x + h d onto the box and balls for a few radii h, solves the lower
+level there independently (and at x itself, the baseline: with a non-unique lower solution F depends on the solver's
+choice; with `optimistic`, F is taken at the best lower solution, as in bilevel.solvers.optimistic), and reports the
+best upper-feasible point whose upper objective is lower than both F at x and the baseline by more than
+defaults["probe.rel_tol"] (relative) along random directions, where at a stationary point the change is second order
+(the tolerance sits at the lower solves' noise, not above it), and by more than defaults["probe.descent_rel_tol"] along
+the first-order ones.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.optimize import nnls
 
+from ..defaults import param
 from ..errors import BilevelError
 from .optimistic import optimistic_selection
 from .projections import Projection
@@ -32,17 +33,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .base import Prepared
     from .implicit import Hypergradient
 
-DIRECTIONS = 4
 RADII = (1e-1, 1e-2, 1e-3)
-REL_TOL = 1e-8
-FEAS_TOL = 1e-9
-DESCENT_REL_TOL = 1e-5
-"""Along a first-order direction (the descent direction, a coordinate, an adjacent piece's descent direction) the
-change is first order: a point counts as better only by more than this (relative), the scale of the methods'
-default stopping tolerances, so a point solved to tolerance passes."""
-COORDINATES = 16
-"""Up to this many upper variables, +/- each coordinate direction is probed, and at a kink of y*(x) the
-hypergradients of the adjacent pieces are sampled there (beyond it only random and descent directions)."""
 
 
 @dataclass(frozen=True)
@@ -56,9 +47,10 @@ class Probe:
 
 def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, projection: Projection,
                         seed: int = 0, optimistic: bool = False) -> Probe | None:
-    """The best neighbour of x in `projection`'s set, upper-feasible, with upper objective
-    < objective - REL_TOL max(1, |objective|) (DESCENT_REL_TOL along first-order directions); None if the probe
-    finds none. optimistic: F at each point with the optimistic selection among the lower solutions there."""
+    """The best neighbour of x in `projection`'s set, upper-feasible, with upper objective < objective -
+    defaults["probe.rel_tol"] max(1, |objective|) (defaults["probe.descent_rel_tol"] along first-order directions); None
+    if the probe finds none. optimistic: F at each point with the optimistic selection among the lower solutions
+    there."""
     low = prep.canon.lower
     try:  # the same lower solver as at the probes: a non-unique lower solution must not pass for a better point
         fixed_y = low.solve(x).y if low.fixed and not optimistic else None  # a lower level that ignores x: once
@@ -69,10 +61,11 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
         return None
     optimistic = optimistic and verified  # where IPOPT verifies no selection at x, it is not asked at the probes
     reference = min(objective, baseline)
-    second, first = (reference - tol * max(1.0, abs(reference)) for tol in (REL_TOL, DESCENT_REL_TOL))
+    second, first = (reference - tol * max(1.0, abs(reference))
+                     for tol in (param("probe.rel_tol"), param("probe.descent_rel_tol")))
     rng = np.random.default_rng(seed)
     scale = budget_scale(prep.canon, prep.balls)
-    directions = [(rng.standard_normal(x.size) * scale, second) for _ in range(DIRECTIONS)]
+    directions = [(rng.standard_normal(x.size) * scale, second) for _ in range(param("probe.directions"))]
     directions += [(d, first) for d in _first_order_directions(prep, x, scale, projection)]
     # one entry per direction; one that is also a first-order direction (in 1-D every one is) is judged as one
     bars: dict[bytes, tuple[np.ndarray, float]] = {}
@@ -96,18 +89,19 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
 
 def _first_order_directions(prep: "Prepared", x: np.ndarray, scale: np.ndarray,
                             projection: Projection) -> list[np.ndarray]:
-    """-grad F(x, y*(x)) in budget units (the hypergradient, balls projected on); for at most COORDINATES upper
-    variables also +/- each coordinate and, at a kink of y*(x), the descent direction of each adjacent piece.
-    The hypergradient is sampled at x +/- RADII[-1] along each coordinate; x is at a kink when its lower active
-    set is degenerate or a sample's active set differs (two LP vertices that tie, an edge between them). Then -g
-    for each piece's g, and the steepest descent direction -(least-norm element of their convex hull), which
-    follows a kink along which F decreases. A method that stopped at a kink or short of stationarity is caught."""
+    """-grad F(x, y*(x)) in budget units (the hypergradient, balls projected on); for at most
+    defaults["probe.coordinates"] upper variables also +/- each coordinate and, at a kink of y*(x), the descent
+    direction of each adjacent piece. The hypergradient is sampled at x +/- RADII[-1] along each coordinate; x is at a
+    kink when its lower active set is degenerate or a sample's active set differs (two LP vertices that tie, an edge
+    between them). Then -g for each piece's g, and the steepest descent direction -(least-norm element of their convex
+    hull), which follows a kink along which F decreases. A method that stopped at a kink or short of stationarity is
+    caught."""
     from .implicit import shared_oracle  # implicit imports base, which imports this module
 
     oracle = shared_oracle(prep, projected_rows=tuple(b.row for b in prep.balls))
     here = _gradient(oracle, x)
     out = [] if here is None or not np.any(here[0]) else [-here[0] * scale ** 2]
-    if x.size > COORDINATES:
+    if x.size > param("probe.coordinates"):
         return out
     steps = [sign * scale[i] * np.eye(x.size)[i] for i in range(x.size) for sign in (1.0, -1.0)]
     out += steps
@@ -163,6 +157,7 @@ def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = 
     for yv in ys:
         F, G, H = (np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, yv))
         F = np.array([prep.canon.upper_F(x, yv, F[0])])
-        if not (np.any(G > FEAS_TOL) or np.any(np.abs(H) > FEAS_TOL) or not np.isfinite(F[0])):
+        feas_tol = param("probe.feas_tol")
+        if not (np.any(G > feas_tol) or np.any(np.abs(H) > feas_tol) or not np.isfinite(F[0])):
             values.append(float(F[0]))
     return min(values, default=None), len(ys) > 1

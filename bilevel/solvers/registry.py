@@ -4,27 +4,26 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import inspect
 import time
 from typing import Any, Callable
 
 import casadi as ca
 
-from ..certificate import DEFAULT_TOL
-from ..errors import ModelError
+from ..defaults import param
+from ..errors import ModelError, did_you_mean
 from ..model import BilevelProblem
 from ..threads import single_threaded
 from ..result import BilevelResult
-from .base import MethodRun, Prepared, finalize, prepare
+from .base import MethodRun, Prepared, finalize, options_of, prepare
 from .evolution import solve_evolution
 from .global_method import solve_global
-from .hypergradient import HYPERGRADIENT_OPTIONS, solve_block_exact, solve_hypergradient
-from .ipopt import IPOPT_OPTIONS, solve_ipopt
+from .hypergradient import solve_block_exact, solve_hypergradient
+from .ipopt import solve_ipopt
 from .options import check_common_options
 from .relaxation import solve_relaxation
 
 Method = Callable[..., MethodRun]
-SMALL_LOWER = 256
-"""Lower levels with at most this many variables are solved with one BLAS thread."""
 
 METHODS_VERSION = "methods-8"
 """Part of every `bilevel compare` task, so a resumed comparison never reuses a row of an older method: bump it when a
@@ -71,9 +70,6 @@ def register_method(name: str, method: Method, *, replace: bool = False) -> None
 
 AUTO = "auto"
 """The default method name: a registered method chosen by the problem's structure (choose_method)."""
-AUTO_MIN_UPPER = 20
-"""choose_method takes `hypergradient` from this many upper entries on (with a closed-form or x-independent lower
-level); below it IPOPT's Newton steps on the KKT system cost less than the first-order iterations."""
 
 
 def coupled_upper_rows(prep: Prepared) -> int:
@@ -86,15 +82,16 @@ def coupled_upper_rows(prep: Prepared) -> int:
 def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
     """The method "auto" runs, and why: `hypergradient` where the upper objective is a spectral radius, or where the
     lower level is least squares (solved in closed form, y*(x) smooth) or does not depend on x (solved once), with at
-    least AUTO_MIN_UPPER upper entries and no upper constraint on the lower solution; `ipopt`
+    least defaults["auto.min_upper"] upper entries (below, IPOPT's Newton steps on the KKT system cost less than the
+    first-order iterations) and no upper constraint on the lower solution; `ipopt`
     otherwise (constrained lower levels whose solution depends on x: its KKT system is solved with the upper level in
     one NLP). Options only one of the two accepts decide for it."""
     low, n = prep.canon.lower, int(prep.canon.x.numel())
-    given = set(options)
-    if not given <= HYPERGRADIENT_OPTIONS:
-        return "ipopt", f"option(s) {', '.join(sorted(given - HYPERGRADIENT_OPTIONS))} belong to ipopt"
-    if not given <= IPOPT_OPTIONS:
-        return "hypergradient", f"option(s) {', '.join(sorted(given - IPOPT_OPTIONS))} belong to hypergradient"
+    given, hypergradient, ipopt = set(options), options_of(solve_hypergradient), options_of(solve_ipopt)
+    if not given <= hypergradient:
+        return "ipopt", f"option(s) {', '.join(sorted(given - hypergradient))} belong to ipopt"
+    if not given <= ipopt:
+        return "hypergradient", f"option(s) {', '.join(sorted(given - ipopt))} belong to hypergradient"
     if prep.canon.spectral is not None:
         return "hypergradient", "a spectral-radius objective (the KKT methods cannot use it)"
     coupled = coupled_upper_rows(prep)
@@ -103,18 +100,20 @@ def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
                          "hypergradient would only penalize")
     closed = "a least-squares lower level" if low.kind == "least-squares" else (
         "a lower level independent of x" if low.fixed else "")
-    if closed and n >= AUTO_MIN_UPPER:
-        return "hypergradient", f"{closed} and {n} upper entries (>= {AUTO_MIN_UPPER})"
+    if closed and n >= (least := param("auto.min_upper")):
+        return "hypergradient", f"{closed} and {n} upper entries (>= {least})"
     if closed:
-        return "ipopt", f"{closed} but only {n} upper entries (< {AUTO_MIN_UPPER})"
+        return "ipopt", f"{closed} but only {n} upper entries (< {least})"
     return "ipopt", f"a {low.kind} lower level whose solution depends on x"
 
 
-def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol: float = DEFAULT_TOL,
+def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol: float | None = None,
           **options: Any) -> BilevelResult:
     """Solve a bilevel problem with a registered method name, "auto" (default: chosen by structure, see
     choose_method; the result's method is the one that ran, its message and stats["auto"] say why) or a
-    callable(prepared, **options) -> MethodRun."""
+    callable(prepared, **options) -> MethodRun. The methods: ipopt, relaxation, hypergradient, block-exact, global,
+    differential-evolution (and any registered with register_method); show_options(method) lists a method's
+    options and their defaults. certificate_tol: None takes defaults["certificate.tol"] (bilevel.defaults)."""
     if not isinstance(problem, BilevelProblem):
         raise ModelError(f"solve: expected a BilevelProblem, got {type(problem).__name__}; declare one with "
                          "bilevel.BilevelProblem(...) or build a registered one with bilevel.problems.registry.get")
@@ -134,7 +133,7 @@ def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol:
     if auto:
         name, why = choose_method(prep, options)
         fn = METHODS[name]
-    small = prep.canon.lower.n_y <= SMALL_LOWER  # dense algebra of lower-level size: one BLAS thread is faster
+    small = prep.canon.lower.n_y <= param("solvers.small_lower")  # dense algebra of that size: one BLAS thread
     with single_threaded() if small else contextlib.nullcontext():
         run = fn(prep, **options)
         if not isinstance(run, MethodRun):
@@ -145,3 +144,15 @@ def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol:
         return result
     return dataclasses.replace(result, message=f"auto: {name}, for {why}; {result.message}",
                                stats={**result.stats, "auto": {"method": name, "reason": why}})
+
+
+def show_options(method: str | Method) -> str:
+    """A method's options as its signature declares them (name: type = default; None: the registry's value,
+    bilevel.defaults), followed by its docstring (scipy.optimize.show_options)."""
+    fn = method if callable(method) else METHODS.get(str(method).lower())
+    if fn is None:
+        raise ModelError(f"unknown method {method!r}; {did_you_mean(str(method).lower(), METHODS)}choose a registered "
+                         f"method: {', '.join(sorted(METHODS))}")
+    params = [p for p in inspect.signature(fn).parameters.values() if p.kind is inspect.Parameter.KEYWORD_ONLY]
+    lines = [f"{p.name}: {p.annotation} = {p.default!r}" for p in params]
+    return "\n".join(lines + ["", inspect.getdoc(fn) or ""])

@@ -12,12 +12,13 @@ from typing import Any
 
 import numpy as np
 
+from ..defaults import param
 from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
 from .base import MethodRun, Prepared, best_of, check_options
 from .options import check_numbers
 from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish_best, residual, run_nlp, settled
-from .limits import Deadline, deadline, progress, stopped
+from .limits import Deadline, progress, stopped
 
 SCHEMES: dict[str, type[ComplementarityMode]] = {
     "scholtes": Scholtes,
@@ -45,32 +46,40 @@ def relaxation_path(prep: Prepared, nlp: Any, w0: np.ndarray, opts: dict[str, An
         t *= factor
 
 
-def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
-    """Multistart relaxation sequence (options: scheme, t0, factor, t_min, comp_tol, starts, seed, polish,
-    tol, max_iter, ipopt, scale, time_limit, verbose, warm: "auto", None or "hypergradient", as for ipopt). At
-    time_limit the sequence and the starts stop, status MAX_ITERATIONS."""
-    check_options("relaxation", options, {"scheme", "t0", "factor", "t_min", "comp_tol", "starts", "seed", "polish",
-                                          "tol", "max_iter", "ipopt", "scale", "time_limit", "verbose", "warm"})
-    check_numbers(options, positive=("t0", "factor", "t_min", "comp_tol"))
-    scheme = options.get("scheme", "scholtes")
+def solve_relaxation(prep: Prepared, *, scheme: str = "scholtes", t0: float | None = None, factor: float | None = None,
+                     t_min: float | None = None, comp_tol: float | None = None, starts: int | None = None,
+                     seed: Any = 0, scale: float | None = None, warm: str | None = "auto", branch_polish: bool = True,
+                     nlp_tol: float | None = None, max_iter: int | None = None, ipopt: dict[str, Any] | None = None,
+                     time_limit: float | None = None, verbose: bool = False, **unknown: Any) -> MethodRun:
+    """Multistart relaxation sequence. An option left None takes the registry's value, defaults["relaxation.NAME"]
+    (t0, factor, t_min, comp_tol) or defaults["ipopt.NAME"] (the others, as for method ipopt; bilevel.defaults).
+
+    scheme: "scholtes" | "kanzow-schwartz"; t0: first relaxation parameter; factor: t's factor per step, in (0, 1);
+    t_min and comp_tol: the sequence stops before t falls below t_min or once the complementarity residual is below
+    comp_tol; starts, seed, scale, warm, branch_polish, nlp_tol, max_iter, ipopt, verbose: as for method ipopt;
+    time_limit (seconds): the sequence and the starts stop, status MAX_ITERATIONS."""
+    check_options("relaxation", unknown, solve_relaxation)
+    given = {name: value for name, value in dict(t0=t0, factor=factor, t_min=t_min, comp_tol=comp_tol).items()
+             if value is not None}
+    check_numbers(given, positive=("t0", "factor", "t_min", "comp_tol"))
     if scheme not in SCHEMES:
         raise ModelError(f"unknown relaxation scheme {scheme!r}; choose one of {', '.join(SCHEMES)}")
-    factor = float(options.get("factor", 0.1))
+    factor = float(param("relaxation.factor", factor))
     if not 0.0 < factor < 1.0:
         raise ModelError(f"relaxation factor must be in (0, 1), got {factor}")
     mode = SCHEMES[scheme]()
-    limit, verbose = deadline(options), bool(options.get("verbose"))
-    points, source, warm = kkt_starts(prep, "relaxation", options, limit)
-    opts = kkt_nlp_options(options, warm)
+    limit, verbose = Deadline(time_limit), bool(verbose)
+    points, source, warm = kkt_starts(prep, "relaxation", starts, seed, scale, warm, verbose, limit)
+    opts = kkt_nlp_options(nlp_tol, max_iter, ipopt, warm)
     nlp = prep.mpcc.transcribe(mode)
     candidates, finals, paths, records = [], [], [], []
     for k, w0 in enumerate(points):
         if k and limit.expired():
             break
         t_start = time.perf_counter()
-        run, path = relaxation_path(prep, nlp, w0, opts, float(options.get("t0", 1.0)), factor,
-                                    float(options.get("t_min", 1e-12)), float(options.get("comp_tol", 1e-7)), limit,
-                                    verbose)
+        run, path = relaxation_path(prep, nlp, w0, opts, float(param("relaxation.t0", t0)), factor,
+                                    float(param("relaxation.t_min", t_min)),
+                                    float(param("relaxation.comp_tol", comp_tol)), limit, verbose)
         res = residual(prep, run.w)
         candidates.append((run.w, run.objective, res))
         finals.append(run)
@@ -81,7 +90,7 @@ def solve_relaxation(prep: Prepared, **options: Any) -> MethodRun:
         progress(verbose, "relaxation", f"start {k + 1}/{len(points)}: {len(path)} steps, "
                  f"F = {prep.declared(run.objective):.6g}, residual {res:.1e}")
     i, polishing = (polish_best(prep, candidates, finals, records, opts, limit)
-                    if options.get("polish", True) and prep.mpcc.pairs else (best_of(candidates), 0))
+                    if branch_polish and prep.mpcc.pairs else (best_of(candidates), 0))
     total = sum(p["iterations"] for path in paths for p in path) + polishing
     kept = kept_warm_point(prep, points, candidates[i], f"{finals[i].status.value} after {len(paths[i])} relaxation "
                            "steps", total, records, {"scheme": scheme, **warm})

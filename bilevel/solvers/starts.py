@@ -6,9 +6,10 @@ seeded random points inside the upper bounds whose recognized budget-ball blocks
 declared start of an attack (zero poisoning) is a stationary point of the attacker's objective (the clean learner
 minimizes it), so the sphere points are never stationary there.
 
-Conditioning start: a least-squares learner's solution y* = -P(x)^{-1} q(x) moves most for a small change of its
-data where P(x) is nearly singular, so the start descends the smallest eigenvalue of P(x) (gradient v'(dP/dx)v for
-its eigenvector v) by CONDITIONING_STEPS projected steps of one budget radius (balls) or half-width (boxes) each.
+Conditioning start: a least-squares learner's solution y* = -P(x)^{-1} q(x) moves most for a small change of its data
+where P(x) is nearly singular, so the start descends the smallest eigenvalue of P(x) (gradient v'(dP/dx)v for its
+eigenvector v) by defaults["starts.conditioning_steps"] projected steps of one budget radius (balls) or half-width
+(boxes) each.
 """
 
 from __future__ import annotations
@@ -18,14 +19,13 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
+from ..defaults import param
 from ..lower.base import ExpressionLower
 from ..lower.images import ImageLower
 from ..lower.residual import ResidualLeastSquares
 from ..sampling import sample_in_bounds
 from .base import Prepared
 from .structure import depends
-
-CONDITIONING_STEPS = 10
 
 
 def _hessian_and_adjoint(prep: Prepared) -> tuple[Callable, Callable] | None:
@@ -68,7 +68,7 @@ def conditioning_start(prep: Prepared, parts: tuple[Callable, Callable] | None =
     for ball in prep.balls:
         scale[ball.block] = max(ball.radius, 1e-300)
     x = prep.projection(canon.x_start)
-    for _ in range(CONDITIONING_STEPS):
+    for _ in range(param("starts.conditioning_steps")):
         P = hessian(x)
         grad = adjoint(x, np.linalg.eigh(0.5 * (P + P.T))[1][:, 0])
         unit = float(np.linalg.norm(grad * scale))

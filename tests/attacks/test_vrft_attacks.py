@@ -185,7 +185,7 @@ def test_kkt_formulation_certificate_passes() -> None:
     assert best.success and res.status is bl.Status.SOLVED and res.certificate.passed
     assert np.linalg.norm(res.x["a_u"]) <= attack_instance("maxmin", N=48, seed=1).delta_u * (1 + 1e-6)
     assert res.upper_objective == pytest.approx(best.upper_objective, rel=1e-5)
-    lbfgs = bl.solve(p, method="ipopt", starts=2, scale=0.01, polish=False, warm=None,
+    lbfgs = bl.solve(p, method="ipopt", starts=2, scale=0.01, branch_polish=False, warm=None,
                      ipopt={"hessian_approximation": "limited-memory", "max_iter": 500})
     assert lbfgs.certificate.passed
     if lbfgs.status is bl.Status.SOLVED:
@@ -201,7 +201,7 @@ def test_warm_started_nlp_that_fails_keeps_the_first_order_answer() -> None:
     failed NLP's."""
     p = registry.get("vrft-maxmin", N=48, seed=1)
     hg = bl.solve(p, method="hypergradient", starts=2)
-    res = bl.solve(p, method="ipopt", starts=2, polish=False, ipopt={"max_iter": 1})
+    res = bl.solve(p, method="ipopt", starts=2, branch_polish=False, ipopt={"max_iter": 1})
     assert res.stats["warm"]["kept"] and res.certificate.passed
     assert res.status is bl.Status.SOLVED and res.upper_objective == pytest.approx(hg.upper_objective, rel=1e-12)
 

@@ -256,7 +256,7 @@ CASES: dict[str, tuple[Callable[[], Any], Any, str]] = {
                                "scale=nan is invalid"),
     "scale string (block-exact)": (_solve({"method": "block-exact", "scale": "10"}), ModelError,
                                    "scale='10' is invalid"),
-    "tol zero": (_solve({"tol": 0.0}), ModelError, "tol=0.0 is invalid"),
+    "pop_tol zero": (_solve({"pop_tol": 0.0}), ModelError, "pop_tol=0.0 is invalid"),
     "max_iter float": (_solve({"max_iter": 2.5}), ModelError, "max_iter=2.5 is invalid"),
     "seed float": (_solve({"seed": 1.5}), ModelError, "seed=1.5 is invalid"),
     "seed string": (_solve({"seed": "abc"}), ModelError, "seed='abc' is invalid"),
@@ -275,7 +275,8 @@ CASES: dict[str, tuple[Callable[[], Any], Any, str]] = {
     "relaxation comp_tol string": (_solve({"method": "relaxation", "comp_tol": "tight"}), ModelError,
                                    "comp_tol='tight' is invalid"),
     "relaxation t_min zero": (_solve({"method": "relaxation", "t_min": 0.0}), ModelError, "t_min=0.0 is invalid"),
-    "polish given as a string": (_solve({"method": "ipopt", "polish": "no"}), ModelError, "polish='no' is invalid"),
+    "branch_polish given as a string": (_solve({"method": "ipopt", "branch_polish": "no"}), ModelError,
+                                        "branch_polish='no' is invalid"),
     "Scholtes with a negative tau": (lambda: bl.mpcc.Scholtes(-1.0), ModelError, "tau must be a finite number >= 0"),
     "differential-evolution popsize 1.5": (_solve({"method": "differential-evolution", "popsize": 1.5},
                                                   lambda: projection_qp()), ModelError, "popsize=1.5 is invalid"),
@@ -352,7 +353,8 @@ CASES: dict[str, tuple[Callable[[], Any], Any, str]] = {
     "alternating starts 0": (lambda: atk.attack_alternating(_vrft(), starts=0), ModelError, "starts=0 is invalid"),
     "alternating max_iter negative": (lambda: atk.attack_alternating(_vrft(), max_iter=-1), ModelError,
                                       "max_iter=-1 is invalid"),
-    "alternating tol zero": (lambda: atk.attack_alternating(_vrft(), tol=0.0), ModelError, "tol=0.0 is invalid"),
+    "alternating gain_tol zero": (lambda: atk.attack_alternating(_vrft(), gain_tol=0.0), ModelError,
+                                  "gain_tol=0.0 is invalid"),
     "joint starts float": (lambda: atk.attack_joint(_vrft(), starts=1.5), ModelError, "starts=1.5 is invalid"),
     "joint max_iter negative": (lambda: atk.attack_joint(_vrft(), max_iter=-3), ModelError, "max_iter=-3"),
     "white noise seed negative": (lambda: atk.attack_white_noise(_vrft(), seed=-1), ModelError, "seed=-1"),
@@ -475,7 +477,7 @@ def _ball_and_box() -> bl.BilevelProblem:
 @pytest.mark.parametrize("method", ["ipopt", "relaxation"])
 @pytest.mark.parametrize("polish", [True, False])
 def test_kkt_answers_lie_inside_the_declared_box_and_ball_exactly(method: str, polish: bool) -> None:
-    res = _ball_and_box().solve(method, starts=2, polish=polish)
+    res = _ball_and_box().solve(method, starts=2, branch_polish=polish)
     assert res.status is bl.Status.SOLVED, res.message
     np.testing.assert_allclose(res.x["d"], np.array([3.0, 1.0]) / np.sqrt(10.0), atol=1e-6)
     assert np.linalg.norm(res.x["d"]) <= 1.0 * (1 + 1e-12)

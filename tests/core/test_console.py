@@ -41,7 +41,7 @@ def test_cli_solve_prints_a_summary_and_says_where_the_full_values_go(capsys) ->
 
 def test_a_function_outside_its_domain_prints_nothing_and_never_wins(capfd) -> None:
     """log(x) on a box reaching x < 0: starts there make IPOPT stop with Invalid_Number_Detected (their status in
-    res.starts), silently; such a start's point is infinitely infeasible (NaN), so a converged start is the answer:
+    res.start_records), silently; such a start's point is infinitely infeasible (NaN), so a converged start is the answer:
     min (y - 1)^2 with y = x, optimum 0 at x = 1."""
     p = bl.BilevelProblem("log-domain")
     x = p.upper_variable("x", lb=-1, ub=4)
@@ -50,7 +50,7 @@ def test_a_function_outside_its_domain_prints_nothing_and_never_wins(capfd) -> N
     p.upper_constraint(ca.log(x) >= -3)
     p.minimize_upper((y - 1) ** 2)
     res = p.solve("ipopt", starts=8, seed=0)
-    assert "Invalid_Number_Detected" in [s["status"] for s in res.starts]
+    assert "Invalid_Number_Detected" in [s["status"] for s in res.start_records]
     assert res.status is bl.Status.SOLVED and abs(res.x["x"][0] - 1.0) < 1e-6, res.message
     out, err = capfd.readouterr()
     assert out == "" and err == "", err

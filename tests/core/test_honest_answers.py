@@ -128,7 +128,7 @@ def test_nan_upper_objective_is_never_a_usable_status() -> None:
     assert res.certificate is None or "upper_objective" in res.certificate.failed
 
 
-@pytest.mark.parametrize("options", [{"starts": 0}, {"starts": -2}, {"tol": -1.0}, {"max_iter": -1},
+@pytest.mark.parametrize("options", [{"starts": 0}, {"starts": -2}, {"gtol": -1.0}, {"max_iter": -1},
                                      {"certificate_tol": float("nan")}])
 @pytest.mark.parametrize("method", ["ipopt", "hypergradient"])
 def test_common_options_are_validated_before_dispatch(method: str, options: dict) -> None:

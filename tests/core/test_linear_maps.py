@@ -11,10 +11,10 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import aslinearoperator
 
 import bilevel as bl
-import bilevel.linear_maps as linear_maps
 import bilevel.lower.residual as residual
 from bilevel.problems.vrft_instance import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating
+from bilevel.defaults import defaults
 from bilevel.errors import ModelError
 from bilevel.lower.images import ImageLower
 from bilevel.lower.least_squares import factor_solve, hessian_factor
@@ -106,7 +106,7 @@ def test_linear_map_errors_name_the_fix(monkeypatch) -> None:
         p.solve("hypergradient")
     p.minimize_upper(ca.sumsqr(y))
     assert p.solve("hypergradient").certificate.passed
-    monkeypatch.setattr(linear_maps, "DENSE_LIMIT", 1)
+    monkeypatch.setitem(defaults, "linear_maps.dense_limit", 1)
     q = bl.BilevelProblem("operator")
     x = q.upper_variable("x", 3, lb=-1, ub=1)
     y = q.lower_variable("y", 2)
@@ -164,7 +164,7 @@ def _residual_matches_expressions(monkeypatch, declare, x: np.ndarray, affine: b
     """The problem `declare` builds, in the residual kind (forced) with its data evaluated as a sparse product or
     not (`affine`), with the expression kind's phi and hypergradient at x; returned for more checks."""
     phi0, g0 = _phi_and_gradient(declare(), x)
-    monkeypatch.setattr(residual, "RESIDUAL_FORM_SIZE", 0)
+    monkeypatch.setitem(defaults, "residual.form_size", 0)
     p = declare()
     low = prepare(p).canon.lower
     assert isinstance(low, ResidualLeastSquares) and (low._affine is not None) == affine
@@ -257,7 +257,7 @@ def test_residual_data_from_a_recursion_stay_expressions(monkeypatch) -> None:
 def test_residual_form_with_affine_data_keeps_the_terms_free_of_y(monkeypatch) -> None:
     """A least squares plus a term of x alone (c(x) = ||dy||^2 / 10): the residual kind (forced) takes the
     sparse-product path for its data and its value at (x, y) equals the declared objective's."""
-    monkeypatch.setattr(residual, "RESIDUAL_FORM_SIZE", 0)
+    monkeypatch.setitem(defaults, "residual.form_size", 0)
     rng = np.random.default_rng(4)
     T = 400
     u, y = rng.standard_normal(T), rng.standard_normal(T)

@@ -10,6 +10,7 @@ from hypothesis import given, settings, strategies as st
 from scipy.optimize import linprog
 
 from bilevel import BilevelProblem
+from bilevel.defaults import defaults
 from bilevel.errors import InvalidData, ModelError
 from bilevel.lower.matrix import MatrixLower
 from bilevel.solvers.base import prepare
@@ -79,7 +80,7 @@ def test_matrix_least_squares_reaches_trust_region_optimum():
     singular direction; the trust-region subproblem, More & Sorensen 1983)."""
     M = np.linalg.solve(C_LS.T @ C_LS + REG * np.eye(N_LS), C_LS.T)
     best = RADIUS ** 2 * np.linalg.norm(M, 2) ** 2
-    res = ridge(True).solve(method="hypergradient", starts=4, tol=1e-10)
+    res = ridge(True).solve(method="hypergradient", starts=4, gain_tol=1e-10)
     assert res.certificate.passed
     assert res.upper_objective == pytest.approx(best, rel=1e-6)
     assert prepare(ridge(True)).canon.lower.kind == "least-squares"
@@ -89,9 +90,7 @@ def test_matrix_least_squares_reaches_trust_region_optimum():
 def test_auto_leaves_a_large_exact_block_to_the_descent(monkeypatch) -> None:
     """exact_block="auto" takes an exact block only while its subproblem is small (a dense eigendecomposition per
     evaluation); above the bound it runs the descent and says why; exact_block=True still takes it."""
-    import bilevel.solvers.hypergradient as hg
-
-    monkeypatch.setattr(hg, "AUTO_EXACT_DIMENSION", N_LS - 1)
+    monkeypatch.setitem(defaults, "hypergradient.auto_exact_dimension", N_LS - 1)
     res = ridge(True).solve(method="hypergradient", starts=1)
     assert res.stats["exact_block"] is None and any("the descent is cheaper" in w for w in res.stats["not_exact"])
     assert ridge(True).solve(method="hypergradient", starts=1, exact_block=True).stats["exact_block"] == [0, M_LS]

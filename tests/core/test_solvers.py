@@ -24,9 +24,9 @@ def test_methods_reach_bard_optimum(method: str, options: dict) -> None:
     assert res.upper_objective == pytest.approx(-12.0, rel=1e-6)
     assert res.x["x"] == pytest.approx(4.0, abs=1e-6) and res.y["y"] == pytest.approx(4.0, abs=1e-6)
     assert res.lower_objective == pytest.approx(4.0, abs=1e-6)
-    assert res.nit > 0 and len(res.starts) == 4 and res.wall_time > 0
+    assert res.nit > 0 and len(res.start_records) == 4 and res.wall_time > 0
     # several starts end at (4, 4), within the relaxation's accuracy of each other: only the answer is polished
-    assert [k for k, rec in enumerate(res.starts) if rec["polished"]] == [res.stats["best_start"]]
+    assert [k for k, rec in enumerate(res.start_records) if rec["polished"]] == [res.stats["best_start"]]
 
 
 @pytest.mark.parametrize("method", ["ipopt", "relaxation"])
@@ -36,7 +36,7 @@ def test_warm_start_from_hypergradient_reaches_bard_optimum(method: str) -> None
     res = bard_511().solve(method=method, starts=4, seed=0, warm="hypergradient")
     warm = res.stats["warm"]
     assert warm["used"] and warm["method"] == "hypergradient" and warm["objective"] == pytest.approx(-12.0, rel=1e-6)
-    assert res.status is bl.Status.SOLVED and len(res.starts) == 1
+    assert res.status is bl.Status.SOLVED and len(res.start_records) == 1
     assert res.upper_objective == pytest.approx(-12.0, rel=1e-9)
     assert res.certificate.complementarity <= 1e-9
 
@@ -52,7 +52,7 @@ def test_warm_start_on_vrft_maxmin_keeps_the_hypergradient_attack() -> None:
     assert res.stats["warm"]["objective"] == pytest.approx(hg.upper_objective, rel=1e-12)
     assert res.status is bl.Status.SOLVED and res.certificate.passed
     assert res.upper_objective >= hg.upper_objective * (1 - 1e-9)
-    assert res.starts[0]["iterations"] <= 30
+    assert res.start_records[0]["iterations"] <= 30
 
 
 def test_warm_auto_starts_from_hypergradient_only_where_it_has_an_exact_block() -> None:
@@ -64,7 +64,7 @@ def test_warm_auto_starts_from_hypergradient_only_where_it_has_an_exact_block() 
     auto, forced = p.solve(method="ipopt", starts=1), p.solve(method="ipopt", starts=1, warm="hypergradient")
     assert auto.stats["warm"]["used"] and auto.upper_objective == pytest.approx(forced.upper_objective, rel=1e-12)
     res = bard_511().solve(method="relaxation", starts=4, seed=0)
-    assert "warm" not in res.stats and len(res.starts) == 4
+    assert "warm" not in res.stats and len(res.start_records) == 4
 
 
 def test_warm_phase_without_a_point_falls_back_to_the_start_points(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -75,7 +75,7 @@ def test_warm_phase_without_a_point_falls_back_to_the_start_points(monkeypatch: 
                         lambda prep, **o: ipopt.MethodRun(None, bl.Status.ERROR, "no start could be solved"))
     res = bard_511().solve(method="ipopt", starts=3, seed=0, warm="hypergradient")
     assert res.stats["warm"]["used"] is False and res.stats["warm"]["status"] == "error"
-    assert len(res.starts) == 3 and res.upper_objective == pytest.approx(-12.0, rel=1e-6)
+    assert len(res.start_records) == 3 and res.upper_objective == pytest.approx(-12.0, rel=1e-6)
 
 
 def test_warm_option_and_wall_time_are_honest() -> None:
@@ -164,13 +164,14 @@ def test_cli_list_and_solve(capsys, tmp_path) -> None:
 
 
 def test_nlp_from_the_warm_point_has_short_limits_unless_the_user_sets_them() -> None:
-    """An NLP started at hypergradient's answer is a polish: WARM_LIMITS (50 iterations, 10 s) replace the defaults
-    (3000, 300 s); a user's max_iter or ipopt options win, and plain starts keep the defaults."""
-    from bilevel.solvers.ipopt import MAX_WALL_TIME, WARM_LIMITS, kkt_nlp_options
+    """An NLP started at hypergradient's answer is a polish: the warm limits (50 iterations, 10 s) replace the
+    defaults (3000, 300 s); a user's max_iter or ipopt options win, and plain starts keep the defaults."""
+    from bilevel.solvers.ipopt import kkt_nlp_options
 
     used = {"warm": {"used": True}}
-    assert {k: kkt_nlp_options({}, used)["ipopt"][k] for k in WARM_LIMITS} == WARM_LIMITS
-    mine = kkt_nlp_options({"max_iter": 7, "ipopt": {"max_wall_time": 2.0}}, used)["ipopt"]
+    warm = kkt_nlp_options(None, None, None, used)["ipopt"]
+    assert (warm["max_iter"], warm["max_wall_time"]) == (50, 10.0)
+    mine = kkt_nlp_options(None, 7, {"max_wall_time": 2.0}, used)["ipopt"]
     assert mine["max_iter"] == 7 and mine["max_wall_time"] == 2.0
-    plain = kkt_nlp_options({}, {})["ipopt"]
-    assert plain["max_iter"] == 3000 and plain["max_wall_time"] == MAX_WALL_TIME
+    plain = kkt_nlp_options(None, None, None, {})["ipopt"]
+    assert plain["max_iter"] == 3000 and plain["max_wall_time"] == 300.0

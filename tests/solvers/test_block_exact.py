@@ -142,7 +142,7 @@ def test_clean_data_is_never_a_solved_attack() -> None:
     descent (exact_block=False) stays there and says so; the default exact-block mode leaves it at the first step
     (its block step is a global one, not trapped by stationarity)."""
     p, _ = _vrft_from_scratch(0)
-    p.starts.clear()
+    p.suggested_starts.clear()
     p.suggest_start(a_u=np.zeros(64), a_y=np.zeros(64))  # the first start: zero poisoning
     res = p.solve(method="hypergradient", starts=1, exact_block=False)
     assert res.x["a_u"] == pytest.approx(0.0, abs=1e-12) and res.x["a_y"] == pytest.approx(0.0, abs=1e-12)

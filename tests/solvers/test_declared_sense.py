@@ -24,8 +24,8 @@ def bard_max() -> bl.BilevelProblem:
 def test_records_and_progress_are_in_the_declared_sense(method: str, capsys) -> None:
     res = bard_max().solve(method, starts=2, seed=0, verbose=True)
     assert res.upper_objective == pytest.approx(12.0, abs=1e-6)
-    starts = [s["objective"] for s in res.starts if s.get("objective") is not None]
-    assert starts and max(starts) == pytest.approx(12.0, abs=1e-4), res.starts
+    starts = [s["objective"] for s in res.start_records if s.get("objective") is not None]
+    assert starts and max(starts) == pytest.approx(12.0, abs=1e-4), res.start_records
     history = [h["objective"] for h in res.history if h.get("objective") is not None]
     assert all(h > 0 for h in history), history  # every point of the path has 4y - x > 0 (at -12: minimization sign)
     printed = [float(v) for v in re.findall(r"\b(?:F|phi) = (-?[0-9.e+-]+)", capsys.readouterr().err)]

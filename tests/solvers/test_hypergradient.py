@@ -136,7 +136,7 @@ def test_bard_reaches_known_optimum(bard: bl.BilevelProblem) -> None:
     assert res.status is bl.Status.SOLVED and res.certificate.passed
     assert res.upper_objective == pytest.approx(-12.0, abs=1e-8)
     assert res.x["x"] == pytest.approx(4.0, abs=1e-8) and res.y["y"] == pytest.approx(4.0, abs=1e-8)
-    assert len(res.starts) == 4
+    assert len(res.start_records) == 4
     assert set(res.history[0]) >= {"iter", "objective", "step", "grad_norm", "projected_step_norm"}
 
 

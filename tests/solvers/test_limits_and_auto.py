@@ -11,7 +11,10 @@ import bilevel as bl
 from bilevel.problems import registry
 from bilevel.solvers.base import prepare
 from bilevel.solvers.evolution import default_budget
-from bilevel.solvers.registry import AUTO_MIN_UPPER, choose_method
+from bilevel.defaults import defaults
+from bilevel.solvers.registry import choose_method
+
+AUTO_MIN_UPPER = defaults["auto.min_upper"]
 
 
 def _least_squares(n: int, seed: int = 0) -> bl.BilevelProblem:

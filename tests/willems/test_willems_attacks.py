@@ -19,7 +19,7 @@ SHORT_GRID = (0.4, 0.5, 0.6, 0.7, 0.8, 1.0, 1.25)
 def test_input_budget_is_respected_exactly(attack_fn) -> None:
     """|Du| <= delta_u holds exactly (no tolerance) for every attack; the result reports zero violation."""
     attack = build_attack(horizon=15, seed=1, delta_u=0.35)
-    kwargs = {"maxiter": 20} if attack_fn is de_attack else {}
+    kwargs = {"max_iter": 20} if attack_fn is de_attack else {}
     res = attack_fn(attack, seed=0, **kwargs)
     du, dx = attack.split(res.stats["x"])
     assert np.all(np.abs(du) <= 0.35) and not np.any(dx)
@@ -40,7 +40,7 @@ def test_state_and_input_budgets_are_respected_exactly() -> None:
 
 def test_attacks_are_deterministic_given_the_seed() -> None:
     attack = build_attack(horizon=15, seed=5, delta_u=0.5)
-    for fn, kwargs in ((hypergradient_attack, {}), (de_attack, {"maxiter": 15})):
+    for fn, kwargs in ((hypergradient_attack, {}), (de_attack, {"max_iter": 15})):
         a, b = fn(attack, seed=3, **kwargs), fn(attack, seed=3, **kwargs)
         np.testing.assert_array_equal(a.stats["x"], b.stats["x"])
         assert a.upper_objective == b.upper_objective
@@ -60,13 +60,13 @@ def test_eigen_attack_destabilizes_no_later_than_de() -> None:
     firsts = []
     for data_seed, attack_seed in sim_seeds(0, 3):
         first = {}
-        for name, fn in (("ours", hypergradient_attack), ("de", de_attack)):
+        for name, fn in (("ours", hypergradient_attack), ("differential-evolution", de_attack)):
             first[name] = next((d for d in SHORT_GRID
                                 if unstable(fn(build_attack(horizon=15, seed=data_seed, delta_u=d), seed=attack_seed))),
                                np.inf)
         firsts.append(first)
     print(firsts)
-    assert all(f["ours"] <= f["de"] for f in firsts)
+    assert all(f["ours"] <= f["differential-evolution"] for f in firsts)
     assert all(np.isfinite(f["ours"]) for f in firsts)
 
 
@@ -120,7 +120,7 @@ ATTACKS = {
                                                                   delta_x=1e-4), starts=1, max_iter=5),
     "destabilize": lambda: destabilize_attack(build_attack(objective="destabilize", horizon=10, seed=0, delta_u=0.3),
                                               starts=4, pool=16),
-    "differential-evolution": lambda: de_attack(build_attack(horizon=10, seed=0, delta_u=0.3), maxiter=10),
+    "differential-evolution": lambda: de_attack(build_attack(horizon=10, seed=0, delta_u=0.3), max_iter=10),
     "random": lambda: random_attack(build_attack(horizon=10, seed=0, delta_u=0.3)),
     "kkt-ipopt": lambda: kkt_attack(build_attack(horizon=10, seed=0, delta_u=0.3), method="ipopt"),
 }

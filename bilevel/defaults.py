@@ -1,0 +1,230 @@
+"""Every tolerance, limit and count the methods and certificates read, in one registry (python-control's
+`control.config.defaults`): `defaults["module.name"]` holds a value, `set_defaults("module", name=value)` changes it
+for every later solve in the process, `reset_defaults()` restores the values below, and `param(key, given)` is the
+one reader (an argument given by the caller, else the registry's value).
+
+Each entry is (value, what it is and its unit). A method option whose default is None means "the registry's value":
+`solve(p, method="hypergradient", max_iter=None)` runs `defaults["hypergradient.max_iter"]` steps.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, MutableMapping
+from numbers import Integral, Real
+from typing import Any
+
+from .errors import ModelError, did_you_mean
+
+ENTRIES: dict[str, tuple[Any, str]] = {
+    # the certificate (bilevel.certificate)
+    "certificate.tol": (1e-6, "tolerance of the certificate's scaled checks: lower KKT residuals, feasibility, gap to"
+                              " the re-solve"),
+    "certificate.nlp_starts": (8, "starts of the independent re-solve of a nonlinear lower level (count)"),
+    # method hypergradient (and block-exact, the descent after differential-evolution)
+    "hypergradient.starts": (4, "multistart starts of hypergradient and block-exact (count)"),
+    "hypergradient.scale": (10.0, "half-width of the random starts' box where a bound is infinite (units of x)"),
+    "hypergradient.gtol": (1e-7, "the descent stops when the projected step norm ||x - P(x - grad phi)|| is below "
+                                 "this (units of x)"),
+    "hypergradient.ftol": (1e-12, "the descent stops when one step decreases phi by less than this (relative)"),
+    "hypergradient.max_iter": (500, "descent steps per start (count)"),
+    "hypergradient.min_step": (2.0 ** -60, "the line search fails below this fraction of its trial step"),
+    "hypergradient.auto_exact_dimension": (256, "exact_block='auto' takes an exact block whose trust-region "
+                                                "subproblem has at most this dimension (count)"),
+    "hypergradient.tie_rtol": (1e-6, "option prefer breaks ties among starts within this distance of the best "
+                                     "objective (relative)"),
+    "block_exact.gain_tol": (1e-5, "the exact-block ascent stops when its gain over ascent.window steps is below this "
+                                   "(relative)"),
+    # the implicit-differentiation engine (bilevel.solvers.implicit)
+    "implicit.penalty": (1e4, "weight of the upper constraints' violation added to phi where they are penalized"),
+    "implicit.active_tol": (1e-6, "a lower inequality is active where lam_i > this or |g_i| <= this (absolute)"),
+    "implicit.kink_tol": (1e-9, "where some |G_i| or |H_j| <= this the penalty is not differentiable (least-norm "
+                                "element used)"),
+    # the engine's ascent loop (bilevel.solvers.ascent)
+    "ascent.armijo": (1e-4, "sufficient-increase constant of the Armijo backtracking (fraction)"),
+    "ascent.window": (5, "the ascent's gain stop is measured over this many accepted steps (count)"),
+    # the start sequence (bilevel.solvers.starts)
+    "starts.conditioning_steps": (10, "projected steps of the conditioning start, one budget radius or half-width "
+                                      "each (count)"),
+    # the KKT methods ipopt and relaxation (bilevel.solvers.ipopt)
+    "ipopt.starts": (8, "multistart starts of ipopt and relaxation (count)"),
+    "ipopt.scale": (10.0, "half-width of the random starts' box where a bound is infinite (units of x)"),
+    "ipopt.nlp_tol": (1e-10, "IPOPT's tol on each NLP of ipopt and relaxation (its scaled KKT error)"),
+    "ipopt.max_iter": (3000, "IPOPT iterations per NLP (count)"),
+    "ipopt.acceptable_tol": (1e-7, "IPOPT's acceptable_tol: its 'solved to acceptable level' threshold"),
+    "ipopt.max_wall_time": (300.0, "IPOPT max_wall_time per NLP solve (seconds)"),
+    "ipopt.complementarity_t": (1e-9, "relaxation parameter t of the default complementarity mode Scholtes(t)"),
+    "ipopt.polish_tie": (1e-6, "a further candidate is branch-polished only if it beats the polished one by more "
+                               "than this (relative)"),
+    "ipopt.warm_max_iter": (50, "IPOPT iterations of an NLP started from hypergradient's answer (count)"),
+    "ipopt.warm_max_wall_time": (10.0, "IPOPT max_wall_time of an NLP started from hypergradient's answer "
+                                       "(seconds)"),
+    # method relaxation
+    "relaxation.t0": (1.0, "first relaxation parameter t of the sequence"),
+    "relaxation.factor": (0.1, "t is multiplied by this at each step (in (0, 1))"),
+    "relaxation.t_min": (1e-12, "the sequence stops before t falls below this"),
+    "relaxation.comp_tol": (1e-7, "the sequence stops when the complementarity residual is below this (absolute)"),
+    # method differential-evolution (bilevel.solvers.evolution)
+    "evolution.starts": (1, "multistart points seeded into the population (count)"),
+    "evolution.pop_tol": (1e-8, "the search stops when std(population values) <= this * |mean| (relative)"),
+    "evolution.members": (64, "cap on the default population size (count)"),
+    "evolution.evaluations": (3000, "evaluations the default number of generations is sized to (count)"),
+    # method global (bilevel.solvers.global_*)
+    "global.time_limit": (60.0, "wall-clock limit of method global (seconds)"),
+    "global.node_limit": (100_000, "branch-and-bound nodes of method global (count)"),
+    "global.gap": (1e-6, "method global stops when (upper - lower bound) / max(1, |best|) is below this"),
+    "global.bigm_safety": (1e-6, "relative and absolute margin added to each LP maximum so that LP tolerances cannot "
+                                 "make M too small"),
+    "global.fix_tol": (1e-6, "a pair's side is fixed only if the other side's minimum exceeds this * max(1, its "
+                             "maximum)"),
+    "global.complementarity_tol": (1e-9, "branch-and-bound takes a node as complementary when its worst min(G_i, H_i)"
+                                         " is below this * (1 + max |w|)"),
+    "global.convexity_tol": (1e-9, "a Hessian counts as convex when its smallest eigenvalue >= -this * max(1, max "
+                                   "|entry|)"),
+    "global.max_box_vertices": (4096, "vertices of the upper box on which an x-dependent lower Hessian is checked, at"
+                                      " most (count)"),
+    "global.scip_feastol": (1e-9, "SCIP's feasibility tolerance (SCIP's own default is 1e-6; absolute)"),
+    # multistart selection and dispatch (bilevel.solvers.base, bilevel.solvers.registry)
+    "solvers.feasibility_tol": (1e-6, "largest residual at which a start's end point counts as feasible"),
+    "solvers.small_lower": (256, "lower levels with at most this many variables run with one BLAS thread (count)"),
+    "auto.min_upper": (20, "method auto takes hypergradient from this many upper entries on (count)"),
+    # the local probe and the optimistic selection (bilevel.solvers.probe, bilevel.solvers.optimistic)
+    "probe.directions": (4, "random directions the local probe tries at each radius (count)"),
+    "probe.coordinates": (16, "up to this many upper variables the probe tries +/- each coordinate and the adjacent "
+                              "pieces at a kink (count)"),
+    "probe.rel_tol": (1e-8, "along random directions a neighbour is better only by more than this (relative)"),
+    "probe.feas_tol": (1e-9, "largest upper violation (G > 0, |H|) of a probed point that counts as feasible "
+                             "(absolute)"),
+    "probe.descent_rel_tol": (1e-5, "along first-order directions a neighbour is better only by more than this "
+                                    "(relative)"),
+    "optimistic.slack": (1e-9, "slack of the optimistic selection's lower optimality row, f <= f* + slack (1 + |f*|) "
+                               "(relative)"),
+    "optimistic.row_tol": (1e-8, "largest row violation, relative to 1 + max |y|, at which a selection counts as "
+                                 "feasible"),
+    "optimistic.improve_rel_tol": (1e-5, "F must drop by more than this (relative to max(1, |F|)) for a better "
+                                         "selection"),
+    # box methods (bilevel.solvers.box_methods)
+    "destabilize.starts": (64, "points ascending together in method destabilize (count)"),
+    "destabilize.max_iter": (100, "ascent steps of method destabilize (count)"),
+    "destabilize.pool": (512, "random points screened for destabilize's starts (count)"),
+    # lower levels (bilevel.lower)
+    "classify.y_probes": (16, "lower points drawn per upper sample when a lower Hessian depends on y (count)"),
+    "convexity.psd_tol": (1e-9, "a Hessian counts as PSD when its smallest eigenvalue >= -this * max(1, its largest "
+                                "entry)"),
+    "sdp.psd_tol": (1e-9, "relative PSD violation of M_k and Z_k tolerated in a polished SDP iterate"),
+    "sdp.polished_tol": (1e-6, "largest KKT residual of a polished solution of an SDP that moves with x (its "
+                               "derivative needs it)"),
+    "sdp.free_rtol": (1e-10, "singular values below this times the largest count as zero (the directions an SDP sees)"),
+    "sdp.continuation_tol": (1e-9, "KKT residual a Newton continuation from a nearby SDP solution must reach (no worse "
+                                   "than a polished conic solve)"),
+    "sdp.continuation_steps": (6, "Newton steps of the continuation from a nearby SDP solution (count)"),
+    "polish.active_tol": (1e-6, "a row or LMI eigenvalue is active when within this * (1 + its scale) of zero"),
+    "polish.flip_tol": (1e-13, "a face's solution violating a sign condition by more than this * (1 + scale) moves "
+                               "that constraint"),
+    "polish.max_steps": (8, "Newton steps per face of the lower polish (count)"),
+    "polish.max_faces": (4, "faces the lower polish tries: the first guess and active-set corrections (count)"),
+    "residual.form_size": (10_000, "least squares whose symbolic Hessian would have more than rows x n_y^2 = this "
+                                   "many terms use the residual form (count)"),
+    "residual.affine_fill": (4, "residual data are a sparse product when its matrix has at most this many nonzeros "
+                                "per operation of their expressions (count)"),
+    "residual.numeric_squares_size": (1_000, "a sum of squares of y with at least this many nonzero coefficients is "
+                                             "evaluated by BLAS (count)"),
+    "residual.sparse_squares": (0.25, "below this fraction of nonzero coefficients a sum of squares' matrix is kept "
+                                      "sparse"),
+    "linear_maps.dense_limit": (25_000_000, "entries up to which an operator given only by its products is formed as "
+                                            "a matrix (count)"),
+    "spectral_radius.defective_cond": (1e12, "eigenvector matrices with a larger condition number are treated as "
+                                             "singular (a defective top eigenvalue)"),
+}
+"""The registry's entries: key -> (default value, what it is and its unit)."""
+
+RENAMED: dict[str, str] = {}
+"""Old keys -> their new names, for one release of "renamed" errors."""
+
+
+def _check_key(key: str) -> None:
+    if key not in ENTRIES:
+        if key in RENAMED:
+            raise ModelError(f"default {key!r} was renamed: use {RENAMED[key]!r}")
+        raise ModelError(f"unknown default {key!r}; {did_you_mean(key, ENTRIES)}the keys are listed by "
+                         "bilevel.defaults.describe()")
+
+
+def _check_value(key: str, value: Any) -> None:
+    default = ENTRIES[key][0]
+    ok = (isinstance(value, Integral) and not isinstance(value, bool) and value >= 0 if isinstance(default, int)
+          else isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value) and value >= 0)
+    if not ok:
+        want = "an integer >= 0" if isinstance(default, int) else "a finite number >= 0"
+        raise ModelError(f"default {key}={value!r} is invalid: it must be {want} ({ENTRIES[key][1]})")
+
+
+class Defaults(MutableMapping):
+    """The registry: a dict of the ENTRIES' keys whose keys cannot be added or removed, only set (checked)."""
+
+    def __init__(self) -> None:
+        self._values = {key: value for key, (value, _) in ENTRIES.items()}
+
+    def __getitem__(self, key: str) -> Any:
+        try:
+            return self._values[key]
+        except KeyError:
+            _check_key(key)
+            raise
+
+    def __setitem__(self, key: str, value: Any) -> None:
+        _check_key(key)
+        _check_value(key, value)
+        self._values[key] = value
+
+    def __delitem__(self, key: str) -> None:
+        raise ModelError(f"defaults cannot be removed ({key!r}); reset_defaults() restores them")
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._values)
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    def __repr__(self) -> str:
+        return f"Defaults({self._values!r})"
+
+    def describe(self, prefix: str = "") -> str:
+        """One line per default whose key starts with `prefix`: key = current value: what it is and its unit."""
+        return "\n".join(f"{key} = {self._values[key]!r}: {doc}" for key, (_, doc) in ENTRIES.items()
+                         if key.startswith(prefix))
+
+
+defaults = Defaults()
+"""The one registry every method and certificate reads (through param); `bilevel.defaults` is this object (the
+package exports it under the module's name), so `bilevel.defaults.describe("probe")` lists the probe's entries."""
+
+
+def param(key: str, given: Any = None) -> Any:
+    """The value to use: `given` where the caller passed one (not None), else defaults[key] (read directly: this runs
+    inside the methods' loops)."""
+    if given is not None:
+        return given
+    try:
+        return defaults._values[key]
+    except KeyError:
+        _check_key(key)
+        raise
+
+
+def set_defaults(module: str, **values: Any) -> None:
+    """Set defaults["module.name"] = value for each name=value (e.g. set_defaults("hypergradient", max_iter=100))."""
+    modules = {key.split(".")[0] for key in ENTRIES}
+    if module not in modules:
+        raise ModelError(f"set_defaults: unknown module {module!r}; {did_you_mean(module, modules)}"
+                         f"the modules are {', '.join(sorted(modules))}")
+    for name in values:
+        _check_key(f"{module}.{name}")
+    for name, value in values.items():
+        defaults[f"{module}.{name}"] = value
+
+
+def reset_defaults() -> None:
+    """Restore every default to the value it has in ENTRIES."""
+    for key, (value, _) in ENTRIES.items():
+        defaults._values[key] = value

@@ -1,0 +1,152 @@
+"""The defaults registry (bilevel.defaults): one documented entry per tolerance, limit and count, read at call time;
+set_defaults / reset_defaults; methods' explicit keyword options, listed by show_options and checked against their
+signatures; renamed options answer with their new names."""
+
+from __future__ import annotations
+
+import inspect
+
+import pytest
+
+import bilevel as bl
+from bilevel.defaults import ENTRIES, param
+from bilevel.errors import ModelError, UnknownOption
+from bilevel.solvers.base import options_of
+from bilevel.solvers.box_methods import destabilize, random_signs
+from tests.docs_pages import run_page
+
+
+def bard() -> bl.BilevelProblem:
+    """Bard (1998) Example 5.1.1 with the upper variable boxed: optimum F = -12 at x = y = 4."""
+    p = bl.BilevelProblem("bard-boxed")
+    x = p.upper_variable("x", lb=0, ub=10)
+    y = p.lower_variable("y", lb=0)
+    p.minimize_upper(x - 4 * y)
+    p.minimize_lower(y)
+    for c in (-x - y <= -3, -2 * x + y <= 0, 2 * x + y <= 12, 3 * x - 2 * y <= 4):
+        p.lower_constraint(c)
+    return p
+
+
+BEFORE = {  # the module constants and option defaults the registry replaced, as they were
+    "certificate.tol": 1e-6, "certificate.nlp_starts": 8, "hypergradient.starts": 4, "hypergradient.scale": 10.0,
+    "hypergradient.gtol": 1e-7, "hypergradient.ftol": 1e-12, "hypergradient.max_iter": 500,
+    "hypergradient.min_step": 2.0 ** -60, "hypergradient.auto_exact_dimension": 256, "hypergradient.tie_rtol": 1e-6,
+    "block_exact.gain_tol": 1e-5, "implicit.penalty": 1e4, "implicit.active_tol": 1e-6, "implicit.kink_tol": 1e-9,
+    "ascent.armijo": 1e-4, "ascent.window": 5, "starts.conditioning_steps": 10, "ipopt.starts": 8,
+    "ipopt.scale": 10.0, "ipopt.nlp_tol": 1e-10, "ipopt.max_iter": 3000, "ipopt.acceptable_tol": 1e-7,
+    "ipopt.max_wall_time": 300.0, "ipopt.complementarity_t": 1e-9, "ipopt.polish_tie": 1e-6,
+    "ipopt.warm_max_iter": 50, "ipopt.warm_max_wall_time": 10.0, "relaxation.t0": 1.0, "relaxation.factor": 0.1,
+    "relaxation.t_min": 1e-12, "relaxation.comp_tol": 1e-7, "evolution.starts": 1, "evolution.pop_tol": 1e-8,
+    "evolution.members": 64, "evolution.evaluations": 3000, "global.time_limit": 60.0, "global.node_limit": 100_000,
+    "global.gap": 1e-6, "global.bigm_safety": 1e-6, "global.fix_tol": 1e-6, "global.complementarity_tol": 1e-9,
+    "global.convexity_tol": 1e-9, "global.max_box_vertices": 4096, "global.scip_feastol": 1e-9,
+    "solvers.feasibility_tol": 1e-6, "solvers.small_lower": 256, "auto.min_upper": 20, "probe.directions": 4,
+    "probe.coordinates": 16, "probe.rel_tol": 1e-8, "probe.feas_tol": 1e-9, "probe.descent_rel_tol": 1e-5,
+    "optimistic.slack": 1e-9, "optimistic.row_tol": 1e-8, "optimistic.improve_rel_tol": 1e-5,
+    "destabilize.starts": 64, "destabilize.max_iter": 100, "destabilize.pool": 512, "classify.y_probes": 16,
+    "convexity.psd_tol": 1e-9, "sdp.psd_tol": 1e-9, "sdp.polished_tol": 1e-6, "sdp.free_rtol": 1e-10,
+    "sdp.continuation_tol": 1e-9, "sdp.continuation_steps": 6,
+    "polish.active_tol": 1e-6, "polish.flip_tol": 1e-13, "polish.max_steps": 8, "polish.max_faces": 4,
+    "residual.form_size": 10_000, "residual.affine_fill": 4, "residual.numeric_squares_size": 1_000,
+    "residual.sparse_squares": 0.25, "linear_maps.dense_limit": 25_000_000, "spectral_radius.defective_cond": 1e12,
+}
+
+METHOD_FUNCTIONS = {**{name: fn for name, fn in bl.METHODS.items()}, "destabilize": destabilize,
+                    "random-signs": random_signs}
+
+
+def test_every_entry_keeps_its_former_value_and_is_documented() -> None:
+    assert set(ENTRIES) == set(BEFORE)
+    for key, (value, doc) in ENTRIES.items():
+        assert value == BEFORE[key] and type(value) is type(BEFORE[key]), key
+        assert bl.defaults[key] == value and len(doc) > 20, key
+    assert len(bl.defaults.describe().splitlines()) == len(ENTRIES)
+
+
+def test_set_defaults_changes_later_solves_and_reset_restores() -> None:
+    first = bard().solve("hypergradient", starts=1, seed=0)
+    try:
+        bl.set_defaults("hypergradient", max_iter=1)
+        assert bl.defaults["hypergradient.max_iter"] == 1 and param("hypergradient.max_iter", 7) == 7
+        short = bard().solve("hypergradient", starts=1, seed=0)
+        assert short.nit <= 1 < first.nit
+    finally:
+        bl.reset_defaults()
+    assert bl.defaults["hypergradient.max_iter"] == 500
+    again = bard().solve("hypergradient", starts=1, seed=0)
+    assert again.upper_objective == first.upper_objective and again.nit == first.nit
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: bl.defaults["hypergradient.maxiter"], "did you mean 'hypergradient.max_iter'"),
+    (lambda: bl.set_defaults("hypergradient", maxiter=3), "did you mean 'hypergradient.max_iter'"),
+    (lambda: bl.set_defaults("hypergrad", max_iter=3), "did you mean 'hypergradient'"),
+    (lambda: bl.set_defaults("certificate", tol=-1.0), "certificate.tol=-1.0 is invalid"),
+    (lambda: bl.set_defaults("ipopt", starts=2.5), "ipopt.starts=2.5 is invalid"),
+    (lambda: bl.defaults.pop("certificate.tol"), "cannot be removed"),
+])
+def test_unknown_keys_and_bad_values_are_model_errors(call, match) -> None:
+    with pytest.raises(ModelError, match=match):
+        call()
+    assert bl.defaults == {key: value for key, (value, _) in ENTRIES.items()}
+
+
+@pytest.mark.parametrize("name", sorted(METHOD_FUNCTIONS))
+def test_help_lists_every_option_of_every_method(name: str) -> None:
+    """Each method's options are keyword-only parameters (scipy's _minimize_* style), each named in its docstring,
+    listed by show_options; an option with a registry default defaults to None."""
+    fn = METHOD_FUNCTIONS[name]
+    doc = inspect.getdoc(fn)
+    assert options_of(fn), name
+    for option in options_of(fn):
+        assert option in doc, (name, option)
+    if name in bl.METHODS:
+        shown = bl.show_options(name)
+        assert all(f"\n{option}: " in "\n" + shown for option in options_of(fn)), shown
+
+
+def test_the_solve_docstring_names_every_method_and_where_options_are_listed() -> None:
+    doc = inspect.getdoc(bl.BilevelProblem.solve)
+    assert all(f'"{name}"' in doc for name in bl.METHODS) and "show_options" in doc
+
+
+@pytest.mark.parametrize("method, option, new", [
+    ("hypergradient", "tol", "gtol"), ("block-exact", "tol", "gain_tol"), ("ipopt", "tol", "nlp_tol"),
+    ("ipopt", "polish", "branch_polish"), ("relaxation", "tol", "nlp_tol"),
+    ("relaxation", "polish", "branch_polish"), ("differential-evolution", "tol", "pop_tol"),
+])
+def test_renamed_options_name_their_new_name(method: str, option: str, new: str) -> None:
+    value = True if option == "polish" else 1e-8
+    with pytest.raises(UnknownOption, match=f"{option} was renamed: use {new}"):
+        bard().solve(method, **{option: value})
+
+
+def test_a_misspelt_option_is_rejected_with_the_accepted_ones() -> None:
+    with pytest.raises(UnknownOption, match="did you mean 'max_iter'.*it accepts: .*gtol"):
+        bard().solve("hypergradient", maxiter=3)
+
+
+def test_renamed_attributes_and_keywords_name_their_new_names() -> None:
+    from bilevel.attacks.willems import de_attack
+
+    p = bard()
+    p.suggest_start(x=4.0)
+    res = p.solve("hypergradient", starts=2)
+    assert len(p.suggested_starts) == 1 and len(res.start_records) == 2
+    with pytest.raises(AttributeError, match="use suggested_starts"):
+        _ = p.starts
+    with pytest.raises(AttributeError, match="use start_records"):
+        _ = res.starts
+    old = {k: v for k, v in res.to_dict().items() if k != "start_records"} | {"starts": list(res.start_records)}
+    assert bl.BilevelResult.from_dict(old).start_records == bl.BilevelResult.from_dict(res.to_dict()).start_records
+    for old_name, new in (("maxiter", "max_iter"), ("tol", "pop_tol")):
+        with pytest.raises(UnknownOption, match=f"{old_name} was renamed: use {new}"):
+            de_attack(None, **{old_name: 3})
+
+
+def test_options_page_runs_as_printed() -> None:
+    try:
+        run_page("options.md")
+    finally:
+        bl.reset_defaults()
