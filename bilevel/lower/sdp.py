@@ -88,8 +88,8 @@ class SemidefiniteLower(QuadraticLower):
         super().__post_init__()
         zero = ca.DM.zeros(self.n_y)
         outs = []
-        for m in self.psd:
-            outs += [ca.substitute(m, self.y, zero), ca.substitute(ca.jacobian(ca.vec(m), self.y), self.y, zero)]
+        for m, jac in zip(self.psd, self.lmi_jacobians()):
+            outs += [ca.substitute(m, self.y, zero), ca.substitute(jac, self.y, zero)]
         self._lmi = self.params.function("lmi_coeffs", [self.x], outs)
         self._last_point: tuple[tuple, QPData, tuple] | None = None
         self._chosen: tuple[int, LowerSolution] | None = None  # (parameter revision, the learner's own solution)
