@@ -177,11 +177,6 @@ class LowerLevel(ABC):
         """The lower level as CasADi expressions, for the single-level (KKT) reduction."""
 
 
-def lmi_jacobians(psd: list[ca.SX], y: ca.SX) -> list[ca.SX]:
-    """d vec(M_k)/dy of every LMI M_k, symbolic."""
-    return [ca.jacobian(ca.vec(m), y) for m in psd]
-
-
 @dataclass
 class ExpressionLower(LowerLevel):
     """A lower level given by CasADi expressions f, g, h, M_k of (x, y, parameters).
@@ -202,9 +197,6 @@ class ExpressionLower(LowerLevel):
     """d^2 f / dy^2, symbolic; computed here unless the classification already did (one AD pass on f)."""
     params: ParameterSet = field(default_factory=ParameterSet, repr=False)
     """The problem's parameters (data symbols in f, g, h, M_k): functions built here read their current values."""
-    jac_psd: list[ca.SX] | None = field(default=None, repr=False)
-    """d vec(M_k)/dy for every LMI, symbolic (lmi_jacobians); given by the classification, which builds it once (on
-    large SDPs each costs one long AD pass)."""
 
     def __post_init__(self) -> None:
         if self.hess_f is None:
@@ -214,16 +206,14 @@ class ExpressionLower(LowerLevel):
 
     @cached_property
     def _derivs(self) -> CompiledFunction:
-        """(x, y) -> grad_y f, J_g, J_h and d vec(M_k)/dy, built on first use (the LMI Jacobians are costly on large
-        SDPs, whose solves and KKT system read them numerically from SemidefiniteLower.lmi_data instead)."""
+        """(x, y) -> grad_y f, J_g, J_h, built on first use."""
         return self.params.function("lower_derivs", [self.x, self.y], [ca.gradient(self.f, self.y),
-                                    ca.jacobian(self.g, self.y), ca.jacobian(self.h, self.y), *self.lmi_jacobians()])
+                                    ca.jacobian(self.g, self.y), ca.jacobian(self.h, self.y)])
 
-    def lmi_jacobians(self) -> list[ca.SX]:
-        """d vec(M_k)/dy of every LMI, symbolic: the classification's (jac_psd), else built here once."""
-        if self.jac_psd is None:
-            self.jac_psd = lmi_jacobians(self.psd, self.y)
-        return self.jac_psd
+    def lmi_jacobians(self, x: np.ndarray) -> list[np.ndarray]:
+        """d vec(M_k)/dy at x for every LMI (constant in y: LMIs are affine in y): none here; SemidefiniteLower, the
+        kind with LMIs, reads them from its LMI coefficients."""
+        return []
 
     @cached_property
     def fixed(self) -> bool:
@@ -253,7 +243,7 @@ class ExpressionLower(LowerLevel):
         """grad_y f, J_g, J_h (rows by constraint) and d vec(M_k) / dy at (x, y)."""
         out = self._derivs(x, y)
         return (np.asarray(out[0]).ravel(), np.asarray(out[1]).reshape(-1, self.n_y),
-                np.asarray(out[2]).reshape(-1, self.n_y), [np.asarray(j) for j in out[3:]])
+                np.asarray(out[2]).reshape(-1, self.n_y), self.lmi_jacobians(x))
 
     def hessian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Hessian of f in y at (x, y)."""

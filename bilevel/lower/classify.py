@@ -8,7 +8,7 @@ import numpy as np
 from ..errors import ModelError, NonConvexLowerLevel
 from ..parameters import CompiledFunction, ParameterSet
 from ..sampling import sample_in_bounds
-from .base import LowerLevel, lmi_jacobians
+from .base import LowerLevel
 from .convexity import PSD_TOL, ConvexityProbe
 from .least_squares import LeastSquaresLower
 from .nlp import ConvexNLPLower
@@ -64,16 +64,14 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
     affine_g = not (g.numel() and any(ca.which_depends(g, y, 2, False)))
     objective = [(function("hf", [x, y], [hess_f]), "the lower objective")]
     if psd:
-        jac_psd = lmi_jacobians(psd, y)  # built once, kept by the SDP lower level
-        for name, jac in zip(psd_names, jac_psd):
-            if ca.depends_on(jac, y):
+        for name, m in zip(psd_names, psd):
+            if any(ca.which_depends(ca.vec(m), y, 2, True)):  # an entry nonlinear in y, by sparsity: no Jacobian
                 raise NonConvexLowerLevel(f"LMI {name!r} is not affine in the lower variables; an SDP lower level "
                                           "needs M(x, y) affine in y")
         if not affine_g or ca.depends_on(hess_f, y):  # hess_f is small (n_y x n_y) next to f
             raise ModelError("a lower level with LMIs must have a linear or convex quadratic objective and affine "
                              "scalar constraints in y (a conic program)")
-        return _with_probe(SemidefiniteLower(*args, hess_f=hess_f, params=params, jac_psd=jac_psd),
-                           _probe(objective, points)[0])
+        return _with_probe(SemidefiniteLower(*args, hess_f=hess_f, params=params), _probe(objective, points)[0])
     if affine_g and not ca.depends_on(hess_f, y):
         if not nonlinear_f.any():
             return LinearLower(*args, hess_f=hess_f, params=params)

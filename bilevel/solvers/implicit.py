@@ -39,7 +39,7 @@ from scipy.optimize import lsq_linear
 
 from ..errors import ModelError
 from ..lower.base import ExpressionLower, KKTValues, LowerSolution
-from ..parameters import CompiledFunction, ParameterSet
+from ..parameters import CompiledFunction, ValueAndJacobian
 from ..spectral_radius import spectral_radius
 from .base import Prepared
 
@@ -67,25 +67,6 @@ class Evaluation:
 
 def _shaped(values: list[ca.DM], shapes: list[tuple[int, int]]) -> list[np.ndarray]:
     return [np.asarray(v, dtype=float).reshape(s, order="F") for v, s in zip(values, shapes)]
-
-
-class ValueAndJacobian:
-    """(x, y) -> (e, de/dx) of a vector expression e, numerically: the Jacobian's rows by one reverse sweep each (a
-    vector-Jacobian product mapped over the unit seeds), exact like a symbolic Jacobian, which costs far more to build
-    on long expressions (M = A + B V S^-1 of an SDP's variables: 20x)."""
-
-    def __init__(self, params: ParameterSet, name: str, x: ca.SX, y: ca.SX, expr: ca.SX) -> None:
-        seed = ca.SX.sym("seed", expr.numel())
-        inputs = [x, y, seed] + ([params.sym] if len(params) else [])
-        vjp = ca.Function(f"{name}_vjp", inputs, [ca.jtimes(expr, x, seed, True)])
-        rows = vjp.map(f"{name}_rows", "serial", int(expr.numel()), [i for i in range(len(inputs)) if i != 2], [])
-        self._value = params.function(name, [x, y], [expr])
-        self._rows = CompiledFunction(rows, params if len(params) else None)
-        self._seeds = np.eye(int(expr.numel()))
-
-    def __call__(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """e (a column) and de/dx at (x, y)."""
-        return np.asarray(self._value(x, y), dtype=float), np.asarray(self._rows(x, y, self._seeds), dtype=float).T
 
 
 class Hypergradient:
@@ -118,7 +99,7 @@ class Hypergradient:
         self._affine: tuple[int, np.ndarray, np.ndarray] | None = None  # (revision, M(0, y*), dM/dx) when fixed
         if canon.spectral is not None:
             m = ca.vec(canon.spectral)
-            self._spectral = ValueAndJacobian(canon.params, "spectral", x, y, m)
+            self._spectral = ValueAndJacobian(canon.params, "spectral", [x, y], m, 0)
             self.spectral_affine = low.fixed and not any(ca.which_depends(m, x, 2, True))  # no entry nonlinear in x
 
     @cached_property
