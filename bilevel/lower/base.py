@@ -87,12 +87,12 @@ class LowerLevel(ABC):
     y: ca.SX
     """The lower variables' symbols."""
 
-    @property
+    @cached_property
     def n_x(self) -> int:
-        """Number of upper variables."""
+        """Number of upper variables (read at every call of the methods: kept, not recounted)."""
         return int(self.x.numel())
 
-    @property
+    @cached_property
     def n_y(self) -> int:
         """Number of lower variables."""
         return int(self.y.numel())
