@@ -15,7 +15,7 @@ from .linear_maps import Images
 from .lower.images import ImageLower, Lift
 from .lower.matrix import MatrixLower
 from .lower.residual import NumericSquares, numeric_squares, sum_of_squares
-from .model import BilevelProblem, LowerQP, Variable, check_depends, unflatten_all
+from .model import BilevelProblem, LowerQP, Variable, check_constants, check_depends, unflatten_all
 from .parameters import ParameterSet, scalar
 from .reduction import KKTPoint, Reduction
 from .sampling import default_start, sample_in_bounds
@@ -198,12 +198,17 @@ def _flat(vars_: list[Variable]) -> ca.SX:
     return ca.vertcat(*[ca.vec(v.sym) for v in vars_]) if vars_ else ca.SX(0, 1)
 
 
-def _check_depends(expr: ca.SX, allowed: set[int], where: str) -> None:
+def _check_depends(expr: ca.SX, allowed: set[int], where: str,
+                   pending: list[tuple[ca.SX, str]] | None = None) -> None:
     """check_depends for a declared expression: it may use the declared variables, definitions and parameters (and,
-    in the lower level, products of linear maps)."""
+    in the lower level, products of linear maps); its constants are checked now, or with pending's (check_constants:
+    the expressions' shared data read once)."""
     check_depends(expr, allowed, where, "are not variables declared on this problem (declare them with "
                   "upper_variable/lower_variable), or are products of a linear map outside the lower level (they "
-                  "stand for data of the lower level: in the upper level write the product as an expression)")
+                  "stand for data of the lower level: in the upper level write the product as an expression)",
+                  constants=pending is None)
+    if pending is not None:
+        pending.append((expr, where))
 
 
 def suggested_starts(problem: BilevelProblem, x_start: np.ndarray, x_lb: np.ndarray,
@@ -282,30 +287,31 @@ class Canonicalize(Reduction):
         upper_allowed = set(allowed)
         if images is not None:
             allowed |= {s.element_hash() for s in ca.symvar(images.sym)}
+        pending: list[tuple[ca.SX, str]] = []  # expressions whose constants are checked together
         spectral = problem.upper_objective.matrix  # F is then NaN: the objective is rho(matrix)
         if spectral is None:
-            _check_depends(problem.upper_objective.expr, upper_allowed, "the upper objective")
+            _check_depends(problem.upper_objective.expr, upper_allowed, "the upper objective", pending)
         else:
-            _check_depends(spectral, upper_allowed, "the spectral radius's matrix")
+            _check_depends(spectral, upper_allowed, "the spectral radius's matrix", pending)
         mats = problem.lower_matrices
         if any(i.level == "lower" for i in problem.images):
             mats = _least_squares_matrices(problem, allowed)
         for what, expr in ([] if mats is None else [("d", mats.d), ("q", mats.q), ("b", mats.b), ("e", mats.e)]):
-            _check_depends(expr, upper_allowed, f"lower_qp's {what}")
+            _check_depends(expr, upper_allowed, f"lower_qp's {what}", pending)
             if ca.depends_on(expr, y):
                 raise ModelError(f"lower_qp's {what} depends on the lower variable; d, q, b, e are data: expressions "
                                  "of upper variables and parameters only")
         if mats is None:
-            _check_depends(problem.lower_objective.expr, allowed, "the lower objective")
+            _check_depends(problem.lower_objective.expr, allowed, "the lower objective", pending)
         G, H, G_names = [], [], []
         for c in problem.upper_constraints:
-            _check_depends(c.body, upper_allowed, f"upper constraint {c.name!r}")
+            _check_depends(c.body, upper_allowed, f"upper constraint {c.name!r}", pending)
             (G if c.kind == "<=" else H).append(c.body)
             if c.kind == "<=":
                 G_names += [f"{c.name}[{i}]" for i in range(int(c.body.numel()))]
         g, h, g_rows, h_rows = [], [], [], []
         for c in problem.lower_constraints:
-            _check_depends(c.body, allowed, f"lower constraint {c.name!r}")
+            _check_depends(c.body, allowed, f"lower constraint {c.name!r}", pending)
             if not ca.depends_on(c.body, y):
                 raise ModelError(f"lower constraint {c.name!r} does not involve lower variables; "
                                  "declare it with upper_constraint if it constrains the leader")
@@ -331,7 +337,8 @@ class Canonicalize(Reduction):
             mats = replace(mats, A=np.vstack([mats.A, -eye[lb_rows], eye[ub_rows]]),
                            b=ca.vertcat(mats.b, ca.DM(-var.lb[lb_rows]), ca.DM(var.ub[ub_rows])))
         for m in problem.lower_psd_constraints:
-            _check_depends(m.matrix, allowed, f"LMI {m.name!r}")
+            _check_depends(m.matrix, allowed, f"LMI {m.name!r}", pending)
+        check_constants(pending)
         y_lb, y_ub = (np.concatenate([getattr(v, side) for v in lows]) for side in ("lb", "ub"))
         x_lb = np.concatenate([v.lb for v in ups]) if ups else np.zeros(0)
         x_ub = np.concatenate([v.ub for v in ups]) if ups else np.zeros(0)

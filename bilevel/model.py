@@ -13,6 +13,7 @@ Expressions are CasADi SX expressions of the declared variables.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Literal
 
@@ -173,19 +174,38 @@ def _expression(value: Any, where: str, want: str = "a CasADi expression or numb
         raise ModelError(f"{where}: expected {want}, got {type(value).__name__}") from None
 
 
-def check_depends(expr: ca.SX, allowed: set[int], where: str, fix: str) -> None:
+def check_depends(expr: ca.SX, allowed: set[int], where: str, fix: str, constants: bool = True) -> None:
     """Raise if expr uses symbols outside `allowed` (element hashes of the symbols it may use; `fix` says which
-    those are and what to do), or if its data (the constants in it) contain NaN or inf."""
+    those are and what to do), or, with constants, if its data (the constants in it) contain NaN or inf (callers
+    checking several expressions pass constants=False and call check_constants on them all once)."""
     free = [s for s in ca.symvar(expr) if s.element_hash() not in allowed]
     if free:
         names = ", ".join(str(s) for s in free[:5]) + (f", ... ({len(free)} in all)" if len(free) > 5 else "")
         raise ModelError(f"{where} uses symbols {names} that {fix}")
+    if constants:
+        check_constants([(expr, where)])
+
+
+def check_constants(exprs: list[tuple[ca.SX, str]]) -> None:
+    """InvalidData naming the first of these (expression, where) whose data (the constants in it) hold NaN or inf;
+    their shared subexpressions are read once."""
+    if not exprs or _bad_constant(ca.vertcat(*[ca.vec(e) for e, _ in exprs])) is None:
+        return
+    for expr, where in exprs:
+        bad = _bad_constant(expr)
+        if bad is not None:
+            raise InvalidData(f"{where} contains the constant {bad} (NaN/inf in the data); "
+                              "clean or impute the data before building the problem")
+
+
+def _bad_constant(expr: ca.SX) -> float | None:
+    """A constant of expr's graph that is NaN or inf, or None."""
     fun = ca.Function("data", [ca.vertcat(*ca.symvar(expr))], [expr])
-    bad = [fun.instruction_constant(k) for k in range(fun.n_instructions())
-           if fun.instruction_id(k) == ca.OP_CONST and not np.isfinite(fun.instruction_constant(k))]
-    if bad:
-        raise InvalidData(f"{where} contains the constant {bad[0]} (NaN/inf in the data); "
-                          "clean or impute the data before building the problem")
+    is_constant, constant = fun.instruction_id, fun.instruction_constant
+    for k in range(fun.n_instructions()):
+        if is_constant(k) == ca.OP_CONST and not math.isfinite(constant(k)):
+            return constant(k)
+    return None
 
 
 DEFINITION_USES = ("are not upper variables, parameters or earlier definitions of this problem; a definition "

@@ -87,12 +87,12 @@ class LowerLevel(ABC):
     y: ca.SX
     """The lower variables' symbols."""
 
-    @property
+    @cached_property
     def n_x(self) -> int:
-        """Number of upper variables."""
+        """Number of upper variables (read at every call of the methods: kept, not recounted)."""
         return int(self.x.numel())
 
-    @property
+    @cached_property
     def n_y(self) -> int:
         """Number of lower variables."""
         return int(self.y.numel())
@@ -206,11 +206,14 @@ class ExpressionLower(LowerLevel):
 
     @cached_property
     def _derivs(self) -> CompiledFunction:
-        """(x, y) -> grad_y f, J_g, J_h and d vec(M_k)/dy, built on first use (the LMI Jacobians are costly on large
-        SDPs, whose solves and KKT system read them numerically from SemidefiniteLower.lmi_data instead)."""
-        jac_psd = [ca.jacobian(ca.vec(m), self.y) for m in self.psd]
+        """(x, y) -> grad_y f, J_g, J_h, built on first use."""
         return self.params.function("lower_derivs", [self.x, self.y], [ca.gradient(self.f, self.y),
-                                    ca.jacobian(self.g, self.y), ca.jacobian(self.h, self.y), *jac_psd])
+                                    ca.jacobian(self.g, self.y), ca.jacobian(self.h, self.y)])
+
+    def lmi_jacobians(self, x: np.ndarray) -> list[np.ndarray]:
+        """d vec(M_k)/dy at x for every LMI (constant in y: LMIs are affine in y): none here; SemidefiniteLower, the
+        kind with LMIs, reads them from its LMI coefficients."""
+        return []
 
     @cached_property
     def fixed(self) -> bool:
@@ -240,7 +243,7 @@ class ExpressionLower(LowerLevel):
         """grad_y f, J_g, J_h (rows by constraint) and d vec(M_k) / dy at (x, y)."""
         out = self._derivs(x, y)
         return (np.asarray(out[0]).ravel(), np.asarray(out[1]).reshape(-1, self.n_y),
-                np.asarray(out[2]).reshape(-1, self.n_y), [np.asarray(j) for j in out[3:]])
+                np.asarray(out[2]).reshape(-1, self.n_y), self.lmi_jacobians(x))
 
     def hessian(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Hessian of f in y at (x, y)."""

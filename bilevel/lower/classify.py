@@ -64,7 +64,7 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
     objective = [(function("hf", [x, y], [hess_f]), "the lower objective")]
     if psd:
         for name, m in zip(psd_names, psd):
-            if ca.depends_on(ca.jacobian(ca.vec(m), y), y):
+            if any(ca.which_depends(ca.vec(m), y, 2, True)):  # an entry nonlinear in y, by sparsity: no Jacobian
                 raise NonConvexLowerLevel(f"LMI {name!r} is not affine in the lower variables; an SDP lower level "
                                           "needs M(x, y) affine in y")
         if not affine_g or ca.depends_on(hess_f, y):  # hess_f is small (n_y x n_y) next to f

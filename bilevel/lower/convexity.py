@@ -22,10 +22,21 @@ CONVEX_FIX = ("a convex lower level is required (minimize a convex function, or 
               "convex set)")
 
 
+def _diagonal(sym: np.ndarray) -> np.ndarray | None:
+    """The diagonal of a square matrix with nothing off it (its eigenvalues, exactly), else None."""
+    diag = np.diagonal(sym)
+    return diag if np.count_nonzero(sym) == np.count_nonzero(diag) else None
+
+
 def min_eigenvalue(matrix: np.ndarray) -> float:
-    """Smallest eigenvalue of the symmetric part of matrix (0 for an empty one)."""
+    """Smallest eigenvalue of the symmetric part of matrix (0 for an empty one; a diagonal one is read, not
+    factored)."""
     matrix = np.atleast_2d(np.asarray(matrix, dtype=float))
-    return float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T)).min()) if matrix.size else 0.0
+    if not matrix.size:
+        return 0.0
+    sym = 0.5 * (matrix + matrix.T)
+    diag = _diagonal(sym)
+    return float((np.linalg.eigvalsh(sym) if diag is None else diag).min())
 
 
 def psd_violation(matrix: np.ndarray) -> float:
@@ -37,7 +48,12 @@ def scaled_violation(matrix: np.ndarray) -> tuple[float, float]:
     """(psd_violation / max(1, max |entry|), lambda_min): the relative distance from PSD, and the eigenvalue."""
     matrix = np.atleast_2d(np.asarray(matrix, dtype=float))
     lam = min_eigenvalue(matrix)
-    return max(-lam, 0.0) / max(1.0, float(np.abs(matrix).max(initial=0.0))), lam
+    return _relative(lam, matrix), lam
+
+
+def _relative(lam: float, matrix: np.ndarray) -> float:
+    """A smallest eigenvalue's distance from PSD relative to max(1, max |entry|)."""
+    return max(-lam, 0.0) / max(1.0, float(np.abs(matrix).max(initial=0.0)))
 
 
 def convexity_violation(low: "LowerLevel", x: np.ndarray, y: np.ndarray) -> tuple[float, str]:
@@ -55,12 +71,13 @@ def require_psd(matrix: np.ndarray, what: str, where: str) -> np.ndarray:
     """matrix's symmetric part with its eigenvalues clipped at 0 (verified PSD up to rounding), or
     NonConvexLowerLevel naming the eigenvalue: what a convex solver may be told to trust."""
     sym = 0.5 * (matrix + matrix.T)
-    value, lam = scaled_violation(sym)
-    if value > param("convexity.psd_tol"):
+    diag = _diagonal(sym)
+    w, v = np.linalg.eigh(sym) if diag is None else (diag, None)  # one factorization checks and clips
+    lam = float(w.min()) if w.size else 0.0
+    if _relative(lam, sym) > param("convexity.psd_tol"):
         raise NonConvexLowerLevel(f"the lower level is not convex {where}: the Hessian of {what} has eigenvalue "
                                   f"{lam:.3g}; {CONVEX_FIX}")
-    w, v = np.linalg.eigh(sym)
-    return (v * np.maximum(w, 0.0)) @ v.T
+    return np.diag(np.maximum(diag, 0.0)) if v is None else (v * np.maximum(w, 0.0)) @ v.T
 
 
 @dataclass(frozen=True)

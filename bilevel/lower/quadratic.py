@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import warnings
 from dataclasses import dataclass
 from functools import cached_property
@@ -127,31 +128,84 @@ def clarabel_solution(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
 
     P is verified PSD first (NonConvexLowerLevel naming its eigenvalue otherwise) unless psd_verified says the
     caller checked this same fixed matrix already (lower_qp's data, checked at declaration). Raises on
-    infeasible/unbounded and fails loudly on any other non-optimal status.
+    infeasible/unbounded and fails loudly on any other non-optimal status. A problem with LMIs whose shapes and P
+    recur is stated once with its data as cvxpy Parameters (_statement): cvxpy canonicalizes it once.
     """
-    n = d.q.size
-    y = cp.Variable(n)
-    objective = d.q @ y + d.r
     P = _convex_hessian(d, context, psd_verified)
+    data = [d.q, d.A, d.b, d.E, d.e, *(part for lmi in lmis for part in lmi)]
+    stated = _statement(d.q.size, P, data, len(lmis))
+    if stated is None:
+        prob, y, cons = _state(d.q.size, P, data, len(lmis))
+        solve_clarabel(prob, f"the lower level {context}")
+        return _solution(d, y, cons, prob.status)
+    with stated[3]:
+        for param, value in zip(stated[2], data):
+            if isinstance(param, cp.Parameter):
+                param.value = value
+        solve_clarabel(stated[0], f"the lower level {context}")
+        return _solution(d, stated[1], stated[0].constraints, stated[0].status)
+
+
+def _state(n: int, P: np.ndarray | None, data: list, n_lmis: int) -> tuple[cp.Problem, cp.Variable, list]:
+    """min q'y + 1/2 y'Py s.t. A y + b <= 0, E y + e = 0, sym(M0_k + mat(J_k y)) >= 0 over data = [q, A, b, E, e,
+    M0_1, J_1, ...] (arrays, or cvxpy Parameters of their shapes); rows without entries are left out."""
+    q, A, b, E, e = data[:5]
+    y = cp.Variable(n)
+    objective = q @ y
     if P is not None:  # psd_wrap only of a matrix verified PSD (clipped at rounding level), never on trust
         objective = objective + 0.5 * cp.quad_form(y, cp.psd_wrap(P))
     cons = []
-    if d.b.size:
-        cons.append(d.A @ y + d.b <= 0)
-    if d.e.size:
-        cons.append(d.E @ y + d.e == 0)
-    n_lin = len(cons)
-    for m0, jac in lmis:
-        k = m0.shape[0]
-        expr = m0 + cp.reshape(jac @ y, (k, k), order="F")
+    if b.shape[0]:
+        cons.append(A @ y + b <= 0)
+    if e.shape[0]:
+        cons.append(E @ y + e == 0)
+    for k in range(n_lmis):
+        m0, jac = data[5 + 2 * k: 7 + 2 * k]
+        size = m0.shape[0]
+        expr = m0 + cp.reshape(jac @ y, (size, size), order="F")
         cons.append(0.5 * (expr + expr.T) >> 0)
-    prob = cp.Problem(cp.Minimize(objective), cons)
-    solve_clarabel(prob, f"the lower level {context}")
+    return cp.Problem(cp.Minimize(objective), cons), y, cons
+
+
+def _solution(d: QPData, y: cp.Variable, cons: list, status: str) -> LowerSolution:
+    """The solved statement's y and multipliers (lam of A y + b <= 0, mu of E y + e = 0, Z_k of the LMIs)."""
+    n_lin = int(d.b.size > 0) + int(d.e.size > 0)
     lam = np.maximum(np.asarray(cons[0].dual_value).ravel(), 0.0) if d.b.size else np.zeros(0)
     mu = np.asarray(cons[n_lin - 1].dual_value).ravel() if d.e.size else np.zeros(0)
     zs = [np.asarray(c.dual_value) for c in cons[n_lin:]]
     yv = np.asarray(y.value).ravel()
-    return LowerSolution(yv, d.objective(yv), lam, mu, zs, prob.status, "cvxpy+clarabel")
+    return LowerSolution(yv, d.objective(yv), lam, mu, zs, status, "cvxpy+clarabel")
+
+
+STATED_KEPT = 4
+"""Statements with Parameters (_statement) a process keeps, the most recently used."""
+STATED_MAX_ENTRIES = 200_000
+"""Larger data are stated plainly: cvxpy's canonicalization with Parameters grows with their entries."""
+_STATED: dict[tuple, Any] = {}
+_STATED_LOCK = threading.Lock()
+
+
+def _statement(n: int, P: np.ndarray | None, data: list, n_lmis: int) -> tuple | None:
+    """(problem, y, Parameters of data, lock) stating a problem with LMIs of these shapes and this P with its data as
+    Parameters (canonicalized by cvxpy once, then a parameter update per solve: the certificate's re-solves of one
+    learner on many data sets), kept from the second time the shapes and P recur; None for the first time, no LMIs
+    or large data (then the problem is stated with its numbers, which is cheaper once)."""
+    if not n_lmis or sum(np.size(v) for v in data) > STATED_MAX_ENTRIES:
+        return None
+    key = (n, tuple(np.shape(v) for v in data), None if P is None else hash(P.tobytes()))
+    with _STATED_LOCK:
+        kept = _STATED.pop(key, None)
+        if kept is None or kept == "seen":
+            if kept == "seen":
+                params = [cp.Parameter(np.shape(v)) if np.size(v) else v for v in data]  # no empty Parameters
+                prob, y, _ = _state(n, P, params, n_lmis)
+                kept = (prob, y, params, threading.Lock())
+            else:
+                kept = "seen"
+        _STATED[key] = kept
+        while len(_STATED) > STATED_KEPT:
+            del _STATED[next(iter(_STATED))]
+    return None if kept == "seen" else kept
 
 
 @dataclass

@@ -13,9 +13,11 @@ import numpy as np
 
 from ..defaults import param
 from ..errors import ModelError, SolverFailed
+from ..parameters import CompiledFunction, ValueAndJacobian
 from ..vech import unvech, vech, vech_sx
 from .base import LowerSolution
 from .convexity import psd_violation
+from .polish import Lmi
 from .quadratic import QPData, QuadraticLower, clarabel_direct, solve_qp_clarabel
 
 def range_basis(matrix: np.ndarray, rtol: float) -> np.ndarray:
@@ -76,11 +78,7 @@ class SemidefiniteLower(QuadraticLower):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        zero = ca.DM.zeros(self.n_y)
-        outs = []
-        for m in self.psd:
-            outs += [ca.substitute(m, self.y, zero), ca.substitute(ca.jacobian(ca.vec(m), self.y), self.y, zero)]
-        self._lmi = self.params.function("lmi_coeffs", [self.x], outs)
+        self._fixed_lmis: tuple[int, tuple[Lmi, ...]] | None = None  # (parameter revision, lmi_data) of a fixed SDP
         self._last_point: tuple[tuple, QPData, tuple] | None = None
         self._chosen: tuple[int, LowerSolution] | None = None  # (parameter revision, the learner's own solution)
         self._solved: dict[str, tuple[int, LowerSolution]] = {}  # conic solves of an SDP that ignores x, by role
@@ -88,11 +86,41 @@ class SemidefiniteLower(QuadraticLower):
         """Whether the hypergradient engine applies select_min_norm to its solutions (False: the polished solver's
         point, e.g. the exact ridge solution of a regularized learner as its solver returns it)."""
 
-    def lmi_data(self, x: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
-        """(M_k0, d vec(M_k)/dy) for every LMI at upper point x."""
-        out = self._lmi(self.check_point(x))
-        return tuple((np.asarray(out[2 * k]), np.asarray(out[2 * k + 1]).reshape(-1, self.n_y))
-                     for k in range(len(self.psd)))
+    def lmi_data(self, x: np.ndarray) -> tuple[Lmi, ...]:
+        """(M_k0, d vec(M_k)/dy) for every LMI at upper point x. Where the SDP ignores x: once per parameter values, by
+        reverse sweeps (no symbolic Jacobian, which on large LMIs costs more than the attack it serves)."""
+        x = self.check_point(x)
+        if not self.fixed:
+            out = self._lmi(x)
+            return tuple((np.asarray(out[2 * k]), np.asarray(out[2 * k + 1]).reshape(-1, self.n_y))
+                         for k in range(len(self.psd)))
+        if self._fixed_lmis is None or self._fixed_lmis[0] != self.params.revision:
+            zero = np.zeros(self.n_y)
+            sweeps = [sweep(x, zero) for sweep in self._lmi_sweeps]
+            for value, jac in sweeps:  # kept and shared: read only
+                value.setflags(write=False)
+                jac.setflags(write=False)
+            self._fixed_lmis = (self.params.revision, tuple((value.reshape(m.shape, order="F"), jac)
+                                                            for (value, jac), m in zip(sweeps, self.psd)))
+        return self._fixed_lmis[1]
+
+    @cached_property
+    def _lmi_sweeps(self) -> list[ValueAndJacobian]:
+        """(x, y) -> vec M_k and d vec(M_k)/dy for every LMI, by reverse sweeps."""
+        return [ValueAndJacobian(self.params, f"lmi{k}", [self.x, self.y], ca.vec(m), 1) for k, m in enumerate(self.psd)]
+
+    @cached_property
+    def _lmi(self) -> CompiledFunction:
+        """x -> M_k(x, 0) and d vec(M_k)/dy for every LMI, symbolic (an SDP that moves with x reads them at every x)."""
+        zero = ca.DM.zeros(self.n_y)
+        outs = []
+        for m in self.psd:
+            outs += [ca.substitute(m, self.y, zero), ca.substitute(ca.jacobian(ca.vec(m), self.y), self.y, zero)]
+        return self.params.function("lmi_coeffs", [self.x], outs)
+
+    def lmi_jacobians(self, x: np.ndarray) -> list[np.ndarray]:
+        """d vec(M_k)/dy at x for every LMI, from lmi_data."""
+        return [jac for _, jac in self.lmi_data(x)]
 
     def reference_solve(self, x: np.ndarray) -> LowerSolution:
         """The SDP solved at x with cvxpy + Clarabel and polished onto its optimal face (the certificate's independent

@@ -117,7 +117,7 @@ def load_instance(problem: BilevelProblem, atk: IdentificationAttack) -> None:
         values |= {"stealth": atk.stealth} | {f"{name}_clean": clean[name].statistic for name in STATISTICS}
     for name, value in values.items():
         problem.set_value(name, value)
-    problem.starts.clear()  # a start suggested for the previous instance
+    problem.suggested_starts.clear()  # a start suggested for the previous instance
     if atk.stealth is not None:
         start = stealth_start(problem, atk)
         layout = problem.upper_layout()

@@ -105,8 +105,9 @@ def batched_box_ascent(values: Callable[[np.ndarray], tuple[np.ndarray, np.ndarr
                        min_step: float = 1e-6) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Maximize f over the box |x| <= bound from every row of `starts` at once, values(X) giving f and its gradient
     at the rows of X: per start, a step along the gradient scaled to the box (t in budget units along its largest
-    entry), kept where f grows (t doubled, at most 2), else halved; a start stops below min_step. Returns each
-    start's best x and f, the iterations and the evaluations."""
+    entry), kept where f grows (t doubled, at most 2), else halved; a start stops below min_step, or where the
+    projection holds it still (every shorter step would too: stationary on the box). Returns each start's best x
+    and f, the iterations and the evaluations."""
     x = np.clip(np.asarray(starts, dtype=float), -bound, bound)
     f, grad = values(x)
     step = np.ones(x.shape[0])
@@ -119,6 +120,11 @@ def batched_box_ascent(values: Callable[[np.ndarray], tuple[np.ndarray, np.ndarr
         size = np.abs(z).max(axis=1, keepdims=True)
         trial = np.clip(x[live] + step[live, None] * bound * np.divide(z, size, out=np.zeros_like(z),
                                                                         where=size > 0), -bound, bound)
+        moved = np.any(trial != x[live], axis=1)
+        step[live[~moved]] = 0.0
+        live, trial = live[moved], trial[moved]
+        if live.size == 0:
+            continue
         f_trial, g_trial = values(trial)
         evaluations += live.size
         better = f_trial > f[live]  # NaN never counts as better

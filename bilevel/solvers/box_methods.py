@@ -48,7 +48,7 @@ def destabilize(prep: Prepared, *, starts: int | None = None, seed: Any = 0, max
                          "otherwise use method='hypergradient'")
     candidates = np.random.default_rng(seed).uniform(-1.0, 1.0, (max(pool, starts - 1), bound.size)) * bound
     candidates[: candidates.shape[0] // 2] = np.sign(candidates[: candidates.shape[0] // 2]) * bound
-    screened = np.argsort(engine.spectral_batch(candidates.T)[0], kind="stable")[: starts - 1]  # F minimized
+    screened = np.argsort(engine.spectral_values(candidates.T), kind="stable")[: starts - 1]  # F minimized
 
     def values(xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # the objective maximized, -F, and its gradient
         f, g, _ = engine.spectral_batch(xs.T)

@@ -40,8 +40,8 @@ from scipy.optimize import lsq_linear
 from ..defaults import param
 from ..errors import ModelError
 from ..lower.base import ExpressionLower, KKTValues, LowerSolution
-from ..parameters import CompiledFunction
-from ..spectral_radius import spectral_radius
+from ..parameters import CompiledFunction, ValueAndJacobian
+from ..spectral_radius import radius, spectral_radius
 from .base import Prepared
 
 
@@ -94,13 +94,12 @@ class Hypergradient:
         self._batches: dict[tuple[int, int], ca.Function] = {}  # batch_phi's sweep, by batch size and revision
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
         self._last_conic: tuple[int, LowerSolution] | None = None  # (prep.runs, the last conic solution of that run)
-        self._spectral: CompiledFunction | None = None  # a spectral objective's M and dM/dx (vec M rows)
+        self._spectral: ValueAndJacobian | None = None  # a spectral objective's vec M and dM/dx
         self._affine: tuple[int, np.ndarray, np.ndarray] | None = None  # (revision, M(0, y*), dM/dx) when fixed
         if canon.spectral is not None:
             m = ca.vec(canon.spectral)
-            jx = ca.jacobian(m, x)
-            self._spectral = canon.params.function("spectral", [x, y], [m, jx])
-            self.spectral_affine = low.fixed and not ca.depends_on(jx, x)
+            self._spectral = ValueAndJacobian(canon.params, "spectral", [x, y], m, 0)
+            self.spectral_affine = low.fixed and not any(ca.which_depends(m, x, 2, True))  # no entry nonlinear in x
 
     @cached_property
     def _spectral_y(self) -> CompiledFunction:
@@ -227,24 +226,37 @@ class Hypergradient:
     def spectral_batch(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """F = sign * rho(M), dF/dx (n_x x S) and the tie counts at each column of xs (n_x x S), for a spectral
         objective on a lower level that ignores x; M affine in x: one product and one stacked eigendecomposition."""
+        stack = self._spectral_stack(xs)
+        sign = self.canon.spectral_sign
+        if stack is None:
+            evs = [self.evaluate(x) for x in np.asarray(xs, dtype=float).T]
+            return (np.array([ev.F for ev in evs]), np.column_stack([self.gradient(ev)[0] for ev in evs]),
+                    np.ones(len(evs), dtype=int))
+        r = spectral_radius(stack)
+        grads = r.gradient.transpose(0, 2, 1).reshape(stack.shape[0], -1)
+        return sign * r.value, sign * (self._affine[2].T @ grads.T), r.ties
+
+    def spectral_values(self, xs: np.ndarray) -> np.ndarray:
+        """spectral_batch's F alone, from the eigenvalues only where M is affine in x (about half the cost)."""
+        stack = self._spectral_stack(xs)
+        return self.spectral_batch(xs)[0] if stack is None else self.canon.spectral_sign * radius(stack)
+
+    def _spectral_stack(self, xs: np.ndarray) -> np.ndarray | None:
+        """M at each column of xs (S x n x n) where it is affine in x (one product), None where it is not; ModelError
+        unless the objective is spectral and the lower level ignores x."""
         if self._spectral is None or not self.low.fixed:
             raise ModelError("spectral_batch needs a spectral-radius upper objective (maximize_spectral_radius) and a "
                              "lower level that does not depend on the upper variables; use evaluate and gradient")
-        xs = np.asarray(xs, dtype=float)
-        n, sign = int(self.canon.spectral.size1()), self.canon.spectral_sign
         if not self.spectral_affine:
-            evs = [self.evaluate(x) for x in xs.T]
-            return (np.array([ev.F for ev in evs]), np.column_stack([self.gradient(ev)[0] for ev in evs]),
-                    np.ones(len(evs), dtype=int))
+            return None
         revision = self.low.params.revision
         if self._affine is None or self._affine[0] != revision:
             zero = np.zeros(self.low.n_x)
             m0, jx = (np.asarray(v, dtype=float) for v in self._spectral(zero, self.evaluate(zero).lower.y))
             self._affine = (revision, m0.ravel(), jx)
         _, m0, jx = self._affine
-        r = spectral_radius((m0[:, None] + jx @ xs).T.reshape(-1, n, n).transpose(0, 2, 1))
-        grads = r.gradient.transpose(0, 2, 1).reshape(-1, n * n)
-        return sign * r.value, sign * (jx.T @ grads.T), r.ties
+        n = int(self.canon.spectral.size1())
+        return (m0[:, None] + jx @ np.asarray(xs, dtype=float)).T.reshape(-1, n, n).transpose(0, 2, 1)
 
     def batch_phi(self, xs: np.ndarray) -> np.ndarray:
         """phi at each column of xs (n_x x S) by one mapped sweep, for a lower level that ignores x (solved once)."""
@@ -262,7 +274,7 @@ class Hypergradient:
             self._batches = {key: sweep.map(n)}
         F, G, H = (np.asarray(v, dtype=float) for v in self._batches[key](xs))
         if self._spectral is not None:
-            F = self.spectral_batch(xs)[0]
+            F = self.spectral_values(xs)
         return self.penalized(F.reshape(1, n), G.reshape(-1, n), H.reshape(-1, n))
 
     def penalized(self, F: np.ndarray, G: np.ndarray, H: np.ndarray) -> np.ndarray:
