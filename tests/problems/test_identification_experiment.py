@@ -66,7 +66,7 @@ def test_engine_attack_is_stealthy_by_an_independent_computation() -> None:
     assert row["norm2"] <= row["frobenius"] <= 2 * row["norm2"]  # rank of d[A B] <= 4
     assert row["max_relative_change"] <= 0.05 + 1e-6 and max(row["budget_used"].values()) <= 0.05 * (1 + 1e-6)
     load_instance(problem, attack_instance("ss", T=100, eps=0.05, stealth=0.05, seed=2))  # the start follows the data
-    assert not np.allclose(problem.starts[0]["dX"], result.x["dX"].ravel(order="F"))
+    assert not np.allclose(problem.suggested_starts[0]["dX"], result.x["dX"].ravel(order="F"))
 
 
 def test_slsqp_baseline_and_comparison() -> None:
@@ -106,7 +106,7 @@ def test_stealth_start_is_inside_the_stealth_constraints() -> None:
     for delta, seed in ((0.01, 0), (0.1, 1)):
         atk = attack_instance("ss", T=100, eps=delta, stealth=delta, seed=seed)
         problem = problem_for(atk)
-        start = problem.starts[0]
+        start = problem.suggested_starts[0]
         signals = {k: atk.signals[k] + np.reshape(start[f"d{k}"], atk.signals[k].shape, order="F") for k in ("X", "U")}
         assert np.linalg.norm(start["dX"]) > 0  # not the clean point, where the attacker's gradient vanishes
         check_stealthy(atk, signals, delta)
