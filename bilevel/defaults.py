@@ -138,14 +138,8 @@ ENTRIES: dict[str, tuple[Any, str]] = {
 }
 """The registry's entries: key -> (default value, what it is and its unit)."""
 
-RENAMED: dict[str, str] = {}
-"""Old keys -> their new names, for one release of "renamed" errors."""
-
-
 def _check_key(key: str) -> None:
     if key not in ENTRIES:
-        if key in RENAMED:
-            raise ModelError(f"default {key!r} was renamed: use {RENAMED[key]!r}")
         raise ModelError(f"unknown default {key!r}; {did_you_mean(key, ENTRIES)}the keys are listed by "
                          "bilevel.defaults.describe()")
 
