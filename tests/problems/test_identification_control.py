@@ -120,3 +120,23 @@ def test_registered_and_refused_where_it_cannot_apply() -> None:
         attack_instance("arx", objective="h2")
     with pytest.raises(ModelError, match="lqr_weights"):
         attack_instance("ss", objective="ce-lqr", lqr_weights=(1.0, 0.0))
+
+
+def test_matrix_function_objective_on_a_small_box_problem() -> None:
+    """maximize_matrix_function on y = x + c over the box [-1, 1]^2 with f(M) = ||M||_F^2 given numerically: the
+    maximizer is the corner sign(c), value 1.3^2 + 1.2^2, for hypergradient and differential-evolution alike."""
+    import casadi as ca
+
+    from bilevel.model import BilevelProblem
+
+    p = BilevelProblem("box")
+    x = p.upper_variable("x", 2, lb=-1, ub=1)
+    y = p.lower_variable("y", 2)
+    p.minimize_lower(ca.sumsqr(y - x - ca.DM([0.3, -0.2])))
+    p.maximize_matrix_function(y, lambda m: (float(np.sum(m ** 2)), 2 * m))
+    for method in ("hypergradient", "differential-evolution"):
+        result = p.solve(method, seed=0)
+        assert result.upper_objective == pytest.approx(1.3 ** 2 + 1.2 ** 2, rel=1e-8), method
+        np.testing.assert_allclose(result.x["x"], [1, -1], atol=1e-8)
+    with pytest.raises(ModelError, match="callable"):
+        p.maximize_matrix_function(y, "not a function")
