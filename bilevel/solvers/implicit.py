@@ -242,8 +242,9 @@ class Hypergradient:
         return self.spectral_batch(xs)[0] if stack is None else self.canon.spectral_sign * radius(stack)
 
     def _spectral_stack(self, xs: np.ndarray) -> np.ndarray | None:
-        """M at each column of xs (S x n x n) where it is affine in x (one product), None where it is not; ModelError
-        unless the objective is spectral and the lower level ignores x."""
+        """M at each column of xs (S x n x n) where it is affine in x (one product), None where it is not or the
+        function of M is not the spectral radius; ModelError unless the objective is a matrix's and the lower level
+        ignores x."""
         if self._spectral is None or not self.low.fixed:
             raise ModelError("spectral_batch needs a spectral-radius upper objective (maximize_spectral_radius) and a "
                              "lower level that does not depend on the upper variables; use evaluate and gradient")
