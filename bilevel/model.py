@@ -35,7 +35,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 Level = Literal["upper", "lower"]
 Sense = Literal["min", "max"]
-MatrixFunction = Callable[[np.ndarray], "tuple[float, np.ndarray]"]
+MatrixFunction = Callable[[np.ndarray], tuple[float, np.ndarray]]
 """A numeric upper objective of a matrix M: M -> (value, d value / dM with M's shape), e.g. the spectral radius."""
 
 

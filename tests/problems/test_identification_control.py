@@ -87,7 +87,7 @@ def test_matrix_functions_agree_with_scipy_on_the_clean_model() -> None:
     value, _ = H2Norm()(atk.theta0)
     assert value == pytest.approx(h2(atk.theta0), rel=1e-10)
     ce = CertaintyEquivalenceRadius(Q_WEIGHT * np.eye(4), R_WEIGHT * np.eye(1))
-    value, grad = ce(np.hstack([atk.theta0, A, B]))
+    value, _ = ce(np.hstack([atk.theta0, A, B]))
     assert value == pytest.approx(ce_radius(atk.theta0, (A, B)), rel=1e-10)
     assert value < 0.7  # the clean certainty-equivalence loop is well damped
     unstable = np.hstack([1.01 * np.eye(4), np.ones((4, 1))])
