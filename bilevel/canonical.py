@@ -15,11 +15,11 @@ from .linear_maps import Images
 from .lower.images import ImageLower, Lift
 from .lower.matrix import MatrixLower
 from .lower.residual import NumericSquares, numeric_squares, sum_of_squares
-from .model import BilevelProblem, LowerQP, Variable, check_constants, check_depends, unflatten_all
+from .model import BilevelProblem, LowerQP, MatrixFunction, Variable, check_constants, check_depends, unflatten_all
 from .parameters import ParameterSet, scalar
 from .reduction import KKTPoint, Reduction
 from .sampling import default_start, sample_in_bounds
-from .spectral_radius import spectral_radius
+from .spectral_radius import rho_and_gradient
 
 
 @dataclass
@@ -65,8 +65,11 @@ class CanonicalBilevel:
     images: Images | None = None
     """Products of linear maps (BilevelProblem.linear_map) used in the lower level: symbols z = A arg(x)."""
     spectral: ca.SX | None = None
-    """A spectral-radius upper objective's matrix M(x, y): F = spectral_sign * rho(M), and the expression F is NaN."""
+    """A numeric upper objective's matrix M(x, y): F = spectral_sign * matrix_function(M) (the spectral radius of
+    maximize_spectral_radius, or maximize_matrix_function's), and the expression F is NaN."""
     spectral_sign: float = 1.0
+    matrix_function: MatrixFunction = rho_and_gradient
+    """The numeric function of `spectral`: M -> (value, d value / dM)."""
 
     @cached_property
     def lower(self) -> LowerLevel:
@@ -118,7 +121,7 @@ class CanonicalBilevel:
         """F at (x, y) from the sweep's value F, or the spectral radius for a spectral objective."""
         if self.spectral is None:
             return scalar(F)
-        return self.spectral_sign * float(spectral_radius(np.asarray(self._spectral_matrix(x, y), dtype=float)).value)
+        return self.spectral_sign * float(self.matrix_function(np.asarray(self._spectral_matrix(x, y), dtype=float))[0])
 
     def upper_values(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray,
                                                                   np.ndarray]:
@@ -288,11 +291,11 @@ class Canonicalize(Reduction):
         if images is not None:
             allowed |= {s.element_hash() for s in ca.symvar(images.sym)}
         pending: list[tuple[ca.SX, str]] = []  # expressions whose constants are checked together
-        spectral = problem.upper_objective.matrix  # F is then NaN: the objective is rho(matrix)
+        spectral = problem.upper_objective.matrix  # F is then NaN: the objective is function(matrix)
         if spectral is None:
             _check_depends(problem.upper_objective.expr, upper_allowed, "the upper objective", pending)
         else:
-            _check_depends(spectral, upper_allowed, "the spectral radius's matrix", pending)
+            _check_depends(spectral, upper_allowed, "the upper objective's matrix", pending)
         mats = problem.lower_matrices
         if any(i.level == "lower" for i in problem.images):
             mats = _least_squares_matrices(problem, allowed)
@@ -358,6 +361,7 @@ class Canonicalize(Reduction):
             G_names=G_names, x_suggested=suggested_starts(problem, x_start, x_lb, x_ub), y_lb=y_lb, y_ub=y_ub,
             assume_convex=mats is None and problem.lower_objective.assume_convex, params=problem.parameters,
             lower_reference=problem.lower_reference, matrices=mats, images=images, spectral=spectral,
+            matrix_function=problem.upper_objective.function or rho_and_gradient,
         )
         if problem.definitions:
             canon = _eliminate(canon, problem)

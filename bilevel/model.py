@@ -23,6 +23,7 @@ import numpy as np
 from .errors import InvalidData, ModelError
 from .linear_maps import Image, LinearMap, Operator
 from .parameters import ParameterSet
+from .spectral_radius import rho_and_gradient
 from .vech import symmetric_from_vech, unvech, vech
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -34,6 +35,8 @@ if TYPE_CHECKING:  # pragma: no cover
 
 Level = Literal["upper", "lower"]
 Sense = Literal["min", "max"]
+MatrixFunction = Callable[[np.ndarray], tuple[float, np.ndarray]]
+"""A numeric upper objective of a matrix M: M -> (value, d value / dM with M's shape), e.g. the spectral radius."""
 
 
 @dataclass(frozen=True)
@@ -130,12 +133,13 @@ class LowerQP:
 @dataclass
 class Objective:
     """An objective and its sense; assume_convex (lower level only) skips the convexity probe. An upper objective
-    with a `matrix` is the spectral radius of that matrix (expr is then NaN: it has no CasADi expression)."""
+    with a `matrix` is the numeric `function` of that matrix (expr is then NaN: it has no CasADi expression)."""
 
     expr: ca.SX
     sense: Sense
     assume_convex: bool = False
     matrix: ca.SX | None = None
+    function: MatrixFunction | None = None
 
 
 def _bound_array(value: Any, size: int, what: str, symmetric: bool = False) -> np.ndarray:
@@ -485,7 +489,17 @@ class BilevelProblem:
         matrix = _expression(matrix, "maximize_spectral_radius", "a square CasADi matrix expression")
         if matrix.size1() != matrix.size2() or matrix.numel() == 0:
             raise ModelError(f"maximize_spectral_radius: the matrix must be square, got shape {matrix.shape}")
-        self.upper_objective = Objective(ca.SX(np.nan), "max", matrix=matrix)
+        self.maximize_matrix_function(matrix, rho_and_gradient)
+
+    def maximize_matrix_function(self, matrix: Any, function: MatrixFunction) -> None:
+        """Set the upper objective to function(M) of a matrix expression M(x, y): a numeric function returning its
+        value and its gradient in M (e.g. an implicit map such as a Riccati solution, differentiated by the user).
+        Methods hypergradient and differential-evolution solve it; the KKT methods refuse it."""
+        matrix = _expression(matrix, "maximize_matrix_function", "a CasADi matrix expression")
+        if matrix.numel() == 0 or not callable(function):
+            raise ModelError("maximize_matrix_function: give a nonempty matrix expression and a callable M -> (value, "
+                             f"gradient), got shape {matrix.shape} and {type(function).__name__}")
+        self.upper_objective = Objective(ca.SX(np.nan), "max", matrix=matrix, function=function)
         self.revision += 1
 
     def minimize_lower(self, expr: Any, assume_convex: bool = False) -> None:

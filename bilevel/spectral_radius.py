@@ -57,6 +57,12 @@ def spectral_radius(m: np.ndarray) -> SpectralRadius:
     return SpectralRadius(rho, grad, ties)
 
 
+def rho_and_gradient(m: np.ndarray) -> tuple[float, np.ndarray]:
+    """(rho(M), d rho / dM) of one real square matrix: the matrix function of maximize_spectral_radius."""
+    r = spectral_radius(m)
+    return float(r.value), r.gradient
+
+
 def radius(m: np.ndarray) -> np.ndarray:
     """rho of a real matrix or of each of a stack of them, from the eigenvalues alone (about half the cost of
     spectral_radius; the same eigenvalues, so the same rho)."""

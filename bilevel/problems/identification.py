@@ -4,7 +4,9 @@ Upper variables: one change dS per signal (dX, dU for the state-space learner; d
 ||dS||_F <= eps ||S||_F. Lower variable Theta ([A B] or the ARX theta as a 1 x (na + nb) row) solving the learner's
 least squares min ||Y - Theta Z||_F^2 on the poisoned signals (bilevel.problems.identification_instance). The
 attacker maximizes ||Theta - Theta_clean||_F^2 ("frobenius") or ||Theta - Theta_clean||_2^2 ("spectral", the
-spectral radius of dTheta dTheta'). With stealth = delta, upper constraints 1 - delta <= stat'/stat <= 1 + delta keep
+spectral radius of dTheta dTheta'), or, on [A B], a numeric function of the identified model with its exact gradient
+(maximize_matrix_function, bilevel.ddc.model_based): its H2 norm ("h2") or the spectral radius of the true plant
+(parameter "plant" = [A_true B_true]) under the model's certainty-equivalence LQR gain ("ce-lqr"). With stealth = delta, upper constraints 1 - delta <= stat'/stat <= 1 + delta keep
 each residual statistic of bilevel.ddc.residual_tests (variance, whiteness, input F) within delta of its clean value;
 the F statistic's restricted model (Y regressed on Z without its input rows) is a second least-squares block of the
 lower level. The clean data and statistics are parameters: load_instance re-targets a declared problem, and with
@@ -19,6 +21,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from ..ddc.model_based import CertaintyEquivalenceRadius, H2Norm
 from ..errors import ModelError
 from ..model import BilevelProblem
 from ..solvers.base import prepare
@@ -75,8 +78,15 @@ def declare(atk: IdentificationAttack) -> BilevelProblem:
     error = theta - p.parameter("theta_clean", atk.theta0.shape)
     if atk.objective == "frobenius":
         p.maximize_upper(ca.sumsqr(error))
-    else:
+    elif atk.objective == "spectral":
         p.maximize_spectral_radius(ca.mtimes(error, error.T))
+    elif atk.objective == "h2":
+        p.maximize_matrix_function(theta, H2Norm())
+    else:
+        n, m = atk.signals["X"].shape[0], atk.signals["U"].shape[0]
+        q, r = atk.lqr_weights
+        p.maximize_matrix_function(ca.horzcat(theta, p.parameter("plant", atk.theta0.shape)),
+                                   CertaintyEquivalenceRadius(q * np.eye(n), r * np.eye(m)))
     load_instance(p, atk)
     return p
 
@@ -91,7 +101,7 @@ def problem_for(atk: IdentificationAttack) -> BilevelProblem:
     """The declared problem of `atk`, loaded with its data: declared once per learner, signal shapes, orders,
     objective and stealth declaration in this process, re-targeted with load_instance after."""
     key = (atk.learner, tuple(v.shape for v in atk.signals.values()), atk.orders, atk.objective, atk.lags,
-           atk.stealth is None)
+           atk.stealth is None, atk.lqr_weights)
     if key in _DECLARED:
         _DECLARED.move_to_end(key)
         load_instance(_DECLARED[key], atk)
@@ -112,6 +122,8 @@ def load_instance(problem: BilevelProblem, atk: IdentificationAttack) -> None:
                          f"{atk.stealth}) does not fit problem {problem.name!r}; declare it with declare(atk)")
     values: dict[str, Any] = {**atk.signals, "theta_clean": atk.theta0}
     values |= {f"delta_{name}": atk.radius(name) for name in atk.signals}
+    if "plant" in declared:
+        values["plant"] = np.hstack(atk.setting.state_space)
     if atk.stealth is not None:
         clean = atk.tests()
         values |= {"stealth": atk.stealth} | {f"{name}_clean": clean[name].statistic for name in STATISTICS}
@@ -146,12 +158,14 @@ def stealth_start(problem: BilevelProblem, atk: IdentificationAttack) -> np.ndar
     return np.zeros_like(x)
 
 
-@register("ident-ss", source=SOURCE, tags=("attack", "identification"), defaults=DEFAULTS,
-          description="poisoning of state-space least squares [A B] (maximize the parameter error)")
+@register("ident-ss", source=SOURCE, tags=("attack", "identification"), defaults={**DEFAULTS, "q": 1.0, "r": 1.0},
+          description="poisoning of state-space least squares [A B] (maximize the parameter error, the model's H2 "
+                      "norm, or the true loop's spectral radius under certainty-equivalence LQR)")
 def ident_ss(T: int = 100, eps: float = 0.05, objective: Objective = "frobenius", stealth: float | None = None,
-             seed: int = 0, lags: int = 10) -> BilevelProblem:
-    """[A B] from T poisoned states and inputs of the flexible transmission (controllable canonical form)."""
-    return declare(attack_instance("ss", T, eps, objective, stealth, seed, lags))
+             seed: int = 0, lags: int = 10, q: float = 1.0, r: float = 1.0) -> BilevelProblem:
+    """[A B] from T poisoned states and inputs of the flexible transmission (controllable canonical form); q, r: the
+    LQR weights Q = q I, R = r I of objective "ce-lqr"."""
+    return declare(attack_instance("ss", T, eps, objective, stealth, seed, lags, lqr_weights=(q, r)))
 
 
 @register("ident-arx", source=SOURCE, tags=("attack", "identification"), defaults={**DEFAULTS, "na": 4, "nb": 4},

@@ -5,7 +5,10 @@ Learners (both linear regressions Y ~ Theta Z, outputs x samples):
   "ss"   state space: [A B] = argmin ||X+ - [A B] [X; U]||_F^2 from states X (n x (T+1)) and inputs U (m x T);
   "arx"  ARX(na, nb): theta = [a; b] = argmin sum_t (y_t + a' y_{t-1..t-na} - b' u_{t-1..t-nb})^2, t >= max(na, nb).
 The attacker adds dS to each signal S within ||dS||_F <= eps_S ||S||_F and maximizes the parameter error
-(objective "frobenius": ||d Theta||_F^2; "spectral": ||d Theta||_2^2, the largest eigenvalue of dTheta dTheta'); with
+(objective "frobenius": ||d Theta||_F^2; "spectral": ||d Theta||_2^2, the largest eigenvalue of dTheta dTheta') or,
+for the state-space learner, a model-based quantity (bilevel.ddc.model_based): "h2", the identified model's H2 norm
+from input to state, or "ce-lqr", the spectral radius of the true plant under the certainty-equivalence LQR gain of
+the identified model (weights Q = q I, R = r I; rho >= 1: the true loop is unstable); with
 stealth = delta it keeps each residual test statistic (bilevel.ddc.residual_tests) within |1 - stat'/stat| <= delta of
 its clean value. bilevel.problems.identification declares the instance as a BilevelProblem.
 """
@@ -27,8 +30,10 @@ from ..errors import InvalidData, ModelError, RankDeficientRegressor
 from ..solvers.options import check_common_options
 
 Learner = Literal["ss", "arx"]
-Objective = Literal["frobenius", "spectral"]
-OBJECTIVES = ("frobenius", "spectral")
+Objective = Literal["frobenius", "spectral", "h2", "ce-lqr"]
+OBJECTIVES = ("frobenius", "spectral", "h2", "ce-lqr")
+MODEL_BASED = ("h2", "ce-lqr")
+"""Objectives of a state-space model: the state-space learner only."""
 
 
 def controllable_canonical(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -122,7 +127,8 @@ def least_squares_fit(Y: np.ndarray, Z: np.ndarray) -> np.ndarray:
 @dataclass
 class IdentificationAttack:
     """One attack instance: clean signals (X, U for "ss"; u, y for "arx"), relative l2 budgets per signal (Frobenius
-    norm), the objective, the ARX orders, the whiteness test's lags and the stealth level (None: no stealth)."""
+    norm), the objective, the ARX orders, the whiteness test's lags, the stealth level (None: no stealth) and the LQR
+    weights (q, r) of objective "ce-lqr" (Q = q I, R = r I)."""
 
     setting: IdentificationSetting
     learner: Learner
@@ -132,6 +138,7 @@ class IdentificationAttack:
     stealth: float | None = None
     lags: int = 10
     orders: tuple[int, int] = (4, 4)
+    lqr_weights: tuple[float, float] = (1.0, 1.0)
     Y0: np.ndarray = field(init=False)
     Z0: np.ndarray = field(init=False)
     theta0: np.ndarray = field(init=False)
@@ -141,6 +148,11 @@ class IdentificationAttack:
             raise ModelError(f"learner {self.learner!r} is not 'ss' (state space) or 'arx'")
         if self.objective not in OBJECTIVES:
             raise ModelError(f"objective {self.objective!r} is not one of {', '.join(OBJECTIVES)}")
+        if self.objective in MODEL_BASED and self.learner != "ss":
+            raise ModelError(f"objective {self.objective!r} is a property of a state-space model: use the 'ss' "
+                             "learner (ident-ss)")
+        if not all(np.isfinite(w) and w > 0 for w in self.lqr_weights):
+            raise ModelError(f"lqr_weights (q, r) must be positive and finite, got {self.lqr_weights}")
         names = ("X", "U") if self.learner == "ss" else ("u", "y")
         if set(self.signals) != set(names) or set(self.eps) != set(names):
             raise ModelError(f"the {self.learner} learner takes signals and budgets {names}, got signals "
@@ -185,7 +197,7 @@ class IdentificationAttack:
 
 def attack_instance(learner: Learner, T: int = 100, eps: float = 0.05, objective: Objective = "frobenius",
                     stealth: float | None = None, seed: int = 0, lags: int = 10, na: int = 4,
-                    nb: int = 4) -> IdentificationAttack:
+                    nb: int = 4, lqr_weights: tuple[float, float] = (1.0, 1.0)) -> IdentificationAttack:
     """The flexible transmission's instance (data drawn with default_rng(seed)), budget eps on every signal."""
     check_common_options({"seed": seed})
     if not isinstance(T, (int, np.integer)) or isinstance(T, bool) or T < 1:
@@ -199,4 +211,4 @@ def attack_instance(learner: Learner, T: int = 100, eps: float = 0.05, objective
         u, y = setting.arx_data(int(T), rng)
         signals = {"u": u, "y": y}
     return IdentificationAttack(setting, learner, signals, {k: eps for k in signals}, objective, stealth, lags,
-                                (na, nb))
+                                (na, nb), lqr_weights)

@@ -92,9 +92,9 @@ class Prepared:
     @cached_property
     def reduction(self) -> tuple[MPCC, KKTInverse]:
         if self.canon.spectral is not None:
-            raise ModelError(f"{self.problem.name}: a spectral-radius objective (maximize_spectral_radius) has no "
-                             "CasADi expression for the KKT reformulation of methods ipopt, relaxation and global; "
-                             "use method 'hypergradient' or 'differential-evolution'")
+            raise ModelError(f"{self.problem.name}: a numeric objective of a matrix (maximize_spectral_radius, "
+                             "maximize_matrix_function) has no CasADi expression for the KKT reformulation of methods "
+                             "ipopt, relaxation and global; use method 'hypergradient' or 'differential-evolution'")
         return SingleLevelReduction().apply(self.canon)
 
     @property

@@ -17,10 +17,11 @@ which y is projected off the directions the SDP sees only through a ridge (Semid
 minimum-norm selection of a non-unique solution, or the exact ridge solution, unless min_norm is off); it needs a
 strictly complementary lower solution, unique up to those directions.
 
-A spectral-radius upper objective (BilevelProblem.maximize_spectral_radius) is evaluated and differentiated
-numerically, F = sign * rho(M(x, y)) with d rho / dM from the top eigenvectors (bilevel.spectral_radius), chained
-through the Jacobians of M; where the lower level ignores x and M is affine in x, spectral_batch evaluates many
-points by one matrix product and one stacked eigendecomposition.
+A numeric upper objective of a matrix (BilevelProblem.maximize_matrix_function) is evaluated and differentiated by
+its own function, F = sign * f(M(x, y)) with the function's d f / dM chained through the Jacobians of M; for the
+spectral radius (maximize_spectral_radius) d rho / dM comes from the top eigenvectors (bilevel.spectral_radius), and
+where the lower level ignores x and M is affine in x, spectral_batch evaluates many points by one matrix product and
+one stacked eigendecomposition.
 
 Upper constraints other than the projected ones are handled by an exact penalty: phi = F + penalty *
 (sum max(G, 0) + sum |H|), exact once the penalty exceeds the upper multipliers (default 1e4); where
@@ -41,7 +42,7 @@ from ..defaults import param
 from ..errors import ModelError
 from ..lower.base import ExpressionLower, KKTValues, LowerSolution
 from ..parameters import CompiledFunction, ValueAndJacobian
-from ..spectral_radius import radius, spectral_radius
+from ..spectral_radius import radius, rho_and_gradient, spectral_radius
 from .base import Prepared
 
 
@@ -215,13 +216,12 @@ class Hypergradient:
         """The upper sweep with F, dF/dx and dF/dy of the spectral objective in place of the NaN expression's (dF/dy
         NaN on a lower level that ignores x: its gradient never reads it)."""
         m, jx = (np.asarray(v, dtype=float) for v in self._spectral(x, y))
-        n = int(self.canon.spectral.size1())
-        r = spectral_radius(m.reshape(n, n, order="F"))
+        value, gradient = self.canon.matrix_function(m.reshape(self.canon.spectral.shape, order="F"))
         sign = self.canon.spectral_sign
-        g = sign * r.gradient.ravel(order="F")
+        g = sign * np.asarray(gradient, dtype=float).ravel(order="F")
         gy = np.full((self.low.n_y, 1), np.nan) if self.low.fixed else \
             (np.asarray(self._spectral_y(x, y), dtype=float).T @ g)[:, None]
-        return [np.array([[sign * float(r.value)]]), upper[1], upper[2], (jx.T @ g)[:, None], gy, *upper[5:]]
+        return [np.array([[sign * float(value)]]), upper[1], upper[2], (jx.T @ g)[:, None], gy, *upper[5:]]
 
     def spectral_batch(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """F = sign * rho(M), dF/dx (n_x x S) and the tie counts at each column of xs (n_x x S), for a spectral
@@ -242,12 +242,13 @@ class Hypergradient:
         return self.spectral_batch(xs)[0] if stack is None else self.canon.spectral_sign * radius(stack)
 
     def _spectral_stack(self, xs: np.ndarray) -> np.ndarray | None:
-        """M at each column of xs (S x n x n) where it is affine in x (one product), None where it is not; ModelError
-        unless the objective is spectral and the lower level ignores x."""
+        """M at each column of xs (S x n x n) where it is affine in x (one product), None where it is not or the
+        function of M is not the spectral radius; ModelError unless the objective is a matrix's and the lower level
+        ignores x."""
         if self._spectral is None or not self.low.fixed:
             raise ModelError("spectral_batch needs a spectral-radius upper objective (maximize_spectral_radius) and a "
                              "lower level that does not depend on the upper variables; use evaluate and gradient")
-        if not self.spectral_affine:
+        if not self.spectral_affine or self.canon.matrix_function is not rho_and_gradient:
             return None
         revision = self.low.params.revision
         if self._affine is None or self._affine[0] != revision:

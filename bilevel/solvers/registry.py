@@ -80,7 +80,7 @@ def coupled_upper_rows(prep: Prepared) -> int:
 
 
 def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
-    """The method "auto" runs, and why: `hypergradient` where the upper objective is a spectral radius, or where the
+    """The method "auto" runs, and why: `hypergradient` where the upper objective is a numeric function of a matrix, or where the
     lower level is least squares (solved in closed form, y*(x) smooth) or does not depend on x (solved once), with at
     least defaults["auto.min_upper"] upper entries (below, IPOPT's Newton steps on the KKT system cost less than the
     first-order iterations) and no upper constraint on the lower solution; `ipopt`
@@ -93,7 +93,7 @@ def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
     if not given <= ipopt:
         return "hypergradient", f"option(s) {', '.join(sorted(given - ipopt))} belong to hypergradient"
     if prep.canon.spectral is not None:
-        return "hypergradient", "a spectral-radius objective (the KKT methods cannot use it)"
+        return "hypergradient", "a numeric objective of a matrix (the KKT methods cannot use it)"
     coupled = coupled_upper_rows(prep)
     if coupled:
         return "ipopt", (f"{coupled} upper constraint(s) on the lower solution, which ipopt keeps as constraints and "
