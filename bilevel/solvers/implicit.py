@@ -270,12 +270,9 @@ class Hypergradient:
         """phi = F + penalty * (sum max(G, 0) + sum |H|) per column of (1 x S, nG x S, nH x S) arrays."""
         return F.ravel() + self.penalty * (np.maximum(G, 0.0).sum(axis=0) + np.abs(H).sum(axis=0))
 
-    def gradient(self, ev: Evaluation) -> tuple[np.ndarray, bool, int]:
-        """grad phi at an evaluated point, whether the active set was degenerate, and its size.
-
-        Where some |G_i| or |H_j| <= KINK_TOL the penalty is not differentiable: the least-norm element of
-        its subdifferential (coefficients in [0, penalty] or [-penalty, penalty]) is returned.
-        """
+    def jacobian(self, ev: Evaluation) -> tuple[np.ndarray, bool, int]:
+        """The total x-derivatives of F, G_i and H_j along y*(x) at an evaluated point (columns of an n_x x (1 + nG +
+        nH) array, one adjoint solve for all), whether the active set was degenerate, and its size."""
         _, G, H, gxF, gyF, Gx, Gy, Hx, Hy = ev.upper
         total = np.hstack([gxF, Gx.T, Hx.T])  # columns: d/dx of F, G_i, H_j along y*(x)
         weak, rows = False, np.zeros(0, dtype=int)
@@ -293,6 +290,16 @@ class Hypergradient:
                 adjoint, singular = self._x_adjoint(ev.x, ev.lower, rows, Z), rank < K.shape[0]
             total = total - adjoint
             weak = weak or singular
+        return total, bool(weak), int(rows.size)
+
+    def gradient(self, ev: Evaluation) -> tuple[np.ndarray, bool, int]:
+        """grad phi at an evaluated point, whether the active set was degenerate, and its size.
+
+        Where some |G_i| or |H_j| <= KINK_TOL the penalty is not differentiable: the least-norm element of
+        its subdifferential (coefficients in [0, penalty] or [-penalty, penalty]) is returned.
+        """
+        total, weak, n_active = self.jacobian(ev)
+        G, H = ev.upper[1], ev.upper[2]
         values = np.concatenate([G, H]).ravel()
         kink = np.abs(values) <= KINK_TOL
         coef = self.penalty * np.concatenate([(G.ravel() > 0).astype(float), np.sign(H.ravel())])
@@ -301,7 +308,7 @@ class Hypergradient:
             lo = np.where(np.arange(values.size) < G.size, 0.0, -self.penalty)[kink]
             t = lsq_linear(total[:, 1:][:, kink], -grad, bounds=(lo, np.full(lo.size, self.penalty))).x
             grad = grad + total[:, 1:][:, kink] @ t
-        return grad, bool(weak), int(rows.size)
+        return grad, weak, n_active
 
     def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray, LowerSolution]:
         """(phi(x), grad phi(x), lower solution at x)."""

@@ -20,13 +20,14 @@ from .global_method import solve_global
 from .hypergradient import HYPERGRADIENT_OPTIONS, solve_block_exact, solve_hypergradient
 from .ipopt import IPOPT_OPTIONS, solve_ipopt
 from .options import check_common_options
+from .reduced import REDUCED_OPTIONS, solve_reduced
 from .relaxation import solve_relaxation
 
 Method = Callable[..., MethodRun]
 SMALL_LOWER = 256
 """Lower levels with at most this many variables are solved with one BLAS thread."""
 
-METHODS_VERSION = "methods-8"
+METHODS_VERSION = "methods-9"
 """Part of every `bilevel compare` task, so a resumed comparison never reuses a row of an older method: bump it when a
 registered method changes its answers for the same call (methods-2: hypergradient takes the exact block by default;
 methods-3: the structured vrft-targeted attack runs to convergence; methods-4: SDP lower levels get the engine's
@@ -37,7 +38,8 @@ limits; methods-7: the structured VRFT attacks go through the engine's finalize,
 and least squares from 10,000 Hessian terms are solved in residual form; methods-8: SDP lower levels are solved through
 Clarabel's own interface and Newton-polished, the Willems attacks go through the engine's finalize, and the structured
 VRFT attacks run on the engine's multistart ascent from its start sequence (the joint attack starts at the
-conditioning start, not at zero poisoning) and attack the registry's instance (N = 64 by default) in a comparison)."""
+conditioning start, not at zero poisoning) and attack the registry's instance (N = 64 by default) in a comparison;
+methods-9: method `reduced`, which auto runs where upper constraints read a least-squares lower solution)."""
 
 METHODS: dict[str, Method] = {
     "ipopt": solve_ipopt,
@@ -46,6 +48,7 @@ METHODS: dict[str, Method] = {
     "block-exact": solve_block_exact,
     "global": solve_global,
     "differential-evolution": solve_evolution,
+    "reduced": solve_reduced,
 }
 """Registered methods: name -> function(prepared, **options) -> MethodRun."""
 
@@ -84,20 +87,24 @@ def coupled_upper_rows(prep: Prepared) -> int:
 
 
 def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
-    """The method "auto" runs, and why: `hypergradient` where the upper objective is a spectral radius, or where the
-    lower level is least squares (solved in closed form, y*(x) smooth) or does not depend on x (solved once), with at
-    least AUTO_MIN_UPPER upper entries and no upper constraint on the lower solution; `ipopt`
-    otherwise (constrained lower levels whose solution depends on x: its KKT system is solved with the upper level in
-    one NLP). Options only one of the two accepts decide for it."""
+    """The method "auto" runs, and why: `reduced` where upper constraints read the solution of a least-squares lower
+    level (unique and smooth in x: IPOPT over x alone keeps those rows as constraints); `hypergradient` where the
+    upper objective is a spectral radius, or where the lower level is least squares (solved in closed form, y*(x)
+    smooth) or does not depend on x (solved once), with at least AUTO_MIN_UPPER upper entries and no upper constraint
+    on the lower solution; `ipopt` otherwise (constrained lower levels whose solution depends on x: its KKT system is
+    solved with the upper level in one NLP). Options only one of the methods accepts decide for it."""
     low, n = prep.canon.lower, int(prep.canon.x.numel())
     given = set(options)
+    coupled = coupled_upper_rows(prep)
+    if coupled and low.kind == "least-squares" and prep.canon.spectral is None and given <= REDUCED_OPTIONS:
+        return "reduced", (f"{coupled} upper constraint(s) on the solution of a least-squares lower level (unique, "
+                           "in closed form), which reduced keeps as constraints over the upper variables alone")
     if not given <= HYPERGRADIENT_OPTIONS:
         return "ipopt", f"option(s) {', '.join(sorted(given - HYPERGRADIENT_OPTIONS))} belong to ipopt"
     if not given <= IPOPT_OPTIONS:
         return "hypergradient", f"option(s) {', '.join(sorted(given - IPOPT_OPTIONS))} belong to hypergradient"
     if prep.canon.spectral is not None:
         return "hypergradient", "a spectral-radius objective (the KKT methods cannot use it)"
-    coupled = coupled_upper_rows(prep)
     if coupled:
         return "ipopt", (f"{coupled} upper constraint(s) on the lower solution, which ipopt keeps as constraints and "
                          "hypergradient would only penalize")
