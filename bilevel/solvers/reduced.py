@@ -43,7 +43,8 @@ REDUCED_MAX_ITER = 300
 """Default option max_iter: IPOPT iterations per start."""
 REDUCED_SCALE = 10.0
 """Default option scale: the half-width of random starts in unbounded upper entries."""
-REDUCED_IPOPT = {"hessian_approximation": "limited-memory", "acceptable_tol": 1e-6, "theta_max_fact": 1.0}
+REDUCED_IPOPT = {"hessian_approximation": "limited-memory", "acceptable_tol": 1e-6, "theta_max_fact": 1.0,
+                 "mumps_permuting_scaling": 0}
 """IPOPT options of the reduced NLP that option ipopt={...} may override: a limited-memory Hessian (the reduced
 Hessian would need second derivatives of y*(x)); trial points violating the constraints by at most 1 (1-norm, times
 the start's violation where that is larger; IPOPT's default is 1e4): on the stealthy identification attack (T = 100,
