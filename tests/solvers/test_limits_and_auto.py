@@ -26,7 +26,7 @@ def _least_squares(n: int, seed: int = 0) -> bl.BilevelProblem:
     return p
 
 
-@pytest.mark.parametrize("method", ["ipopt", "relaxation", "hypergradient", "differential-evolution"])
+@pytest.mark.parametrize("method", ["ipopt", "relaxation", "hypergradient", "differential-evolution", "reduced"])
 def test_a_method_stopped_by_time_limit_keeps_its_best_point_and_says_so(method: str) -> None:
     """A limit that has passed before the second start (or generation) stops the method: it returns a point, its
     status is not solved, its message names the limit, and the point is bilevel feasible (certificate re-solve)."""
@@ -59,6 +59,7 @@ def test_time_limit_must_be_a_positive_number(bad: object) -> None:
 
 @pytest.mark.parametrize("method, line", [("hypergradient", "[hypergradient] start 1/1, iteration 0: phi = "),
                                           ("ipopt", "[ipopt] start 1/1: "),
+                                          ("reduced", "[reduced] start 1/1: Solve_Succeeded, F = "),
                                           ("relaxation", "[relaxation] t = 1.0e+00: "),
                                           ("differential-evolution", "[differential-evolution] generation 1/3: ")])
 def test_verbose_reports_progress_on_stderr(method: str, line: str, capsys) -> None:
