@@ -5,7 +5,9 @@ Every upper constraint, including the rows that read the lower solution, stays a
 exact solve (bilevel.solvers.implicit.Hypergradient.evaluate: closed form for least squares, the kind's solver and an
 active-set Newton polish for a QP), and the Jacobian of (F, G, H) along y*(x) comes from the engine's one adjoint solve
 (Hypergradient.jacobian). IPOPT runs through CasADi on a ca.Callback with that Jacobian and a limited-memory Hessian;
-a point where the lower level cannot be solved is NaN to IPOPT, which shortens its step there.
+a point where the lower level cannot be solved is NaN to IPOPT, which shortens its step there. A recognized budget
+ball also bounds IPOPT's steps by the box around it (the ball stays a constraint). Where IPOPT stops (max_iter, an
+error) off the feasible set, the start's answer is the best feasible point it evaluated, with IPOPT's status.
 
 It needs a unique lower solution, so that y*(x) is a function: a least-squares lower level (positive definite
 Hessian; a singular one at some x is an error there) or a QP whose Hessian is positive definite at the start. Other
