@@ -83,9 +83,10 @@ class Hypergradient:
         x, y, H = canon.x, canon.y, canon.H
         kept = [i for i in range(int(canon.G.numel())) if i not in set(projected_rows)]
         G = ca.vertcat(*[canon.G[i] for i in kept]) if kept else ca.SX(0, 1)  # projected rows need no penalty
-        self._upper_outputs = [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y), ca.jacobian(G, x),
-                               ca.jacobian(G, y), ca.jacobian(H, x), ca.jacobian(H, y)]
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
+        JG, JH = ca.jacobian(G, ca.vertcat(x, y)), ca.jacobian(H, ca.vertcat(x, y))  # one sweep per row for x and y
+        self._upper_outputs = [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y), JG[:, :nx],
+                               JG[:, nx:], JH[:, :nx], JH[:, nx:]]
         self._squares = canon.squares  # F by BLAS where it is numeric squares of y, not swept
         swept = self._upper_outputs if self._squares is None else \
             [ca.SX(1, 1), G, H, ca.SX(nx, 1), ca.SX(ny, 1), *self._upper_outputs[5:]]

@@ -89,12 +89,13 @@ class _Reduced:
         """The feasible evaluated point (violation <= FEASIBILITY_TOL) with the lowest F since the last reset."""
 
     def point(self, x: np.ndarray) -> Evaluation | None:
-        """The evaluated point at x (None where the lower level cannot be solved)."""
+        """The evaluated point at x (None where the lower level cannot be solved); x may be a view of CasADi's
+        buffer: an evaluation keeps a copy."""
         key = (self.oracle.low.params.revision, x.tobytes())
         if key != self._key:
             self._key, self._jac = key, None
             try:
-                self._ev = self.oracle.evaluate(x)
+                self._ev = self.oracle.evaluate(np.array(x, dtype=float))
                 self.evaluations += 1
             except BilevelError:
                 self._ev = None
@@ -121,7 +122,7 @@ class _Reduced:
 
 
 class _Values(ca.Callback):
-    """x -> [F; G; H] for CasADi, with its Jacobian callback."""
+    """x -> [F; G; H] for CasADi (on its buffers, without DM copies), with its Jacobian callback."""
 
     def __init__(self, reduced: _Reduced) -> None:
         ca.Callback.__init__(self)
@@ -141,8 +142,12 @@ class _Values(ca.Callback):
     def get_sparsity_out(self, i: int) -> ca.Sparsity:
         return ca.Sparsity.dense(self.reduced.n_out, 1)
 
-    def eval(self, arg: list[ca.DM]) -> list[np.ndarray]:
-        return [self.reduced.values(np.asarray(arg[0], dtype=float).ravel())]
+    def has_eval_buffer(self) -> bool:
+        return True
+
+    def eval_buffer(self, arg: tuple[memoryview, ...], res: tuple[memoryview, ...]) -> int:
+        np.frombuffer(res[0], dtype=np.float64)[:] = self.reduced.values(np.frombuffer(arg[0], dtype=np.float64))
+        return 0
 
     def has_jacobian(self) -> bool:
         return True
@@ -172,8 +177,13 @@ class _Jacobian(ca.Callback):
     def get_sparsity_out(self, i: int) -> ca.Sparsity:
         return ca.Sparsity.dense(self.reduced.n_out, self.reduced.n_x)
 
-    def eval(self, arg: list[ca.DM]) -> list[np.ndarray]:
-        return [self.reduced.jacobian(np.asarray(arg[0], dtype=float).ravel())]
+    def has_eval_buffer(self) -> bool:
+        return True
+
+    def eval_buffer(self, arg: tuple[memoryview, ...], res: tuple[memoryview, ...]) -> int:
+        out = np.frombuffer(res[0], dtype=np.float64).reshape(self.reduced.n_x, self.reduced.n_out)  # column-major
+        out[:] = self.reduced.jacobian(np.frombuffer(arg[0], dtype=np.float64)).T
+        return 0
 
 
 class _Solver:
