@@ -269,6 +269,22 @@ class ResidualLeastSquares(LowerLevel):
         C, d, _ = self.data(x)
         return self._x_adjoint(x, sol.y, v_s, C @ sol.y - d, C @ v_s)
 
+    def kkt_x_adjoint_columns(self, x: np.ndarray, sol: LowerSolution, V_s: np.ndarray, V_g: np.ndarray,
+                              V_h: np.ndarray) -> np.ndarray:
+        """Where the data are affine in x: one transposed sparse product for all columns (seeds vec(v_j r' + y b_j')
+        and -b_j, b_j = C v_j, as in _x_adjoint); else one reverse sweep per column."""
+        if self._affine is None or not V_s.shape[1]:
+            return super().kkt_x_adjoint_columns(x, sol, V_s, V_g, V_h)
+        C, d, _ = self.data(x)
+        r, B = C @ sol.y - d, C @ V_s
+        ny, m, k = self.n_y, r.size, V_s.shape[1]
+        seeds = np.empty((ny * m + m, k))
+        block = seeds[:ny * m].reshape(ny, m, k)
+        np.multiply(V_s[:, None, :], r[None, :, None], out=block)
+        block += sol.y[:, None, None] * B[None, :, :]
+        np.negative(B, out=seeds[ny * m:])
+        return self._affine[2] @ seeds
+
     def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
         return factor_solve(hessian_factor(K), rhs), K.shape[0]
 

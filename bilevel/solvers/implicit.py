@@ -135,14 +135,11 @@ class Hypergradient:
                          [jh, np.zeros((nh, na + nh))]])
 
     def _x_adjoint(self, x: np.ndarray, sol: LowerSolution, rows: np.ndarray, Z: np.ndarray) -> np.ndarray:
-        """R' Z, R the x-derivative of (stationarity, g_A, h), one reverse sweep per column of Z."""
+        """R' Z, R the x-derivative of (stationarity, g_A, h), by the lower level's product over the columns of Z."""
         ny, na = self.low.n_y, rows.size
-        out = np.empty((self.low.n_x, Z.shape[1]))
-        for j in range(Z.shape[1]):
-            vg = np.zeros(self.low.n_g)
-            vg[rows] = Z[ny:ny + na, j]
-            out[:, j] = self.low.kkt_x_adjoint(x, sol, Z[:ny, j], vg, Z[ny + na:, j])
-        return out
+        V_g = np.zeros((self.low.n_g, Z.shape[1]))
+        V_g[rows] = Z[ny:ny + na]
+        return self.low.kkt_x_adjoint_columns(x, sol, Z[:ny], V_g, Z[ny + na:])
 
     @staticmethod
     def _residual(vals: KKTValues, lam: np.ndarray) -> float:
