@@ -32,7 +32,7 @@ from ..result import Status
 from .base import FEASIBILITY_TOL, MethodRun, Prepared, best_of, check_options
 from .implicit import ACTIVE_TOL, Evaluation, Hypergradient, shared_oracle
 from .ipopt import IPOPT_STATUS, MAX_WALL_TIME, within
-from .limits import deadline, progress, stopped
+from .limits import Deadline, progress, stopped
 from .options import check_numbers
 from .starts import start_points
 
@@ -202,31 +202,34 @@ class _Solver:
                              "ipopt={...} against the IPOPT options reference") from None
 
 
-def _ipopt_options(options: dict[str, Any]) -> dict[str, Any]:
-    extra = options.get("ipopt")
+def _ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> dict[str, Any]:
+    """IPOPT options of the reduced NLP: quiet, tol, max_iter, REDUCED_IPOPT, then the option ipopt={...}."""
     if extra is not None and not (isinstance(extra, dict) and all(isinstance(k, str) for k in extra)):
         raise ModelError(f"option ipopt={extra!r} is invalid: it must be a dict of IPOPT options, e.g. "
                          "{'max_cpu_time': 60}")
-    return {"print_level": 0, "sb": "yes", "tol": float(options.get("tol", REDUCED_TOL)),
-            "max_iter": int(options.get("max_iter", REDUCED_MAX_ITER)), "max_wall_time": MAX_WALL_TIME,
+    return {"print_level": 0, "sb": "yes", "tol": float(tol), "max_iter": int(max_iter), "max_wall_time": MAX_WALL_TIME,
             **REDUCED_IPOPT, **(extra or {})}
 
 
-def solve_reduced(prep: Prepared, **options: Any) -> MethodRun:
-    """IPOPT on the reduced NLP over x (module docstring) from `starts` start points (options: starts, seed, scale,
-    tol, max_iter, ipopt, active_tol, time_limit, verbose); the best feasible end point wins."""
-    check_options("reduced", options, REDUCED_OPTIONS)
-    check_numbers(options, positive=("active_tol",))
+def solve_reduced(prep: Prepared, *, starts: int = REDUCED_STARTS, seed: Any = 0, scale: float = REDUCED_SCALE,
+                  tol: float = REDUCED_TOL, max_iter: int = REDUCED_MAX_ITER, ipopt: dict[str, Any] | None = None,
+                  active_tol: float = ACTIVE_TOL, time_limit: float | None = None, verbose: bool = False,
+                  **unknown: Any) -> MethodRun:
+    """IPOPT on the reduced NLP over x (module docstring) from `starts` start points (bilevel.solvers.starts; seed and
+    scale for the random ones), IPOPT's tol and max_iter per start, extra IPOPT options `ipopt`, the lower level's
+    active-set tolerance `active_tol`; the best feasible end point wins. At time_limit (seconds) IPOPT stops and the
+    starts not begun are skipped (MAX_ITERATIONS); verbose prints one line per start."""
+    check_options("reduced", unknown, set(REDUCED_OPTIONS))
+    check_numbers({"active_tol": active_tol}, positive=("active_tol",))
     why = unique_lower(prep)
     if why is not None:
         raise ModelError(f"method 'reduced' needs a unique lower solution y*(x) (least squares, or a strictly convex "
                          f"QP), but {prep.problem.name!r} has {why}; use method 'ipopt' (the KKT form)")
     canon = prep.canon
-    active_tol = float(options.get("active_tol", ACTIVE_TOL))
+    active_tol = float(active_tol)
     oracle = shared_oracle(prep, active_tol=active_tol)
-    ipopt = _ipopt_options(options)
-    limit, verbose = deadline(options), options.get("verbose")
-    starts = int(options.get("starts", REDUCED_STARTS))
+    ipopt_opts = _ipopt_options(tol, max_iter, ipopt)
+    limit = Deadline(time_limit)
     nG = int(canon.G.numel())
     lbx, ubx = canon.x_lb.copy(), canon.x_ub.copy()
     for ball in prep.balls:  # the box around each recognized ball bounds IPOPT's steps (it still keeps the ball row)
@@ -235,13 +238,13 @@ def solve_reduced(prep: Prepared, **options: Any) -> MethodRun:
     bounds = dict(lbx=lbx, ubx=ubx, lbg=np.concatenate([np.full(nG, -np.inf),
                                                                         np.zeros(int(canon.H.numel()))]),
                   ubg=np.zeros(nG + int(canon.H.numel())))
-    rng = np.random.default_rng(options.get("seed", 0))
+    rng = np.random.default_rng(seed)
     records, candidates, ends = [], [], []
-    for k, x0 in enumerate(start_points(prep, starts, rng, float(options.get("scale", REDUCED_SCALE)))):
+    for k, x0 in enumerate(start_points(prep, starts, rng, float(scale))):
         if k and limit.expired():
             break
         t0 = time.perf_counter()
-        nlp_opts = within({**NLPSOL_QUIET, "ipopt": ipopt}, limit)  # levels of time_limit: few compiled solvers
+        nlp_opts = within({**NLPSOL_QUIET, "ipopt": ipopt_opts}, limit)  # levels of time_limit: few compiled solvers
         nlp: _Solver = prep.cached(("reduced", active_tol, repr(sorted(nlp_opts["ipopt"].items()))),
                                    lambda: _Solver(oracle, nlp_opts))
         solver = nlp.solver

@@ -52,3 +52,20 @@ def test_a_lower_level_whose_solution_need_not_be_unique_is_refused() -> None:
     p.minimize_upper(x ** 2 + y[1] ** 2)
     with pytest.raises(ModelError, match="singular"):
         bl.solve(p, method="reduced")
+
+
+def test_options_are_the_keywords_and_bad_ones_are_named() -> None:
+    """REDUCED_OPTIONS (what auto matches options against) are solve_reduced's keywords; a misspelt option is an
+    UnknownOption naming the accepted ones, a bad IPOPT option a ModelError."""
+    import inspect
+
+    from bilevel.errors import UnknownOption
+    from bilevel.solvers.reduced import REDUCED_OPTIONS, solve_reduced
+
+    keywords = {k for k, v in inspect.signature(solve_reduced).parameters.items() if v.kind is v.KEYWORD_ONLY}
+    assert keywords == set(REDUCED_OPTIONS)
+    p = registry.get("macmpec-ex9.2.2")
+    with pytest.raises(UnknownOption, match="max_iters.*accepts: active_tol"):
+        bl.solve(p, method="reduced", max_iters=3)
+    with pytest.raises(ModelError, match="IPOPT did not accept"):
+        bl.solve(p, method="reduced", ipopt={"no_such_option": 1})
