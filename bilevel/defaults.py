@@ -53,6 +53,12 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "ipopt.max_iter": (3000, "IPOPT iterations per NLP (count)"),
     "ipopt.acceptable_tol": (1e-7, "IPOPT's acceptable_tol: its 'solved to acceptable level' threshold"),
     "ipopt.max_wall_time": (300.0, "IPOPT max_wall_time per NLP solve (seconds)"),
+    # method reduced (bilevel.solvers.reduced)
+    "reduced.starts": (1, "starts of method reduced: the first of bilevel.solvers.starts (a suggested start, the "
+                          "conditioning start of a least-squares learner, else the declared start) (count)"),
+    "reduced.scale": (10.0, "half-width of reduced's random starts where a bound is infinite (units of x)"),
+    "reduced.nlp_tol": (1e-8, "IPOPT's tol on the reduced NLP (its scaled KKT error)"),
+    "reduced.max_iter": (300, "IPOPT iterations of the reduced NLP per start (count)"),
     "ipopt.complementarity_t": (1e-9, "relaxation parameter t of the default complementarity mode Scholtes(t)"),
     "ipopt.polish_tie": (1e-6, "a further candidate is branch-polished only if it beats the polished one by more "
                                "than this (relative)"),

@@ -26,18 +26,26 @@ if TYPE_CHECKING:  # pragma: no cover
     from .model import BilevelProblem
 
 
+def affine_in(expr: ca.SX, x: ca.SX, fixed: ca.SX) -> tuple[sp.csr_matrix, ca.SX, sp.csr_matrix] | None:
+    """(J, b, J') with expr = J x + b, J sparse and numeric (reading neither x nor the symbols `fixed`, the
+    parameters), b an expression in `fixed` alone, when expr is affine in x that way (signals the leader moves,
+    the clean signals parameters); else None."""
+    jac = ca.jacobian(expr, x)
+    if ca.depends_on(jac, x) or ca.depends_on(jac, fixed):
+        return None
+    J = sp.csr_matrix(ca.evalf(jac).sparse())
+    return J, ca.substitute(expr, x, ca.DM.zeros(int(x.numel()))), J.T.tocsr()
+
+
 def affine_parts(expr: ca.SX, x: ca.SX, fixed: ca.SX) -> tuple[sp.csr_matrix, np.ndarray, sp.csr_matrix] | None:
     """(J, b, J') with expr = J x + b, J sparse, when expr reads none of the symbols `fixed` (parameters) and is affine
     in x (signals the leader moves, sliced, shifted or mapped): one sparse product each way instead of a sweep; else
     None."""
-    if ca.depends_on(expr, fixed):
+    parts = None if ca.depends_on(expr, fixed) else affine_in(expr, x, fixed)
+    if parts is None:
         return None
-    jac = ca.jacobian(expr, x)
-    if ca.depends_on(jac, x):
-        return None
-    J = sp.csr_matrix(ca.evalf(jac).sparse())
-    offset = np.asarray(ca.evalf(ca.substitute(expr, x, ca.DM.zeros(int(x.numel())))), dtype=float).ravel()
-    return J, offset, J.T.tocsr()
+    J, offset, Jt = parts
+    return J, np.asarray(ca.evalf(offset), dtype=float).ravel(), Jt
 
 
 class Operator:

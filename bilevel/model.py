@@ -687,7 +687,8 @@ class BilevelProblem:
         - "hypergradient": projected descent on F(x, y*(x)), the lower level re-solved exactly at every step;
         - "block-exact": hypergradient that optimizes a ball-constrained block globally at every step;
         - "global": a proven global optimum (bounds and gap) for LP and convex-QP lower levels;
-        - "differential-evolution": a search of the boxed upper level on the same implicit map, then descent.
+        - "differential-evolution": a search of the boxed upper level on the same implicit map, then descent;
+        - "reduced": IPOPT over x alone on F(x, y*(x)), every upper constraint kept (a unique lower solution).
 
         Options are the method's keyword arguments: bilevel.show_options(method) (or help() on its function,
         bilevel.METHODS[method]) lists them with their defaults, an option left None taking the registry's value

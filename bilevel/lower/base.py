@@ -158,6 +158,13 @@ class LowerLevel(ABC):
                       v_h: np.ndarray) -> np.ndarray:
         """R' v, R the x-derivative of (S, g, h) at a solution (one reverse sweep, R is never formed)."""
 
+    def kkt_x_adjoint_columns(self, x: np.ndarray, sol: LowerSolution, V_s: np.ndarray, V_g: np.ndarray,
+                              V_h: np.ndarray) -> np.ndarray:
+        """R' [v_1 .. v_k] for the columns v_j of (V_s; V_g; V_h), n_x x k: one kkt_x_adjoint per column unless a kind
+        has a batched product."""
+        return np.column_stack([self.kkt_x_adjoint(x, sol, V_s[:, j], V_g[:, j], V_h[:, j])
+                                for j in range(V_s.shape[1])]) if V_s.shape[1] else np.zeros((self.n_x, 0))
+
     def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
         """Z with K' Z = rhs for the implicit-derivative system K at x, and the rank used: the least-squares
         (minimum-norm) solution, since K is singular where y* is not differentiable."""

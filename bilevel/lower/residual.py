@@ -19,7 +19,7 @@ import scipy.sparse as sp
 
 from ..defaults import param
 from ..errors import BilevelError
-from ..linear_maps import affine_parts
+from ..linear_maps import affine_in
 from ..parameters import CompiledFunction, ParameterSet, scalar
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
@@ -143,6 +143,7 @@ class ResidualLeastSquares(LowerLevel):
         moves = ca.depends_on(self.c, self.x) or ca.depends_on(self.c, self.params.sym)
         self._c = self.params.function("residual_c", [self.x], [self.c]) if moves else float(ca.evalf(self.c))
         """c(x): a constant, or its function (the affine path evaluates it alone, not the sweep of C and d)."""
+        self._offset_value: tuple[int, np.ndarray] | None = None
         self._last: tuple[tuple[bytes, int], tuple[np.ndarray, np.ndarray, float]] | None = None
         self._seen: np.ndarray | None = None
 
@@ -159,14 +160,31 @@ class ResidualLeastSquares(LowerLevel):
                                     [ca.jtimes(ca.mtimes(self.C_expr, v), self.x, a, True)
                                      + ca.jtimes(self.r, self.x, b, True)])
 
-    def _affine_data(self, data: ca.SX) -> tuple[sp.csr_matrix, np.ndarray, sp.csr_matrix] | None:
-        """(J, b, J') with [vec C(x); d(x)] = J x + b when the data are affine in x, read no parameters and J has at
-        most defaults["residual.affine_fill"] nonzeros per operation of their expressions (signals the leader moves,
-        sliced or mapped): then C and d cost one sparse product, their x-adjoint one transposed one; else None (the
-        expressions are evaluated)."""
+    def _affine_data(self, data: ca.SX) -> tuple[sp.csr_matrix, np.ndarray | CompiledFunction, sp.csr_matrix] | None:
+        """(J, b, J') with [vec C(x); d(x)] = J x + b when the data are affine in x with a J that reads no parameters
+        and has at most defaults["residual.affine_fill"] nonzeros per operation of their expressions (signals the leader moves, sliced or
+        mapped; b, the clean signals, may be parameters: then b is their function, evaluated once per parameter
+        revision): C and d cost one sparse product, their x-adjoint one transposed one; else None (the expressions
+        are evaluated)."""
         if ca.jacobian_sparsity(data, self.x).nnz() > param("residual.affine_fill") * self._data.n_instructions():
             return None  # e.g. a recursive filter: a few operations per sample, a dense lower-triangular Jacobian
-        return affine_parts(data, self.x, self.params.sym)
+        parts = affine_in(data, self.x, self.params.sym)
+        if parts is None:
+            return None
+        J, b, Jt = parts
+        if ca.depends_on(b, self.params.sym):
+            return J, self.params.function("residual_offset", [self.x], [b]), Jt  # b ignores x: any x will do
+        return J, np.asarray(ca.evalf(b), dtype=float).ravel(), Jt
+
+    def _offset(self, x: np.ndarray) -> np.ndarray:
+        """b of the affine data at the current parameter values (kept per revision)."""
+        b = self._affine[1]
+        if isinstance(b, np.ndarray):
+            return b
+        revision = self.params.revision
+        if self._offset_value is None or self._offset_value[0] != revision:
+            self._offset_value = (revision, np.asarray(b(x), dtype=float).ravel())
+        return self._offset_value[1]
 
     def _x_adjoint(self, x: np.ndarray, y: np.ndarray, v: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """d/dx of a'C(x)v + b'(C(x)y - d(x))."""
@@ -191,8 +209,7 @@ class ResidualLeastSquares(LowerLevel):
         key = (x.tobytes(), revision)
         if self._last is None or self._last[0] != key:
             if self._affine is not None:
-                J, offset, _ = self._affine
-                v, m = J @ x + offset, int(self.r.numel())
+                v, m = self._affine[0] @ x + self._offset(x), int(self.r.numel())
                 C, d = v[:m * self.n_y].reshape((m, self.n_y), order="F"), v[m * self.n_y:]
                 c = self._c if isinstance(self._c, float) else scalar(self._c(x))
             else:
@@ -234,6 +251,22 @@ class ResidualLeastSquares(LowerLevel):
         """d/dx of v'C'(C y - d) = (d(C v)/dx)'r + (dr/dx)'(C v), one reverse sweep."""
         C, d, _ = self.data(x)
         return self._x_adjoint(x, sol.y, v_s, C @ sol.y - d, C @ v_s)
+
+    def kkt_x_adjoint_columns(self, x: np.ndarray, sol: LowerSolution, V_s: np.ndarray, V_g: np.ndarray,
+                              V_h: np.ndarray) -> np.ndarray:
+        """Where the data are affine in x: one transposed sparse product for all columns (seeds vec(v_j r' + y b_j')
+        and -b_j, b_j = C v_j, as in _x_adjoint); else one reverse sweep per column."""
+        if self._affine is None or not V_s.shape[1]:
+            return super().kkt_x_adjoint_columns(x, sol, V_s, V_g, V_h)
+        C, d, _ = self.data(x)
+        r, B = C @ sol.y - d, C @ V_s
+        ny, m, k = self.n_y, r.size, V_s.shape[1]
+        seeds = np.empty((ny * m + m, k))
+        block = seeds[:ny * m].reshape(ny, m, k)
+        np.multiply(V_s[:, None, :], r[None, :, None], out=block)
+        block += sol.y[:, None, None] * B[None, :, :]
+        np.negative(B, out=seeds[ny * m:])
+        return self._affine[2] @ seeds
 
     def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
         return factor_solve(hessian_factor(K), rhs), K.shape[0]

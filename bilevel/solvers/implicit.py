@@ -83,9 +83,10 @@ class Hypergradient:
         x, y, H = canon.x, canon.y, canon.H
         kept = [i for i in range(int(canon.G.numel())) if i not in set(projected_rows)]
         G = ca.vertcat(*[canon.G[i] for i in kept]) if kept else ca.SX(0, 1)  # projected rows need no penalty
-        self._upper_outputs = [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y), ca.jacobian(G, x),
-                               ca.jacobian(G, y), ca.jacobian(H, x), ca.jacobian(H, y)]
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
+        JG, JH = ca.jacobian(G, ca.vertcat(x, y)), ca.jacobian(H, ca.vertcat(x, y))  # one sweep per row for x and y
+        self._upper_outputs = [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y), JG[:, :nx],
+                               JG[:, nx:], JH[:, :nx], JH[:, nx:]]
         self._squares = canon.squares  # F by BLAS where it is numeric squares of y, not swept
         swept = self._upper_outputs if self._squares is None else \
             [ca.SX(1, 1), G, H, ca.SX(nx, 1), ca.SX(ny, 1), *self._upper_outputs[5:]]
@@ -133,14 +134,11 @@ class Hypergradient:
                          [jh, np.zeros((nh, na + nh))]])
 
     def _x_adjoint(self, x: np.ndarray, sol: LowerSolution, rows: np.ndarray, Z: np.ndarray) -> np.ndarray:
-        """R' Z, R the x-derivative of (stationarity, g_A, h), one reverse sweep per column of Z."""
+        """R' Z, R the x-derivative of (stationarity, g_A, h), by the lower level's product over the columns of Z."""
         ny, na = self.low.n_y, rows.size
-        out = np.empty((self.low.n_x, Z.shape[1]))
-        for j in range(Z.shape[1]):
-            vg = np.zeros(self.low.n_g)
-            vg[rows] = Z[ny:ny + na, j]
-            out[:, j] = self.low.kkt_x_adjoint(x, sol, Z[:ny, j], vg, Z[ny + na:, j])
-        return out
+        V_g = np.zeros((self.low.n_g, Z.shape[1]))
+        V_g[rows] = Z[ny:ny + na]
+        return self.low.kkt_x_adjoint_columns(x, sol, Z[:ny], V_g, Z[ny + na:])
 
     @staticmethod
     def _residual(vals: KKTValues, lam: np.ndarray) -> float:
@@ -282,12 +280,9 @@ class Hypergradient:
         """phi = F + penalty * (sum max(G, 0) + sum |H|) per column of (1 x S, nG x S, nH x S) arrays."""
         return F.ravel() + self.penalty * (np.maximum(G, 0.0).sum(axis=0) + np.abs(H).sum(axis=0))
 
-    def gradient(self, ev: Evaluation) -> tuple[np.ndarray, bool, int]:
-        """grad phi at an evaluated point, whether the active set was degenerate, and its size.
-
-        Where some |G_i| or |H_j| <= defaults["implicit.kink_tol"] the penalty is not differentiable: the least-norm
-        element of its subdifferential (coefficients in [0, penalty] or [-penalty, penalty]) is returned.
-        """
+    def jacobian(self, ev: Evaluation) -> tuple[np.ndarray, bool, int]:
+        """The total x-derivatives of F, G_i and H_j along y*(x) at an evaluated point (columns of an n_x x (1 + nG +
+        nH) array, one adjoint solve for all), whether the active set was degenerate, and its size."""
         _, G, H, gxF, gyF, Gx, Gy, Hx, Hy = ev.upper
         total = np.hstack([gxF, Gx.T, Hx.T])  # columns: d/dx of F, G_i, H_j along y*(x)
         weak, rows = False, np.zeros(0, dtype=int)
@@ -305,6 +300,16 @@ class Hypergradient:
                 adjoint, singular = self._x_adjoint(ev.x, ev.lower, rows, Z), rank < K.shape[0]
             total = total - adjoint
             weak = weak or singular
+        return total, bool(weak), int(rows.size)
+
+    def gradient(self, ev: Evaluation) -> tuple[np.ndarray, bool, int]:
+        """grad phi at an evaluated point, whether the active set was degenerate, and its size.
+
+        Where some |G_i| or |H_j| <= KINK_TOL the penalty is not differentiable: the least-norm element of
+        its subdifferential (coefficients in [0, penalty] or [-penalty, penalty]) is returned.
+        """
+        total, weak, n_active = self.jacobian(ev)
+        G, H = ev.upper[1], ev.upper[2]
         values = np.concatenate([G, H]).ravel()
         kink = np.abs(values) <= param("implicit.kink_tol")
         coef = self.penalty * np.concatenate([(G.ravel() > 0).astype(float), np.sign(H.ravel())])
@@ -313,7 +318,7 @@ class Hypergradient:
             lo = np.where(np.arange(values.size) < G.size, 0.0, -self.penalty)[kink]
             t = lsq_linear(total[:, 1:][:, kink], -grad, bounds=(lo, np.full(lo.size, self.penalty))).x
             grad = grad + total[:, 1:][:, kink] @ t
-        return grad, bool(weak), int(rows.size)
+        return grad, weak, n_active
 
     def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray, LowerSolution]:
         """(phi(x), grad phi(x), lower solution at x)."""

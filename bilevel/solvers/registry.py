@@ -21,11 +21,12 @@ from .global_method import solve_global
 from .hypergradient import solve_block_exact, solve_hypergradient
 from .ipopt import solve_ipopt
 from .options import check_common_options
+from .reduced import solve_reduced
 from .relaxation import solve_relaxation
 
 Method = Callable[..., MethodRun]
 
-METHODS_VERSION = "methods-8"
+METHODS_VERSION = "methods-9"
 """Part of every `bilevel compare` task, so a resumed comparison never reuses a row of an older method: bump it when a
 registered method changes its answers for the same call (methods-2: hypergradient takes the exact block by default;
 methods-3: the structured vrft-targeted attack runs to convergence; methods-4: SDP lower levels get the engine's
@@ -36,7 +37,8 @@ limits; methods-7: the structured VRFT attacks go through the engine's finalize,
 and least squares from 10,000 Hessian terms are solved in residual form; methods-8: SDP lower levels are solved through
 Clarabel's own interface and Newton-polished, the Willems attacks go through the engine's finalize, and the structured
 VRFT attacks run on the engine's multistart ascent from its start sequence (the joint attack starts at the
-conditioning start, not at zero poisoning) and attack the registry's instance (N = 64 by default) in a comparison)."""
+conditioning start, not at zero poisoning) and attack the registry's instance (N = 64 by default) in a comparison;
+methods-9: method `reduced`, which auto runs where upper constraints read a least-squares lower solution)."""
 
 METHODS: dict[str, Method] = {
     "ipopt": solve_ipopt,
@@ -45,6 +47,7 @@ METHODS: dict[str, Method] = {
     "block-exact": solve_block_exact,
     "global": solve_global,
     "differential-evolution": solve_evolution,
+    "reduced": solve_reduced,
 }
 """Registered methods: name -> function(prepared, **options) -> MethodRun."""
 
@@ -80,21 +83,25 @@ def coupled_upper_rows(prep: Prepared) -> int:
 
 
 def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
-    """The method "auto" runs, and why: `hypergradient` where the upper objective is a numeric function of a matrix, or where the
-    lower level is least squares (solved in closed form, y*(x) smooth) or does not depend on x (solved once), with at
-    least defaults["auto.min_upper"] upper entries (below, IPOPT's Newton steps on the KKT system cost less than the
-    first-order iterations) and no upper constraint on the lower solution; `ipopt`
-    otherwise (constrained lower levels whose solution depends on x: its KKT system is solved with the upper level in
-    one NLP). Options only one of the two accepts decide for it."""
+    """The method "auto" runs, and why: `reduced` where upper constraints read the solution of a least-squares lower
+    level (unique and smooth in x: IPOPT over x alone keeps those rows as constraints); `hypergradient` where the
+    upper objective is a numeric function of a matrix, or where the lower level is least squares (solved in closed
+    form, y*(x) smooth) or does not depend on x (solved once), with at least defaults["auto.min_upper"] upper entries
+    and no upper constraint on the lower solution; `ipopt` otherwise (constrained lower levels whose solution depends
+    on x: its KKT system is solved with the upper level in one NLP). Options only one of the methods accepts decide
+    for it."""
     low, n = prep.canon.lower, int(prep.canon.x.numel())
     given, hypergradient, ipopt = set(options), options_of(solve_hypergradient), options_of(solve_ipopt)
+    coupled = coupled_upper_rows(prep)
+    if coupled and low.kind == "least-squares" and prep.canon.spectral is None and given <= options_of(solve_reduced):
+        return "reduced", (f"{coupled} upper constraint(s) on the solution of a least-squares lower level (unique, "
+                           "in closed form), which reduced keeps as constraints over the upper variables alone")
     if not given <= hypergradient:
         return "ipopt", f"option(s) {', '.join(sorted(given - hypergradient))} belong to ipopt"
     if not given <= ipopt:
         return "hypergradient", f"option(s) {', '.join(sorted(given - ipopt))} belong to hypergradient"
     if prep.canon.spectral is not None:
         return "hypergradient", "a numeric objective of a matrix (the KKT methods cannot use it)"
-    coupled = coupled_upper_rows(prep)
     if coupled:
         return "ipopt", (f"{coupled} upper constraint(s) on the lower solution, which ipopt keeps as constraints and "
                          "hypergradient would only penalize")
@@ -112,7 +119,7 @@ def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol:
     """Solve a bilevel problem with a registered method name, "auto" (default: chosen by structure, see
     choose_method; the result's method is the one that ran, its message and stats["auto"] say why) or a
     callable(prepared, **options) -> MethodRun. The methods: ipopt, relaxation, hypergradient, block-exact, global,
-    differential-evolution (and any registered with register_method); show_options(method) lists a method's
+    differential-evolution, reduced (and any registered with register_method); show_options(method) lists a method's
     options and their defaults. certificate_tol: None takes defaults["certificate.tol"] (bilevel.defaults)."""
     if not isinstance(problem, BilevelProblem):
         raise ModelError(f"solve: expected a BilevelProblem, got {type(problem).__name__}; declare one with "

@@ -8,7 +8,7 @@ import os
 
 import numpy as np
 
-from bilevel.experiments.identification import attack_task, cell_tasks, compare, make_plan
+from bilevel.experiments.identification import METHOD, attack_task, cell_tasks, compare, make_plan
 from bilevel.experiments.identification_baseline import judge, slsqp_attack
 from bilevel.problems.identification import load_instance, problem_for
 from bilevel.problems.identification_instance import attack_instance
@@ -55,8 +55,7 @@ def test_engine_attack_is_stealthy_by_an_independent_computation() -> None:
     task = {"key": "k", "T": 100, "delta": 0.05, "seed": 1, "lags": 10}
     atk = attack_instance("ss", T=100, eps=0.05, stealth=0.05, seed=1)
     problem = problem_for(atk)
-    result = problem.solve(method="ipopt", starts=1, max_iter=300, seed=0,
-                           ipopt={"hessian_approximation": "limited-memory"})
+    result = problem.solve(**METHOD, seed=0)
     assert result.status.value == "solved" and result.certificate.passed
     signals = {k: atk.signals[k] + np.reshape(result.x[f"d{k}"], atk.signals[k].shape) for k in atk.signals}
     check_stealthy(atk, signals, 0.05)

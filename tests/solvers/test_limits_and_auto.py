@@ -29,7 +29,7 @@ def _least_squares(n: int, seed: int = 0) -> bl.BilevelProblem:
     return p
 
 
-@pytest.mark.parametrize("method", ["ipopt", "relaxation", "hypergradient", "differential-evolution"])
+@pytest.mark.parametrize("method", ["ipopt", "relaxation", "hypergradient", "differential-evolution", "reduced"])
 def test_a_method_stopped_by_time_limit_keeps_its_best_point_and_says_so(method: str) -> None:
     """A limit that has passed before the second start (or generation) stops the method: it returns a point, its
     status is not solved, its message names the limit, and the point is bilevel feasible (certificate re-solve)."""
@@ -62,6 +62,7 @@ def test_time_limit_must_be_a_positive_number(bad: object) -> None:
 
 @pytest.mark.parametrize("method, line", [("hypergradient", "[hypergradient] start 1/1, iteration 0: phi = "),
                                           ("ipopt", "[ipopt] start 1/1: "),
+                                          ("reduced", "[reduced] start 1/1: Solve_Succeeded, F = "),
                                           ("relaxation", "[relaxation] t = 1.0e+00: "),
                                           ("differential-evolution", "[differential-evolution] generation 1/3: ")])
 def test_verbose_reports_progress_on_stderr(method: str, line: str, capsys) -> None:
@@ -104,10 +105,11 @@ def test_auto_takes_ipopt_on_constrained_lower_levels_and_follows_the_options() 
     assert choose_method(prepare(registry.get("macmpec-bard1")), {"exact_block": False})[0] == "hypergradient"
 
 
-def test_auto_takes_ipopt_where_an_upper_constraint_reads_the_lower_solution() -> None:
+def test_auto_takes_reduced_where_an_upper_constraint_reads_a_least_squares_solution() -> None:
     """y*(x) = x (least squares, 20 upper entries) and the leader maximizes sum(y) subject to ||y||^2 <= 1 on the
-    learner's solution: hypergradient could only penalize that row, so auto runs ipopt, which keeps it and reaches
-    the optimum y = x = 1/sqrt(20) (all entries), F* = sqrt(20) (Cauchy-Schwarz)."""
+    learner's solution: hypergradient could only penalize that row, so auto runs reduced, which keeps it and reaches
+    the optimum y = x = 1/sqrt(20) (all entries), F* = sqrt(20) (Cauchy-Schwarz); an ipopt-only option, or a QP lower
+    level, keeps ipopt."""
     n = AUTO_MIN_UPPER
     p = bl.BilevelProblem("coupled")
     x = p.upper_variable("x", n, lb=-1, ub=1)
@@ -115,8 +117,11 @@ def test_auto_takes_ipopt_where_an_upper_constraint_reads_the_lower_solution() -
     p.minimize_lower(ca.sumsqr(y - x))
     p.maximize_upper(ca.sum1(y))
     p.upper_constraint(ca.sumsqr(y) <= 1)
-    assert choose_method(prepare(p), {})[0] == "ipopt"
+    assert choose_method(prepare(p), {})[0] == "reduced"
+    assert choose_method(prepare(p), {"mode": bl.Scholtes(1e-9)})[0] == "ipopt"
+    assert choose_method(prepare(registry.get("macmpec-ex9.2.2")), {})[0] == "ipopt"
     res = p.solve()
-    assert res.method == "ipopt" and "1 upper constraint(s) on the lower solution" in res.message
+    assert res.method == "reduced" and "1 upper constraint(s) on the solution of a least-squares" in res.message
+    assert res.status.value == "solved" and res.certificate.passed, res.message
     assert res.upper_objective == pytest.approx(np.sqrt(n), rel=1e-6)
     np.testing.assert_allclose(res.x["x"], np.full(n, 1 / np.sqrt(n)), atol=1e-5)

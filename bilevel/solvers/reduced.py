@@ -1,0 +1,282 @@
+"""Method `reduced`: IPOPT over the upper variables alone, min F(x, y*(x)) s.t. G(x, y*(x)) <= 0, H(x, y*(x)) = 0.
+
+Every upper constraint, including the rows that read the lower solution, stays a constraint of the NLP (method
+`hypergradient` only penalizes them). At each point IPOPT asks for, the lower level is solved by the engine's own
+exact solve (bilevel.solvers.implicit.Hypergradient.evaluate: closed form for least squares, the kind's solver and an
+active-set Newton polish for a QP), and the Jacobian of (F, G, H) along y*(x) comes from the engine's one adjoint solve
+(Hypergradient.jacobian). IPOPT runs through CasADi on a ca.Callback with that Jacobian and a limited-memory Hessian;
+a point where the lower level cannot be solved is NaN to IPOPT, which shortens its step there. A recognized budget
+ball also bounds IPOPT's steps by the box around it (the ball stays a constraint). Where IPOPT stops (max_iter, an
+error) off the feasible set, the start's answer is the best feasible point it evaluated, with IPOPT's status.
+
+It needs a unique lower solution, so that y*(x) is a function: a least-squares lower level (positive definite
+Hessian; a singular one at some x is an error there) or a QP whose Hessian is positive definite at the start. Other
+classes are refused (ModelError). y*(x) of a constrained QP has kinks where its active set changes: IPOPT may stop
+near one (the status says so).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from ..errors import BilevelError, ModelError
+from ..lower.images import ImageLower
+from ..lower.nlp import NLPSOL_QUIET
+from ..lower.quadratic import QuadraticLower
+from ..reduction import KKTPoint
+from ..result import Status
+from ..defaults import param
+from .base import MethodRun, Prepared, best_of, check_options
+from .implicit import Evaluation, Hypergradient, shared_oracle
+from .ipopt import IPOPT_STATUS, within
+from .limits import Deadline, progress, stopped
+from .options import check_numbers
+from .starts import start_points
+
+REDUCED_IPOPT = {"hessian_approximation": "limited-memory", "acceptable_tol": 1e-6, "theta_max_fact": 1.0,
+                 "mumps_permuting_scaling": 0}
+"""IPOPT options of the reduced NLP that option ipopt={...} may override: a limited-memory Hessian (the reduced
+Hessian would need second derivatives of y*(x)); trial points violating the constraints by at most 1 (1-norm, times
+the start's violation where that is larger; IPOPT's default is 1e4): on the stealthy identification attack (T = 100,
+delta = 0.1) y*(x) and the statistics grow without bound away from the feasible set, and with the default IPOPT
+followed the growing objective there to max_iter on 7 of 10 data sets (1 with theta_max_fact = 1). The default
+monotone barrier: the adaptive one stopped at max_iter on 1 of 10 at delta = 0.05."""
+def unique_lower(prep: Prepared) -> str | None:
+    """Why the lower solution may not be unique (method `reduced` then does not apply), or None where it is: a
+    least-squares lower level, or a QP with a positive definite Hessian at the declared start."""
+    low = prep.canon.lower
+    inner = low.inner if isinstance(low, ImageLower) else low
+    if low.kind == "least-squares":
+        return None
+    if low.kind == "qp" and isinstance(inner, QuadraticLower):
+        x0 = low.lift(prep.canon.x_start) if isinstance(low, ImageLower) else prep.canon.x_start
+        P = inner.data(x0).P
+        if np.linalg.eigvalsh(0.5 * (P + P.T))[0] > 1e-10 * max(1.0, float(np.abs(P).max())):
+            return None
+        return "a QP lower level whose Hessian is singular at the start (not strictly convex)"
+    return f"a lower level of class {low.kind!r} (its solution need not be unique)"
+
+
+class _Reduced:
+    """(F, G, H)(x) along y*(x) and their Jacobian, one lower solve and one adjoint per point (the last one kept)."""
+
+    def __init__(self, oracle: Hypergradient) -> None:
+        self.oracle = oracle
+        self.n_x = oracle.low.n_x
+        self.n_out = 1 + int(oracle.canon.G.numel()) + int(oracle.canon.H.numel())
+        self._key: tuple[int, bytes] | None = None
+        self._ev: Evaluation | None = None
+        self._jac: np.ndarray | None = None
+        self.evaluations = 0
+        self.best: Evaluation | None = None
+        """The feasible evaluated point (violation <= defaults["solvers.feasibility_tol"]) with the lowest F since the
+        last reset."""
+
+    def point(self, x: np.ndarray) -> Evaluation | None:
+        """The evaluated point at x (None where the lower level cannot be solved); x may be a view of CasADi's
+        buffer: an evaluation keeps a copy."""
+        key = (self.oracle.low.params.revision, x.tobytes())
+        if key != self._key:
+            self._key, self._jac = key, None
+            try:
+                self._ev = self.oracle.evaluate(np.array(x, dtype=float))
+                self.evaluations += 1
+            except BilevelError:
+                self._ev = None
+            ev = self._ev
+            feasible = ev is not None and ev.violation <= param("solvers.feasibility_tol")
+            if feasible and (self.best is None or ev.F < self.best.F):
+                self.best = ev
+        return self._ev
+
+    def values(self, x: np.ndarray) -> np.ndarray:
+        """[F; G; H] at x, NaN where the lower level cannot be solved."""
+        ev = self.point(x)
+        if ev is None:
+            return np.full(self.n_out, np.nan)
+        return np.concatenate([[ev.F], ev.upper[1].ravel(), ev.upper[2].ravel()])
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """d[F; G; H]/dx along y*(x) (n_out x n_x), NaN where the lower level cannot be solved."""
+        ev = self.point(x)
+        if ev is None:
+            return np.full((self.n_out, self.n_x), np.nan)
+        if self._jac is None:
+            self._jac = self.oracle.jacobian(ev)[0].T
+        return self._jac
+
+
+class _Values(ca.Callback):
+    """x -> [F; G; H] for CasADi (on its buffers, without DM copies), with its Jacobian callback."""
+
+    def __init__(self, reduced: _Reduced) -> None:
+        ca.Callback.__init__(self)
+        self.reduced = reduced
+        self._jacobian: _Jacobian | None = None
+        self.construct("reduced_values", {"enable_fd": False})
+
+    def get_n_in(self) -> int:
+        return 1
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self.reduced.n_x, 1)
+
+    def get_sparsity_out(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self.reduced.n_out, 1)
+
+    def has_eval_buffer(self) -> bool:
+        return True
+
+    def eval_buffer(self, arg: tuple[memoryview, ...], res: tuple[memoryview, ...]) -> int:
+        np.frombuffer(res[0], dtype=np.float64)[:] = self.reduced.values(np.frombuffer(arg[0], dtype=np.float64))
+        return 0
+
+    def has_jacobian(self) -> bool:
+        return True
+
+    def get_jacobian(self, name: str, inames: list[str], onames: list[str], opts: dict[str, Any]) -> ca.Callback:
+        self._jacobian = _Jacobian(name, self.reduced, opts)  # CasADi keeps no Python reference
+        return self._jacobian
+
+
+class _Jacobian(ca.Callback):
+    """(x, [F; G; H]) -> d[F; G; H]/dx for CasADi."""
+
+    def __init__(self, name: str, reduced: _Reduced, opts: dict[str, Any]) -> None:
+        ca.Callback.__init__(self)
+        self.reduced = reduced
+        self.construct(name, opts)
+
+    def get_n_in(self) -> int:
+        return 2
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self.reduced.n_x, 1) if i == 0 else ca.Sparsity.dense(self.reduced.n_out, 1)
+
+    def get_sparsity_out(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self.reduced.n_out, self.reduced.n_x)
+
+    def has_eval_buffer(self) -> bool:
+        return True
+
+    def eval_buffer(self, arg: tuple[memoryview, ...], res: tuple[memoryview, ...]) -> int:
+        out = np.frombuffer(res[0], dtype=np.float64).reshape(self.reduced.n_x, self.reduced.n_out)  # column-major
+        out[:] = self.reduced.jacobian(np.frombuffer(arg[0], dtype=np.float64)).T
+        return 0
+
+
+class _Solver:
+    """The reduced NLP compiled once per preparation and nlpsol options (the callbacks read parameters at each call)."""
+
+    def __init__(self, oracle: Hypergradient, options: dict[str, Any]) -> None:
+        self.reduced = _Reduced(oracle)
+        self.values = _Values(self.reduced)
+        x = ca.MX.sym("x", self.reduced.n_x)
+        out = self.values(x)
+        try:
+            self.solver = ca.nlpsol("reduced", "ipopt", {"x": x, "f": out[0], "g": out[1:]}, options)
+        except RuntimeError as exc:  # CasADi refuses an option before any solve
+            reason = str(exc).strip().splitlines()[-1].split(": ", 1)[-1]
+            raise ModelError(f"IPOPT did not accept its options ({reason}); check the names and types in option "
+                             "ipopt={...} against the IPOPT options reference") from None
+
+
+def _ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> dict[str, Any]:
+    """IPOPT options of the reduced NLP: quiet, tol, max_iter, max_wall_time (defaults["ipopt.max_wall_time"]),
+    REDUCED_IPOPT, then the option ipopt={...}."""
+    if extra is not None and not (isinstance(extra, dict) and all(isinstance(k, str) for k in extra)):
+        raise ModelError(f"option ipopt={extra!r} is invalid: it must be a dict of IPOPT options, e.g. "
+                         "{'max_cpu_time': 60}")
+    return {"print_level": 0, "sb": "yes", "tol": float(tol), "max_iter": int(max_iter),
+            "max_wall_time": param("ipopt.max_wall_time"),
+            **REDUCED_IPOPT, **(extra or {})}
+
+
+def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, scale: float | None = None,
+                  nlp_tol: float | None = None, max_iter: int | None = None, ipopt: dict[str, Any] | None = None,
+                  active_tol: float | None = None, time_limit: float | None = None, verbose: bool = False,
+                  **unknown: Any) -> MethodRun:
+    """IPOPT on the reduced NLP over x (module docstring). An option left None takes the registry's value,
+    defaults["reduced.NAME"] (active_tol: implicit.active_tol).
+
+    starts: start points (bilevel.solvers.starts; seed and scale for the random ones); nlp_tol and max_iter: IPOPT's
+    tol and max_iter per start; ipopt: further IPOPT options (a dict); active_tol: the lower level's active-set
+    tolerance; the best feasible end point wins. At time_limit (seconds) IPOPT stops and the
+    starts not begun are skipped (MAX_ITERATIONS); verbose prints one line per start."""
+    check_options("reduced", unknown, solve_reduced)
+    starts, scale = int(param("reduced.starts", starts)), float(param("reduced.scale", scale))
+    nlp_tol, max_iter = float(param("reduced.nlp_tol", nlp_tol)), int(param("reduced.max_iter", max_iter))
+    active_tol = param("implicit.active_tol", active_tol)
+    check_numbers({"active_tol": active_tol}, positive=("active_tol",))
+    why = unique_lower(prep)
+    if why is not None:
+        raise ModelError(f"method 'reduced' needs a unique lower solution y*(x) (least squares, or a strictly convex "
+                         f"QP), but {prep.problem.name!r} has {why}; use method 'ipopt' (the KKT form)")
+    canon = prep.canon
+    active_tol = float(active_tol)
+    oracle = shared_oracle(prep, active_tol=active_tol)
+    ipopt_opts = _ipopt_options(nlp_tol, max_iter, ipopt)
+    limit = Deadline(time_limit)
+    nG = int(canon.G.numel())
+    lbx, ubx = canon.x_lb.copy(), canon.x_ub.copy()
+    for ball in prep.balls:  # the box around each recognized ball bounds IPOPT's steps (it still keeps the ball row)
+        lbx[ball.block] = np.maximum(lbx[ball.block], ball.center - ball.radius)
+        ubx[ball.block] = np.minimum(ubx[ball.block], ball.center + ball.radius)
+    bounds = dict(lbx=lbx, ubx=ubx, lbg=np.concatenate([np.full(nG, -np.inf),
+                                                                        np.zeros(int(canon.H.numel()))]),
+                  ubg=np.zeros(nG + int(canon.H.numel())))
+    rng = np.random.default_rng(seed)
+    records, candidates, ends = [], [], []
+    for k, x0 in enumerate(start_points(prep, starts, rng, float(scale))):
+        if k and limit.expired():
+            break
+        t0 = time.perf_counter()
+        nlp_opts = within({**NLPSOL_QUIET, "ipopt": ipopt_opts}, limit)  # levels of time_limit: few compiled solvers
+        nlp: _Solver = prep.cached(("reduced", active_tol, repr(sorted(nlp_opts["ipopt"].items()))),
+                                   lambda: _Solver(oracle, nlp_opts))
+        solver = nlp.solver
+        evaluations, nlp.reduced.best = nlp.reduced.evaluations, None
+        sol = solver(x0=np.clip(x0, lbx, ubx), **bounds)
+        stats = solver.stats()
+        raw = str(stats.get("return_status", "unknown"))
+        if raw == "Maximum_WallTime_Exceeded" and limit.seconds is not None:
+            limit.expired()
+        x = np.asarray(sol["x"], dtype=float).ravel()
+        ev, best = nlp.reduced.point(x), nlp.reduced.best
+        status = IPOPT_STATUS.get(raw, Status.ERROR)
+        if status is not Status.SOLVED and best is not None and (
+                ev is None or ev.violation > param("solvers.feasibility_tol")):
+            ev, raw = best, f"{raw}; the best feasible point it evaluated"  # IPOPT ended off the feasible set
+        record = {"start": k, "x0": x0.tolist(), "status": raw, "iterations": int(stats.get("iter_count", 0)),
+                  "evaluations": nlp.reduced.evaluations - evaluations, "time": time.perf_counter() - t0}
+        if ev is not None:
+            w = prep.pack(KKTPoint(ev.x, ev.lower.y, ev.lower.lam, ev.lower.mu, ev.lower.Z))
+            candidates.append((w, ev.F, ev.violation))
+            ends.append((k, status, raw, stats))
+            record |= {"objective": ev.F, "residual": ev.violation}
+        records.append(record)
+        progress(verbose, "reduced", f"start {k + 1}/{starts}: {raw}, "
+                 + (f"F = {prep.declared(ev.F):.6g}, upper violation {ev.violation:.1e}, " if ev is not None else
+                    "no lower solution at the end point, ") + f"{record['iterations']} iterations")
+    nit = sum(r["iterations"] for r in records)
+    if not candidates:
+        return MethodRun(None, Status.ERROR, f"the lower level could not be solved at the end point of any of "
+                         f"{len(records)} starts", nit, [], records)
+    i = best_of(candidates)
+    k, status, raw, stats = ends[i]
+    it = stats.get("iterations", {})
+    history = [{"iter": j, "objective": o, "inf_pr": p, "inf_du": d}
+               for j, (o, p, d) in enumerate(zip(it.get("obj", []), it.get("inf_pr", []), it.get("inf_du", [])))]
+    run = MethodRun(candidates[i][0], status, f"start {k} ({raw})", nit, history, records,
+                    {"best_start": k, "evaluations": sum(r["evaluations"] for r in records)})
+    return stopped(run, limit, len(records), starts)
