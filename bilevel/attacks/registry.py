@@ -12,7 +12,7 @@ from ..problems.vrft_instance import PAPER_EPS_Y, attack_instance
 from ..result import BilevelResult
 from ..solvers.base import options_of
 from . import vrft_methods
-from .vrft_methods import METHODS, attack_budget_path, save_attack, save_path
+from .vrft_methods import attack_budget_path, save_attack, save_path
 
 Attack = Callable[..., BilevelResult]
 
@@ -48,8 +48,6 @@ def _vrft(objective: str) -> Attack:
         options = _split(f"vrft-{objective}", params)
         if save:
             save_path(save)  # before the attack
-        if name not in METHODS:
-            raise ModelError(f"attack={name!r} is not one of {', '.join(METHODS)}")
         atk = attack_instance(objective, **{**registry.spec(f"vrft-{objective}").defaults, **params, "seed": seed})
         if path and name != "alternating":
             raise ModelError(f"path=true runs the alternating attack's budget path; attack {name!r} has none")

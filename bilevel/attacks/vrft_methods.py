@@ -87,6 +87,8 @@ def attack(atk: VRFTAttack, method: str | Callable[..., MethodRun], warm_start: 
     """A structured method (a name in METHODS, or a function(prepared, **options) -> MethodRun) on instance `atk`
     through the engine's solve, warm_start (an a_y) one more start; the instance's stats (VRFTAttack.stats)."""
     t0 = time.perf_counter()
+    if not callable(method) and method not in METHODS:
+        raise ModelError(f"attack {method!r} is not one of {', '.join(METHODS)}")
     problem = problem_for(atk)
     if warm_start is not None:
         if np.shape(warm_start) != (atk.N,):
