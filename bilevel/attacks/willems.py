@@ -18,9 +18,9 @@ from ..errors import ModelError
 from ..model import BilevelProblem
 from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, criterion_values
 from ..result import BilevelResult
+from ..solvers.base import check_options, prepare
 from ..solvers.box_methods import destabilize, random_signs
 from ..solvers.implicit import Hypergradient, shared_oracle
-from ..solvers.base import check_options, prepare
 from ..threads import single_threaded_call
 from .outcome import attack_result
 
@@ -124,8 +124,9 @@ def hypergradient_attack(attack: WillemsAttack, *, starts: int | None = None, se
                          max_iter: int | None = None, ftol: float | None = None, stop_when_unstable: bool = True,
                          **unknown: Any) -> BilevelResult:
     """Method hypergradient on the attack's criterion from `starts` starts (start 0: clean data; others uniform in the
-    box, drawn from `seed`), max_iter steps each, ftol its stop; with stop_when_unstable it stops at the first point
-    whose identified loop is unstable. None takes the registry's value, defaults["willems.hypergradient.NAME"]."""
+    box, drawn from `seed`), max_iter steps each, ftol its stop, near-ties between starts to the larger identified
+    radius; with stop_when_unstable it stops at the first point whose identified loop is unstable. None takes the
+    registry's value, defaults["willems.hypergradient.NAME"]."""
     check_options("hypergradient_attack", unknown, hypergradient_attack)
     prefer = lambda point: identified_radius(attack, point.x, point.y)  # noqa: E731
     return _run(attack, "hypergradient", "hypergradient", starts=param("willems.hypergradient.starts", starts),
