@@ -72,19 +72,37 @@ def _list_params(name: str) -> int:
     for k, kind, default in rows:
         print(f"  {k.ljust(widths[0])}  {kind.ljust(widths[1])}  {default}")
     forwards = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
-    if (attack := _structured(name)) is not None:
-        signature, types = inspect.signature(attack).parameters, typing.get_type_hints(attack)
-        own = [f"{k} ({_type_name(types.get(k))}, default {text(signature[k].default)})" for k in _own_options(attack)]
-        print(f"structured attack (--method {STRUCTURED}, the default; default starts "
-              f"{signature['starts'].default}): options {'; '.join(own) or 'none'}, given as --option NAME=VALUE")
     if not rows:
         print("no parameters" + (" listed; its builder takes keyword parameters (see its documentation)" if forwards
                                  else ""))
-        return 0
-    example = "VALUE" if rows[0][0] in required else rows[0][2]
-    print(f"give them as --param NAME=VALUE, e.g. bilevel solve {name} --param {rows[0][0]}={example}"
-          + ("; its builder may take further keyword parameters (see its documentation)" if forwards else ""))
+    else:
+        example = "VALUE" if rows[0][0] in required else rows[0][2]
+        print(f"give them as --param NAME=VALUE, e.g. bilevel solve {name} --param {rows[0][0]}={example}"
+              + ("; its builder may take further keyword parameters (see its documentation)" if forwards else ""))
+    if _structured(name) is not None:
+        _list_attack_options(name)
     return 0
+
+
+def _list_attack_options(name: str) -> None:
+    """Print the options of problem `name`'s structured attack (--option NAME=VALUE) from its signatures, and the
+    registry's values their default None takes."""
+    from .attacks.registry import attack_options
+    from .defaults import defaults
+
+    options, types = _attack_parameters(name)
+    prefix = attack_options(name)[1]
+    keys = [key for key in defaults if key.startswith(prefix)]
+    registry = {k for k, p in options.items() if p.default is None and any(f".{k}" in key for key in keys)}
+    rows = [(k, _type_name(types.get(k)), "registry (below)" if k in registry else p.default
+             if isinstance(p.default, str) else json.dumps(p.default)) for k, p in options.items()]
+    widths = [max(len(r[i]) for r in rows) for i in range(2)]
+    print(f"structured attack (--method {STRUCTURED}, the default; --starts and --seed set its starts and seed), "
+          "options given as --option NAME=VALUE:")
+    for k, kind, default in rows:
+        print(f"  {k.ljust(widths[0])}  {kind.ljust(widths[1])}  {default}")
+    print("registry defaults (bilevel.defaults, bilevel.set_defaults):")
+    print("\n".join("  " + line for line in defaults.describe(prefix).splitlines()))
 
 
 def _parse_value(text: str) -> object:
@@ -184,20 +202,27 @@ def _structured(name: str) -> Callable[..., Any] | None:
     return ATTACKS.get(name)
 
 
-def _attack_options(name: str, attack: Callable[..., Any], raw: dict[str, str]) -> dict[str, object]:
-    """--option values of a structured attack, typed by its signature (its keywords other than starts and seed)."""
-    accepted = _own_options(attack)
+def _attack_options(name: str, raw: dict[str, str]) -> dict[str, object]:
+    """--option values of a structured attack, typed by its signatures (_attack_parameters)."""
+    accepted, types = _attack_parameters(name)
     if unknown := sorted(set(raw) - set(accepted)):
         raise ModelError(f"--option {', '.join(unknown)}: the structured attack of {name} takes "
-                         f"{', '.join(accepted) or 'no options'}; name a generic --method for method options")
-    types = typing.get_type_hints(attack)
+                         f"{', '.join(accepted)}; name a generic --method for method options")
     return {k: _convert("--option", k, v, types.get(k)) for k, v in raw.items()}
 
 
-def _own_options(attack: Callable[..., Any]) -> list[str]:
-    """A structured attack's own options: its named keywords other than starts and seed."""
-    return [k for k, p in inspect.signature(attack).parameters.items()
-            if k not in ("starts", "seed") and p.kind is inspect.Parameter.POSITIONAL_OR_KEYWORD]
+def _attack_parameters(name: str) -> tuple[dict[str, inspect.Parameter], dict[str, object]]:
+    """A structured attack's options other than starts and seed (--starts, --seed), with their declared types: the
+    named keywords of its run (bilevel.attacks.registry) and the keyword-only ones of its method (attack_options), with
+    the run's defaults."""
+    from .attacks.registry import attack_options
+
+    method, _, defaults = attack_options(name)
+    functions = (method, _structured(name))
+    parameters = {k: p.replace(default=defaults.get(k, p.default)) for fn in functions
+                  for k, p in inspect.signature(fn).parameters.items()
+                  if k not in ("starts", "seed") and p.default is not inspect.Parameter.empty}
+    return parameters, {k: v for fn in functions for k, v in typing.get_type_hints(fn).items()}
 
 
 def _cmd_solve(args: argparse.Namespace) -> int:
@@ -209,7 +234,7 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     raw_options = _pairs(args.option, "--option")
     structured = attack is not None and args.method in (None, STRUCTURED)
     if structured:
-        options = _attack_options(args.problem, attack, raw_options)
+        options = _attack_options(args.problem, raw_options)
         starts = {} if args.starts is None else {"starts": args.starts}
         if "seed" in params and args.seed is not None and args.seed != params["seed"]:
             raise ModelError(f"--seed {args.seed} and --param seed={params['seed']}: a structured attack's seed is also "

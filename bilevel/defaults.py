@@ -113,6 +113,24 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "destabilize.starts": (64, "points ascending together in method destabilize (count)"),
     "destabilize.max_iter": (100, "ascent steps of method destabilize (count)"),
     "destabilize.pool": (512, "random points screened for destabilize's starts (count)"),
+    # the structured VRFT attacks alternating and joint (bilevel.attacks.vrft_methods)
+    "vrft.starts": (1, "multistart starts of the alternating and joint VRFT attacks (count)"),
+    "vrft.max_iter.maxmin": (60, "ascent steps per start of a VRFT max-min attack (count; the committed Table 1's)"),
+    "vrft.max_iter.targeted": (500, "ascent steps per start of a VRFT targeted attack (count; it converges in "
+                                    "118-195)"),
+    "vrft.max_iter.destabilize": (200, "ascent steps per start of a VRFT destabilize attack (count)"),
+    "vrft.gain_tol": (1e-4, "a VRFT attack's ascent stops when its gain over ascent.window steps is below this "
+                            "(relative)"),
+    # the Willems attacks (bilevel.attacks.willems; destabilize_attack reads destabilize.*, de_attack evolution.pop_tol)
+    "willems.shared_kept": (4, "attack declarations (data, learner, criterion) whose prepared problems a process keeps "
+                               "(count)"),
+    "willems.hypergradient.starts": (8, "multistart starts of hypergradient_attack (count)"),
+    "willems.hypergradient.max_iter": (300, "descent steps per start of hypergradient_attack (count)"),
+    "willems.hypergradient.ftol": (1e-10, "hypergradient_attack's descent stops when one step decreases phi by less "
+                                          "than this (relative)"),
+    "willems.evolution.max_iter": (300, "generations of de_attack (count)"),
+    "willems.evolution.popsize": (5, "de_attack's population is this many members per poisoned entry (scipy's "
+                                     "popsize)"),
     # lower levels (bilevel.lower)
     "classify.y_probes": (16, "lower points drawn per upper sample when a lower Hessian depends on y (count)"),
     "convexity.psd_tol": (1e-9, "a Hessian counts as PSD when its smallest eigenvalue >= -this * max(1, its largest "

@@ -148,7 +148,8 @@ CASES: dict[str, tuple[list[str], str]] = {
                                              "rejected its parameters"),
     "structured on a textbook problem": (["solve", "macmpec-bard1", "--method", "structured"],
                                          "has no structured attack"),
-    "unknown structured attack option": (["solve", "vrft-maxmin", "--option", "tol=1"], "takes attack, path, save"),
+    "unknown structured attack option": (["solve", "vrft-maxmin", "--option", "tol=1"],
+                                         "takes max_iter, gain_tol, time_limit, verbose, attack, path, save"),
     "data seed twice": (["solve", "vrft-maxmin", "--seed", "2", "--param", "seed=3"], "give one"),
     "--quick on vrft": (["reproduce", "vrft", "--quick"], "only `reproduce willems`, `reproduce identification` and `reproduce defenses` take it"),
     "bad dask address": (["reproduce", "vrft", "--dask", "nowhere"], "--dask"),
@@ -253,13 +254,26 @@ def test_list_params_reads_the_registry_and_the_builders_signature(workdir: Path
 
     assert main(["list", "--params", "vrft-maxmin"]) == 0
     out = capsys.readouterr().out.splitlines()
-    rows = {line.split()[0]: re.split(r"\s{2,}", line.strip())[1:] for line in out[1:-2]}
+    end = out.index("structured attack (--method structured, the default; --starts and --seed set its starts and seed), "
+                    "options given as --option NAME=VALUE:")
+    rows = {line.split()[0]: re.split(r"\s{2,}", line.strip())[1:] for line in out[1:end - 1]}
     defaults = registry.spec("vrft-maxmin").defaults
     assert set(rows) == set(defaults) >= {"norm", "N", "seed", "eps_u", "eps_y", "scenario", "convention"}
     assert rows["N"] == ["int", str(defaults["N"])] and rows["eps_y"] == ["float", str(defaults["eps_y"])]
     assert rows["scenario"] == ["one of A, B", "B"] and rows["norm"] == ["one of l2, linf, l1", "l2"]
-    assert out[-2].startswith("structured attack (--method structured, the default; default starts 1): options "
-                              "attack (one of alternating, joint, white-noise or none, default null); path (bool")
+    attack = {line.split()[0]: re.split(r"\s{2,}", line.strip())[1:] for line in out[end + 1:end + 8]}
+    assert attack == {"max_iter": ["int or none", "registry (below)"], "gain_tol": ["float or none", "registry (below)"],
+                      "time_limit": ["float or none", "null"], "verbose": ["bool", "false"],
+                      "attack": ["one of alternating, joint, white-noise or none", "null"], "path": ["bool", "false"],
+                      "save": ["str or none", "null"]}, out
+    assert out[end + 8:] == ["registry defaults (bilevel.defaults, bilevel.set_defaults):",
+                             *("  " + line for line in bilevel.defaults.describe("vrft.").splitlines())]
+    assert main(["list", "--params", "willems-eigen"]) == 0  # the run's stop_when_unstable default, not the method's
+    out = capsys.readouterr().out.splitlines()
+    assert [re.split(r"\s{2,}", line.strip()) for line in out[-7:-4]] == [
+        ["max_iter", "int or none", "registry (below)"], ["ftol", "float or none", "registry (below)"],
+        ["stop_when_unstable", "bool", "false"]], out
+    assert out[-3:] == ["  " + line for line in bilevel.defaults.describe("willems.hypergradient.").splitlines()]
     assert main(["list", "--params", f"{OWN_REF}:bard"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert [re.split(r"\s{2,}", line.strip()) for line in out[1:5]] == [

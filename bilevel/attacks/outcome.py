@@ -15,10 +15,10 @@ from ..solvers.registry import solve
 
 def attack_result(problem: BilevelProblem, method: Any, name: str | None, stats: Callable[[BilevelResult], dict],
                   started: float, **options: Any) -> BilevelResult:
-    """solve(problem, method, **options) as attack `name` (None: the method's own), its stats extended by
-    stats(result) and its wall time counted from `started` (perf_counter: the instance's set-up included);
-    SolverFailed where the method found no point to certify."""
-    result = solve(problem, method=method, **options)
+    """solve(problem, method, **options), the options given as None left out, as attack `name` (None: the method's
+    own), its stats extended by stats(result) and its wall time counted from `started` (perf_counter: the instance's
+    set-up included); SolverFailed where the method found no point to certify."""
+    result = solve(problem, method=method, **{k: v for k, v in options.items() if v is not None})
     if result.certificate is None:
         raise SolverFailed(f"{name or result.method} attack: {result.status.value}: {result.message}", result=result)
     return dataclasses.replace(result, method=name or result.method, wall_time=time.perf_counter() - started,

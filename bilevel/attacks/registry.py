@@ -1,6 +1,6 @@
 """The structured attack of each registered attack problem by name: attack(starts=, seed=, **params) -> BilevelResult,
-params the problem's (seed: the data's and the attack's), other keywords the attack's options (`bilevel compare`'s
-method "structured", `bilevel solve`'s default for these problems, `--option NAME=VALUE`)."""
+params the problem's (seed: the data's and the attack's) and the attack's options (options_of(attack_options(name)):
+`bilevel compare`'s method "structured", `bilevel solve`'s default for these problems, `--option NAME=VALUE`)."""
 
 from __future__ import annotations
 
@@ -10,33 +10,53 @@ from ..errors import ModelError
 from ..problems import registry
 from ..problems.vrft_instance import PAPER_EPS_Y, attack_instance
 from ..result import BilevelResult
+from ..solvers.base import options_of
 from . import vrft_methods
-from .vrft_methods import METHODS, attack_budget_path, save_attack, save_path
+from .vrft_methods import attack_budget_path, save_attack, save_path
 
 Attack = Callable[..., BilevelResult]
 
 
+def attack_options(name: str) -> tuple[Callable[..., Any], str, dict[str, Any]]:
+    """The function whose keyword-only parameters are the options of problem `name`'s structured attack (besides the
+    run's own: attack, path, save for VRFT), the prefix of the registry keys their None reads, and the run's own
+    defaults for some of them."""
+    if name.startswith("vrft-"):
+        return vrft_methods.alternating, "vrft.", {}
+    from .willems import destabilize_attack, hypergradient_attack
+
+    if name == "willems-destabilize":
+        return destabilize_attack, "destabilize.", {}
+    return hypergradient_attack, "willems.hypergradient.", {"stop_when_unstable": False}
+
+
+def _split(name: str, params: dict[str, Any]) -> dict[str, Any]:
+    """Pop the attack's options out of `params` (the rest: the problem's parameters), over the run's defaults."""
+    function, _, defaults = attack_options(name)
+    return {**defaults, **{k: params.pop(k) for k in options_of(function) & set(params)}}
+
+
 def _vrft(objective: str) -> Attack:
     """The structured attack on vrft-<objective>."""
-    def run(starts: int = 1, seed: int = 0, attack: Literal["alternating", "joint", "white-noise"] | None = None,
-            path: bool = False, save: str | None = None, **params: Any) -> BilevelResult:
+    def run(starts: int | None = None, seed: int = 0,
+            attack: Literal["alternating", "joint", "white-noise"] | None = None, path: bool = False,
+            save: str | None = None, **params: Any) -> BilevelResult:
         """The alternating attack (joint for 'destabilize'), or `attack`, on the instance of these parameters; path:
         first at the paper's eps_y below eps_y, each warm-starting the next (the reproduction's budget paths); save:
         write the attack's data and signals to this .npz file (save_attack)."""
         name = attack or ("joint" if objective == "destabilize" else "alternating")
+        options = _split(f"vrft-{objective}", params)
         if save:
             save_path(save)  # before the attack
-        if name not in METHODS:
-            raise ModelError(f"attack={name!r} is not one of {', '.join(METHODS)}")
         atk = attack_instance(objective, **{**registry.spec(f"vrft-{objective}").defaults, **params, "seed": seed})
         if path and name != "alternating":
             raise ModelError(f"path=true runs the alternating attack's budget path; attack {name!r} has none")
         if path:
             eps = atk.budget_y.eps
-            result = attack_budget_path(atk, [e for e in PAPER_EPS_Y if e < eps] + [eps], seed=seed,
-                                        starts=starts)[-1]
+            result = attack_budget_path(atk, [e for e in PAPER_EPS_Y if e < eps] + [eps], seed=seed, starts=starts,
+                                        **options)[-1]
         else:
-            result = vrft_methods.attack(atk, name, seed=seed, **({} if name == "white-noise" else {"starts": starts}))
+            result = vrft_methods.attack(atk, name, seed=seed, starts=starts, **options)
         if save:
             save_attack(result, atk, save)
         return result
@@ -44,16 +64,14 @@ def _vrft(objective: str) -> Attack:
 
 
 def _willems(objective: str) -> Attack:
-    """The destabilizing attack on willems-destabilize, else the criterion's hypergradient ascent (no stop at
-    instability: the criterion's local maximum, as a generic method would seek)."""
-    def run(starts: int = 8, seed: int = 0, **params: Any) -> BilevelResult:
+    """The structured attack on willems-<objective>: destabilize_attack, else hypergradient_attack, by default without
+    its stop at instability (the criterion's local maximum, as a generic method would seek)."""
+    def run(starts: int | None = None, seed: int = 0, **params: Any) -> BilevelResult:
         from ..problems.willems import WillemsSetting, build_attack
-        from .willems import destabilize_attack, hypergradient_attack
 
+        options = _split(f"willems-{objective}", params)
         built = build_attack(WillemsSetting(objective=objective, **{**params, "seed": seed}))
-        if objective == "destabilize":
-            return destabilize_attack(built, starts=starts, seed=seed)
-        return hypergradient_attack(built, starts=starts, seed=seed, stop_when_unstable=False)
+        return attack_options(f"willems-{objective}")[0](built, starts=starts, seed=seed, **options)
     return run
 
 

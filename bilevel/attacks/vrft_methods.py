@@ -1,13 +1,8 @@
-"""Structured attacks on a VRFT instance: the engine's multistart ascent (ascend_with_exact_block) on its declared
-problem vrft-<objective> with the learner as an affine least squares (VRFTAttack.learner, bilevel.solvers.affine_ls),
-then `bilevel.solve`'s finalize (independent re-solve of the learner, local probe).
-
-alternating (the paper's Algorithm 1, strengthened): ascend V(a_y) = max_{a_u} J(theta(u + a_u, y + a_y)) with the
-  inner max solved globally at every evaluation (the exact input step; quadratic objectives, plain l2 input budget);
-  Danskin: grad V = dJ/da_y at a_u*.
-joint: the same ascent on (a_u, a_y) together, each block measured in its budget radius (any objective and budget).
-white-noise: a random point on the budget boundary (the paper's baseline).
-"""
+"""Structured attacks on a VRFT instance, methods of `bilevel.solve` (its finalize: independent re-solve, probe) on
+its declared problem vrft-<objective>, the learner an affine least squares (bilevel.solvers.affine_ls):
+alternating (the paper's Algorithm 1, strengthened) ascends V(a_y) = max_{a_u} J(theta(u + a_u, y + a_y)), the inner
+max solved globally at every evaluation (the exact input step; quadratic objectives, plain l2 input budget); joint
+ascends (a_u, a_y) together, each block in its budget radius; white-noise: a random point on the budget boundary."""
 
 from __future__ import annotations
 
@@ -18,6 +13,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ..defaults import param
 from ..errors import ModelError
 from ..files import atomic_path
 from ..problems.vrft import instance_of, problem_for
@@ -27,48 +23,49 @@ from ..result import BilevelResult, Status
 from ..solvers.affine_ls import Oracle, TargetBlock
 from ..solvers.base import MethodRun, Prepared, check_options
 from ..solvers.block_exact import ascend_with_exact_block
-from ..solvers.options import check_common_options
 from .outcome import attack_result, attack_stat
 
-MAX_ITER = {"maxmin": 60, "targeted": 500, "destabilize": 200}
-"""Iteration limit by objective (targeted converges in 118-195: benchmarks/results/bench_vrft_iterations.txt)."""
-TOL = 1e-4
-"""The ascent stops when the relative gain over its window of steps is below TOL."""
-OPTIONS = {"starts", "seed", "max_iter", "gain_tol", "time_limit", "verbose"}
 
-
-def _ascend(prep: Prepared, joint: bool, options: dict[str, Any]) -> MethodRun:
-    """The engine's multistart ascent on the problem's VRFT instance, with the exact input step unless `joint`."""
+def _ascend(prep: Prepared, joint: bool, starts: int | None, seed: Any, max_iter: int | None, gain_tol: float | None,
+            time_limit: float | None, verbose: bool) -> MethodRun:
+    """The engine's multistart ascent on the problem's VRFT instance, with the exact input step unless `joint`; None
+    takes the registry's value."""
     atk = instance_of(prep.problem)
-    options = {"starts": 1, "max_iter": MAX_ITER[atk.objective], "gain_tol": TOL} | options
-    check_common_options(options)
     step = None
     if not joint:
         if why := atk.no_exact_input:
             raise ModelError(f"the alternating attack needs the exact input step: {why}; use the joint attack")
         step = TargetBlock(atk.learner, atk.upper, next(b for b in prep.balls if b.block.start == 0), atk.delta_u)
     weights = np.concatenate([np.full(atk.N, atk.delta_u), np.full(atk.N, atk.delta_y)])
-    return ascend_with_exact_block(prep, step, [], oracle=Oracle(atk.learner, atk.upper), projection=atk.searched,
-                                   weights=weights, **options)
+    return ascend_with_exact_block(prep, step, [], starts=param("vrft.starts", starts), seed=seed,
+                                   max_iter=param(f"vrft.max_iter.{atk.objective}", max_iter),
+                                   gain_tol=param("vrft.gain_tol", gain_tol), time_limit=time_limit, verbose=verbose,
+                                   oracle=Oracle(atk.learner, atk.upper), projection=atk.searched, weights=weights)
 
 
-def alternating(prep: Prepared, **options: Any) -> MethodRun:
-    """The alternating attack (module docstring); options starts, seed, max_iter (MAX_ITER by objective), gain_tol,
-    time_limit, verbose."""
-    check_options("alternating", options, OPTIONS)
-    return _ascend(prep, False, options)
+def alternating(prep: Prepared, *, starts: int | None = None, seed: Any = 0, max_iter: int | None = None,
+                gain_tol: float | None = None, time_limit: float | None = None, verbose: bool = False,
+                **unknown: Any) -> MethodRun:
+    """The alternating attack (module docstring). None takes the registry's value, defaults["vrft.NAME"] (max_iter:
+    "vrft.max_iter.<objective>"). starts: multistart starts; seed: random starts' seed; max_iter: ascent steps per
+    start; gain_tol: the ascent stops when its relative gain over its window of steps is below it; time_limit
+    (seconds): the starts not begun are skipped; verbose: progress lines on stderr."""
+    check_options("alternating", unknown, alternating)
+    return _ascend(prep, False, starts, seed, max_iter, gain_tol, time_limit, verbose)
 
 
-def joint(prep: Prepared, **options: Any) -> MethodRun:
-    """The joint attack (module docstring); the options of `alternating`."""
-    check_options("joint", options, OPTIONS)
-    return _ascend(prep, True, options)
+def joint(prep: Prepared, *, starts: int | None = None, seed: Any = 0, max_iter: int | None = None,
+          gain_tol: float | None = None, time_limit: float | None = None, verbose: bool = False,
+          **unknown: Any) -> MethodRun:
+    """The joint attack (module docstring); starts, seed, max_iter, gain_tol, time_limit, verbose: as `alternating`."""
+    check_options("joint", unknown, joint)
+    return _ascend(prep, True, starts, seed, max_iter, gain_tol, time_limit, verbose)
 
 
-def white_noise(prep: Prepared, *, seed: int = 0, **unknown: Any) -> MethodRun:
-    """White-noise poisoning on the budget boundary of the problem's VRFT instance (the paper's random baseline)."""
-    check_options("white-noise", unknown, {"seed"})
-    check_common_options({"seed": seed})
+def white_noise(prep: Prepared, *, seed: Any = 0, **unknown: Any) -> MethodRun:
+    """White-noise poisoning drawn from `seed` on the budget boundary of the problem's VRFT instance (the paper's
+    random baseline)."""
+    check_options("white-noise", unknown, white_noise)
     atk = instance_of(prep.problem)
     rng = np.random.default_rng(seed)
     signals = []
@@ -90,31 +87,31 @@ def attack(atk: VRFTAttack, method: str | Callable[..., MethodRun], warm_start: 
     """A structured method (a name in METHODS, or a function(prepared, **options) -> MethodRun) on instance `atk`
     through the engine's solve, warm_start (an a_y) one more start; the instance's stats (VRFTAttack.stats)."""
     t0 = time.perf_counter()
+    if not callable(method) and method not in METHODS:
+        raise ModelError(f"attack {method!r} is not one of {', '.join(METHODS)}")
     problem = problem_for(atk)
     if warm_start is not None:
         if np.shape(warm_start) != (atk.N,):
             raise ModelError(f"warm_start must have shape ({atk.N},), got {np.shape(warm_start)}")
         problem.suggest_start(a_y=atk.budget_y.projection(atk.y)(np.asarray(warm_start, dtype=float)))
-        options["starts"] = options.get("starts", 1) + 1
+        options["starts"] = param("vrft.starts", options.get("starts")) + 1
     return attack_result(problem, method if callable(method) else METHODS[method],
                          method if isinstance(method, str) else None,
                          lambda r: {**atk.stats(r.y["theta"]),  # evaluations: a white-noise sample is one
                                     "evaluations": sum(s.get("evaluations", 0) for s in r.start_records) or 1},
-                         t0, **{k: v for k, v in options.items() if v is not None})
+                         t0, **options)
 
 
-def attack_alternating(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int | None = None,
-                       gain_tol: float = TOL, warm_start: np.ndarray | None = None) -> BilevelResult:
-    """The alternating attack (module docstring) on `atk`. V(a_y) is multimodal: the engine's first start makes the
-    poisoned regressor ill-conditioned, further starts are seeded random points, and warm_start (an a_y, e.g. the best
-    one at a smaller budget) is one more; the best end point is kept. max_iter: MAX_ITER by objective."""
-    return attack(atk, "alternating", warm_start, starts=starts, seed=seed, max_iter=max_iter, gain_tol=gain_tol)
+def attack_alternating(atk: VRFTAttack, warm_start: np.ndarray | None = None, **options: Any) -> BilevelResult:
+    """The alternating attack (module docstring) on `atk`, with the options of method `alternating` (show_options).
+    V(a_y) is multimodal: the engine's first start makes the poisoned regressor ill-conditioned, further starts are
+    seeded random points, and warm_start (an a_y, e.g. the best one at a smaller budget) is one more."""
+    return attack(atk, "alternating", warm_start, **options)
 
 
-def attack_joint(atk: VRFTAttack, starts: int = 1, seed: int = 0, max_iter: int | None = None,
-                 gain_tol: float = TOL) -> BilevelResult:
-    """Joint projected hypergradient ascent on (a_u, a_y) of `atk`, each block scaled to its budget (multistart)."""
-    return attack(atk, "joint", starts=starts, seed=seed, max_iter=max_iter, gain_tol=gain_tol)
+def attack_joint(atk: VRFTAttack, **options: Any) -> BilevelResult:
+    """The joint attack (module docstring) on `atk`, with the options of method `joint` (show_options)."""
+    return attack(atk, "joint", **options)
 
 
 def attack_white_noise(atk: VRFTAttack, seed: int = 0) -> BilevelResult:

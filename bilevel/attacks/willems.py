@@ -1,13 +1,7 @@
 """Attacks on the De Persis–Tesi learners (WillemsAttack, bilevel.problems.willems) as `bilevel.solve` runs on the
-attack's declared problem (`radius_problem`, rho(A_id + B_id K) exactly, for destabilize_attack): the engine's
-implicit oracle on the learner's SDP, its methods and finalize (independent re-solve, local probe), with the
-learner's selection (`WillemsSetting.selection`) given to the SDP lower level.
-
-hypergradient_attack: method `hypergradient`, the attacker's goal (an unstable identified loop; +inf for max-min) as
-its callback, near-ties between starts to the larger identified radius; destabilize_attack: method `destabilize`
-(bilevel.solvers.box_methods); de_attack: `differential-evolution` without its descent; random_attack: method
-`random_signs`; kkt_attack: a KKT method. Each result carries willems_stats (gain, true and identified radius).
-"""
+attack's declared problem (`radius_problem` for destabilize_attack), with the learner's selection given to its SDP
+lower level: the engine's oracle, methods and finalize (independent re-solve, local probe). Each result carries
+willems_stats (gain, true and identified radius)."""
 
 from __future__ import annotations
 
@@ -19,39 +13,31 @@ import casadi as ca
 import numpy as np
 
 from ..ddc.depersis_tesi import lqr_controller, stabilizing_controller
+from ..defaults import param
 from ..errors import ModelError
 from ..model import BilevelProblem
 from ..problems.willems import SOLVER_SELECTIONS, WillemsAttack, criterion_values
 from ..result import BilevelResult
-from ..solvers.base import prepare
+from ..solvers.base import check_options, prepare
 from ..solvers.box_methods import destabilize, random_signs
 from ..solvers.implicit import Hypergradient, shared_oracle
-from ..solvers.options import check_common_options, reject_renamed
 from ..threads import single_threaded_call
 from .outcome import attack_result
 
 
-def _loop(attack: WillemsAttack) -> ca.Function:
-    """(upper x, lower y) -> (K, A_id + B_id K), the attack's declared gain and identified loop (kept on attack)."""
-    if "_loop" not in attack.__dict__:
-        y = ca.vertcat(*[ca.vec(v.sym) for v in attack.problem.lower_variables])
-        attack.__dict__["_loop"] = ca.Function("loop", [attack.upper, y], [attack.gain, attack.closed_loop])
-    return attack.__dict__["_loop"]
-
-
 def loop(attack: WillemsAttack, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The gain K and the attacker's identified loop A_id + B_id K at poisoning x (flat) and learner solution y."""
-    gain, acl = _loop(attack)(x, y)
+    """The gain K and the attacker's identified loop A_id + B_id K at poisoning x (flat) and learner solution y (the
+    CasADi function of the declared gain and loop kept on attack)."""
+    if "_loop" not in attack.__dict__:
+        y_sym = ca.vertcat(*[ca.vec(v.sym) for v in attack.problem.lower_variables])
+        attack.__dict__["_loop"] = ca.Function("loop", [attack.upper, y_sym], [attack.gain, attack.closed_loop])
+    gain, acl = attack.__dict__["_loop"](x, y)
     return np.asarray(gain, dtype=float), np.asarray(acl, dtype=float)
-
-
-def _radius(acl: np.ndarray) -> float:
-    return float(np.max(np.abs(np.linalg.eigvals(acl))))
 
 
 def identified_radius(attack: WillemsAttack, x: np.ndarray, y: np.ndarray) -> float:
     """Spectral radius of the attacker's identified closed loop A_id + B_id K at poisoning x, learner solution y."""
-    return _radius(loop(attack, x, y)[1])
+    return float(np.max(np.abs(np.linalg.eigvals(loop(attack, x, y)[1]))))
 
 
 def engine(attack: WillemsAttack, radius: bool = False) -> Hypergradient:
@@ -60,20 +46,18 @@ def engine(attack: WillemsAttack, radius: bool = False) -> Hypergradient:
     return shared_oracle(prepare(_problem(attack, radius)))
 
 
-SHARED_KEPT = 4
-"""Declarations (WillemsAttack.declaration: data, learner, criterion) whose prepared problems a process keeps."""
 _SHARED: dict[tuple, BilevelProblem] = {}
 
 
 def _problem(attack: WillemsAttack, radius: bool) -> BilevelProblem:
     """The problem of the attack's declaration (or its spectral-radius form), prepared once per process for the last
-    SHARED_KEPT declarations and given this attack's box (Prepared.rebox): attacks on one data set at several budgets
-    or by several methods share the engine's preparation and the learner's solves. The learner's selection is given
-    to its SDP lower level."""
+    defaults["willems.shared_kept"] declarations and given this attack's box (Prepared.rebox): attacks on one data set
+    at several budgets or by several methods share the engine's preparation and the learner's solves. The learner's
+    selection is given to its SDP lower level."""
     key = (attack.declaration, radius)
     problem = _SHARED.pop(key, None) or (attack.radius_problem() if radius else attack.problem)
     _SHARED[key] = problem
-    while len(_SHARED) > SHARED_KEPT:
+    while len(_SHARED) > param("willems.shared_kept"):
         del _SHARED[next(iter(_SHARED))]
     prep = prepare(problem)
     bound = attack.budget()
@@ -118,8 +102,8 @@ def willems_stats(attack: WillemsAttack, result: BilevelResult, evaluations: int
     eig = np.linalg.eigvals(attack.true_closed_loop(gain))
     criterion = float(criterion_values(acl, gain, attack.setting.objective, attack.qx, attack.cost_weight))
     return {"objective": attack.setting.objective, "x": x, "gain": gain, "eigenvalues": eig,
-            "spectral_radius": float(np.max(np.abs(eig))), "identified_radius": _radius(acl), "criterion": criterion,
-            "evaluations": evaluations, "budget_violation": cert.upper_feasibility,
+            "spectral_radius": float(np.max(np.abs(eig))), "identified_radius": identified_radius(attack, x, y),
+            "criterion": criterion, "evaluations": evaluations, "budget_violation": cert.upper_feasibility,
             "kkt_residual": max(cert.stationarity, cert.lower_feasibility, cert.dual_feasibility, cert.complementarity),
             "details": {"starts": len(result.start_records), "best_start": result.stats.get("best_start"),
                         "certificate_failed": list(cert.failed)}}
@@ -136,28 +120,36 @@ def _run(attack: WillemsAttack, name: str, method: Any, radius: bool = False, re
 
 
 @single_threaded_call
-def hypergradient_attack(attack: WillemsAttack, starts: int = 8, seed: Any = 0, max_iter: int = 300,
-                         ftol: float = 1e-10, stop_when_unstable: bool = True) -> BilevelResult:
-    """The engine's multistart projected hypergradient ascent on the attack's criterion (start 0: clean data; others
-    uniform in the box); with stop_when_unstable it stops at the first point whose identified loop is unstable."""
+def hypergradient_attack(attack: WillemsAttack, *, starts: int | None = None, seed: Any = 0,
+                         max_iter: int | None = None, ftol: float | None = None, stop_when_unstable: bool = True,
+                         **unknown: Any) -> BilevelResult:
+    """Method hypergradient on the attack's criterion from `starts` starts (start 0: clean data; others uniform in the
+    box, drawn from `seed`), max_iter steps each, ftol its stop, near-ties between starts to the larger identified
+    radius; with stop_when_unstable it stops at the first point whose identified loop is unstable. None takes the
+    registry's value, defaults["willems.hypergradient.NAME"]."""
+    check_options("hypergradient_attack", unknown, hypergradient_attack)
     prefer = lambda point: identified_radius(attack, point.x, point.y)  # noqa: E731
-    return _run(attack, "hypergradient", "hypergradient", starts=starts, seed=seed, max_iter=max_iter, ftol=ftol,
-                stop_when_unstable=stop_when_unstable, prefer=prefer)
+    return _run(attack, "hypergradient", "hypergradient", starts=param("willems.hypergradient.starts", starts),
+                seed=seed, max_iter=param("willems.hypergradient.max_iter", max_iter),
+                ftol=param("willems.hypergradient.ftol", ftol), stop_when_unstable=stop_when_unstable, prefer=prefer)
 
 
 @single_threaded_call
-def de_attack(attack: WillemsAttack, seed: Any = 0, max_iter: int = 300, popsize: int = 5, pop_tol: float = 1e-8,
-              stop_when_unstable: bool = True, **renamed: Any) -> BilevelResult:
-    """The engine's differential evolution on the input poisoning inside the box, without its descent (a heuristic),
-    a generation scored at once where the learner ignores the poisoning (_criteria); with stop_when_unstable it stops
-    once the incumbent's identified loop is unstable."""
-    reject_renamed("de_attack", renamed, {"maxiter": "max_iter", "tol": "pop_tol"})
+def de_attack(attack: WillemsAttack, *, seed: Any = 0, max_iter: int | None = None, popsize: int | None = None,
+              pop_tol: float | None = None, stop_when_unstable: bool = True, **unknown: Any) -> BilevelResult:
+    """Method differential-evolution (seed, max_iter generations of popsize members per entry, pop_tol its stop) on
+    the input poisoning, without its descent (a heuristic), a generation scored at once where the learner ignores the
+    poisoning (_criteria); with stop_when_unstable it stops once the incumbent's identified loop is unstable. None
+    takes the registry's value, defaults["willems.evolution.NAME"] (pop_tol: "evolution.pop_tol")."""
+    check_options("de_attack", unknown, de_attack)
     if attack.setting.poison != "u" or attack.setting.delta_u <= 0:
         raise ModelError(f"de_attack poisons the inputs only (the paper's corollary) with delta_u > 0; got poison="
                          f"{attack.setting.poison!r}, delta_u={attack.setting.delta_u}")
     twin = {} if attack.setting.design == "lqr-r" else {"batch_objective": lambda xs, y: _criteria(attack, xs, y)}
-    return _run(attack, "differential-evolution", "differential-evolution", seed=seed, max_iter=max_iter,
-                popsize=popsize, pop_tol=pop_tol, polish=False, stop_when_unstable=stop_when_unstable, **twin)
+    return _run(attack, "differential-evolution", "differential-evolution", seed=seed,
+                max_iter=param("willems.evolution.max_iter", max_iter),
+                popsize=param("willems.evolution.popsize", popsize), pop_tol=pop_tol, polish=False,
+                stop_when_unstable=stop_when_unstable, **twin)
 
 
 def _criteria(attack: WillemsAttack, xs: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -175,17 +167,18 @@ def _criteria(attack: WillemsAttack, xs: np.ndarray, y: np.ndarray) -> np.ndarra
 
 
 @single_threaded_call
-def random_attack(attack: WillemsAttack, seed: Any = 0) -> BilevelResult:
+def random_attack(attack: WillemsAttack, *, seed: Any = 0) -> BilevelResult:
     """A budget-matched, non-adaptive baseline: every poisoned entry +-budget with a fair random sign."""
-    check_common_options({"seed": seed})
     return _run(attack, "random", random_signs, seed=seed)
 
 
 @single_threaded_call
-def destabilize_attack(attack: WillemsAttack, starts: int = 64, seed: Any = 0, max_iter: int = 100,
-                       pool: int = 512) -> BilevelResult:
+def destabilize_attack(attack: WillemsAttack, *, starts: int | None = None, seed: Any = 0, max_iter: int | None = None,
+                       pool: int | None = None, **unknown: Any) -> BilevelResult:
     """Maximize the spectral radius of the attacker's loop A_id + B_id K over the input poisoning, exactly (method
-    destabilize on attack.radius_problem: the learner solved once, K affine in the poisoning)."""
+    destabilize on attack.radius_problem: the learner solved once, K affine in the poisoning) with its options starts,
+    seed, max_iter and pool, None taking defaults["destabilize.NAME"]."""
+    check_options("destabilize_attack", unknown, destabilize_attack)
     if attack.setting.objective != "destabilize":
         raise ModelError(f"destabilize_attack maximizes the spectral radius; got objective="
                          f"{attack.setting.objective!r}: build the attack with objective='destabilize'")

@@ -13,7 +13,8 @@ from typing import Any, Callable
 import numpy as np
 
 from ..attacks.outcome import attack_stat, unstable
-from ..attacks.vrft_methods import MAX_ITER, attack, attack_budget_path, attack_value
+from ..attacks.vrft_methods import attack, attack_budget_path, attack_value
+from ..defaults import param
 from ..files import atomic_open
 from ..problems.vrft_instance import CONVENTIONS, PAPER_EPS_Y, VRFTAttack, attack_instance
 from ..result import BilevelResult
@@ -78,7 +79,7 @@ def cell_tasks(sims: int, seed: int, convention: str, objective: str, method: st
                                   "convention": convention, "objective": objective, "method": method,
                                   "scenario": scenario, "eps_u": eu, "eps_y": ey, "sim": i, "seed": s,
                                   "root_seed": seed, "N": N_SAMPLES, "norm": NORM,
-                                  **({"max_iter": MAX_ITER[objective]} if objective == "targeted" else {})})
+                                  **({"max_iter": param("vrft.max_iter.targeted")} if objective == "targeted" else {})})
     return tasks
 
 

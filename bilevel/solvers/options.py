@@ -9,7 +9,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from ..errors import ModelError, UnknownOption
+from ..errors import ModelError
 
 
 def _bad(name: str, value: Any, want: str) -> ModelError:
@@ -55,17 +55,9 @@ RENAMED_OPTIONS: dict[str, dict[str, str]] = {
     "ipopt": {"tol": "nlp_tol (IPOPT's tol on each NLP)", "polish": "branch_polish"},
     "relaxation": {"tol": "nlp_tol (IPOPT's tol on each NLP)", "polish": "branch_polish"},
     "differential-evolution": {"tol": "pop_tol (the population's relative spread)"},
+    "de_attack": {"maxiter": "max_iter", "tol": "pop_tol (the population's relative spread)"},
 }
 """Options renamed so that one name means one thing: method -> old name -> what to use (check_options says so)."""
-
-def reject_renamed(who: str, given: dict[str, Any], renamed: dict[str, str]) -> None:
-    """Raise UnknownOption for keywords `given` to `who` beyond its signature: "renamed: use NEW" for an old name in
-    `renamed`, else not accepted."""
-    if given:
-        name = sorted(given)[0]
-        raise UnknownOption(f"{who}: keyword {name} was renamed: use {renamed[name]}" if name in renamed else
-                            f"{who} does not take keyword(s) {', '.join(sorted(given))}")
-
 
 TOLERANCES = ("gtol", "ftol", "gain_tol", "nlp_tol", "pop_tol")
 """The methods' stopping tolerances (bilevel.defaults documents each)."""

@@ -11,6 +11,8 @@ import pytest
 import bilevel as bl
 from bilevel.defaults import ENTRIES, param
 from bilevel.errors import ModelError, UnknownOption
+from bilevel.attacks.vrft_methods import METHODS as VRFT_METHODS
+from bilevel.attacks.willems import de_attack, destabilize_attack, hypergradient_attack
 from bilevel.solvers.base import options_of
 from bilevel.solvers.box_methods import destabilize, random_signs
 from tests.docs_pages import run_page
@@ -51,10 +53,16 @@ BEFORE = {  # the module constants and option defaults the registry replaced, as
     "polish.active_tol": 1e-6, "polish.flip_tol": 1e-13, "polish.max_steps": 8, "polish.max_faces": 4,
     "residual.form_size": 10_000, "residual.affine_fill": 4, "residual.numeric_squares_size": 1_000,
     "residual.sparse_squares": 0.25, "linear_maps.dense_limit": 25_000_000, "spectral_radius.defective_cond": 1e12,
+    "vrft.starts": 1, "vrft.max_iter.maxmin": 60, "vrft.max_iter.targeted": 500, "vrft.max_iter.destabilize": 200,
+    "vrft.gain_tol": 1e-4, "willems.shared_kept": 4, "willems.hypergradient.starts": 8,
+    "willems.hypergradient.max_iter": 300, "willems.hypergradient.ftol": 1e-10, "willems.evolution.max_iter": 300,
+    "willems.evolution.popsize": 5,
 }
 
 METHOD_FUNCTIONS = {**{name: fn for name, fn in bl.METHODS.items()}, "destabilize": destabilize,
-                    "random-signs": random_signs}
+                    "random-signs": random_signs, **{f"vrft-{name}": fn for name, fn in VRFT_METHODS.items()},
+                    "hypergradient_attack": hypergradient_attack, "de_attack": de_attack,
+                    "destabilize_attack": destabilize_attack}
 
 
 def test_every_entry_keeps_its_former_value_and_is_documented() -> None:
@@ -102,9 +110,8 @@ def test_help_lists_every_option_of_every_method(name: str) -> None:
     assert options_of(fn), name
     for option in options_of(fn):
         assert option in doc, (name, option)
-    if name in bl.METHODS:
-        shown = bl.show_options(name)
-        assert all(f"\n{option}: " in "\n" + shown for option in options_of(fn)), shown
+    shown = bl.show_options(name if name in bl.METHODS else fn)
+    assert all(f"\n{option}: " in "\n" + shown for option in options_of(fn)), shown
 
 
 def test_the_solve_docstring_names_every_method_and_where_options_are_listed() -> None:
@@ -129,8 +136,6 @@ def test_a_misspelt_option_is_rejected_with_the_accepted_ones() -> None:
 
 
 def test_renamed_attributes_and_keywords_name_their_new_names() -> None:
-    from bilevel.attacks.willems import de_attack
-
     p = bard()
     p.suggest_start(x=4.0)
     res = p.solve("hypergradient", starts=2)
@@ -151,3 +156,26 @@ def test_options_page_runs_as_printed() -> None:
         run_page("options.md")
     finally:
         bl.reset_defaults()
+
+
+def test_the_attacks_read_their_registry_defaults_and_check_their_options() -> None:
+    """None options of the VRFT and Willems attacks read "vrft.*" and "willems.hypergradient.*": an attack under a
+    changed registry value equals the one given that value; a misspelt option names the closest accepted one."""
+    from bilevel.attacks import attack_alternating, attack_instance
+    from bilevel.problems.willems import build_attack
+
+    atk, willems = attack_instance("maxmin", N=64, seed=1), build_attack(horizon=10, seed=0, delta_u=0.3)
+    given = attack_alternating(atk, max_iter=3, gain_tol=1e-3)
+    given_w = hypergradient_attack(willems, starts=1, max_iter=4, stop_when_unstable=False)
+    try:
+        bl.set_defaults("vrft", **{"max_iter.maxmin": 3, "gain_tol": 1e-3})
+        bl.set_defaults("willems", **{"hypergradient.starts": 1, "hypergradient.max_iter": 4})
+        read = attack_alternating(atk)
+        read_w = hypergradient_attack(willems, stop_when_unstable=False)
+    finally:
+        bl.reset_defaults()
+    assert read.upper_objective == given.upper_objective and read.nit == given.nit <= 3
+    assert read_w.upper_objective == given_w.upper_objective and len(read_w.start_records) == 1
+    for call in (lambda: attack_alternating(atk, maxiter=3), lambda: hypergradient_attack(willems, maxiter=3)):
+        with pytest.raises(UnknownOption, match="did you mean 'max_iter'"):
+            call()
