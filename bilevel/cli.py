@@ -456,7 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="run on a Dask cluster: tcp://HOST:PORT of its scheduler, or 'local' (docs/clusters.md)")
     p_rep.add_argument("--quick", action="store_true", help="willems: the small CI-sized grid (4 sims, 3 budgets); "
                        "identification: T = 100, delta 0.01 and 0.05, 2 sims; defenses: 8 sims, VRFT N = 128, "
-                       "De Persis-Tesi T = 15")
+                       "De Persis-Tesi T = 15, identification T = 25, DeePC T = 60")
     p_rep.add_argument("--selection", choices=WILLEMS_SELECTIONS, default=None,
                        help="willems: the learner's choice among its optimal Q (tikhonov: the session-1 sweep's; "
                             "clarabel, scs: the solver's own Q, input poisoning only; default min-norm)")

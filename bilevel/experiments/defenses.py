@@ -1,12 +1,19 @@
 """The robustness frontier of the defended learners (issue 29): per learner x defense setting, the clean-data
 performance cost against the poisoning margin delta*, the smallest budget at which the adaptive attack (the generic
-engine on the defended lower level) makes the true closed loop unstable, with confidence intervals over data sets.
+engine on the defended lower level) makes the true closed loop unstable (VRFT, De Persis–Tesi) or, for learners a
+bounded attack cannot destabilize, degrades the learner's performance by FACTOR (identification, DeePC), with
+confidence intervals over data sets.
 
 VRFT (scenario B, measurement noise 2% of std(y), the destabilizing criterion: the ARX-modelled loop's spectral
 radius): budgets eps_u = eps_y = eps (relative l2), the attack `solve(defended problem, starts=2)`, judged by the true
 loop of the defended learner re-solved in closed form at the attack's poisoning; clean cost: the model-reference cost.
 De Persis–Tesi (batch reactor, design lqr, input poisoning): delta_u* by bilevel.attacks.willems.
 smallest_destabilizing_budget on the regularized learner; clean cost: the true loop's H2 cost trace(Qx W).
+Identification (flexible transmission, "ss" data, T samples; least squares, Huber, LAD): budgets eps on both signals
+(relative Frobenius), the attack `solve(defended problem, starts=1)`, judged by the learner re-solved by cvxpy; the
+performance is the error ||[A B] - [A B]_true||_F. DeePC (flexible transmission, T samples, horizon DEEPC_HORIZON;
+lambda_g swept): budgets eps on both signals (relative l2), the attack `solve(deepc-tracking, starts=1)`, judged by
+the learner re-solved by cvxpy; the performance is the true plant's tracking cost of the plan.
 delta* per data set comes from the package's budget search (bilevel.solvers.budget_search: an increasing path, then
 bisection); a setting's margin is the median of delta* over data sets (half of the data sets destabilized), with its
 order-statistic interval; the clean cost's mean has a t interval. One resumable sweep task per data set and setting.
@@ -28,6 +35,9 @@ from matplotlib.figure import Figure  # noqa: E402
 from ..attacks.willems import engine, loop  # noqa: E402
 from ..errors import RankDeficientRegressor  # noqa: E402
 from ..files import atomic_open, atomic_path  # noqa: E402
+from ..problems import defended_deepc, defended_identification  # noqa: E402
+from ..problems.deepc import declare as declare_deepc  # noqa: E402
+from ..problems.deepc_instance import attack_instance as deepc_instance  # noqa: E402
 from ..problems.defended_vrft import declare, defended_instance, model_reference_cost  # noqa: E402
 from ..problems.willems import WillemsAttack, WillemsSetting, build_attack, criterion_values  # noqa: E402
 from ..solvers.budget_search import smallest_budget  # noqa: E402
@@ -40,11 +50,22 @@ from .sweep import NUMBER, check_fields, run_sweep, sim_seeds, stderr_progress  
 
 ROW_SCHEMA = {"learner": str, "defense": str, "param": NUMBER, "N": int, "data_seed": int, "clean_cost": NUMBER,
               "delta_star": NUMBER, "attacks": int}
-"""A row's fields (delta_star inf: not destabilized on the budget path)."""
+"""A row's fields (delta_star inf: goal not reached on the budget path)."""
 VRFT_SETTINGS = (("none", 0.0), ("ridge", 1e-4), ("ridge", 1e-3), ("ridge", 1e-2), ("iv", 0.0), ("iv-trusted", 0.0))
 WILLEMS_REGS = (1e-8, 1e-2, 1e-1, 1.0)
+IDENT_SETTINGS = (("ls", 0.0), ("huber", defended_identification.HUBER_K), ("lad", 0.0))
+DEEPC_LAMBDA_G = (0.1, 1.0, 10.0, 100.0)
+DEEPC_HORIZON = 6
 VRFT_PATH = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
 """Relative l2 budgets eps (= eps_u = eps_y) tried in order before bisection."""
+IDENT_PATH = (0.002, 0.005, 0.01, 0.02, 0.05, 0.1)
+DEEPC_PATH = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
+FACTOR = 2.0
+"""Identification and DeePC: the goal is an attacked performance (error, tracking cost) >= FACTOR x the clean one."""
+COST_LABEL = {"vrft": "model-reference cost", "willems": "H2 cost", "ident": "identification error",
+              "deepc": "tracking cost"}
+BASELINE = {"vrft": "none", "ident": "ls"}
+"""The undefended setting of a learner (the others: its smallest parameter)."""
 REL_TOL = 0.1
 """The budget search's final bracket, relative to its top."""
 
@@ -68,19 +89,23 @@ def clean_performance(attack: WillemsAttack) -> float:
 
 @dataclass(frozen=True)
 class Plan:
-    """The run's size: data sets per setting, the VRFT record length, the De Persis–Tesi horizons."""
+    """The run's size: data sets per setting, the VRFT record length, the De Persis–Tesi horizons, the samples of the
+    identification and DeePC data."""
 
     sims: int
     vrft_n: int
     horizons: tuple[int, ...]
+    ident_t: int
+    deepc_t: int
 
 
 def make_plan(sims: int, quick: bool) -> Plan:
-    """The issue's plan (N = 512; horizons 15 and 50; `sims` data sets), or the small plan (<= 8 sims: the fewest with
-    a finite 95% interval of the median; N = 128, T = 15)."""
+    """The issue's plan (N = 512; horizons 15 and 50; identification T = 100, DeePC T = 200; `sims` data sets), or
+    the small plan (<= 8 sims: the fewest with a finite 95% interval of the median; N = 128, T = 15, identification
+    T = 25, DeePC T = 60)."""
     if quick:
-        return Plan(min(sims, 8), 128, (15,))
-    return Plan(sims, 512, (15, 50))
+        return Plan(min(sims, 8), 128, (15,), 25, 60)
+    return Plan(sims, 512, (15, 50), 100, 200)
 
 
 def vrft_radius(defense: str, lam: float, N: int, seed: int, eps: float, attack_seed: int) -> float:
@@ -96,10 +121,42 @@ def vrft_radius(defense: str, lam: float, N: int, seed: int, eps: float, attack_
         return float("inf")
 
 
+def ident_error(loss: str, T: int, seed: int, eps: float, attack_seed: int) -> float:
+    """The identification error ||[A B] - [A B]_true||_F of the learner `loss` after the adaptive attack at budget eps
+    (the learner re-solved at the attack's poisoning)."""
+    d = defended_identification.defended_instance(loss, T, eps, seed)
+    result = solve(defended_identification.declare(d), starts=1, seed=attack_seed)
+    A, B = d.atk.setting.state_space
+    return float(np.linalg.norm(d.poisoned(result.x["dX"], result.x["dU"]) - np.hstack([A, B])))
+
+
+def deepc_cost(lambda_g: float, T: int, seed: int, eps: float, attack_seed: int) -> float:
+    """The true tracking cost of DeePC's plan (weight lambda_g) after the adaptive attack at budget eps (the learner
+    re-solved at the attack's poisoning)."""
+    atk = deepc_instance(T=T, eps=eps, seed=seed, horizon=DEEPC_HORIZON, lambda_g=lambda_g)
+    result = solve(declare_deepc(atk), starts=1, seed=attack_seed)
+    return defended_deepc.attacked_performance(atk, result.x["du"], result.x["dy"])
+
+
+def degraded(clean: float) -> Callable[[float], bool]:
+    """The degradation goal: an attacked performance >= FACTOR x the clean one."""
+    return lambda value: value >= FACTOR * clean
+
+
 def frontier_task(task: dict[str, Any]) -> dict[str, Any]:
     """Clean cost and delta* of one data set under one setting (task: learner, defense, param, N, seed,
     attack_seed)."""
-    if task["learner"] == "vrft":
+    if task["learner"] == "ident":
+        cost = defended_identification.defended_instance(task["defense"], task["N"], 0.0,
+                                                         task["seed"]).clean_performance()
+        found = smallest_budget(lambda eps: ident_error(task["defense"], task["N"], task["seed"], eps,
+                                                        task["attack_seed"]), degraded(cost), IDENT_PATH, REL_TOL)
+    elif task["learner"] == "deepc":
+        cost = defended_deepc.clean_performance(deepc_instance(T=task["N"], seed=task["seed"], horizon=DEEPC_HORIZON,
+                                                               lambda_g=task["param"]))
+        found = smallest_budget(lambda eps: deepc_cost(task["param"], task["N"], task["seed"], eps,
+                                                       task["attack_seed"]), degraded(cost), DEEPC_PATH, REL_TOL)
+    elif task["learner"] == "vrft":
         d = defended_instance(task["defense"], "destabilize", task["param"], "B", 0.1, 0.1, task["seed"], task["N"])
         cost = model_reference_cost(d.atk.setting, d.theta_clean)
         found = smallest_budget(lambda eps: vrft_radius(task["defense"], task["param"], task["N"], task["seed"], eps,
@@ -118,16 +175,19 @@ def frontier_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
     seeds = list(enumerate(zip(sim_seeds(seed, plan.sims), sim_seeds(seed + 1, plan.sims))))
     settings = [("vrft", defense, lam, plan.vrft_n) for defense, lam in VRFT_SETTINGS]
     settings += [("willems", "ridge", reg, n) for n in plan.horizons for reg in WILLEMS_REGS]
+    settings += [("ident", loss, k, plan.ident_t) for loss, k in IDENT_SETTINGS]
+    settings += [("deepc", "ridge", lam, plan.deepc_t) for lam in DEEPC_LAMBDA_G]
     return [{"key": f"{learner}|{defense}|{param:g}|N={n}|sim={i}", "learner": learner, "defense": defense,
              "param": param, "N": n, "seed": data_seed, "attack_seed": attack_seed, "root_seed": seed}
             for learner, defense, param, n in settings for i, (data_seed, attack_seed) in seeds]
 
 
 def _baseline(learner: str, N: int, rows: list[dict[str, Any]]) -> dict[int, dict[str, Any]]:
-    """The undefended setting's rows by data seed: VRFT without defense, De Persis–Tesi at its smallest reg."""
+    """The undefended setting's rows by data seed: BASELINE's defense (VRFT, identification), else the smallest
+    parameter (De Persis–Tesi's reg, DeePC's lambda_g)."""
     own = [r for r in rows if (r["learner"], r["N"]) == (learner, N)]
-    if learner == "vrft":
-        own = [r for r in own if r["defense"] == "none"]
+    if learner in BASELINE:
+        own = [r for r in own if r["defense"] == BASELINE[learner]]
     else:
         own = [r for r in own if r["param"] == min(q["param"] for q in own)]
     return {r["data_seed"]: r for r in own}
@@ -135,7 +195,7 @@ def _baseline(learner: str, N: int, rows: list[dict[str, Any]]) -> dict[int, dic
 
 def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per setting: data sets, mean clean cost with its 95% t interval, median delta* with its 95% interval, how
-    many data sets were not destabilized on the path, and paired with the undefended learner on the same data sets
+    many data sets did not reach the goal on the path, and paired with the undefended learner on the same data sets
     (_baseline): the median ratios of clean cost and of delta*, and on how many data sets delta* is larger."""
     out = []
     for key in sorted({(r["learner"], r["defense"], r["param"], r["N"]) for r in rows}):
@@ -162,7 +222,7 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def summary_markdown(summary: list[dict[str, Any]]) -> str:
     """The frontier table: one line per setting."""
     lines = ["| learner | defense | parameter | N | data sets | clean cost (mean, 95% CI) | median delta* (95% CI) | "
-             "not destabilized | paired with undefended: cost ratio, delta* ratio (medians) | "
+             "goal not reached | paired with undefended: cost ratio, delta* ratio (medians) | "
              "delta* larger / smaller |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for s in summary:
@@ -197,8 +257,9 @@ def frontier_figure(summary: list[dict[str, Any]]) -> Figure:
                 ax.annotate(f"{s['param']:g}", (xi, min(yi, top)), fontsize=7, textcoords="offset points",
                             xytext=(4, 4))
         ax.set_title(learner)
-        ax.set_xlabel("clean cost (VRFT: model-reference; DPT: H2)")
-        ax.set_ylabel("median delta* (destabilizing budget)")
+        ax.set_xlabel(f"clean {COST_LABEL.get(learner, 'cost')}")
+        ax.set_ylabel("median delta*" + (f" ({FACTOR:g}x degradation)" if learner in ("ident", "deepc")
+                                         else " (destabilizing budget)"))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()

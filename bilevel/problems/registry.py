@@ -51,7 +51,7 @@ def register(name: str, *, source: str, optimum: float | None = None, solution: 
 
 
 def _load_builtin() -> None:
-    from . import defended_identification, defended_vrft, defended_willems  # noqa: F401  (registers on import)
+    from . import defended_deepc, defended_identification, defended_vrft, defended_willems  # noqa: F401  (registers)
     from . import deepc, identification, literature, vrft, willems  # noqa: F401
 
 

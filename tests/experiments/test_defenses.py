@@ -94,3 +94,31 @@ def test_attack_respecting_the_input_check_leaves_the_input_clean():
     _, u = WillemsSetting(horizon=15, seed=5).experiment()
     assert row["statistic"] == pytest.approx(whittle_deviance(u, filtered_white_spectrum(None, 15)), rel=1e-12)
     assert row["succeeded"]  # 0.1 per state entry destabilizes this data set's true loop
+
+
+@pytest.mark.slow  # a budget search (5 DeePC attacks) and two more attacks: about 10 s
+def test_deepc_task_reaches_the_degradation_goal():
+    """delta* of a DeePC data set: at it the adaptive attack at least doubles the clean plan's true tracking cost
+    (checked against a DeePC written in test_deepc), at half of it the attack does not."""
+    from bilevel.experiments.defenses import FACTOR, deepc_cost
+    from bilevel.problems.deepc_instance import attack_instance
+    from tests.problems.test_deepc import own_deepc, true_cost
+
+    task = {"learner": "deepc", "defense": "ridge", "param": 0.1, "N": 60, "seed": 3, "attack_seed": 1}
+    row = frontier_task(task)
+    atk = attack_instance(T=60, horizon=6, seed=3, lambda_g=0.1)
+    assert row["clean_cost"] == pytest.approx(true_cost(atk, own_deepc(atk, atk.u, atk.y)[2]), rel=1e-5)
+    assert 0 < row["delta_star"] < 0.5
+    assert deepc_cost(0.1, 60, 3, row["delta_star"], 1) >= FACTOR * row["clean_cost"]
+    assert deepc_cost(0.1, 60, 3, row["delta_star"] / 2, 1) < FACTOR * row["clean_cost"]
+
+
+def test_identification_rows_pair_with_least_squares():
+    rows = [{"learner": "ident", "defense": d, "param": p, "N": 25, "data_seed": i, "clean_cost": c,
+             "delta_star": delta * (1 + i), "attacks": 5}
+            for d, p, c, delta in (("ls", 0.0, 0.1, 0.01), ("huber", 1.345, 0.09, 0.02), ("lad", 0.0, 0.2, 0.005))
+            for i in range(8)]
+    summary = {s["defense"]: s for s in summarize(rows)}
+    assert summary["huber"]["delta_ratio"] == pytest.approx(2.0) and summary["huber"]["delta_larger"] == 8
+    assert summary["lad"]["cost_ratio"] == pytest.approx(2.0) and summary["lad"]["delta_smaller"] == 8
+    assert summary["ls"]["delta_ratio"] == 1.0
