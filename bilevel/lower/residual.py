@@ -139,6 +139,8 @@ class ResidualLeastSquares(LowerLevel):
         zero = ca.DM.zeros(self.n_y)
         self.C_expr = ca.jacobian(self.r, self.y)
         self.d_expr = -ca.substitute(self.r, self.y, zero)
+        self.n_r = int(self.r.numel())
+        """Number of residual rows (read at every evaluation: kept, not recounted)."""
         self._affine = self._affine_data(ca.vertcat(ca.vec(self.C_expr), self.d_expr))
         moves = ca.depends_on(self.c, self.x) or ca.depends_on(self.c, self.params.sym)
         self._c = self.params.function("residual_c", [self.x], [self.c]) if moves else float(ca.evalf(self.c))
@@ -154,7 +156,7 @@ class ResidualLeastSquares(LowerLevel):
     @cached_property
     def _adjoint(self) -> CompiledFunction:
         """(x, y, v, a, b) -> d/dx of a'C(x)v + b'r(x, y), one reverse sweep."""
-        v, a, b = ca.SX.sym("v", self.n_y), ca.SX.sym("a", int(self.r.numel())), ca.SX.sym("b", int(self.r.numel()))
+        v, a, b = ca.SX.sym("v", self.n_y), ca.SX.sym("a", self.n_r), ca.SX.sym("b", self.n_r)
         return self.params.function("residual_adjoint", [self.x, self.y, v, a, b],
                                     [ca.jtimes(ca.mtimes(self.C_expr, v), self.x, a, True)
                                      + ca.jtimes(self.r, self.x, b, True)])
@@ -192,7 +194,7 @@ class ResidualLeastSquares(LowerLevel):
         if self._last is None or self._last[0] != key:
             if self._affine is not None:
                 J, offset, _ = self._affine
-                v, m = J @ x + offset, int(self.r.numel())
+                v, m = J @ x + offset, self.n_r
                 C, d = v[:m * self.n_y].reshape((m, self.n_y), order="F"), v[m * self.n_y:]
                 c = self._c if isinstance(self._c, float) else scalar(self._c(x))
             else:

@@ -91,7 +91,7 @@ class ExactBlock:
         x[b.block] = b.center + z
         y = y_c + M @ z
         sol = LowerSolution(y, np.nan, np.zeros(0), np.zeros(0), [], "optimal", "closed-form (exact block)")
-        return x, sol, KKTValues.unconstrained(P)
+        return x, sol, KKTValues.unconstrained(P, factor)
 
 
 def _lower_gradient_parts(low: LowerLevel, y: ca.SX) -> tuple[ca.SX, ca.SX]:
