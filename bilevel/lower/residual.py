@@ -19,7 +19,7 @@ import scipy.sparse as sp
 
 from ..defaults import param
 from ..errors import BilevelError
-from ..linear_maps import affine_parts
+from ..linear_maps import Gather, affine_parts
 from ..parameters import CompiledFunction, ParameterSet, scalar
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
@@ -161,7 +161,7 @@ class ResidualLeastSquares(LowerLevel):
                                     [ca.jtimes(ca.mtimes(self.C_expr, v), self.x, a, True)
                                      + ca.jtimes(self.r, self.x, b, True)])
 
-    def _affine_data(self, data: ca.SX) -> tuple[sp.csr_matrix, np.ndarray, sp.csr_matrix] | None:
+    def _affine_data(self, data: ca.SX) -> tuple[Gather | sp.csr_matrix, np.ndarray, Gather | sp.csr_matrix] | None:
         """(J, b, J') with [vec C(x); d(x)] = J x + b when the data are affine in x, read no parameters and J has at
         most defaults["residual.affine_fill"] nonzeros per operation of their expressions (signals the leader moves,
         sliced or mapped): then C and d cost one sparse product, their x-adjoint one transposed one; else None (the
