@@ -38,7 +38,7 @@ class Gather:
         self._columns, self._values = J.indices.copy(), J.data.copy()
 
     @classmethod
-    def of(cls, J: sp.csr_matrix) -> "Gather | sp.csr_matrix":
+    def of(cls, J: sp.csr_matrix) -> Gather | sp.csr_matrix:
         """J as a Gather where every row has at most one nonzero, else J itself."""
         return cls(J) if np.all(np.diff(J.indptr) <= 1) else J
 

@@ -11,7 +11,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import aslinearoperator
 
 import bilevel as bl
-import bilevel.linear_maps as linear_maps
+from bilevel import linear_maps
 import bilevel.lower.residual as residual
 from bilevel.problems.vrft_instance import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating
