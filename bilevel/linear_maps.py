@@ -26,21 +26,55 @@ if TYPE_CHECKING:  # pragma: no cover
     from .model import BilevelProblem
 
 
-def affine_in(expr: ca.SX, x: ca.SX, fixed: ca.SX) -> tuple[sp.csr_matrix, ca.SX, sp.csr_matrix] | None:
-    """(J, b, J') with expr = J x + b, J sparse and numeric (reading neither x nor the symbols `fixed`, the
-    parameters), b an expression in `fixed` alone, when expr is affine in x that way (signals the leader moves,
-    the clean signals parameters); else None."""
+class Gather:
+    """A sparse matrix with at most one nonzero per row (a slice, shift or scaling of a signal) applied to a vector as
+    a gather, (J v)_i = J_ic v_c: what scipy's product computes (from 0.0, so a -0.0 product is 0.0), without its
+    per-call overhead, which the hypergradient pays several times per evaluation."""
+
+    def __init__(self, J: sp.csr_matrix) -> None:
+        self.shape = J.shape
+        self._rows = np.flatnonzero(np.diff(J.indptr))
+        self._full = self._rows.size == J.shape[0]  # every row has its entry: no scatter
+        self._columns, self._values = J.indices.copy(), J.data.copy()
+
+    @classmethod
+    def of(cls, J: sp.csr_matrix) -> Gather | sp.csr_matrix:
+        """J as a Gather where every row has at most one nonzero, else J itself."""
+        return cls(J) if np.all(np.diff(J.indptr) <= 1) else J
+
+    def __matmul__(self, v: np.ndarray) -> np.ndarray:
+        """J v for a vector v or the columns of a matrix v."""
+        if v.ndim == 1:
+            product = self._values * v[self._columns]
+        elif v.ndim == 2:
+            product = self._values[:, None] * v[self._columns]
+        else:
+            raise ValueError(f"Gather applies to vectors and matrices, got an array of shape {v.shape}")
+        product += 0.0  # as scipy's sum from 0.0
+        if self._full:
+            return product
+        out = np.zeros((self.shape[0],) + v.shape[1:])
+        out[self._rows] = product
+        return out
+
+
+def affine_in(expr: ca.SX, x: ca.SX, fixed: ca.SX) -> tuple[Gather | sp.csr_matrix, ca.SX,
+                                                            Gather | sp.csr_matrix] | None:
+    """(J, b, J') with expr = J x + b, J sparse and numeric (a Gather where it is one, both ways; reading neither x
+    nor the symbols `fixed`, the parameters), b an expression in `fixed` alone, when expr is affine in x that way
+    (signals the leader moves, the clean signals parameters); else None."""
     jac = ca.jacobian(expr, x)
     if ca.depends_on(jac, x) or ca.depends_on(jac, fixed):
         return None
     J = sp.csr_matrix(ca.evalf(jac).sparse())
-    return J, ca.substitute(expr, x, ca.DM.zeros(int(x.numel()))), J.T.tocsr()
+    return Gather.of(J), ca.substitute(expr, x, ca.DM.zeros(int(x.numel()))), Gather.of(J.T.tocsr())
 
 
-def affine_parts(expr: ca.SX, x: ca.SX, fixed: ca.SX) -> tuple[sp.csr_matrix, np.ndarray, sp.csr_matrix] | None:
-    """(J, b, J') with expr = J x + b, J sparse, when expr reads none of the symbols `fixed` (parameters) and is affine
-    in x (signals the leader moves, sliced, shifted or mapped): one sparse product each way instead of a sweep; else
-    None."""
+def affine_parts(expr: ca.SX, x: ca.SX, fixed: ca.SX) -> tuple[Gather | sp.csr_matrix, np.ndarray,
+                                                               Gather | sp.csr_matrix] | None:
+    """(J, b, J') with expr = J x + b, J sparse (a Gather where it is one), when expr reads none of the symbols `fixed`
+    (parameters) and is affine in x (signals the leader moves, sliced, shifted or mapped): one sparse product each way
+    instead of a sweep; else None."""
     parts = None if ca.depends_on(expr, fixed) else affine_in(expr, x, fixed)
     if parts is None:
         return None

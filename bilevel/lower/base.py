@@ -42,12 +42,16 @@ class KKTValues(NamedTuple):
     hessian: np.ndarray
     jac_g: np.ndarray
     jac_h: np.ndarray
+    factor: np.ndarray | None = None
+    """The Hessian's Cholesky factor (bilevel.lower.least_squares.hessian_factor) where the solve has it, else None."""
 
     @classmethod
-    def unconstrained(cls, hessian: np.ndarray) -> "KKTValues":
-        """At the exact minimizer of an unconstrained lower level with this Hessian (S = 0, no g or h)."""
+    def unconstrained(cls, hessian: np.ndarray, factor: np.ndarray | None = None) -> "KKTValues":
+        """At the exact minimizer of an unconstrained lower level with this Hessian (S = 0, no g or h) and, if known,
+        its Cholesky factor."""
         n = hessian.shape[0]
-        return cls(np.zeros((n, 1)), np.zeros((0, 1)), np.zeros((0, 1)), hessian, np.zeros((0, n)), np.zeros((0, n)))
+        return cls(np.zeros((n, 1)), np.zeros((0, 1)), np.zeros((0, 1)), hessian, np.zeros((0, n)), np.zeros((0, n)),
+                   factor)
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ import scipy.sparse as sp
 
 from ..defaults import param
 from ..errors import BilevelError
-from ..linear_maps import affine_in
+from ..linear_maps import Gather, affine_in
 from ..parameters import CompiledFunction, ParameterSet, scalar
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
@@ -139,6 +139,8 @@ class ResidualLeastSquares(LowerLevel):
         zero = ca.DM.zeros(self.n_y)
         self.C_expr = ca.jacobian(self.r, self.y)
         self.d_expr = -ca.substitute(self.r, self.y, zero)
+        self.n_r = int(self.r.numel())
+        """Number of residual rows (read at every evaluation: kept, not recounted)."""
         self._affine = self._affine_data(ca.vertcat(ca.vec(self.C_expr), self.d_expr))
         moves = ca.depends_on(self.c, self.x) or ca.depends_on(self.c, self.params.sym)
         self._c = self.params.function("residual_c", [self.x], [self.c]) if moves else float(ca.evalf(self.c))
@@ -155,17 +157,18 @@ class ResidualLeastSquares(LowerLevel):
     @cached_property
     def _adjoint(self) -> CompiledFunction:
         """(x, y, v, a, b) -> d/dx of a'C(x)v + b'r(x, y), one reverse sweep."""
-        v, a, b = ca.SX.sym("v", self.n_y), ca.SX.sym("a", int(self.r.numel())), ca.SX.sym("b", int(self.r.numel()))
+        v, a, b = ca.SX.sym("v", self.n_y), ca.SX.sym("a", self.n_r), ca.SX.sym("b", self.n_r)
         return self.params.function("residual_adjoint", [self.x, self.y, v, a, b],
                                     [ca.jtimes(ca.mtimes(self.C_expr, v), self.x, a, True)
                                      + ca.jtimes(self.r, self.x, b, True)])
 
-    def _affine_data(self, data: ca.SX) -> tuple[sp.csr_matrix, np.ndarray | CompiledFunction, sp.csr_matrix] | None:
+    def _affine_data(self, data: ca.SX) -> tuple[Gather | sp.csr_matrix, np.ndarray | CompiledFunction,
+                                                Gather | sp.csr_matrix] | None:
         """(J, b, J') with [vec C(x); d(x)] = J x + b when the data are affine in x with a J that reads no parameters
-        and has at most defaults["residual.affine_fill"] nonzeros per operation of their expressions (signals the leader moves, sliced or
-        mapped; b, the clean signals, may be parameters: then b is their function, evaluated once per parameter
-        revision): C and d cost one sparse product, their x-adjoint one transposed one; else None (the expressions
-        are evaluated)."""
+        and has at most defaults["residual.affine_fill"] nonzeros per operation of their expressions (signals the
+        leader moves, sliced or mapped; b, the clean signals, may be parameters: then b is their function, evaluated
+        once per parameter revision): C and d cost one sparse product, their x-adjoint one transposed one; else None
+        (the expressions are evaluated)."""
         if ca.jacobian_sparsity(data, self.x).nnz() > param("residual.affine_fill") * self._data.n_instructions():
             return None  # e.g. a recursive filter: a few operations per sample, a dense lower-triangular Jacobian
         parts = affine_in(data, self.x, self.params.sym)
@@ -209,7 +212,7 @@ class ResidualLeastSquares(LowerLevel):
         key = (x.tobytes(), revision)
         if self._last is None or self._last[0] != key:
             if self._affine is not None:
-                v, m = self._affine[0] @ x + self._offset(x), int(self.r.numel())
+                v, m = self._affine[0] @ x + self._offset(x), self.n_r
                 C, d = v[:m * self.n_y].reshape((m, self.n_y), order="F"), v[m * self.n_y:]
                 c = self._c if isinstance(self._c, float) else scalar(self._c(x))
             else:

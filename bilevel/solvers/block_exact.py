@@ -26,6 +26,7 @@ import scipy.sparse as sp
 from ..canonical import CanonicalBilevel
 from ..defaults import param
 from ..errors import BilevelError
+from ..linear_maps import Gather
 from ..lower.base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from ..lower.images import ImageLower
 from ..lower.residual import ResidualLeastSquares
@@ -91,7 +92,7 @@ class ExactBlock:
         x[b.block] = b.center + z
         y = y_c + M @ z
         sol = LowerSolution(y, np.nan, np.zeros(0), np.zeros(0), [], "optimal", "closed-form (exact block)")
-        return x, sol, KKTValues.unconstrained(P)
+        return x, sol, KKTValues.unconstrained(P, factor)
 
 
 def _lower_gradient_parts(low: LowerLevel, y: ca.SX) -> tuple[ca.SX, ca.SX]:
@@ -140,7 +141,7 @@ def _residual_block_data(canon: CanonicalBilevel, inner: ResidualLeastSquares, S
     lift = low.lift if isinstance(low, ImageLower) else (lambda xv: xv)
     jac_d = ca.jacobian(inner.d_expr, x[S])
     constant_jac = not ca.depends_on(jac_d, inner.x) and not ca.depends_on(jac_d, canon.params.sym)
-    jac_d_t = sp.csr_matrix(ca.evalf(jac_d).sparse().T) if constant_jac else None  # (dd/dx_S)'
+    jac_d_t = Gather.of(sp.csr_matrix(ca.evalf(jac_d).sparse().T)) if constant_jac else None  # (dd/dx_S)'
     constant_F = not ca.depends_on(ca.vertcat(grad0, ca.vec(hess_F)), x)
     V = ca.SX.sym("V", int(inner.d_expr.numel()), inner.n_y)
     outputs = ([] if constant_jac else [ca.jtimes(inner.d_expr, x[S], V, True)]) + ([] if constant_F else

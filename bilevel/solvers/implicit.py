@@ -41,6 +41,7 @@ from scipy.optimize import lsq_linear
 from ..defaults import param
 from ..errors import ModelError
 from ..lower.base import ExpressionLower, KKTValues, LowerSolution
+from ..lower.least_squares import factor_solve
 from ..parameters import CompiledFunction, ValueAndJacobian
 from ..spectral_radius import radius, rho_and_gradient, spectral_radius
 from .base import Prepared
@@ -61,6 +62,10 @@ class Evaluation:
     lower: LowerSolution
     upper: list[np.ndarray]
     kkt: KKTValues | None
+
+
+NO_ROWS = np.zeros(0, dtype=int)
+"""No active lower constraints."""
 
 
 def _shaped(values: list[ca.DM], shapes: list[tuple[int, int]]) -> list[np.ndarray]:
@@ -92,6 +97,10 @@ class Hypergradient:
             [ca.SX(1, 1), G, H, ca.SX(nx, 1), ca.SX(ny, 1), *self._upper_outputs[5:]]
         self._upper = canon.params.function("upper", [x, y], swept)
         self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
+        self._unswept = [np.zeros(shape) for shape in self._upper_shapes]
+        """The sweep's outputs where F (numeric squares) is all there is: zeros, shared read-only."""
+        for part in self._unswept:
+            part.flags.writeable = False
         self._fixed: tuple[int, LowerSolution, KKTValues | None] | None = None  # (parameter revision, ...)
         self._batches: dict[tuple[int, int], ca.Function] = {}  # batch_phi's sweep, by batch size and revision
         self.conic = bool(low.psd)  # LMIs: the lower level's conic KKT system (bilevel.lower.sdp.ConicKKT)
@@ -200,12 +209,14 @@ class Hypergradient:
             if self._squares is None or self._upper_shapes[1][0] + self._upper_shapes[2][0] > 0:
                 upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
             else:  # F is all there is: nothing to sweep
-                upper = [np.zeros(shape) for shape in self._upper_shapes]
+                upper = list(self._unswept)
             if self._squares is not None:
                 upper[0], upper[4] = self._squares(sol.y)
         if self._spectral is not None:
             upper = self._with_spectral(x, sol.y, upper)
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
+        if G.size + H.size == 0:  # nothing penalized
+            return Evaluation(x, F, F, 0.0, sol, upper, vals)
         phi = float(self.penalized(upper[0], upper[1], upper[2])[0])
         violation = max([0.0, *np.maximum(G, 0.0), *np.abs(H)])
         return Evaluation(x, phi, F, violation, sol, upper, vals)
@@ -284,19 +295,24 @@ class Hypergradient:
         """The total x-derivatives of F, G_i and H_j along y*(x) at an evaluated point (columns of an n_x x (1 + nG +
         nH) array, one adjoint solve for all), whether the active set was degenerate, and its size."""
         _, G, H, gxF, gyF, Gx, Gy, Hx, Hy = ev.upper
-        total = np.hstack([gxF, Gx.T, Hx.T])  # columns: d/dx of F, G_i, H_j along y*(x)
-        weak, rows = False, np.zeros(0, dtype=int)
+        penalized = G.size + H.size > 0
+        total = np.hstack([gxF, Gx.T, Hx.T]) if penalized else gxF  # columns: d/dx of F, G_i, H_j along y*(x)
+        weak, rows = False, NO_ROWS
         if not self.low.fixed:  # dy*/dx = 0 otherwise
-            cols = np.hstack([gyF, Gy.T, Hy.T])
+            cols = np.hstack([gyF, Gy.T, Hy.T]) if penalized else gyF
             if self.conic:
                 rows = np.flatnonzero(ev.lower.lam > 0)
                 adjoint, singular = self.low.adjoint(ev.x, ev.lower, cols)
             else:
                 kkt = ev.kkt if ev.kkt is not None else self.low.kkt_values(ev.x, ev.lower)
-                rows, weak = self.active_set(kkt.g, ev.lower.lam)
-                K = self._system(kkt, rows)
-                rhs = np.vstack([cols, np.zeros((K.shape[0] - gyF.size, cols.shape[1]))])
-                Z, rank = self.low.kkt_solve(ev.x, K, rhs)
+                if self.low.n_g + self.low.n_h:
+                    rows, weak = self.active_set(kkt.g, ev.lower.lam)
+                    K = self._system(kkt, rows)
+                    rhs = np.vstack([cols, np.zeros((K.shape[0] - gyF.size, cols.shape[1]))])
+                else:  # unconstrained (least squares, the exact block): K is the Hessian
+                    K, rhs = kkt.hessian, cols
+                Z, rank = (self.low.kkt_solve(ev.x, K, rhs) if kkt.factor is None  # the solve's factor, if it has one
+                           else (factor_solve(kkt.factor, rhs), K.shape[0]))
                 adjoint, singular = self._x_adjoint(ev.x, ev.lower, rows, Z), rank < K.shape[0]
             total = total - adjoint
             weak = weak or singular
@@ -305,11 +321,13 @@ class Hypergradient:
     def gradient(self, ev: Evaluation) -> tuple[np.ndarray, bool, int]:
         """grad phi at an evaluated point, whether the active set was degenerate, and its size.
 
-        Where some |G_i| or |H_j| <= KINK_TOL the penalty is not differentiable: the least-norm element of
-        its subdifferential (coefficients in [0, penalty] or [-penalty, penalty]) is returned.
+        Where some |G_i| or |H_j| <= defaults["implicit.kink_tol"] the penalty is not differentiable: the least-norm
+        element of its subdifferential (coefficients in [0, penalty] or [-penalty, penalty]) is returned.
         """
         total, weak, n_active = self.jacobian(ev)
         G, H = ev.upper[1], ev.upper[2]
+        if G.size + H.size == 0:  # nothing penalized: grad phi = grad F
+            return total[:, 0], weak, n_active
         values = np.concatenate([G, H]).ravel()
         kink = np.abs(values) <= param("implicit.kink_tol")
         coef = self.penalty * np.concatenate([(G.ravel() > 0).astype(float), np.sign(H.ravel())])

@@ -11,6 +11,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import aslinearoperator
 
 import bilevel as bl
+from bilevel import linear_maps
 import bilevel.lower.residual as residual
 from bilevel.problems.vrft_instance import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating
@@ -341,3 +342,21 @@ def test_numeric_squares_keep_a_diagonal_sparse() -> None:
     F, g = squares(v)
     assert F[0, 0] == pytest.approx(-0.5 * np.sum((v - c) ** 2), rel=1e-13)
     assert np.abs(g.ravel() + (v - c)).max() <= 1e-13
+
+
+def test_a_gather_is_the_sparse_product_of_a_selection() -> None:
+    """A selection with scalings and empty rows (a slice of a shifted signal) as a Gather: the same numbers as the sparse
+    product, for vectors and columns, with -0.0 products summed to 0.0 as scipy sums; a row with two entries stays a
+    sparse matrix."""
+    rng = np.random.default_rng(8)
+    rows = np.array([0, 2, 3, 5, 6])
+    J = sp.csr_matrix((rng.standard_normal(5), (rows, rng.permutation(9)[:5])), shape=(7, 9))
+    v, V = rng.standard_normal(9), rng.standard_normal((9, 3))
+    J.data[0], v[J.indices[0]] = 2.0, -0.0  # a -0.0 product
+    gather = linear_maps.Gather.of(J)
+    assert isinstance(gather, linear_maps.Gather)
+    assert np.array_equal(gather @ v, J @ v) and np.array_equal(gather @ V, J @ V)
+    assert np.array_equal(np.signbit(gather @ v), np.signbit(J @ v))
+    full = sp.csr_matrix(np.diag(rng.standard_normal(4)))
+    assert np.array_equal(linear_maps.Gather.of(full) @ v[:4], full @ v[:4])
+    assert isinstance(linear_maps.Gather.of(sp.csr_matrix(np.ones((2, 2)))), sp.csr_matrix)
