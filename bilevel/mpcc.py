@@ -14,6 +14,7 @@ from typing import Any, Callable
 import casadi as ca
 import numpy as np
 
+from . import sparse_jacobian
 from .errors import ModelError, UnsupportedPair
 from .parameters import ParameterSet, scalar
 from .vech import lower_triangular, vech_sx
@@ -232,6 +233,7 @@ class NLPForm:
     psd_values: Callable | None = None
     params: ParameterSet = field(default_factory=ParameterSet)
     _solvers: dict[str, ca.Function] = field(default_factory=dict, repr=False)
+    _derivatives: dict[str, ca.Function] = field(default_factory=dict, repr=False)
 
     def start(self, w: np.ndarray) -> np.ndarray:
         """Full NLP start from an MPCC point: w followed by PSD factors of each pair's (S, L) at w."""
@@ -241,12 +243,34 @@ class NLPForm:
         return np.concatenate([np.asarray(w, dtype=float)] + [psd_factor(m) for m in mats])
 
     def solver(self, plugin: str = "ipopt", options: dict[str, Any] | None = None) -> ca.Function:
-        """A CasADi nlpsol for this NLP, cached per (plugin, options)."""
+        """A CasADi nlpsol for this NLP, cached per (plugin, options); IPOPT's derivative functions are built once
+        for every options (derivatives)."""
         key = f"{plugin}:{sorted((options or {}).items())!r}"
         if key not in self._solvers:
             nlp = {"x": self.x, "f": self.f, "g": self.g, "p": ca.vertcat(self.p, self.params.sym)}
-            self._solvers[key] = ca.nlpsol("mpcc_nlp", plugin, nlp, options or {})
+            given = dict(options or {})
+            if plugin == "ipopt":
+                exact = (given.get("ipopt") or {}).get("hessian_approximation", "exact") == "exact"
+                given.update(self.derivatives(exact))
+            self._solvers[key] = ca.nlpsol("mpcc_nlp", plugin, nlp, given)
         return self._solvers[key]
+
+    def derivatives(self, hessian: bool = True) -> dict[str, ca.Function]:
+        """nlpsol's grad_f, jac_g and (if `hessian`) hess_lag functions of this NLP (the upper triangle of the
+        Lagrangian's Hessian), built once: the Jacobian by sparse_jacobian, which differentiates dense rows and
+        columns apart."""
+        d, p = self._derivatives, ca.vertcat(self.p, self.params.sym)
+        if "jac_g" not in d:
+            d["grad_f"] = ca.Function("nlp_grad_f", [self.x, p], [self.f, ca.gradient(self.f, self.x)],
+                                      ["x", "p"], ["f", "grad_f_x"])
+            d["jac_g"] = ca.Function("nlp_jac_g", [self.x, p], [self.g, sparse_jacobian.jacobian(self.g, self.x)],
+                                     ["x", "p"], ["g", "jac_g_x"])
+        if hessian and "hess_lag" not in d:
+            sigma, lam = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", int(self.g.numel()))
+            hess = ca.triu(ca.hessian(sigma * self.f + ca.dot(lam, self.g), self.x)[0])
+            d["hess_lag"] = ca.Function("nlp_hess_l", [self.x, p, sigma, lam], [hess],
+                                        ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+        return {k: v for k, v in d.items() if hessian or k != "hess_lag"}
 
 
 @dataclass
