@@ -97,6 +97,8 @@ def run(problem: bl.BilevelProblem, method: str, **options: object) -> tuple[str
 
 LIMIT = 60.0
 """time_limit of every solve here (seconds)."""
+TIE = 1e-6
+"""Objectives within this relative distance of the best are ties (the family section's best method: the fastest)."""
 
 
 def table(rows: list[tuple[str, str, str, float | None, float, str]], sense: str) -> None:
@@ -152,7 +154,9 @@ def family_section() -> None:
                 rows.append((label, *run(registry.get(name, norm=norm), method, **options)))
                 cpu[label] = time.process_time() - c0
             table(rows, "max")
-            best = max((r for r in rows if r[3] is not None and r[2] in ("solved", "inaccurate")), key=lambda r: r[3])
+            done = [r for r in rows if r[3] is not None and r[2] in ("solved", "inaccurate")]
+            top = max(r[3] for r in done)
+            best = min((r for r in done if r[3] >= top - TIE * abs(top)), key=lambda r: r[4])  # ties: the fastest
             auto = rows[0]
             ratio = auto[3] / best[3] if auto[3] is not None else float("nan")
             summary.append((f"{name} {norm}", auto, cpu["auto"], best, cpu[best[0]], ratio, before))
