@@ -247,8 +247,8 @@ class NLPForm:
         return np.concatenate([np.asarray(w, dtype=float)] + [psd_factor(m) for m in mats])
 
     def solver(self, plugin: str = "ipopt", options: dict[str, Any] | None = None) -> ca.Function:
-        """A CasADi nlpsol for this NLP, cached per (plugin, options); IPOPT's derivative functions are built once
-        for every options (derivatives)."""
+        """A CasADi nlpsol for this NLP, cached per (plugin, options); IPOPT gets the derivative functions built once
+        (derivatives), so another options dict costs no differentiation."""
         key = f"{plugin}:{sorted((options or {}).items())!r}"
         if key not in self._solvers:
             nlp = {"x": self.x, "f": self.f, "g": self.g, "p": ca.vertcat(self.p, self.params.sym)}
