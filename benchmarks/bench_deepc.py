@@ -7,7 +7,8 @@ y_d + dy, the attacker changing ATTACKED samples within an l_inf budget |dy_t| <
 true plant's tracking cost of the planned inputs (the plant's response from the same past, an affine map of u).
 
 Every applicable method runs on it (time, objective, status) and the default; the best objective is the reference.
-The registered DeePC attacks (deepc-tracking, deepc-first-action) get the same table at their defaults.
+The registered DeePC attacks (deepc-tracking, deepc-first-action) get the same table at their defaults with either
+budget norm (method ipopt is what auto runs there), then the default against the best method.
 Usage: python benchmarks/bench_deepc.py > benchmarks/results/bench_deepc.txt
        python benchmarks/bench_deepc.py family   (the registered attacks' tables only)
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import os
 import platform
+import subprocess
 import sys
 import time
 from datetime import datetime, timezone
@@ -95,6 +97,8 @@ def run(problem: bl.BilevelProblem, method: str, **options: object) -> tuple[str
 
 LIMIT = 60.0
 """time_limit of every solve here (seconds)."""
+TIE = 1e-6
+"""Objectives within this relative distance of the best are ties (the family section's best method: the fastest)."""
 
 
 def table(rows: list[tuple[str, str, str, float | None, float, str]], sense: str) -> None:
@@ -124,16 +128,44 @@ def deepc_section() -> None:
     print("  auto's reason:", next(r[5] for r in rows if r[0] == "auto").split(";")[0])
 
 
+def load() -> str:
+    """The machine's load averages (1, 5, 15 min) from `uptime`."""
+    return subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip().split("load average:")[-1].strip()
+
+
 def family_section() -> None:
     """The registered DeePC attacks (bilevel/problems/deepc.py: the flexible transmission, T = 200, both signals
-    poisoned, l2 budgets of 5%) at their defaults, every applicable method."""
+    poisoned within 5% budgets) with both norms, every applicable method; then the default against the best method:
+    objective ratio, wall and CPU seconds (this process's; IPOPT's MUMPS may run two threads), and the machine's load
+    before each problem."""
     from bilevel.problems import registry
 
+    summary = []
     for name in ("deepc-tracking", "deepc-first-action"):
-        print(f"\n{name} (registered, defaults {registry.spec(name).defaults}); time_limit {LIMIT:g} s each:")
-        rows = [(m, *run(registry.get(name), m)) for m in ("auto", "ipopt", "relaxation", "hypergradient")]
-        rows.append(("auto starts=1", *run(registry.get(name), "auto", starts=1)))
-        table(rows, "max")
+        for norm in ("l2", "linf"):
+            before = load()
+            print(f"\n{name}, norm={norm} (other parameters at the registered defaults); time_limit {LIMIT:g} s each; "
+                  f"load before: {before}")
+            rows, cpu = [], {}
+            for label, method, options in (("auto", "auto", {}), ("relaxation", "relaxation", {}),
+                                           ("hypergradient", "hypergradient", {}),
+                                           ("auto starts=1", "auto", {"starts": 1})):
+                c0 = time.process_time()
+                rows.append((label, *run(registry.get(name, norm=norm), method, **options)))
+                cpu[label] = time.process_time() - c0
+            table(rows, "max")
+            done = [r for r in rows if r[3] is not None and r[2] in ("solved", "inaccurate")]
+            top = max(r[3] for r in done)
+            best = min((r for r in done if r[3] >= top - TIE * abs(top)), key=lambda r: r[4])  # ties: the fastest
+            auto = rows[0]
+            ratio = auto[3] / best[3] if auto[3] is not None else float("nan")
+            summary.append((f"{name} {norm}", auto, cpu["auto"], best, cpu[best[0]], ratio, before))
+    print("\nthe default (auto) against the best method of each table (objective ratio: auto's over the best's):")
+    print(f"  {'problem':26s} {'auto s':>7s} {'CPU s':>6s} {'best method':>14s} {'best s':>7s} {'CPU s':>6s} "
+          f"{'objective ratio':>16s}  load before (1, 5, 15 min)")
+    for label, auto, auto_cpu, best, best_cpu, ratio, before in summary:
+        print(f"  {label:26s} {auto[4]:7.2f} {auto_cpu:6.2f} {best[0]:>14s} {best[4]:7.2f} {best_cpu:6.2f} "
+              f"{ratio:16.4f}  {before}")
 
 
 def evaluation_cost() -> None:

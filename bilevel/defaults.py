@@ -59,6 +59,9 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "reduced.scale": (10.0, "half-width of reduced's random starts where a bound is infinite (units of x)"),
     "reduced.nlp_tol": (1e-8, "IPOPT's tol on the reduced NLP (its scaled KKT error)"),
     "reduced.max_iter": (300, "IPOPT iterations of the reduced NLP per start (count)"),
+    "ipopt.metis_from": (500, "KKT systems with at least this many variables plus constraints are ordered by METIS "
+                              "(mumps_pivot_order 5) unless option ipopt chooses: MUMPS's automatic order factored "
+                              "the DeePC learner's (920 rows) 5x slower; smaller ones keep MUMPS's choice (count)"),
     "ipopt.complementarity_t": (1e-9, "relaxation parameter t of the default complementarity mode Scholtes(t)"),
     "ipopt.polish_tie": (1e-6, "a further candidate is branch-polished only if it beats the polished one by more "
                                "than this (relative)"),

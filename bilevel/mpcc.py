@@ -14,6 +14,7 @@ from typing import Any, Callable
 import casadi as ca
 import numpy as np
 
+from . import sparse_jacobian
 from .errors import ModelError, UnsupportedPair
 from .parameters import ParameterSet, scalar
 from .vech import lower_triangular, vech_sx
@@ -232,6 +233,11 @@ class NLPForm:
     psd_values: Callable | None = None
     params: ParameterSet = field(default_factory=ParameterSet)
     _solvers: dict[str, ca.Function] = field(default_factory=dict, repr=False)
+    common_rows: int = 0
+    """The first rows of g, which with f every transcription of the MPCC shares (its equalities and inequalities)."""
+    _derivatives: dict[str, ca.Function] = field(default_factory=dict, repr=False)
+    _shared: dict[str, ca.Function] = field(default_factory=dict, repr=False)
+    """Derivative functions of f and the common rows, one dict for every transcription of the MPCC."""
 
     def start(self, w: np.ndarray) -> np.ndarray:
         """Full NLP start from an MPCC point: w followed by PSD factors of each pair's (S, L) at w."""
@@ -241,12 +247,56 @@ class NLPForm:
         return np.concatenate([np.asarray(w, dtype=float)] + [psd_factor(m) for m in mats])
 
     def solver(self, plugin: str = "ipopt", options: dict[str, Any] | None = None) -> ca.Function:
-        """A CasADi nlpsol for this NLP, cached per (plugin, options)."""
+        """A CasADi nlpsol for this NLP, cached per (plugin, options); IPOPT gets the derivative functions built once
+        (derivatives), so another options dict costs no differentiation."""
         key = f"{plugin}:{sorted((options or {}).items())!r}"
         if key not in self._solvers:
             nlp = {"x": self.x, "f": self.f, "g": self.g, "p": ca.vertcat(self.p, self.params.sym)}
-            self._solvers[key] = ca.nlpsol("mpcc_nlp", plugin, nlp, options or {})
+            given = dict(options or {})
+            if plugin == "ipopt":
+                exact = (given.get("ipopt") or {}).get("hessian_approximation", "exact") == "exact"
+                given.update(self.derivatives(exact))
+            self._solvers[key] = ca.nlpsol("mpcc_nlp", plugin, nlp, given)
         return self._solvers[key]
+
+    def derivatives(self, hessian: bool = True) -> dict[str, ca.Function]:
+        """nlpsol's grad_f, jac_g and (if `hessian`) hess_lag functions of this NLP (the upper triangle of the
+        Lagrangian's Hessian), built once per transcription, their part from f and the first common_rows rows of g
+        once per MPCC (shared)."""
+        d, p = self._derivatives, ca.vertcat(self.p, self.params.sym)
+        if "jac_g" not in d:
+            d["grad_f"] = ca.Function("nlp_grad_f", [self.x, p], [self.f, ca.gradient(self.f, self.x)],
+                                      ["x", "p"], ["f", "grad_f_x"])
+            d["jac_g"] = ca.Function("nlp_jac_g", [self.x, p], [self.g, self._jacobian()], ["x", "p"],
+                                     ["g", "jac_g_x"])
+        if hessian and "hess_lag" not in d:
+            sigma, lam = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", int(self.g.numel()))
+            d["hess_lag"] = ca.Function("nlp_hess_l", [self.x, p, sigma, lam], [ca.triu(self._hessian(sigma, lam))],
+                                        ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+        return {k: v for k, v in d.items() if hessian or k != "hess_lag"}
+
+    def _jacobian(self) -> ca.SX:
+        """dg/dx: the common rows' (functions of w alone) from the shared cache, the mode's rows by sparse_jacobian,
+        which differentiates dense rows and columns apart."""
+        n, c, params = self.n_w, self.common_rows, self.params.sym
+        w, n_aux = self.x[:n], int(self.x.numel()) - n
+        if "jacobian" not in self._shared:
+            self._shared["jacobian"] = ca.Function("common_jac_g", [w, params],
+                                                   [sparse_jacobian.jacobian(self.g[:c], w)])
+        common = ca.horzcat(self._shared["jacobian"](w, params), ca.SX(c, n_aux))
+        return ca.vertcat(common, sparse_jacobian.jacobian(self.g[c:], self.x))
+
+    def _hessian(self, sigma: ca.SX, lam: ca.SX) -> ca.SX:
+        """The Hessian in x of sigma f + lam' g: of f and the common rows from the shared cache, of the mode's rows
+        here."""
+        n, c, params = self.n_w, self.common_rows, self.params.sym
+        w, n_aux = self.x[:n], int(self.x.numel()) - n
+        if "hessian" not in self._shared:
+            s, l_c = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", c)
+            self._shared["hessian"] = ca.Function("common_hess_l", [w, params, s, l_c],
+                                                  [ca.hessian(s * self.f + ca.dot(l_c, self.g[:c]), w)[0]])
+        common = ca.diagcat(self._shared["hessian"](w, params, sigma, lam[:c]), ca.SX(n_aux, n_aux))
+        return common + ca.hessian(ca.dot(lam[c:], self.g[c:]), self.x)[0]
 
 
 @dataclass
@@ -276,6 +326,7 @@ class MPCC:
         self._eval = self.params.function("mpcc_eval", [self.w], outs)
         self._n_psd = len(psd)
         self._nlps: dict[tuple, NLPForm] = {}
+        self._shared_derivatives: dict[str, ca.Function] = {}
         self._pair_rows: dict[tuple, dict[str, int]] = {}
         """Per transcription (structure key): the offset in g of each scalar pair's rows."""
 
@@ -321,7 +372,8 @@ class MPCC:
         return NLPForm(ca.vertcat(self.w, aux), self.objective, g, tau,
                        np.concatenate([self.lbw, np.full(n_aux, -np.inf)]),
                        np.concatenate([self.ubw, np.full(n_aux, np.inf)]), lbg.astype(float), ubg.astype(float),
-                       np.array([mode.tau]), self.n_variables, init, self.params)
+                       np.array([mode.tau]), self.n_variables, init, self.params, common_rows=n_eq + n_in,
+                       _shared=self._shared_derivatives)
 
     def residuals(self, w: np.ndarray) -> dict[str, float]:
         """Max violations at w: equality, inequality (incl. bounds), pair sign, complementarity; a NaN (a function

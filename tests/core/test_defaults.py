@@ -37,7 +37,7 @@ BEFORE = {  # the module constants and option defaults the registry replaced, as
     "block_exact.gain_tol": 1e-5, "implicit.penalty": 1e4, "implicit.active_tol": 1e-6, "implicit.kink_tol": 1e-9,
     "ascent.armijo": 1e-4, "ascent.window": 5, "starts.conditioning_steps": 10, "ipopt.starts": 8,
     "reduced.starts": 1, "reduced.scale": 10.0, "reduced.nlp_tol": 1e-8, "reduced.max_iter": 300,
-    "ipopt.scale": 10.0, "ipopt.nlp_tol": 1e-10, "ipopt.max_iter": 3000, "ipopt.acceptable_tol": 1e-7,
+    "ipopt.metis_from": 500, "ipopt.scale": 10.0, "ipopt.nlp_tol": 1e-10, "ipopt.max_iter": 3000, "ipopt.acceptable_tol": 1e-7,
     "ipopt.max_wall_time": 300.0, "ipopt.complementarity_t": 1e-9, "ipopt.polish_tie": 1e-6,
     "ipopt.warm_max_iter": 50, "ipopt.warm_max_wall_time": 10.0, "relaxation.t0": 1.0, "relaxation.factor": 0.1,
     "relaxation.t_min": 1e-12, "relaxation.comp_tol": 1e-7, "evolution.starts": 1, "evolution.pop_tol": 1e-8,
