@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 import uuid
 from contextlib import contextmanager
-from typing import IO, Iterator
+from typing import IO, Any, Iterator
 
 
 @contextmanager
@@ -46,3 +46,15 @@ def atomic_open(path: str, mode: str = "w", encoding: str | None = "utf-8", newl
         with open(tmp, mode, encoding=None if "b" in mode else encoding, newline=newline) as fh:
             yield fh
             fh.flush()
+
+
+def save_figure(fig: Any, out_dir: str, name: str) -> str:
+    """Write a matplotlib figure as out_dir/name.png and .pdf (each atomically, tight bounding box), close it if
+    pyplot manages it, and return "name.png" (what a report links)."""
+    for ext in ("png", "pdf"):
+        with atomic_path(os.path.join(out_dir, f"{name}.{ext}")) as tmp:
+            fig.savefig(tmp, dpi=130, bbox_inches="tight")
+    import matplotlib.pyplot as plt  # imported here: files.py is used where matplotlib is not
+
+    plt.close(fig)
+    return f"{name}.png"

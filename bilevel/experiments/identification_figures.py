@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import matplotlib
@@ -12,7 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
-from ..files import atomic_path  # noqa: E402
+from ..files import save_figure  # noqa: E402
 from ..problems.identification import STATISTICS  # noqa: E402
 from .identification import Plan, cells, compare  # noqa: E402
 from .identification_baseline import SLSQP_ITERATIONS, START_SCALE  # noqa: E402
@@ -22,14 +21,6 @@ ENGINE, BASELINE, BEFORE = "tab:blue", "tab:orange", "0.6"
 TEST_NAMES = {"variance": "residual variance (chi-square)", "whiteness": "whiteness, 10 lags (portmanteau)",
               "input": "input contribution (F-test)"}
 BUDGET_TEXT = "budget ||dX||_F/||X||_F = ||dU||_F/||U||_F = delta, stealth |1 - stat'/stat| <= delta"
-
-
-def _save(fig: plt.Figure, out_dir: str, name: str) -> str:
-    for ext in ("png", "pdf"):
-        with atomic_path(os.path.join(out_dir, f"{name}.{ext}")) as tmp:
-            fig.savefig(tmp, dpi=130, bbox_inches="tight")
-    plt.close(fig)
-    return f"{name}.png"
 
 
 def _boxes(ax: plt.Axes, groups: list[tuple[list[float], str]], deltas: list[float]) -> None:
@@ -73,7 +64,7 @@ def figure_error(rows: Rows, baseline: Rows, out_dir: str) -> str:
         ax.legend([Patch(color=ENGINE, alpha=0.6), Patch(color=BASELINE, alpha=0.6)],
                   [f"engine (ipopt, KKT form), {n} data sets", f"SLSQP baseline, first {nb} data sets",
                    ][:len(groups)], fontsize=7, title="stealthy results only (counts in report.md)", title_fontsize=7)
-    return _save(fig, out_dir, "error_norm")
+    return save_figure(fig, out_dir, "error_norm")
 
 
 def figure_statistics(rows: Rows, out_dir: str) -> str:
@@ -90,7 +81,7 @@ def figure_statistics(rows: Rows, out_dir: str) -> str:
             ax.set_title(f"T = {T}; {BUDGET_TEXT}", fontsize=8)
             ax.legend([Patch(color=BEFORE, alpha=0.6), Patch(color=ENGINE, alpha=0.6)],
                       ["clean data (before)", "poisoned by the stealthy attack (after)"], fontsize=7)
-    return _save(fig, out_dir, "statistics")
+    return save_figure(fig, out_dir, "statistics")
 
 
 def figure_p_values(rows: Rows, out_dir: str) -> str:
@@ -110,7 +101,7 @@ def figure_p_values(rows: Rows, out_dir: str) -> str:
             ax.set_title(f"{TEST_NAMES[name]}, T = {T}\n{BUDGET_TEXT}", fontsize=8)
             ax.legend([Patch(color=BEFORE, alpha=0.6), Patch(color=ENGINE, alpha=0.6), line],
                       ["clean data (before)", "poisoned (after)", "5% level: below it the test rejects"], fontsize=7)
-    return _save(fig, out_dir, "p_values")
+    return save_figure(fig, out_dir, "p_values")
 
 
 def make_all(rows: Rows, baseline: Rows, out_dir: str) -> dict[str, str]:

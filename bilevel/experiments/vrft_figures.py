@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import matplotlib
@@ -17,16 +16,8 @@ from ..ddc.analysis import closed_loop_bode, closed_loop_step  # noqa: E402
 from ..ddc.bases import controller_tf  # noqa: E402
 from ..ddc.data import simulate  # noqa: E402
 from ..problems.vrft_instance import CONVENTIONS, PAPER_THETA0  # noqa: E402
-from ..files import atomic_path  # noqa: E402
+from ..files import save_figure  # noqa: E402
 from .vrft import EPS_U, EPS_Y, PAPER_TABLE1, make_attack, sim_seeds, table_markdown  # noqa: E402
-
-
-def _save(fig: plt.Figure, out_dir: str, name: str) -> str:
-    for ext in ("png", "pdf"):
-        with atomic_path(os.path.join(out_dir, f"{name}.{ext}")) as tmp:
-            fig.savefig(tmp, dpi=130, bbox_inches="tight")
-    plt.close(fig)
-    return f"{name}.png"
 
 
 BUDGET = (0.1, 0.057)
@@ -66,7 +57,7 @@ def figure_data(seed: int, out_dir: str) -> str:
         ax.legend(loc="upper right", fontsize=8)
     axes[1].set_xlabel("t")
     fig.suptitle(f"Scenario B, {_budget_text()} (max-min attack)")
-    return _save(fig, out_dir, "fig2_data")
+    return save_figure(fig, out_dir, "fig2_data")
 
 
 def figure_loss(summaries: dict, out_dir: str) -> str:
@@ -93,7 +84,7 @@ def figure_loss(summaries: dict, out_dir: str) -> str:
     # one legend below both panels: inside, it hid scenario B's curves
     _band_legend(axes[0], main[("A", EPS_U[0], EPS_Y[0])]["n"], where=fig, loc="lower center", ncol=3, fontsize=8)
     fig.subplots_adjust(bottom=0.3, wspace=0.3)
-    return _save(fig, out_dir, "fig3a_loss")
+    return save_figure(fig, out_dir, "fig3a_loss")
 
 
 def _step_axes(ax: plt.Axes, atk, thetas: dict[str, np.ndarray], n: int = 150) -> None:
@@ -116,7 +107,7 @@ def figure_steps(seed: int, out_dir: str) -> str:
         atk, res = _instance(scenario, "maxmin", seed)
         _step_axes(ax, atk, {"clean": atk.theta0, "poisoned": res.y["theta"]})
         ax.set_title(f"Max-min attack, scenario {scenario}\n{_budget_text()}")
-    return _save(fig, out_dir, "fig3b_step")
+    return save_figure(fig, out_dir, "fig3b_step")
 
 
 def figure_targeted(seed: int, out_dir: str) -> tuple[str, str]:
@@ -139,7 +130,7 @@ def figure_targeted(seed: int, out_dir: str) -> tuple[str, str]:
         axb.set_ylabel("|T| (dB)")
         axb.set_title(f"Targeted, scenario {scenario}\n{_budget_text()}")
         axb.legend(fontsize=7)
-    return _save(fig, out_dir, "fig4_targeted_step"), _save(fig_b, out_dir, "fig5_targeted_bode")
+    return save_figure(fig, out_dir, "fig4_targeted_step"), save_figure(fig_b, out_dir, "fig5_targeted_bode")
 
 
 def figure_targeted_losses(summaries: dict, out_dir: str) -> str:
@@ -160,7 +151,7 @@ def figure_targeted_losses(summaries: dict, out_dir: str) -> str:
         axes[1, j].set_xlabel("eps_y")
         for ax in axes[:, j]:
             _band_legend(ax, tg[(scenario, EPS_U[0], EPS_Y[0])]["n"])
-    return _save(fig, out_dir, "fig6_targeted_losses")
+    return save_figure(fig, out_dir, "fig6_targeted_losses")
 
 
 def make_all(summaries: dict, out_dir: str, seed: int) -> dict[str, str]:

@@ -34,7 +34,7 @@ from ..ddc.depersis_tesi import (check_persistency, lqr_controller, stabilizing_
                                  state_data)
 from ..ddc.plants import batch_reactor  # noqa: E402
 from ..errors import BilevelError  # noqa: E402
-from ..files import atomic_open, atomic_path  # noqa: E402
+from ..files import atomic_open, save_figure  # noqa: E402
 from ..problems.willems import (DEFAULT_REG, SOLVER_SELECTIONS, WillemsSetting, build_attack,  # noqa: E402
                                 selection_applies)
 from ..result import BilevelResult  # noqa: E402
@@ -340,13 +340,6 @@ def path_thresholds(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 # -- figures --------------------------------------------------------------------------------------------------
-def _save(fig: Figure, out_dir: str, name: str) -> str:
-    for ext in ("png", "pdf"):
-        with atomic_path(os.path.join(out_dir, f"{name}.{ext}")) as tmp:
-            fig.savefig(tmp, dpi=130, bbox_inches="tight")
-    return f"{name}.png"
-
-
 def _series(summary: dict[tuple, dict[str, float]], n: int, method: str, deltas: tuple[float, ...],
             name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     cells = [(d, summary.get((n, method, d))) for d in deltas]
@@ -371,7 +364,7 @@ def figure_eigenvalues(summary: dict[tuple, dict[str, float]], plan: Plan, out_d
         twin.set_ylabel("sum |eig(A+BK)|", color="tab:red")
         ax.set_title(METHODS[method])
         ax.legend(loc="upper left", fontsize=8)
-    return _save(fig, out_dir, "fig7_eigenvalues")
+    return save_figure(fig, out_dir, "fig7_eigenvalues")
 
 
 def figure_objective(summary: dict[tuple, dict[str, float]], plan: Plan, out_dir: str) -> str:
@@ -386,7 +379,7 @@ def figure_objective(summary: dict[tuple, dict[str, float]], plan: Plan, out_dir
     ax.set_xlabel("delta_u (linf budget)")
     ax.set_ylabel("attacker objective log det(Acl Acl')")
     ax.legend(fontsize=8)
-    return _save(fig, out_dir, "fig8_objective")
+    return save_figure(fig, out_dir, "fig8_objective")
 
 
 def signal_delta(summary: dict[tuple, dict[str, float]], plan: Plan, n: int) -> float:
@@ -426,7 +419,7 @@ def figure_signals(rows: list[dict[str, Any]], summary: dict[tuple, dict[str, fl
             ax.set_title(f"N={n}, delta_u={d:g}: mean of {len(sel)} destabilized loops" if ch == 0 else "")
         axes[1, col].set_xlabel("t")
         axes[0, col].legend(fontsize=8)
-    return _save(fig, out_dir, "fig9_signals"), used
+    return save_figure(fig, out_dir, "fig9_signals"), used
 
 
 # -- the report -----------------------------------------------------------------------------------------------

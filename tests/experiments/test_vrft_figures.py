@@ -18,7 +18,7 @@ def drawn(monkeypatch) -> dict:
         figures[name] = fig
         return f"{name}.png"
 
-    monkeypatch.setattr(vrft_figures, "_save", keep)
+    monkeypatch.setattr(vrft_figures, "save_figure", keep)
     return figures
 
 
