@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import matplotlib
@@ -46,6 +47,11 @@ def _grid(rows: Rows) -> tuple[list[int], list[float]]:
     return sorted({r["task"]["T"] for r in rows}), sorted({r["task"]["delta"] for r in rows})
 
 
+def _method(rows: Rows) -> str:
+    """The engine's method name(s) in the rows' tasks (each task's method is its JSON options)."""
+    return ", ".join(sorted({json.loads(r["task"]["method"]).get("method", "auto") for r in rows})) or "none"
+
+
 def figure_error(rows: Rows, baseline: Rows, out_dir: str) -> str:
     """||d[A B]||_2 of the stealthy results per delta, engine (every data set) and SLSQP (its subset), one panel per
     T."""
@@ -62,7 +68,7 @@ def figure_error(rows: Rows, baseline: Rows, out_dir: str) -> str:
         n, nb = len(cells(rows).get((T, deltas[0]), [])), len(cells(baseline).get((T, deltas[0]), []))
         ax.set_title(f"T = {T}: identified model's error\n{BUDGET_TEXT}", fontsize=8)
         ax.legend([Patch(color=ENGINE, alpha=0.6), Patch(color=BASELINE, alpha=0.6)],
-                  [f"engine (ipopt, KKT form), {n} data sets", f"SLSQP baseline, first {nb} data sets",
+                  [f"engine ({_method(rows)}), {n} data sets", f"SLSQP baseline, first {nb} data sets",
                    ][:len(groups)], fontsize=7, title="stealthy results only (counts in report.md)", title_fontsize=7)
     return save_figure(fig, out_dir, "error_norm")
 
@@ -137,8 +143,9 @@ def report(rows: Rows, baseline: Rows, figures: dict[str, str], plan: Plan, timi
         "statistics (residual variance against the known noise variance, portmanteau whiteness over 10 lags, F-test "
         "of the input's contribution) within |1 - stat'/stat| <= delta of its clean value.", "",
         f"Grid: T in {list(plan.horizons)}, delta in {list(plan.deltas)}, {plan.sims} data sets per cell (the same "
-        "data in every delta cell of a T). Engine: method ipopt (KKT form, limited-memory Hessian, at most 300 "
-        "iterations) from the conditioning start scaled into the stealth constraints. Baseline: scipy SLSQP with "
+        "data in every delta cell of a T). Engine: `bilevel.solve` with the method and options under \"Settings "
+        "read from the rows\" below, from the conditioning start scaled into the stealth constraints. Baseline: "
+        "scipy SLSQP with "
         f"exact gradients on the same program with the learner in closed form, {SLSQP_ITERATIONS} iterations, from a "
         f"random point at {START_SCALE} x the budget radii, on the first {plan.baseline_sims} data sets of each "
         "cell. Every number below is the defender's: a numpy refit of the returned data, judged by "
