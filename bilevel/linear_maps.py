@@ -58,6 +58,19 @@ class Gather:
         return out
 
 
+def jacobian_nonzeros_exceed(expr: ca.SX, x: ca.SX, limit: float, sample: int = 32) -> bool:
+    """Whether d expr / dx has more than `limit` nonzeros. Judged first on `sample` evenly spaced columns (their count
+    scaled to all columns): an estimate above twice the limit refuses without forming the whole pattern, which for a
+    recursion over N samples (a dense lower triangle) costs O(N^2) time and memory; otherwise the exact count."""
+    n = int(x.numel())
+    if n > sample:
+        columns = np.unique(np.linspace(0, n - 1, sample).round().astype(int))
+        seen = ca.jacobian_sparsity(expr, ca.vertcat(*[x[int(i)] for i in columns])).nnz()
+        if seen * n / columns.size > 2 * limit:
+            return True
+    return ca.jacobian_sparsity(expr, x).nnz() > limit
+
+
 def affine_in(expr: ca.SX, x: ca.SX, fixed: ca.SX) -> tuple[Gather | sp.csr_matrix, ca.SX,
                                                             Gather | sp.csr_matrix] | None:
     """(J, b, J') with expr = J x + b, J sparse and numeric (a Gather where it is one, both ways; reading neither x

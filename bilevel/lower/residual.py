@@ -19,7 +19,7 @@ import scipy.sparse as sp
 
 from ..defaults import param
 from ..errors import BilevelError
-from ..linear_maps import Gather, affine_in
+from ..linear_maps import Gather, affine_in, jacobian_nonzeros_exceed
 from ..parameters import CompiledFunction, ParameterSet, scalar
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
@@ -169,7 +169,7 @@ class ResidualLeastSquares(LowerLevel):
         leader moves, sliced or mapped; b, the clean signals, may be parameters: then b is their function, evaluated
         once per parameter revision): C and d cost one sparse product, their x-adjoint one transposed one; else None
         (the expressions are evaluated)."""
-        if ca.jacobian_sparsity(data, self.x).nnz() > param("residual.affine_fill") * self._data.n_instructions():
+        if jacobian_nonzeros_exceed(data, self.x, param("residual.affine_fill") * self._data.n_instructions()):
             return None  # e.g. a recursive filter: a few operations per sample, a dense lower-triangular Jacobian
         parts = affine_in(data, self.x, self.params.sym)
         if parts is None:

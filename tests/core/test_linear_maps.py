@@ -360,3 +360,26 @@ def test_a_gather_is_the_sparse_product_of_a_selection() -> None:
     full = sp.csr_matrix(np.diag(rng.standard_normal(4)))
     assert np.array_equal(linear_maps.Gather.of(full) @ v[:4], full @ v[:4])
     assert isinstance(linear_maps.Gather.of(sp.csr_matrix(np.ones((2, 2)))), sp.csr_matrix)
+
+
+def test_jacobian_nonzeros_exceed_refuses_a_recursion_from_a_sample_and_counts_a_fir_exactly() -> None:
+    """A recursion over N samples has a dense lower-triangular Jacobian (N(N+1)/2 nonzeros), refused from 32 sampled
+    columns without forming the pattern (O(N^2)); a 3-tap FIR map (3N - 3 nonzeros) is counted exactly at the edge."""
+    import casadi as ca
+
+    from bilevel.linear_maps import jacobian_nonzeros_exceed
+
+    n = 400
+    x = ca.SX.sym("x", n)
+    state, rec = ca.SX(0), []
+    for k in range(n):
+        state = 0.9 * state + x[k]
+        rec.append(state)
+    recursion = ca.vertcat(*rec)
+    assert ca.jacobian_sparsity(recursion, x).nnz() == n * (n + 1) // 2
+    assert jacobian_nonzeros_exceed(recursion, x, 10 * n)
+    assert not jacobian_nonzeros_exceed(recursion, x, n * (n + 1) // 2)
+    fir = ca.vertcat(*[x[k] + 0.5 * x[k - 1] + 0.25 * x[k - 2] for k in range(2, n)])
+    exact = 3 * (n - 2)
+    assert ca.jacobian_sparsity(fir, x).nnz() == exact
+    assert jacobian_nonzeros_exceed(fir, x, exact - 1) and not jacobian_nonzeros_exceed(fir, x, exact)
