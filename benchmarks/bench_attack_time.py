@@ -41,7 +41,8 @@ def worker(name: str, seeds: int) -> None:
         read = lambda r: (r.stats["value"], r.stats["spectral_radius"] >= 1.0)  # noqa: E731
     else:
         from bilevel.attacks.willems import destabilize_attack, hypergradient_attack
-        from bilevel.problems.willems import WillemsSetting, build_attack
+        from bilevel.problems.willems import build_attack
+        from bilevel.problems.willems_instance import WillemsSetting
 
         objective = name.split("-")[1]
         run = destabilize_attack if objective == "destabilize" else (lambda a: hypergradient_attack(a, starts=8))

@@ -22,7 +22,7 @@ import time
 import numpy as np
 import scipy.linalg
 
-from bilevel.attacks.willems import destabilize_attack, engine
+from bilevel.attacks.willems import destabilize_attack
 from bilevel.ddc.plants import batch_reactor
 from bilevel.experiments.willems import sim_seeds
 from bilevel.problems.willems import build_attack
@@ -94,7 +94,7 @@ def main() -> None:
                 destabilize_attack(attack, seed=attack_seed)  # the attack's prepared problem and learner kept
                 t_ascent.append(time.process_time() - t0)
                 with single_threaded():  # the learner's Q, for the baseline
-                    q = engine(attack, radius=True).evaluate(np.zeros(attack.budget().size)).lower.y.reshape(
+                    q = attack.oracle(True).evaluate(np.zeros(attack.budget().size)).lower.y.reshape(
                         n, -1, order="F")
                     s_mat = attack.x[:, :n] @ q  # S = X0 Q, symmetric at the learner's solution
                     g = q @ np.linalg.inv(0.5 * (s_mat + s_mat.T))

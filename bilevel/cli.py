@@ -25,7 +25,7 @@ from .solvers import METHODS, solve
 from .solvers.registry import AUTO
 
 WILLEMS_SELECTIONS = ("min-norm", "tikhonov", "clarabel", "scs")
-"""bilevel.problems.willems.SELECTIONS, spelled out so the parser does not import the Willems problems (~1 s)."""
+"""bilevel.problems.willems_instance.SELECTIONS, spelled out so the parser does not import the Willems problems (~1 s)."""
 
 
 def _cmd_list(args: argparse.Namespace) -> int:

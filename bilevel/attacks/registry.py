@@ -67,7 +67,8 @@ def _willems(objective: str) -> Attack:
     """The structured attack on willems-<objective>: destabilize_attack, else hypergradient_attack, by default without
     its stop at instability (the criterion's local maximum, as a generic method would seek)."""
     def run(starts: int | None = None, seed: int = 0, **params: Any) -> BilevelResult:
-        from ..problems.willems import WillemsSetting, build_attack
+        from ..problems.willems import build_attack
+        from ..problems.willems_instance import WillemsSetting
 
         options = _split(f"willems-{objective}", params)
         built = build_attack(WillemsSetting(objective=objective, **{**params, "seed": seed}))

@@ -32,14 +32,14 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from ..attacks.willems import engine, loop  # noqa: E402
 from ..errors import RankDeficientRegressor  # noqa: E402
 from ..files import atomic_open, atomic_path  # noqa: E402
 from ..problems import defended_deepc, defended_identification  # noqa: E402
 from ..problems.deepc import declare as declare_deepc  # noqa: E402
 from ..problems.deepc_instance import attack_instance as deepc_instance  # noqa: E402
 from ..problems.defended_vrft import declare, defended_instance, model_reference_cost  # noqa: E402
-from ..problems.willems import WillemsAttack, WillemsSetting, build_attack, criterion_values  # noqa: E402
+from ..problems.willems import build_attack  # noqa: E402
+from ..problems.willems_instance import WillemsAttack, WillemsSetting, criterion_values  # noqa: E402
 from ..solvers.budget_search import smallest_budget  # noqa: E402
 from ..solvers.registry import solve  # noqa: E402
 from .defenses_detection import run_detection  # noqa: E402
@@ -73,7 +73,7 @@ REL_TOL = 0.1
 def clean_gain(attack: WillemsAttack) -> np.ndarray:
     """The learner's gain on the clean data (the engine's SDP lower level solved at zero poisoning)."""
     zero = np.zeros(int(attack.upper.numel()))
-    return loop(attack, zero, engine(attack).evaluate(zero).lower.y)[0]
+    return attack.loop(zero, attack.oracle().evaluate(zero).lower.y)[0]
 
 
 def h2_cost(attack: WillemsAttack, gain: np.ndarray) -> float:

@@ -31,7 +31,8 @@ from ..files import atomic_open
 from ..problems.defended_vrft import declare, defended_instance
 from ..problems.identification import problem_for
 from ..problems.identification_instance import attack_instance, least_squares_fit
-from ..problems.willems import WillemsSetting, build_attack
+from ..problems.willems import build_attack
+from ..problems.willems_instance import WillemsSetting
 from ..solvers.registry import solve
 from .identification import METHOD
 from .stats import wilson_interval

@@ -35,8 +35,9 @@ from ..ddc.depersis_tesi import (check_persistency, lqr_controller, stabilizing_
 from ..ddc.plants import batch_reactor  # noqa: E402
 from ..errors import BilevelError  # noqa: E402
 from ..files import atomic_open, save_figure  # noqa: E402
-from ..problems.willems import (DEFAULT_REG, SOLVER_SELECTIONS, WillemsSetting, build_attack,  # noqa: E402
-                                selection_applies)
+from ..problems.willems import build_attack  # noqa: E402
+from ..problems.willems_instance import (DEFAULT_REG, SOLVER_SELECTIONS, WillemsSetting,  # noqa: E402
+                                         selection_applies)
 from ..result import BilevelResult  # noqa: E402
 from .stats import mean_interval, wilson_interval  # noqa: E402
 from .executor import open_executor  # noqa: E402

@@ -19,7 +19,8 @@ from matplotlib.figure import Figure  # noqa: E402
 from ..attacks.willems import destabilize_attack  # noqa: E402
 from ..errors import ModelError  # noqa: E402
 from ..files import atomic_open, atomic_path  # noqa: E402
-from ..problems.willems import WillemsSetting, build_attack  # noqa: E402
+from ..problems.willems import build_attack  # noqa: E402
+from ..problems.willems_instance import WillemsSetting  # noqa: E402
 from ..solvers.budget_search import BudgetSearch, smallest_budget  # noqa: E402
 from .executor import open_executor  # noqa: E402
 from .sweep import NUMBER, check_fields, run_sweep, stderr_progress  # noqa: E402

@@ -12,7 +12,8 @@ from typing import Any
 
 from ..model import BilevelProblem
 from .registry import register
-from .willems import DEFAULT_HORIZON, SOURCE, WillemsSetting, build_attack
+from .willems import SOURCE, build_attack
+from .willems_instance import DEFAULT_HORIZON, WillemsSetting
 
 
 @register("defense-willems-ridge", source=SOURCE + "; issue 29: Tikhonov regularization of Q as a defense",

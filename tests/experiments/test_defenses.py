@@ -49,7 +49,7 @@ def test_summary_per_setting(tmp_path):
 
 def test_willems_task_matches_its_parts():
     from bilevel.experiments.willems_budget import smallest_destabilizing_budget
-    from bilevel.problems.willems import WillemsSetting
+    from bilevel.problems.willems_instance import WillemsSetting
 
     task = {"learner": "willems", "defense": "ridge", "param": 1e-2, "N": 15, "seed": 3, "attack_seed": 1}
     row = frontier_task(task)
@@ -88,7 +88,7 @@ def test_detection_table():
 def test_attack_respecting_the_input_check_leaves_the_input_clean():
     from bilevel.ddc.input_integrity import filtered_white_spectrum, whittle_deviance
     from bilevel.experiments.defenses_detection import detection_task
-    from bilevel.problems.willems import WillemsSetting
+    from bilevel.problems.willems_instance import WillemsSetting
 
     row = detection_task({"case": "willems-respects", "N": 128, "T": 15, "seed": 5, "attack_seed": 2})
     _, u = WillemsSetting(horizon=15, seed=5).experiment()

@@ -9,7 +9,8 @@ import pytest
 
 import bilevel as bl
 from bilevel.ddc.depersis_tesi import state_data
-from bilevel.problems.willems import DEFAULT_REG, WillemsAttack, build_attack
+from bilevel.problems.willems import build_attack
+from bilevel.problems.willems_instance import DEFAULT_REG, WillemsAttack
 
 
 def cvxpy_attack(attack: WillemsAttack) -> bl.BilevelProblem:

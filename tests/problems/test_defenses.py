@@ -7,7 +7,7 @@ import pytest
 import scipy.linalg
 
 from bilevel.attacks.vrft_methods import attack_joint
-from bilevel.attacks.willems import destabilize_attack, engine, identified_radius
+from bilevel.attacks.willems import destabilize_attack
 from bilevel.ddc.bases import controller_tf
 from bilevel.ddc.vrft import least_squares
 from bilevel.problems import registry
@@ -22,7 +22,8 @@ from bilevel.problems.defended_vrft import defended_instance as vrft_instance
 from bilevel.problems.defended_vrft import model_reference_cost
 from bilevel.experiments.defenses import clean_performance
 from bilevel.problems.identification import problem_for
-from bilevel.problems.willems import WillemsSetting, build_attack
+from bilevel.problems.willems import build_attack
+from bilevel.problems.willems_instance import WillemsSetting
 from bilevel.solvers.registry import solve
 from tests.problems.test_deepc import own_deepc, true_cost
 
@@ -142,7 +143,7 @@ def test_willems_adaptive_beats_transferred():
     undefended = destabilize_attack(build_attack(setting), starts=8)
     defended = build_attack(WillemsSetting(objective="destabilize", horizon=15, delta_u=0.1, reg=1.0))
     x = undefended.stats["x"]
-    transferred = identified_radius(defended, x, engine(defended).evaluate(x).lower.y)
+    transferred = defended.identified_radius(x, defended.oracle().evaluate(x).lower.y)
     adaptive = destabilize_attack(defended, starts=8).stats["identified_radius"]
     assert adaptive >= transferred * (1 - MARGIN)
 

@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from bilevel.attacks.willems import destabilize_attack, engine, hypergradient_attack, loop
+from bilevel.attacks.willems import destabilize_attack, hypergradient_attack
 from bilevel.ddc.data import batch_reactor_data, white_noise_trajectory
 from bilevel.ddc.depersis_tesi import lqr_controller
 from bilevel.errors import InvalidData, ModelError, NotPersistentlyExciting
 from bilevel.problems import registry
-from bilevel.problems.willems import WillemsSetting, build_attack
+from bilevel.problems.willems import build_attack
+from bilevel.problems.willems_instance import WillemsSetting
 
 PITCH = control.ss([[-0.313, 56.7, 0.0], [-0.0139, -0.426, 0.0], [0.0, 56.7, 0.0]], [[0.232], [0.0203], [0.0]],
                    np.eye(3), np.zeros((3, 1)))
@@ -64,7 +65,7 @@ def test_default_instance_is_the_batch_reactors_bit_for_bit() -> None:
 def _clean_gain(attack) -> np.ndarray:
     """The learner's gain on the clean data (the engine's oracle at zero poisoning)."""
     x = np.zeros(attack.upper.numel())
-    return loop(attack, x, engine(attack).evaluate(x).lower.y)[0]
+    return attack.loop(x, attack.oracle().evaluate(x).lower.y)[0]
 
 
 def test_registry_lists_every_setting_parameter() -> None:
@@ -99,11 +100,11 @@ def test_engine_oracle_keys_on_plant_and_data() -> None:
     or other data with the same horizon and seed get their own."""
     first = build_attack(plant=AIRCRAFT, horizon=20, delta_u=0.1)
     same = build_attack(plant=(AIRCRAFT.A, AIRCRAFT.B), horizon=20, delta_u=0.3)
-    assert engine(first) is engine(same)
+    assert first.oracle() is same.oracle()
     slower = build_attack(plant=(0.9 * AIRCRAFT.A, AIRCRAFT.B), horizon=20)
     other = build_attack(plant=AIRCRAFT, horizon=20, seed=1)
     given = build_attack(plant=AIRCRAFT, data=(other.x, other.u))
-    assert len({id(engine(a)) for a in (first, slower, given)}) == 3
+    assert len({id(a.oracle()) for a in (first, slower, given)}) == 3
 
 
 @pytest.mark.parametrize(("design", "r"), [("lqr", 1e-12), ("lqr-r", 1.0)])

@@ -12,7 +12,7 @@ import pytest
 
 from bilevel import BilevelProblem, solve
 from bilevel.attacks.outcome import unstable
-from bilevel.attacks.willems import destabilize_attack, engine, hypergradient_attack, loop
+from bilevel.attacks.willems import destabilize_attack, hypergradient_attack
 from bilevel.cli import main
 from bilevel.experiments.willems_budget import smallest_destabilizing_budget
 from bilevel.ddc.plants import batch_reactor
@@ -23,7 +23,8 @@ from bilevel.ddc.data import batch_reactor_data
 from bilevel.ddc.depersis_tesi import lqr_controller
 from bilevel.errors import ModelError
 from bilevel.problems import registry
-from bilevel.problems.willems import WillemsSetting, build_attack
+from bilevel.problems.willems import build_attack
+from bilevel.problems.willems_instance import WillemsSetting
 
 
 def test_spectral_radius_gradient_matches_central_differences() -> None:
@@ -137,12 +138,12 @@ def test_solver_selection_is_the_solvers_own_q(selection: str) -> None:
     own = lqr_controller(x, u, input_cost=False, solver=selection)
     attack = build_attack(objective="destabilize", horizon=15, seed=7, delta_u=0.3, selection=selection)
     point = 0.3 * np.random.default_rng(1).choice([-1.0, 1.0], 30)
-    gain = loop(attack, point, engine(attack).evaluate(point).lower.y)[0]
+    gain = attack.loop(point, attack.oracle().evaluate(point).lower.y)[0]
     du, _ = attack.split(point)
     s = x[:, :-1] @ own.q
     np.testing.assert_allclose(gain, (u + du) @ own.q @ np.linalg.inv((s + s.T) / 2), rtol=1e-9, atol=1e-9)
     min_norm = build_attack(objective="destabilize", horizon=15, seed=7, delta_u=0.3)
-    assert np.abs(loop(min_norm, point, engine(min_norm).evaluate(point).lower.y)[0] - gain).max() > 1e-2
+    assert np.abs(min_norm.loop(point, min_norm.oracle().evaluate(point).lower.y)[0] - gain).max() > 1e-2
     res = destabilize_attack(attack, starts=4, pool=16)  # certified against the regularized re-solve: same SDP value
     assert res.certificate.passed and abs(res.certificate.lower_gap) <= 1e-6
     assert own.value == pytest.approx(lqr_controller(x, u, input_cost=False).value, rel=1e-6)

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
-from bilevel.attacks.willems import engine, loop
 from bilevel.errors import SolverFailed
 from bilevel.problems.willems import build_attack
 
@@ -29,7 +28,7 @@ def test_hypergradient_matches_central_differences(case: int, selection: str) ->
     The implicit (adjoint) part is not negligible: it is at least 0.89 of the gradient's norm in every case."""
     with threadpool_limits(1):
         attack = build_attack(horizon=15, seed=10 + case, selection=selection, **CASES[case])
-        oracle = engine(attack)
+        oracle = attack.oracle()
         assert not oracle.low.fixed
         rng = np.random.default_rng(case)
         x = 0.5 * rng.uniform(-1, 1, oracle.low.n_x) * attack.budget()
@@ -55,7 +54,7 @@ def test_lower_level_solved_once_when_it_ignores_the_poisoning() -> None:
     """Input poisoning of the appendix SDP: the SDP does not contain U, so it is solved once and the gradient
     is the direct one (the paper's corollary: K = (U0 + Du) Q (X0 Q)^-1 with Q fixed)."""
     attack = build_attack(horizon=15, seed=0, design="lqr", poison="u", delta_u=0.5)
-    oracle = engine(attack)
+    oracle = attack.oracle()
     assert oracle.low.fixed
     calls = []
     solve = oracle.low.solve
@@ -73,7 +72,7 @@ def test_lower_level_solved_once_when_it_ignores_the_poisoning() -> None:
         q = y0.reshape((15, 4), order="F")
         du, _ = attack.split(x)
         s = attack.x[:, :15] @ q
-        np.testing.assert_allclose(loop(attack, x, y0)[0], (attack.u + du) @ q @ np.linalg.inv((s + s.T) / 2),
+        np.testing.assert_allclose(attack.loop(x, y0)[0], (attack.u + du) @ q @ np.linalg.inv((s + s.T) / 2),
                                    rtol=1e-9, atol=1e-9)
     assert len(calls) <= 1
     xs = rng.uniform(-0.5, 0.5, (4, 30))
@@ -85,6 +84,6 @@ def test_unpolishable_learner_is_reported() -> None:
     unique; Clarabel's point cannot be polished to a KKT point, and the engine says so instead of returning
     a wrong gradient."""
     attack = build_attack(horizon=15, seed=14, design="lqr-r", poison="u", objective="maxmin", delta_u=1e-5, reg=0.0)
-    oracle = engine(attack)
+    oracle = attack.oracle()
     with pytest.raises(SolverFailed, match="raise reg"):
         oracle.evaluate(0.5 * np.random.default_rng(4).uniform(-1, 1, 30) * attack.budget())

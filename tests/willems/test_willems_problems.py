@@ -7,22 +7,22 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from bilevel.attacks.willems import engine, loop
 from bilevel.ddc.depersis_tesi import lqr_controller, stabilizing_controller
 from bilevel.ddc.plants import batch_reactor
 from bilevel.errors import InvalidData, ModelError
 from bilevel.model import BilevelProblem
 from bilevel.problems import registry
-from bilevel.problems.willems import WillemsSetting, build_attack, criterion_values
+from bilevel.problems.willems import build_attack
+from bilevel.problems.willems_instance import WillemsSetting, criterion_values
 
 PLANT = batch_reactor()
 
 
 def _learner(attack, x: np.ndarray) -> tuple:
     """The engine's learner at poisoning x: its solution, gain and KKT residual."""
-    oracle = engine(attack)
+    oracle = attack.oracle()
     lower = oracle.evaluate(x).lower
-    return lower, loop(attack, x, lower.y)[0], oracle.low.kkt_residual(x, lower)
+    return lower, attack.loop(x, lower.y)[0], oracle.low.kkt_residual(x, lower)
 
 
 @pytest.mark.parametrize("name", ["willems-maxmin", "willems-eigen"])

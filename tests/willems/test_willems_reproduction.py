@@ -89,7 +89,7 @@ def test_solver_selection_runs_the_input_poisoning_sweeps_and_says_what_it_left_
 
 def test_cli_offers_every_learner_selection() -> None:
     from bilevel.cli import WILLEMS_SELECTIONS
-    from bilevel.problems.willems import SELECTIONS
+    from bilevel.problems.willems_instance import SELECTIONS
 
     assert WILLEMS_SELECTIONS == SELECTIONS
 
@@ -99,7 +99,7 @@ def test_budget_sweep_is_resumable_and_matches_the_search_per_data_set(tmp_path)
     set's seeds; a rerun recomputes nothing."""
     from bilevel.experiments.willems_budget import smallest_destabilizing_budget
     from bilevel.experiments.willems_budget import budget_distribution
-    from bilevel.problems.willems import WillemsSetting
+    from bilevel.problems.willems_instance import WillemsSetting
 
     path, lines = str(tmp_path / "budget.jsonl"), []
     rows = budget_distribution((15,), ("min-norm",), 1, path, starts=1, workers=1, progress=lines.append)

@@ -10,10 +10,10 @@ import numpy as np
 
 from bilevel.ddc.data import batch_reactor_data
 from bilevel.ddc.depersis_tesi import lqr_controller, min_norm_q
-from bilevel.attacks.willems import engine
 from bilevel.experiments.willems_selection import input_gains
 from bilevel.lower.quadratic import clarabel_solution, solve_qp_clarabel
-from bilevel.problems.willems import WillemsAttack, build_attack
+from bilevel.problems.willems import build_attack
+from bilevel.problems.willems_instance import WillemsAttack
 
 
 def test_input_poisoning_moves_the_gain_affinely_through_the_learners_q() -> None:
@@ -40,7 +40,7 @@ def test_minimum_norm_selection_has_no_null_space_part_and_same_clean_gain() -> 
 def _learner_from_two_starts(attack: WillemsAttack, x: np.ndarray) -> list[tuple[np.ndarray, float]]:
     """Q and KKT residual of the attack oracle's learner at x, polished from Clarabel's raw point and from its
     face-polished point; for the min-norm selection also checks that the projection keeps D Q and lowers f."""
-    level, shape = engine(attack).low, (attack.setting.horizon, attack.n_states)
+    level, shape = attack.oracle().low, (attack.setting.horizon, attack.n_states)
     seen = np.asarray(ca.Function("seen", [attack.upper], [attack.seen])(x))
     out = []
     for start in (clarabel_solution, solve_qp_clarabel):

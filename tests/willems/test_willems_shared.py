@@ -30,7 +30,7 @@ def symbolic_kkt(low: object) -> ca.Function:
 def test_numeric_conic_kkt_equals_symbolic(params: dict) -> None:
     """SemidefiniteLower's numeric r(w; x) and dr/dw (and its dr/dx) equal CasADi's symbolic ones at random (x, w),
     on one LMI (lqr, stabilizing) and two (lqr-r), to 1e-13 relative."""
-    low = willems.engine(build_attack(objective="eigen", horizon=8, seed=3, delta_u=0.1, **params)).low
+    low = build_attack(objective="eigen", horizon=8, seed=3, delta_u=0.1, **params).oracle().low
     reference = symbolic_kkt(low)
     rng = np.random.default_rng(0)
     for _ in range(3):
@@ -127,7 +127,7 @@ def test_newton_continuation_reaches_the_conic_solution() -> None:
     (Q to 1e-6 relative, far closer than x0's, residual <= 1e-9); from the same solution at a point 0.5 away it gives up
     (None) or returns a point inside the cones at the same residual bound."""
     attack = build_attack(objective="eigen", horizon=15, seed=8, poison="xu", delta_u=0.01, delta_x=0.01)
-    low = willems.engine(attack).low
+    low = attack.oracle().low
     rng = np.random.default_rng(5)
     x0 = rng.uniform(-0.01, 0.01, low.n_x)
     x1 = x0 + rng.uniform(-1e-3, 1e-3, low.n_x)
