@@ -8,11 +8,11 @@ from typing import Any, Callable, Literal
 
 from ..errors import ModelError
 from ..problems import registry
-from ..problems.vrft_instance import PAPER_EPS_Y, attack_instance
+from ..problems.vrft_instance import PAPER_EPS_Y, VRFTAttack, attack_instance
 from ..result import BilevelResult
 from ..solvers.base import options_of
 from . import vrft_methods
-from .vrft_methods import attack_budget_path, save_attack, save_path
+from .vrft_methods import attack_budget_path
 
 Attack = Callable[..., BilevelResult]
 
@@ -43,11 +43,11 @@ def _vrft(objective: str) -> Attack:
             save: str | None = None, **params: Any) -> BilevelResult:
         """The alternating attack (joint for 'destabilize'), or `attack`, on the instance of these parameters; path:
         first at the paper's eps_y below eps_y, each warm-starting the next (the reproduction's budget paths); save:
-        write the attack's data and signals to this .npz file (save_attack)."""
+        write the attack's data and signals to this .npz file (VRFTAttack.save)."""
         name = attack or ("joint" if objective == "destabilize" else "alternating")
         options = _split(f"vrft-{objective}", params)
         if save:
-            save_path(save)  # before the attack
+            VRFTAttack.save_path(save)  # before the attack
         atk = attack_instance(objective, **{**registry.spec(f"vrft-{objective}").defaults, **params, "seed": seed})
         if path and name != "alternating":
             raise ModelError(f"path=true runs the alternating attack's budget path; attack {name!r} has none")
@@ -58,7 +58,7 @@ def _vrft(objective: str) -> Attack:
         else:
             result = vrft_methods.attack(atk, name, seed=seed, starts=starts, **options)
         if save:
-            save_attack(result, atk, save)
+            atk.save(result, save)
         return result
     return run
 

@@ -7,7 +7,6 @@ ascends (a_u, a_y) together, each block in its budget radius; white-noise: a ran
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from typing import Any, Callable, Sequence
 
@@ -15,7 +14,6 @@ import numpy as np
 
 from ..defaults import param
 from ..errors import ModelError
-from ..files import atomic_path
 from ..problems.vrft import instance_of, problem_for
 from ..problems.vrft_instance import VRFTAttack
 from ..reduction import KKTPoint
@@ -137,25 +135,3 @@ def attack_value(result: BilevelResult) -> float:
     """The attack's own criterion at the poisoned theta (maximized): -distance for 'targeted', the log-sum-exp
     of the modelled poles for 'destabilize'; upper_objective is the registered problem's F."""
     return attack_stat(result, "value")
-
-
-def save_path(path: str) -> str:
-    """The .npz file save_attack writes for `path`; ModelError if its directory does not exist."""
-    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
-    if not os.path.isdir(folder):
-        raise ModelError(f"save_attack: directory {folder!r} of {path!r} does not exist; create it first")
-    return os.fspath(path) if os.fspath(path).endswith(".npz") else os.fspath(path) + ".npz"  # as np.savez names it
-
-
-def save_attack(result: BilevelResult, atk: VRFTAttack, path: str) -> None:
-    """Write clean data, attack signals, clean/poisoned theta and closed-loop poles to an .npz file."""
-    attack_stat(result, "theta_clean")
-    target = save_path(path)
-    loop, theta, theta0 = atk.setting.loop, result.y["theta"], result.stats["theta_clean"]
-    with atomic_path(target) as tmp:
-        np.savez(tmp, u=atk.u, y=atk.y, a_u=result.x["a_u"], a_y=result.x["a_y"], theta_clean=theta0,
-                 theta_poisoned=theta, poles_clean=loop.poles(theta0), poles_poisoned=loop.poles(theta),
-                 delta_u=atk.delta_u, delta_y=atk.delta_y, data_convention=atk.setting.data,
-                 boundary=atk.setting.boundary, method=result.method, objective=atk.objective,
-                 value=attack_value(result))
-

@@ -13,6 +13,7 @@ affine least squares (bilevel.lower.affine_least_squares), which bilevel.attacks
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from functools import cache, cached_property
 from typing import Any, Literal
@@ -27,7 +28,9 @@ from ..ddc.plants import flexible_transmission, flexible_transmission_prefilter,
 from ..ddc.systems import SystemLike, num_den
 from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
+from ..files import atomic_path
 from ..lower.affine_least_squares import AffineLeastSquares, AffineMaps
+from ..result import BilevelResult
 from ..solvers.affine_ls import UpperObjective
 from ..solvers.projections import Blocks, Projection
 from ..solvers.options import check_common_options
@@ -242,6 +245,29 @@ class VRFTAttack:
                 "spectral_radius": loop.spectral_radius(theta),
                 "spectral_radius_clean": loop.spectral_radius(self.theta0),
                 "delta_u": self.delta_u, "delta_y": self.delta_y}
+
+    @staticmethod
+    def save_path(path: str) -> str:
+        """The .npz file `save` writes for `path`; ModelError if its directory does not exist."""
+        folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+        if not os.path.isdir(folder):
+            raise ModelError(f"VRFTAttack.save: directory {folder!r} of {path!r} does not exist; create it first")
+        return os.fspath(path) if os.fspath(path).endswith(".npz") else os.fspath(path) + ".npz"  # as np.savez names it
+
+    def save(self, result: BilevelResult, path: str) -> None:
+        """Write the clean data, the attack's signals, the clean and poisoned theta with their true closed-loop poles
+        and the attack's criterion at the poisoned theta (value) to an .npz file."""
+        if not isinstance(result, BilevelResult) or "theta" not in result.y or "a_y" not in result.x:
+            raise ModelError(f"VRFTAttack.save: expected the BilevelResult of a VRFT attack (x: a_u, a_y; y: theta), "
+                             f"got {type(result).__name__}; pass what an attack function returned")
+        target = self.save_path(path)
+        loop, theta = self.setting.loop, result.y["theta"]
+        with atomic_path(target) as tmp:
+            np.savez(tmp, u=self.u, y=self.y, a_u=result.x["a_u"], a_y=result.x["a_y"], theta_clean=self.theta0,
+                     theta_poisoned=theta, poles_clean=loop.poles(self.theta0), poles_poisoned=loop.poles(theta),
+                     delta_u=self.delta_u, delta_y=self.delta_y, data_convention=self.setting.data,
+                     boundary=self.setting.boundary, method=result.method, objective=self.objective,
+                     value=self.value(theta))
 
 
 @cache

@@ -134,7 +134,7 @@ def _vrft(objective: str = "maxmin", target: Any = None, n: int = 64) -> atk.VRF
 
 def _saved_to_missing_dir() -> None:
     a = _vrft()
-    atk.save_attack(atk.attack_white_noise(a), a, "/nonexistent-probe-dir/attack.npz")
+    a.save(atk.attack_white_noise(a), "/nonexistent-probe-dir/attack.npz")
 
 
 def _lower_cvxpy(build: Callable[[bl.BilevelProblem, ca.SX], Any]) -> Callable[[], Any]:
@@ -375,7 +375,7 @@ CASES: dict[str, tuple[Callable[[], Any], Any, str]] = {
     "unstable of a dict": (lambda: atk.unstable({"spectral_radius": 2.0}), ModelError, "got dict"),
     "attack_summary of a solve": (lambda: attack_summary(bard_511().solve("ipopt", starts=1)), ModelError,
                                   "stats\\['learner_loss'\\]"),
-    "save_attack to a missing directory": (_saved_to_missing_dir, ModelError, "does not exist; create it"),
+    "VRFTAttack.save to a missing directory": (_saved_to_missing_dir, ModelError, "does not exist; create it"),
     "fit_arx on too few samples": (lambda: atk.fit_arx(*_vrft_data(3), 4, 2, 3), RankDeficientRegressor,
                                    "3 samples are too few"),
     "fit_arx negative order": (lambda: atk.fit_arx(*_vrft_data(64), -1, 2, 0), InvalidData,
