@@ -124,7 +124,8 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "vrft.max_iter.destabilize": (200, "ascent steps per start of a VRFT destabilize attack (count)"),
     "vrft.gain_tol": (1e-4, "a VRFT attack's ascent stops when its gain over ascent.window steps is below this "
                             "(relative)"),
-    # the Willems attacks (bilevel.attacks.willems; destabilize_attack reads destabilize.*, de_attack evolution.pop_tol)
+    # the Willems attacks (bilevel.attacks.willems; WillemsAttack.shared_problem reads willems.shared_kept,
+    # destabilize_attack destabilize.*, de_attack evolution.pop_tol)
     "willems.shared_kept": (4, "attack declarations (data, learner, criterion) whose prepared problems a process keeps "
                                "(count)"),
     "willems.hypergradient.starts": (8, "multistart starts of hypergradient_attack (count)"),
