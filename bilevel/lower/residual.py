@@ -193,10 +193,25 @@ class ResidualLeastSquares(LowerLevel):
         """d/dx of a'C(x)v + b'(C(x)y - d(x))."""
         if self._affine is None:
             return np.asarray(self._adjoint(x, y, v, a, b), dtype=float).ravel()
-        seed = np.empty(a.size * v.size + b.size)  # [vec(a v' + b y'); -b], vec column-major
-        np.add(np.outer(v, a), np.outer(y, b), out=seed[:a.size * v.size].reshape(v.size, a.size))
-        np.negative(b, out=seed[a.size * v.size:])
-        return self._affine[2] @ seed
+        return self._affine_adjoint(y, v[:, None], a[:, None], b[:, None]).ravel()
+
+    @cached_property
+    def _moving(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, Gather | sp.csr_matrix]:
+        """The entries of [vec C; d] that move with x, where the data are affine: C's rows p and columns q of its
+        moving entries, d's moving rows, and J' restricted to those entries (a learner's C is mostly structural zeros,
+        e.g. block diagonal over its outputs: the x-adjoint's seeds are formed on the moving entries alone)."""
+        Jt = self._affine[2]
+        csc = (Jt.sparse() if isinstance(Jt, Gather) else Jt).tocsc()
+        used = np.flatnonzero(np.diff(csc.indptr))
+        cut = self.n_r * self.n_y
+        in_C = used[used < cut]
+        return in_C % self.n_r, in_C // self.n_r, used[used >= cut] - cut, Gather.of(csc[:, used].tocsr())
+
+    def _affine_adjoint(self, y: np.ndarray, V: np.ndarray, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        """J'[vec(V A' + y B'); -B] by columns (V: n_y x k, A and B: n_r x k or n_r x 1), where the data are affine:
+        column j is d/dx of a_j'C(x)v_j + b_j'(C(x)y - d(x))."""
+        p, q, d_rows, Jt = self._moving
+        return Jt @ np.concatenate([V[q] * A[p] + y[q, None] * B[p], -B[d_rows]])
 
     @cached_property
     def fixed(self) -> bool:
@@ -258,18 +273,11 @@ class ResidualLeastSquares(LowerLevel):
     def kkt_x_adjoint_columns(self, x: np.ndarray, sol: LowerSolution, V_s: np.ndarray, V_g: np.ndarray,
                               V_h: np.ndarray) -> np.ndarray:
         """Where the data are affine in x: one transposed sparse product for all columns (seeds vec(v_j r' + y b_j')
-        and -b_j, b_j = C v_j, as in _x_adjoint); else one reverse sweep per column."""
+        and -b_j, b_j = C v_j, on the moving entries); else one reverse sweep per column."""
         if self._affine is None or not V_s.shape[1]:
             return super().kkt_x_adjoint_columns(x, sol, V_s, V_g, V_h)
         C, d, _ = self.data(x)
-        r, B = C @ sol.y - d, C @ V_s
-        ny, m, k = self.n_y, r.size, V_s.shape[1]
-        seeds = np.empty((ny * m + m, k))
-        block = seeds[:ny * m].reshape(ny, m, k)
-        np.multiply(V_s[:, None, :], r[None, :, None], out=block)
-        block += sol.y[:, None, None] * B[None, :, :]
-        np.negative(B, out=seeds[ny * m:])
-        return self._affine[2] @ seeds
+        return self._affine_adjoint(sol.y, V_s, (C @ sol.y - d)[:, None], C @ V_s)
 
     def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
         return factor_solve(hessian_factor(K), rhs), K.shape[0]
