@@ -95,6 +95,40 @@ def numeric_squares(f: ca.SX, y: ca.SX, others: ca.SX) -> NumericSquares | None:
     return None
 
 
+class MovingAdjoint:
+    """J'[vec(a v' + y b'); -b] by columns of V and B for affine data [vec C(x); d(x)] = J x + c, C (rows x n_y),
+    from J' (n_x x (rows n_y + rows)): with C(x) = C0 + sum_i x_i E_i and d likewise, it is M1(a) V + M2(y) B with
+    M1(a)_i = (E_i'a)' and M2(y)_i = (E_i y - d_i)' (d_i = dd/dx_i), sparse on the entries that move with x. Their
+    patterns are fixed: each call sums the moving entries' weights into them (a learner's C is mostly structural
+    zeros, e.g. block diagonal over its outputs, so no seed of the size of C is formed)."""
+
+    def __init__(self, Jt: Gather | sp.csr_matrix, rows: int, n_y: int) -> None:
+        coo = (Jt.sparse() if isinstance(Jt, Gather) else sp.csr_matrix(Jt)).tocoo()
+        cut = rows * n_y
+        in_C = coo.col < cut
+        self._values_C, self._x_C = coo.data[in_C], coo.row[in_C]
+        self._p, self._q = coo.col[in_C] % rows, coo.col[in_C] // rows
+        self._minus_d = -coo.data[~in_C]
+        self._M1, self._slots1 = self._pattern(self._x_C, self._q, Jt.shape[0], n_y)
+        self._M2, self._slots2 = self._pattern(np.concatenate([self._x_C, coo.row[~in_C]]),
+                                               np.concatenate([self._p, coo.col[~in_C] - cut]), Jt.shape[0], rows)
+
+    @staticmethod
+    def _pattern(i: np.ndarray, j: np.ndarray, n: int, m: int) -> tuple[sp.csr_matrix, np.ndarray]:
+        """An n x m CSR matrix with the distinct (i, j) pairs as its entries, and each pair's index in its data."""
+        keys, slots = np.unique(i.astype(np.int64) * m + j, return_inverse=True)
+        indptr = np.searchsorted(keys // m, np.arange(n + 1))
+        return sp.csr_matrix((np.zeros(keys.size), keys % m, indptr), shape=(n, m)), slots.ravel()
+
+    def __call__(self, y: np.ndarray, V: np.ndarray, a: np.ndarray, B: np.ndarray) -> np.ndarray:
+        """M1(a) V + M2(y) B (V: n_y x k, B: rows x k)."""
+        M1, M2 = self._M1, self._M2
+        M1.data[:] = np.bincount(self._slots1, self._values_C * a[self._p], minlength=M1.data.size)
+        M2.data[:] = np.bincount(self._slots2, np.concatenate([self._values_C * y[self._q], self._minus_d]),
+                                 minlength=M2.data.size)
+        return M1 @ V + M2 @ B
+
+
 @dataclass
 class ResidualLeastSquares(LowerLevel):
     """min_y 1/2 ||C(x) y - d(x)||^2 + c(x), C(x)'C(x) positive definite; y* by Cholesky of C'C (a QR solve in the
@@ -193,25 +227,13 @@ class ResidualLeastSquares(LowerLevel):
         """d/dx of a'C(x)v + b'(C(x)y - d(x))."""
         if self._affine is None:
             return np.asarray(self._adjoint(x, y, v, a, b), dtype=float).ravel()
-        return self._affine_adjoint(y, v[:, None], a[:, None], b[:, None]).ravel()
+        return self._moving(y, v[:, None], a, b[:, None]).ravel()
 
     @cached_property
-    def _moving(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, Gather | sp.csr_matrix]:
-        """The entries of [vec C; d] that move with x, where the data are affine: C's rows p and columns q of its
-        moving entries, d's moving rows, and J' restricted to those entries (a learner's C is mostly structural zeros,
-        e.g. block diagonal over its outputs: the x-adjoint's seeds are formed on the moving entries alone)."""
-        Jt = self._affine[2]
-        csc = (Jt.sparse() if isinstance(Jt, Gather) else Jt).tocsc()
-        used = np.flatnonzero(np.diff(csc.indptr))
-        cut = self.n_r * self.n_y
-        in_C = used[used < cut]
-        return in_C % self.n_r, in_C // self.n_r, used[used >= cut] - cut, Gather.of(csc[:, used].tocsr())
-
-    def _affine_adjoint(self, y: np.ndarray, V: np.ndarray, A: np.ndarray, B: np.ndarray) -> np.ndarray:
-        """J'[vec(V A' + y B'); -B] by columns (V: n_y x k, A and B: n_r x k or n_r x 1), where the data are affine:
-        column j is d/dx of a_j'C(x)v_j + b_j'(C(x)y - d(x))."""
-        p, q, d_rows, Jt = self._moving
-        return Jt @ np.concatenate([V[q] * A[p] + y[q, None] * B[p], -B[d_rows]])
+    def _moving(self) -> "MovingAdjoint":
+        """The x-adjoint of affine data, (y, V, a, B) -> d/dx of a'C(x)v_j + b_j'(C(x)y - d(x)) by columns j
+        (MovingAdjoint)."""
+        return MovingAdjoint(self._affine[2], self.n_r, self.n_y)
 
     @cached_property
     def fixed(self) -> bool:
@@ -272,12 +294,12 @@ class ResidualLeastSquares(LowerLevel):
 
     def kkt_x_adjoint_columns(self, x: np.ndarray, sol: LowerSolution, V_s: np.ndarray, V_g: np.ndarray,
                               V_h: np.ndarray) -> np.ndarray:
-        """Where the data are affine in x: one transposed sparse product for all columns (seeds vec(v_j r' + y b_j')
-        and -b_j, b_j = C v_j, on the moving entries); else one reverse sweep per column."""
+        """Where the data are affine in x: two sparse products for all columns (MovingAdjoint, a = r = C y - d and
+        b_j = C v_j); else one reverse sweep per column."""
         if self._affine is None or not V_s.shape[1]:
             return super().kkt_x_adjoint_columns(x, sol, V_s, V_g, V_h)
         C, d, _ = self.data(x)
-        return self._affine_adjoint(sol.y, V_s, (C @ sol.y - d)[:, None], C @ V_s)
+        return self._moving(sol.y, V_s, C @ sol.y - d, C @ V_s)
 
     def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
         return factor_solve(hessian_factor(K), rhs), K.shape[0]
