@@ -182,6 +182,8 @@ class ResidualLeastSquares(LowerLevel):
         self._offset_value: tuple[int, np.ndarray] | None = None
         self._last: tuple[tuple[bytes, int], tuple[np.ndarray, np.ndarray, float]] | None = None
         self._seen: np.ndarray | None = None
+        self._gram: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
+        """(C, C'C, its Cholesky factor or None) at the last point: the solve and the implicit derivative share them."""
 
     @cached_property
     def _data(self) -> CompiledFunction:
@@ -260,9 +262,18 @@ class ResidualLeastSquares(LowerLevel):
         return self._last[1]
 
     def gram(self, x: np.ndarray) -> np.ndarray:
-        """The Hessian C(x)'C(x)."""
+        """The Hessian C(x)'C(x) (the last point's kept, known by its C)."""
         C = self.data(x)[0]
-        return C.T @ C
+        if self._gram is None or self._gram[0] is not C:
+            self._gram = (C, C.T @ C, None)
+        return self._gram[1]
+
+    def _factored(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """C(x)'C(x) and its Cholesky factor (the last point's kept); raises if it is not positive definite."""
+        P = self.gram(x)
+        if self._gram[2] is None:
+            self._gram = (self._gram[0], P, hessian_factor(P))
+        return P, self._gram[2]
 
     def gram_adjoint(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """d(v'C(x)'C(x)v)/dx = 2 (d(C v)/dx)'(C v)."""
@@ -283,7 +294,7 @@ class ResidualLeastSquares(LowerLevel):
 
     def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> KKTValues:
         S = self.derivatives(x, sol.y)[0]
-        values = KKTValues.unconstrained(self.gram(x))
+        values = KKTValues.unconstrained(*self._factored(x))
         return values._replace(stationarity=S[:, None])
 
     def kkt_x_adjoint(self, x: np.ndarray, sol: LowerSolution, v_s: np.ndarray, v_g: np.ndarray,
@@ -308,7 +319,7 @@ class ResidualLeastSquares(LowerLevel):
         """Closed form by a Cholesky factorization of C'C; raises if it is not positive definite."""
         x = self.check_point(x)
         C, d, c = self.data(x)
-        y = factor_solve(hessian_factor(C.T @ C), C.T @ d)
+        y = factor_solve(self._factored(x)[1], C.T @ d)
         return LowerSolution(y, self.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal", "closed-form")
 
     def reference_solve(self, x: np.ndarray) -> LowerSolution:
