@@ -232,7 +232,7 @@ class ResidualLeastSquares(LowerLevel):
         return self._moving(y, v[:, None], a, b[:, None]).ravel()
 
     @cached_property
-    def _moving(self) -> "MovingAdjoint":
+    def _moving(self) -> MovingAdjoint:
         """The x-adjoint of affine data, (y, V, a, B) -> d/dx of a'C(x)v_j + b_j'(C(x)y - d(x)) by columns j
         (MovingAdjoint)."""
         return MovingAdjoint(self._affine[2], self.n_r, self.n_y)
