@@ -42,6 +42,10 @@ class Gather:
         """J as a Gather where every row has at most one nonzero, else J itself."""
         return cls(J) if np.all(np.diff(J.indptr) <= 1) else J
 
+    def sparse(self) -> sp.csr_matrix:
+        """J as a scipy CSR matrix."""
+        return sp.csr_matrix((self._values, (self._rows, self._columns)), shape=self.shape)
+
     def __matmul__(self, v: np.ndarray) -> np.ndarray:
         """J v for a vector v or the columns of a matrix v."""
         if v.ndim == 1:

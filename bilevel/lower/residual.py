@@ -95,6 +95,40 @@ def numeric_squares(f: ca.SX, y: ca.SX, others: ca.SX) -> NumericSquares | None:
     return None
 
 
+class MovingAdjoint:
+    """J'[vec(a v' + y b'); -b] by columns of V and B for affine data [vec C(x); d(x)] = J x + c, C (rows x n_y),
+    from J' (n_x x (rows n_y + rows)): with C(x) = C0 + sum_i x_i E_i and d likewise, it is M1(a) V + M2(y) B with
+    M1(a)_i = (E_i'a)' and M2(y)_i = (E_i y - d_i)' (d_i = dd/dx_i), sparse on the entries that move with x. Their
+    patterns are fixed: each call sums the moving entries' weights into them (a learner's C is mostly structural
+    zeros, e.g. block diagonal over its outputs, so no seed of the size of C is formed)."""
+
+    def __init__(self, Jt: Gather | sp.csr_matrix, rows: int, n_y: int) -> None:
+        coo = (Jt.sparse() if isinstance(Jt, Gather) else sp.csr_matrix(Jt)).tocoo()
+        cut = rows * n_y
+        in_C = coo.col < cut
+        self._values_C, self._x_C = coo.data[in_C], coo.row[in_C]
+        self._p, self._q = coo.col[in_C] % rows, coo.col[in_C] // rows
+        self._minus_d = -coo.data[~in_C]
+        self._M1, self._slots1 = self._pattern(self._x_C, self._q, Jt.shape[0], n_y)
+        self._M2, self._slots2 = self._pattern(np.concatenate([self._x_C, coo.row[~in_C]]),
+                                               np.concatenate([self._p, coo.col[~in_C] - cut]), Jt.shape[0], rows)
+
+    @staticmethod
+    def _pattern(i: np.ndarray, j: np.ndarray, n: int, m: int) -> tuple[sp.csr_matrix, np.ndarray]:
+        """An n x m CSR matrix with the distinct (i, j) pairs as its entries, and each pair's index in its data."""
+        keys, slots = np.unique(i.astype(np.int64) * m + j, return_inverse=True)
+        indptr = np.searchsorted(keys // m, np.arange(n + 1))
+        return sp.csr_matrix((np.zeros(keys.size), keys % m, indptr), shape=(n, m)), slots.ravel()
+
+    def __call__(self, y: np.ndarray, V: np.ndarray, a: np.ndarray, B: np.ndarray) -> np.ndarray:
+        """M1(a) V + M2(y) B (V: n_y x k, B: rows x k)."""
+        M1, M2 = self._M1, self._M2
+        M1.data[:] = np.bincount(self._slots1, self._values_C * a[self._p], minlength=M1.data.size)
+        M2.data[:] = np.bincount(self._slots2, np.concatenate([self._values_C * y[self._q], self._minus_d]),
+                                 minlength=M2.data.size)
+        return M1 @ V + M2 @ B
+
+
 @dataclass
 class ResidualLeastSquares(LowerLevel):
     """min_y 1/2 ||C(x) y - d(x)||^2 + c(x), C(x)'C(x) positive definite; y* by Cholesky of C'C (a QR solve in the
@@ -148,6 +182,8 @@ class ResidualLeastSquares(LowerLevel):
         self._offset_value: tuple[int, np.ndarray] | None = None
         self._last: tuple[tuple[bytes, int], tuple[np.ndarray, np.ndarray, float]] | None = None
         self._seen: np.ndarray | None = None
+        self._gram: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
+        """(C, C'C, its Cholesky factor or None) at the last point: the solve and the implicit derivative share them."""
 
     @cached_property
     def _data(self) -> CompiledFunction:
@@ -193,10 +229,13 @@ class ResidualLeastSquares(LowerLevel):
         """d/dx of a'C(x)v + b'(C(x)y - d(x))."""
         if self._affine is None:
             return np.asarray(self._adjoint(x, y, v, a, b), dtype=float).ravel()
-        seed = np.empty(a.size * v.size + b.size)  # [vec(a v' + b y'); -b], vec column-major
-        np.add(np.outer(v, a), np.outer(y, b), out=seed[:a.size * v.size].reshape(v.size, a.size))
-        np.negative(b, out=seed[a.size * v.size:])
-        return self._affine[2] @ seed
+        return self._moving(y, v[:, None], a, b[:, None]).ravel()
+
+    @cached_property
+    def _moving(self) -> MovingAdjoint:
+        """The x-adjoint of affine data, (y, V, a, B) -> d/dx of a'C(x)v_j + b_j'(C(x)y - d(x)) by columns j
+        (MovingAdjoint)."""
+        return MovingAdjoint(self._affine[2], self.n_r, self.n_y)
 
     @cached_property
     def fixed(self) -> bool:
@@ -223,9 +262,18 @@ class ResidualLeastSquares(LowerLevel):
         return self._last[1]
 
     def gram(self, x: np.ndarray) -> np.ndarray:
-        """The Hessian C(x)'C(x)."""
+        """The Hessian C(x)'C(x) (the last point's kept, known by its C)."""
         C = self.data(x)[0]
-        return C.T @ C
+        if self._gram is None or self._gram[0] is not C:
+            self._gram = (C, C.T @ C, None)
+        return self._gram[1]
+
+    def _factored(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """C(x)'C(x) and its Cholesky factor (the last point's kept); raises if it is not positive definite."""
+        P = self.gram(x)
+        if self._gram[2] is None:
+            self._gram = (self._gram[0], P, hessian_factor(P))
+        return P, self._gram[2]
 
     def gram_adjoint(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """d(v'C(x)'C(x)v)/dx = 2 (d(C v)/dx)'(C v)."""
@@ -246,7 +294,7 @@ class ResidualLeastSquares(LowerLevel):
 
     def kkt_values(self, x: np.ndarray, sol: LowerSolution) -> KKTValues:
         S = self.derivatives(x, sol.y)[0]
-        values = KKTValues.unconstrained(self.gram(x))
+        values = KKTValues.unconstrained(*self._factored(x))
         return values._replace(stationarity=S[:, None])
 
     def kkt_x_adjoint(self, x: np.ndarray, sol: LowerSolution, v_s: np.ndarray, v_g: np.ndarray,
@@ -257,19 +305,12 @@ class ResidualLeastSquares(LowerLevel):
 
     def kkt_x_adjoint_columns(self, x: np.ndarray, sol: LowerSolution, V_s: np.ndarray, V_g: np.ndarray,
                               V_h: np.ndarray) -> np.ndarray:
-        """Where the data are affine in x: one transposed sparse product for all columns (seeds vec(v_j r' + y b_j')
-        and -b_j, b_j = C v_j, as in _x_adjoint); else one reverse sweep per column."""
+        """Where the data are affine in x: two sparse products for all columns (MovingAdjoint, a = r = C y - d and
+        b_j = C v_j); else one reverse sweep per column."""
         if self._affine is None or not V_s.shape[1]:
             return super().kkt_x_adjoint_columns(x, sol, V_s, V_g, V_h)
         C, d, _ = self.data(x)
-        r, B = C @ sol.y - d, C @ V_s
-        ny, m, k = self.n_y, r.size, V_s.shape[1]
-        seeds = np.empty((ny * m + m, k))
-        block = seeds[:ny * m].reshape(ny, m, k)
-        np.multiply(V_s[:, None, :], r[None, :, None], out=block)
-        block += sol.y[:, None, None] * B[None, :, :]
-        np.negative(B, out=seeds[ny * m:])
-        return self._affine[2] @ seeds
+        return self._moving(sol.y, V_s, C @ sol.y - d, C @ V_s)
 
     def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
         return factor_solve(hessian_factor(K), rhs), K.shape[0]
@@ -278,7 +319,7 @@ class ResidualLeastSquares(LowerLevel):
         """Closed form by a Cholesky factorization of C'C; raises if it is not positive definite."""
         x = self.check_point(x)
         C, d, c = self.data(x)
-        y = factor_solve(hessian_factor(C.T @ C), C.T @ d)
+        y = factor_solve(self._factored(x)[1], C.T @ d)
         return LowerSolution(y, self.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal", "closed-form")
 
     def reference_solve(self, x: np.ndarray) -> LowerSolution:

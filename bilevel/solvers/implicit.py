@@ -51,8 +51,9 @@ from .base import Prepared
 class Evaluation:
     """An upper point with its (polished) lower solution, penalized objective phi, F and upper violation.
 
-    `upper` holds F, G, H and their partial derivatives in x and y; `kkt` the lower KKT values there (None for a
-    closed-form lower level until a gradient needs them).
+    `upper` holds F, G, H, then (appended once a derivative needs them, Hypergradient.partials) their partial
+    derivatives in x and y; `kkt` the lower KKT values there (None for a closed-form lower level until a gradient
+    needs them).
     """
 
     x: np.ndarray
@@ -72,6 +73,32 @@ def _shaped(values: list[ca.DM], shapes: list[tuple[int, int]]) -> list[np.ndarr
     return [np.asarray(v, dtype=float).reshape(s, order="F") for v, s in zip(values, shapes)]
 
 
+def shared_cores(rows: ca.SX, wrt: ca.SX) -> tuple[ca.SX, np.ndarray, np.ndarray]:
+    """(cores, index, sign) with rows[i] = sign[i] * cores[index[i]] + terms free of wrt: rows that differ only by
+    such terms and sign (the two sides of lo <= e <= hi, declared as two constraints) share one core, whose
+    derivatives are swept once."""
+    cores: list[ca.SX] = []
+    index, sign, seen = [], [], {}
+    for i in range(int(rows.numel())):
+        e, s = rows[i], 1.0
+        while e.is_op(ca.OP_NEG) or e.is_op(ca.OP_ADD) or e.is_op(ca.OP_SUB):
+            if e.is_op(ca.OP_NEG):
+                e, s = e.dep(0), -s
+            elif not ca.depends_on(e.dep(1), wrt):
+                e = e.dep(0)
+            elif not ca.depends_on(e.dep(0), wrt):
+                e, s = e.dep(1), (s if e.is_op(ca.OP_ADD) else -s)
+            else:
+                break
+        key = e.element_hash()
+        if key not in seen:
+            seen[key] = len(cores)
+            cores.append(e)
+        index.append(seen[key])
+        sign.append(s)
+    return (ca.vertcat(*cores) if cores else ca.SX(0, 1)), np.array(index, dtype=int), np.array(sign)
+
+
 class Hypergradient:
     """The reduced objective phi(x) = F(x, y*(x)) + penalty * (sum max(G, 0) + sum |H|) and its gradient."""
 
@@ -89,15 +116,22 @@ class Hypergradient:
         kept = [i for i in range(int(canon.G.numel())) if i not in set(projected_rows)]
         G = ca.vertcat(*[canon.G[i] for i in kept]) if kept else ca.SX(0, 1)  # projected rows need no penalty
         nx, ny, nG, nH = low.n_x, low.n_y, int(G.numel()), int(H.numel())
-        JG, JH = ca.jacobian(G, ca.vertcat(x, y)), ca.jacobian(H, ca.vertcat(x, y))  # one sweep per row for x and y
-        self._upper_outputs = [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y), JG[:, :nx],
-                               JG[:, nx:], JH[:, :nx], JH[:, nx:]]
+        cores, self._G_index, self._G_sign = shared_cores(G, ca.vertcat(x, y))
+        self._G_shared = len(self._G_index) > int(cores.numel()) or bool(np.any(self._G_sign < 0))
+        nC = int(cores.numel())
+        JC, JH = ca.jacobian(cores, ca.vertcat(x, y)), ca.jacobian(H, ca.vertcat(x, y))  # one sweep per row for x, y
+        self._upper_outputs = [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y), JC[:, :nx],
+                               JC[:, nx:], JH[:, :nx], JH[:, nx:]]
+        """F, G, H, then the partials: of F, of G's distinct cores (shared_cores) and of H, in x and y."""
         self._squares = canon.squares  # F by BLAS where it is numeric squares of y, not swept
         swept = self._upper_outputs if self._squares is None else \
             [ca.SX(1, 1), G, H, ca.SX(nx, 1), ca.SX(ny, 1), *self._upper_outputs[5:]]
-        self._upper = canon.params.function("upper", [x, y], swept)
-        self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nG, nx), (nG, ny), (nH, nx), (nH, ny)]
-        self._unswept = [np.zeros(shape) for shape in self._upper_shapes]
+        self._values = canon.params.function("upper_values", [x, y], swept[:3])
+        self._partials = canon.params.function("upper_partials", [x, y], swept[3:])
+        self._upper_shapes = [(1, 1), (nG, 1), (nH, 1), (nx, 1), (ny, 1), (nC, nx), (nC, ny), (nH, nx), (nH, ny)]
+        """The shapes of _upper_outputs (G's partials by core: _expanded gives them by row)."""
+        self._unswept = [np.zeros(shape) for shape in self._upper_shapes[:5]] + \
+            [np.zeros((nG, nx)), np.zeros((nG, ny)), np.zeros((nH, nx)), np.zeros((nH, ny))]
         """The sweep's outputs where F (numeric squares) is all there is: zeros, shared read-only."""
         for part in self._unswept:
             part.flags.writeable = False
@@ -202,24 +236,44 @@ class Hypergradient:
             self._fixed = (revision, sol, vals)
         if np.isnan(sol.objective) and isinstance(self.low, ExpressionLower):  # F and f share subexpressions
             *upper, f = _shaped(self._upper_and_f(x, sol.y), self._upper_shapes + [(1, 1)])
+            upper[3:] = self._expanded(upper[3:])
             sol.objective = float(f[0, 0])
         else:
             if np.isnan(sol.objective):  # the matrix form evaluates f numerically
                 sol.objective = float(self.low.evaluate(x, sol.y)[0])
             if self._squares is None or self._upper_shapes[1][0] + self._upper_shapes[2][0] > 0:
-                upper = _shaped(self._upper(x, sol.y), self._upper_shapes)
+                upper = _shaped(self._values(x, sol.y), self._upper_shapes[:3])  # partials when a derivative asks
             else:  # F is all there is: nothing to sweep
                 upper = list(self._unswept)
             if self._squares is not None:
-                upper[0], upper[4] = self._squares(sol.y)
+                upper[0] = self._squares(sol.y)[0]
+                if len(upper) > 3:
+                    upper[4] = self._squares(sol.y)[1]
         if self._spectral is not None:
-            upper = self._with_spectral(x, sol.y, upper)
+            upper = self._with_spectral(x, sol.y, self.partials(x, sol.y, upper))
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
         if G.size + H.size == 0:  # nothing penalized
             return Evaluation(x, F, F, 0.0, sol, upper, vals)
         phi = float(self.penalized(upper[0], upper[1], upper[2])[0])
         violation = max([0.0, *np.maximum(G, 0.0), *np.abs(H)])
         return Evaluation(x, phi, F, violation, sol, upper, vals)
+
+    def partials(self, x: np.ndarray, y: np.ndarray, upper: list[np.ndarray]) -> list[np.ndarray]:
+        """An evaluation's `upper` at (x, y) with the partial derivatives of F, G and H appended (one sweep) if it has
+        only the values; the same list."""
+        if len(upper) == 3:
+            upper += self._expanded(_shaped(self._partials(x, y), self._upper_shapes[3:]))
+            if self._squares is not None:
+                upper[4] = self._squares(y)[1]
+        return upper
+
+    def _expanded(self, partials: list[np.ndarray]) -> list[np.ndarray]:
+        """The swept partials with G's by row from those of its distinct cores."""
+        if not self._G_shared:
+            return partials
+        sign = self._G_sign[:, None]
+        return [partials[0], partials[1], sign * partials[2][self._G_index], sign * partials[3][self._G_index],
+                *partials[4:]]
 
     def _with_spectral(self, x: np.ndarray, y: np.ndarray, upper: list[np.ndarray]) -> list[np.ndarray]:
         """The upper sweep with F, dF/dx and dF/dy of the spectral objective in place of the NaN expression's (dF/dy
@@ -294,7 +348,7 @@ class Hypergradient:
     def jacobian(self, ev: Evaluation) -> tuple[np.ndarray, bool, int]:
         """The total x-derivatives of F, G_i and H_j along y*(x) at an evaluated point (columns of an n_x x (1 + nG +
         nH) array, one adjoint solve for all), whether the active set was degenerate, and its size."""
-        _, G, H, gxF, gyF, Gx, Gy, Hx, Hy = ev.upper
+        _, G, H, gxF, gyF, Gx, Gy, Hx, Hy = self.partials(ev.x, ev.lower.y, ev.upper)
         penalized = G.size + H.size > 0
         total = np.hstack([gxF, Gx.T, Hx.T]) if penalized else gxF  # columns: d/dx of F, G_i, H_j along y*(x)
         weak, rows = False, NO_ROWS

@@ -203,3 +203,30 @@ def test_bad_options_raise(bard: bl.BilevelProblem) -> None:
         bard.solve(method="hypergradient", step_size=0.1)
     with pytest.raises(bl.ModelError, match="Projection"):
         bard.solve(method="hypergradient", projection=lambda v: v)
+
+
+def test_two_sided_constraints_share_one_core_and_keep_their_jacobians() -> None:
+    """lo <= e <= hi declared as two rows (and e's negation with a parameter offset) share e's derivative sweep; the
+    total Jacobian of every row along y*(x) matches central differences of the re-solved rows."""
+    p = bl.BilevelProblem("two-sided")
+    x = p.upper_variable("x", 2)
+    y = p.lower_variable("y", 2)
+    c = p.parameter("c")
+    p.set_value("c", 0.3)
+    e = ca.sin(x[0]) * y[0] + y[1] ** 2
+    p.minimize_upper(ca.sumsqr(y))
+    p.minimize_lower(ca.sumsqr(y - ca.vertcat(x[0] * x[1], x[1])))
+    p.upper_constraint(e <= 2)
+    p.upper_constraint(e >= -1)
+    p.upper_constraint(c - e <= 0)
+    p.upper_constraint(ca.sumsqr(x) <= 4)
+    prep = prepare(p)
+    oracle = Hypergradient(prep)
+    assert oracle._G_index.tolist() == [0, 0, 0, 1] and oracle._G_sign.tolist() == [1.0, -1.0, -1.0, 1.0]
+    x0 = np.array([0.4, -0.7])
+    ev = oracle.evaluate(x0)
+    assert len(ev.upper) == 3  # values only until a derivative asks
+    J = oracle.jacobian(ev)[0]
+    rows = lambda xs: np.concatenate([[oracle.evaluate(xs).F], oracle.evaluate(xs).upper[1].ravel()])  # noqa: E731
+    fd = np.column_stack([(rows(x0 + FD_STEP * d) - rows(x0 - FD_STEP * d)) / (2 * FD_STEP) for d in np.eye(2)])
+    assert np.abs(J.T - fd).max() <= 1e-7 * max(1.0, np.abs(fd).max())
