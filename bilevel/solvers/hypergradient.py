@@ -203,6 +203,8 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int,
         return Descent(cur, Status.MAX_ITERATIONS, f"max_iter = {max_iter} reached", nit, history)
     if reason == "time_limit":
         return Descent(cur, Status.MAX_ITERATIONS, limit.reached(), nit, history)
+    if reason == "non-finite gradient" and cur.F == -np.inf:  # minimized F: the declared objective's supremum
+        return Descent(cur, Status.ERROR, unbounded_message(arc.prep), nit, history)
     if reason == "non-finite gradient":
         return Descent(cur, Status.ERROR, f"the hypergradient is NaN or inf at x = {cur.x} (an upper objective or "
                        "constraint is not differentiable there, e.g. a norm at 0: declare a ball as "
@@ -215,6 +217,13 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int,
                "ftol": "relative decrease in one step <= ftol",
                "zero step": "zero gradient"}.get(reason, "projected gradient step <= gtol on the lower level's domain")
     return Descent(cur, Status.SOLVED, message, nit, history)
+
+
+def unbounded_message(prep: Prepared) -> str:
+    """Why a run ends where the upper objective is infinite in the improving direction: the matrix function's own
+    reason (its attribute `infinite`) where it has one."""
+    reason = getattr(prep.canon.matrix_function, "infinite", None)
+    return f"{reason or 'the upper objective is infinite at the point reached'}: the supremum is unbounded"
 
 
 def _projection(prep: Prepared, projection: Any) -> Projection:
