@@ -287,10 +287,10 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
             return limit.expired()
 
         try:
-            xr, fx, ev, it, evals, converged = projected_ascent(value, direction, project, x0[rest], weights,
-                                                                max_iter, tol, history, stop=stop, why=reason)
+            _, fx, ev, it, evals, converged = projected_ascent(value, direction, project, x0[rest], weights,
+                                                               max_iter, tol, history, stop=stop, why=reason)
         except RankDeficientRegressor:  # the learner is singular at the start: no step can begin
-            xr, fx, ev, it, evals, converged = x0[rest], -np.inf, None, 0, 1, False
+            fx, ev, it, evals, converged = -np.inf, None, 0, 1, False
         converged = converged and reason["stop"] != "stop"  # stop() holds only at the deadline
         nit += it
         records.append({"start": k, "objective": None if ev is None else ev.F, "iterations": it,
