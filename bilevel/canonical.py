@@ -201,7 +201,7 @@ def _flat(vars_: list[Variable]) -> ca.SX:
     return ca.vertcat(*[ca.vec(v.sym) for v in vars_]) if vars_ else ca.SX(0, 1)
 
 
-def _check_depends(expr: ca.SX, allowed: set[int], where: str,
+def _check_depends(expr: ca.SX, allowed: ca.SX, where: str,
                    pending: list[tuple[ca.SX, str]] | None = None) -> None:
     """check_depends for a declared expression: it may use the declared variables, definitions and parameters (and,
     in the lower level, products of linear maps); its constants are checked now, or with pending's (check_constants:
@@ -222,7 +222,7 @@ def suggested_starts(problem: BilevelProblem, x_start: np.ndarray, x_lb: np.ndar
                     x_lb, x_ub) for s in problem.suggested_starts]
 
 
-def _least_squares_matrices(problem: BilevelProblem, allowed: set[int]) -> LowerQP:
+def _least_squares_matrices(problem: BilevelProblem, allowed: ca.SX) -> LowerQP:
     """A lower level written with linear maps of the lower variable, min_y sum_i w_i r_i(x, y, z)^2 with z = A_j L_j y
     and r affine in (y, z) with constant coefficients, as the matrix form 1/2 ||C y - d(x)||^2 (lower_qp's)."""
     where = "a lower level with products of linear maps of the lower variable"
@@ -238,8 +238,7 @@ def _least_squares_matrices(problem: BilevelProblem, allowed: set[int]) -> Lower
         raise ModelError(f"{where} cannot also use linear maps of upper variables; write one of them as an expression")
     y, imgs = lows[0].sym, [i for i in problem.images if i.level == "lower"]
     expr = problem.lower_objective.expr
-    _check_depends(expr, allowed | {s.element_hash() for i in imgs for s in ca.symvar(ca.vec(i.sym))},
-                   "the lower objective")
+    _check_depends(expr, ca.vertcat(allowed, *[ca.vec(i.sym) for i in imgs]), "the lower objective")
     yz = ca.vertcat(y, *[ca.vec(i.sym) for i in imgs])
     form = sum_of_squares(expr, yz)
     if form is None:
@@ -286,10 +285,8 @@ class Canonicalize(Reduction):
         defined = [ca.vec(d.sym) for d in problem.definitions]
         upper_images = tuple(i for i in problem.images if i.level == "upper")
         images = Images(upper_images) if upper_images else None
-        allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(x, y, *defined, problem.parameters.sym))}
-        upper_allowed = set(allowed)
-        if images is not None:
-            allowed |= {s.element_hash() for s in ca.symvar(images.sym)}
+        upper_allowed = ca.vertcat(x, y, *defined, problem.parameters.sym)  # the symbols an expression may use
+        allowed = upper_allowed if images is None else ca.vertcat(upper_allowed, ca.vec(images.sym))
         pending: list[tuple[ca.SX, str]] = []  # expressions whose constants are checked together
         spectral = problem.upper_objective.matrix  # F is then NaN: the objective is function(matrix)
         if spectral is None:

@@ -178,11 +178,11 @@ def _expression(value: Any, where: str, want: str = "a CasADi expression or numb
         raise ModelError(f"{where}: expected {want}, got {type(value).__name__}") from None
 
 
-def check_depends(expr: ca.SX, allowed: set[int], where: str, fix: str, constants: bool = True) -> None:
-    """Raise if expr uses symbols outside `allowed` (element hashes of the symbols it may use; `fix` says which
+def check_depends(expr: ca.SX, allowed: ca.SX, where: str, fix: str, constants: bool = True) -> None:
+    """Raise if expr uses symbols outside `allowed` (a column of the distinct symbols it may use; `fix` says which
     those are and what to do), or, with constants, if its data (the constants in it) contain NaN or inf (callers
     checking several expressions pass constants=False and call check_constants on them all once)."""
-    free = [s for s in ca.symvar(expr) if s.element_hash() not in allowed]
+    free = ca.Function("uses", [allowed], [expr], {"allow_free": True}).free_sx()  # no per-symbol Python objects
     if free:
         names = ", ".join(str(s) for s in free[:5]) + (f", ... ({len(free)} in all)" if len(free) > 5 else "")
         raise ModelError(f"{where} uses symbols {names} that {fix}")
@@ -204,7 +204,7 @@ def check_constants(exprs: list[tuple[ca.SX, str]]) -> None:
 
 def _bad_constant(expr: ca.SX) -> float | None:
     """A constant of expr's graph that is NaN or inf, or None."""
-    fun = ca.Function("data", [ca.vertcat(*ca.symvar(expr))], [expr])
+    fun = ca.Function("data", [], [expr], {"allow_free": True})  # its symbols stay free: no list of them is built
     is_constant, constant = fun.instruction_id, fun.instruction_constant
     for k in range(fun.n_instructions()):
         if is_constant(k) == ca.OP_CONST and not math.isfinite(constant(k)):
@@ -368,15 +368,14 @@ class BilevelProblem:
         rows, cols = self._new_shape("definition", name, _shape_of(value, f"define({name!r})"))
         value = ca.SX(value)
         earlier = [ca.vec(v.sym) for v in self.upper_variables] + [ca.vec(d.sym) for d in self.definitions]
-        allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(*earlier, self.parameters.sym))}
+        allowed = ca.vertcat(*earlier, self.parameters.sym)
         check_depends(value, allowed, f"define({name!r}): the value", DEFINITION_USES)
         sym = ca.SX.sym(name, rows, cols)
         body = sym - value if equation is None else _expression(equation(sym), f"define({name!r}): the equation")
         if body.numel() != sym.numel():
             raise ModelError(f"define({name!r}): the equation has {body.numel()} entries for {sym.numel()} defined "
                              "ones; it must give one equation per entry")
-        allowed |= {s.element_hash() for s in ca.symvar(ca.vec(sym))}
-        check_depends(body, allowed, f"define({name!r}): the equation", DEFINITION_USES)
+        check_depends(body, ca.vertcat(allowed, ca.vec(sym)), f"define({name!r}): the equation", DEFINITION_USES)
         self.definitions.append(Definition(name, sym, value, ca.vec(body)))
         self.revision += 1
         return sym
@@ -394,11 +393,9 @@ class BilevelProblem:
         """Register the product operator @ arg (LinearMap.__matmul__) and return its symbol."""
         while self._taken(name):
             name += "_"
-        syms = {s.element_hash() for s in ca.symvar(arg)}
-        lower = {s.element_hash() for v in self.lower_variables for s in ca.symvar(ca.vec(v.sym))}
-        level = "lower" if syms & lower else "upper"
-        allowed = {s.element_hash() for s in ca.symvar(ca.vertcat(*[ca.vec(v.sym) for v in self.variables
-                                                                    if v.level == level], self.parameters.sym))}
+        lower = [ca.vec(v.sym) for v in self.lower_variables]
+        level = "lower" if lower and ca.depends_on(arg, ca.vertcat(*lower)) else "upper"
+        allowed = ca.vertcat(*[ca.vec(v.sym) for v in self.variables if v.level == level], self.parameters.sym)
         check_depends(arg, allowed, f"{name} = linear map @ expression: the expression",
                       "are not variables or parameters of this problem, or mix upper and lower variables: a linear "
                       "map applies to an expression of the upper variables (data the leader moves) or to a linear "

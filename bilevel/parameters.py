@@ -50,7 +50,7 @@ class CompiledFunction:
         self._sizes = [fun.nnz_in(i) for i in range(fun.n_in())]
         self._dense_in = all(fun.sparsity_in(i).is_dense() for i in range(fun.n_in()))
         self._buffer, self._eval = fun.buffer()
-        self._args = [np.zeros(n) for n in self._sizes]
+        self._args = [np.zeros(n) for n in self._sizes[:n_args]]  # the parameters' input reads params.value in place
         for i, arg in enumerate(self._args):
             self._buffer.set_arg(i, memoryview(arg))
         self._n_args, self._revision = n_args, -1
@@ -71,7 +71,8 @@ class CompiledFunction:
                 return self.fun(*args, *([self.params.value] if self.params is not None else []))
             buf[:] = flat
         if self.params is not None and self._revision != self.params.revision:
-            self._args[-1][:] = self.params.value
+            self._values = self.params.value  # kept alive while the buffer points at it
+            self._buffer.set_arg(self._n_args, memoryview(self._values))
             self._revision = self.params.revision
         nonzeros = [np.empty(n) for n, _, _ in self._outs]
         for k, nz in enumerate(nonzeros):

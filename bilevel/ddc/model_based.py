@@ -36,6 +36,10 @@ class H2Norm:
     """M = [A B] -> the H2 norm of x+ = A x + B u from u to x, sqrt(trace P) with P = A P A' + B B', and its
     gradient (one more Lyapunov solve, the adjoint's); inf with a NaN gradient where A is not Schur stable."""
 
+    infinite = ("the identified model became unstable at the poisoning reached (A is not Schur stable): its H2 norm "
+                "is infinite")
+    """What an infinite value means, for the engine's message when an attack reaches one."""
+
     def __call__(self, m: np.ndarray) -> tuple[float, np.ndarray]:
         n, _ = _split(m, 1)
         a, b = m[:, :n], m[:, n:]

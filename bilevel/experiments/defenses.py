@@ -32,7 +32,7 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from ..errors import RankDeficientRegressor  # noqa: E402
+from ..result import Status  # noqa: E402
 from ..files import atomic_open, atomic_path  # noqa: E402
 from ..problems import defended_deepc, defended_identification  # noqa: E402
 from ..problems.deepc import declare as declare_deepc  # noqa: E402
@@ -41,6 +41,7 @@ from ..problems.defended_vrft import declare, defended_instance, model_reference
 from ..problems.willems import build_attack  # noqa: E402
 from ..problems.willems_instance import WillemsAttack, WillemsSetting, criterion_values  # noqa: E402
 from ..solvers.budget_search import smallest_budget  # noqa: E402
+from ..solvers.hypergradient import SINGULAR_CAUSE  # noqa: E402
 from ..solvers.registry import solve  # noqa: E402
 from .defenses_detection import run_detection  # noqa: E402
 from .executor import open_executor  # noqa: E402
@@ -109,16 +110,15 @@ def make_plan(sims: int, quick: bool) -> Plan:
 
 
 def vrft_radius(defense: str, lam: float, N: int, seed: int, eps: float, attack_seed: int) -> float:
-    """The true closed loop's spectral radius after the adaptive attack at budget eps; inf where the attack makes the
-    learner's system singular (the IV matrix Z' Phi: the engine stops with RankDeficientRegressor, the learner
-    returns no controller)."""
+    """The true closed loop's spectral radius after the adaptive attack at budget eps; inf where a start of the attack
+    made the learner's system singular (the IV matrix Z' Phi: the engine's start record names SINGULAR_CAUSE; the
+    learner returns no controller) or no start could be solved."""
     d = defended_instance(defense, "destabilize", lam, "B", eps, eps, seed, N)
-    try:
-        result = solve(declare(d), starts=2, seed=attack_seed)
-        x = {k: np.asarray(v, dtype=float).ravel() for k, v in result.x.items()}
-        return d.atk.setting.loop.spectral_radius(d.poisoned(**x))
-    except RankDeficientRegressor:
+    result = solve(declare(d), starts=2, seed=attack_seed)
+    if result.status is Status.ERROR or any(SINGULAR_CAUSE in r.get("message", "") for r in result.start_records):
         return float("inf")
+    x = {k: np.asarray(v, dtype=float).ravel() for k, v in result.x.items()}
+    return d.atk.setting.loop.spectral_radius(d.poisoned(**x))
 
 
 def ident_error(loss: str, T: int, seed: int, eps: float, attack_seed: int) -> float:

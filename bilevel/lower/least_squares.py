@@ -61,13 +61,10 @@ class LeastSquaresLower(QuadraticLower):
         return d, hessian_factor(d.P)
 
     def kkt_solve(self, x: np.ndarray, K: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
-        """K = P(x): P(x)^{-1} rhs by its Cholesky factor, full rank; where P(x) is singular to working precision
-        (the solve at x passed, the factorization of the same Hessian formed another way did not: a near-singular
-        learner, decided by rounding), the minimum-norm solution with the rank it has (a degenerate point)."""
-        try:
-            return factor_solve(hessian_factor(K), rhs), K.shape[0]
-        except RankDeficientRegressor:
-            return super().kkt_solve(x, K, rhs)
+        """K = P(x): P(x)^{-1} rhs by its Cholesky factor, full rank; RankDeficientRegressor where P(x) is singular to
+        working precision (a learner the attacker made singular: y*(x) has no derivative there, and the methods
+        treat x as a point that fails)."""
+        return factor_solve(hessian_factor(K), rhs), K.shape[0]
 
     def solve(self, x: np.ndarray) -> LowerSolution:
         """Closed form via a Cholesky factorization; raises if P(x) is not positive definite."""

@@ -2,9 +2,10 @@
 
 Every first-order method maximizes with it: the generic hypergradient (on the negated reduced objective, with or
 without an exact block) and the structured attacks. A value
-callback may return -inf for a point it cannot evaluate (e.g. the lower level is infeasible there); the line
-search then backtracks. batched_box_ascent climbs many starts at once where values and gradients come in batches
-(one stacked evaluation per step).
+callback may return -inf for a point it cannot evaluate (e.g. the lower level is infeasible there), and the direction
+callback may raise RankDeficientRegressor at a point where the lower level has no unique solution (its derivative does
+not exist); the line search then backtracks. batched_box_ascent climbs many starts at once where values and gradients
+come in batches (one stacked evaluation per step).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import Any, Callable, Literal
 import numpy as np
 
 from ..defaults import param
+from ..errors import RankDeficientRegressor
 
 
 def budget_direction(g: np.ndarray, radius: float, order: float) -> np.ndarray:
@@ -40,12 +42,17 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]],
     `defaults["ascent.window"]` accepted steps is below tol, or no step is accepted, or the projection holds x still, or
     stop(aux) holds at the start or at an accepted point (the caller's goal). at(aux), if given, is where f actually
     evaluated (a callback that moves an unevaluable point, e.g. into the lower level's domain); why, if given, receives
-    the reason under "stop": "window", "line search", "stationary", "stop", "zero step" or "max_iter". Returns x, f,
-    aux, iterations, evaluations, converged.
+    the reason under "stop": "window", "line search", "stationary", "stop", "zero step", "max_iter" or "start" (f is
+    -inf without a point at the start), and under "singular" the message of the last trial point of the last line
+    search at which direction raised RankDeficientRegressor (a trial point that fails, as one f cannot evaluate; at
+    the start it propagates). Returns x, f, aux, iterations, evaluations, converged.
     """
     why = {} if why is None else why
     x = project(x0)
     fx, aux = f(x)
+    if fx == -np.inf and aux is None:  # the start cannot be evaluated: nothing to climb from
+        why["stop"] = "start"
+        return x, fx, aux, 0, 1, False
     if at is not None:
         x = at(aux)
     if stop is not None and stop(aux):
@@ -62,6 +69,7 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]],
             converged, why["stop"] = True, "zero step"
             break
         lam = step0 if alpha is None else 1.0
+        why.pop("singular", None)
         while True:
             xn = project(x + lam * move)
             if np.array_equal(xn, x):  # the projection holds x still: stationary on the feasible set
@@ -72,7 +80,11 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]],
             if at is not None and np.isfinite(fn):
                 xn = at(auxn)
             if fn >= fx + param("ascent.armijo") * float(g @ (xn - x)) and fn >= fx:
-                break
+                try:
+                    gn, dn = direction(auxn)
+                    break
+                except RankDeficientRegressor as exc:  # no derivative there: the trial point fails
+                    why["singular"] = str(exc)
             lam *= 0.5
             if lam < min_step:
                 converged, why["stop"] = True, "line search"
@@ -83,7 +95,6 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]],
             history.append({"iter": it, "value": fn, "step": lam})
             why["stop"] = "stop"
             return xn, fn, auxn, it, evals, True
-        gn, dn = direction(auxn)
         s, y = xn - x, gn - g
         curvature, yy = -float(s @ y), float(y @ (metric * y))  # the ascent's curvature along s, ||y||^2 in z
         if bb == "long":

@@ -25,7 +25,7 @@ import scipy.sparse as sp
 
 from ..canonical import CanonicalBilevel
 from ..defaults import param
-from ..errors import BilevelError
+from ..errors import BilevelError, RankDeficientRegressor
 from ..linear_maps import Gather
 from ..lower.base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from ..lower.images import ImageLower
@@ -286,8 +286,11 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
             calls[0] += 1
             return limit.expired()
 
-        xr, fx, ev, it, evals, converged = projected_ascent(value, direction, project, x0[rest], weights, max_iter,
-                                                            tol, history, stop=stop, why=reason)
+        try:
+            _, fx, ev, it, evals, converged = projected_ascent(value, direction, project, x0[rest], weights,
+                                                               max_iter, tol, history, stop=stop, why=reason)
+        except RankDeficientRegressor:  # the learner is singular at the start: no step can begin
+            fx, ev, it, evals, converged = -np.inf, None, 0, 1, False
         converged = converged and reason["stop"] != "stop"  # stop() holds only at the deadline
         nit += it
         records.append({"start": k, "objective": None if ev is None else ev.F, "iterations": it,

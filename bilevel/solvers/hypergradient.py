@@ -32,7 +32,7 @@ import numpy as np
 import scipy.optimize
 
 from ..defaults import param
-from ..errors import BilevelError, LowerLevelInfeasible, ModelError
+from ..errors import BilevelError, LowerLevelInfeasible, ModelError, RankDeficientRegressor
 from ..lower.nlp import NLPSOL_QUIET
 from ..reduction import KKTPoint
 from ..result import Status
@@ -44,6 +44,13 @@ from .options import check_numbers
 from .limits import Deadline, progress, stopped
 from .starts import start_points
 from .projections import Projection
+
+
+SINGULAR_CAUSE = ("the learner's regressor is rank-deficient at the poisoning reached: the attack made the learner "
+                  "singular")
+SINGULAR = (f"{SINGULAR_CAUSE} (the lower level has no unique solution at the trial points beyond x, so the run ends "
+            "at the last point where it has one)")
+"""The message of a run that ends where every step leads to a lower level without a unique solution."""
 
 
 class _Restoration:
@@ -150,11 +157,13 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int,
     (MAX_ITERATIONS); report, if given, receives each iterate's record."""
     history: list[dict[str, Any]] = []
     last: dict[str, Any] = {}
+    singular: list[str] = []  # trial points since the last accepted one whose lower level had no unique solution
 
     def gradient(ev: Evaluation) -> tuple[np.ndarray, float]:
         """grad phi and the projected step at ev, once per evaluated point (recorded in history)."""
         if last.get("ev") is not ev:
             grad, degenerate, n_active = arc.oracle.gradient(ev)
+            singular.clear()
             # NaN at a kink of an upper function (e.g. a norm at 0); no lower solve for the step: _domain_stationary
             pstep = float(np.linalg.norm(arc.project(ev.x - grad) - ev.x)) if np.all(np.isfinite(grad)) else np.nan
             history.append({"iter": len(history), "objective": ev.phi, "step": 0.0,
@@ -167,6 +176,8 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int,
 
     def value(x: np.ndarray) -> tuple[float, Evaluation | None]:
         ev = start if np.array_equal(x, start.x) else arc(x)  # the loop's first call: the start, already evaluated
+        if ev is None and isinstance(arc.error, RankDeficientRegressor):
+            singular.append(str(arc.error))
         return (-np.inf, None) if ev is None else (-ev.phi, ev)
 
     def direction(ev: Evaluation) -> tuple[np.ndarray, np.ndarray]:
@@ -199,10 +210,14 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int,
         record["step"] = step["step"]
     grad, pstep = gradient(cur)
     reason = last["reason"] if why["stop"] == "stop" else why["stop"]  # the stop hook names its own reason
+    if reason == "line search" and (singular or "singular" in why):
+        return Descent(cur, Status.ERROR, SINGULAR, nit, history)
     if reason == "max_iter":
         return Descent(cur, Status.MAX_ITERATIONS, f"max_iter = {max_iter} reached", nit, history)
     if reason == "time_limit":
         return Descent(cur, Status.MAX_ITERATIONS, limit.reached(), nit, history)
+    if reason == "non-finite gradient" and cur.F == -np.inf:  # minimized F: the declared objective's supremum
+        return Descent(cur, Status.ERROR, unbounded_message(arc.prep), nit, history)
     if reason == "non-finite gradient":
         return Descent(cur, Status.ERROR, f"the hypergradient is NaN or inf at x = {cur.x} (an upper objective or "
                        "constraint is not differentiable there, e.g. a norm at 0: declare a ball as "
@@ -215,6 +230,13 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int,
                "ftol": "relative decrease in one step <= ftol",
                "zero step": "zero gradient"}.get(reason, "projected gradient step <= gtol on the lower level's domain")
     return Descent(cur, Status.SOLVED, message, nit, history)
+
+
+def unbounded_message(prep: Prepared) -> str:
+    """Why a run ends where the upper objective is infinite in the improving direction: the matrix function's own
+    reason (its attribute `infinite`) where it has one."""
+    reason = getattr(prep.canon.matrix_function, "infinite", None)
+    return f"{reason or 'the upper objective is infinite at the point reached'}: the supremum is unbounded"
 
 
 def _projection(prep: Prepared, projection: Any) -> Projection:
@@ -346,11 +368,19 @@ def solve_hypergradient(prep: Prepared, *, starts: int | None = None, seed: Any 
         try:
             start = arc(x0)
             if start is None:
+                singular = isinstance(arc.error, RankDeficientRegressor)
+                cause = (f"{SINGULAR_CAUSE} (at the start: {arc.error})" if singular
+                         else "no upper point near the start where the lower level can be solved")
                 records.append({"start": k, "x0": x0.tolist(), "status": Status.ERROR.value, "iterations": 0,
-                                "message": "no upper point near the start where the lower level can be solved",
+                                "message": cause,
                                 "time": time.perf_counter() - t0})
                 continue
             run = descend(arc, start, tol, ftol, max_iter, limit, report)
+        except RankDeficientRegressor as exc:  # the start's lower level has no derivative: no step can begin
+            records.append({"start": k, "x0": x0.tolist(), "status": Status.ERROR.value, "iterations": 0,
+                            "message": f"{SINGULAR_CAUSE} (at the start: {exc})",
+                            "time": time.perf_counter() - t0})
+            continue
         except StopIteration:
             run = Descent(arc.last, Status.INACCURATE, "stopped by the callback (the caller's goal)",
                           max(len(seen) - 1, 0), seen)
@@ -368,8 +398,9 @@ def solve_hypergradient(prep: Prepared, *, starts: int | None = None, seed: Any 
             break
     nit = sum(r["iterations"] for r in records)
     if not runs:
+        cause = records[-1]["message"] if arc.error is None else f"{type(arc.error).__name__}: {arc.error}"
         return MethodRun(None, Status.ERROR, f"all {starts} starts failed: the lower level could not be solved "
-                         f"near any start ({type(arc.error).__name__}: {arc.error})", nit, [], records)
+                         f"near any start ({cause})", nit, [], records)
     i = len(runs) - 1 if goal is not None else _preferred(prep, best_of(candidates), candidates,
                                                             [r.point for _, r in runs], prefer)
     k, best = runs[i]

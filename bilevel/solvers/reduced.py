@@ -104,12 +104,15 @@ class _Reduced:
         return np.concatenate([[ev.F], ev.upper[1].ravel(), ev.upper[2].ravel()])
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
-        """d[F; G; H]/dx along y*(x) (n_out x n_x), NaN where the lower level cannot be solved."""
+        """d[F; G; H]/dx along y*(x) (n_out x n_x), NaN where the lower level cannot be solved or differentiated."""
         ev = self.point(x)
         if ev is None:
             return np.full((self.n_out, self.n_x), np.nan)
         if self._jac is None:
-            self._jac = self.oracle.jacobian(ev)[0].T
+            try:
+                self._jac = self.oracle.jacobian(ev)[0].T
+            except BilevelError:  # e.g. a singular learner: y*(x) has no derivative there, a point that fails
+                return np.full((self.n_out, self.n_x), np.nan)
         return self._jac
 
 

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 import bilevel as bl
 from bilevel.problems.budget import Budget
+from bilevel.result import BilevelResult
 from bilevel.solvers.trust_region import maximize_quadratic_on_ball
 from bilevel.ddc.loop import arx_orders_for
 from bilevel.problems.vrft_instance import CONVENTIONS, PAPER_THETA0, VRFTAttack, VRFTSetting, attack_instance
@@ -222,16 +223,26 @@ def test_declared_once_problem_reloaded_equals_a_fresh_declaration(objective: st
         load_instance(p, attack_instance(objective, "B", 0.1, 0.057, seed=3, N=64))
 
 
-@pytest.mark.slow
-def test_large_attack_runs_in_linear_memory() -> None:
-    """Issue 5 scale: a max-min attack at N = 65,536 without N x N arrays (peak memory O(N))."""
-    n = 65_536
+def _traced_peak(n: int) -> tuple[int, BilevelResult]:
+    """The traced peak (bytes) of a 10-iteration max-min attack at N = n, and its result."""
     atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=0, N=n)
     tracemalloc.start()
-    res = attack_alternating(atk, max_iter=10)
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    assert np.isfinite(res.upper_objective) and peak < 400 * n * 8  # a dense N x N would need 4000x more
+    try:
+        res = attack_alternating(atk, max_iter=10)
+        return tracemalloc.get_traced_memory()[1], res
+    finally:
+        tracemalloc.stop()
+
+
+@pytest.mark.slow
+def test_large_attack_runs_in_linear_memory() -> None:
+    """Issue 5 scale: a max-min attack at N = 65,536 in memory linear in N. Quadrupling N from 16,384 at most
+    quadruples the traced peak (4.5 allows for the fixed part), and the peak stays under 400 length-N vectors of
+    doubles (measured 271 at N = 16,384, 32,768 and 65,536; a dense N x N array would be 65,536 of them)."""
+    small, _ = _traced_peak(16_384)
+    peak, res = _traced_peak(65_536)
+    assert np.isfinite(res.upper_objective)
+    assert peak / small <= 4.5 and peak < 400 * 65_536 * 8
 
 
 def test_quick_reproduction_end_to_end_and_resumes(tmp_path) -> None:

@@ -11,7 +11,7 @@ from scipy.optimize import linprog
 
 from bilevel import BilevelProblem
 from bilevel.defaults import defaults
-from bilevel.errors import InvalidData, ModelError
+from bilevel.errors import InvalidData, ModelError, RankDeficientRegressor
 from bilevel.lower.matrix import MatrixLower
 from bilevel.solvers.base import prepare
 from bilevel.solvers.block_exact import exact_block_of
@@ -206,11 +206,11 @@ def test_lower_qp_is_the_whole_lower_level():
         p2.solve(method="hypergradient")
 
 
-def test_least_squares_adjoint_on_a_singular_hessian_is_the_minimum_norm_solve() -> None:
+def test_least_squares_adjoint_on_a_singular_hessian_is_a_failing_point() -> None:
     """Where the Hessian handed to the implicit-derivative solve is singular (a learner the attacker made
-    rank-deficient, which rounding decides near the edge), the least-squares kind returns the minimum-norm solution
-    with its rank (a degenerate point for the method), not an exception mid-solve; a positive definite one is solved
-    in full rank."""
+    rank-deficient, which rounding decides near the edge), the least-squares kind raises RankDeficientRegressor, which
+    the methods take as a trial point that fails (bilevel.solvers.ascent); a positive definite one is solved in full
+    rank."""
     p = BilevelProblem("ls-adjoint")
     x = p.upper_variable("x", lb=-1, ub=1)
     y = p.lower_variable("y", 2)
@@ -219,10 +219,8 @@ def test_least_squares_adjoint_on_a_singular_hessian_is_the_minimum_norm_solve()
     low = prepare(p).canon.lower
     assert low.kind == "least-squares"
     rhs = np.array([[1.0], [2.0]])
-    K = np.array([[1.0, 1.0], [1.0, 1.0]])  # PSD, rank 1
-    Z, rank = low.kkt_solve(np.zeros(1), K, rhs)
-    np.testing.assert_allclose(Z, np.linalg.pinv(K.T) @ rhs, atol=1e-12)
-    assert rank == 1
+    with pytest.raises(RankDeficientRegressor, match="singular Hessian"):
+        low.kkt_solve(np.zeros(1), np.array([[1.0, 1.0], [1.0, 1.0]]), rhs)  # PSD, rank 1
     Z, rank = low.kkt_solve(np.zeros(1), 2 * np.eye(2), rhs)
     np.testing.assert_allclose(Z, rhs / 2, atol=1e-15)
     assert rank == 2

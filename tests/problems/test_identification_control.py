@@ -140,3 +140,17 @@ def test_matrix_function_objective_on_a_small_box_problem() -> None:
         np.testing.assert_allclose(result.x["x"], [1, -1], atol=1e-8)
     with pytest.raises(ModelError, match="callable"):
         p.maximize_matrix_function(y, "not a function")
+
+
+def test_h2_attack_that_destabilizes_the_model_says_the_supremum_is_unbounded() -> None:
+    """Once the poisoning can make the identified A unstable, the H2 norm has no finite maximum: the ascent reaches an
+    unstable model (the true refit there has spectral radius >= 1) and its message says so, not that the objective
+    is not differentiable."""
+    atk = attack_instance("ss", T=30, eps=0.05, objective="h2", seed=0)
+    result = declare(atk).solve(starts=1, seed=0)
+    assert result.status.value == "error" and result.upper_objective == np.inf
+    assert "identified model became unstable" in result.message and "supremum is unbounded" in result.message
+    assert "not differentiable" not in result.message
+    X, U = atk.signals["X"], atk.signals["U"]
+    theta = refit(X + result.x["dX"].reshape(X.shape), U + result.x["dU"].reshape(U.shape))
+    assert max(abs(np.linalg.eigvals(theta[:, :X.shape[0]]))) >= 1.0

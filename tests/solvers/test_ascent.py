@@ -112,3 +112,27 @@ def test_moved_points_and_the_reason_for_stopping_are_reported() -> None:
     _, _, _, it, evals, converged = projected_ascent(flat, lambda x: (np.ones(2), np.ones(2)), Box(-b, b),
                                                      np.full(2, 0.5), 1.0, 10, 1e-14, [], why=why, min_step=0.1)
     assert converged and why["stop"] == "line search" and it == 1 and evals == 1 + 4  # 1, 1/2, 1/4, 1/8 tried
+
+
+def test_trial_points_without_a_derivative_are_rejected_and_named() -> None:
+    """A direction that raises RankDeficientRegressor (a lower level without a unique solution, x <= 0 here) makes
+    its trial point fail: the ascent of -(x + 0.5)^2 on [-1, 1] backtracks and approaches 0 from above, never
+    accepting x <= 0; started 1e-12 from that set, every step fails and the line search says why."""
+    from bilevel.errors import RankDeficientRegressor
+
+    def f(x: np.ndarray) -> tuple[float, np.ndarray]:
+        return -float((x[0] + 0.5) ** 2), x
+
+    def direction(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if x[0] <= 0:
+            raise RankDeficientRegressor("singular at x <= 0")
+        g = -2 * (x + 0.5)
+        return g, g / max(1.0, float(np.abs(g).max()))
+
+    box = Box(np.array([-1.0]), np.array([1.0]))
+    why: dict[str, str] = {}
+    x, fx, _, _, _, _ = projected_ascent(f, direction, box, np.array([1.0]), 1.0, 200, 0.0, [], why=why)
+    assert 0 < x[0] < 1e-6 and fx == pytest.approx(-0.25, abs=1e-6)
+    why = {}
+    x, _, _, it, _, _ = projected_ascent(f, direction, box, np.array([1e-12]), 1.0, 200, 0.0, [], why=why)
+    assert x[0] == 1e-12 and it == 1 and why == {"stop": "line search", "singular": "singular at x <= 0"}

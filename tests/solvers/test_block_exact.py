@@ -162,3 +162,21 @@ def test_suggest_start_rejects_unknown_names_and_bad_shapes() -> None:
         p.suggest_start(z=1.0)
     with pytest.raises(ModelError, match="has 3 entries"):
         p.suggest_start(x=[1.0, 2.0, 3.0])
+
+
+def test_a_start_where_the_learner_is_singular_is_a_failed_start() -> None:
+    """The exact block x (a ball) with the learner min (w y_0 - 1)^2 + (y_1 - x_0 - x_1)^2, singular at w = 0 only:
+    the conditioning start is w = 0, where the learner cannot be solved. That start fails (no point, no steps; it
+    used to end solve with an AttributeError) and the other reaches x on the ball at (1, 1)/sqrt(2), w -> 0+."""
+    p = bl.BilevelProblem("singular-block")
+    x = p.upper_variable("x", 2)
+    w = p.upper_variable("w", lb=0, ub=1, start=1.0)
+    y = p.lower_variable("y", 2)
+    p.upper_constraint(ca.sumsqr(x) <= 1)
+    p.minimize_upper((y[1] - 2) ** 2 + (w + 0.5) ** 2)
+    p.minimize_lower((w * y[0] - 1) ** 2 + (y[1] - x[0] - x[1]) ** 2)
+    result = p.solve("block-exact", starts=2)
+    failed, other = result.start_records
+    assert failed["objective"] is None and failed["iterations"] == 0 and other["converged"]
+    np.testing.assert_allclose(result.x["x"], np.full(2, np.sqrt(0.5)), atol=1e-6)
+    assert 0 < result.x["w"][0] < 1e-6

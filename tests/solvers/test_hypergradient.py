@@ -230,3 +230,21 @@ def test_two_sided_constraints_share_one_core_and_keep_their_jacobians() -> None
     rows = lambda xs: np.concatenate([[oracle.evaluate(xs).F], oracle.evaluate(xs).upper[1].ravel()])  # noqa: E731
     fd = np.column_stack([(rows(x0 + FD_STEP * d) - rows(x0 - FD_STEP * d)) / (2 * FD_STEP) for d in np.eye(2)])
     assert np.abs(J.T - fd).max() <= 1e-7 * max(1.0, np.abs(fd).max())
+
+
+def test_a_start_where_the_learner_is_singular_fails_with_its_cause() -> None:
+    """min (x + 1/2)^2 over x in [0, 1] with the learner min (x y_0 - 1)^2 + (y_1 - x)^2, singular at x = 0 only: the
+    conditioning start is x = 0, where the learner has no unique solution. That start is a failed start naming the
+    cause (no exception from solve); the others reach the infimum 1/4 from x > 0, the learner solvable there."""
+    p = bl.BilevelProblem("singular-learner")
+    x = p.upper_variable("x", lb=0, ub=1, start=1.0)
+    y = p.lower_variable("y", 2)
+    p.minimize_upper((x + 0.5) ** 2)
+    p.minimize_lower((x * y[0] - 1) ** 2 + (y[1] - x) ** 2)
+    result = p.solve("hypergradient", starts=2)
+    failed, other = result.start_records
+    assert failed["x0"] == [0.0] and failed["status"] == "error"
+    assert "rank-deficient at the poisoning reached: the attack made the learner singular" in failed["message"]
+    assert other["status"] == "solved" and 0 < result.x["x"][0] < 1e-6
+    assert result.upper_objective == pytest.approx(0.25, abs=1e-6)
+    assert result.y["y"][0] == pytest.approx(1 / result.x["x"][0], rel=1e-9)
