@@ -152,7 +152,7 @@ def clarabel_solution(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
         return _solution(d, stated[1], stated[0].constraints, stated[0].status)
 
 
-DROP_ZEROS = {"input_sparse_dropzeros": True}
+DROP_ZEROS: dict[str, Any] = {"input_sparse_dropzeros": True}
 """clarabel_solution's Clarabel option: cvxpy stores every entry of a Parameter (and of a dense constant) in the
 constraint matrix, zeros included; Clarabel drops them and factors its KKT system at the data's own sparsity (the
 Willems learner's SDP at N = 50: 8,400 stored entries, 2,956 nonzero; 2x faster). It also rules out cvxpy's update of

@@ -155,3 +155,19 @@ def test_budget_cdf_shows_every_finite_budget() -> None:
     assert right == pytest.approx(1.05 * 1.25)
     ends = sorted((line.get_xdata()[-1], line.get_ydata()[-1]) for line in ax.get_lines())
     assert ends == [(pytest.approx(right), pytest.approx(2 / 3)), (pytest.approx(right), pytest.approx(1.0))]
+
+
+def test_reference_re_solve_does_not_depend_on_the_solves_before_it() -> None:
+    """The certificate's cvxpy re-solve of the learner's SDP on three data sets, then again in reverse order: the same
+    numbers each time (before, cvxpy updated the previous solve's Clarabel solver, whose answer moved by 1e-8 with
+    that history), and the optimum Clarabel's direct interface finds."""
+    from bilevel.lower.quadratic import clarabel_direct, clarabel_solution
+
+    lows = [willems.engine(build_attack(objective="destabilize", horizon=15, seed=s, delta_u=0.1), radius=True).low
+            for s in (21, 22, 23)]
+    data = [(low.data(np.zeros(low.n_x)), low.lmi_data(np.zeros(low.n_x))) for low in lows]
+    forward = [clarabel_solution(d, "", lmis) for d, lmis in data]
+    backward = [clarabel_solution(d, "", lmis) for d, lmis in data[::-1]][::-1]
+    for one, two, (d, lmis) in zip(forward, backward, data):
+        np.testing.assert_array_equal(one.y, two.y)
+        assert one.objective == pytest.approx(clarabel_direct(d, "", False, lmis).objective, rel=1e-7)
