@@ -18,7 +18,7 @@ from ..vech import unvech, vech, vech_sx
 from .base import LowerSolution
 from .convexity import psd_violation
 from .polish import Lmi
-from .quadratic import QPData, QuadraticLower, clarabel_direct, solve_qp_clarabel
+from .quadratic import QPData, QuadraticLower, clarabel_direct, point_context, solve_qp_clarabel
 
 def range_basis(matrix: np.ndarray, rtol: float) -> np.ndarray:
     """Orthonormal basis (columns) of the column space of matrix: singular values <= rtol * the largest count as
@@ -126,7 +126,7 @@ class SemidefiniteLower(QuadraticLower):
         """The SDP solved at x with cvxpy + Clarabel and polished onto its optimal face (the certificate's independent
         re-solve; where the SDP ignores x, once per parameter values); Z_k are the LMI multipliers
         (L = f - sum <Z_k, M_k>)."""
-        return self._once("reference", x, lambda: solve_qp_clarabel(self.data(x), self._context(x), self.lmi_data(x)))
+        return self._once("reference", x, lambda: solve_qp_clarabel(self.data(x), point_context(x), self.lmi_data(x)))
 
     def solve(self, x: np.ndarray) -> LowerSolution:
         """The learner's solution at x: the chosen one (choose), else Clarabel's point Newton-polished on this SDP's
@@ -140,10 +140,10 @@ class SemidefiniteLower(QuadraticLower):
         and the polish stays above defaults["sdp.polished_tol"] (no strictly complementary solution: y*(x) has no
         derivative there)."""
         verified = self.constant_hessian and self.convexity_probe is not None  # the declaration's PSD check
-        raw = clarabel_direct(self.data(x), self._context(x), verified, self.lmi_data(x))
+        raw = clarabel_direct(self.data(x), point_context(x), verified, self.lmi_data(x))
         sol, residual = self.newton_polish(x, raw)
         if residual > (tol := param("sdp.polished_tol")) and not self.fixed:
-            raise SolverFailed(f"the SDP {self._context(x)} has KKT residual {residual:.1e} > {tol:g} after "
+            raise SolverFailed(f"the SDP {point_context(x)} has KKT residual {residual:.1e} > {tol:g} after "
                                "Newton polishing (no strictly complementary solution found): its solution's derivative "
                                "is not defined there; move x or regularize the lower objective (e.g. raise reg)")
         return self.select(x, sol)
@@ -151,10 +151,6 @@ class SemidefiniteLower(QuadraticLower):
     def select(self, x: np.ndarray, sol: LowerSolution) -> LowerSolution:
         """select_min_norm(x, sol), or sol where min_norm is off."""
         return self.select_min_norm(x, sol) if self.min_norm else sol
-
-    @staticmethod
-    def _context(x: np.ndarray) -> str:
-        return f"at x = {np.array2string(np.asarray(x), precision=4)}"
 
     def _once(self, role: str, x: np.ndarray, compute: Callable[[], LowerSolution]) -> LowerSolution:
         """compute(), kept under `role` while the SDP ignores x and the parameter values hold."""
