@@ -342,12 +342,13 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     return _run_sweeps(work)
 
 
-REPRODUCE_FLAGS = {"--quick": ("willems", "identification", "defenses"), "--selection": ("willems",)}
+REPRODUCE_FLAGS = {"--quick": ("willems", "identification", "defenses"), "--selection": ("willems",),
+                   "--learners": ("defenses",)}
 """The `reproduce` flags that only some targets take."""
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    given = {"--quick": args.quick, "--selection": args.selection is not None}
+    given = {"--quick": args.quick, "--selection": args.selection is not None, "--learners": args.learners is not None}
     unused = [flag for flag, takers in REPRODUCE_FLAGS.items() if given[flag] and args.target not in takers]
     if unused:
         flag = unused[0]
@@ -371,7 +372,9 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     if args.target == "defenses":
         from .experiments.defenses import run_defenses
 
-        return _run_sweeps(lambda: run_defenses(args.sims, out, args.quick, args.seed, args.workers, args.dask))
+        learners = None if args.learners is None else args.learners.split(",")
+        return _run_sweeps(lambda: run_defenses(args.sims, out, args.quick, args.seed, args.workers, args.dask,
+                                                learners=learners))
     if args.target == "willems-budget":
         from .experiments.willems_budget import run_budget
 
@@ -460,6 +463,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_rep.add_argument("--selection", choices=WILLEMS_SELECTIONS, default=None,
                        help="willems: the learner's choice among its optimal Q (tikhonov: the session-1 sweep's; "
                             "clarabel, scs: the solver's own Q, input poisoning only; default min-norm)")
+    p_rep.add_argument("--learners", default=None, metavar="LIST",
+                       help="defenses: a comma-separated subset of vrft,willems,ident,deepc to run (default all)")
     p_rep.set_defaults(run=_cmd_reproduce)
     return parser
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import csv
 import os
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import matplotlib
 
@@ -32,6 +32,7 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
+from ..errors import ModelError  # noqa: E402
 from ..result import Status  # noqa: E402
 from ..files import atomic_open, atomic_path  # noqa: E402
 from ..problems import defended_deepc, defended_identification  # noqa: E402
@@ -43,12 +44,14 @@ from ..problems.willems_instance import WillemsAttack, WillemsSetting, criterion
 from ..solvers.budget_search import smallest_budget  # noqa: E402
 from ..solvers.hypergradient import SINGULAR_CAUSE  # noqa: E402
 from ..solvers.registry import solve  # noqa: E402
-from .defenses_detection import run_detection  # noqa: E402
+from .defenses_detection import FAMILIES, run_detection  # noqa: E402
 from .executor import open_executor  # noqa: E402
 from .stats import mean_interval, median_interval  # noqa: E402
 from .willems_budget import smallest_destabilizing_budget  # noqa: E402
 from .sweep import NUMBER, check_fields, run_sweep, sim_seeds, stderr_progress  # noqa: E402
 
+LEARNERS = ("vrft", "willems", "ident", "deepc")
+"""The learners of the sweep, in run order (`learners` of run_defenses picks a subset)."""
 ROW_SCHEMA = {"learner": str, "defense": str, "param": NUMBER, "N": int, "data_seed": int, "clean_cost": NUMBER,
               "delta_star": NUMBER, "attacks": int}
 """A row's fields (delta_star inf: goal not reached on the budget path)."""
@@ -170,8 +173,23 @@ def frontier_task(task: dict[str, Any]) -> dict[str, Any]:
             "data_seed": task["seed"], "clean_cost": cost, "delta_star": found.delta, "attacks": len(found.runs)}
 
 
-def frontier_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
-    """One task per (setting, data set); data set i has the same seeds in every setting."""
+def check_learners(learners: Sequence[str] | None) -> tuple[str, ...]:
+    """The learners to run, in LEARNERS' order (None: all); an unknown or repeated name, or none, is refused."""
+    if learners is None:
+        return LEARNERS
+    learners = [str(name).strip() for name in learners]
+    unknown = [name for name in learners if name not in LEARNERS]
+    if unknown or not learners or len(set(learners)) != len(learners):
+        problem = (f"unknown learner(s) {', '.join(map(repr, unknown))}" if unknown else
+                   "no learner given" if not learners else f"a learner is repeated in {','.join(learners)}")
+        raise ModelError(f"defenses learners: {problem}; give a comma-separated subset of {','.join(LEARNERS)}")
+    return tuple(name for name in LEARNERS if name in learners)
+
+
+def frontier_tasks(plan: Plan, seed: int, learners: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    """One task per (setting, data set) of the chosen learners (check_learners; None: all); data set i has the same
+    seeds in every setting, whichever learners run."""
+    chosen = check_learners(learners)
     seeds = list(enumerate(zip(sim_seeds(seed, plan.sims), sim_seeds(seed + 1, plan.sims))))
     settings = [("vrft", defense, lam, plan.vrft_n) for defense, lam in VRFT_SETTINGS]
     settings += [("willems", "ridge", reg, n) for n in plan.horizons for reg in WILLEMS_REGS]
@@ -179,7 +197,8 @@ def frontier_tasks(plan: Plan, seed: int) -> list[dict[str, Any]]:
     settings += [("deepc", "ridge", lam, plan.deepc_t) for lam in DEEPC_LAMBDA_G]
     return [{"key": f"{learner}|{defense}|{param:g}|N={n}|sim={i}", "learner": learner, "defense": defense,
              "param": param, "N": n, "seed": data_seed, "attack_seed": attack_seed, "root_seed": seed}
-            for learner, defense, param, n in settings for i, (data_seed, attack_seed) in seeds]
+            for learner, defense, param, n in settings if learner in chosen
+            for i, (data_seed, attack_seed) in seeds]
 
 
 def _baseline(learner: str, N: int, rows: list[dict[str, Any]]) -> dict[int, dict[str, Any]]:
@@ -234,11 +253,20 @@ def summary_markdown(summary: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def frontier_figure(summary: list[dict[str, Any]]) -> Figure:
-    """Median delta* against mean clean cost, one panel per learner, with both 95% intervals (an infinite end is
-    drawn to the panel's edge)."""
+def learners_line(learners: Sequence[str] | None = None) -> str:
+    """The sentence naming the learners run (check_learners) and those left out."""
+    run = check_learners(learners)
+    left = [name for name in LEARNERS if name not in run]
+    return f"Learners run: {', '.join(run)}" + (f" (not run: {', '.join(left)})." if left else " (all).")
+
+
+def frontier_figure(summary: list[dict[str, Any]], learners: Sequence[str] | None = None) -> Figure:
+    """Median delta* against mean clean cost, one panel per learner in the rows, with both 95% intervals (an infinite
+    end is drawn to the panel's edge); the title is learners_line."""
+    learners_run = learners_line(learners)
     learners = sorted({s["learner"] for s in summary})
-    fig = Figure(figsize=(5.0 * len(learners), 3.8))
+    fig = Figure(figsize=(5.0 * len(learners), 4.1))
+    fig.suptitle(learners_run, fontsize=9)
     for i, learner in enumerate(learners):
         ax = fig.add_subplot(1, len(learners), i + 1)
         groups = sorted({(s["defense"], s["N"]) for s in summary if s["learner"] == learner})
@@ -262,22 +290,23 @@ def frontier_figure(summary: list[dict[str, Any]]) -> Figure:
                                          else " (destabilizing budget)"))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.95))
     return fig
 
 
-def write_outputs(rows: list[dict[str, Any]], out_dir: str) -> str:
-    """frontier.csv (per data set), frontier.md (summary_markdown) and fig_frontier.png; returns the table."""
+def write_outputs(rows: list[dict[str, Any]], out_dir: str, learners: Sequence[str] | None = None) -> str:
+    """frontier.csv (per data set), frontier.md (learners_line, then summary_markdown) and fig_frontier.png; returns
+    frontier.md's text."""
     os.makedirs(out_dir, exist_ok=True)
     with atomic_open(os.path.join(out_dir, "frontier.csv"), newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(ROW_SCHEMA))
         writer.writeheader()
         writer.writerows({k: r[k] for k in ROW_SCHEMA} for r in rows)
     summary = summarize(rows)
-    fig = frontier_figure(summary)
+    fig = frontier_figure(summary, learners)
     with atomic_path(os.path.join(out_dir, "fig_frontier.png")) as tmp:
         fig.savefig(tmp, dpi=150)
-    table = summary_markdown(summary)
+    table = learners_line(learners) + "\n\n" + summary_markdown(summary)
     with atomic_open(os.path.join(out_dir, "frontier.md")) as fh:
         fh.write(table)
     return table
@@ -285,16 +314,21 @@ def write_outputs(rows: list[dict[str, Any]], out_dir: str) -> str:
 
 def run_defenses(sims: int = 64, out_dir: str = "out/defenses", quick: bool = False, seed: int = 0,
                  workers: int | None = None, dask: str | None = None,
-                 progress: Callable[[str], None] | None = stderr_progress) -> str:
-    """`bilevel reproduce defenses`: the frontier sweep (resumable, defenses.jsonl), its table and figure, then the
-    detection sweep (bilevel.experiments.defenses_detection: detection.jsonl, detection.md); returns the path of
-    frontier.md."""
+                 progress: Callable[[str], None] | None = stderr_progress,
+                 learners: Sequence[str] | None = None) -> str:
+    """`bilevel reproduce defenses`: the frontier sweep of the chosen learners (check_learners; None: all; resumable,
+    defenses.jsonl), its table and figure, then the detection sweep of those among vrft, willems and ident
+    (bilevel.experiments.defenses_detection: detection.jsonl, detection.md); returns the path of frontier.md."""
     plan = make_plan(sims, quick)
+    chosen = check_learners(learners)
     with open_executor(workers, dask) as executor:
-        rows = run_sweep(frontier_task, frontier_tasks(plan, seed), os.path.join(out_dir, "defenses.jsonl"), executor,
-                         progress, "defenses", valid=lambda r: check_fields(r, ROW_SCHEMA))
-        write_outputs(rows, out_dir)
-        run_detection(plan.sims, plan.vrft_n, plan.horizons[0], out_dir, seed, executor, progress)
+        rows = run_sweep(frontier_task, frontier_tasks(plan, seed, chosen), os.path.join(out_dir, "defenses.jsonl"),
+                         executor, progress, "defenses", valid=lambda r: check_fields(r, ROW_SCHEMA))
+        write_outputs(rows, out_dir, chosen)
+        families = tuple(name for name in chosen if name in FAMILIES)
+        if families:
+            run_detection(plan.sims, plan.vrft_n, plan.horizons[0], out_dir, seed, executor, progress,
+                          families=families)
     path = os.path.join(out_dir, "frontier.md")
     if progress:
         progress(f"wrote {path}")

@@ -48,6 +48,8 @@ ROW_SCHEMA = {"case": str, "data_seed": int, "statistic": FINITE, "succeeded": b
 loop unstable (vrft, willems) or ||d[A B]||_2 > IDENT_DAMAGE (ident)."""
 IDENT_DAMAGE = 0.1
 CASES = ("vrft-ignores", "vrft-respects", "willems-ignores", "willems-respects", "ident-ignores", "ident-respects")
+FAMILIES = ("vrft", "willems", "ident")
+"""The learners a case attacks (its name's first part)."""
 
 
 def _vrft_spectrum(N: int) -> np.ndarray:
@@ -71,11 +73,15 @@ def _smallest_p(tests: dict[str, Any]) -> float:
     return min(tests[name].p_value for name in ("variance", "whiteness"))
 
 
-def thresholds(N: int, T: int, seed: int, count: int = CALIBRATION) -> dict[str, float]:
-    """Per family, the statistic's 5% false-alarm threshold over `count` clean data sets (seeds from seed + 7)."""
+def thresholds(N: int, T: int, seed: int, count: int = CALIBRATION,
+               families: tuple[str, ...] = FAMILIES) -> dict[str, float]:
+    """Per family of `families`, the statistic's 5% false-alarm threshold over `count` clean data sets (seeds from
+    seed + 7)."""
     seeds = sim_seeds(seed + 7, count)
     out = {}
     for family, n in (("vrft", N), ("willems", T), ("ident", IDENT_T)):
+        if family not in families:
+            continue
         values = np.array([clean_statistic(family, n, s) for s in seeds])
         out[family] = float(np.quantile(values, FALSE_ALARM if family == "ident" else 1 - FALSE_ALARM))
     return out
@@ -134,19 +140,21 @@ def detection_markdown(rows: list[dict[str, Any]], limits: dict[str, float]) -> 
 
 
 def run_detection(sims: int, N: int, T: int, out_dir: str, seed: int = 0, executor: Any = None,
-                  progress: Callable[[str], None] | None = stderr_progress, calibration: int = CALIBRATION) -> str:
-    """The detection sweep (resumable, detection.jsonl), detection.csv (one row per attack) and detection.md; returns
-    the table."""
+                  progress: Callable[[str], None] | None = stderr_progress, calibration: int = CALIBRATION,
+                  families: tuple[str, ...] = FAMILIES) -> str:
+    """The detection sweep of the cases attacking `families` (resumable, detection.jsonl), detection.csv (one row per
+    attack) and detection.md; returns the table."""
     seeds = list(enumerate(zip(sim_seeds(seed, sims), sim_seeds(seed + 1, sims))))
     tasks = [{"key": f"{case}|N={N}|T={T}|sim={i}", "case": case, "N": N, "T": T, "seed": data_seed,
-              "attack_seed": attack_seed, "root_seed": seed} for case in CASES for i, (data_seed, attack_seed) in seeds]
+              "attack_seed": attack_seed, "root_seed": seed}
+             for case in CASES if case.split("-")[0] in families for i, (data_seed, attack_seed) in seeds]
     rows = run_sweep(detection_task, tasks, os.path.join(out_dir, "detection.jsonl"), executor, progress,
                      "defenses-detection", valid=lambda r: check_fields(r, ROW_SCHEMA))
     with atomic_open(os.path.join(out_dir, "detection.csv"), newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(ROW_SCHEMA))
         writer.writeheader()
         writer.writerows({k: r[k] for k in ROW_SCHEMA} for r in rows)
-    table = detection_markdown(rows, thresholds(N, T, seed, calibration))
+    table = detection_markdown(rows, thresholds(N, T, seed, calibration, families))
     with atomic_open(os.path.join(out_dir, "detection.md")) as fh:
         fh.write(table)
     return table

@@ -41,8 +41,9 @@ def test_summary_per_setting(tmp_path):
     assert ridge["delta_ratio"] == pytest.approx(2.0) and (ridge["delta_larger"], ridge["paired"]) == (12, 12)
     assert summary[1]["cost_ratio"] == 1.0 and summary[1]["delta_smaller"] == 0  # the baseline against itself
     assert summary[0]["delta_ratio"] == pytest.approx(0.5)  # iv: 0.05 against 0.1 (its inf on set 0 counts high)
-    table = write_outputs(rows, str(tmp_path))
-    assert table == summary_markdown(summary) and "| vrft | ridge | 0.001 | 128 | 12 |" in table
+    table = write_outputs(rows, str(tmp_path), ["vrft"])
+    assert table == "Learners run: vrft (not run: willems, ident, deepc).\n\n" + summary_markdown(summary)
+    assert "| vrft | ridge | 0.001 | 128 | 12 |" in table and (tmp_path / "frontier.md").read_text() == table
     assert (tmp_path / "fig_frontier.png").stat().st_size > 0
     assert (tmp_path / "frontier.csv").read_text().count("\n") == len(rows) + 1
 
@@ -143,3 +144,48 @@ def test_vrft_radius_reads_a_singular_learner_from_the_result(monkeypatch):
     singular = dataclasses.replace(fake, start_records=({"status": "error", "message": f"{SINGULAR_CAUSE} (...)"},))
     monkeypatch.setattr(defenses, "solve", lambda *args, **kwargs: singular)
     assert defenses.vrft_radius("iv", 0.0, 128, 0, 0.02, 0) == math.inf
+
+
+def test_learner_subset_keeps_the_full_runs_tasks():
+    """A subset runs exactly the full sweep's tasks of those learners (same keys and seeds: a full run's rows are
+    reused, and a subset's rows by a later full run); a bad subset names the valid learners."""
+    from bilevel.errors import ModelError
+    from bilevel.experiments.defenses import check_learners, frontier_tasks, learners_line, make_plan
+
+    plan = make_plan(3, quick=True)
+    full = frontier_tasks(plan, 0)
+    subset = frontier_tasks(plan, 0, ["willems", "vrft"])
+    assert subset == [t for t in full if t["learner"] in ("vrft", "willems")]
+    assert {t["learner"] for t in full} == {"vrft", "willems", "ident", "deepc"} and len(subset) == 3 * (6 + 4)
+    assert check_learners(["deepc", " vrft"]) == ("vrft", "deepc")
+    assert learners_line(["willems", "vrft"]) == "Learners run: vrft, willems (not run: ident, deepc)."
+    assert learners_line(None) == "Learners run: vrft, willems, ident, deepc (all)."
+    for bad, why in ((["vrft", "dpt"], "unknown learner(s) 'dpt'"), ([], "no learner given"),
+                     (["vrft", "vrft"], "repeated")):
+        with pytest.raises(ModelError, match=r"subset of vrft,willems,ident,deepc") as info:
+            check_learners(bad)
+        assert why in str(info.value)
+
+
+def test_run_defenses_on_one_learner_resumes(tmp_path):
+    """run_defenses on De Persis–Tesi alone: its frontier rows and detection cases only, the learners named in
+    frontier.md; a rerun computes nothing."""
+    import json
+
+    from bilevel.experiments.defenses import run_defenses
+
+    notes = []
+    path = run_defenses(sims=1, out_dir=str(tmp_path), quick=True, workers=1, progress=notes.append,
+                        learners=["willems"])
+    rows = [json.loads(line) for line in (tmp_path / "defenses.jsonl").read_text().splitlines()]
+    assert {r["learner"] for r in rows} == {"willems"} and sorted(r["param"] for r in rows) == [1e-8, 1e-2, 1e-1, 1.0]
+    text = (tmp_path / "frontier.md").read_text()
+    assert path == str(tmp_path / "frontier.md")
+    assert text.startswith("Learners run: willems (not run: vrft, ident, deepc).")
+    assert text.count("| willems | ridge |") == 4 and "| vrft |" not in text
+    detection = [json.loads(line)["case"] for line in (tmp_path / "detection.jsonl").read_text().splitlines()]
+    assert sorted(detection) == ["willems-ignores", "willems-respects"]
+    assert "| willems-ignores |" in (tmp_path / "detection.md").read_text()
+    notes.clear()
+    run_defenses(sims=1, out_dir=str(tmp_path), quick=True, workers=1, progress=notes.append, learners=["willems"])
+    assert (tmp_path / "defenses.jsonl").read_text().count("\n") == 4 and not any("running" in n for n in notes)
