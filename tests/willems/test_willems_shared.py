@@ -163,7 +163,7 @@ def test_reference_re_solve_does_not_depend_on_the_solves_before_it() -> None:
     that history), and the optimum Clarabel's direct interface finds."""
     from bilevel.lower.quadratic import clarabel_direct, clarabel_solution
 
-    lows = [willems.engine(build_attack(objective="destabilize", horizon=15, seed=s, delta_u=0.1), radius=True).low
+    lows = [build_attack(objective="destabilize", horizon=15, seed=s, delta_u=0.1).oracle(radius=True).low
             for s in (21, 22, 23)]
     data = [(low.data(np.zeros(low.n_x)), low.lmi_data(np.zeros(low.n_x))) for low in lows]
     forward = [clarabel_solution(d, "", lmis) for d, lmis in data]
