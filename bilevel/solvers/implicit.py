@@ -246,9 +246,10 @@ class Hypergradient:
             else:  # F is all there is: nothing to sweep
                 upper = list(self._unswept)
             if self._squares is not None:
-                upper[0] = self._squares(sol.y)[0]
-                if len(upper) > 3:
-                    upper[4] = self._squares(sol.y)[1]
+                value, gradient = self._squares(sol.y)  # one BLAS evaluation gives both
+                upper[0] = value
+                if len(upper) > 3:  # the unswept zeros, partials included
+                    upper[4] = gradient
         if self._spectral is not None:
             upper = self._with_spectral(x, sol.y, self.partials(x, sol.y, upper))
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
