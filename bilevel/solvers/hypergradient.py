@@ -365,26 +365,25 @@ def solve_hypergradient(prep: Prepared, *, starts: int | None = None, seed: Any 
                          f"{prep.declared(record['objective']):.8g}, projected step "
                          f"{record['projected_step_norm']:.2e}")
 
+        failed = None  # why no descent could begin at this start
         try:
             start = arc(x0)
             if start is None:
                 singular = isinstance(arc.error, RankDeficientRegressor)
-                cause = (f"{SINGULAR_CAUSE} (at the start: {arc.error})" if singular
-                         else "no upper point near the start where the lower level can be solved")
-                records.append({"start": k, "x0": x0.tolist(), "status": Status.ERROR.value, "iterations": 0,
-                                "message": cause,
-                                "time": time.perf_counter() - t0})
-                continue
-            run = descend(arc, start, tol, ftol, max_iter, limit, report)
+                failed = (f"{SINGULAR_CAUSE} (at the start: {arc.error})" if singular
+                          else "no upper point near the start where the lower level can be solved")
+            else:
+                run = descend(arc, start, tol, ftol, max_iter, limit, report)
         except RankDeficientRegressor as exc:  # the start's lower level has no derivative: no step can begin
-            records.append({"start": k, "x0": x0.tolist(), "status": Status.ERROR.value, "iterations": 0,
-                            "message": f"{SINGULAR_CAUSE} (at the start: {exc})",
-                            "time": time.perf_counter() - t0})
-            continue
+            failed = f"{SINGULAR_CAUSE} (at the start: {exc})"
         except StopIteration:
             run = Descent(arc.last, Status.INACCURATE, "stopped by the callback (the caller's goal)",
                           max(len(seen) - 1, 0), seen)
             goal = k
+        if failed is not None:
+            records.append({"start": k, "x0": x0.tolist(), "status": Status.ERROR.value, "iterations": 0,
+                            "message": failed, "time": time.perf_counter() - t0})
+            continue
         p = run.point
         w = prep.pack(KKTPoint(p.x, p.lower.y, p.lower.lam, p.lower.mu, p.lower.Z))
         runs.append((k, run))
