@@ -55,6 +55,7 @@ from .sampling import sample_in_bounds
 
 if TYPE_CHECKING:  # pragma: no cover
     from .canonical import CanonicalBilevel
+    from .lower.base import LowerLevel
     from .reduction import KKTPoint
 
 LOCAL_EVIDENCE = "lower-level optimality is local evidence (convexity not proven)"
@@ -181,11 +182,21 @@ def _psd_part(z: np.ndarray) -> np.ndarray:
     return (v * np.maximum(w, 0.0)) @ v.T
 
 
-def dual_bound(low, x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarray, Z: list[np.ndarray]) -> float:
+def _curvature(hess: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """Eigenvalues and eigenvectors of the symmetric part of a Hessian; (its diagonal, None) for a diagonal one."""
+    sym = 0.5 * (hess + hess.T)
+    diag = np.diagonal(sym)
+    if np.count_nonzero(sym) == np.count_nonzero(diag):
+        return diag.copy(), None
+    return np.linalg.eigh(sym)
+
+
+def _dual_bound(low: "LowerLevel", x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarray,
+                Z: list[np.ndarray], curvature: tuple[np.ndarray, np.ndarray | None]) -> float:
     """min over y' of the Lagrangian f + lam'g + mu'h - sum <Z_k, M_k> of an LP/QP/SDP lower level at x, with lam
-    clipped at 0 and Z_k projected onto the PSD cone: a lower bound on f*(x) by weak duality. Read from the Lagrangian's
-    value, gradient s and Hessian H at y (it is quadratic in y): L(y) - s'H^+s / 2, or -inf where s leaves the range
-    of H (the Lagrangian is unbounded below)."""
+    clipped at 0 and Z_k projected onto the PSD cone: a lower bound on f*(x) by weak duality. The Lagrangian is
+    quadratic in y: from its value and gradient s at y and the eigenpairs (w, V) of the Hessian of f (_curvature),
+    L(y) - sum_i (V's)_i^2 / (2 w_i), or -inf where V's has a component with w_i = 0 (unbounded below)."""
     lam, Z = np.maximum(lam, 0.0), [_psd_part(np.asarray(z, dtype=float)) for z in Z]
     f, g, h, mats = low.evaluate(x, y)
     grad_f, jg, jh, jpsd = low.derivatives(x, y)
@@ -193,10 +204,9 @@ def dual_bound(low, x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarra
     s = grad_f + jg.T @ lam + jh.T @ mu
     for jac, z in zip(jpsd, Z):
         s = s - jac.T @ z.reshape(-1, order="F")
-    hess = np.asarray(low.hessian(x, y), dtype=float).reshape(low.n_y, low.n_y)
-    w, v = np.linalg.eigh(0.5 * (hess + hess.T))
-    sv = v.T @ s
-    curved = w > low.n_y * np.finfo(float).eps * float(np.abs(w).max(initial=0.0))
+    w, v = curvature
+    sv = s if v is None else v.T @ s
+    curved = w > w.size * np.finfo(float).eps * float(np.abs(w).max(initial=0.0))
     if np.any(sv[~curved] != 0.0) or not np.isfinite(value):
         return -np.inf
     return float(value - 0.5 * np.sum(sv[curved] ** 2 / w[curved]))
@@ -286,8 +296,10 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | None = No
                            "re-solve is wrong or y is infeasible")
     bound = None
     if low.kind in ("lp", "qp", "sdp") and np.isfinite(gap) and (gap < -tol or ref.status != "optimal"):
-        bound = max(dual_bound(low, x, y, point.lam, point.mu, point.Z),
-                    -np.inf if canon.lower_reference is not None else dual_bound(low, x, y_ref, ref.lam, ref.mu, ref.Z))
+        curvature = _curvature(np.asarray(low.hessian(x, y), dtype=float).reshape(low.n_y, low.n_y))
+        bound = max(_dual_bound(low, x, y, point.lam, point.mu, point.Z, curvature),
+                    -np.inf if canon.lower_reference is not None else
+                    _dual_bound(low, x, y_ref, ref.lam, ref.mu, ref.Z, curvature))
         bound = bound if np.isfinite(bound) else None
     if bound is not None:
         gap = (f - bound) / (1.0 + abs(bound))
