@@ -15,11 +15,11 @@ of what the row balances:
 f*(x) is the re-solve's value, unless the re-solve reports itself inaccurate or f(x, y) is below it: then, for an
 LP/QP/SDP lower level (quadratic f, affine constraints), weak duality bounds it, f*(x) >= the minimum in y of the
 Lagrangian at the point's multipliers and at the re-solve's (lam clipped at 0, Z_k projected onto the PSD cone;
-finite where the Lagrangian's gradient lies in the range of the Hessian of f), and the gap is measured from the
-larger bound (`lower_bound`): y passes when its value is within tol of a proven lower bound. An interior-point
-re-solve can stop short of the optimum where the objective is nearly flat on the optimal face of its dominant term (a
-tiny ridge on a non-unique SDP solution set, the Willems learner's reg = 1e-8: Clarabel then reports AlmostSolved at a
-value 1e-5 above the optimum); its value alone would fail an exact y.
+finite where the Lagrangian's gradient lies in the range of the Hessian of f), and where either is finite the gap
+is measured from the larger (`lower_bound`): y passes when its value is within tol of a proven lower bound. An
+interior-point re-solve can stop short of the optimum where the objective is nearly flat on the optimal face of its
+dominant term (a tiny ridge on a non-unique SDP solution set, the Willems learner's reg = 1e-8: Clarabel then
+reports AlmostSolved at a value 1e-5 above the optimum); its value alone would fail an exact y.
 
 `worst` names the worst row of every check. The independent re-solve is cvxpy + Clarabel (or a closed
 form) for LP/QP/LS/SDP lower levels, a global optimum; a nonlinear lower level is re-solved by IPOPT
@@ -307,9 +307,9 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | None = No
                                f"{f_ref:.12g} ({ref.status})" + ("" if gap >= -tol else ": y is below a proven lower "
                                                                  "bound on f*(x), so y is infeasible"))
         if f_ref - f > tol * (1.0 + abs(f_ref)):
-            note = "; ".join(filter(None, [note, f"the independent re-solve ({ref.status}) is {f_ref - f:.2e} above "
-                                           f"y's value, which weak duality proves within {max(f - bound, 0.0):.1e} of "
-                                           "f*(x)"]))
+            short = (f"the independent re-solve ({ref.status}) is {f_ref - f:.2e} above y's value, which weak duality "
+                     f"proves within {max(f - bound, 0.0):.1e} of f*(x)")
+            note = "; ".join(filter(None, [note, short]))
     y_distance = float(np.max(np.abs(y - y_ref), initial=0.0)) if np.all(np.isfinite(y_ref)) else np.inf
     if unique and np.isfinite(y_distance):
         F_ref = float(canon.upper_values(x, y_ref)[0])
