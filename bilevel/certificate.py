@@ -12,6 +12,15 @@ of what the row balances:
 - upper feasibility, rows of G, H and the bounds of x: the size of the row's terms, as for g;
 - the lower-level gap f(x, y) - f*(x): |f*(x)|.
 
+f*(x) is the re-solve's value, unless the re-solve reports itself inaccurate or f(x, y) is below it: then, for an
+LP/QP/SDP lower level (quadratic f, affine constraints), weak duality bounds it, f*(x) >= the minimum in y of the
+Lagrangian at the point's multipliers and at the re-solve's (lam clipped at 0, Z_k projected onto the PSD cone;
+finite where the Lagrangian's gradient lies in the range of the Hessian of f), and where either is finite the gap
+is measured from the larger (`lower_bound`): y passes when its value is within tol of a proven lower bound. An
+interior-point re-solve can stop short of the optimum where the objective is nearly flat on the optimal face of its
+dominant term (a tiny ridge on a non-unique SDP solution set, the Willems learner's reg = 1e-8: Clarabel then
+reports AlmostSolved at a value 1e-5 above the optimum); its value alone would fail an exact y.
+
 `worst` names the worst row of every check. The independent re-solve is cvxpy + Clarabel (or a closed
 form) for LP/QP/LS/SDP lower levels, a global optimum; a nonlinear lower level is re-solved by IPOPT
 from several starts inside the declared bounds, which is local evidence, not a proof.
@@ -46,6 +55,7 @@ from .sampling import sample_in_bounds
 
 if TYPE_CHECKING:  # pragma: no cover
     from .canonical import CanonicalBilevel
+    from .lower.base import LowerLevel
     from .reduction import KKTPoint
 
 LOCAL_EVIDENCE = "lower-level optimality is local evidence (convexity not proven)"
@@ -70,8 +80,8 @@ class GlobalBound:
 class Certificate:
     """Scaled residuals at a point and the verdict (see the module docstring for the scaling).
 
-    lower_gap = f(x, y) - f*(x), f* from an independent solve (scaled by 1 + |f*|); worst: the worst row
-    of each check; lower_unique: whether the re-solve found a unique lower solution (None: not decided);
+    lower_gap = f(x, y) - f*(x), f* from an independent solve or lower_bound (scaled by 1 + |f*|); worst: the worst
+    row of each check; lower_unique: whether the re-solve found a unique lower solution (None: not decided);
     y_distance: max |y - y_ref|; upper_at_reference: F(x, y_ref) in the canonical (minimization) sense.
     """
 
@@ -97,6 +107,8 @@ class Certificate:
     """False for a nonlinear lower level whose convexity in y (at this x, on the declared bounds of y) interval
     bounds could not prove: lower-level optimality is then local evidence, and a method's SOLVED becomes
     INACCURATE."""
+    lower_bound: float | None = None
+    """The weak-duality lower bound on f*(x) that lower_gap is measured from (None: from the re-solve's value)."""
 
     def describe_failures(self) -> str:
         """'check (row name), ...' for the failed checks."""
@@ -162,6 +174,42 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
     note = (f"nonlinear lower level: re-solved by IPOPT from {len(starts)} starts ({len(sols)} converged), "
             "local evidence, not a proof of lower-level optimality")
     return best, spread, unique, note
+
+
+def _psd_part(z: np.ndarray) -> np.ndarray:
+    """The projection of the symmetric part of z onto the PSD cone."""
+    w, v = np.linalg.eigh(0.5 * (z + z.T))
+    return (v * np.maximum(w, 0.0)) @ v.T
+
+
+def _curvature(hess: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """Eigenvalues and eigenvectors of the symmetric part of a Hessian; (its diagonal, None) for a diagonal one."""
+    sym = 0.5 * (hess + hess.T)
+    diag = np.diagonal(sym)
+    if np.count_nonzero(sym) == np.count_nonzero(diag):
+        return diag.copy(), None
+    return np.linalg.eigh(sym)
+
+
+def _dual_bound(low: "LowerLevel", x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarray,
+                Z: list[np.ndarray], curvature: tuple[np.ndarray, np.ndarray | None]) -> float:
+    """min over y' of the Lagrangian f + lam'g + mu'h - sum <Z_k, M_k> of an LP/QP/SDP lower level at x, with lam
+    clipped at 0 and Z_k projected onto the PSD cone: a lower bound on f*(x) by weak duality. The Lagrangian is
+    quadratic in y: from its value and gradient s at y and the eigenpairs (w, V) of the Hessian of f (_curvature),
+    L(y) - sum_i (V's)_i^2 / (2 w_i), or -inf where V's has a component with w_i = 0 (unbounded below)."""
+    lam, Z = np.maximum(lam, 0.0), [_psd_part(np.asarray(z, dtype=float)) for z in Z]
+    f, g, h, mats = low.evaluate(x, y)
+    grad_f, jg, jh, jpsd = low.derivatives(x, y)
+    value = f + lam @ g + mu @ h - sum(float(np.sum(z * m)) for z, m in zip(Z, mats))
+    s = grad_f + jg.T @ lam + jh.T @ mu
+    for jac, z in zip(jpsd, Z):
+        s = s - jac.T @ z.reshape(-1, order="F")
+    w, v = curvature
+    sv = s if v is None else v.T @ s
+    curved = w > w.size * np.finfo(float).eps * float(np.abs(w).max(initial=0.0))
+    if np.any(sv[~curved] != 0.0) or not np.isfinite(value):
+        return -np.inf
+    return float(value - 0.5 * np.sum(sv[curved] ** 2 / w[curved]))
 
 
 def _y_box(canon: "CanonicalBilevel") -> tuple[np.ndarray, np.ndarray]:
@@ -246,6 +294,22 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | None = No
     gap = (f - f_ref) / (1.0 + abs(f_ref)) if np.isfinite(f_ref) and np.isfinite(f) else np.inf
     checks["lower_gap"] = (abs(gap), "" if gap >= -tol else "f(x, y) is below the re-solved optimum f*(x): the "
                            "re-solve is wrong or y is infeasible")
+    bound = None
+    if low.kind in ("lp", "qp", "sdp") and np.isfinite(gap) and (gap < -tol or ref.status != "optimal"):
+        curvature = _curvature(np.asarray(low.hessian(x, y), dtype=float).reshape(low.n_y, low.n_y))
+        bound = max(_dual_bound(low, x, y, point.lam, point.mu, point.Z, curvature),
+                    -np.inf if canon.lower_reference is not None else
+                    _dual_bound(low, x, y_ref, ref.lam, ref.mu, ref.Z, curvature))
+        bound = bound if np.isfinite(bound) else None
+    if bound is not None:
+        gap = (f - bound) / (1.0 + abs(bound))
+        checks["lower_gap"] = (abs(gap), f"f*(x) >= {bound:.12g} by weak duality; y's value {f:.12g}, the re-solve's "
+                               f"{f_ref:.12g} ({ref.status})" + ("" if gap >= -tol else ": y is below a proven lower "
+                                                                 "bound on f*(x), so y is infeasible"))
+        if f_ref - f > tol * (1.0 + abs(f_ref)):
+            short = (f"the independent re-solve ({ref.status}) is {f_ref - f:.2e} above y's value, which weak duality "
+                     f"proves within {max(f - bound, 0.0):.1e} of f*(x)")
+            note = "; ".join(filter(None, [note, short]))
     y_distance = float(np.max(np.abs(y - y_ref), initial=0.0)) if np.all(np.isfinite(y_ref)) else np.inf
     if unique and np.isfinite(y_distance):
         F_ref = float(canon.upper_values(x, y_ref)[0])
@@ -262,4 +326,5 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | None = No
     return Certificate(values["stationarity"], values["lower_feasibility"], values["dual_feasibility"],
                        values["complementarity"], values["upper_feasibility"], float(gap),
                        float(f_ref), [float(v) for v in y_ref], solver, tol, not failed, failed, note,
-                       {k: name for k, (_, name) in checks.items() if name}, unique, y_distance, F_ref, None, proven)
+                       {k: name for k, (_, name) in checks.items() if name}, unique, y_distance, F_ref, None, proven,
+                       bound)

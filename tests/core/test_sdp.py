@@ -154,3 +154,28 @@ def test_non_unique_sdp_gets_the_minimum_norm_selection_and_its_derivative(reg: 
         assert oracle.low.kkt_residual(np.array([x]), ev.lower) <= 1e-9
         assert abs(oracle.gradient(ev)[0][0] - (2 * x / 5 + 2 * (x - 1))) <= 1e-8
     assert oracle.low.seen_directions(np.array([0.7])).shape == (2, 1)
+
+
+def test_certificate_measures_the_gap_from_a_dual_bound_when_the_re_solve_stops_short() -> None:
+    """The ridge SDP's optimal line without the ridge: a re-solve that stops short along it (as Clarabel's AlmostSolved
+    does on the Willems learner) is t = 100 off y* = x^2 (1, 2) / 5 along (2, -1) / sqrt(5), feasible, its value
+    reg t^2 / 2 = 5e-5 too high. The exact point passes against the weak-duality bound f* >= L(y*) (the Lagrangian's
+    minimum at its multipliers, written here), and that displaced point, given as the method's, fails."""
+    reg, x, t = 1e-8, np.array([0.7]), 100.0
+    prep = prepare(_ray_sdp(reg))
+    low = prep.canon.lower
+    point = prep.lower_point(x)
+    y_star = 0.49 * np.array([1.0, 2.0]) / 5
+    np.testing.assert_allclose(point.y, y_star, rtol=0, atol=1e-12)
+    f_star = 0.49 + 0.5 * reg * y_star @ y_star
+    off = y_star + t * np.array([2.0, -1.0]) / np.sqrt(5)
+    stopped = LowerSolution(off, f_star + 0.5 * reg * t ** 2, np.zeros(0), np.zeros(0), [np.copy(point.Z[0])],
+                            "optimal_inaccurate", "cvxpy+clarabel")
+    low.reference_solve = lambda _: dataclasses.replace(stopped)  # the instance's re-solve stops short
+    cert = certify(prep.canon, point)
+    assert (stopped.objective - f_star) / (1 + f_star) > 10 * cert.tolerance  # comparing with it would fail
+    assert cert.passed and cert.lower_bound == pytest.approx(f_star, abs=1e-12)
+    assert abs(cert.lower_gap) <= 1e-10 and "weak duality proves" in cert.note
+    wrong = certify(prep.canon, dataclasses.replace(point, y=off))  # as far off as the re-solve, same multipliers
+    assert wrong.failed == ("lower_gap",) and wrong.lower_gap == pytest.approx(0.5 * reg * t ** 2 / (1 + f_star),
+                                                                                rel=1e-6)
