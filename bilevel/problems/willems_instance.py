@@ -1,7 +1,8 @@
 """A De Persis–Tesi poisoning instance (paper appendix B, Willems' lemma): its setting (WillemsSetting) and, built by
 bilevel.problems.willems.build_attack, the clean data, identified model and declared problem with the instance's
 quantities at a poisoning (WillemsAttack: gain and identified loop, criterion, a result's stats) and the engine's oracle
-on its problem, the learner's selection ("Selection" in bilevel.problems.willems) given to its SDP lower level.
+on the problem its shape shares (the data as parameters), the learner's selection ("Selection" in
+bilevel.problems.willems) given to its SDP lower level.
 
 Data: one noise-free trajectory (X, U) of a state-feedback plant x_{t+1} = A x_t + B u_t (WillemsSetting.plant,
 the paper's batch reactor by default), drawn from the plant or given (WillemsSetting.data).
