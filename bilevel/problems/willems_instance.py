@@ -183,6 +183,13 @@ def criterion_values(closed_loop: np.ndarray, gain: np.ndarray, objective: str, 
     return np.where(radius >= 1.0, np.inf, values)
 
 
+def _maximizing_radius(problem: BilevelProblem, closed_loop: ca.SX) -> BilevelProblem:
+    """problem renamed NAME-radius with the upper objective rho(closed_loop) (maximize_spectral_radius)."""
+    problem.name = f"{problem.name}-radius"
+    problem.maximize_spectral_radius(closed_loop)
+    return problem
+
+
 _SHARED: dict[tuple, BilevelProblem] = {}
 """(shape, radius) -> the problem WillemsAttack.shared_problem prepared (the last few, willems.shared_kept)."""
 DATA_FIELDS = ("seed", "data", "x0", "input_std", "plant")
@@ -262,10 +269,7 @@ class WillemsAttack:
     def radius_problem(self) -> BilevelProblem:
         """The attack's problem with the upper objective rho(A_id + B_id K), declared by maximize_spectral_radius
         (solved by the generic engine exactly; the registered problem keeps its CasADi criterion)."""
-        p = copy.copy(self.problem)
-        p.name = f"{p.name}-radius"
-        p.maximize_spectral_radius(self.closed_loop)
-        return p
+        return _maximizing_radius(copy.copy(self.problem), self.closed_loop)
 
     @property
     def declaration(self) -> tuple:
@@ -325,10 +329,7 @@ class WillemsAttack:
         from .willems import declare  # the declaration's module builds WillemsAttack: imported on use
         problem, *_, closed_loop, _, _ = declare(self.setting, self.x, self.u, self.a_id, self.b_id, self.qx, self.r,
                                                  parameters=True)
-        if radius:
-            problem.name = f"{problem.name}-radius"
-            problem.maximize_spectral_radius(closed_loop)
-        return problem
+        return _maximizing_radius(problem, closed_loop) if radius else problem
 
     def oracle(self, radius: bool = False) -> Hypergradient:
         """The engine's implicit oracle on shared_problem(radius); `oracle().low` is the learner's SDP lower level."""
