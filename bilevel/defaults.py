@@ -126,8 +126,8 @@ ENTRIES: dict[str, tuple[Any, str]] = {
                             "(relative)"),
     # the Willems attacks (bilevel.attacks.willems; WillemsAttack.shared_problem reads willems.shared_kept,
     # destabilize_attack destabilize.*, de_attack evolution.pop_tol)
-    "willems.shared_kept": (4, "attack declarations (data, learner, criterion) whose prepared problems a process keeps "
-                               "(count)"),
+    "willems.shared_kept": (4, "attack shapes (learner, criterion, sizes; the data are parameters) whose prepared "
+                               "problems a process keeps (count)"),
     "willems.hypergradient.starts": (8, "multistart starts of hypergradient_attack (count)"),
     "willems.hypergradient.max_iter": (300, "descent steps per start of hypergradient_attack (count)"),
     "willems.hypergradient.ftol": (1e-10, "hypergradient_attack's descent stops when one step decreases phi by less "

@@ -291,7 +291,9 @@ class SemidefiniteLower(QuadraticLower):
         in span S, and without a ridge its projection S S'y is the minimum-norm point of the optimal set (singular
         values below defaults["sdp.free_rtol"] times the largest count as zero)."""
         d = self.data(x)
-        rows = np.vstack([d.A, d.E, d.q[None, :], *(jac for _, jac in self.lmi_data(x))])
+        # + 0.0 turns -0 into 0: LAPACK's reflectors take the sign of a zero, so data declared as parameters (whose
+        # products give -0) and as constants (folded to 0) would give two equally valid bases
+        rows = np.vstack([d.A, d.E, d.q[None, :], *(jac for _, jac in self.lmi_data(x))]) + 0.0
         basis = range_basis(rows.T, param("sdp.free_rtol"))
         p_scale = float(np.abs(d.P).max(initial=0.0))
         while basis.shape[1] < self.n_y:  # close under P (Krylov): then the rest is P-invariant too

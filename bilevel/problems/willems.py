@@ -97,17 +97,31 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
             "Fix: a longer horizon (drawn data: horizon=; given data: a longer experiment) or a richer input, one "
             "that excites every state (from x0 = 0 an uncontrollable (A, B) never gives full rank)") from None
     a_id, b_id = identified_model(x, u)
+    qx, r = _weight(s.qx, x.shape[0], "qx"), _weight(s.r, u.shape[0], "r")
+    p, du, dx, gain, acl, upper, seen = declare(s, x, u, a_id, b_id, qx, r)
+    return WillemsAttack(s, x, u, a_id, b_id, qx, r, p, du, dx, gain, acl, upper, seen)
+
+
+def declare(s: WillemsSetting, x: np.ndarray, u: np.ndarray, a_id: np.ndarray, b_id: np.ndarray, qx: np.ndarray,
+            r: np.ndarray, parameters: bool = False) -> tuple[BilevelProblem, ca.SX, ca.SX | None, ca.SX, ca.SX,
+                                                            ca.SX, ca.SX]:
+    """The attack problem of setting s on data (X, U) with identified model (A_id, B_id), and its Du, Dx, gain,
+    identified loop, flat upper vector and seen rows; with parameters, the data and the model are the problem's
+    parameters X, U, A_id and B_id (valued here, re-set by set_value: one declaration serves every data set of its
+    shape), else constants."""
     n, m, t = x.shape[0], u.shape[0], s.horizon
-    qx, r = _weight(s.qx, n, "qx"), _weight(s.r, m, "r")
     p = BilevelProblem(f"willems-{s.objective}")
+
+    def data(name: str, value: np.ndarray) -> ca.SX:
+        return p.parameter(name, value.shape, value=value) if parameters else ca.SX(ca.DM(value))
     du = p.upper_variable("Du", (m, t), lb=-s.delta_u, ub=s.delta_u, start=0.0)
-    xs = ca.SX(ca.DM(x))
+    xs = data("X", x)
     dx = None
     if "x" in s.poison:
         offset = 0 if s.poison_x0 else 1
         dx = p.upper_variable("Dx", (n, t + 1 - offset), lb=-s.delta_x, ub=s.delta_x, start=0.0)
         xs = ca.horzcat(xs[:, :offset], xs[:, offset:] + dx) if offset else xs + dx
-    us = ca.DM(u) + du
+    us = data("U", u) + du
     x0p, x1p = xs[:, :t], xs[:, 1:]
     q = p.lower_variable("Q", (t, n))
     s_raw = ca.mtimes(x0p, q)
@@ -127,7 +141,7 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
         lower += ca.trace(xr)
     p.minimize_lower(lower + 0.5 * s.reg * ca.sumsqr(q))
     gain = ca.mtimes(v_mat, ca.inv(s_mat))
-    acl = ca.DM(a_id) + ca.mtimes(ca.DM(b_id), gain)
+    acl = data("A_id", a_id) + ca.mtimes(data("B_id", b_id), gain)
     if s.objective == "eigen":
         p.maximize_upper(2 * ca.log(ca.fabs(ca.det(acl))))
     elif s.objective == "destabilize":
@@ -137,7 +151,7 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
         p.maximize_upper(ca.trace(ca.mtimes(cost, _gramian_expr(acl))))
     upper = ca.vertcat(ca.vec(du), ca.vec(dx)) if dx is not None else ca.vec(du)
     seen = ca.vertcat(x0p, x1p, us) if s.design == "lqr-r" else ca.vertcat(x0p, x1p)
-    return WillemsAttack(s, x, u, a_id, b_id, qx, r, p, du, dx, gain, acl, upper, seen)
+    return p, du, dx, gain, acl, upper, seen
 
 
 def _register(objective: str, description: str) -> None:

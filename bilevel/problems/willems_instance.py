@@ -1,7 +1,8 @@
 """A De Persis–Tesi poisoning instance (paper appendix B, Willems' lemma): its setting (WillemsSetting) and, built by
 bilevel.problems.willems.build_attack, the clean data, identified model and declared problem with the instance's
 quantities at a poisoning (WillemsAttack: gain and identified loop, criterion, a result's stats) and the engine's oracle
-on its problem, the learner's selection ("Selection" in bilevel.problems.willems) given to its SDP lower level.
+on the problem its shape shares (the data as parameters), the learner's selection ("Selection" in
+bilevel.problems.willems) given to its SDP lower level.
 
 Data: one noise-free trajectory (X, U) of a state-feedback plant x_{t+1} = A x_t + B u_t (WillemsSetting.plant,
 the paper's batch reactor by default), drawn from the plant or given (WillemsSetting.data).
@@ -182,8 +183,19 @@ def criterion_values(closed_loop: np.ndarray, gain: np.ndarray, objective: str, 
     return np.where(radius >= 1.0, np.inf, values)
 
 
+def _maximizing_radius(problem: BilevelProblem, closed_loop: ca.SX) -> BilevelProblem:
+    """problem renamed NAME-radius with the upper objective rho(closed_loop) (maximize_spectral_radius)."""
+    problem.name = f"{problem.name}-radius"
+    problem.maximize_spectral_radius(closed_loop)
+    return problem
+
+
 _SHARED: dict[tuple, BilevelProblem] = {}
-"""(declaration, radius) -> the problem WillemsAttack.shared_problem prepared (the last few, willems.shared_kept)."""
+"""(shape, radius) -> the problem WillemsAttack.shared_problem prepared (the last few, willems.shared_kept)."""
+DATA_FIELDS = ("seed", "data", "x0", "input_std", "plant")
+"""Setting fields that only make the data (WillemsAttack.shape leaves them out)."""
+DATA_PARAMETERS = {"X": "x", "U": "u", "A_id": "a_id", "B_id": "b_id"}
+"""The shared problem's parameters and the attack's arrays that value them."""
 
 
 @dataclass
@@ -257,17 +269,21 @@ class WillemsAttack:
     def radius_problem(self) -> BilevelProblem:
         """The attack's problem with the upper objective rho(A_id + B_id K), declared by maximize_spectral_radius
         (solved by the generic engine exactly; the registered problem keeps its CasADi criterion)."""
-        p = copy.copy(self.problem)
-        p.name = f"{p.name}-radius"
-        p.maximize_spectral_radius(self.closed_loop)
-        return p
+        return _maximizing_radius(copy.copy(self.problem), self.closed_loop)
 
     @property
     def declaration(self) -> tuple:
         """The setting without its budgets (delta_u, delta_x): attacks with equal declarations have the same data,
-        learner and criterion, and differ only in the box (shared_problem shares their preparation)."""
+        learner and criterion, and differ only in the box."""
         return tuple((f.name, getattr(self.setting, f.name)) for f in fields(self.setting)
                      if f.name not in ("delta_u", "delta_x"))
+
+    @property
+    def shape(self) -> tuple:
+        """The declaration without what only makes the data (seed, data, x0, input_std, plant), with the data's sizes:
+        attacks of equal shape have one symbolic problem, their data its parameter values (shared_problem)."""
+        return tuple((name, value) for name, value in self.declaration
+                     if name not in DATA_FIELDS) + (self.x.shape, self.u.shape)
 
     def budget(self) -> np.ndarray:
         """Upper bounds of |x| entrywise (the linf budgets of each upper entry)."""
@@ -278,15 +294,20 @@ class WillemsAttack:
         return np.concatenate(parts)
 
     def shared_problem(self, radius: bool = False) -> BilevelProblem:
-        """The declared problem (radius: radius_problem()), prepared once per process for the last
-        defaults["willems.shared_kept"] declarations and given this attack's box (Prepared.rebox): attacks on one data
-        set at several budgets or by several methods share the engine's preparation and the learner's solves. The
-        learner's selection is given to its SDP lower level."""
-        key = (self.declaration, radius)
-        problem = _SHARED.pop(key, None) or (self.radius_problem() if radius else self.problem)
+        """The declared problem with the data as parameters (declare(..., parameters=True); radius: its objective
+        rho(A_id + B_id K) as in radius_problem), prepared once per process for the last defaults["willems.shared_kept"]
+        shapes and given this attack's data (set_value where they differ) and box (Prepared.rebox): attacks of one
+        shape share the engine's symbolic preparation, and attacks on one data set at several budgets or by several
+        methods also the learner's solves. The learner's selection is given to its SDP lower level."""
+        key = (self.shape, radius)
+        problem = _SHARED.pop(key, None) or self._shape_problem(radius)
         _SHARED[key] = problem
         while len(_SHARED) > param("willems.shared_kept"):
             del _SHARED[next(iter(_SHARED))]
+        for item in problem.parameters.items:  # a new revision (and new learner solves) only for new data
+            value = getattr(self, DATA_PARAMETERS[item.name])
+            if not np.array_equal(item.value, value.reshape(-1, order="F")):
+                problem.set_value(item.name, value)
         prep = prepare(problem)
         bound = self.budget()
         if not (np.array_equal(prep.canon.x_ub, bound) and np.array_equal(prep.canon.x_lb, -bound)):
@@ -302,6 +323,13 @@ class WillemsAttack:
             low.choose(dataclasses.replace(ridge, y=q, objective=float(low.evaluate(zero, q)[0]),
                                            solver=f"cvxpy+{selection}"))
         return problem
+
+    def _shape_problem(self, radius: bool) -> BilevelProblem:
+        """This attack's problem declared with its data as parameters (radius: maximizing rho(A_id + B_id K))."""
+        from .willems import declare  # the declaration's module builds WillemsAttack: imported on use
+        problem, *_, closed_loop, _, _ = declare(self.setting, self.x, self.u, self.a_id, self.b_id, self.qx, self.r,
+                                                 parameters=True)
+        return _maximizing_radius(problem, closed_loop) if radius else problem
 
     def oracle(self, radius: bool = False) -> Hypergradient:
         """The engine's implicit oracle on shared_problem(radius); `oracle().low` is the learner's SDP lower level."""

@@ -127,15 +127,17 @@ def batched_box_ascent(values: Callable[[np.ndarray], tuple[np.ndarray, np.ndarr
         live = np.flatnonzero(step >= min_step)
         if live.size == 0:
             break
-        z = grad[live] * bound
+        x_live, z = (x, grad * bound) if live.size == step.size else (x[live], grad[live] * bound)
         size = np.abs(z).max(axis=1, keepdims=True)
-        trial = np.clip(x[live] + step[live, None] * bound * np.divide(z, size, out=np.zeros_like(z),
-                                                                        where=size > 0), -bound, bound)
-        moved = np.any(trial != x[live], axis=1)
-        step[live[~moved]] = 0.0
-        live, trial = live[moved], trial[moved]
-        if live.size == 0:
-            continue
+        trial = np.divide(z, size, out=np.zeros(z.shape), where=size > 0)  # the direction, then the trial in place
+        np.add(x_live, step[live, None] * bound * trial, out=trial)
+        np.minimum(np.maximum(trial, -bound, out=trial), bound, out=trial)
+        moved = np.any(trial != x_live, axis=1)
+        if not moved.all():
+            step[live[~moved]] = 0.0
+            live, trial = live[moved], trial[moved]
+            if live.size == 0:
+                continue
         f_trial, g_trial = values(trial)
         evaluations += live.size
         better = f_trial > f[live]  # NaN never counts as better

@@ -18,6 +18,8 @@ from bilevel.errors import InvalidData, ModelError, NotPersistentlyExciting
 from bilevel.problems import registry
 from bilevel.problems.willems import build_attack
 from bilevel.problems.willems_instance import WillemsSetting
+from bilevel.solvers.base import prepare
+from bilevel.solvers.implicit import Hypergradient
 
 PITCH = control.ss([[-0.313, 56.7, 0.0], [-0.0139, -0.426, 0.0], [0.0, 56.7, 0.0]], [[0.232], [0.0203], [0.0]],
                    np.eye(3), np.zeros((3, 1)))
@@ -95,16 +97,23 @@ def test_plant_forms_give_one_hashable_setting() -> None:
     assert scaled.x[:, 0].tolist() == [1.0, 0.0, 0.0]
 
 
-def test_engine_oracle_keys_on_plant_and_data() -> None:
-    """Attacks on one plant and data share the engine's oracle whatever the budget or the plant's form; another plant
-    or other data with the same horizon and seed get their own."""
+def test_engine_oracle_keys_on_shape_and_binds_each_attacks_data() -> None:
+    """Attacks of one shape (learner, criterion, sizes) share the engine's oracle whatever the budget, the plant or the
+    data; each use is bound to the calling attack's data: interleaved, every attack's learner solution equals the one
+    of its own constant-data problem (an independent preparation), and other data give another solution."""
     first = build_attack(plant=AIRCRAFT, horizon=20, delta_u=0.1)
     same = build_attack(plant=(AIRCRAFT.A, AIRCRAFT.B), horizon=20, delta_u=0.3)
-    assert first.oracle() is same.oracle()
     slower = build_attack(plant=(0.9 * AIRCRAFT.A, AIRCRAFT.B), horizon=20)
     other = build_attack(plant=AIRCRAFT, horizon=20, seed=1)
     given = build_attack(plant=AIRCRAFT, data=(other.x, other.u))
-    assert len({id(a.oracle()) for a in (first, slower, given)}) == 3
+    assert len({id(a.oracle()) for a in (first, same, slower, given)}) == 1
+    zero = np.zeros(first.budget().size)
+    own = {id(a): Hypergradient(prepare(a.problem)).evaluate(zero).lower.y for a in (first, slower, given)}
+    for attack in (first, slower, given, first, same):
+        y = attack.oracle().evaluate(zero).lower.y
+        reference = own[id(first)] if attack is same else own[id(attack)]
+        np.testing.assert_allclose(y, reference, rtol=0, atol=1e-9 * np.abs(reference).max())
+    assert np.abs(own[id(first)] - own[id(slower)]).max() > 1e-3 * np.abs(own[id(first)]).max()
 
 
 @pytest.mark.parametrize(("design", "r"), [("lqr", 1e-12), ("lqr-r", 1.0)])

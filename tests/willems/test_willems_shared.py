@@ -16,12 +16,13 @@ from bilevel.vech import vech_sx
 
 
 def symbolic_kkt(low: object) -> ca.Function:
-    """(x, w) -> r, dr/dw, dr/dx of the conic KKT system, by CasADi's symbolic derivatives (written here)."""
+    """(x, w) -> r, dr/dw, dr/dx of the conic KKT system, by CasADi's symbolic derivatives (written here), at the
+    lower level's parameter values (the shared problem's data)."""
     kkt = low.kkt()
     products = [vech_sx(0.5 * (ca.mtimes(m, z) + ca.mtimes(z, m))) for m, z in zip(low.psd, kkt.Z)]
     r = ca.vertcat(kkt.stationarity, kkt.lam * low.g, low.h, *products)
     w = ca.vertcat(low.y, kkt.lam, kkt.mu, *kkt.Z_vech)
-    return ca.Function("kkt", [low.x, w], [r, ca.jacobian(r, w), ca.jacobian(r, low.x)])
+    return low.params.function("kkt", [low.x, w], [r, ca.jacobian(r, w), ca.jacobian(r, low.x)])
 
 
 @pytest.mark.parametrize("params", [dict(design="lqr", poison="u"),
