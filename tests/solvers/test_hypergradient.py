@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 import bilevel as bl
 from bilevel.solvers.base import prepare
+from bilevel.solvers.block_exact import SINGULAR_LEARNER
 from bilevel.solvers.implicit import Hypergradient, hypergradient
 from bilevel.solvers.projections import NormBall
 
@@ -245,6 +246,7 @@ def test_a_start_where_the_learner_is_singular_fails_with_its_cause() -> None:
     failed, other = result.start_records
     assert failed["x0"] == [0.0] and failed["status"] == "error"
     assert "rank-deficient at the poisoning reached: the attack made the learner singular" in failed["message"]
+    assert failed[SINGULAR_LEARNER] and not other[SINGULAR_LEARNER]
     assert other["status"] == "solved" and 0 < result.x["x"][0] < 1e-6
     assert result.upper_objective == pytest.approx(0.25, abs=1e-6)
     assert result.y["y"][0] == pytest.approx(1 / result.x["x"][0], rel=1e-9)
