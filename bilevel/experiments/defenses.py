@@ -42,7 +42,7 @@ from ..problems.defended_vrft import declare, defended_instance, model_reference
 from ..problems.willems import build_attack  # noqa: E402
 from ..problems.willems_instance import WillemsAttack, WillemsSetting, criterion_values  # noqa: E402
 from ..solvers.budget_search import smallest_budget  # noqa: E402
-from ..solvers.hypergradient import SINGULAR_CAUSE  # noqa: E402
+from ..solvers.block_exact import SINGULAR_LEARNER  # noqa: E402
 from ..solvers.registry import solve  # noqa: E402
 from .defenses_detection import FAMILIES, run_detection  # noqa: E402
 from .executor import open_executor  # noqa: E402
@@ -114,11 +114,11 @@ def make_plan(sims: int, quick: bool) -> Plan:
 
 def vrft_radius(defense: str, lam: float, N: int, seed: int, eps: float, attack_seed: int) -> float:
     """The true closed loop's spectral radius after the adaptive attack at budget eps; inf where a start of the attack
-    made the learner's system singular (the IV matrix Z' Phi: the engine's start record names SINGULAR_CAUSE; the
-    learner returns no controller) or no start could be solved."""
+    made the learner's system singular (the IV matrix Z' Phi: the start record's SINGULAR_LEARNER field; the learner
+    returns no controller) or no start could be solved."""
     d = defended_instance(defense, "destabilize", lam, "B", eps, eps, seed, N)
     result = solve(declare(d), starts=2, seed=attack_seed)
-    if result.status is Status.ERROR or any(SINGULAR_CAUSE in r.get("message", "") for r in result.start_records):
+    if result.status is Status.ERROR or any(r.get(SINGULAR_LEARNER) for r in result.start_records):
         return float("inf")
     x = {k: np.asarray(v, dtype=float).ravel() for k, v in result.x.items()}
     return d.atk.setting.loop.spectral_radius(d.poisoned(**x))

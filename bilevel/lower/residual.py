@@ -100,12 +100,17 @@ class MovingAdjoint:
     from J' (n_x x (rows n_y + rows)): with C(x) = C0 + sum_i x_i E_i and d likewise, it is M1(a) V + M2(y) B with
     M1(a)_i = (E_i'a)' and M2(y)_i = (E_i y - d_i)' (d_i = dd/dx_i), sparse on the entries that move with x. Their
     patterns are fixed: each call sums the moving entries' weights into them (a learner's C is mostly structural
-    zeros, e.g. block diagonal over its outputs, so no seed of the size of C is formed)."""
+    zeros, e.g. block diagonal over its outputs, so no seed of the size of C is formed). Where J' is a Gather and at
+    least half of C moves (signals lifted through linear maps) the seeds are formed on all of [vec C; d] and
+    gathered: contiguous products and one gather cost half the sums."""
 
     def __init__(self, Jt: Gather | sp.csr_matrix, rows: int, n_y: int) -> None:
         coo = (Jt.sparse() if isinstance(Jt, Gather) else sp.csr_matrix(Jt)).tocoo()
         cut = rows * n_y
         in_C = coo.col < cut
+        self._seeded = Jt if isinstance(Jt, Gather) and 2 * np.count_nonzero(in_C) >= cut else None
+        if self._seeded is not None:
+            return
         self._values_C, self._x_C = coo.data[in_C], coo.row[in_C]
         self._p, self._q = coo.col[in_C] % rows, coo.col[in_C] // rows
         self._minus_d = -coo.data[~in_C]
@@ -122,11 +127,27 @@ class MovingAdjoint:
 
     def __call__(self, y: np.ndarray, V: np.ndarray, a: np.ndarray, B: np.ndarray) -> np.ndarray:
         """M1(a) V + M2(y) B (V: n_y x k, B: rows x k)."""
+        if self._seeded is not None:
+            return self._from_seeds(y, V, a, B)
         M1, M2 = self._M1, self._M2
         M1.data[:] = np.bincount(self._slots1, self._values_C * a[self._p], minlength=M1.data.size)
         M2.data[:] = np.bincount(self._slots2, np.concatenate([self._values_C * y[self._q], self._minus_d]),
                                  minlength=M2.data.size)
         return M1 @ V + M2 @ B
+
+    def _from_seeds(self, y: np.ndarray, V: np.ndarray, a: np.ndarray, B: np.ndarray) -> np.ndarray:
+        """J'[vec(V_j a' + y B_j'); -B_j] by columns, the seeds on all of [vec C; d] (column-major vec C)."""
+        if V.shape[1] == 1:  # one column: outer products of vectors
+            seed = np.empty(a.size * V.shape[0] + a.size)
+            np.add(np.outer(V[:, 0], a), np.outer(y, B[:, 0]), out=seed[:-a.size].reshape(V.shape[0], a.size))
+            np.negative(B[:, 0], out=seed[-a.size:])
+            return (self._seeded @ seed)[:, None]
+        seed = np.empty((a.size * V.shape[0] + a.size, V.shape[1]))
+        block = seed[:-a.size].reshape(V.shape[0], a.size, V.shape[1])
+        np.multiply(V[:, None, :], a[None, :, None], out=block)
+        block += y[:, None, None] * B[None, :, :]
+        np.negative(B, out=seed[-a.size:])
+        return self._seeded @ seed
 
 
 @dataclass

@@ -43,6 +43,11 @@ from .starts import start_points
 from .structure import Ball, budget_scale, depends
 from .trust_region import maximize_quadratic_on_ball
 
+SINGULAR_LEARNER = "singular_learner"
+"""The key of a start record (a bool in every record of hypergradient and block-exact): the start could not begin,
+or its ascent ended, on a learner without a unique solution (RankDeficientRegressor: at the start, or at every trial
+point of the last line search)."""
+
 
 def quadratic_block_step(M: np.ndarray, grad: np.ndarray, hess: np.ndarray, radius: float,
                          prefer: np.ndarray | None = None) -> np.ndarray:
@@ -254,10 +259,13 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
         x[rest], x[S] = xr, exact.ball.center
         return x
 
+    failure: list[BilevelError | None] = [None]  # why the last point could not be evaluated
+
     def value(xr: np.ndarray) -> tuple[float, Evaluation | None]:
         try:
             ev = oracle.evaluate(xr) if exact is None else oracle.evaluate(*exact.solve(full(xr)))
-        except BilevelError:
+        except BilevelError as exc:
+            failure[0] = exc
             return -np.inf, None
         return -ev.phi, ev
 
@@ -289,12 +297,16 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
         try:
             _, fx, ev, it, evals, converged = projected_ascent(value, direction, project, x0[rest], weights,
                                                                max_iter, tol, history, stop=stop, why=reason)
-        except RankDeficientRegressor:  # the learner is singular at the start: no step can begin
+        except RankDeficientRegressor as exc:  # the learner is singular at the start: no step can begin
             fx, ev, it, evals, converged = -np.inf, None, 0, 1, False
+            reason, failure[0] = {"stop": "start"}, exc
         converged = converged and reason["stop"] != "stop"  # stop() holds only at the deadline
+        singular = (reason["stop"] == "line search" and "singular" in reason) or (
+            reason["stop"] == "start" and isinstance(failure[0], RankDeficientRegressor))
         nit += it
         records.append({"start": k, "objective": None if ev is None else ev.F, "iterations": it,
-                        "evaluations": evals, "converged": converged, "time": time.perf_counter() - t0})
+                        "evaluations": evals, "converged": converged, SINGULAR_LEARNER: singular,
+                        "time": time.perf_counter() - t0})
         progress(verbose, label, f"start {k + 1}/{starts}: phi = {prep.declared(-fx):.8g} after {it} steps")
         if ev is not None:
             ends.append((fx, ev, converged, history, k))

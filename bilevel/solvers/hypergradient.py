@@ -39,7 +39,7 @@ from ..result import Status
 from .base import MethodRun, Prepared, best_of, check_options
 from .implicit import Evaluation, Hypergradient, shared_oracle
 from .ascent import projected_ascent
-from .block_exact import ExactBlock, ascend_with_exact_block, exact_block_of
+from .block_exact import SINGULAR_LEARNER, ExactBlock, ascend_with_exact_block, exact_block_of
 from .options import check_numbers
 from .limits import Deadline, progress, stopped
 from .starts import start_points
@@ -140,6 +140,8 @@ class Descent:
     message: str
     nit: int
     history: list[dict[str, Any]]
+    singular: bool = False
+    """Whether the run ended where every step leads to a learner without a unique solution (message SINGULAR)."""
 
 
 def _domain_stationary(arc: Arc, cur: Evaluation, grad: np.ndarray, tol: float) -> bool:
@@ -211,7 +213,7 @@ def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int,
     grad, pstep = gradient(cur)
     reason = last["reason"] if why["stop"] == "stop" else why["stop"]  # the stop hook names its own reason
     if reason == "line search" and (singular or "singular" in why):
-        return Descent(cur, Status.ERROR, SINGULAR, nit, history)
+        return Descent(cur, Status.ERROR, SINGULAR, nit, history, singular=True)
     if reason == "max_iter":
         return Descent(cur, Status.MAX_ITERATIONS, f"max_iter = {max_iter} reached", nit, history)
     if reason == "time_limit":
@@ -365,7 +367,7 @@ def solve_hypergradient(prep: Prepared, *, starts: int | None = None, seed: Any 
                          f"{prep.declared(record['objective']):.8g}, projected step "
                          f"{record['projected_step_norm']:.2e}")
 
-        failed = None  # why no descent could begin at this start
+        failed, singular = None, False  # why no descent could begin at this start; whether on a singular learner
         try:
             start = arc(x0)
             if start is None:
@@ -375,22 +377,22 @@ def solve_hypergradient(prep: Prepared, *, starts: int | None = None, seed: Any 
             else:
                 run = descend(arc, start, tol, ftol, max_iter, limit, report)
         except RankDeficientRegressor as exc:  # the start's lower level has no derivative: no step can begin
-            failed = f"{SINGULAR_CAUSE} (at the start: {exc})"
+            failed, singular = f"{SINGULAR_CAUSE} (at the start: {exc})", True
         except StopIteration:
             run = Descent(arc.last, Status.INACCURATE, "stopped by the callback (the caller's goal)",
                           max(len(seen) - 1, 0), seen)
             goal = k
         if failed is not None:
             records.append({"start": k, "x0": x0.tolist(), "status": Status.ERROR.value, "iterations": 0,
-                            "message": failed, "time": time.perf_counter() - t0})
+                            "message": failed, SINGULAR_LEARNER: singular, "time": time.perf_counter() - t0})
             continue
         p = run.point
         w = prep.pack(KKTPoint(p.x, p.lower.y, p.lower.lam, p.lower.mu, p.lower.Z))
         runs.append((k, run))
         candidates.append((w, p.F, p.violation))
         records.append({"start": k, "x0": x0.tolist(), "status": run.status.value, "message": run.message,
-                        "objective": p.F, "residual": p.violation, "iterations": run.nit,
-                        "time": time.perf_counter() - t0})
+                        SINGULAR_LEARNER: run.singular, "objective": p.F, "residual": p.violation,
+                        "iterations": run.nit, "time": time.perf_counter() - t0})
         progress(verbose, "hypergradient", f"start {k + 1}/{starts}: {run.status.value}, F = "
                  f"{prep.declared(p.F):.6g}, upper violation {p.violation:.1e} ({run.message})")
         if goal is not None:

@@ -362,6 +362,33 @@ def test_a_gather_is_the_sparse_product_of_a_selection() -> None:
     assert isinstance(linear_maps.Gather.of(sp.csr_matrix(np.ones((2, 2)))), sp.csr_matrix)
 
 
+@pytest.mark.parametrize("columns", [1, 3])
+def test_moving_adjoint_of_a_gather_is_the_seeded_product(columns: int) -> None:
+    """Affine data [vec C; d] = J x + c where each x_i moves one entry (all of C and some of d: signals lifted through
+    linear maps): the x-adjoint by seeds on all entries (J' a Gather) and by sums on the moving entries (J' a sparse
+    matrix) both equal J' [vec(V_j a' + y B_j'); -B_j], formed densely here."""
+    rng = np.random.default_rng(11)
+    rows, n_y = 7, 3
+    moved = np.concatenate([np.arange(rows * n_y), rows * n_y + rng.permutation(rows)[:4]])  # all of C, 4 of d
+    n_x = moved.size + 2  # two entries of x move nothing
+    J = sp.csr_matrix((rng.standard_normal(moved.size), (moved, rng.permutation(n_x)[:moved.size])),
+                      shape=(rows * n_y + rows, n_x))
+    Jt = J.T.tocsr()
+    gather = linear_maps.Gather.of(Jt)
+    assert isinstance(gather, linear_maps.Gather)
+    y, a = rng.standard_normal(n_y), rng.standard_normal(rows)
+    V, B = rng.standard_normal((n_y, columns)), rng.standard_normal((rows, columns))
+    # vec C column-major: entry (p, q) at q * rows + p, its seed V[q, j] a[p] + y[q] B[p, j]
+    seeds = np.array([[V[q, j] * a[p] + y[q] * B[p, j] for j in range(columns)]
+                      for q in range(n_y) for p in range(rows)])
+    expected = Jt.toarray() @ np.vstack([seeds, -B])
+    seeded = residual.MovingAdjoint(gather, rows, n_y)(y, V, a, B)
+    summed = residual.MovingAdjoint(Jt, rows, n_y)(y, V, a, B)
+    assert seeded.shape == summed.shape == (n_x, columns)
+    assert np.abs(seeded - expected).max() <= 1e-13 * np.abs(expected).max()
+    assert np.abs(summed - expected).max() <= 1e-13 * np.abs(expected).max()
+
+
 def test_jacobian_nonzeros_exceed_refuses_a_recursion_from_a_sample_and_counts_a_fir_exactly() -> None:
     """A recursion over N samples has a dense lower-triangular Jacobian (N(N+1)/2 nonzeros), refused from 32 sampled
     columns without forming the pattern (O(N^2)); a 3-tap FIR map (3N - 3 nonzeros) is counted exactly at the edge."""

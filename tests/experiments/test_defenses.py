@@ -126,22 +126,23 @@ def test_identification_rows_pair_with_least_squares():
 
 
 def test_vrft_radius_reads_a_singular_learner_from_the_result(monkeypatch):
-    """vrft_radius is inf where a start of the attack ended on a singular learner (its record names the cause) and
+    """vrft_radius is inf where a start of the attack ended on a singular learner (its record's SINGULAR_LEARNER) and
     otherwise the true loop's radius at the attack's poisoning (zero poisoning here: the clean IV learner's)."""
     import dataclasses
 
     from bilevel.experiments import defenses
     from bilevel.problems.defended_vrft import defended_instance
-    from bilevel.solvers.hypergradient import SINGULAR_CAUSE
+    from bilevel.solvers.block_exact import SINGULAR_LEARNER
 
     d = defended_instance("iv", "destabilize", 0.0, "B", 0.02, 0.02, 0, 128)
     clean = d.atk.setting.loop.spectral_radius(d.theta_clean)
     zero = {"a_u": np.zeros(128), "a_y": np.zeros(128), "a_y2": np.zeros(128)}
     base = defenses.solve(defenses.declare(d), method="hypergradient", starts=1, max_iter=0)
-    fake = dataclasses.replace(base, x=zero, start_records=({"status": "solved", "message": "tol"},))
+    fake = dataclasses.replace(base, x=zero, start_records=({"status": "solved", "message": "tol",
+                                                             SINGULAR_LEARNER: False},))
     monkeypatch.setattr(defenses, "solve", lambda *args, **kwargs: fake)
     assert defenses.vrft_radius("iv", 0.0, 128, 0, 0.02, 0) == pytest.approx(clean, rel=1e-12)
-    singular = dataclasses.replace(fake, start_records=({"status": "error", "message": f"{SINGULAR_CAUSE} (...)"},))
+    singular = dataclasses.replace(fake, start_records=({"status": "error", "message": "...", SINGULAR_LEARNER: True},))
     monkeypatch.setattr(defenses, "solve", lambda *args, **kwargs: singular)
     assert defenses.vrft_radius("iv", 0.0, 128, 0, 0.02, 0) == math.inf
 

@@ -12,7 +12,7 @@ from bilevel.attacks.vrft_methods import attack_alternating
 from bilevel.errors import ModelError
 from bilevel.problems import registry
 from bilevel.solvers.base import prepare
-from bilevel.solvers.block_exact import find_exact_block
+from bilevel.solvers.block_exact import SINGULAR_LEARNER, find_exact_block
 from bilevel.solvers.implicit import shared_oracle
 from bilevel.solvers.structure import find_balls
 from bilevel.solvers.trust_region import maximize_quadratic_on_ball
@@ -178,5 +178,6 @@ def test_a_start_where_the_learner_is_singular_is_a_failed_start() -> None:
     result = p.solve("block-exact", starts=2)
     failed, other = result.start_records
     assert failed["objective"] is None and failed["iterations"] == 0 and other["converged"]
+    assert failed[SINGULAR_LEARNER] and not other[SINGULAR_LEARNER]
     np.testing.assert_allclose(result.x["x"], np.full(2, np.sqrt(0.5)), atol=1e-6)
     assert 0 < result.x["w"][0] < 1e-6

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 import bilevel as bl
 from bilevel.solvers.base import prepare
+from bilevel.solvers.block_exact import SINGULAR_LEARNER
 from bilevel.solvers.implicit import Hypergradient, hypergradient
 from bilevel.solvers.projections import NormBall
 
@@ -245,6 +246,34 @@ def test_a_start_where_the_learner_is_singular_fails_with_its_cause() -> None:
     failed, other = result.start_records
     assert failed["x0"] == [0.0] and failed["status"] == "error"
     assert "rank-deficient at the poisoning reached: the attack made the learner singular" in failed["message"]
+    assert failed[SINGULAR_LEARNER] and not other[SINGULAR_LEARNER]
     assert other["status"] == "solved" and 0 < result.x["x"][0] < 1e-6
     assert result.upper_objective == pytest.approx(0.25, abs=1e-6)
     assert result.y["y"][0] == pytest.approx(1 / result.x["x"][0], rel=1e-9)
+
+
+def test_the_declared_conditioning_start_is_kept_for_a_re_solve_at_the_same_parameter_values() -> None:
+    """The conditioning start found from the declaration is reused by a re-solve (no Hessian evaluated again) and found
+    again where a parameter changed; both times it is the projected descent computed afresh."""
+    from bilevel.solvers import starts
+
+    p = bl.BilevelProblem("kept-start")
+    x = p.upper_variable("x", 2, lb=-2, ub=2, start=[1.0, 0.5])
+    y = p.lower_variable("y", 2)
+    c = p.parameter("c", value=1.0)
+    p.minimize_upper(ca.sumsqr(y))
+    p.minimize_lower((c * x[0] * y[0] - 1) ** 2 + ((x[1] + 2) * y[1] - x[0]) ** 2)
+    prep = prepare(p)
+    first = starts.conditioning_start(prep)
+    key = ("conditioning-start",)
+    hessian, adjoint = prep.memo[key]
+    calls = []
+    prep.memo[key] = (lambda xv: calls.append(1) or hessian(xv), adjoint)
+    again = starts.conditioning_start(prep)
+    assert not calls and np.array_equal(again, first) and again is not first
+    np.testing.assert_array_equal(first, starts._conditioning_descent(prep, (hessian, adjoint)))
+    p.set_value("c", 3.0)
+    prep = prepare(p)
+    moved = starts.conditioning_start(prep)
+    assert calls and not np.array_equal(moved, first)
+    np.testing.assert_array_equal(moved, starts._conditioning_descent(prep, (hessian, adjoint)))
