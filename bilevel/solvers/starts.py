@@ -58,14 +58,16 @@ def _hessian_and_adjoint(prep: Prepared) -> tuple[Callable, Callable] | None:
 def conditioning_start(prep: Prepared, parts: tuple[Callable, Callable] | None = None) -> np.ndarray | None:
     """The conditioning start (module docstring) from the declared start, or None where it does not apply; parts:
     a structured lower level's (x -> P(x), (x, v) -> d(v'P(x)v)/dx), P up to a positive factor (default: from the
-    declaration, whose start is kept on prep for the parameter values and step count it was found at: a re-solve
-    reuses it)."""
+    declaration, whose start is kept on prep for the parameter values, box, declared start and step count it was
+    found at: a re-solve reuses it)."""
     if parts is not None:
         return _conditioning_descent(prep, parts)
     declared = prep.cached(("conditioning-start",), lambda: _hessian_and_adjoint(prep))
     if declared is None:
         return None
-    key = (prep.canon.params.revision, param("starts.conditioning_steps"))
+    canon = prep.canon
+    key = (canon.params.revision, param("starts.conditioning_steps"), canon.x_start.tobytes(), canon.x_lb.tobytes(),
+           canon.x_ub.tobytes())  # rebox changes the box and the start without a new revision
     kept = prep.memo.get(("conditioning-start-point",))
     if kept is None or kept[0] != key:
         kept = prep.memo[("conditioning-start-point",)] = (key, _conditioning_descent(prep, declared))

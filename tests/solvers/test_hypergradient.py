@@ -277,3 +277,8 @@ def test_the_declared_conditioning_start_is_kept_for_a_re_solve_at_the_same_para
     moved = starts.conditioning_start(prep)
     assert calls and not np.array_equal(moved, first)
     np.testing.assert_array_equal(moved, starts._conditioning_descent(prep, (hessian, adjoint)))
+    calls.clear()
+    prep.rebox(np.array([-0.5, -0.5]), np.array([0.5, 0.5]))  # a new box (and a start clipped into it), same revision
+    boxed = starts.conditioning_start(prep)
+    assert calls and np.all(np.abs(boxed) <= 0.5)
+    np.testing.assert_array_equal(boxed, starts._conditioning_descent(prep, (hessian, adjoint)))
