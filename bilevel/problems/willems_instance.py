@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import threading
 from dataclasses import dataclass, fields
 from functools import cache, cached_property
 from typing import Any
@@ -190,8 +191,9 @@ def _maximizing_radius(problem: BilevelProblem, closed_loop: ca.SX) -> BilevelPr
     return problem
 
 
-_SHARED: dict[tuple, BilevelProblem] = {}
-"""(shape, radius) -> the problem WillemsAttack.shared_problem prepared (the last few, willems.shared_kept)."""
+_SHARED = threading.local()
+"""Per thread, .problems: (shape, radius) -> the problem WillemsAttack.shared_problem prepared (the last few,
+willems.shared_kept); per thread because an attack re-binds its shape's data and box (a worker with several threads)."""
 DATA_FIELDS = ("seed", "data", "x0", "input_std", "plant")
 """Setting fields that only make the data (WillemsAttack.shape leaves them out)."""
 DATA_PARAMETERS = {"X": "x", "U": "u", "A_id": "a_id", "B_id": "b_id"}
@@ -299,11 +301,11 @@ class WillemsAttack:
         shapes and given this attack's data (set_value where they differ) and box (Prepared.rebox): attacks of one
         shape share the engine's symbolic preparation, and attacks on one data set at several budgets or by several
         methods also the learner's solves. The learner's selection is given to its SDP lower level."""
-        key = (self.shape, radius)
-        problem = _SHARED.pop(key, None) or self._shape_problem(radius)
-        _SHARED[key] = problem
-        while len(_SHARED) > param("willems.shared_kept"):
-            del _SHARED[next(iter(_SHARED))]
+        key, kept = (self.shape, radius), _SHARED.__dict__.setdefault("problems", {})
+        problem = kept.pop(key, None) or self._shape_problem(radius)
+        kept[key] = problem
+        while len(kept) > param("willems.shared_kept"):
+            del kept[next(iter(kept))]
         for item in problem.parameters.items:  # a new revision (and new learner solves) only for new data
             value = getattr(self, DATA_PARAMETERS[item.name])
             if not np.array_equal(item.value, value.reshape(-1, order="F")):

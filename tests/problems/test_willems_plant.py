@@ -5,6 +5,7 @@ reactor's default instance unchanged."""
 from __future__ import annotations
 
 import dataclasses
+import threading
 
 import control
 import numpy as np
@@ -114,6 +115,26 @@ def test_engine_oracle_keys_on_shape_and_binds_each_attacks_data() -> None:
         reference = own[id(first)] if attack is same else own[id(attack)]
         np.testing.assert_allclose(y, reference, rtol=0, atol=1e-9 * np.abs(reference).max())
     assert np.abs(own[id(first)] - own[id(slower)]).max() > 1e-3 * np.abs(own[id(first)]).max()
+
+
+def test_attacks_in_threads_of_one_process_each_keep_their_own_shared_problem() -> None:
+    """Attacks of one shape run in threads (a Dask worker with several threads) each bind their data to their own
+    thread's shared problem: every thread's attack equals the same attack run alone, twice over."""
+    attacks = [build_attack(objective="destabilize", horizon=15, seed=s, delta_u=0.3) for s in range(3)]
+    alone = [destabilize_attack(a).x["Du"] for a in attacks]
+    got: dict[int, list[np.ndarray]] = {}
+
+    def run(i: int) -> None:
+        got[i] = [destabilize_attack(attacks[i]).x["Du"] for _ in range(2)]
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(len(attacks))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for i, du in enumerate(alone):
+        for again in got[i]:
+            np.testing.assert_array_equal(again, du)
 
 
 @pytest.mark.parametrize(("design", "r"), [("lqr", 1e-12), ("lqr-r", 1.0)])
