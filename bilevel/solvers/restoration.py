@@ -26,7 +26,7 @@ CONTRACTION = 0.5
 def restore(oracle: Hypergradient, x: np.ndarray, projection: Callable[[np.ndarray], np.ndarray],
             steps: int = RESTORATION_STEPS) -> Evaluation | None:
     """The evaluated point reached from x with upper violation <= defaults["solvers.feasibility_tol"] (module
-    docstring), or None if the steps stop contracting or the lower level fails on the way."""
+    docstring), or None if the steps stop contracting or the lower level or its derivative fails on the way."""
     tol = param("solvers.feasibility_tol")
     rows = np.zeros(0, dtype=int)
     try:
@@ -43,6 +43,6 @@ def restore(oracle: Hypergradient, x: np.ndarray, projection: Callable[[np.ndarr
             if not new.violation <= CONTRACTION * ev.violation:
                 return None
             ev = new
-    except BilevelError:  # a singular learner on the way
+    except (BilevelError, np.linalg.LinAlgError):  # a singular learner, or no finite Jacobian, on the way
         return None
     return ev if ev.violation <= tol else None
