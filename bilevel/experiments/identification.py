@@ -37,7 +37,7 @@ the KKT form (method ipopt, limited-memory Hessian) found the same points at del
 about three times the CPU time (median 0.30 s against 0.10 s), and at delta = 0.1 ended at max_iter on non-stealthy
 points (benchmarks/bench_identification). IPOPT's tol 1e-6 (the certificate's, against reduced's default 1e-8): the
 points it ends at gave the same ||d[A B]||_2 to 7 digits as at 1e-8 (T = 100, 19 data sets at delta = 0.05 and
-0.1), and the last 3-4 of 20-45 iterations are saved."""
+0.1), and the last 3-4 of 20-45 iterations (from the start before its restoration) are saved."""
 JUDGED = {"norm2": NUMBER, "frobenius": NUMBER, "stealthy": bool, "max_relative_change": NUMBER, "budget_used": dict,
           "residual_norm": dict, "before": dict, "after": dict, "wall_time": FINITE, "cpu_time": FINITE}
 """wall_time: the solve's (engine: problem_for's re-targeting excluded) or the baseline's; cpu_time: the process's
