@@ -199,11 +199,14 @@ class LocalExecutor(Executor):
         # ProcessPoolExecutor has no terminate() before Python 3.14 and shutdown alone waits for running tasks;
         # queued futures are not cancelled first (3.11 then fails to mark them broken, with a traceback)
         procs = list((self._pool._processes or {}).values())
+        manager = getattr(self._pool, "_executor_manager_thread", None)
         for proc in procs:
             proc.terminate()
         self._pool.shutdown(wait=False)
         for proc in procs:
             proc.join(5)
+        if manager is not None:  # its clean-up closes the wake-up pipe: done before exit, where 3.11's exit hook
+            manager.join(5)      # writes to that pipe unlocked (a traceback "Bad file descriptor" on a stop)
         self._pool = None
         shutil.rmtree(self._marks, ignore_errors=True)
 
