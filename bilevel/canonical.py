@@ -111,7 +111,11 @@ class CanonicalBilevel:
     def _upper(self) -> ca.Function:
         xy = ca.vertcat(self.x, self.y)
         return self.params.function("upper", [self.x, self.y], [self.F, self.G, self.H, ca.jacobian(self.G, xy),
-                                                                ca.jacobian(self.H, xy), ca.gradient(self.F, self.y)])
+                                                                ca.jacobian(self.H, xy)])
+
+    @cached_property
+    def _objective_y(self) -> ca.Function:
+        return self.params.function("upper_objective_y", [self.x, self.y], [self.F, ca.gradient(self.F, self.y)])
 
     @cached_property
     def _spectral_matrix(self) -> ca.Function:
@@ -130,9 +134,10 @@ class CanonicalBilevel:
         return (self.upper_F(x, y, out[0]), np.asarray(out[1]).ravel(), np.asarray(out[2]).ravel(), np.asarray(out[3]),
                 np.asarray(out[4]))
 
-    def upper_gradient_y(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """grad_y F at (x, y)."""
-        return np.asarray(self._upper(x, y)[5]).ravel()
+    def upper_objective_y(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
+        """F and grad_y F at (x, y), without the upper constraints."""
+        F, grad = self._objective_y(x, y)
+        return self.upper_F(x, y, F), np.asarray(grad).ravel()
 
 
 @dataclass

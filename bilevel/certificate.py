@@ -312,8 +312,8 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | None = No
             note = "; ".join(filter(None, [note, short]))
     y_distance = float(np.max(np.abs(y - y_ref), initial=0.0)) if np.all(np.isfinite(y_ref)) else np.inf
     if unique and np.isfinite(y_distance):
-        F_ref = float(canon.upper_values(x, y_ref)[0])
-        grad_F = np.abs(np.asarray(canon.upper_gradient_y(x, y_ref))).ravel()
+        F_ref, grad_F = canon.upper_objective_y(x, y_ref)
+        F_ref, grad_F = float(F_ref), np.abs(grad_F)
         slack = tol * (1.0 + abs(F_ref)) + float(grad_F @ np.full(low.n_y, spread + tol * (1.0 + np.abs(y_ref).max())))
         checks["lower_solution"] = (abs(F - F_ref) / (slack / tol) if np.isfinite(F) else np.inf,
                                     f"y is {y_distance:.2e} from the unique re-solved y; F there = {F_ref:.10g}")

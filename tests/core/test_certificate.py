@@ -89,3 +89,18 @@ def test_nlp_lower_certificate_uses_ipopt_on_plain_problem() -> None:
     p.lower_constraint(y[0] ** 2 + y[1] ** 2 <= 1)
     res = p.solve(starts=3)
     assert res.success and "ipopt" in res.certificate.lower_solver
+
+
+def test_upper_objective_y_matches_hand_computed_values() -> None:
+    """projection_qp: F = |y - (1, 2)|^2 + 0.1 |x|^2, grad_y F = 2 (y - (1, 2)), the certificate's F at the re-solved
+    y equal to its upper_at_reference there."""
+    prep = prepare(projection_qp())
+    x, y = np.array([0.3, -0.4]), np.array([0.2, 0.5])
+    F, grad = prep.canon.upper_objective_y(x, y)
+    assert F == pytest.approx(0.8 ** 2 + 1.5 ** 2 + 0.1 * 0.25, abs=1e-12)
+    np.testing.assert_allclose(grad, [-1.6, -3.0], atol=1e-12)
+    res = projection_qp().solve(starts=4)
+    c = res.certificate
+    y_ref = np.array(c.lower_reference_y)
+    assert c.upper_at_reference == pytest.approx(float(np.sum((y_ref - [1, 2]) ** 2)) + 0.1 * float(
+        np.sum(np.asarray(res.x["x"]) ** 2)), abs=1e-9)
