@@ -146,12 +146,9 @@ def stealth_start(problem: BilevelProblem) -> np.ndarray:
     """The engine's conditioning start (bilevel.solvers.starts) of the loaded problem, scaled by the largest 2^-k from
     which it is restored onto the upper feasible set (bilevel.solvers.restoration: the budgets, and each statistic
     within delta of its clean value, up to defaults["solvers.feasibility_tol"]; zero if from none), judged by the
-    engine's own evaluation of the declared statistics.
-    At its full budget the conditioning start breaks the stealth constraints (IPOPT from there ran to its iteration
-    limit on some data sets); scaled into them alone (2^-3 to 2^-5 at T = 100) it is far from the attack, which
-    spends the budget: IPOPT took 16-43 iterations from there and takes 8-36 from the restored start, to the same
-    points (T = 100, delta 0.05 and 0.1, 10 data sets; one data set at delta 0.1 runs to max_iter from either, its
-    best feasible point at ||d[A B]||_2 = 85.7 from the restored start, 46.9 from the scaled one)."""
+    engine's own evaluation of the declared statistics. At its full budget the conditioning start breaks the stealth
+    constraints, and scaled into them alone it is far from the attack, which spends the budget: restored from the
+    largest scale, IPOPT starts near the attack and takes about half the iterations."""
     prep = prepare(problem)
     x = conditioning_start(prep)
     if x is None:
