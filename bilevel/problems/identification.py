@@ -148,7 +148,7 @@ def stealth_start(problem: BilevelProblem) -> np.ndarray:
     within delta of its clean value, up to defaults["solvers.feasibility_tol"]; zero if from none), judged by the
     engine's own evaluation of the declared statistics. At its full budget the conditioning start breaks the stealth
     constraints, and scaled into them alone it is far from the attack, which spends the budget: restored from the
-    largest scale, IPOPT starts near the attack and takes about half the iterations."""
+    largest scale, IPOPT starts near the attack and needs fewer iterations."""
     prep = prepare(problem)
     x = conditioning_start(prep)
     if x is None:
