@@ -50,7 +50,7 @@ import numpy as np
 
 from .defaults import param
 from .errors import BilevelError
-from .lower.convexity import convexity_violation, proven_convex, psd_violation
+from .lower.convexity import convexity_violation, proven_convex, psd_from_eigen, psd_violation, symmetric_eigen
 from .sampling import sample_in_bounds
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -176,28 +176,13 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
     return best, spread, unique, note
 
 
-def _psd_part(z: np.ndarray) -> np.ndarray:
-    """The projection of the symmetric part of z onto the PSD cone."""
-    w, v = np.linalg.eigh(0.5 * (z + z.T))
-    return (v * np.maximum(w, 0.0)) @ v.T
-
-
-def _curvature(hess: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """Eigenvalues and eigenvectors of the symmetric part of a Hessian; (its diagonal, None) for a diagonal one."""
-    sym = 0.5 * (hess + hess.T)
-    diag = np.diagonal(sym)
-    if np.count_nonzero(sym) == np.count_nonzero(diag):
-        return diag.copy(), None
-    return np.linalg.eigh(sym)
-
-
 def _dual_bound(low: "LowerLevel", x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarray,
                 Z: list[np.ndarray], curvature: tuple[np.ndarray, np.ndarray | None]) -> float:
     """min over y' of the Lagrangian f + lam'g + mu'h - sum <Z_k, M_k> of an LP/QP/SDP lower level at x, with lam
     clipped at 0 and Z_k projected onto the PSD cone: a lower bound on f*(x) by weak duality. The Lagrangian is
-    quadratic in y: from its value and gradient s at y and the eigenpairs (w, V) of the Hessian of f (_curvature),
+    quadratic in y: from its value and gradient s at y and the eigenpairs (w, V) of the Hessian of f (symmetric_eigen),
     L(y) - sum_i (V's)_i^2 / (2 w_i), or -inf where V's has a component with w_i = 0 (unbounded below)."""
-    lam, Z = np.maximum(lam, 0.0), [_psd_part(np.asarray(z, dtype=float)) for z in Z]
+    lam, Z = np.maximum(lam, 0.0), [psd_from_eigen(*symmetric_eigen(np.asarray(z, dtype=float))) for z in Z]
     f, g, h, mats = low.evaluate(x, y)
     grad_f, jg, jh, jpsd = low.derivatives(x, y)
     value = f + lam @ g + mu @ h - sum(float(np.sum(z * m)) for z, m in zip(Z, mats))
@@ -296,7 +281,7 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | None = No
                            "re-solve is wrong or y is infeasible")
     bound = None
     if low.kind in ("lp", "qp", "sdp") and np.isfinite(gap) and (gap < -tol or ref.status != "optimal"):
-        curvature = _curvature(np.asarray(low.hessian(x, y), dtype=float).reshape(low.n_y, low.n_y))
+        curvature = symmetric_eigen(np.asarray(low.hessian(x, y), dtype=float).reshape(low.n_y, low.n_y))
         bound = max(_dual_bound(low, x, y, point.lam, point.mu, point.Z, curvature),
                     -np.inf if canon.lower_reference is not None else
                     _dual_bound(low, x, y_ref, ref.lam, ref.mu, ref.Z, curvature))

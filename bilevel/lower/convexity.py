@@ -28,6 +28,19 @@ def _diagonal(sym: np.ndarray) -> np.ndarray | None:
     return diag if np.count_nonzero(sym) == np.count_nonzero(diag) else None
 
 
+def symmetric_eigen(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """Eigenvalues and eigenvectors of the symmetric part of matrix; (its diagonal, None) for a diagonal one (read,
+    not factored)."""
+    sym = 0.5 * (matrix + matrix.T)
+    diag = _diagonal(sym)
+    return (diag.copy(), None) if diag is not None else np.linalg.eigh(sym)
+
+
+def psd_from_eigen(w: np.ndarray, v: np.ndarray | None) -> np.ndarray:
+    """V max(w, 0) V' from symmetric_eigen's pair: the symmetric part's projection onto the PSD cone."""
+    return np.diag(np.maximum(w, 0.0)) if v is None else (v * np.maximum(w, 0.0)) @ v.T
+
+
 def min_eigenvalue(matrix: np.ndarray) -> float:
     """Smallest eigenvalue of the symmetric part of matrix (0 for an empty one; a diagonal one is read, not
     factored)."""
@@ -70,14 +83,12 @@ def convexity_violation(low: "LowerLevel", x: np.ndarray, y: np.ndarray) -> tupl
 def require_psd(matrix: np.ndarray, what: str, where: str) -> np.ndarray:
     """matrix's symmetric part with its eigenvalues clipped at 0 (verified PSD up to rounding), or
     NonConvexLowerLevel naming the eigenvalue: what a convex solver may be told to trust."""
-    sym = 0.5 * (matrix + matrix.T)
-    diag = _diagonal(sym)
-    w, v = np.linalg.eigh(sym) if diag is None else (diag, None)  # one factorization checks and clips
+    w, v = symmetric_eigen(matrix)  # one factorization checks and clips
     lam = float(w.min()) if w.size else 0.0
-    if _relative(lam, sym) > param("convexity.psd_tol"):
+    if _relative(lam, 0.5 * (matrix + matrix.T)) > param("convexity.psd_tol"):
         raise NonConvexLowerLevel(f"the lower level is not convex {where}: the Hessian of {what} has eigenvalue "
                                   f"{lam:.3g}; {CONVEX_FIX}")
-    return np.diag(np.maximum(diag, 0.0)) if v is None else (v * np.maximum(w, 0.0)) @ v.T
+    return psd_from_eigen(w, v)
 
 
 @dataclass(frozen=True)
