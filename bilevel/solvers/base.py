@@ -165,6 +165,8 @@ class MethodRun:
     feasible_set: Projection | None = None
     """The upper set the method searched when narrower than the declared one (a `projection` option)."""
     global_bound: GlobalBound | None = None
+    at_goal: bool = False
+    """Whether the caller's callback ended the method where its goal was reached (not at a local solution)."""
 
 
 def unbounded_lower(prep: Prepared, x: np.ndarray) -> str | None:
@@ -246,10 +248,12 @@ def _local_verdict(prep: Prepared, run: MethodRun, point: KKTPoint, cert: Certif
                                                   "radius": better.radius}
     if better is None:
         return status, message
+    advice = ("the method stopped where the callback's goal was reached, not at a local solution" if run.at_goal
+              else "try more starts or another method")
     return Status.NOT_LOCALLY_OPTIMAL, (
         f"not a local solution: a feasible point at relative distance {better.radius:g} has upper objective "
         f"{prep.declared(better.objective):.8g} (here {prep.declared(F):.8g}), so the method's point is not optimal "
-        f"({message}); try more starts or another method")
+        f"({message}); {advice}")
 
 
 def _declared_records(prep: Prepared, records: list[dict[str, Any]]) -> tuple[dict[str, Any], ...]:

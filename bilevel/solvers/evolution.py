@@ -32,7 +32,7 @@ from ..result import Status
 from .base import MethodRun, Prepared, check_options
 from .hypergradient import Arc, Descent, descend, intermediate
 from .implicit import shared_oracle
-from .limits import Deadline, progress
+from .limits import GOAL_STOP, Deadline, progress
 from .options import check_counts
 from .starts import start_points
 
@@ -214,7 +214,7 @@ def solve_evolution(prep: Prepared, *, starts: int | None = None, seed: Any = 0,
         return MethodRun(None, Status.ERROR, f"the lower level could not be solved at any of the {out.nfev} points "
                          "differential evolution tried", int(out.nit))
     found = best["ev"]
-    searched = (limit.reached() if limit.hit else "stopped by the callback (the caller's goal)" if goal
+    searched = (limit.reached() if limit.hit else GOAL_STOP if goal
                 else str(out.message))
     stats = {"generations": int(out.nit), "evaluations": int(out.nfev), "evolution_objective": found.F,
              "evolution_message": searched, "members": members, "penalty": penalty}
@@ -227,12 +227,14 @@ def solve_evolution(prep: Prepared, *, starts: int | None = None, seed: Any = 0,
             start = arc(found.x)
         except StopIteration:
             found = arc.last
+            goal.append(found)
     if start is None:
         w = prep.pack(KKTPoint(found.x, found.lower.y, found.lower.lam, found.lower.mu, found.lower.Z))
         message = (f"best of {out.nfev} points of differential evolution ({searched}); a heuristic: no optimality "
                    "claim")
         status = Status.MAX_ITERATIONS if limit.hit else Status.INACCURATE
-        return MethodRun(w, status, message, int(out.nit), [], [record | {"status": status.value}], stats)
+        return MethodRun(w, status, message, int(out.nit), [], [record | {"status": status.value}], stats,
+                         at_goal=bool(goal))
 
     def report(rec: dict[str, Any]) -> None:
         progress(verbose, "differential-evolution", f"descent iteration {rec['iter']}: phi = "
@@ -242,11 +244,12 @@ def solve_evolution(prep: Prepared, *, starts: int | None = None, seed: Any = 0,
         run = descend(arc, start, param("hypergradient.gtol"), param("hypergradient.ftol"),
                       param("hypergradient.max_iter"), limit, report if verbose else None)
     except StopIteration:
-        run = Descent(arc.last, Status.INACCURATE, "stopped by the callback (the caller's goal)", 0, [])
+        run = Descent(arc.last, Status.INACCURATE, GOAL_STOP, 0, [])
+        goal.append(run.point)
     p = run.point
     w = prep.pack(KKTPoint(p.x, p.lower.y, p.lower.lam, p.lower.mu, p.lower.Z))
     message = f"descent from the best of {out.nfev} points of differential evolution ({searched}): {run.message}"
     status = Status.MAX_ITERATIONS if limit.hit else run.status
     return MethodRun(w, status, message, int(out.nit) + run.nit, run.history,
                      [record | {"status": status.value, "iterations": run.nit, "objective": p.F,
-                                "residual": p.violation}], stats)
+                                "residual": p.violation}], stats, at_goal=bool(goal))

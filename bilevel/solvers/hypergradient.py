@@ -41,7 +41,7 @@ from .implicit import Evaluation, Hypergradient, shared_oracle
 from .ascent import projected_ascent
 from .block_exact import SINGULAR_LEARNER, ExactBlock, ascend_with_exact_block, exact_block_of
 from .options import check_numbers
-from .limits import Deadline, progress, stopped
+from .limits import GOAL_STOP, Deadline, progress, stopped
 from .starts import start_points
 from .projections import Projection
 
@@ -379,7 +379,7 @@ def solve_hypergradient(prep: Prepared, *, starts: int | None = None, seed: Any 
         except RankDeficientRegressor as exc:  # the start's lower level has no derivative: no step can begin
             failed, singular = f"{SINGULAR_CAUSE} (at the start: {exc})", True
         except StopIteration:
-            run = Descent(arc.last, Status.INACCURATE, "stopped by the callback (the caller's goal)",
+            run = Descent(arc.last, Status.INACCURATE, GOAL_STOP,
                           max(len(seen) - 1, 0), seen)
             goal = k
         if failed is not None:
@@ -410,5 +410,5 @@ def solve_hypergradient(prep: Prepared, *, starts: int | None = None, seed: Any 
                                             "not_exact": why,
                                             "projected_gradient_norm": best.history[-1]["projected_step_norm"]
                                             if best.history else None},
-                    feasible_set=None if projection is None else arc.project)
+                    feasible_set=None if projection is None else arc.project, at_goal=goal is not None)
     return stopped(run, limit, len(records), starts)

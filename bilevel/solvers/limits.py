@@ -19,6 +19,10 @@ if TYPE_CHECKING:  # pragma: no cover
     from .base import MethodRun
 
 
+GOAL_STOP = "stopped by the callback (the caller's goal)"
+"""The message part of a run that the caller's callback ended (StopIteration) where its goal was reached."""
+
+
 class Deadline:
     """The moment option time_limit runs out (never, without one), counted from construction."""
 

@@ -15,7 +15,8 @@ from .test_evolution import _wavy
 def test_callback_stops_the_method_at_the_callers_goal(method: str) -> None:
     """A callback raising StopIteration once F < 0.5 ends the run at that point: its F (declared, checked here against
     sin(3x) + 0.1 x^2 at the returned x) is below 0.5, the method saw the declared objective, and the answer is not
-    `solved` (a goal, not a local minimum)."""
+    `solved` (a goal, not a local minimum); where the probe finds a better point nearby, the message says the goal
+    stopped the method (not "try more starts")."""
     seen = []
 
     def goal(point) -> None:
@@ -29,6 +30,9 @@ def test_callback_stops_the_method_at_the_callers_goal(method: str) -> None:
     assert res.upper_objective < 0.5 and res.upper_objective == pytest.approx(np.sin(3 * x) + 0.1 * x * x, abs=1e-9)
     assert seen[-1] == pytest.approx(res.upper_objective, abs=1e-9) and res.status is not bl.Status.SOLVED
     assert res.certificate.passed
+    if res.status is bl.Status.NOT_LOCALLY_OPTIMAL:
+        assert "callback's goal was reached" in res.message and "try more starts" not in res.message
+    assert "the caller's goal" in res.message
 
 
 def test_prefer_breaks_near_ties_between_starts() -> None:
