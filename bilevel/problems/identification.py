@@ -16,6 +16,7 @@ stealth suggests a start inside the stealth constraints (stealth_start).
 from __future__ import annotations
 
 from collections import OrderedDict
+from functools import lru_cache
 from typing import Any
 
 import casadi as ca
@@ -50,6 +51,18 @@ def statistics(E: ca.SX, E_restricted: ca.SX, n_regressors: int, n_inputs: int, 
     return {"variance": rss / noise_std ** 2, "whiteness": whiteness, "input": ((rss0 - rss) / d1) / (rss / d2)}
 
 
+@lru_cache(maxsize=8)
+def statistics_function(n: int, N: int, n_regressors: int, n_inputs: int, noise_std: float,
+                        lags: int) -> ca.Function:
+    """`statistics` of residual matrices (n x N) as one CasADi Function (E, E_restricted) -> the STATISTICS stacked,
+    kept a call node in the expressions that call it (never inlined): the compiled constraints and their derivatives
+    evaluate it as one MX graph, fewer instructions than its expansion into scalar operations."""
+    E, E_r = ca.MX.sym("E", n, N), ca.MX.sym("E_restricted", n, N)
+    stats = statistics(E, E_r, n_regressors, n_inputs, noise_std, lags)
+    return ca.Function("statistics", [E, E_r], [ca.vertcat(*(stats[name] for name in STATISTICS))],
+                       {"never_inline": True})
+
+
 def declare(atk: IdentificationAttack) -> BilevelProblem:
     """The bilevel program of an attack instance, declared with the generic API (budgets as balls)."""
     p = BilevelProblem(f"ident-{atk.learner}")
@@ -70,10 +83,11 @@ def declare(atk: IdentificationAttack) -> BilevelProblem:
         theta_r = p.lower_variable("theta_restricted", (atk.theta0.shape[0], len(keep)))
         E_r = Y - ca.mtimes(theta_r, Z[keep, :])
         lower += ca.sumsqr(E_r)
-        stats = statistics(E, E_r, Z.shape[0], len(atk.input_rows), atk.setting.noise_std, atk.lags)
+        stats = statistics_function(*E.shape, Z.shape[0], len(atk.input_rows), atk.setting.noise_std,
+                                    atk.lags)(E, E_r)
         delta = p.parameter("stealth")
-        for name in STATISTICS:
-            ratio = stats[name] / p.parameter(f"{name}_clean")
+        for i, name in enumerate(STATISTICS):
+            ratio = stats[i] / p.parameter(f"{name}_clean")
             p.upper_constraint(ratio <= 1 + delta, name=f"stealth_{name}_high")
             p.upper_constraint(ratio >= 1 - delta, name=f"stealth_{name}_low")
     p.minimize_lower(lower)
