@@ -52,14 +52,16 @@ def statistics(E: ca.SX, E_restricted: ca.SX, n_regressors: int, n_inputs: int, 
 
 
 @lru_cache(maxsize=8)
-def statistics_function(n: int, N: int, n_regressors: int, n_inputs: int, noise_std: float,
-                        lags: int) -> ca.Function:
-    """`statistics` of residual matrices (n x N) as one CasADi Function (E, E_restricted) -> the STATISTICS stacked,
-    kept a call node in the expressions that call it (never inlined): the compiled constraints and their derivatives
-    evaluate it as one MX graph, fewer instructions than its expansion into scalar operations."""
-    E, E_r = ca.MX.sym("E", n, N), ca.MX.sym("E_restricted", n, N)
-    stats = statistics(E, E_r, n_regressors, n_inputs, noise_std, lags)
-    return ca.Function("statistics", [E, E_r], [ca.vertcat(*(stats[name] for name in STATISTICS))],
+def statistics_function(n: int, k: int, N: int, keep: tuple[int, ...], noise_std: float, lags: int) -> ca.Function:
+    """`statistics` of the model Y ~ theta Z (Y: n x N, Z: k x N) and of its restriction Y ~ theta_r Z[keep] as one
+    CasADi Function (Y, Z, theta, theta_r) -> the STATISTICS stacked, kept a call node in the expressions that call it
+    (never inlined): the compiled constraints and their derivatives evaluate the residuals and statistics as matrix
+    operations of one MX graph, not as their expansion into scalar operations."""
+    Y, Z = ca.MX.sym("Y", n, N), ca.MX.sym("Z", k, N)
+    theta, theta_r = ca.MX.sym("theta", n, k), ca.MX.sym("theta_restricted", n, len(keep))
+    E, E_r = Y - ca.mtimes(theta, Z), Y - ca.mtimes(theta_r, Z[list(keep), :])
+    stats = statistics(E, E_r, k, k - len(keep), noise_std, lags)
+    return ca.Function("statistics", [Y, Z, theta, theta_r], [ca.vertcat(*(stats[name] for name in STATISTICS))],
                        {"never_inline": True})
 
 
@@ -83,8 +85,8 @@ def declare(atk: IdentificationAttack) -> BilevelProblem:
         theta_r = p.lower_variable("theta_restricted", (atk.theta0.shape[0], len(keep)))
         E_r = Y - ca.mtimes(theta_r, Z[keep, :])
         lower += ca.sumsqr(E_r)
-        stats = statistics_function(*E.shape, Z.shape[0], len(atk.input_rows), atk.setting.noise_std,
-                                    atk.lags)(E, E_r)
+        stats = statistics_function(Y.shape[0], *Z.shape, tuple(keep), atk.setting.noise_std, atk.lags)(
+            Y, Z, theta, theta_r)
         delta = p.parameter("stealth")
         for i, name in enumerate(STATISTICS):
             ratio = stats[i] / p.parameter(f"{name}_clean")

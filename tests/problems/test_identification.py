@@ -108,14 +108,14 @@ def test_stealthy_attack_keeps_statistics_within_delta(learner: str, method: str
 
 
 def test_statistics_function_is_the_defenders_tests() -> None:
-    """The statistics' Function (the call node of the stealth constraints) at least-squares residuals of random data
+    """The statistics' Function (the call node of the stealth constraints) at the least-squares fits of random data
     gives the statistics of bilevel.ddc.residual_tests."""
     rng = np.random.default_rng(3)
     Y, Z = rng.standard_normal((2, 40)), rng.standard_normal((3, 40))
     theta = np.linalg.lstsq(Z.T, Y.T, rcond=None)[0].T
-    theta_r = np.linalg.lstsq(Z[:2].T, Y.T, rcond=None)[0].T
-    value = statistics_function(2, 40, 3, 1, 0.3, 4)(Y - theta @ Z, Y - theta_r @ Z[:2]).full().ravel()
-    tests = regression_tests(Y, Z, theta, [2], 0.3, 4)
+    theta_r = np.linalg.lstsq(Z[[0, 2]].T, Y.T, rcond=None)[0].T
+    value = statistics_function(2, 3, 40, (0, 2), 0.3, 4)(Y, Z, theta, theta_r).full().ravel()
+    tests = regression_tests(Y, Z, theta, [1], 0.3, 4)
     np.testing.assert_allclose(value, [tests[name].statistic for name in STATISTICS], rtol=1e-10)
 
 
