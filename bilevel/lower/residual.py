@@ -160,8 +160,8 @@ class BlockGram:
         self._flat, self._source, self._target, self._n = flat, source, target, n
 
     @classmethod
-    def of(cls, sparsity: ca.Sparsity) -> "BlockGram | None":
-        """The BlockGram of C's pattern, or None (module docstring)."""
+    def of(cls, sparsity: ca.Sparsity) -> BlockGram | None:
+        """The BlockGram of C's pattern, or None where the class docstring says."""
         m, n = sparsity.shape
         rows, cols = (np.asarray(v, dtype=int) for v in sparsity.get_triplet())
         mask = np.zeros((m, n), dtype=bool)

@@ -9,8 +9,9 @@ spectral radius of dTheta dTheta'), or, on [A B], a numeric function of the iden
 (parameter "plant" = [A_true B_true]) under the model's certainty-equivalence LQR gain ("ce-lqr"). With stealth = delta, upper constraints 1 - delta <= stat'/stat <= 1 + delta keep
 each residual statistic of bilevel.ddc.residual_tests (variance, whiteness, input F) within delta of its clean value;
 the F statistic's restricted model (Y regressed on Z without its input rows) is a second least-squares block of the
-lower level. The clean data and statistics are parameters: load_instance re-targets a declared problem, and with
-stealth suggests a start inside the stealth constraints (stealth_start).
+lower level. The statistics enter the constraints as one call of an MX Function of (Y, Z, theta, theta_r)
+(statistics_function). The clean data and statistics are parameters: load_instance re-targets a declared problem,
+and with stealth suggests a start inside the stealth constraints (stealth_start).
 """
 
 from __future__ import annotations
@@ -38,10 +39,10 @@ DEFAULTS = {"T": 100, "eps": 0.05, "objective": "frobenius", "stealth": None, "s
 STATISTICS = ("variance", "whiteness", "input")
 
 
-def statistics(E: ca.SX, E_restricted: ca.SX, n_regressors: int, n_inputs: int, noise_std: float,
-               lags: int) -> dict[str, ca.SX]:
-    """The residual tests' statistics as expressions of the residuals E (n x N) of the model and E_restricted of the
-    model without its input rows (the formulas of bilevel.ddc.residual_tests)."""
+def statistics(E: ca.SX | ca.MX, E_restricted: ca.SX | ca.MX, n_regressors: int, n_inputs: int, noise_std: float,
+               lags: int) -> dict[str, ca.SX | ca.MX]:
+    """The residual tests' statistics as expressions (SX or MX) of the residuals E (n x N) of the model and
+    E_restricted of the model without its input rows (the formulas of bilevel.ddc.residual_tests)."""
     n, N = E.shape
     rss, rss0 = ca.sumsqr(E), ca.sumsqr(E_restricted)
     R = [ca.mtimes(E[:, j:], E[:, :N - j].T) / N for j in range(lags + 1)]
