@@ -150,6 +150,47 @@ class MovingAdjoint:
         return self._seeded @ seed
 
 
+class BlockGram:
+    """C'C for a C of a fixed sparsity whose rows fall into groups of one column support each, the supports disjoint
+    (a learner's C over its outputs and its separate fits: C'C is block diagonal over the groups): one batched product
+    of the groups' dense blocks, padded with a structural zero of C. `of` builds it, or gives None where the pattern
+    has no such groups or they would not save three quarters of the dense product's work."""
+
+    def __init__(self, flat: np.ndarray, source: np.ndarray, target: np.ndarray, n: int) -> None:
+        self._flat, self._source, self._target, self._n = flat, source, target, n
+
+    @classmethod
+    def of(cls, sparsity: ca.Sparsity) -> BlockGram | None:
+        """The BlockGram of C's pattern, or None where the class docstring says."""
+        m, n = sparsity.shape
+        rows, cols = (np.asarray(v, dtype=int) for v in sparsity.get_triplet())
+        mask = np.zeros((m, n), dtype=bool)
+        mask[rows, cols] = True
+        supports, group = np.unique(mask, axis=0, return_inverse=True)
+        members = [np.flatnonzero(group.ravel() == g) for g in range(len(supports)) if supports[g].any()]
+        supports = supports[supports.any(axis=1)]
+        if len(supports) < 2 or np.any(supports.sum(axis=0) > 1):
+            return None
+        size, width = max(len(r) for r in members), int(supports.sum(axis=1).max())
+        if 4 * len(members) * size * width ** 2 > m * n ** 2:
+            return None
+        flat = np.full((len(members), size, width), np.flatnonzero(~mask.ravel(order="F"))[0])
+        source, target = [], []
+        for g, (r, support) in enumerate(zip(members, supports)):
+            c = np.flatnonzero(support)
+            flat[g, :r.size, :c.size] = r[:, None] + m * c[None, :]
+            source.append(g * width ** 2 + (np.arange(c.size)[:, None] * width + np.arange(c.size)).ravel())
+            target.append((c[:, None] * n + c).ravel())
+        return cls(flat, np.concatenate(source), np.concatenate(target), n)
+
+    def __call__(self, C: np.ndarray) -> np.ndarray:
+        """C'C (C of the pattern, any memory order)."""
+        A = np.take(C.ravel(order="F"), self._flat)
+        P = np.zeros(self._n * self._n)
+        P[self._target] = np.matmul(A.transpose(0, 2, 1), A).ravel()[self._source]
+        return P.reshape(self._n, self._n)
+
+
 @dataclass
 class ResidualLeastSquares(LowerLevel):
     """min_y 1/2 ||C(x) y - d(x)||^2 + c(x), C(x)'C(x) positive definite; y* by Cholesky of C'C (a QR solve in the
@@ -283,11 +324,16 @@ class ResidualLeastSquares(LowerLevel):
         return self._last[1]
 
     def gram(self, x: np.ndarray) -> np.ndarray:
-        """The Hessian C(x)'C(x) (the last point's kept, known by its C)."""
+        """The Hessian C(x)'C(x) (the last point's kept, known by its C): by blocks where C's pattern has them
+        (BlockGram), else by BLAS."""
         C = self.data(x)[0]
         if self._gram is None or self._gram[0] is not C:
-            self._gram = (C, C.T @ C, None)
+            self._gram = (C, C.T @ C if self._block_gram is None else self._block_gram(C), None)
         return self._gram[1]
+
+    @cached_property
+    def _block_gram(self) -> BlockGram | None:
+        return BlockGram.of(self.C_expr.sparsity())
 
     def _factored(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """C(x)'C(x) and its Cholesky factor (the last point's kept); raises if it is not positive definite."""

@@ -9,13 +9,15 @@ spectral radius of dTheta dTheta'), or, on [A B], a numeric function of the iden
 (parameter "plant" = [A_true B_true]) under the model's certainty-equivalence LQR gain ("ce-lqr"). With stealth = delta, upper constraints 1 - delta <= stat'/stat <= 1 + delta keep
 each residual statistic of bilevel.ddc.residual_tests (variance, whiteness, input F) within delta of its clean value;
 the F statistic's restricted model (Y regressed on Z without its input rows) is a second least-squares block of the
-lower level. The clean data and statistics are parameters: load_instance re-targets a declared problem, and with
-stealth suggests a start inside the stealth constraints (stealth_start).
+lower level. The statistics enter the constraints as one call of an MX Function of (Y, Z, theta, theta_r)
+(statistics_function). The clean data and statistics are parameters: load_instance re-targets a declared problem,
+and with stealth suggests a start inside the stealth constraints (stealth_start).
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
+from functools import lru_cache
 from typing import Any
 
 import casadi as ca
@@ -37,10 +39,10 @@ DEFAULTS = {"T": 100, "eps": 0.05, "objective": "frobenius", "stealth": None, "s
 STATISTICS = ("variance", "whiteness", "input")
 
 
-def statistics(E: ca.SX, E_restricted: ca.SX, n_regressors: int, n_inputs: int, noise_std: float,
-               lags: int) -> dict[str, ca.SX]:
-    """The residual tests' statistics as expressions of the residuals E (n x N) of the model and E_restricted of the
-    model without its input rows (the formulas of bilevel.ddc.residual_tests)."""
+def statistics(E: ca.SX | ca.MX, E_restricted: ca.SX | ca.MX, n_regressors: int, n_inputs: int, noise_std: float,
+               lags: int) -> dict[str, ca.SX | ca.MX]:
+    """The residual tests' statistics as expressions (SX or MX) of the residuals E (n x N) of the model and
+    E_restricted of the model without its input rows (the formulas of bilevel.ddc.residual_tests)."""
     n, N = E.shape
     rss, rss0 = ca.sumsqr(E), ca.sumsqr(E_restricted)
     R = [ca.mtimes(E[:, j:], E[:, :N - j].T) / N for j in range(lags + 1)]
@@ -48,6 +50,20 @@ def statistics(E: ca.SX, E_restricted: ca.SX, n_regressors: int, n_inputs: int, 
     whiteness = N ** 2 * sum(ca.trace(ca.mtimes([R[j].T, inv0, R[j], inv0])) / (N - j) for j in range(1, lags + 1))
     d1, d2 = n * n_inputs, n * (N - n_regressors)
     return {"variance": rss / noise_std ** 2, "whiteness": whiteness, "input": ((rss0 - rss) / d1) / (rss / d2)}
+
+
+@lru_cache(maxsize=8)
+def statistics_function(n: int, k: int, N: int, keep: tuple[int, ...], noise_std: float, lags: int) -> ca.Function:
+    """`statistics` of the model Y ~ theta Z (Y: n x N, Z: k x N) and of its restriction Y ~ theta_r Z[keep] as one
+    CasADi Function (Y, Z, theta, theta_r) -> the STATISTICS stacked, kept a call node in the expressions that call it
+    (never inlined): the compiled constraints and their derivatives evaluate the residuals and statistics as matrix
+    operations of one MX graph, not as their expansion into scalar operations."""
+    Y, Z = ca.MX.sym("Y", n, N), ca.MX.sym("Z", k, N)
+    theta, theta_r = ca.MX.sym("theta", n, k), ca.MX.sym("theta_restricted", n, len(keep))
+    E, E_r = Y - ca.mtimes(theta, Z), Y - ca.mtimes(theta_r, Z[list(keep), :])
+    stats = statistics(E, E_r, k, k - len(keep), noise_std, lags)
+    return ca.Function("statistics", [Y, Z, theta, theta_r], [ca.vertcat(*(stats[name] for name in STATISTICS))],
+                       {"never_inline": True})
 
 
 def declare(atk: IdentificationAttack) -> BilevelProblem:
@@ -70,10 +86,11 @@ def declare(atk: IdentificationAttack) -> BilevelProblem:
         theta_r = p.lower_variable("theta_restricted", (atk.theta0.shape[0], len(keep)))
         E_r = Y - ca.mtimes(theta_r, Z[keep, :])
         lower += ca.sumsqr(E_r)
-        stats = statistics(E, E_r, Z.shape[0], len(atk.input_rows), atk.setting.noise_std, atk.lags)
+        stats = statistics_function(Y.shape[0], *Z.shape, tuple(keep), atk.setting.noise_std, atk.lags)(
+            Y, Z, theta, theta_r)
         delta = p.parameter("stealth")
-        for name in STATISTICS:
-            ratio = stats[name] / p.parameter(f"{name}_clean")
+        for i, name in enumerate(STATISTICS):
+            ratio = stats[i] / p.parameter(f"{name}_clean")
             p.upper_constraint(ratio <= 1 + delta, name=f"stealth_{name}_high")
             p.upper_constraint(ratio >= 1 - delta, name=f"stealth_{name}_low")
     p.minimize_lower(lower)

@@ -161,6 +161,19 @@ def test_sum_of_squares_reads_weights_and_refuses_other_forms() -> None:
     assert sum_of_squares(ca.sumsqr(y ** 2 - x), y) is None  # squares of expressions nonlinear in y
 
 
+def test_block_gram_is_the_dense_product_on_block_patterns() -> None:
+    """BlockGram of the pattern of two learners' C = kron(Z', I) (rows by output, separate fits) gives C'C at random
+    values; a pattern whose row supports overlap (a dense block) has none."""
+    rng = np.random.default_rng(5)
+    blocks = [np.kron(rng.standard_normal((30, k)), np.eye(2)) for k in (3, 2)]
+    C = np.zeros((120, 10))
+    C[:60, :6], C[60:, 6:] = blocks
+    rows, cols = np.nonzero(C)
+    gram = residual.BlockGram.of(ca.Sparsity.triplet(120, 10, rows.tolist(), cols.tolist()))
+    np.testing.assert_allclose(gram(np.asfortranarray(C)), C.T @ C, rtol=1e-12, atol=1e-12 * np.abs(C.T @ C).max())
+    assert residual.BlockGram.of(ca.Sparsity.dense(120, 10)) is None
+
+
 def _residual_matches_expressions(monkeypatch, declare, x: np.ndarray, affine: bool) -> bl.BilevelProblem:
     """The problem `declare` builds, in the residual kind (forced) with its data evaluated as a sparse product or
     not (`affine`), with the expression kind's phi and hypergradient at x; returned for more checks."""
