@@ -209,7 +209,8 @@ class VRFTAttack:
         d = t(u) + t(a_u), the regressor's filters and prefilter as its maps."""
         reg, N = self.setting.regressor, self.N
         target = None if reg.prefilter is None else (reg.targets, lambda g: reg.targets_adjoint(g, N))
-        return AffineLeastSquares(self.phi0, self.t0, AffineMaps(reg, reg.adjoint, *(target or (None, None))), N, N)
+        return AffineLeastSquares(self.phi0, self.t0, AffineMaps(reg, reg.adjoint, *(target or (None, None)),
+                                                                 regressors=reg.stack), N, N)
 
     @cached_property
     def upper(self) -> UpperObjective:
