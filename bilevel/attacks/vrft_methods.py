@@ -38,7 +38,8 @@ def _ascend(prep: Prepared, joint: bool, starts: int | None, seed: Any, max_iter
     run = ascend_with_exact_block(prep, step, [], starts=param("vrft.starts", starts), seed=seed,
                                   max_iter=param(f"vrft.max_iter.{atk.objective}", max_iter),
                                   gain_tol=param("vrft.gain_tol", gain_tol), time_limit=time_limit, verbose=verbose,
-                                  oracle=Oracle(atk.learner, atk.upper), projection=atk.searched, weights=weights)
+                                  oracle=Oracle(atk.learner, atk.upper, atk.conditioning_key),
+                                  projection=atk.searched, weights=weights)
     return dataclasses.replace(run, lower_solve=atk.learner.thetas)  # the local probe's lower solve
 
 

@@ -213,6 +213,18 @@ class VRFTAttack:
                                                                  regressors=reg.stack), N, N)
 
     @cached_property
+    def conditioning_key(self) -> tuple:
+        """All the engine's conditioning start depends on besides the declared start (zero) and its step count
+        (ConditioningParts.key): the learner's Hessian C'C moves with a_y alone, so a_u stays at zero whatever its
+        budget and objective, and the start is a function of the clean regressor, the filters and the output budget."""
+        reg = self.setting.regressor
+        arrays = [reg.basis_num, reg.basis_den] + [a for op in (reg.error, reg.prefilter) if op is not None
+                                                   for a in (op.num, op.den, [op.advance])]
+        filters = tuple((np.shape(a), np.asarray(a, dtype=float).tobytes()) for a in arrays)
+        return ("vrft", self.phi0.tobytes(), filters, reg.drop, self.N, self.budget_y.norm, self.budget_y.rho,
+                self.delta_y)
+
+    @cached_property
     def upper(self) -> UpperObjective:
         """J as the engine's affine-least-squares ascent reads it (a constant Hessian for the quadratic objectives)."""
         k = self.theta0.size
