@@ -142,7 +142,7 @@ class VRFTRegressor:
         g = np.asarray(g, dtype=float)
         if g.ndim != 2 or g.shape[1] != self.n_params:
             raise InvalidData(f"g must have shape (rows, {self.n_params}), got {g.shape}")
-        h = np.concatenate([g, np.zeros((self.drop, g.shape[1]))], axis=0)
+        h = np.concatenate([g, np.zeros((self.drop, g.shape[1]))], axis=0) if self.drop else g
         h = h if self._delays else h @ self.basis_num
         n = h.shape[0]
         fir = np.zeros(n)
