@@ -94,8 +94,8 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
                      for tol in (param("probe.rel_tol"), param("probe.descent_rel_tol")))
     best: Probe | None = None
     for xp, h, first_order in probes:
-        F = values[xp.tobytes()]
-        if F is not None and F < (min(first, second) if first_order else second) and (best is None or F < best.objective):
+        F, bar = values[xp.tobytes()], min(first, second) if first_order else second
+        if F is not None and F < bar and (best is None or F < best.objective):
             best = Probe(xp, F, h)
     return best
 
