@@ -35,10 +35,12 @@ def _ascend(prep: Prepared, joint: bool, starts: int | None, seed: Any, max_iter
             raise ModelError(f"the alternating attack needs the exact input step: {why}; use the joint attack")
         step = TargetBlock(atk.learner, atk.upper, next(b for b in prep.balls if b.block.start == 0), atk.delta_u)
     weights = np.concatenate([np.full(atk.N, atk.delta_u), np.full(atk.N, atk.delta_y)])
-    return ascend_with_exact_block(prep, step, [], starts=param("vrft.starts", starts), seed=seed,
-                                   max_iter=param(f"vrft.max_iter.{atk.objective}", max_iter),
-                                   gain_tol=param("vrft.gain_tol", gain_tol), time_limit=time_limit, verbose=verbose,
-                                   oracle=Oracle(atk.learner, atk.upper), projection=atk.searched, weights=weights)
+    run = ascend_with_exact_block(prep, step, [], starts=param("vrft.starts", starts), seed=seed,
+                                  max_iter=param(f"vrft.max_iter.{atk.objective}", max_iter),
+                                  gain_tol=param("vrft.gain_tol", gain_tol), time_limit=time_limit, verbose=verbose,
+                                  oracle=Oracle(atk.learner, atk.upper, atk.conditioning_key),
+                                  projection=atk.searched, weights=weights)
+    return dataclasses.replace(run, lower_solve=atk.learner.thetas)  # the local probe's lower solve
 
 
 def alternating(prep: Prepared, *, starts: int | None = None, seed: Any = 0, max_iter: int | None = None,
@@ -73,7 +75,7 @@ def white_noise(prep: Prepared, *, seed: Any = 0, **unknown: Any) -> MethodRun:
     theta = atk.learner.fit(*signals).theta
     return MethodRun(prep.pack(KKTPoint(np.concatenate(signals), theta, np.zeros(0), np.zeros(0), [])),
                      Status.INACCURATE, "a sample at the budget (a baseline, not an optimizer)",
-                     feasible_set=atk.searched)
+                     feasible_set=atk.searched, lower_solve=atk.learner.thetas)
 
 
 METHODS: dict[str, Callable[..., MethodRun]] = {"alternating": alternating, "joint": joint, "white-noise": white_noise}

@@ -16,6 +16,7 @@ samples y_N.., are dropped from the regression (as common VRFT toolboxes do).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Literal
 
 import control
@@ -75,6 +76,13 @@ class VRFTRegressor:
     basis_num: np.ndarray
     basis_den: np.ndarray
 
+    @cached_property
+    def _delays(self) -> bool:
+        """Whether the numerators over the common denominator are the delays 1, q^-1, ... in order (basis_num the
+        identity, as for the PID-like bases): Phi is then the lag matrix itself, no product."""
+        return self.basis_num.shape[0] == self.basis_num.shape[1] and np.array_equal(
+            self.basis_num, np.eye(self.basis_num.shape[0]))
+
     def _lags(self, w: np.ndarray) -> np.ndarray:
         n, width = w.size, self.basis_num.shape[1]
         lag = np.zeros((n, width))
@@ -100,7 +108,22 @@ class VRFTRegressor:
         """Phi(y), shape (rows, nk); linear in y."""
         y = _signal("y", y)
         w = scipy.signal.lfilter([1.0], self.basis_den, self.error_signal(y))
-        return (self._lags(w) @ self.basis_num.T)[: self.rows(y.size)]
+        lag = self._lags(w)
+        return (lag if self._delays else lag @ self.basis_num.T)[: self.rows(y.size)]
+
+    def stack(self, ys: ArrayLike) -> np.ndarray:
+        """Phi of each row of ys (m x n), shape (m, rows, nk): the filters run on all rows in one call each."""
+        ys = np.asarray(ys, dtype=float)
+        if ys.ndim != 2 or not np.all(np.isfinite(ys)):
+            raise InvalidData(f"ys must be a 2-D array of finite signals (one per row), got shape {ys.shape}")
+        e = self.error.apply(ys.T)
+        w = scipy.signal.lfilter([1.0], self.basis_den, e if self.prefilter is None else self.prefilter.apply(e),
+                                 axis=0)
+        n, width = w.shape[0], self.basis_num.shape[1]
+        lag = np.zeros((ys.shape[0], n, width))
+        for j in range(width):
+            lag[:, j:, j] = w[: n - j].T
+        return (lag if self._delays else lag @ self.basis_num.T)[:, : self.rows(n)]
 
     def targets(self, u: ArrayLike) -> np.ndarray:
         """The regressed targets: u (or L u) on the regression rows."""
@@ -119,7 +142,8 @@ class VRFTRegressor:
         g = np.asarray(g, dtype=float)
         if g.ndim != 2 or g.shape[1] != self.n_params:
             raise InvalidData(f"g must have shape (rows, {self.n_params}), got {g.shape}")
-        h = np.concatenate([g, np.zeros((self.drop, g.shape[1]))], axis=0) @ self.basis_num
+        h = np.concatenate([g, np.zeros((self.drop, g.shape[1]))], axis=0) if self.drop else g
+        h = h if self._delays else h @ self.basis_num
         n = h.shape[0]
         fir = np.zeros(n)
         for j in range(h.shape[1]):  # adjoint of the FIR part: sum_j b_j g_{t+j}

@@ -28,12 +28,14 @@ Map = Callable[[np.ndarray], np.ndarray]
 
 @dataclass(frozen=True)
 class AffineMaps:
-    """R, its adjoint G (rows x k) -> R'G, T and its adjoint (g a vector or columns); target None: T a = a[:rows]."""
+    """R, its adjoint G (rows x k) -> R'G, T and its adjoint (g a vector or columns); target None: T a = a[:rows];
+    regressors: R of each row of a matrix of b's in one call, stacked (None: R row by row)."""
 
     regressor: Map
     regressor_adjoint: Map
     target: Map | None = None
     target_adjoint: Map | None = None
+    regressors: Map | None = None
 
 
 @dataclass
@@ -73,7 +75,29 @@ class AffineLeastSquares:
         """theta* at (a, b) (d: the target d0 + T a when known); RankDeficientRegressor if C has lower rank."""
         if d is None:
             d = self.d0 + self.target(a) if np.any(a) else self.d0
-        C = self.C0 + self.maps.regressor(b) if np.any(b) else self.C0
+        return self._solve(a, b, self.C0 + self.maps.regressor(b) if np.any(b) else self.C0, d)
+
+    def thetas(self, X: np.ndarray) -> list[np.ndarray | None]:
+        """theta* at each row x = (a, b) of X, as fit finds it (None where the regressor is rank deficient), the
+        regressors of all rows by one call of maps.regressors where given."""
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        A, B = X[:, : self.n_a], X[:, self.n_a:]
+        moving = [i for i, b in enumerate(B) if np.any(b)]
+        if self.maps.regressors is not None and moving:
+            R = dict(zip(moving, self.maps.regressors(B[moving])))
+        else:
+            R = {i: self.maps.regressor(B[i]) for i in moving}
+        out: list[np.ndarray | None] = []
+        for i, (a, b) in enumerate(zip(A, B)):
+            try:
+                out.append(self._solve(a, b, self.C0 + R[i] if i in R else self.C0,
+                                       self.d0 + self.target(a) if np.any(a) else self.d0).theta)
+            except RankDeficientRegressor:
+                out.append(None)
+        return out
+
+    def _solve(self, a: np.ndarray, b: np.ndarray, C: np.ndarray, d: np.ndarray) -> Fit:
+        """The fit with regressor C and target d at (a, b)."""
         Q, R = thin_qr(C)
         theta, info = scipy.linalg.lapack.dtrtrs(R, Q.T @ d)  # R theta = Q'd (LAPACK directly: once per step)
         if info != 0:

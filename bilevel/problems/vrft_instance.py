@@ -209,7 +209,20 @@ class VRFTAttack:
         d = t(u) + t(a_u), the regressor's filters and prefilter as its maps."""
         reg, N = self.setting.regressor, self.N
         target = None if reg.prefilter is None else (reg.targets, lambda g: reg.targets_adjoint(g, N))
-        return AffineLeastSquares(self.phi0, self.t0, AffineMaps(reg, reg.adjoint, *(target or (None, None))), N, N)
+        return AffineLeastSquares(self.phi0, self.t0, AffineMaps(reg, reg.adjoint, *(target or (None, None)),
+                                                                 regressors=reg.stack), N, N)
+
+    @cached_property
+    def conditioning_key(self) -> tuple:
+        """All the engine's conditioning start depends on besides the declared start (zero) and its step count
+        (ConditioningParts.key): the learner's Hessian C'C moves with a_y alone, so a_u stays at zero whatever its
+        budget and objective, and the start is a function of the clean regressor, the filters and the output budget."""
+        reg = self.setting.regressor
+        arrays = [reg.basis_num, reg.basis_den] + [a for op in (reg.error, reg.prefilter) if op is not None
+                                                   for a in (op.num, op.den, [op.advance])]
+        filters = tuple((np.shape(a), np.asarray(a, dtype=float).tobytes()) for a in arrays)
+        return ("vrft", self.phi0.tobytes(), filters, reg.drop, self.N, self.budget_y.norm, self.budget_y.rho,
+                self.delta_y)
 
     @cached_property
     def upper(self) -> UpperObjective:

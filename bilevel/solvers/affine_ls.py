@@ -7,13 +7,14 @@ target signals have a plain ball budget (a trust-region subproblem in the block'
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Hashable
 
 import numpy as np
 
 from ..lower.affine_least_squares import AffineLeastSquares, Fit
 from ..lower.base import LowerSolution
 from .block_exact import quadratic_block_step
+from .starts import ConditioningParts
 from .structure import Ball
 
 EMPTY = np.zeros(0)
@@ -54,6 +55,8 @@ class Oracle:
 
     learner: AffineLeastSquares
     upper: UpperObjective
+    start_key: Hashable | None = None
+    """Names the conditioning start of hessian_parts (ConditioningParts.key): the data, the moving block's set."""
 
     def evaluate(self, x: np.ndarray, fit: Fit | None = None, kkt: None = None) -> Point:
         """The fit at x (or the known one) and -J there."""
@@ -66,9 +69,9 @@ class Oracle:
         return (-np.concatenate(self.learner.gradient(p.fit, self.upper.gradient(p.fit.theta))),)
 
     @property
-    def hessian_parts(self) -> tuple[Callable, Callable]:
+    def hessian_parts(self) -> ConditioningParts:
         """The learner's Hessian C'C and the x-gradient of v'C'C v, for the engine's conditioning start
-        (bilevel.solvers.starts)."""
+        (bilevel.solvers.starts), keyed by start_key."""
         low, n, last = self.learner, self.learner.n_a, {}
 
         def regressor(x: np.ndarray) -> np.ndarray:  # the engine asks for both parts at each point
@@ -79,7 +82,11 @@ class Oracle:
         def adjoint(x: np.ndarray, v: np.ndarray) -> np.ndarray:
             return np.concatenate([np.zeros(n), low.gram_adjoint(x[n:], regressor(x), v)])
 
-        return lambda x: regressor(x).T @ regressor(x), adjoint
+        def hessian(x: np.ndarray) -> np.ndarray:
+            C = regressor(x)
+            return C.T @ C
+
+        return ConditioningParts(hessian, adjoint, self.start_key)
 
 
 @dataclass

@@ -21,7 +21,7 @@ from ..reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
 from ..result import BilevelResult, Status
 from .optimistic import optimistic_selection
 from .options import RENAMED_OPTIONS
-from .probe import improving_neighbour
+from .probe import LowerSolve, improving_neighbour
 from .projections import Projection
 from .structure import Ball, ball_forms, find_balls, upper_projection
 
@@ -167,6 +167,9 @@ class MethodRun:
     global_bound: GlobalBound | None = None
     at_goal: bool = False
     """Whether the caller's callback ended the method where its goal was reached (not at a local solution)."""
+    lower_solve: LowerSolve | None = None
+    """The method's own solver of a unique lower solution (a structured learner's), which the local probe uses in
+    place of the lower level's."""
 
 
 def unbounded_lower(prep: Prepared, x: np.ndarray) -> str | None:
@@ -243,7 +246,8 @@ def _local_verdict(prep: Prepared, run: MethodRun, point: KKTPoint, cert: Certif
                 f"not a local solution of the optimistic bilevel problem: the lower solution is not unique at x and "
                 f"the method's selection is not the optimistic one; the lower solution in stats['optimistic'] gives "
                 f"upper objective {prep.declared(sel.objective):.8g} (here {prep.declared(F):.8g}) ({message})")
-    better = improving_neighbour(prep, point.x, F, run.feasible_set or prep.projection, optimistic=ambiguous)
+    better = improving_neighbour(prep, point.x, F, run.feasible_set or prep.projection, optimistic=ambiguous,
+                                 lower_solve=run.lower_solve)
     stats["probe"] = None if better is None else {"x": better.x, "objective": prep.declared(better.objective),
                                                   "radius": better.radius}
     if better is None:

@@ -8,7 +8,9 @@ negative hypergradient, +/- each coordinate (up to defaults["probe.coordinates"]
 degenerate lower active set), the descent directions of the adjacent pieces; each is scaled per entry (a recognized
 ball's radius on its block, else 1). It projects x + h d onto the box and balls for a few radii h, solves the lower
 level there independently (and at x itself, the baseline: with a non-unique lower solution F depends on the solver's
-choice; with `optimistic`, F is taken at the best lower solution, as in bilevel.solvers.optimistic), and reports the
+choice; with `optimistic`, F is taken at the best lower solution, as in bilevel.solvers.optimistic; a method whose
+lower level has a unique solution may pass its own structured solver, e.g. the VRFT learner's thin QR, which then
+solves at x and at all the probes in one call), and reports the
 best upper-feasible point whose upper objective is lower than both F at x and the baseline by more than
 defaults["probe.rel_tol"] (relative) along random directions, where at a stationary point the change is second order
 (the tolerance sits at the lower solves' noise, not above it), and by more than defaults["probe.descent_rel_tol"] along
@@ -18,7 +20,7 @@ the first-order ones.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 from scipy.optimize import nnls
@@ -34,6 +36,9 @@ if TYPE_CHECKING:  # pragma: no cover
     from .implicit import Hypergradient
 
 RADII = (1e-1, 1e-2, 1e-3)
+LowerSolve = Callable[[np.ndarray], "list[np.ndarray | None]"]
+"""A structured solver of a lower level with a unique solution: the rows of a matrix of upper points -> y* at each
+(None where it has none)."""
 
 
 @dataclass(frozen=True)
@@ -46,44 +51,52 @@ class Probe:
 
 
 def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, projection: Projection,
-                        seed: int = 0, optimistic: bool = False) -> Probe | None:
+                        seed: int = 0, optimistic: bool = False, lower_solve: LowerSolve | None = None) -> Probe | None:
     """The best neighbour of x in `projection`'s set, upper-feasible, with upper objective < objective -
     defaults["probe.rel_tol"] max(1, |objective|) (defaults["probe.descent_rel_tol"] along first-order directions); None
     if the probe finds none. optimistic: F at each point with the optimistic selection among the lower solutions
-    there."""
+    there; lower_solve: the lower level's unique solution at each row of a matrix of points (LowerSolve), used instead
+    of the lower level's own solver (not with `optimistic`)."""
     low = prep.canon.lower
+    solve = None if optimistic else lower_solve
     try:  # the same lower solver as at the probes: a non-unique lower solution must not pass for a better point
-        fixed_y = low.solve(x).y if low.fixed and not optimistic else None  # a lower level that ignores x: once
+        fixed_y = low.solve(x).y if low.fixed and not optimistic and solve is None else None  # ignores x: once
     except BilevelError:
         return None
-    baseline, verified = _feasible_objective(prep, x, fixed_y, optimistic)
-    if baseline is None:
-        return None
-    optimistic = optimistic and verified  # where IPOPT verifies no selection at x, it is not asked at the probes
+    if solve is None:
+        baseline, verified = _feasible_objective(prep, x, fixed_y, optimistic)
+        if baseline is None:
+            return None
+        optimistic = optimistic and verified  # where IPOPT verifies no selection at x, it is not asked at the probes
+    rng = np.random.default_rng(seed)
+    scale = budget_scale(prep.canon, prep.balls)
+    directions = [(rng.standard_normal(x.size) * scale, False) for _ in range(param("probe.directions"))]
+    directions += [(d, True) for d in _first_order_directions(prep, x, scale, projection)]
+    # one entry per direction; one that is also a first-order direction (in 1-D every one is) is judged as one
+    kinds: dict[bytes, tuple[np.ndarray, bool]] = {}
+    for d, first_order in directions:
+        d = d / max(float(np.linalg.norm(d / scale)), 1e-300)
+        key = np.round(d / scale, 12).tobytes()
+        kinds[key] = (d, first_order or kinds.get(key, (d, False))[1])
+    probes = [(projection(x + h * d), h, first_order) for d, first_order in kinds.values() for h in RADII]
+    points = {x.tobytes(): x} | {xp.tobytes(): xp for xp, _, _ in probes}  # projections of probes may coincide
+    if solve is not None:  # x and the probes in one call
+        values = dict(zip(points, _structured_objectives(prep, np.array(list(points.values())), solve)))
+        baseline = values[x.tobytes()]
+        if baseline is None:
+            return None
+    else:
+        here = x.tobytes()
+        values = {key: baseline if key == here else _feasible_objective(prep, xp, fixed_y, optimistic)[0]
+                  for key, xp in points.items()}
     reference = min(objective, baseline)
     second, first = (reference - tol * max(1.0, abs(reference))
                      for tol in (param("probe.rel_tol"), param("probe.descent_rel_tol")))
-    rng = np.random.default_rng(seed)
-    scale = budget_scale(prep.canon, prep.balls)
-    directions = [(rng.standard_normal(x.size) * scale, second) for _ in range(param("probe.directions"))]
-    directions += [(d, first) for d in _first_order_directions(prep, x, scale, projection)]
-    # one entry per direction; one that is also a first-order direction (in 1-D every one is) is judged as one
-    bars: dict[bytes, tuple[np.ndarray, float]] = {}
-    for d, bar in directions:
-        d = d / max(float(np.linalg.norm(d / scale)), 1e-300)
-        key = np.round(d / scale, 12).tobytes()
-        bars[key] = (d, min(bar, bars.get(key, (d, np.inf))[1]))
-    values: dict[bytes, float | None] = {x.tobytes(): baseline}  # projections of several probes may coincide
     best: Probe | None = None
-    for d, bar in bars.values():
-        for h in RADII:
-            xp = projection(x + h * d)
-            key = xp.tobytes()
-            if key not in values:
-                values[key] = _feasible_objective(prep, xp, fixed_y, optimistic)[0]
-            F = values[key]
-            if F is not None and F < bar and (best is None or F < best.objective):
-                best = Probe(xp, F, h)
+    for xp, h, first_order in probes:
+        F, bar = values[xp.tobytes()], min(first, second) if first_order else second
+        if F is not None and F < bar and (best is None or F < best.objective):
+            best = Probe(xp, F, h)
     return best
 
 
@@ -138,6 +151,16 @@ def _least_norm_combination(G: np.ndarray) -> np.ndarray:
     weight = 1e3 * max(1.0, float(np.abs(G).max()))
     lam = nnls(np.vstack([G, np.full((1, G.shape[1]), weight)]), np.concatenate([np.zeros(G.shape[0]), [weight]]))[0]
     return G @ (lam / max(float(lam.sum()), 1e-300))
+
+
+def _structured_objectives(prep: "Prepared", X: np.ndarray, solve: LowerSolve) -> list[float | None]:
+    """F at each row of X as _feasible_objective finds it, the lower solutions by `solve` in one call (None where it
+    has none)."""
+    try:
+        ys = solve(X)
+    except BilevelError:
+        return [None] * len(X)
+    return [None if y is None else _feasible_objective(prep, x, y)[0] for x, y in zip(X, ys)]
 
 
 def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = None,

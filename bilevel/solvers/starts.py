@@ -14,7 +14,8 @@ eigenvector v) by defaults["starts.conditioning_steps"] projected steps of one b
 
 from __future__ import annotations
 
-from typing import Callable
+from collections import OrderedDict
+from typing import Callable, Hashable, NamedTuple
 
 import casadi as ca
 import numpy as np
@@ -26,6 +27,21 @@ from ..lower.residual import ResidualLeastSquares
 from ..sampling import sample_in_bounds
 from .base import Prepared
 from .structure import depends
+
+
+class ConditioningParts(NamedTuple):
+    """A structured lower level's x -> P(x) (up to a positive factor) and (x, v) -> d(v'P(x)v)/dx for the
+    conditioning start; key, where given, names all the start depends on besides the declared start and the step
+    count (the data, the set the moving block is projected on): equal keys give equal starts, so the process keeps the
+    last KEPT_STARTS by key."""
+
+    hessian: Callable[[np.ndarray], np.ndarray]
+    adjoint: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    key: Hashable | None = None
+
+
+KEPT_STARTS = 16
+_KEPT: OrderedDict[Hashable, np.ndarray] = OrderedDict()
 
 
 def _hessian_and_adjoint(prep: Prepared) -> tuple[Callable, Callable] | None:
@@ -55,13 +71,22 @@ def _hessian_and_adjoint(prep: Prepared) -> tuple[Callable, Callable] | None:
     return lambda x: hessian(lift(x)), lambda x, v: lift.pullback(x, adjoint(lift(x), v))
 
 
-def conditioning_start(prep: Prepared, parts: tuple[Callable, Callable] | None = None) -> np.ndarray | None:
+def conditioning_start(prep: Prepared, parts: ConditioningParts | tuple[Callable, Callable] | None = None
+                       ) -> np.ndarray | None:
     """The conditioning start (module docstring) from the declared start, or None where it does not apply; parts:
-    a structured lower level's (x -> P(x), (x, v) -> d(v'P(x)v)/dx), P up to a positive factor (default: from the
-    declaration, whose start is kept on prep for the parameter values, box, declared start and step count it was
-    found at: a re-solve reuses it)."""
+    a structured lower level's ConditioningParts (a keyed start is kept in the process by key, declared start and step
+    count) (default: from the declaration, whose start is kept on prep for the parameter values, box, declared start
+    and step count it was found at: a re-solve reuses it)."""
     if parts is not None:
-        return _conditioning_descent(prep, parts)
+        parts = ConditioningParts(*parts)
+        if parts.key is None:
+            return _conditioning_descent(prep, parts)
+        key = (parts.key, param("starts.conditioning_steps"), prep.canon.x_start.tobytes())
+        start = _KEPT.pop(key, None)
+        _KEPT[key] = start = _conditioning_descent(prep, parts) if start is None else start
+        while len(_KEPT) > KEPT_STARTS:
+            _KEPT.popitem(last=False)
+        return start.copy()
     declared = prep.cached(("conditioning-start",), lambda: _hessian_and_adjoint(prep))
     if declared is None:
         return None
@@ -74,10 +99,10 @@ def conditioning_start(prep: Prepared, parts: tuple[Callable, Callable] | None =
     return kept[1].copy()
 
 
-def _conditioning_descent(prep: Prepared, parts: tuple[Callable, Callable]) -> np.ndarray:
+def _conditioning_descent(prep: Prepared, parts: ConditioningParts | tuple[Callable, Callable]) -> np.ndarray:
     """The conditioning start's projected steps from the declared start, with parts (x -> P(x), (x, v) ->
     d(v'P(x)v)/dx)."""
-    hessian, adjoint = parts
+    hessian, adjoint = parts[:2]
     canon = prep.canon
     scale = np.where(np.isfinite(canon.x_ub - canon.x_lb), 0.5 * (canon.x_ub - canon.x_lb), 1.0)
     for ball in prep.balls:
@@ -94,7 +119,7 @@ def _conditioning_descent(prep: Prepared, parts: tuple[Callable, Callable]) -> n
 
 
 def start_points(prep: Prepared, starts: int, rng: np.random.Generator, scale: float,
-                 parts: tuple[Callable, Callable] | None = None) -> list[np.ndarray]:
+                 parts: ConditioningParts | tuple[Callable, Callable] | None = None) -> list[np.ndarray]:
     """`starts` upper starts: suggested ones, the conditioning start (where it applies; parts as conditioning_start
     takes them), the declared one, then random ones (balls: on their sphere)."""
     canon = prep.canon

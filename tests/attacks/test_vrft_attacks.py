@@ -436,3 +436,29 @@ def test_conditioning_start_from_the_oracles_filters_is_the_declared_problems(co
     structured = conditioning_start(prep, Oracle(atk.learner, atk.upper).hessian_parts)
     assert np.linalg.norm(declared[atk.N:]) == pytest.approx(atk.delta_y, rel=1e-9)  # it moved to the budget sphere
     np.testing.assert_allclose(structured, declared, rtol=0, atol=1e-8 * atk.delta_y)
+
+
+def test_keyed_conditioning_start_is_shared_by_the_input_budgets_and_objectives() -> None:
+    """The VRFT oracle keys its conditioning start by the clean regressor, the filters and the output budget: the
+    start of one input budget and objective, kept by key, is the one computed afresh for another; another output budget
+    or data set has another key."""
+    from bilevel.solvers import starts
+    from bilevel.solvers.affine_ls import Oracle
+    from bilevel.problems.vrft import problem_for
+    from bilevel.solvers.base import prepare
+
+    first = attack_instance("maxmin", "B", 0.0, 0.037, seed=2, N=128)
+    other = attack_instance("targeted", "B", 0.2, 0.037, seed=2, N=128)
+    assert first.conditioning_key == other.conditioning_key
+    assert attack_instance("maxmin", "B", 0.0, 0.05, seed=2, N=128).conditioning_key != first.conditioning_key
+    assert attack_instance("maxmin", "B", 0.0, 0.037, seed=3, N=128).conditioning_key != first.conditioning_key
+    starts._KEPT.clear()
+    kept = starts.conditioning_start(prepare(problem_for(first)), Oracle(first.learner, first.upper,
+                                                                          first.conditioning_key).hessian_parts)
+    assert len(starts._KEPT) == 1
+    prep = prepare(problem_for(other))
+    fresh = starts.conditioning_start(prep, Oracle(other.learner, other.upper).hessian_parts)  # no key: computed
+    np.testing.assert_array_equal(kept, fresh)
+    assert not np.any(kept[: other.N]) and 0 < np.linalg.norm(kept[other.N:]) <= other.delta_y * (1 + 1e-12)
+    parts = starts.ConditioningParts(*Oracle(other.learner, other.upper).hessian_parts[:2], other.conditioning_key)
+    np.testing.assert_array_equal(starts.conditioning_start(prep, parts), kept)

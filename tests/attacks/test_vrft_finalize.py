@@ -10,7 +10,10 @@ import bilevel as bl
 from bilevel.attacks import attack_alternating, attack_joint, attack_white_noise
 from bilevel.ddc.vrft import fit_vrft
 from bilevel.problems.budget import Budget
+from bilevel.problems.vrft import problem_for
 from bilevel.problems.vrft_instance import VRFTAttack, attack_instance
+from bilevel.solvers.base import prepare
+from bilevel.solvers.probe import improving_neighbour
 
 KINDS = [("alternating", "maxmin"), ("alternating", "targeted"), ("joint", "maxmin"), ("joint", "targeted"),
          ("joint", "destabilize"), ("white-noise", "maxmin"), ("white-noise", "targeted"),
@@ -83,3 +86,19 @@ def test_probe_searches_the_sparse_budget_the_attack_keeps() -> None:
     assert res.status is bl.Status.NOT_LOCALLY_OPTIMAL
     x = res.stats["probe"]["x"]
     assert np.count_nonzero(x[: atk.N]) <= 32 and np.count_nonzero(x[atk.N:]) <= 32
+
+
+def test_probe_by_the_learners_solve_agrees_with_the_lower_levels() -> None:
+    """The probe solving the learner by its thin QR at all points in one call (MethodRun.lower_solve, as the attacks
+    pass it) finds the point and objective that it finds with the declared lower level's own solver."""
+    atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=2, N=128)
+    res = attack_alternating(atk, max_iter=1)
+    prep = prepare(problem_for(atk))
+    x = np.concatenate([res.x["a_u"], res.x["a_y"]])
+    F = -_F(atk, res.y["theta"])  # canonical: the max-min loss minimized as its negative
+    own = improving_neighbour(prep, x, F, prep.projection)
+    learner = improving_neighbour(prep, x, F, prep.projection, lower_solve=atk.learner.thetas)
+    assert own is not None and learner is not None
+    np.testing.assert_array_equal(learner.x, own.x)
+    assert learner.radius == own.radius and learner.objective == pytest.approx(own.objective, rel=1e-9)
+    assert learner.objective == pytest.approx(-_F(atk, _refit(atk, learner.x[: atk.N], learner.x[atk.N:])), rel=1e-9)

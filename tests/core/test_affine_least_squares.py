@@ -79,3 +79,23 @@ def test_rank_deficient_regressor_is_refused() -> None:
     low, _ = fir_learner()
     with pytest.raises(RankDeficientRegressor, match="no unique solution"):
         low.fit(np.zeros(T), -low.C0[:, 0])  # the poisoned inputs cancel the clean ones: C = 0
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_thetas_are_the_fits_of_each_row(batched: bool) -> None:
+    """thetas: fit's theta at every row (rows with a = 0 or b = 0 included), None where the regressor is singular;
+    with a batched map of the regressors (maps.regressors) or row by row."""
+    low, _ = fir_learner()
+    if batched:
+        low = AffineLeastSquares(low.C0, low.d0, AffineMaps(lagged, lagged_adjoint,
+                                                            regressors=lambda B: np.stack([lagged(b) for b in B])),
+                                 T, T)
+    rng = np.random.default_rng(4)
+    X = 0.1 * rng.standard_normal((5, 2 * T))
+    X[1, :T] = 0.0
+    X[2, T:] = 0.0
+    X[3, T:] = -low.C0[:, 0]  # C = 0
+    got = low.thetas(X)
+    assert got[3] is None
+    for i in (0, 1, 2, 4):
+        np.testing.assert_array_equal(got[i], low.fit(X[i, :T], X[i, T:]).theta)

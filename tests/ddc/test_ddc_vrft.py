@@ -148,6 +148,26 @@ def test_regressor_is_linear_with_exact_adjoint_and_dense_form():
     np.testing.assert_allclose(np.stack([t @ y for t in dense], axis=1), regressor(y), atol=1e-9)
 
 
+@pytest.mark.parametrize("basis", [flexible_transmission_basis(), pi_basis(0.05)])
+def test_stacked_regressors_are_each_rows_regressor(basis):
+    """stack: Phi of each row, equal to the one-signal call bit for bit, for a basis of delays over its common
+    denominator (no product with the numerators) and one that is not (PI: numerators [1, -1], [0, 1]), and equal to
+    the dense T_i."""
+    rng = np.random.default_rng(5)
+    n = 48
+    regressor = vrft_regressor(flexible_transmission_reference(), basis,
+                               prefilter=flexible_transmission_prefilter(), boundary="drop")
+    ys = rng.standard_normal((4, n))
+    stacked = regressor.stack(ys)
+    assert stacked.shape == (4, n - 3, len(basis))
+    dense = regressor.dense(n)
+    for y, phi in zip(ys, stacked):
+        np.testing.assert_array_equal(phi, regressor(y))
+        np.testing.assert_allclose(phi, np.stack([t @ y for t in dense], axis=1), atol=1e-9)
+    with pytest.raises(InvalidData, match="2-D array of finite signals"):
+        regressor.stack(ys[0])
+
+
 def test_prefiltered_data_equal_learner_filtering_with_drop():
     """With 'drop', regressing L u on Phi(L y) (paper: data already filtered) and L u on
     T_beta T_L (T_{M_r^{-1}} - I) y give the same rows: all operators act exactly away from the end."""
