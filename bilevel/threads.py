@@ -6,12 +6,27 @@ from __future__ import annotations
 import functools
 from typing import Any, Callable, ContextManager
 
-from threadpoolctl import ThreadpoolController
+import casadi as ca
+import threadpoolctl
+from threadpoolctl import OpenBLASController, ThreadpoolController
+
+
+class CasadiOpenBLAS(OpenBLASController):
+    """The OpenBLAS CasADi bundles for IPOPT's MUMPS (libcasadi-tp-openblas), which threadpoolctl does not know by
+    name: its second thread made the DeePC attacks' IPOPT solves (918-row KKT systems) no faster on two idle cores
+    and up to 1.8x slower on a loaded one (benchmarks/results/bench_deepc.txt)."""
+
+    filename_prefixes = ("libcasadi-tp-openblas",)
+
+
+threadpoolctl.register(CasadiOpenBLAS)
 
 
 @functools.cache
 def _controller() -> ThreadpoolController:
-    """The BLAS/OpenMP pools loaded so far, scanned once (a scan costs ~0.3 ms; a limit from it ~0.02 ms)."""
+    """The BLAS/OpenMP pools, with IPOPT's (loaded with CasADi's IPOPT plugin first), scanned once (a scan costs
+    ~0.3 ms; a limit from it ~0.02 ms)."""
+    ca.load_nlpsol("ipopt")
     return ThreadpoolController()
 
 
