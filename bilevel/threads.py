@@ -13,8 +13,9 @@ from threadpoolctl import OpenBLASController, ThreadpoolController
 
 class CasadiOpenBLAS(OpenBLASController):
     """The OpenBLAS CasADi bundles for IPOPT's MUMPS (libcasadi-tp-openblas), which threadpoolctl does not know by
-    name: its second thread made the DeePC attacks' IPOPT solves (918-row KKT systems) no faster on two idle cores
-    and up to 1.8x slower on a loaded one (benchmarks/results/bench_deepc.txt)."""
+    name: with its second thread the DeePC attacks' IPOPT solves (918-row KKT systems) took 1.1x the wall time and
+    twice the CPU time on a nearly idle 2-core machine, up to 1.8x the wall time on a loaded one
+    (benchmarks/results/bench_deepc.txt)."""
 
     filename_prefixes = ("libcasadi-tp-openblas",)
 
