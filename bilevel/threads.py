@@ -6,12 +6,28 @@ from __future__ import annotations
 import functools
 from typing import Any, Callable, ContextManager
 
-from threadpoolctl import ThreadpoolController
+import casadi as ca
+import threadpoolctl
+from threadpoolctl import OpenBLASController, ThreadpoolController
+
+
+class CasadiOpenBLAS(OpenBLASController):
+    """The OpenBLAS CasADi bundles for IPOPT's MUMPS (libcasadi-tp-openblas), which threadpoolctl does not know by
+    name: with its second thread the DeePC attacks' IPOPT solves (918-row KKT systems) took 1.1x the wall time and
+    twice the CPU time on a nearly idle 2-core machine, up to 1.8x the wall time on a loaded one
+    (benchmarks/results/bench_deepc.txt)."""
+
+    filename_prefixes = ("libcasadi-tp-openblas",)
+
+
+threadpoolctl.register(CasadiOpenBLAS)
 
 
 @functools.cache
 def _controller() -> ThreadpoolController:
-    """The BLAS/OpenMP pools loaded so far, scanned once (a scan costs ~0.3 ms; a limit from it ~0.02 ms)."""
+    """The BLAS/OpenMP pools, with IPOPT's (loaded with CasADi's IPOPT plugin first), scanned once (a scan costs
+    ~0.3 ms; a limit from it ~0.02 ms)."""
+    ca.load_nlpsol("ipopt")
     return ThreadpoolController()
 
 
