@@ -16,7 +16,6 @@ and with stealth suggests a start inside the stealth constraints (stealth_start)
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from functools import lru_cache
 from typing import Any
 
@@ -25,6 +24,7 @@ import numpy as np
 
 from ..ddc.model_based import CertaintyEquivalenceRadius, H2Norm
 from ..errors import ModelError
+from ..kept import kept
 from ..model import BilevelProblem
 from ..solvers.base import prepare
 from ..solvers.implicit import shared_oracle
@@ -113,7 +113,7 @@ def declare(atk: IdentificationAttack) -> BilevelProblem:
 DECLARED_CACHE = 4
 """problem_for keeps this many declared problems per process (a declared problem keeps its preparation: IPOPT's
 compiled NLP takes seconds to build, re-loading data a few milliseconds)."""
-_DECLARED: OrderedDict[tuple[Any, ...], BilevelProblem] = OrderedDict()
+_DECLARED: dict[tuple[Any, ...], BilevelProblem] = {}
 
 
 def problem_for(atk: IdentificationAttack) -> BilevelProblem:
@@ -121,14 +121,10 @@ def problem_for(atk: IdentificationAttack) -> BilevelProblem:
     objective and stealth declaration in this process, re-targeted with load_instance after."""
     key = (atk.learner, tuple(v.shape for v in atk.signals.values()), atk.orders, atk.objective, atk.lags,
            atk.stealth is None, atk.lqr_weights)
-    if key in _DECLARED:
-        _DECLARED.move_to_end(key)
-        load_instance(_DECLARED[key], atk)
-        return _DECLARED[key]
-    _DECLARED[key] = declare(atk)
-    while len(_DECLARED) > DECLARED_CACHE:
-        _DECLARED.popitem(last=False)
-    return _DECLARED[key]
+    problem, made = kept(_DECLARED, key, lambda: declare(atk), DECLARED_CACHE)
+    if not made:
+        load_instance(problem, atk)
+    return problem
 
 
 def load_instance(problem: BilevelProblem, atk: IdentificationAttack) -> None:

@@ -11,7 +11,6 @@ VRFTAttack; the structured attacks on the declared problem are in bilevel.attack
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from typing import Any, Callable, Literal
 from weakref import WeakKeyDictionary
 
@@ -22,6 +21,7 @@ from scipy.sparse.linalg import LinearOperator
 from ..ddc.operators import LTIOperator
 from ..ddc.vrft import VRFTRegressor
 from ..errors import ModelError
+from ..kept import kept
 from ..model import BilevelProblem
 from .registry import register
 from .vrft_instance import VRFTAttack, VRFTSetting, attack_instance
@@ -179,7 +179,7 @@ def instance_of(problem: BilevelProblem) -> VRFTAttack:
 DECLARED_CACHE = 4
 """problem_for keeps this many declared problems per process (declaring and preparing one at N = 512 takes about
 0.4 s, re-loading it a few ms)."""
-_DECLARED: OrderedDict[tuple[Any, ...], tuple[VRFTSetting, BilevelProblem]] = OrderedDict()
+_DECLARED: dict[tuple[Any, ...], tuple[VRFTSetting, BilevelProblem]] = {}
 
 
 def problem_for(atk: VRFTAttack) -> BilevelProblem:
@@ -189,15 +189,11 @@ def problem_for(atk: VRFTAttack) -> BilevelProblem:
                     for b, s in ((atk.budget_u, atk.u), (atk.budget_y, atk.y)))  # linf radii are declared bounds
     key = (id(atk.setting), atk.objective, atk.N, budgets,
            tuple(atk.arx_orders) if atk.objective == "destabilize" else ())
-    hit = _DECLARED.get(key)
-    if hit is not None and hit[0] is atk.setting:  # the setting is kept alive with its problem: its id is not reused
-        _DECLARED.move_to_end(key)
-        _load(hit[1], atk)
-        return hit[1]
-    problem = declare(atk)
-    _DECLARED[key] = (atk.setting, problem)
-    while len(_DECLARED) > DECLARED_CACHE:
-        _DECLARED.popitem(last=False)
+    # the setting is kept alive with its problem: its id is not reused while kept
+    (_, problem), made = kept(_DECLARED, key, lambda: (atk.setting, declare(atk)), DECLARED_CACHE,
+                              usable=lambda hit: hit[0] is atk.setting)
+    if not made:
+        _load(problem, atk)
     return problem
 
 

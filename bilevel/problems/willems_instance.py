@@ -27,6 +27,7 @@ from ..ddc.plants import batch_reactor
 from ..ddc.systems import StatePlantLike, state_matrices
 from ..defaults import param
 from ..errors import InvalidData, ModelError
+from ..kept import kept
 from ..model import BilevelProblem
 from ..result import BilevelResult
 from ..solvers.base import prepare
@@ -301,11 +302,8 @@ class WillemsAttack:
         shapes and given this attack's data (set_value where they differ) and box (Prepared.rebox): attacks of one
         shape share the engine's symbolic preparation, and attacks on one data set at several budgets or by several
         methods also the learner's solves. The learner's selection is given to its SDP lower level."""
-        key, kept = (self.shape, radius), _SHARED.__dict__.setdefault("problems", {})
-        problem = kept.pop(key, None) or self._shape_problem(radius)
-        kept[key] = problem
-        while len(kept) > param("willems.shared_kept"):
-            del kept[next(iter(kept))]
+        problem = kept(_SHARED.__dict__.setdefault("problems", {}), (self.shape, radius),
+                       lambda: self._shape_problem(radius), param("willems.shared_kept"))[0]
         for item in problem.parameters.items:  # a new revision (and new learner solves) only for new data
             value = getattr(self, DATA_PARAMETERS[item.name])
             if not np.array_equal(item.value, value.reshape(-1, order="F")):

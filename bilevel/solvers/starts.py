@@ -14,13 +14,13 @@ eigenvector v) by defaults["starts.conditioning_steps"] projected steps of one b
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from typing import Callable, Hashable, NamedTuple
 
 import casadi as ca
 import numpy as np
 
 from ..defaults import param
+from ..kept import kept
 from ..lower.base import ExpressionLower
 from ..lower.images import ImageLower
 from ..lower.residual import ResidualLeastSquares
@@ -41,7 +41,7 @@ class ConditioningParts(NamedTuple):
 
 
 KEPT_STARTS = 16
-_KEPT: OrderedDict[Hashable, np.ndarray] = OrderedDict()
+_KEPT: dict[Hashable, np.ndarray] = {}
 
 
 def _hessian_and_adjoint(prep: Prepared) -> tuple[Callable, Callable] | None:
@@ -82,21 +82,17 @@ def conditioning_start(prep: Prepared, parts: ConditioningParts | tuple[Callable
         if parts.key is None:
             return _conditioning_descent(prep, parts)
         key = (parts.key, param("starts.conditioning_steps"), prep.canon.x_start.tobytes())
-        start = _KEPT.pop(key, None)
-        _KEPT[key] = start = _conditioning_descent(prep, parts) if start is None else start
-        while len(_KEPT) > KEPT_STARTS:
-            _KEPT.popitem(last=False)
-        return start.copy()
+        return kept(_KEPT, key, lambda: _conditioning_descent(prep, parts), KEPT_STARTS)[0].copy()
     declared = prep.cached(("conditioning-start",), lambda: _hessian_and_adjoint(prep))
     if declared is None:
         return None
     canon = prep.canon
     key = (canon.params.revision, param("starts.conditioning_steps"), canon.x_start.tobytes(), canon.x_lb.tobytes(),
            canon.x_ub.tobytes())  # rebox changes the box and the start without a new revision
-    kept = prep.memo.get(("conditioning-start-point",))
-    if kept is None or kept[0] != key:
-        kept = prep.memo[("conditioning-start-point",)] = (key, _conditioning_descent(prep, declared))
-    return kept[1].copy()
+    found = prep.memo.get(("conditioning-start-point",))
+    if found is None or found[0] != key:
+        found = prep.memo[("conditioning-start-point",)] = (key, _conditioning_descent(prep, declared))
+    return found[1].copy()
 
 
 def _conditioning_descent(prep: Prepared, parts: ConditioningParts | tuple[Callable, Callable]) -> np.ndarray:

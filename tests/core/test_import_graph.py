@@ -27,7 +27,7 @@ LAYERS = (
     ("frontends",),  # other ways to declare a lower level, built into lower-level kinds
     ("lower",),
     ("model",),
-    ("linear_maps", "toeplitz", "parameters", "spectral_radius", "sampling", "vech", "threads", "files", "defaults",
+    ("linear_maps", "toeplitz", "parameters", "spectral_radius", "sampling", "vech", "threads", "files", "defaults", "kept",
      "errors", "sparse_jacobian"),
 )
 """Top to bottom; a module of bilevel/NAME.py or bilevel/NAME/ is in the layer that lists NAME."""
