@@ -84,10 +84,11 @@ class VRFTRegressor:
             self.basis_num, np.eye(self.basis_num.shape[0]))
 
     def _lags(self, w: np.ndarray) -> np.ndarray:
-        n, width = w.size, self.basis_num.shape[1]
-        lag = np.zeros((n, width))
+        """The lag matrix (n, width) of a signal w (n,), or one per column of w (n, m): shape (m, n, width)."""
+        n, width = w.shape[0], self.basis_num.shape[1]
+        lag = np.zeros(w.shape[1:] + (n, width))
         for j in range(width):
-            lag[j:, j] = w[: n - j]
+            lag[..., j:, j] = w[: n - j].T
         return lag
 
     @property
@@ -100,7 +101,8 @@ class VRFTRegressor:
         return n - self.drop
 
     def error_signal(self, y: ArrayLike) -> np.ndarray:
-        """Virtual error (T_{M_r^{-1}} - I) y, filtered by L when the learner owns the prefilter."""
+        """Virtual error (T_{M_r^{-1}} - I) y, filtered by L when the learner owns the prefilter (y a signal, or signals
+        as columns)."""
         e = self.error.apply(y)
         return e if self.prefilter is None else self.prefilter.apply(e)
 
@@ -116,14 +118,8 @@ class VRFTRegressor:
         ys = np.asarray(ys, dtype=float)
         if ys.ndim != 2 or not np.all(np.isfinite(ys)):
             raise InvalidData(f"ys must be a 2-D array of finite signals (one per row), got shape {ys.shape}")
-        e = self.error.apply(ys.T)
-        w = scipy.signal.lfilter([1.0], self.basis_den, e if self.prefilter is None else self.prefilter.apply(e),
-                                 axis=0)
-        n, width = w.shape[0], self.basis_num.shape[1]
-        lag = np.zeros((ys.shape[0], n, width))
-        for j in range(width):
-            lag[:, j:, j] = w[: n - j].T
-        return (lag if self._delays else lag @ self.basis_num.T)[:, : self.rows(n)]
+        lag = self._lags(scipy.signal.lfilter([1.0], self.basis_den, self.error_signal(ys.T), axis=0))
+        return (lag if self._delays else lag @ self.basis_num.T)[:, : self.rows(ys.shape[1])]
 
     def targets(self, u: ArrayLike) -> np.ndarray:
         """The regressed targets: u (or L u) on the regression rows."""
