@@ -71,11 +71,21 @@ class AffineLeastSquares:
             return np.concatenate([g, np.zeros((self.n_a - g.shape[0],) + g.shape[1:])])
         return self.maps.target_adjoint(g)
 
-    def fit(self, a: np.ndarray, b: np.ndarray, d: np.ndarray | None = None) -> Fit:
-        """theta* at (a, b) (d: the target d0 + T a when known); RankDeficientRegressor if C has lower rank."""
+    def fit(self, a: np.ndarray, b: np.ndarray, d: np.ndarray | None = None,
+            regressor: np.ndarray | None = None) -> Fit:
+        """theta* at (a, b) (d: the target d0 + T a, regressor: R b, where known); RankDeficientRegressor if C has
+        lower rank."""
         if d is None:
             d = self.d0 + self.target(a) if np.any(a) else self.d0
-        return self._solve(a, b, self.C0 + self.maps.regressor(b) if np.any(b) else self.C0, d)
+        if regressor is None and np.any(b):
+            regressor = self.maps.regressor(b)
+        C = self.C0 if regressor is None else self.C0 + regressor
+        Q, R = thin_qr(C)
+        theta, info = scipy.linalg.lapack.dtrtrs(R, Q.T @ d)  # R theta = Q'd (LAPACK directly: once per step)
+        if info != 0:
+            raise RankDeficientRegressor(f"the poisoned regressor has rank below {R.shape[1]} (R[{info - 1}, "
+                                         f"{info - 1}] = 0): the least squares has no unique solution")
+        return Fit(a, b, C, d, theta, R, Q)
 
     def thetas(self, X: np.ndarray) -> list[np.ndarray | None]:
         """theta* at each row x = (a, b) of X, as fit finds it (None where the regressor is rank deficient), the
@@ -83,27 +93,15 @@ class AffineLeastSquares:
         X = np.atleast_2d(np.asarray(X, dtype=float))
         A, B = X[:, : self.n_a], X[:, self.n_a:]
         moving = [i for i, b in enumerate(B) if np.any(b)]
-        if self.maps.regressors is not None and moving:
-            R = dict(zip(moving, self.maps.regressors(B[moving])))
-        else:
-            R = {i: self.maps.regressor(B[i]) for i in moving}
+        known = dict(zip(moving, self.maps.regressors(B[moving]))) if self.maps.regressors is not None and moving \
+            else {}
         out: list[np.ndarray | None] = []
         for i, (a, b) in enumerate(zip(A, B)):
             try:
-                out.append(self._solve(a, b, self.C0 + R[i] if i in R else self.C0,
-                                       self.d0 + self.target(a) if np.any(a) else self.d0).theta)
+                out.append(self.fit(a, b, regressor=known.get(i)).theta)
             except RankDeficientRegressor:
                 out.append(None)
         return out
-
-    def _solve(self, a: np.ndarray, b: np.ndarray, C: np.ndarray, d: np.ndarray) -> Fit:
-        """The fit with regressor C and target d at (a, b)."""
-        Q, R = thin_qr(C)
-        theta, info = scipy.linalg.lapack.dtrtrs(R, Q.T @ d)  # R theta = Q'd (LAPACK directly: once per step)
-        if info != 0:
-            raise RankDeficientRegressor(f"the poisoned regressor has rank below {R.shape[1]} (R[{info - 1}, "
-                                         f"{info - 1}] = 0): the least squares has no unique solution")
-        return Fit(a, b, C, d, theta, R, Q)
 
     def gradient(self, s: Fit, g_theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(dJ/da, dJ/db) at fit s for dJ/dtheta = g_theta, by implicit differentiation of the normal equations: with
