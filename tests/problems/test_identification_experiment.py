@@ -8,7 +8,7 @@ import os
 
 import numpy as np
 
-from bilevel.experiments.identification import METHOD, attack_task, cell_tasks, compare, make_plan
+from bilevel.experiments.identification import METHOD, attack_task, cell_tasks, compare, make_plan, warm_up
 from bilevel.experiments.identification_baseline import judge, slsqp_attack
 from bilevel.problems.identification import load_instance, problem_for
 from bilevel.problems.identification_instance import attack_instance
@@ -39,9 +39,9 @@ def check_stealthy(atk, signals: dict[str, np.ndarray], delta: float) -> None:
 
 
 def test_plans_and_tasks() -> None:
-    assert make_plan(100, False) == make_plan(100, False, 5)
+    assert make_plan(100, False) == make_plan(100, False, 10)
     full, quick = make_plan(100, False), make_plan(100, True)
-    assert (full.horizons, full.deltas, full.baseline_sims) == ((100, 500), (0.01, 0.025, 0.05, 0.075, 0.1), 5)
+    assert (full.horizons, full.deltas, full.baseline_sims) == ((100, 500), (0.01, 0.025, 0.05, 0.075, 0.1), 10)
     assert (quick.sims, quick.baseline_sims, quick.horizons) == (2, 1, (100,))
     tasks = cell_tasks(3, seed=0, horizons=(100,), deltas=(0.01, 0.05))
     assert len(tasks) == 6 and len({t["key"] for t in tasks}) == 6
@@ -61,6 +61,7 @@ def test_engine_attack_is_stealthy_by_an_independent_computation() -> None:
     check_stealthy(atk, signals, 0.05)
     row = attack_task(task)  # the sweep's row: the same attack, judged by the library's tests
     assert row["stealthy"] and row["certified"] and row["status"] == "solved"
+    assert warm_up(task) == 0.0 and row["warm_up_cpu_time"] >= 0.0  # this process has compiled T = 100's problem
     assert np.isclose(row["norm2"], np.linalg.norm(result.y["theta"] - atk.theta0, 2), rtol=1e-6)
     assert row["norm2"] <= row["frobenius"] <= 2 * row["norm2"]  # rank of d[A B] <= 4
     assert row["max_relative_change"] <= 0.05 + 1e-6 and max(row["budget_used"].values()) <= 0.05 * (1 + 1e-6)
@@ -91,6 +92,7 @@ def test_quick_command_writes_the_report(tmp_path) -> None:
     with open(os.path.join(out, "stealthy.jsonl")) as fh:
         rows = [json.loads(line) for line in fh]
     assert len(rows) == 4 and all(r["stealthy"] for r in rows)
+    assert sum(r["warm_up_cpu_time"] > 0 for r in rows) <= 1  # one worker: one warm-up for T = 100, in no row's time
     for r in rows:  # the stored statistics are within delta of the clean ones, read back from the file
         for name, before in r["before"].items():
             assert abs(1 - r["after"][name]["statistic"] / before["statistic"]) <= r["task"]["delta"] + 1e-6
