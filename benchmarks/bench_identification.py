@@ -10,7 +10,8 @@ Both points are judged by the defender's tests on a numpy refit of the returned 
 (as the sweep's workers do); the ratios are of CPU time (time.process_time) and of wall time, in one process.
 Run: python benchmarks/bench_identification.py [data_sets] [T] [delta]; outputs in benchmarks/results/
 bench_identification.txt (10 100 0.05), bench_identification_delta_0.1.txt (10 100 0.1),
-bench_identification_T500.txt (5 500 0.05) and bench_identification_T500_delta_0.1.txt (3 500 0.1).
+bench_identification_delta_0.025.txt (10 100 0.025), bench_identification_T500.txt (5 500 0.05) and
+bench_identification_T500_delta_0.1.txt (3 500 0.1).
 """
 
 from __future__ import annotations
