@@ -92,7 +92,11 @@ class ExactBlock:
         P, q, jac_q, grad0, hess = self.data(x)
         factor = hessian_factor(P) if self.factor is None else self.factor  # P(x) for every z of the block
         y_c = -factor_solve(factor, q.ravel())
-        M = -factor_solve(factor, jac_q)
+        jac_q = np.asarray(jac_q, dtype=float)
+        if jac_q.shape[1] > jac_q.shape[0]:  # P^{-1} by n_y solves, then one product: a triangular solve with the
+            M = -(factor_solve(factor, np.eye(jac_q.shape[0])) @ jac_q)  # block's many columns is far slower
+        else:
+            M = -factor_solve(factor, jac_q)
         z = quadratic_block_step(M, grad0.ravel() + hess @ y_c, hess, b.radius, prefer)  # F is quadratic in y
         x[b.block] = b.center + z
         y = y_c + M @ z
