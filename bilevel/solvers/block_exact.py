@@ -325,8 +325,11 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
     g = oracle.gradient(ev)[0][rest]
     pg = float(np.linalg.norm(project(ev.x[rest] - g) - ev.x[rest]))  # ||P(x - grad phi) - x||, as the descent
     block = "" if exact is None else f"exact block x[{S.start}:{S.stop}]; "
+    low = prep.canon.lower  # a lower level with linear maps solves the local probe's points in one lift
     run = MethodRun(w, Status.SOLVED if converged else Status.MAX_ITERATIONS, f"{block}best of {starts} starts: "
                     f"start {k} ({'converged' if converged else 'max_iter'})", nit, history, records,
                     {"best_start": k, "exact_block": None if exact is None else [S.start, S.stop],
-                     "projected_gradient_norm": pg, "not_exact": why}, feasible_set=projection)
+                     "projected_gradient_norm": pg, "not_exact": why}, feasible_set=projection,
+                    lower_solve=low.solve_rows if isinstance(low, ImageLower) and low.kind == "least-squares"
+                    else None)
     return stopped(run, limit, len(records), starts)

@@ -50,6 +50,21 @@ def _phi_and_gradient(p: bl.BilevelProblem, x: np.ndarray) -> tuple[float, np.nd
     return ev.phi, oracle.gradient(ev)[0]
 
 
+@pytest.mark.parametrize("wrap", [np.asarray, aslinearoperator], ids=["dense", "operator"])
+def test_the_lower_solutions_at_rows_lifted_at_once_are_the_solves_point_by_point(wrap) -> None:
+    """ImageLower.solve_rows (the local probe's lower solve) lifts all rows in one product per map group: the same
+    solutions as `solve` at each point, and None at a point where the learner cannot be solved (a NaN entry)."""
+    N = 48
+    low = prepare(_vrft(0, N, wrap)).canon.lower
+    X = np.random.default_rng(5).standard_normal((3, 2 * N)) * 0.05
+    X[2, N + 1] = np.nan
+    rows = low.solve_rows(X)
+    for x, y in zip(X[:2], rows):
+        want = low.solve(x).y
+        assert np.abs(y - want).max() <= 1e-12 * np.abs(want).max()
+    assert rows[2] is None
+
+
 @pytest.mark.parametrize("wrap", [np.asarray, sp.csr_matrix, aslinearoperator], ids=["dense", "sparse", "operator"])
 def test_linear_maps_give_the_expanded_declarations_values_and_hypergradients(wrap) -> None:
     N = 48
