@@ -29,13 +29,16 @@ if TYPE_CHECKING:  # pragma: no cover
 class Gather:
     """A sparse matrix with at most one nonzero per row (a slice, shift or scaling of a signal) applied to a vector as
     a gather, (J v)_i = J_ic v_c: what scipy's product computes (from 0.0, so a -0.0 product is 0.0), without its
-    per-call overhead, which the hypergradient pays several times per evaluation."""
+    per-call overhead, which the hypergradient pays several times per evaluation. Where the entries form a few runs
+    of consecutive rows reading consecutive columns (forward or reversed) with one value each (signals lifted, sliced
+    or read backwards), the runs are copied as slices, not gathered entry by entry."""
 
     def __init__(self, J: sp.csr_matrix) -> None:
         self.shape = J.shape
         self._rows = np.flatnonzero(np.diff(J.indptr))
         self._full = self._rows.size == J.shape[0]  # every row has its entry: no scatter
         self._columns, self._values = J.indices.copy(), J.data.copy()
+        self._runs = _runs(self._rows, self._columns, self._values)
 
     @classmethod
     def of(cls, J: sp.csr_matrix) -> Gather | sp.csr_matrix:
@@ -48,18 +51,55 @@ class Gather:
 
     def __matmul__(self, v: np.ndarray) -> np.ndarray:
         """J v for a vector v or the columns of a matrix v."""
-        if v.ndim == 1:
-            product = self._values * v[self._columns]
-        elif v.ndim == 2:
-            product = self._values[:, None] * v[self._columns]
-        else:
+        if v.ndim not in (1, 2):
             raise ValueError(f"Gather applies to vectors and matrices, got an array of shape {v.shape}")
+        if self._runs is not None:
+            runs, value = self._runs
+            out = (np.empty if self._full else np.zeros)((self.shape[0],) + v.shape[1:])
+            for rows, columns, scale in runs:
+                if value is None and scale != 1.0:
+                    np.multiply(v[columns], scale, out=out[rows])
+                else:
+                    out[rows] = v[columns]
+            if value is not None and value != 1.0:
+                out *= value
+            out += 0.0  # as scipy's sum from 0.0
+            return out
+        product = self._values * v[self._columns] if v.ndim == 1 else self._values[:, None] * v[self._columns]
         product += 0.0  # as scipy's sum from 0.0
         if self._full:
             return product
         out = np.zeros((self.shape[0],) + v.shape[1:])
         out[self._rows] = product
         return out
+
+
+MAX_RUNS = 16
+"""A Gather with at most this many runs (and at least 32 entries per run on average) copies them as slices."""
+
+
+def _runs(rows: np.ndarray, columns: np.ndarray,
+          values: np.ndarray) -> tuple[list[tuple[slice, slice, float]], float | None] | None:
+    """(runs, value): (rows, columns, scale) slices covering the entries, runs of consecutive rows whose columns step by
+    +1 or -1 with one scale, and the scale of all of them where they share one (else None); None where there are more
+    than MAX_RUNS runs or they are short (the gather is cheaper)."""
+    if rows.size == 0:
+        return None
+    step = np.diff(columns)
+    joins = (np.diff(rows) == 1) & (np.abs(step) == 1) & (values[1:] == values[:-1])
+    joins[1:] &= ~joins[:-1] | (step[1:] == step[:-1])  # a run keeps one direction
+    starts = np.concatenate([[0], np.flatnonzero(~joins) + 1])
+    if starts.size > MAX_RUNS or rows.size < 32 * starts.size:
+        return None
+    runs = []
+    for a, b in zip(starts, np.append(starts[1:], rows.size)):
+        c0, c1 = int(columns[a]), int(columns[b - 1])
+        direction = 1 if c1 >= c0 else -1
+        stop = c1 + direction
+        runs.append((slice(int(rows[a]), int(rows[b - 1]) + 1),
+                     slice(c0, None if stop < 0 else stop, direction), float(values[a])))
+    shared = {scale for _, _, scale in runs}
+    return runs, (shared.pop() if len(shared) == 1 else None)
 
 
 def jacobian_nonzeros_exceed(expr: ca.SX, x: ca.SX, limit: float, sample: int = 32) -> bool:

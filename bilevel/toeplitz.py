@@ -5,7 +5,8 @@ A matrix is recognized once (O(m n)): its diagonals are read off one corner (las
 column) and the entries that differ from that Toeplitz matrix by more than ROUNDING * max|A| form the correction;
 it is used when the correction has at most CORRECTION_PER_EDGE * (m + n) entries. Entries that differ by less are
 rounding of the matrix's own computation (a product of filter matrices rounds each diagonal differently), below the
-FFT product's own rounding error.
+FFT product's own rounding error. A bank of such matrices whose kernels are delays of the first one (lagged copies of
+a filter, as a regressor's columns) shares one convolution, read at each delay.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ ROUNDING = 2.0 ** -46
 """Differences from the Toeplitz part up to this fraction of max|A| are rounding, not corrections."""
 CORRECTION_PER_EDGE = 8
 """The correction may hold at most this many entries per row plus column of the matrix (a few boundary columns)."""
+MAX_DELAY = 16
+"""Kernels that are the first one delayed by at most this many samples (up to a few entries) share its transform."""
 
 
 def toeplitz_split(A: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix] | None:
@@ -44,23 +47,85 @@ def toeplitz_split(A: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix] | None:
     return best
 
 
+def _toeplitz_entries(delta: np.ndarray, m: int, n: int) -> sp.csr_matrix:
+    """T(delta) (m x n, T[i, j] = delta[i - j + n - 1]) as a sparse matrix, for a delta with few nonzeros."""
+    rows, cols, values = [], [], []
+    for p in np.flatnonzero(delta):
+        d = int(p) - (n - 1)  # the diagonal i - j = d
+        i = np.arange(max(0, d), min(m, n + d))
+        rows.append(i)
+        cols.append(i - d)
+        values.append(np.full(i.size, delta[p]))
+    if not rows:
+        return sp.csr_matrix((m, n))
+    return sp.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(m, n))
+
+
+def delays(parts: list[tuple[np.ndarray, sp.csr_matrix]], n: int) -> tuple[list[int], list[sp.csr_matrix]] | None:
+    """(shifts, corrections) with A_k = T(t_0 delayed by shifts[k]) + corrections[k] for the parts (t_k, R_k) of equal
+    shape, where each kernel is the first one delayed by at most MAX_DELAY samples up to CORRECTION_PER_EDGE entries
+    (lagged copies of one filter, as the columns of a regressor) and the corrections stay few; else None."""
+    t0 = parts[0][0]
+    K, m = t0.size, t0.size - n + 1
+    tol = ROUNDING * max(float(np.abs(t).max(initial=0.0)) for t, _ in parts)
+    shifts, corrections = [], []
+    for t, R in parts:
+        if t.size != K:
+            return None
+        best = None
+        for shift in range(-MAX_DELAY, MAX_DELAY + 1):
+            delayed = np.zeros(K)
+            if shift >= 0:
+                delayed[shift:] = t0[:K - shift]
+            else:
+                delayed[:shift] = t0[-shift:]
+            delta = t - delayed
+            delta[np.abs(delta) <= tol] = 0.0
+            count = np.count_nonzero(delta)
+            if count <= CORRECTION_PER_EDGE and (best is None or count < best[2]):
+                best = (shift, delta, count)
+        if best is None:
+            return None
+        correction = (R + _toeplitz_entries(best[1], m, n)).tocsr()
+        correction.eliminate_zeros()
+        if correction.nnz > CORRECTION_PER_EDGE * (m + n):
+            return None
+        shifts.append(best[0])
+        corrections.append(correction)
+    return shifts, corrections
+
+
 class ToeplitzBank:
     """Matrices A_k = T(t_k) + R_k with n columns each, applied together: apply(X) = [A_1 X; A_2 X; ...] and
     adjoint([Y_1; Y_2; ...]) = sum_k A_k' Y_k (X and Y vectors or columns), one forward FFT per column of X and one
-    inverse FFT per column of the adjoint."""
+    inverse FFT per column of the adjoint; where the kernels are delays of the first (`delays`), one inverse FFT per
+    column of X and one forward FFT per column of the adjoint too."""
 
     def __init__(self, parts: list[tuple[np.ndarray, sp.csr_matrix]], n: int) -> None:
         self.parts, self.n = parts, n
         self.rows = [t.size - n + 1 for t, _ in parts]
         self.cuts = np.cumsum([0] + self.rows)
-        self.length = next_fast_len(max(t.size for t, _ in parts), real=True)
-        kernels = np.zeros((len(parts), self.length))
-        for k, (t, _) in enumerate(parts):
-            kernels[k, :t.size] = t
-        self.spectra = rfft(np.roll(kernels, 1 - n, axis=1), axis=1)
-        """The kernels' spectra, rotated by n - 1 entries: row i of A_k X is entry i of the circular convolution."""
+        self._equal = len(set(self.rows)) == 1
+        shared = delays(parts, n) if len(parts) > 1 and self._equal else None
+        self._delays: np.ndarray | None = None
+        """Where the kernels are delays of the first (`delays`): each row's entry of the one circular convolution."""
+        if shared is None:
+            kernels = [t for t, _ in parts]
+            corrections = [R for _, R in parts]
+            self.length = next_fast_len(max(t.size for t in kernels), real=True)
+        else:
+            shifts, corrections = shared
+            kernels = [parts[0][0]]
+            self.length = next_fast_len(parts[0][0].size + max(abs(s) for s in shifts), real=True)
+            self._delays = np.concatenate([(np.arange(self.rows[0]) - s) % self.length for s in shifts])
+        padded = np.zeros((len(kernels), self.length))
+        for k, t in enumerate(kernels):
+            padded[k, :t.size] = t
+        self.spectra = rfft(np.roll(padded, 1 - n, axis=1), axis=1)
+        """The kernels' spectra, rotated by n - 1 entries: row i of A_k X is entry i of the circular convolution (of
+        entry i - shift_k of the first kernel's where they are delays)."""
         self._conj = self.spectra.conj()
-        self.correction = sp.vstack([R for _, R in parts], format="csr")
+        self.correction = sp.vstack(corrections, format="csr")
         self._correction_t = self.correction.T.tocsr()
         cols = np.unique(self.correction.indices)
         self._columns: tuple[np.ndarray | slice, np.ndarray] | None = None
@@ -70,7 +135,6 @@ class ToeplitzBank:
             if cols.size and cols[-1] - cols[0] + 1 == cols.size:  # adjacent columns: X read by a view
                 cols = slice(int(cols[0]), int(cols[-1]) + 1)
             self._columns = (cols, block)
-        self._equal = len(set(self.rows)) == 1
         self.shape = (int(self.cuts[-1]), n)
 
     @classmethod
@@ -80,25 +144,39 @@ class ToeplitzBank:
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """[A_1 X; A_2 X; ...]."""
-        spectra = self.spectra.reshape(self.spectra.shape + (1,) * (X.ndim - 1))
-        full = irfft(spectra * rfft(X, self.length, axis=0)[None], self.length, axis=1)
-        if self._equal:
-            out = full[:, :self.rows[0]].reshape((-1,) + X.shape[1:])
+        if self._delays is not None:  # one convolution, read at each kernel's delay
+            spectrum = self.spectra[0].reshape((-1,) + (1,) * (X.ndim - 1))
+            out = irfft(spectrum * rfft(X, self.length, axis=0), self.length, axis=0)[self._delays]
         else:
-            out = np.concatenate([full[k, :r] for k, r in enumerate(self.rows)])
+            spectra = self.spectra.reshape(self.spectra.shape + (1,) * (X.ndim - 1))
+            full = irfft(spectra * rfft(X, self.length, axis=0)[None], self.length, axis=1)
+            if self._equal:
+                out = full[:, :self.rows[0]].reshape((-1,) + X.shape[1:])
+            else:
+                out = np.concatenate([full[k, :r] for k, r in enumerate(self.rows)])
         out += self.correction @ X if self._columns is None else self._columns[1] @ X[self._columns[0]]
         return out
 
     def adjoint(self, Y: np.ndarray) -> np.ndarray:
-        """sum_k A_k' Y_k for Y = [Y_1; Y_2; ...]: a correlation with each kernel."""
-        if self._equal:
-            parts = rfft(Y.reshape((len(self.rows), self.rows[0]) + Y.shape[1:]), self.length, axis=1)
+        """sum_k A_k' Y_k for Y = [Y_1; Y_2; ...]: a correlation with each kernel (with the first one, of the Y_k
+        placed at their delays, where the kernels are delays of it)."""
+        if self._delays is not None:
+            if Y.ndim == 1:
+                placed = np.bincount(self._delays, Y, minlength=self.length)
+            else:
+                placed, m = np.zeros((self.length,) + Y.shape[1:]), self.rows[0]
+                for k in range(len(self.rows)):
+                    placed[self._delays[k * m:(k + 1) * m]] += Y[k * m:(k + 1) * m]
+            total = rfft(placed, axis=0) * self._conj[0].reshape((-1,) + (1,) * (Y.ndim - 1))
         else:
-            padded = np.zeros((len(self.rows), self.length) + Y.shape[1:])
-            for k, r in enumerate(self.rows):
-                padded[k, :r] = Y[self.cuts[k]:self.cuts[k + 1]]
-            parts = rfft(padded, axis=1)
-        total = (parts * self._conj.reshape(self._conj.shape + (1,) * (Y.ndim - 1))).sum(axis=0)
+            if self._equal:
+                parts = rfft(Y.reshape((len(self.rows), self.rows[0]) + Y.shape[1:]), self.length, axis=1)
+            else:
+                padded = np.zeros((len(self.rows), self.length) + Y.shape[1:])
+                for k, r in enumerate(self.rows):
+                    padded[k, :r] = Y[self.cuts[k]:self.cuts[k + 1]]
+                parts = rfft(padded, axis=1)
+            total = (parts * self._conj.reshape(self._conj.shape + (1,) * (Y.ndim - 1))).sum(axis=0)
         out = irfft(total, self.length, axis=0)[:self.n]
         if self._columns is None:
             return out + self._correction_t @ Y

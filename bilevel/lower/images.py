@@ -12,7 +12,7 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
-from ..errors import ModelError
+from ..errors import BilevelError, ModelError
 from ..linear_maps import Images, Operator, affine_parts
 from ..toeplitz import ToeplitzBank
 from ..parameters import ParameterSet
@@ -96,6 +96,23 @@ class Lift:
         self._point = (point, lifted)
         return lifted
 
+    def rows(self, X: np.ndarray) -> np.ndarray:
+        """[x; z(x)] for each row x of X, each map applied to the arguments of all rows in one product where they are
+        single columns (one call of `self` per row otherwise)."""
+        X = np.asarray(X, dtype=float)
+        if self._affine is None or any(shape[1] > 1 for shape in self._arg_shapes):
+            return np.array([self(x) for x in X])
+        args = self._affine[0] @ X.T + self._affine[1][:, None]  # one argument column per row of X
+        Z = np.empty((self.n_z, X.shape[0]))
+        for g, group in enumerate(self._groups):
+            a = args[self._cuts[g]:self._cuts[g + 1]]
+            if self._stacked[g] is not None:
+                Z[self._zindex[g]] = self._stacked[g].apply(a)
+                continue
+            for k in group:
+                Z[self._zcuts[k]:self._zcuts[k + 1]] = self.images.items[k].operator.apply(a)
+        return np.hstack([X, Z.T])
+
     def pullback(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
         """d/dx of <g, [x; z(x)]> for g over [x; z] (a vector, or columns of a matrix)."""
         g = np.asarray(g, dtype=float)
@@ -175,6 +192,17 @@ class ImageLower(LowerLevel):
 
     def solve(self, x: np.ndarray) -> LowerSolution:
         return self.inner.solve(self.lift(self.check_point(x)))
+
+    def solve_rows(self, X: np.ndarray) -> list[np.ndarray | None]:
+        """The lower solution y at each row of X, None where it cannot be solved (a LowerSolve for the local probe):
+        the maps applied to all rows at once (Lift.rows), then `solve` at each lifted row."""
+        out: list[np.ndarray | None] = []
+        for lifted in self.lift.rows(np.asarray(X, dtype=float)):
+            try:
+                out.append(self.inner.solve(lifted).y)
+            except BilevelError:
+                out.append(None)
+        return out
 
     def reference_solve(self, x: np.ndarray) -> LowerSolution:
         return self.inner.reference_solve(self.lift(self.check_point(x)))

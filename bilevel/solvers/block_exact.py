@@ -22,6 +22,7 @@ from typing import Any, Callable
 import casadi as ca
 import numpy as np
 import scipy.sparse as sp
+from scipy.linalg.lapack import dpocon, dpotrf, dtrtri
 
 from ..canonical import CanonicalBilevel
 from ..defaults import param
@@ -56,14 +57,16 @@ def quadratic_block_step(M: np.ndarray, grad: np.ndarray, hess: np.ndarray, radi
     Where several z tie (the hard case, e.g. +-z at a stationary centre) the one closest to `prefer` is returned."""
     if 2 * M.shape[0] > M.shape[1]:  # no reduction worth a decomposition: the subproblem in z itself
         return maximize_quadratic_on_ball(-0.5 * (M.T @ hess @ M), -0.5 * (M.T @ grad), radius, prefer)
-    s2, U = np.linalg.eigh(M @ M.T)  # M = U S V' from the small Gram matrix ...
-    if s2.size and s2[0] > 1e-10 * s2[-1]:
-        s = np.sqrt(s2)
-        Vt = (U.T @ M) / s[:, None]
-    else:  # ... unless it is ill-conditioned: the Gram matrix squares the condition number
-        U, s, Vt = np.linalg.svd(M, full_matrices=False)
-        keep = s > 1e-12 * max(float(s[0]) if s.size else 0.0, 1e-300)
-        U, s, Vt = U[:, keep], s[keep], Vt[keep]
+    gram = M @ M.T  # M M' = L L': z = M' L^{-T} v has ||z|| = ||v|| and M z = L v ...
+    L, info = dpotrf(gram, lower=True, clean=True)
+    if info == 0 and dpocon(L, float(np.abs(gram).sum(axis=0).max()), uplo="L")[0] > 1e-10:
+        inverse = dtrtri(L, lower=True)[0]
+        reduced = None if prefer is None else inverse @ (M @ prefer)  # z . prefer = v . (L^{-1} M prefer)
+        v = maximize_quadratic_on_ball(-0.5 * (L.T @ hess @ L), -0.5 * (L.T @ grad), radius, reduced)
+        return M.T @ (inverse.T @ v)
+    U, s, Vt = np.linalg.svd(M, full_matrices=False)  # ... unless M is ill-conditioned: the Gram matrix squares it
+    keep = s > 1e-12 * max(float(s[0]) if s.size else 0.0, 1e-300)
+    U, s, Vt = U[:, keep], s[keep], Vt[keep]
     A = -0.5 * (s[:, None] * (U.T @ hess @ U) * s[None, :])
     reduced = None if prefer is None else Vt @ prefer  # z . prefer = v . (Vt prefer) for z = Vt' v
     return Vt.T @ maximize_quadratic_on_ball(A, -0.5 * s * (U.T @ grad), radius, reduced)
@@ -92,7 +95,11 @@ class ExactBlock:
         P, q, jac_q, grad0, hess = self.data(x)
         factor = hessian_factor(P) if self.factor is None else self.factor  # P(x) for every z of the block
         y_c = -factor_solve(factor, q.ravel())
-        M = -factor_solve(factor, jac_q)
+        jac_q = np.asarray(jac_q, dtype=float)
+        if jac_q.shape[1] > jac_q.shape[0]:  # P^{-1} by n_y solves, then one product: a triangular solve with the
+            M = -(factor_solve(factor, np.eye(jac_q.shape[0])) @ jac_q)  # block's many columns is far slower
+        else:
+            M = -factor_solve(factor, jac_q)
         z = quadratic_block_step(M, grad0.ravel() + hess @ y_c, hess, b.radius, prefer)  # F is quadratic in y
         x[b.block] = b.center + z
         y = y_c + M @ z
@@ -318,8 +325,11 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
     g = oracle.gradient(ev)[0][rest]
     pg = float(np.linalg.norm(project(ev.x[rest] - g) - ev.x[rest]))  # ||P(x - grad phi) - x||, as the descent
     block = "" if exact is None else f"exact block x[{S.start}:{S.stop}]; "
+    low = prep.canon.lower  # a lower level with linear maps solves the local probe's points in one lift
     run = MethodRun(w, Status.SOLVED if converged else Status.MAX_ITERATIONS, f"{block}best of {starts} starts: "
                     f"start {k} ({'converged' if converged else 'max_iter'})", nit, history, records,
                     {"best_start": k, "exact_block": None if exact is None else [S.start, S.stop],
-                     "projected_gradient_norm": pg, "not_exact": why}, feasible_set=projection)
+                     "projected_gradient_norm": pg, "not_exact": why}, feasible_set=projection,
+                    lower_solve=low.solve_rows if isinstance(low, ImageLower) and low.kind == "least-squares"
+                    else None)
     return stopped(run, limit, len(records), starts)

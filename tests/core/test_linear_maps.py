@@ -50,6 +50,21 @@ def _phi_and_gradient(p: bl.BilevelProblem, x: np.ndarray) -> tuple[float, np.nd
     return ev.phi, oracle.gradient(ev)[0]
 
 
+@pytest.mark.parametrize("wrap", [np.asarray, aslinearoperator], ids=["dense", "operator"])
+def test_the_lower_solutions_at_rows_lifted_at_once_are_the_solves_point_by_point(wrap) -> None:
+    """ImageLower.solve_rows (the local probe's lower solve) lifts all rows in one product per map group: the same
+    solutions as `solve` at each point, and None at a point where the learner cannot be solved (a NaN entry)."""
+    N = 48
+    low = prepare(_vrft(0, N, wrap)).canon.lower
+    X = np.random.default_rng(5).standard_normal((3, 2 * N)) * 0.05
+    X[2, N + 1] = np.nan
+    rows = low.solve_rows(X)
+    for x, y in zip(X[:2], rows):
+        want = low.solve(x).y
+        assert np.abs(y - want).max() <= 1e-12 * np.abs(want).max()
+    assert rows[2] is None
+
+
 @pytest.mark.parametrize("wrap", [np.asarray, sp.csr_matrix, aslinearoperator], ids=["dense", "sparse", "operator"])
 def test_linear_maps_give_the_expanded_declarations_values_and_hypergradients(wrap) -> None:
     N = 48
@@ -373,6 +388,27 @@ def test_a_gather_is_the_sparse_product_of_a_selection() -> None:
     full = sp.csr_matrix(np.diag(rng.standard_normal(4)))
     assert np.array_equal(linear_maps.Gather.of(full) @ v[:4], full @ v[:4])
     assert isinstance(linear_maps.Gather.of(sp.csr_matrix(np.ones((2, 2)))), sp.csr_matrix)
+
+
+@pytest.mark.parametrize("scales", ["one", "shared", "per run"])
+def test_a_gather_of_runs_copies_slices_with_the_sparse_products_numbers(scales: str) -> None:
+    """Runs of consecutive rows reading consecutive columns forwards or backwards (a lifted signal, a reversed slice,
+    a gap of empty rows, a run reaching column 0 backwards) are copied as slices: the same bits as the sparse product,
+    -0.0 products summed to 0.0, for vectors and columns; scattered entries keep the entry-by-entry gather."""
+    rng = np.random.default_rng(3)
+    rows = np.concatenate([np.arange(0, 40), np.arange(45, 85), np.arange(85, 125)])
+    cols = np.concatenate([np.arange(39, -1, -1), np.arange(100, 140), np.arange(199, 159, -1)])
+    value = {"one": np.ones(3), "shared": np.full(3, -0.0625), "per run": np.array([2.0, -0.5, 3.0])}[scales]
+    J = sp.csr_matrix((np.repeat(value, 40), (rows, cols)), shape=(130, 200))
+    gather = linear_maps.Gather.of(J)
+    assert gather._runs is not None and len(gather._runs[0]) == 3
+    v, V = rng.standard_normal(200), rng.standard_normal((200, 4))
+    v[[0, 120, 170]] = -0.0
+    for x in (v, V, np.asfortranarray(V)):
+        assert np.array_equal(gather @ x, J @ x) and np.array_equal(np.signbit(gather @ x), np.signbit(J @ x))
+    scattered = sp.csr_matrix((np.ones(40), (np.arange(40), rng.permutation(200)[:40])), shape=(40, 200))
+    assert linear_maps.Gather.of(scattered)._runs is None
+    assert np.array_equal(linear_maps.Gather.of(scattered) @ v, scattered @ v)
 
 
 @pytest.mark.parametrize("columns", [1, 3])

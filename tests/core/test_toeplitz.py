@@ -59,6 +59,31 @@ def test_bank_products_equal_the_dense_ones(rows: tuple[int, int], boundary: str
         assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max()
 
 
+def test_a_bank_of_delays_of_one_filter_shares_its_convolution() -> None:
+    """Lagged copies of one filter matrix (a regressor's columns: delays of 0, 1, 3 and -2 samples), each with its own
+    boundary columns and the delay's first rows, are applied by one convolution read at each delay: the products equal
+    the dense ones; kernels that are no delays of the first keep one convolution each."""
+    rng = np.random.default_rng(4)
+    m, n = 300, 256
+    t = rng.standard_normal(m + n - 1 + 8)
+    mats = []
+    for lag in (0, 1, 3, -2):
+        A = _toeplitz(t[4 - lag:4 - lag + m + n - 1], m, n)
+        A[:, :3] = rng.standard_normal((m, 3))
+        mats.append(A)
+    bank = ToeplitzBank([toeplitz_split(A) for A in mats], n)
+    assert bank._delays is not None and bank.spectra.shape[0] == 1
+    S = np.vstack(mats)
+    x, X = rng.standard_normal(n), rng.standard_normal((n, 3))
+    g, G = rng.standard_normal(S.shape[0]), rng.standard_normal((S.shape[0], 2))
+    for got, want in ((bank.apply(x), S @ x), (bank.apply(X), S @ X), (bank.adjoint(g), S.T @ g),
+                      (bank.adjoint(G), S.T @ G)):
+        assert got.shape == want.shape
+        assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max()
+    other = [_toeplitz(rng.standard_normal(m + n - 1), m, n) for _ in range(2)]
+    assert ToeplitzBank([toeplitz_split(A) for A in other], n)._delays is None
+
+
 def test_vrft_filter_matrices_are_convolutions_with_the_dense_values_and_hypergradients(monkeypatch) -> None:
     N = 256
     atk = attack_instance("maxmin", "B", 0.1, 0.057, 0, N)
