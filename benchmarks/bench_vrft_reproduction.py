@@ -36,7 +36,8 @@ def child(spec: list, out: str) -> None:
 
     name, n, convention, objective, method = spec
     tasks = vrft.cell_tasks(n, 0, convention, objective, method)
-    shared = {"shared": vrft.same_attack} if hasattr(vrft, "same_attack") else {}  # absent in older trees
+    shared = {f: getattr(vrft, name) for f, name in (("shared", "same_attack"), ("together", "same_data"))
+              if hasattr(vrft, name)}  # absent in older trees
     computed: list[int] = []
     t0 = time.perf_counter()
     with LocalExecutor(2) as executor:  # closed before getrusage: its workers' CPU time counts once reaped

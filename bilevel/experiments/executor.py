@@ -1,10 +1,12 @@
 """Where sweep tasks run: a local process pool (default) or a Dask cluster, behind one small interface.
 
 Both yield finished rows in completion order; the sweep writes them and orders results by task key, so
-the numbers never depend on the executor, the worker count or which worker ran what. `abort` stops
-every worker at once (used on SIGINT/SIGTERM) instead of waiting for running tasks. A local worker that dies
-(SIGKILL, the OOM killer) costs a new pool and a rerun of the unfinished tasks; local workers die with the main
-process, even when it is killed with SIGKILL.
+the numbers never depend on the executor, the worker count or which worker ran what. Tasks go to the workers in
+batches, one message each way per batch: the tasks a sweep groups together run one after another in one worker,
+sharing what that process keeps (data, starts). `abort` stops every worker at once (used on SIGINT/SIGTERM) instead
+of waiting for running tasks. A local worker that dies (SIGKILL, the OOM killer) costs a new pool and a rerun of
+the unfinished tasks (its whole batch); local workers die with the main process, even when it is killed with
+SIGKILL.
 """
 
 from __future__ import annotations
@@ -24,13 +26,15 @@ from abc import ABC, abstractmethod
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Hashable, Iterator
 
 from ..errors import WorkerLost
 from ..threads import single_threaded
 
 Task = dict[str, Any]
 Row = dict[str, Any]
+Together = Callable[[Task], Hashable]
+"""Tasks with equal together(task) form one batch."""
 DASK_ADDRESS = re.compile(r"^(local|(tcp|tls|ucx|inproc)://\S+)$")
 WORKER_DEATHS = 2
 """A task whose worker process dies this many times stops the sweep (WorkerLost) instead of being retried."""
@@ -41,9 +45,24 @@ MARKS_PREFIX = "bilevel-workers-"
 
 
 def run_task(fn: Callable[[Task], Row], task: Task) -> Row:
-    """fn(task) with one BLAS thread (every executor runs tasks through this, so they compute alike)."""
+    """fn(task) with one BLAS thread, as run_batch runs each task (every executor runs tasks through one of them, so
+    they compute alike)."""
     with single_threaded():
         return fn(task)
+
+
+def run_batch(fn: Callable[[Task], Row], tasks: list[Task]) -> list[Row]:
+    """fn on each task in order, with one BLAS thread (run_task's rule, set once for the batch)."""
+    with single_threaded():
+        return [fn(t) for t in tasks]
+
+
+def batches(tasks: list[Task], together: Together | None) -> list[list[int]]:
+    """Indices of `tasks` grouped by together(task) (None: each task alone), in order of first appearance."""
+    groups: dict[Hashable, list[int]] = {}
+    for i, t in enumerate(tasks):
+        groups.setdefault(i if together is None else together(t), []).append(i)
+    return list(groups.values())
 
 
 class Executor(ABC):
@@ -53,8 +72,10 @@ class Executor(ABC):
 
     @abstractmethod
     def imap_unordered(self, fn: Callable[[Task], Row], tasks: list[Task],
-                       report: Callable[[str], None] | None = None) -> Iterator[tuple[Task, Row]]:
-        """(task, fn(task)) for every task, in completion order; `report` hears of workers lost and replaced."""
+                       report: Callable[[str], None] | None = None,
+                       together: Together | None = None) -> Iterator[tuple[Task, Row]]:
+        """(task, fn(task)) for every task, in completion order, a batch's tasks (`together`) one after another in
+        one worker; `report` hears of workers lost and replaced."""
 
     @abstractmethod
     def abort(self) -> None:
@@ -99,13 +120,17 @@ def _worker_init(parent: int, marks: str) -> None:
     _MARKS = marks
 
 
-def _run_marked(fn: Callable[[Task], Row], index: int, task: Task) -> Row:
-    """run_task in a local worker, with `index` noted in the marks directory while it runs."""
+def _run_marked(fn: Callable[[Task], Row], batch: list[tuple[int, Task]]) -> list[Row]:
+    """run_batch in a local worker, the index of the running task noted in the marks directory."""
     mark = os.path.join(_MARKS, str(os.getpid()))
-    with open(mark, "w", encoding="utf-8") as fh:
-        fh.write(str(index))
+
+    def marked(item: tuple[int, Task]) -> Row:
+        with open(mark, "w", encoding="utf-8") as fh:
+            fh.write(str(item[0]))
+        return fn(item[1])
+
     try:
-        return run_task(fn, task)
+        return run_batch(marked, batch)
     finally:
         os.remove(mark)
 
@@ -144,21 +169,21 @@ class LocalExecutor(Executor):
         return self._pool
 
     def imap_unordered(self, fn: Callable[[Task], Row], tasks: list[Task],
-                       report: Callable[[str], None] | None = None) -> Iterator[tuple[Task, Row]]:
+                       report: Callable[[str], None] | None = None,
+                       together: Together | None = None) -> Iterator[tuple[Task, Row]]:
         if self.workers == 1:
             for task in tasks:
                 yield task, run_task(fn, task)
             return
-        left, deaths = dict(enumerate(tasks)), Counter[int]()
+        left, deaths = dict(enumerate(batches(tasks, together))), Counter[int]()
         while left:
             pool = self._start()
             try:
-                futures = {pool.submit(_run_marked, fn, i, t): i for i, t in left.items()}
+                futures = {pool.submit(_run_marked, fn, [(i, tasks[i]) for i in b]): k for k, b in left.items()}
                 for fut in as_completed(futures):
-                    row = fut.result()
-                    i = futures[fut]
-                    del left[i]
-                    yield tasks[i], row
+                    rows = fut.result()
+                    for i, row in zip(left.pop(futures[fut]), rows):
+                        yield tasks[i], row
             except BrokenProcessPool:
                 lost = self._lost()
                 self.abort()
@@ -172,8 +197,8 @@ class LocalExecutor(Executor):
                                      f"{deaths[worst[0]]} times ({lost[worst[0]]}); finished rows are kept: free "
                                      "memory or use fewer workers, then rerun the same command to resume") from None
                 if report:
-                    report(f"a worker process died running {named}: new pool, rerunning {len(left)} unfinished "
-                           "task(s)")
+                    report(f"a worker process died running {named}: new pool, rerunning "
+                           f"{sum(map(len, left.values()))} unfinished task(s)")
 
     def _lost(self) -> dict[int, str]:
         """Index -> how its worker died, for the tasks whose worker died (not those the broken pool stopped)."""
@@ -238,14 +263,17 @@ class DaskExecutor(Executor):
         self._futures: list[Any] = []
 
     def imap_unordered(self, fn: Callable[[Task], Row], tasks: list[Task],
-                       report: Callable[[str], None] | None = None) -> Iterator[tuple[Task, Row]]:
+                       report: Callable[[str], None] | None = None,
+                       together: Together | None = None) -> Iterator[tuple[Task, Row]]:
         from distributed import as_completed as dask_completed
 
         # pure=False: a fresh Dask key per submission, never a result cached from another run
-        futures = {self.client.submit(run_task, fn, t, pure=False): t for t in tasks}
+        futures = {self.client.submit(run_batch, fn, [tasks[i] for i in b], pure=False): b
+                   for b in batches(tasks, together)}
         self._futures = list(futures)
         for fut in dask_completed(futures):
-            yield futures[fut], fut.result()
+            for i, row in zip(futures[fut], fut.result()):
+                yield tasks[i], row
         self._futures = []
 
     def abort(self) -> None:

@@ -2,7 +2,8 @@
 
 A task is a JSON-serializable dict with a unique "key"; fn(task) may depend on nothing else. Tasks that a
 sweep's `shared` function maps to one value compute the same row: one of them runs and the row is written for each
-(with its own key, task and digest). A row
+(with its own key, task and digest); tasks its `together` function maps to one value run in one worker, one after
+another (executor batches). A row
 stores the task and its digest (every task field plus ALGORITHM_VERSION), and a rerun reuses a row
 only when key and digest both match, so a row computed under other settings is never reused (it stays
 in the file, unused). A row that is not UTF-8 or JSON, was torn by a kill mid-write, or fails the sweep's
@@ -28,7 +29,7 @@ from typing import Any, Callable, Hashable, Iterable, Iterator
 import numpy as np
 
 from ..files import atomic_open
-from .executor import Executor, LocalExecutor
+from .executor import Executor, LocalExecutor, Together
 
 try:
     _PACKAGE = metadata.version("bilevel")
@@ -211,11 +212,12 @@ def _signals_raise() -> Iterator[None]:
 def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[dict[str, Any]], path: str,
               executor: Executor | None = None, progress: Callable[[str], None] | None = stderr_progress,
               label: str = "sweep", timed: Callable[[list[dict[str, Any]], float], None] | None = None,
-              valid: Validator | None = None,
-              shared: Callable[[dict[str, Any]], Hashable] | None = None) -> list[dict[str, Any]]:
+              valid: Validator | None = None, shared: Callable[[dict[str, Any]], Hashable] | None = None,
+              together: Together | None = None) -> list[dict[str, Any]]:
     """Run fn on every task without a matching row in `path` (on `executor`, default all local cores), appending
     rows as they finish; rows come back in task order. Tasks with equal shared(task) are computed once (the first of
-    them). timed(tasks computed, wall seconds) follows the last one."""
+    them); those with equal together(task) in one worker, in task order. timed(tasks computed, wall seconds) follows
+    the last one."""
     tasks = list(tasks)
     keys = [t["key"] for t in tasks]
     if len(set(keys)) != len(keys):
@@ -247,7 +249,7 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
     report_every = max(1, len(computed) // 20)
     try:
         with _signals_raise(), open(path, "a", encoding="utf-8") as fh:
-            for first, result in executor.imap_unordered(fn, computed, progress):
+            for first, result in executor.imap_unordered(fn, computed, progress, together):
                 for task in same[first["key"]]:
                     row = {**result, "key": task["key"], "digest": digests[task["key"]], "version": ALGORITHM_VERSION,
                            "task": {k: v for k, v in task.items() if k != "key"}}

@@ -96,6 +96,12 @@ def same_attack(task: dict[str, Any]) -> str:
     return json.dumps({k: v for k, v in task.items() if k not in ("key", "sim", "seed")}, sort_keys=True)
 
 
+def same_data(task: dict[str, Any]) -> tuple:
+    """A value shared by the tasks that attack one data set (run_sweep's `together`): run in one worker, they reuse
+    its data and the conditioning starts it keeps (bilevel.solvers.starts, by data and output budget)."""
+    return task["convention"], task["scenario"], task.get("N", N_SAMPLES), task["seed"]
+
+
 def valid_row(row: dict[str, Any]) -> str:
     """"" if a row has every field the summaries read, of its kind (each cell of a budget-path row too)."""
     if "cells" not in row:
@@ -216,7 +222,7 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
                 attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress, name,
                 lambda ran, seconds: record_timing(timings_path, timings, name,
                                                    sum(len(t["eps_y"]) if t["method"] == "path" else 1 for t in ran),
-                                                   seconds), valid_row, same_attack)
+                                                   seconds), valid_row, same_attack, same_data)
     summaries = {name: summarize(rows) for name, rows in runs.items()}
     for name, s in summaries.items():
         write_csv(s, os.path.join(out_dir, f"table_{name}.csv"))

@@ -29,6 +29,7 @@ from ..ddc.systems import SystemLike, num_den
 from ..ddc.vrft import VRFTRegressor, least_squares, vrft_regressor
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
 from ..files import atomic_path
+from ..kept import kept
 from ..lower.affine_least_squares import AffineLeastSquares, AffineMaps
 from ..result import BilevelResult
 from ..solvers.affine_ls import UpperObjective
@@ -104,6 +105,20 @@ PAPER_EPS_Y = (0.01, 0.023, 0.037, 0.05, 0.057)
 """The paper's output budgets (Table 1's columns)."""
 
 
+KEPT_DATA = 16
+"""attack_instance keeps this many recorded data sets per process, VRFTAttack as many clean fits (a sweep's attacks
+on one data set, one per budget, share them)."""
+_DATA: dict[tuple[Any, ...], tuple[np.ndarray, np.ndarray]] = {}
+_CLEAN: dict[tuple[Any, ...], tuple[VRFTSetting, tuple[np.ndarray, ...]]] = {}
+
+
+def _read_only(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The arrays, made read-only: a kept value is shared by the instances that read it."""
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
+
+
 def scenario_data(setting: VRFTSetting, scenario: Literal["A", "B"], n: int = 512,
                   rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Recorded (u, y) of the paper's scenario A (step on [5, 15]) or B (white noise, needs rng)."""
@@ -145,11 +160,10 @@ class VRFTAttack:
             raise InvalidData(f"{self.u.size} samples give {max(reg.rows(self.u.size), 0)} regression rows for "
                               f"{reg.n_params} controller parameters; the learner needs more rows than parameters: "
                               "record a longer experiment")
-        self.phi0 = reg(self.y)
-        self.t0 = reg.targets(self.u)
+        self.phi0, self.t0, self.theta0, self.gram0, self.cross0 = kept(
+            _CLEAN, (id(self.setting), self.u.tobytes(), self.y.tobytes()), lambda: (self.setting, self._clean_fit()),
+            KEPT_DATA, usable=lambda hit: hit[0] is self.setting)[0][1]  # the setting kept alive: its id not reused
         self.n = self.t0.size
-        self.theta0 = least_squares(self.phi0, self.t0)[0]
-        self.gram0, self.cross0 = self.phi0.T @ self.phi0, self.phi0.T @ self.t0  # the max-min loss in O(nk^2)
         if self.objective == "targeted":
             if self.theta_target is None:
                 raise ModelError("the targeted attack needs theta_target (the paper uses 3 * theta_0)")
@@ -172,6 +186,13 @@ class VRFTAttack:
                     f"arx_orders={arx_orders_for(self.u, self.y)} (chosen from the data by "
                     "bilevel.ddc.loop.arx_orders_for: least AIC among full-rank orders)") from err
             self.model_loop = LoopPolynomial.of((num, den), self.setting.basis)
+
+    def _clean_fit(self) -> tuple[np.ndarray, ...]:
+        """The clean regressor Phi0, targets t0, learner's theta0 and Phi0's Gram matrix and Phi0't0 (the max-min loss
+        in O(nk^2)), read-only."""
+        reg = self.setting.regressor
+        phi0, t0 = reg(self.y), reg.targets(self.u)
+        return _read_only(phi0, t0, least_squares(phi0, t0)[0], phi0.T @ phi0, phi0.T @ t0)
 
     @property
     def N(self) -> int:
@@ -292,7 +313,8 @@ def _convention_setting(convention: str) -> VRFTSetting:
 def attack_instance(objective: Objective, scenario: Literal["A", "B"] = "B", eps_u: float = 0.1,
                     eps_y: float = 0.057, seed: int = 0, N: int = 512, convention: str = "paper",
                     norm: str = "l2") -> VRFTAttack:
-    """The paper's flexible-transmission attack instance (data drawn with default_rng(seed))."""
+    """The paper's flexible-transmission attack instance (data drawn with default_rng(seed), kept per process for
+    an integer seed: KEPT_DATA)."""
     if convention not in CONVENTIONS:
         raise ModelError(f"convention {convention!r} is not one of {', '.join(CONVENTIONS)}")
     check_common_options({"seed": seed})
@@ -301,6 +323,9 @@ def attack_instance(objective: Objective, scenario: Literal["A", "B"] = "B", eps
     if not isinstance(N, (int, np.integer)) or isinstance(N, bool) or reg.rows(int(N)) <= reg.n_params:
         raise InvalidData(f"N={N!r} samples: the learner needs more regression rows than its {reg.n_params} "
                           "parameters; pass an integer N of at least a few dozen (the paper uses 512)")
-    u, y = scenario_data(setting, scenario, N, np.random.default_rng(seed))
+    draw = lambda: _read_only(*scenario_data(setting, scenario, N, np.random.default_rng(seed)))  # noqa: E731
+    # an integer seed draws the same data each time, so they are kept; None or a Generator draws new data each call
+    u, y = kept(_DATA, (convention, scenario, int(N), int(seed)), draw, KEPT_DATA)[0] \
+        if isinstance(seed, (int, np.integer)) else draw()
     target = 3 * PAPER_THETA0 if objective == "targeted" else None
     return VRFTAttack(setting, u, y, Budget(eps_u, norm), Budget(eps_y, norm), objective, target)

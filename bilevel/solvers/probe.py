@@ -27,6 +27,7 @@ from scipy.optimize import nnls
 
 from ..defaults import param
 from ..errors import BilevelError
+from ..parameters import CompiledFunction
 from .optimistic import optimistic_selection
 from .projections import Projection
 from .structure import budget_scale
@@ -154,13 +155,43 @@ def _least_norm_combination(G: np.ndarray) -> np.ndarray:
 
 
 def _structured_objectives(prep: "Prepared", X: np.ndarray, solve: LowerSolve) -> list[float | None]:
-    """F at each row of X as _feasible_objective finds it, the lower solutions by `solve` in one call (None where it
-    has none)."""
+    """F at each row of X as _feasible_objective finds it, the lower solutions by `solve` in one call and F, G, H at
+    every point in one call of the problem's functions mapped over them (None where `solve` finds no solution)."""
     try:
         ys = solve(X)
     except BilevelError:
         return [None] * len(X)
-    return [None if y is None else _feasible_objective(prep, x, y)[0] for x, y in zip(X, ys)]
+    known = [i for i, y in enumerate(ys) if y is not None]
+    mapped = _mapped_functions(prep, len(known)) if known else None
+    if mapped is None:
+        return [None if y is None else _feasible_objective(prep, x, y)[0] for x, y in zip(X, ys)]
+    F, G, H = mapped(X[known].T, np.array([ys[i] for i in known]).T)
+    values: list[float | None] = [None] * len(X)
+    for j, i in enumerate(known):
+        values[i] = _feasible_value(prep, X[i], ys[i], F[:, j], G[:, j], H[:, j])
+    return values
+
+
+def _mapped_functions(prep: "Prepared", n: int) -> CompiledFunction | None:
+    """(X, Y) -> F, G, H at the n columns of X and Y (the problem's functions mapped serially: each column computed as
+    one call computes it), kept on prep; None where F is not computed by those functions (NumericSquares)."""
+    functions = prep.canon.functions
+    if not isinstance(functions, CompiledFunction):
+        return None
+    shared = [] if functions.params is None else [2]  # the parameters, the same for every column
+    return prep.cached(("probe-points", n), lambda: CompiledFunction(
+        functions.fun.map("probe_points", "serial", n, shared, []), functions.params))
+
+
+def _feasible_value(prep: "Prepared", x: np.ndarray, y: np.ndarray, F: np.ndarray, G: np.ndarray,
+                    H: np.ndarray) -> float | None:
+    """The upper objective at (x, y) from the problem's F, G, H there, or None if (x, y) is upper-infeasible or it is
+    not finite."""
+    value = prep.canon.upper_F(x, y, F[0])
+    feas_tol = param("probe.feas_tol")
+    if np.any(G > feas_tol) or np.any(np.abs(H) > feas_tol) or not np.isfinite(value):
+        return None
+    return value
 
 
 def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = None,
@@ -176,11 +207,6 @@ def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = 
     if optimistic and sol is not None:
         sel = optimistic_selection(prep, x, float(prep.canon.lower.evaluate(x, sol.y)[0]), [sol.y])
         ys += [] if sel is None else [sel.y]
-    values = []
-    for yv in ys:
-        F, G, H = (np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, yv))
-        F = np.array([prep.canon.upper_F(x, yv, F[0])])
-        feas_tol = param("probe.feas_tol")
-        if not (np.any(G > feas_tol) or np.any(np.abs(H) > feas_tol) or not np.isfinite(F[0])):
-            values.append(float(F[0]))
-    return min(values, default=None), len(ys) > 1
+    values = [_feasible_value(prep, x, yv, *(np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, yv)))
+              for yv in ys]
+    return min((v for v in values if v is not None), default=None), len(ys) > 1

@@ -102,3 +102,18 @@ def test_probe_by_the_learners_solve_agrees_with_the_lower_levels() -> None:
     np.testing.assert_array_equal(learner.x, own.x)
     assert learner.radius == own.radius and learner.objective == pytest.approx(own.objective, rel=1e-9)
     assert learner.objective == pytest.approx(-_F(atk, _refit(atk, learner.x[: atk.N], learner.x[atk.N:])), rel=1e-9)
+
+
+def test_probe_points_in_one_mapped_call_equal_one_call_each() -> None:
+    """The probe's F, G, H at all its points in one call of the problem's mapped functions: each point's upper
+    objective is the one a call at that point alone gives, bit for bit, and a point outside the budget is None."""
+    from bilevel.solvers.probe import _feasible_objective, _structured_objectives
+
+    atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=2, N=128)
+    prep = prepare(problem_for(atk))
+    rng = np.random.default_rng(0)
+    X = np.array([prep.projection(rng.standard_normal(2 * atk.N)) for _ in range(5)])
+    X = np.vstack([X, 3 * X[0] / np.linalg.norm(X[0]) * max(atk.delta_u, atk.delta_y)])  # outside both balls
+    one_each = [_feasible_objective(prep, x, y)[0] for x, y in zip(X, atk.learner.thetas(X))]
+    assert _structured_objectives(prep, X, atk.learner.thetas) == one_each
+    assert one_each[-1] is None and all(v is not None for v in one_each[:-1])

@@ -51,15 +51,27 @@ def tasks(n: int, sleep: float = 0.0, die: dict[int, int] | None = None) -> list
             for x in range(n)]
 
 
+_RAN: list[int] = []
+"""The x of each task this process ran, in order (by ordered_task)."""
+
+
+def ordered_task(task: dict[str, Any]) -> dict[str, Any]:
+    """The worker's pid and the tasks it ran before this one (x's), then this one's x."""
+    _RAN.append(task["x"])
+    return {"pid": os.getpid(), "ran": list(_RAN)}
+
+
 def reproduce(out: str, n: int, sleep: float = 0.0, workers: int = 2, progress: Any = None,
-              die: dict[int, int] | None = None) -> list[dict[str, Any]]:
-    """Run (or resume) the toy sweep and write every kind of output file a reproduction writes."""
+              die: dict[int, int] | None = None, together: Any = None) -> list[dict[str, Any]]:
+    """Run (or resume) the toy sweep and write every kind of output file a reproduction writes; together: the
+    sweep's batches."""
     os.makedirs(out, exist_ok=True)
     timings_path = os.path.join(out, "timings.json")
     timings = load_timings(timings_path, progress)
     with LocalExecutor(workers) as executor:
         rows = run_sweep(toy_task, tasks(n, sleep, die), os.path.join(out, "rows.jsonl"), executor, progress, "toy",
-                         lambda ran, s: record_timing(timings_path, timings, "toy", len(ran), s), valid)
+                         lambda ran, s: record_timing(timings_path, timings, "toy", len(ran), s), valid,
+                         together=together)
     with atomic_open(os.path.join(out, "table_toy.csv"), newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["x", "value", "unstable", "time_ms"])

@@ -89,12 +89,27 @@ def marks(tmp_path, monkeypatch) -> str:
     return str(path)
 
 
-def test_worker_killed_mid_run_is_replaced_and_its_task_rerun(tmp_path, marks, toy_reference) -> None:
+def test_batches_run_in_one_worker_in_task_order(tmp_path) -> None:
+    """Tasks that `together` groups run one after another in one worker, in task order, on the pool and alone."""
+    tasks = [{"key": f"x={x}", "x": x} for x in range(12)]
+    for workers in (2, 1):
+        rows = run_sweep(faulty.ordered_task, tasks, str(tmp_path / f"{workers}.jsonl"), LocalExecutor(workers), None,
+                         "t", together=lambda t: t["x"] // 4)
+        for b in range(3):
+            batch = rows[4 * b:4 * b + 4]
+            assert len({r["pid"] for r in batch}) == 1
+            assert batch[-1]["ran"][-4:] == [4 * b, 4 * b + 1, 4 * b + 2, 4 * b + 3]
+            assert [r["ran"][:-1] for r in batch[1:]] == [r["ran"] for r in batch[:-1]]  # nothing ran in between
+
+
+@pytest.mark.parametrize("together", [None, lambda t: t["x"] // 4])
+def test_worker_killed_mid_run_is_replaced_and_its_task_rerun(tmp_path, marks, toy_reference, together) -> None:
     """Task x=5 SIGKILLs its worker the first time it runs: the sweep says so in one line, starts a new pool,
-    reruns the unfinished tasks and ends with every row once, equal to the uninterrupted run's."""
+    reruns the unfinished tasks (their whole batch where tasks run in batches) and ends with every row once, equal
+    to the uninterrupted run's."""
     lines: list[str] = []
     out = str(tmp_path / "run")
-    rows = faulty.reproduce(out, TOY_TASKS, sleep=0.02, progress=lines.append, die={5: 1})
+    rows = faulty.reproduce(out, TOY_TASKS, sleep=0.02, progress=lines.append, die={5: 1}, together=together)
     assert len(os.listdir(marks)) == 1  # it did kill its worker once
     died = [ln for ln in lines if "worker process died" in ln]
     assert len(died) == 1 and "x=5 (SIGKILL)" in died[0] and "new pool, rerunning" in died[0]
