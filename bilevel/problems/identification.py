@@ -9,8 +9,8 @@ spectral radius of dTheta dTheta'), or, on [A B], a numeric function of the iden
 (parameter "plant" = [A_true B_true]) under the model's certainty-equivalence LQR gain ("ce-lqr"). With stealth = delta, upper constraints 1 - delta <= stat'/stat <= 1 + delta keep
 each residual statistic of bilevel.ddc.residual_tests (variance, whiteness, input F) within delta of its clean value;
 the F statistic's restricted model (Y regressed on Z without its input rows) is a second least-squares block of the
-lower level. The statistics enter the constraints as one call of an MX Function of (Y, Z, theta, theta_r)
-(statistics_function). The clean data and statistics are parameters: load_instance re-targets a declared problem,
+lower level. Each statistic enters its constraints as a call of its MX Function of (Y, Z, theta, theta_r)
+(statistics_functions). The clean data and statistics are parameters: load_instance re-targets a declared problem,
 and with stealth suggests a start inside the stealth constraints (stealth_start).
 """
 
@@ -53,17 +53,19 @@ def statistics(E: ca.SX | ca.MX, E_restricted: ca.SX | ca.MX, n_regressors: int,
 
 
 @lru_cache(maxsize=8)
-def statistics_function(n: int, k: int, N: int, keep: tuple[int, ...], noise_std: float, lags: int) -> ca.Function:
+def statistics_functions(n: int, k: int, N: int, keep: tuple[int, ...], noise_std: float, lags: int
+                         ) -> tuple[ca.Function, ...]:
     """`statistics` of the model Y ~ theta Z (Y: n x N, Z: k x N) and of its restriction Y ~ theta_r Z[keep] as one
-    CasADi Function (Y, Z, theta, theta_r) -> the STATISTICS stacked, kept a call node in the expressions that call it
-    (never inlined): the compiled constraints and their derivatives evaluate the residuals and statistics as matrix
-    operations of one MX graph, not as their expansion into scalar operations."""
+    CasADi Function of (Y, Z, theta, theta_r) per statistic (in the order of STATISTICS), each kept a call node in the
+    expressions that call it (never inlined): the compiled constraints and their derivatives evaluate the residuals
+    and statistics as matrix operations of one MX graph, not as their expansion into scalar operations, and a
+    constraint's derivative runs the adjoint of its own statistic only (bilevel.solvers.implicit.row_jacobian)."""
     Y, Z = ca.MX.sym("Y", n, N), ca.MX.sym("Z", k, N)
     theta, theta_r = ca.MX.sym("theta", n, k), ca.MX.sym("theta_restricted", n, len(keep))
     E, E_r = Y - ca.mtimes(theta, Z), Y - ca.mtimes(theta_r, Z[list(keep), :])
     stats = statistics(E, E_r, k, k - len(keep), noise_std, lags)
-    return ca.Function("statistics", [Y, Z, theta, theta_r], [ca.vertcat(*(stats[name] for name in STATISTICS))],
-                       {"never_inline": True})
+    return tuple(ca.Function(name, [Y, Z, theta, theta_r], [stats[name]], {"never_inline": True})
+                 for name in STATISTICS)
 
 
 def declare(atk: IdentificationAttack) -> BilevelProblem:
@@ -86,11 +88,10 @@ def declare(atk: IdentificationAttack) -> BilevelProblem:
         theta_r = p.lower_variable("theta_restricted", (atk.theta0.shape[0], len(keep)))
         E_r = Y - ca.mtimes(theta_r, Z[keep, :])
         lower += ca.sumsqr(E_r)
-        stats = statistics_function(Y.shape[0], *Z.shape, tuple(keep), atk.setting.noise_std, atk.lags)(
-            Y, Z, theta, theta_r)
+        nodes = statistics_functions(Y.shape[0], *Z.shape, tuple(keep), atk.setting.noise_std, atk.lags)
         delta = p.parameter("stealth")
-        for i, name in enumerate(STATISTICS):
-            ratio = stats[i] / p.parameter(f"{name}_clean")
+        for node, name in zip(nodes, STATISTICS):
+            ratio = node(Y, Z, theta, theta_r) / p.parameter(f"{name}_clean")
             p.upper_constraint(ratio <= 1 + delta, name=f"stealth_{name}_high")
             p.upper_constraint(ratio >= 1 - delta, name=f"stealth_{name}_low")
     p.minimize_lower(lower)

@@ -99,6 +99,15 @@ def shared_cores(rows: ca.SX, wrt: ca.SX) -> tuple[ca.SX, np.ndarray, np.ndarray
     return (ca.vertcat(*cores) if cores else ca.SX(0, 1)), np.array(index, dtype=int), np.array(sign)
 
 
+def row_jacobian(rows: ca.SX, wrt: ca.SX) -> ca.SX:
+    """d rows / d wrt; row by row where rows call Functions (call nodes): a joint reverse sweep runs each call node's
+    adjoint in every direction, row by row only for the rows that read the node."""
+    trace = ca.Function("rows", [wrt], [rows], {"allow_free": True})
+    if rows.numel() < 2 or not any(trace.instruction_id(i) == ca.OP_CALL for i in range(trace.n_instructions())):
+        return ca.jacobian(rows, wrt)
+    return ca.vertcat(*(ca.jacobian(rows[i], wrt) for i in range(int(rows.numel()))))
+
+
 class Hypergradient:
     """The reduced objective phi(x) = F(x, y*(x)) + penalty * (sum max(G, 0) + sum |H|) and its gradient."""
 
@@ -119,7 +128,7 @@ class Hypergradient:
         cores, self._G_index, self._G_sign = shared_cores(G, ca.vertcat(x, y))
         self._G_shared = len(self._G_index) > int(cores.numel()) or bool(np.any(self._G_sign < 0))
         nC = int(cores.numel())
-        JC, JH = ca.jacobian(cores, ca.vertcat(x, y)), ca.jacobian(H, ca.vertcat(x, y))  # one sweep per row for x, y
+        JC, JH = row_jacobian(cores, ca.vertcat(x, y)), row_jacobian(H, ca.vertcat(x, y))  # x and y in one sweep
         self._upper_outputs = [canon.F, G, H, ca.gradient(canon.F, x), ca.gradient(canon.F, y), JC[:, :nx],
                                JC[:, nx:], JH[:, :nx], JH[:, nx:]]
         """F, G, H, then the partials: of F, of G's distinct cores (shared_cores) and of H, in x and y."""

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 import bilevel as bl
 from bilevel.solvers.base import prepare
 from bilevel.solvers.block_exact import SINGULAR_LEARNER
-from bilevel.solvers.implicit import Hypergradient, hypergradient
+from bilevel.solvers.implicit import Hypergradient, hypergradient, row_jacobian
 from bilevel.solvers.projections import NormBall
 
 FD_STEP = 1e-5
@@ -231,6 +231,23 @@ def test_two_sided_constraints_share_one_core_and_keep_their_jacobians() -> None
     rows = lambda xs: np.concatenate([[oracle.evaluate(xs).F], oracle.evaluate(xs).upper[1].ravel()])  # noqa: E731
     fd = np.column_stack([(rows(x0 + FD_STEP * d) - rows(x0 - FD_STEP * d)) / (2 * FD_STEP) for d in np.eye(2)])
     assert np.abs(J.T - fd).max() <= 1e-7 * max(1.0, np.abs(fd).max())
+
+
+def test_rows_that_call_functions_are_differentiated_row_by_row() -> None:
+    """row_jacobian of rows reading never-inlined Functions is their exact Jacobian, and its sweep runs each node's
+    adjoint once, for the row that reads it (a joint reverse sweep runs every node's in every direction)."""
+    v = ca.MX.sym("v", 3)
+    square = ca.Function("square", [v], [ca.sumsqr(v)], {"never_inline": True})
+    sine = ca.Function("sine", [v], [ca.sum1(ca.sin(v))], {"never_inline": True})
+    x, c = ca.SX.sym("x", 3), ca.SX.sym("c")
+    rows = ca.vertcat(square(x), c * sine(x), ca.sum1(x))
+    J = ca.Function("J", [x, c], [row_jacobian(rows, x)])
+    x0 = np.array([0.3, -1.2, 2.0])
+    expected = np.vstack([2 * x0, 0.5 * np.cos(x0), np.ones(3)])
+    np.testing.assert_allclose(np.asarray(J(x0, 0.5)), expected, rtol=1e-14, atol=1e-14)
+    calls = sum(J.instruction_id(i) == ca.OP_CALL for i in range(J.n_instructions()))
+    joint = ca.Function("joint", [x, c], [ca.jacobian(rows, x)])
+    assert calls == 2 < sum(joint.instruction_id(i) == ca.OP_CALL for i in range(joint.n_instructions()))
 
 
 def test_a_start_where_the_learner_is_singular_fails_with_its_cause() -> None:
