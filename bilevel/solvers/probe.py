@@ -71,15 +71,16 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
         optimistic = optimistic and verified  # where IPOPT verifies no selection at x, it is not asked at the probes
     rng = np.random.default_rng(seed)
     scale = budget_scale(prep.canon, prep.balls)
-    directions = [(rng.standard_normal(x.size) * scale, False) for _ in range(param("probe.directions"))]
-    directions += [(d, True) for d in _first_order_directions(prep, x, scale, projection)]
-    # one entry per direction; one that is also a first-order direction (in 1-D every one is) is judged as one
-    kinds: dict[bytes, tuple[np.ndarray, bool]] = {}
-    for d, first_order in directions:
+    directions = [(rng.standard_normal(x.size) * scale, "probe.rel_tol") for _ in range(param("probe.directions"))]
+    directions += [(d, "probe.descent_rel_tol") for d in _first_order_directions(prep, x, scale, projection)]
+    # one entry per direction, with the tolerances of the kinds it came as (random, first-order: in 1-D every random
+    # one is also first-order); it is judged by the stricter bar of them
+    kinds: dict[bytes, tuple[np.ndarray, frozenset[str]]] = {}
+    for d, tol in directions:
         d = d / max(float(np.linalg.norm(d / scale)), 1e-300)
         key = np.round(d / scale, 12).tobytes()
-        kinds[key] = (d, first_order or kinds.get(key, (d, False))[1])
-    probes = [(projection(x + h * d), h, first_order) for d, first_order in kinds.values() for h in RADII]
+        kinds[key] = (d, kinds.get(key, (d, frozenset()))[1] | {tol})
+    probes = [(projection(x + h * d), h, tols) for d, tols in kinds.values() for h in RADII]
     points = {x.tobytes(): x} | {xp.tobytes(): xp for xp, _, _ in probes}  # projections of probes may coincide
     if solve is not None:  # x and the probes in one call
         values = dict(zip(points, _structured_objectives(prep, np.array(list(points.values())), solve)))
@@ -91,11 +92,10 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
         values = {key: baseline if key == here else _feasible_objective(prep, xp, fixed_y, optimistic)[0]
                   for key, xp in points.items()}
     reference = min(objective, baseline)
-    second, first = (reference - tol * max(1.0, abs(reference))
-                     for tol in (param("probe.rel_tol"), param("probe.descent_rel_tol")))
+    bars = {tol: reference - param(tol) * max(1.0, abs(reference)) for tol in ("probe.rel_tol", "probe.descent_rel_tol")}
     best: Probe | None = None
-    for xp, h, first_order in probes:
-        F, bar = values[xp.tobytes()], min(first, second) if first_order else second
+    for xp, h, tols in probes:
+        F, bar = values[xp.tobytes()], min(bars[tol] for tol in tols)
         if F is not None and F < bar and (best is None or F < best.objective):
             best = Probe(xp, F, h)
     return best

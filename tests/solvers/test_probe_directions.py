@@ -149,3 +149,20 @@ def test_probe_tries_each_coordinate() -> None:
     assert better is not None
     assert better.x == pytest.approx([0.5, 0.6], abs=1e-12)
     assert better.objective == pytest.approx(-0.1, abs=1e-9)
+
+
+def test_a_first_order_direction_is_judged_by_its_own_tolerance() -> None:
+    """A neighbour along a first-order direction only (axis_kink's +x1 coordinate, 0.1 better) is judged by
+    probe.descent_rel_tol even where that is the looser of the two tolerances: 0.1 passes a bar of 0.05, while random
+    directions need 0.5 and find nothing."""
+    from bilevel.defaults import reset_defaults, set_defaults
+
+    prep = prepare(axis_kink())
+    try:
+        set_defaults("probe", rel_tol=0.5, descent_rel_tol=0.05)
+        better = improving_neighbour(prep, np.array([0.5, 0.5]), 0.0, prep.projection)
+        set_defaults("probe", descent_rel_tol=0.5)
+        assert improving_neighbour(prep, np.array([0.5, 0.5]), 0.0, prep.projection) is None
+    finally:
+        reset_defaults()
+    assert better is not None and better.x == pytest.approx([0.5, 0.6], abs=1e-12)
