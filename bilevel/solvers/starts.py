@@ -44,8 +44,8 @@ KEPT_STARTS = 16
 _KEPT: dict[Hashable, np.ndarray] = {}
 
 
-def _hessian_and_adjoint(prep: Prepared) -> tuple[Callable, Callable] | None:
-    """(x -> P(x), (x, v) -> d(v'P(x)v)/dx) for a least-squares lower level whose Hessian P depends on x, else None;
+def _hessian_and_adjoint(prep: Prepared) -> ConditioningParts | None:
+    """The parts (x -> P(x), (x, v) -> d(v'P(x)v)/dx) for a least-squares lower level whose Hessian P depends on x, else None;
     a lower level with linear maps is differentiated over [x; z] and pulled back to x."""
     low = prep.canon.lower
     inner = low.inner if isinstance(low, ImageLower) else low
@@ -66,19 +66,17 @@ def _hessian_and_adjoint(prep: Prepared) -> tuple[Callable, Callable] | None:
     else:
         return None
     if not isinstance(low, ImageLower):
-        return hessian, adjoint
+        return ConditioningParts(hessian, adjoint)
     lift = low.lift
-    return lambda x: hessian(lift(x)), lambda x, v: lift.pullback(x, adjoint(lift(x), v))
+    return ConditioningParts(lambda x: hessian(lift(x)), lambda x, v: lift.pullback(x, adjoint(lift(x), v)))
 
 
-def conditioning_start(prep: Prepared, parts: ConditioningParts | tuple[Callable, Callable] | None = None
-                       ) -> np.ndarray | None:
+def conditioning_start(prep: Prepared, parts: ConditioningParts | None = None) -> np.ndarray | None:
     """The conditioning start (module docstring) from the declared start, or None where it does not apply; parts:
     a structured lower level's ConditioningParts (a keyed start is kept in the process by key, declared start and step
     count) (default: from the declaration, whose start is kept on prep for the parameter values, box, declared start
     and step count it was found at: a re-solve reuses it)."""
     if parts is not None:
-        parts = ConditioningParts(*parts)
         if parts.key is None:
             return _conditioning_descent(prep, parts)
         key = (parts.key, param("starts.conditioning_steps"), prep.canon.x_start.tobytes())
@@ -95,10 +93,10 @@ def conditioning_start(prep: Prepared, parts: ConditioningParts | tuple[Callable
     return found[1].copy()
 
 
-def _conditioning_descent(prep: Prepared, parts: ConditioningParts | tuple[Callable, Callable]) -> np.ndarray:
+def _conditioning_descent(prep: Prepared, parts: ConditioningParts) -> np.ndarray:
     """The conditioning start's projected steps from the declared start, with parts (x -> P(x), (x, v) ->
     d(v'P(x)v)/dx)."""
-    hessian, adjoint = parts[:2]
+    hessian, adjoint = parts.hessian, parts.adjoint
     canon = prep.canon
     scale = np.where(np.isfinite(canon.x_ub - canon.x_lb), 0.5 * (canon.x_ub - canon.x_lb), 1.0)
     for ball in prep.balls:
@@ -115,7 +113,7 @@ def _conditioning_descent(prep: Prepared, parts: ConditioningParts | tuple[Calla
 
 
 def start_points(prep: Prepared, starts: int, rng: np.random.Generator, scale: float,
-                 parts: ConditioningParts | tuple[Callable, Callable] | None = None) -> list[np.ndarray]:
+                 parts: ConditioningParts | None = None) -> list[np.ndarray]:
     """`starts` upper starts: suggested ones, the conditioning start (where it applies; parts as conditioning_start
     takes them), the declared one, then random ones (balls: on their sphere)."""
     canon = prep.canon

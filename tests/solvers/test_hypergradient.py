@@ -283,19 +283,19 @@ def test_the_declared_conditioning_start_is_kept_for_a_re_solve_at_the_same_para
     prep = prepare(p)
     first = starts.conditioning_start(prep)
     key = ("conditioning-start",)
-    hessian, adjoint = prep.memo[key]
+    hessian, adjoint = prep.memo[key].hessian, prep.memo[key].adjoint
     calls = []
-    prep.memo[key] = (lambda xv: calls.append(1) or hessian(xv), adjoint)
+    prep.memo[key] = starts.ConditioningParts(lambda xv: calls.append(1) or hessian(xv), adjoint)
     again = starts.conditioning_start(prep)
     assert not calls and np.array_equal(again, first) and again is not first
-    np.testing.assert_array_equal(first, starts._conditioning_descent(prep, (hessian, adjoint)))
+    np.testing.assert_array_equal(first, starts._conditioning_descent(prep, starts.ConditioningParts(hessian, adjoint)))
     p.set_value("c", 3.0)
     prep = prepare(p)
     moved = starts.conditioning_start(prep)
     assert calls and not np.array_equal(moved, first)
-    np.testing.assert_array_equal(moved, starts._conditioning_descent(prep, (hessian, adjoint)))
+    np.testing.assert_array_equal(moved, starts._conditioning_descent(prep, starts.ConditioningParts(hessian, adjoint)))
     calls.clear()
     prep.rebox(np.array([-0.5, -0.5]), np.array([0.5, 0.5]))  # a new box (and a start clipped into it), same revision
     boxed = starts.conditioning_start(prep)
     assert calls and np.all(np.abs(boxed) <= 0.5)
-    np.testing.assert_array_equal(boxed, starts._conditioning_descent(prep, (hessian, adjoint)))
+    np.testing.assert_array_equal(boxed, starts._conditioning_descent(prep, starts.ConditioningParts(hessian, adjoint)))
