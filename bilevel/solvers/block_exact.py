@@ -186,6 +186,7 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
         return None, [f"the lower level ({type(low).__name__}) is neither declared by expressions nor by lower_qp"]
     if low.kind != "least-squares":
         return None, [f"the lower level is {low.kind}, not an unconstrained strictly convex quadratic"]
+    balls = [b for b in balls if b.norm == 2]
     if not balls:
         return None, ["no upper constraint is a Euclidean ball on a block of upper variables"]
     x, y = canon.x, canon.y

@@ -238,12 +238,14 @@ def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, s
     limit = Deadline(time_limit)
     nG = int(canon.G.numel())
     lbx, ubx = canon.x_lb.copy(), canon.x_ub.copy()
-    for ball in prep.balls:  # the box around each recognized ball bounds IPOPT's steps (it still keeps the ball row)
-        lbx[ball.block] = np.maximum(lbx[ball.block], ball.center - ball.radius)
-        ubx[ball.block] = np.minimum(ubx[ball.block], ball.center + ball.radius)
-    bounds = dict(lbx=lbx, ubx=ubx, lbg=np.concatenate([np.full(nG, -np.inf),
-                                                                        np.zeros(int(canon.H.numel()))]),
-                  ubg=np.zeros(nG + int(canon.H.numel())))
+    ubg = np.zeros(nG + int(canon.H.numel()))
+    for ball in prep.balls:  # the box around each recognized ball bounds IPOPT's steps; an l2 ball keeps its row,
+        lbx[ball.block] = np.maximum(lbx[ball.block], ball.center - ball.radius)  # an l_inf ball is that box exactly
+        ubx[ball.block] = np.minimum(ubx[ball.block], ball.center + ball.radius)  # (its nonsmooth row is left free)
+        if ball.norm == np.inf:
+            ubg[ball.row] = np.inf
+    bounds = dict(lbx=lbx, ubx=ubx, lbg=np.concatenate([np.full(nG, -np.inf), np.zeros(int(canon.H.numel()))]),
+                  ubg=ubg)
     rng = np.random.default_rng(seed)
     records, candidates, ends = [], [], []
     for k, x0 in enumerate(start_points(prep, starts, rng, float(scale))):

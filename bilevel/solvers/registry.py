@@ -9,6 +9,7 @@ import time
 from typing import Any, Callable
 
 import casadi as ca
+import numpy as np
 
 from ..defaults import param
 from ..errors import ModelError, did_you_mean
@@ -87,7 +88,7 @@ def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
     level (unique and smooth in x: IPOPT over x alone keeps those rows as constraints); `hypergradient` where the
     upper objective is a numeric function of a matrix, or where the lower level is least squares (solved in closed
     form, y*(x) smooth) or does not depend on x (solved once), with at least defaults["auto.min_upper"] upper entries
-    and no upper constraint on the lower solution; `ipopt` otherwise (constrained lower levels whose solution depends
+    and no upper constraint on the lower solution, or with an l_inf budget row; `ipopt` otherwise (constrained lower levels whose solution depends
     on x: its KKT system is solved with the upper level in one NLP). Options only one of the methods accepts decide
     for it."""
     low, n = prep.canon.lower, int(prep.canon.x.numel())
@@ -107,6 +108,9 @@ def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
                          "hypergradient would only penalize")
     closed = "a least-squares lower level" if low.kind == "least-squares" else (
         "a lower level independent of x" if low.fixed else "")
+    if closed and any(b.norm == np.inf for b in prep.balls):
+        return "hypergradient", (f"{closed} and an l_inf budget (a norm_inf row), which hypergradient projects onto "
+                                 "exactly and the KKT methods would see as a nonsmooth row")
     if closed and n >= (least := param("auto.min_upper")):
         return "hypergradient", f"{closed} and {n} upper entries (>= {least})"
     if closed:

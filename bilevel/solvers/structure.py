@@ -4,7 +4,8 @@ constraints (projected onto exactly instead of penalized) and the projections th
 A row G_i(x) <= 0 of the upper constraints is a ball when it depends on one contiguous block x_S of upper
 variables only, with a constant Hessian 2 a I (a > 0) on that block: G_i = a ||x_S - c||^2 - a r^2. Such rows
 are what `sumsqr(v - c) <= r**2` declares; `norm_2(v - c) <= r` (sqrt(q) - r with r free of x) is read as its
-square q - r^2 where r >= 0.
+square q - r^2 where r >= 0. `norm_inf(v - c) <= r` (a max of |v_i - c_i| over a contiguous block, each entry once
+with coefficient +-1) is an l_inf ball: its projection is the box [c - r, c + r] on the block.
 """
 
 from __future__ import annotations
@@ -24,16 +25,22 @@ _REL = 1e-12
 
 @dataclass(frozen=True)
 class Ball:
-    """Upper constraint row `row` reads ||x[block] - center||_2 <= radius."""
+    """Upper constraint row `row` reads ||x[block] - center||_norm <= radius (norm 2 or inf)."""
 
     row: int
     block: slice
     center: np.ndarray
     radius: float
+    norm: float = 2
 
     def sphere_point(self, rng: np.random.Generator) -> np.ndarray:
-        """A uniformly random point on the ball's boundary sphere."""
-        z = rng.standard_normal(self.block.stop - self.block.start)
+        """A random point on the ball's boundary (l2: uniform on the sphere; l_inf: one entry at +-radius)."""
+        n = self.block.stop - self.block.start
+        if self.norm == np.inf:
+            z = rng.uniform(-1.0, 1.0, n)
+            z[rng.integers(n)] = rng.choice((-1.0, 1.0))
+            return self.center + self.radius * z
+        z = rng.standard_normal(n)
         return self.center + z * (self.radius / max(float(np.linalg.norm(z)), 1e-300))
 
 
@@ -92,14 +99,62 @@ def _ball_form(canon: CanonicalBilevel, row: int) -> BallForm | None:
                                                                           radius]))
 
 
-def ball_forms(canon: CanonicalBilevel) -> list[BallForm]:
-    """The upper constraint rows that can be balls (the symbolic part of find_balls, independent of values)."""
-    forms = [_ball_form(canon, row) for row in range(int(canon.G.numel()))]
+@dataclass(frozen=True)
+class CubeForm:
+    """A row max_i |s_i (x[block])_i - o_i| - r (s_i = +-1), an l_inf ball whose center and radius are read from the
+    parameter values (`ball`)."""
+
+    row: int
+    block: slice
+    values: Callable  # x -> (slopes, offsets, radius), at x = 0, entries in block order
+
+    def ball(self, n_x: int) -> Ball | None:
+        """The l_inf ball at the current parameter values, or None if the row is not one there."""
+        slopes, offsets, radius = (np.asarray(v, dtype=float).ravel() for v in self.values(np.zeros(n_x)))
+        if np.any(np.abs(np.abs(slopes) - 1.0) > _REL) or not radius[0] >= 0 or not np.isfinite(radius[0]):
+            return None
+        return Ball(self.row, self.block, -offsets / slopes, float(radius[0]), np.inf)
+
+
+def _max_of_abs(expr: ca.SX) -> list[ca.SX] | None:
+    """The arguments a_i of expr = fmax(..., |a_i|, ...) (a tree of fmax over fabs leaves and zeros), or None."""
+    if expr.is_op(ca.OP_FMAX):
+        left, right = _max_of_abs(expr.dep(0)), _max_of_abs(expr.dep(1))
+        return None if left is None or right is None else left + right
+    if expr.is_op(ca.OP_FABS):
+        return [expr.dep(0)]
+    return [] if expr.is_zero() else None
+
+
+def _cube_form(canon: CanonicalBilevel, row: int) -> CubeForm | None:
+    g = canon.G[row]
+    if not g.is_op(ca.OP_SUB) or ca.depends_on(g, canon.y) or ca.depends_on(g.dep(1), canon.x):
+        return None
+    args = _max_of_abs(g.dep(0))
+    if not args:
+        return None
+    owners = [np.flatnonzero(depends(a, canon.x)) for a in args]
+    if any(o.size != 1 or depends(a, canon.x, 2).any() for o, a in zip(owners, args)):
+        return None
+    idx = np.array([int(o[0]) for o in owners])
+    order = np.argsort(idx)
+    block = _contiguous(np.isin(np.arange(int(canon.x.numel())), idx))
+    if block is None or np.unique(idx).size != idx.size:
+        return None
+    args = [args[i] for i in order]
+    slopes = ca.vertcat(*[ca.jacobian(a, canon.x[int(idx[i])]) for a, i in zip(args, order)])
+    return CubeForm(row, block, canon.params.function("cube", [canon.x], [slopes, ca.vertcat(*args), g.dep(1)]))
+
+
+def ball_forms(canon: CanonicalBilevel) -> list[BallForm | CubeForm]:
+    """The upper constraint rows that can be balls, l2 or l_inf (the symbolic part of find_balls, independent of
+    values)."""
+    forms = [_ball_form(canon, row) or _cube_form(canon, row) for row in range(int(canon.G.numel()))]
     return [f for f in forms if f is not None]
 
 
-def find_balls(canon: CanonicalBilevel, forms: list[BallForm] | None = None) -> list[Ball]:
-    """The upper constraint rows that are Euclidean balls on disjoint contiguous blocks of x (forms: ball_forms)."""
+def find_balls(canon: CanonicalBilevel, forms: list[BallForm | CubeForm] | None = None) -> list[Ball]:
+    """The upper constraint rows that are l2 or l_inf balls on disjoint contiguous blocks of x (forms: ball_forms)."""
     balls: list[Ball] = []
     owned = np.zeros(int(canon.x.numel()), dtype=bool)
     for form in ball_forms(canon) if forms is None else forms:
@@ -114,7 +169,7 @@ def upper_projection(canon: CanonicalBilevel, balls: list[Ball]) -> Projection:
     """Projection onto the declared box intersected with the recognized balls (exact: blocks are disjoint)."""
     if not balls:
         return Box(canon.x_lb, canon.x_ub)
-    blocks = [(b.block, NormBall(b.radius, 2, b.center)) for b in balls]
+    blocks = [(b.block, NormBall(b.radius, b.norm, b.center)) for b in balls]
     return Blocks(blocks, int(canon.x.numel())).with_box(canon.x_lb, canon.x_ub)
 
 
