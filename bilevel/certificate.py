@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .canonical import in_sense
 from .defaults import param
 from .errors import BilevelError
 from .lower.convexity import convexity_violation, proven_convex, psd_from_eigen, psd_violation, symmetric_eigen
@@ -301,7 +302,8 @@ def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | None = No
         F_ref, grad_F = float(F_ref), np.abs(grad_F)
         slack = tol * (1.0 + abs(F_ref)) + float(grad_F @ np.full(low.n_y, spread + tol * (1.0 + np.abs(y_ref).max())))
         checks["lower_solution"] = (abs(F - F_ref) / (slack / tol) if np.isfinite(F) else np.inf,
-                                    f"y is {y_distance:.2e} from the unique re-solved y; F there = {F_ref:.10g}")
+                                    f"y is {y_distance:.2e} from the unique re-solved y; F there = "
+                                    f"{in_sense(F_ref, canon.upper_sense):.10g} (declared sense)")
     proven = low.kind != "nlp" or proven_convex(low, x, *_y_box(canon))
     if not proven:
         note = "; ".join(filter(None, [note, LOCAL_EVIDENCE]))
