@@ -277,7 +277,7 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
                              tuple(run.history), tuple(run.start_records), run.stats)
     point = prep.point(run.w)
     try:
-        cert = certify(prep.canon, point, tol)
+        cert = certify(prep.canon, point, tol, prep.problem.upper_objective.sense)
         if run.global_bound is not None:
             cert = replace(cert, global_bound=run.global_bound)
     except BilevelError as exc:  # evaluation failed: keep the point, say why

@@ -104,3 +104,19 @@ def test_upper_objective_y_matches_hand_computed_values() -> None:
     y_ref = np.array(c.lower_reference_y)
     assert c.upper_at_reference == pytest.approx(float(np.sum((y_ref - [1, 2]) ** 2)) + 0.1 * float(
         np.sum(np.asarray(res.x["x"]) ** 2)), abs=1e-9)
+
+
+def test_certificate_quotes_a_maximized_objective_in_its_own_sign() -> None:
+    """max y with y = argmin (y - x)^2, x = 2: a point whose y is off by 0.5 fails on lower_solution, and the
+    message quotes F at the re-solved y as the user declared it, +2 (not the canonical -2)."""
+    from bilevel.reduction import KKTPoint
+    p = bl.BilevelProblem("max-sign")
+    x = p.upper_variable("x", lb=2, ub=2)
+    y = p.lower_variable("y")
+    p.maximize_upper(y)
+    p.minimize_lower((y - x) ** 2)
+    canon = prepare(p).canon
+    point = KKTPoint(np.array([2.0]), np.array([2.5]), np.zeros(0), np.zeros(0), [])
+    cert = certify(canon, point, sense="max")
+    assert "lower_solution" in cert.failed
+    assert "F there = 2" in cert.describe_failures()
