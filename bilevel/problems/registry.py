@@ -42,9 +42,9 @@ def register(name: str, *, source: str, optimum: float | None = None, solution: 
     def decorate(build: Callable[..., BilevelProblem]) -> Callable[..., BilevelProblem]:
         if name in _REGISTRY:
             raise ModelError(f"a problem named {name!r} is already registered")
-        doc = (build.__doc__ or "").strip().splitlines()
+        summary = " ".join((build.__doc__ or "").strip().split("\n\n")[0].split())  # the docstring's first paragraph
         _REGISTRY[name] = ProblemSpec(name, build, source, optimum, solution, lower_optimum, tuple(tags),
-                                      description or (doc[0] if doc else ""), dict(defaults or {}))
+                                      description or summary, dict(defaults or {}))
         return build
 
     return decorate

@@ -149,3 +149,11 @@ def test_no_better_leader_decision(name: str) -> None:
         f"{s.optimum!r}")
     # the search is not vacuous: it gets close to the published value
     assert result.best_value <= target + 0.05 * (1.0 + abs(target))
+
+
+def test_list_descriptions_are_whole_sentences() -> None:
+    """`bilevel list` shows each problem's description whole: the docstring's first paragraph, not its first line
+    (three toll-setting descriptions were cut mid-sentence); the attack problems give theirs as phrases."""
+    for name in registry.names("textbook"):
+        description = registry.spec(name).description
+        assert description.rstrip(")").endswith("."), f"{name}: {description!r} does not end a sentence"
