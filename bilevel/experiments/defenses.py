@@ -260,6 +260,32 @@ def learners_line(learners: Sequence[str] | None = None) -> str:
     return f"Learners run: {', '.join(run)}" + (f" (not run: {', '.join(left)})." if left else " (all).")
 
 
+def _annotate_apart(ax: Any, labels: list[tuple[float, float, str, Any]], near: float = 0.04) -> None:
+    """Each point's parameter label in its series' colour; points of one series closer than `near` of the panel's
+    width and height share one label ("a, b"), and a label that would overlap one already placed moves up a line."""
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    merged: list[list[Any]] = []
+    for x, y, text, color in labels:
+        for spot in merged:
+            if abs(x - spot[0]) <= near * (x1 - x0) and abs(y - spot[1]) <= near * (y1 - y0) and spot[3] == color:
+                spot[2].append(text)
+                break
+        else:
+            merged.append([x, y, [text], color])
+    to_points = 72.0 / ax.figure.dpi
+    boxes: list[tuple[float, float, float, float]] = []  # placed labels (left, bottom, right, top) in points
+    for x, y, texts, color in merged:
+        text = ", ".join(texts)
+        px, py = (v * to_points for v in ax.transData.transform((x, y)))
+        width, height = 4.6 * len(text) + 3.0, 9.0  # fontsize 7, with a little space
+        lift = 0
+        while any(px + 4 < r and l < px + 4 + width and py + 4 + 9 * lift < t and b < py + 4 + 9 * lift + height
+                  for l, b, r, t in boxes):
+            lift += 1
+        boxes.append((px + 4, py + 4 + 9 * lift, px + 4 + width, py + 4 + 9 * lift + height))
+        ax.annotate(text, (x, y), fontsize=7, color=color, textcoords="offset points", xytext=(4, 4 + 9 * lift))
+
+
 def frontier_figure(summary: list[dict[str, Any]], learners: Sequence[str] | None = None) -> Figure:
     """Median delta* against mean clean cost, one panel per learner in the rows, with both 95% intervals (an infinite
     end is drawn to the panel's edge); the title is learners_line."""
@@ -267,9 +293,11 @@ def frontier_figure(summary: list[dict[str, Any]], learners: Sequence[str] | Non
     learners = sorted({s["learner"] for s in summary})
     fig = Figure(figsize=(5.0 * len(learners), 4.1))
     fig.suptitle(learners_run, fontsize=9)
+    panels = []
     for i, learner in enumerate(learners):
         ax = fig.add_subplot(1, len(learners), i + 1)
         groups = sorted({(s["defense"], s["N"]) for s in summary if s["learner"] == learner})
+        labels: list[tuple[float, float, str, Any]] = []
         for defense, n in groups:
             ss = [s for s in summary if (s["learner"], s["defense"], s["N"]) == (learner, defense, n)]
             x = np.array([s["clean_cost"] for s in ss])
@@ -279,11 +307,10 @@ def frontier_figure(summary: list[dict[str, Any]], learners: Sequence[str] | Non
             ylo = y - np.array([s["delta_star_low"] if np.isfinite(s["delta_star_low"]) else 0.0 for s in ss])
             yhi = np.array([min(s["delta_star_high"], top) for s in ss]) - y
             xerr = [x - [s["clean_cost_low"] for s in ss], [s["clean_cost_high"] for s in ss] - x]
-            ax.errorbar(x, np.minimum(y, top), yerr=[np.maximum(ylo, 0), np.maximum(yhi, 0)], xerr=xerr, fmt="o-",
-                        capsize=3, label=f"{defense}, N = {n}")
-            for s, xi, yi in zip(ss, x, y):
-                ax.annotate(f"{s['param']:g}", (xi, min(yi, top)), fontsize=7, textcoords="offset points",
-                            xytext=(4, 4))
+            bars = ax.errorbar(x, np.minimum(y, top), yerr=[np.maximum(ylo, 0), np.maximum(yhi, 0)], xerr=xerr,
+                               fmt="o-", capsize=3, label=f"{defense}, N = {n}")
+            labels += [(xi, min(yi, top), f"{s['param']:g}", bars.lines[0].get_color()) for s, xi, yi in zip(ss, x, y)]
+        panels.append((ax, labels))
         ax.set_title(learner)
         ax.set_xlabel(f"clean {COST_LABEL.get(learner, 'cost')}")
         ax.set_ylabel("median delta*" + (f" ({FACTOR:g}x degradation)" if learner in ("ident", "deepc")
@@ -291,6 +318,8 @@ def frontier_figure(summary: list[dict[str, Any]], learners: Sequence[str] | Non
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout(rect=(0, 0, 1, 0.95))
+    for ax, labels in panels:  # after the layout: labels are kept apart in the panel's final size
+        _annotate_apart(ax, labels)
     return fig
 
 

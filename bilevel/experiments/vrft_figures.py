@@ -46,17 +46,23 @@ def _instance(scenario: str, objective: str, seed: int, eps_u: float = BUDGET[0]
 
 
 def figure_data(seed: int, out_dir: str) -> str:
-    """Fig. 2: recorded u, y of scenario B before and after the max-min attack at BUDGET."""
+    """Fig. 2: recorded u, y of scenario B before and after the max-min attack at BUDGET, and the poisonings a_u, a_y
+    themselves (at this budget the poisoned traces lie almost on the clean ones)."""
     atk, res = _instance("B", "maxmin", seed)
-    fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    fig, axes = plt.subplots(4, 1, figsize=(8, 8), sharex=True, gridspec_kw={"height_ratios": (3, 1.4, 3, 1.4)})
     t = np.arange(atk.N)
-    for ax, clean, a, name in ((axes[0], atk.u, res.x["a_u"], "u"), (axes[1], atk.y, res.x["a_y"], "y")):
-        ax.plot(t, clean, lw=0.8, label=f"{name} (clean)")
-        ax.plot(t, clean + a, lw=0.8, alpha=0.8, label=f"{name} + a_{name} (poisoned)")
-        ax.set_ylabel(name)
-        ax.legend(loc="upper right", fontsize=8)
-    axes[1].set_xlabel("t")
+    for k, (clean, a, name) in enumerate(((atk.u, res.x["a_u"], "u"), (atk.y, res.x["a_y"], "y"))):
+        ax, ax_a = axes[2 * k], axes[2 * k + 1]
+        ax.plot(t, clean, lw=1.6, color="0.55", label=f"{name} (clean)")
+        ax.plot(t, clean + a, lw=0.7, color="C3", label=f"{name} + a_{name} (poisoned)")
+        ax.set_ylabel(f"{name} (plant {'input' if name == 'u' else 'output'})")
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, 1.22), ncol=2, fontsize=8, frameon=False)
+        ax_a.plot(t, a, lw=0.7, color="C3")
+        ax_a.set_ylabel(f"a_{name}")
+        ax_a.axhline(0.0, color="0.7", lw=0.5)
+    axes[-1].set_xlabel("t (samples, Ts = 0.05 s)")
     fig.suptitle(f"Scenario B, {_budget_text()} (max-min attack)")
+    fig.tight_layout()
     return save_figure(fig, out_dir, "fig2_data")
 
 
@@ -87,17 +93,23 @@ def figure_loss(summaries: dict, out_dir: str) -> str:
     return save_figure(fig, out_dir, "fig3a_loss")
 
 
+STEP_STYLE = {"clean": dict(color="0.35", lw=2.4, ls="--", zorder=4), "poisoned": dict(color="C3", lw=1.2, zorder=3)}
+"""Clean dashed and on top, poisoned solid: where the two coincide both stay visible."""
+
+
 def _step_axes(ax: plt.Axes, atk, thetas: dict[str, np.ndarray], n: int = 150) -> None:
     setting = atk.setting
     for label, theta in thetas.items():
         resp = closed_loop_step(setting.plant, controller_tf(setting.basis, theta, setting.plant.dt), n)
         rho = setting.loop.spectral_radius(theta)
-        ax.plot(resp.time, np.clip(resp.outputs, -3, 3), label=f"{label} (rho = {rho:.3f})")
-    ax.plot(np.arange(n) * setting.plant.dt, simulate(setting.reference, np.ones(n)), "k--", label="M_r")
+        style = STEP_STYLE.get(label, dict(color="C2", lw=0.9, alpha=0.7, zorder=2))
+        ax.plot(resp.time, np.clip(resp.outputs, -3, 3), label=f"{label} (rho = {rho:.3f})", **style)
+    ax.plot(np.arange(n) * setting.plant.dt, simulate(setting.reference, np.ones(n)), "k:", lw=1.2, zorder=5,
+            label="M_r")
     ax.set_xlabel("time (s)")
     ax.set_ylabel("closed-loop output y (unit step reference)")
     ax.set_ylim(-1.5, 2.5)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="lower right")
 
 
 def figure_steps(seed: int, out_dir: str) -> str:
@@ -146,11 +158,12 @@ def figure_targeted_losses(summaries: dict, out_dir: str) -> str:
             axes[1, j].plot(EPS_Y, [-x["value"] for x in c], marker="o", label=f"eps_u = {eu}")
             axes[1, j].fill_between(EPS_Y, [-x["value_hi"] for x in c], [-x["value_lo"] for x in c], alpha=0.2)
         axes[0, j].set_title(f"Scenario {scenario}")
-        axes[0, j].set_ylabel("learner's loss")
-        axes[1, j].set_ylabel("attacker's loss")
+        axes[0, j].set_ylabel("learner's loss L(u, y, theta')")
+        axes[1, j].set_ylabel("attacker's loss ||theta_a - theta'||^2 / nk")
         axes[1, j].set_xlabel("eps_y")
-        for ax in axes[:, j]:
-            _band_legend(ax, tg[(scenario, EPS_U[0], EPS_Y[0])]["n"])
+    # one legend below the panels: inside, it covered the curves
+    _band_legend(axes[0, 0], tg[("A", EPS_U[0], EPS_Y[0])]["n"], where=fig, loc="lower center", ncol=4, fontsize=8)
+    fig.subplots_adjust(bottom=0.16, wspace=0.3)
     return save_figure(fig, out_dir, "fig6_targeted_losses")
 
 
@@ -187,6 +200,22 @@ def path_section(single: dict, path: dict) -> str:
     return "\n".join(lines)
 
 
+CAPTIONS = {
+    "2": f"Scenario B's recorded input and output, clean (grey) and poisoned by the max-min attack (red) at "
+         f"{_budget_text()}, and the poisonings a_u, a_y themselves.",
+    "3a": "The learner's loss on clean data at the poisoned controller against eps_y (means over the simulations, "
+          "shaded 95% interval), one line per eps_u; dotted: along the budget path; dashed: white-noise poisoning.",
+    "3b": f"Closed-loop step responses of the true plant with the clean controller (dashed) and the max-min-poisoned "
+          f"one at {_budget_text()}, against the reference model M_r (dotted).",
+    "4": f"Step responses under the targeted attack at {_budget_text()}: clean (dashed), poisoned, and the target "
+         "controller 3 theta_0 (unstable, rho = 1.018).",
+    "5": "Closed-loop magnitude responses |T| of the same controllers and of M_r.",
+    "6": "Targeted attack: the learner's loss (top) and the attacker's loss (bottom) against eps_y, one line per "
+         "eps_u (means, shaded 95% intervals).",
+}
+"""One caption per figure id of make_all, written under each figure in report.md."""
+
+
 def report(summaries: dict, figures: dict[str, str], sims: int, side: int,
            timings: dict[str, tuple[int, float]], executor: str, settings: dict[str, list]) -> str:
     """report.md: settings (`settings`: field -> values read from the rows), Table 1 next to the paper's, the
@@ -215,6 +244,15 @@ def report(summaries: dict, figures: dict[str, str], sims: int, side: int,
         "scenario-A simulation is the same instance, so its cells are 0% or 100% (the paper does not say "
         "what varies between its 512 scenario-A simulations).",
         "",
+        "**Symbols.** theta_0: the controller VRFT fits on clean data; theta': the one it fits on poisoned data; "
+        "rho: the spectral radius of the true closed loop (plant + controller), unstable where rho >= 1; the "
+        "learner's loss L(u, y, theta'): VRFT's least-squares criterion on the clean data at theta'; the attacker's "
+        "loss (targeted attack): ||theta_a - theta'||^2 / nk with theta_a = 3 theta_0 (nk = 6 parameters); "
+        "eps_u, eps_y: the relative l2 budgets on u and y; |T| (figure 5): the magnitude of the closed-loop transfer "
+        "function from the reference to y.", "",
+        f"**Sizes.** Table 1 (maxmin-paper) and the budget path use {sims} simulations per cell; the side sweeps "
+        f"(the other conventions, white noise, destabilizing and targeted attacks) use {side} (max(8, sims / 4)).",
+        "",
         "Settings read from the result rows: " + "; ".join(f"{k.removeprefix('root_')} {', '.join(map(str, v))}"
                                                           for k, v in settings.items()) + ".", "",
         f"Median time per max-min attack: {np.median(times):.1f} ms (one core per worker, {executor}).", "",
@@ -239,5 +277,7 @@ def report(summaries: dict, figures: dict[str, str], sims: int, side: int,
                              "radius surrogate), paper convention"), "",
               table_markdown(summaries["white-noise-paper"], "White-noise poisoning at the same budgets"), "",
               table_markdown(summaries["targeted-paper"], "Targeted attack (theta_a = 3 theta_0), % unstable"), ""]
-    parts += ["## Figures", ""] + [f"Figure {k}: ![]({v})" for k, v in figures.items()]
+    parts += ["## Figures", ""]
+    for k, v in figures.items():
+        parts += [f"**Figure {k}.** {CAPTIONS.get(k, '')}", "", f"![Figure {k}]({v})", ""]
     return "\n".join(parts) + "\n"

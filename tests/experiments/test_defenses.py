@@ -190,3 +190,20 @@ def test_run_defenses_on_one_learner_resumes(tmp_path):
     notes.clear()
     run_defenses(sims=1, out_dir=str(tmp_path), quick=True, workers=1, progress=notes.append, learners=["willems"])
     assert (tmp_path / "defenses.jsonl").read_text().count("\n") == 4 and not any("running" in n for n in notes)
+
+
+def test_frontier_labels_of_close_points_do_not_overlap() -> None:
+    """Parameter labels: coinciding points of one series share a label; close labels of different series are
+    lifted apart (the committed frontier figure printed '0' and '0.0001' over each other)."""
+    from matplotlib.figure import Figure
+
+    from bilevel.experiments.defenses import _annotate_apart
+
+    ax = Figure(figsize=(5, 4)).add_subplot()
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    _annotate_apart(ax, [(0.5, 0.5, "1e-08", "C0"), (0.501, 0.5, "0.01", "C0"), (0.505, 0.5, "0", "C1"),
+                         (0.9, 0.1, "1", "C0")])
+    texts = {t.get_text(): t.xyann for t in ax.texts}
+    assert set(texts) == {"1e-08, 0.01", "0", "1"}
+    assert texts["0"][1] > texts["1e-08, 0.01"][1] and texts["1"] == (4, 4)

@@ -50,3 +50,22 @@ def test_shaded_bands_are_named_in_the_legend(drawn) -> None:
         for legend in legends:
             labels = [t.get_text() for t in legend.get_texts()]
             assert "shaded: 95% confidence interval of the mean over 8 simulations" in labels, (name, labels)
+
+
+def test_legends_stay_off_the_data_and_the_clean_line_stays_visible(drawn) -> None:
+    """Fig. 6's legend is one figure legend below the panels (inside, it covered curves); in figs. 3b and 4 the
+    clean controller's response is drawn dashed above the poisoned one, so it shows where the two coincide."""
+    summaries = {"maxmin-paper": _summary(), "targeted-paper": _summary()}
+    vrft_figures.figure_targeted_losses(summaries, "")
+    fig = drawn["fig6_targeted_losses"]
+    assert len(fig.legends) == 1 and not any(ax.get_legend() for ax in fig.axes)
+    vrft_figures.figure_targeted(0, "")
+    for ax in drawn["fig4_targeted_step"].axes:
+        lines = {line.get_label().split(" (")[0]: line for line in ax.get_lines()}
+        assert lines["clean"].get_linestyle() == "--"
+        assert lines["clean"].get_zorder() > lines["poisoned"].get_zorder()
+
+
+def test_every_figure_of_the_report_has_a_caption() -> None:
+    assert set(vrft_figures.CAPTIONS) == {"2", "3a", "3b", "4", "5", "6"}
+    assert all(len(text) > 40 for text in vrft_figures.CAPTIONS.values())
