@@ -111,6 +111,15 @@ class Certificate:
     lower_bound: float | None = None
     """The weak-duality lower bound on f*(x) that lower_gap is measured from (None: from the re-solve's value)."""
 
+    @classmethod
+    def bounds_only(cls, bound: GlobalBound) -> "Certificate":
+        """The certificate of a global search stopped before any incumbent: no point to check (every residual NaN,
+        failed on "point"), only the proven bounds on the optimal value."""
+        nan = float("nan")
+        return cls(nan, nan, nan, nan, nan, nan, nan, [], "none", nan, False, ("point",),
+                   "no incumbent: the search stopped before it found a feasible point; only its bounds are proven",
+                   {"point": "no incumbent"}, global_bound=bound)
+
     def describe_failures(self) -> str:
         """'check (row name), ...' for the failed checks."""
         return ", ".join(f"{k} ({self.worst[k]})" if self.worst.get(k) else k for k in self.failed)

@@ -272,8 +272,9 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
     run = replace(run, history=list(_declared_records(prep, run.history)),
                   start_records=list(_declared_records(prep, run.start_records)))
     if run.w is None or not np.all(np.isfinite(run.w)):
+        bounds = None if run.global_bound is None else Certificate.bounds_only(run.global_bound)
         return BilevelResult(run.status if run.status is not Status.SOLVED else Status.ERROR, run.message, method,
-                             prep.problem.name, {}, {}, {}, None, None, None, wall_time, run.nit,
+                             prep.problem.name, {}, {}, {}, None, None, bounds, wall_time, run.nit,
                              tuple(run.history), tuple(run.start_records), run.stats)
     point = prep.point(run.w)
     try:

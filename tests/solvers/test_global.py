@@ -215,3 +215,16 @@ def test_sides_forced_over_the_relaxed_polyhedron_are_fixed_and_justified() -> N
     assert np.abs(res.multipliers["y.ub"]).max() <= 1e-12
     lines = [line for line in res.certificate.global_bound.big_m if line.startswith("y.ub")]
     assert len(lines) == 4 and all("multiplier = 0" in line for line in lines)
+
+
+def test_stopped_before_an_incumbent_the_certificate_still_carries_the_bounds() -> None:
+    """SCIP stopped at its first node on macmpec-bard3 (F* = -12.6787, Bard 1998) has no incumbent: the result has no
+    point, and its certificate (failed on "point") still holds the proven bound, as docs/solvers.md says (issue 47)."""
+    pytest.importorskip("pyscipopt")
+    res = bl.solve(registry.get("macmpec-bard3"), method="global", algorithm="scip", node_limit=1)
+    assert res.status is bl.Status.MAX_ITERATIONS and not res.x, res.message
+    cert = res.certificate
+    assert not cert.passed and cert.failed == ("point",) and "no incumbent" in cert.note
+    assert not cert.global_bound.proven and cert.global_bound.lower_bound <= -12.6787 + 1e-4
+    again = bl.BilevelResult.from_dict(res.to_dict())
+    assert again.certificate.global_bound.lower_bound == cert.global_bound.lower_bound
