@@ -97,6 +97,10 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "solvers.feasibility_tol": (1e-6, "largest residual at which a start's end point counts as feasible"),
     "solvers.small_lower": (256, "lower levels with at most this many variables run with one BLAS thread (count)"),
     "auto.min_upper": (20, "method auto takes hypergradient from this many upper entries on (count)"),
+    "auto.global_time": (5.0, "method auto first tries global for at most this long on a problem in its class "
+                              "(seconds)"),
+    "auto.global_size": (60, "method auto tries global first on problems with at most this many upper plus lower "
+                             "variables (count)"),
     # the local probe and the optimistic selection (bilevel.solvers.probe, bilevel.solvers.optimistic)
     "probe.directions": (4, "random directions the local probe tries at each radius (count)"),
     "probe.coordinates": (16, "up to this many upper variables the probe tries +/- each coordinate and the adjacent "

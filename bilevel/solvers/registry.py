@@ -15,10 +15,12 @@ from ..defaults import param
 from ..errors import ModelError, did_you_mean
 from ..model import BilevelProblem
 from ..threads import single_threaded
-from ..result import BilevelResult
+from ..result import BilevelResult, Status
 from .base import MethodRun, Prepared, finalize, options_of, prepare
 from .evolution import solve_evolution
+from .global_form import linear_mpcc
 from .global_method import solve_global
+from .global_scip import scip_available
 from .hypergradient import solve_block_exact, solve_hypergradient
 from .ipopt import solve_ipopt
 from .options import check_common_options
@@ -118,10 +120,46 @@ def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
     return "ipopt", f"a {low.kind} lower level whose solution depends on x"
 
 
+GLOBAL_FIRST_OPTIONS = frozenset({"seed", "starts", "verbose", "time_limit"})
+"""Options that leave auto free to try global first (every method takes them; global ignores starts and seed)."""
+
+
+def global_first(prep: Prepared, options: dict[str, Any]) -> str | None:
+    """Why auto tries `global` first on this problem, or None where it does not: the problem is small
+    (defaults["auto.global_size"] variables at most), no method-specific option was given, and the global method's
+    reformulation accepts it (LP / convex-QP lower level; a nonconvex leader where SCIP is installed)."""
+    canon = prep.canon
+    size = int(canon.x.numel()) + canon.lower.n_y
+    if not set(options) <= GLOBAL_FIRST_OPTIONS or size > param("auto.global_size") or canon.spectral is not None:
+        return None
+    try:
+        linear_mpcc(prep, nonconvex_leader=scip_available())
+    except ModelError:
+        return None
+    return f"a {canon.lower.kind} lower level in global's class and {size} variables (<= {param('auto.global_size')})"
+
+
+def _try_global(prep: Prepared, options: dict[str, Any], reason: str, t0: float,
+                certificate_tol: float | None) -> tuple[BilevelResult | None, str]:
+    """Run global for at most defaults["auto.global_time"] (or the user's time_limit, if smaller): its result where
+    it proves an optimum, else None and what it ended with (for the fallback's message)."""
+    limit = min(float(param("auto.global_time")), float(options.get("time_limit", np.inf)))
+    try:
+        run = solve_global(prep, time_limit=limit, verbose=bool(options.get("verbose", False)))
+    except ModelError as exc:  # refused after all (e.g. SCIP needs bounds the problem does not give)
+        return None, f"global refused it ({exc})"
+    result = finalize(prep, run, "global", time.perf_counter() - t0, certificate_tol)
+    if result.status is Status.SOLVED:
+        return dataclasses.replace(result, message=f"auto: global, for {reason}: proven; {result.message}",
+                                   stats={**result.stats, "auto": {"method": "global", "reason": reason}}), ""
+    return None, f"global ended {result.status.value} within {limit:g} s"
+
+
 def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol: float | None = None,
           **options: Any) -> BilevelResult:
-    """Solve a bilevel problem with a registered method name, "auto" (default: chosen by structure, see
-    choose_method; the result's method is the one that ran, its message and stats["auto"] say why) or a
+    """Solve a bilevel problem with a registered method name, "auto" (default: global first where a proof is cheap,
+    see global_first, then the local method choose_method picks; the result's method is the one that ran, its message
+    and stats["auto"] say why) or a
     callable(prepared, **options) -> MethodRun. The methods: ipopt, relaxation, hypergradient, block-exact, global,
     differential-evolution, reduced (and any registered with register_method); show_options(method) lists a method's
     options and their defaults. certificate_tol: None takes defaults["certificate.tol"] (bilevel.defaults)."""
@@ -141,6 +179,13 @@ def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol:
     t0 = time.perf_counter()
     prep: Prepared = prepare(problem)
     prep.runs += 1
+    tried = ""
+    if auto and (reason := global_first(prep, options)) is not None:
+        proven, tried = _try_global(prep, options, reason, t0, certificate_tol)
+        if proven is not None:
+            return proven
+        if "time_limit" in options:  # the local method gets what global left of the user's limit
+            options = {**options, "time_limit": max(options["time_limit"] - (time.perf_counter() - t0), 1e-3)}
     if auto:
         name, why = choose_method(prep, options)
         fn = METHODS[name]
@@ -153,8 +198,10 @@ def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol:
         result = finalize(prep, run, name, time.perf_counter() - t0, certificate_tol)
     if not auto:
         return result
-    return dataclasses.replace(result, message=f"auto: {name}, for {why}; {result.message}",
-                               stats={**result.stats, "auto": {"method": name, "reason": why}})
+    first = f" ({tried}; then the local rule)" if tried else ""
+    return dataclasses.replace(result, message=f"auto: {name}, for {why}{first}; {result.message}",
+                               stats={**result.stats, "auto": {"method": name, "reason": why}
+                                      | ({"global_first": tried} if tried else {})})
 
 
 def show_options(method: str | Method) -> str:

@@ -81,7 +81,13 @@ def test_evolution_default_budget_is_bounded_in_the_dimension() -> None:
         assert (members, generations) == (64, 46) and members * (generations + 1) <= 3100
 
 
-def test_auto_takes_hypergradient_on_a_least_squares_lower_level_with_many_upper_entries() -> None:
+@pytest.fixture
+def local_rule(monkeypatch) -> None:
+    """auto without its global-first step (auto.global_size 0): the local rule alone."""
+    monkeypatch.setitem(bl.defaults, "auto.global_size", 0)
+
+
+def test_auto_takes_hypergradient_on_a_least_squares_lower_level_with_many_upper_entries(local_rule) -> None:
     """From AUTO_MIN_UPPER upper entries on; the result names the method that ran and why, and equals that method's
     own result."""
     p = _least_squares(AUTO_MIN_UPPER)
@@ -93,7 +99,7 @@ def test_auto_takes_hypergradient_on_a_least_squares_lower_level_with_many_upper
     assert choose_method(prepare(_least_squares(AUTO_MIN_UPPER - 1)), {})[0] == "ipopt"
 
 
-def test_auto_takes_ipopt_on_constrained_lower_levels_and_follows_the_options() -> None:
+def test_auto_takes_ipopt_on_constrained_lower_levels_and_follows_the_options(local_rule) -> None:
     """A textbook LP lower level: ipopt, as its literature optimum confirms; an option only one method takes
     decides for it."""
     p = registry.get("bard1998-ex5.1.1")
@@ -105,7 +111,7 @@ def test_auto_takes_ipopt_on_constrained_lower_levels_and_follows_the_options() 
     assert choose_method(prepare(registry.get("macmpec-bard1")), {"exact_block": False})[0] == "hypergradient"
 
 
-def test_auto_takes_reduced_where_an_upper_constraint_reads_a_least_squares_solution() -> None:
+def test_auto_takes_reduced_where_an_upper_constraint_reads_a_least_squares_solution(local_rule) -> None:
     """y*(x) = x (least squares, 20 upper entries) and the leader maximizes sum(y) subject to ||y||^2 <= 1 on the
     learner's solution: hypergradient could only penalize that row, so auto runs reduced, which keeps it and reaches
     the optimum y = x = 1/sqrt(20) (all entries), F* = sqrt(20) (Cauchy-Schwarz); an ipopt-only option, or a QP lower
@@ -125,3 +131,26 @@ def test_auto_takes_reduced_where_an_upper_constraint_reads_a_least_squares_solu
     assert res.status.value == "solved" and res.certificate.passed, res.message
     assert res.upper_objective == pytest.approx(np.sqrt(n), rel=1e-6)
     np.testing.assert_allclose(res.x["x"], np.full(n, 1 / np.sqrt(n)), atol=1e-5)
+
+
+@pytest.mark.parametrize("name", ["bolib-lucchettietal1987", "macmpec-bilin", "bard1998-ex5.1.1"])
+def test_auto_proves_small_problems_in_globals_class_first(name: str) -> None:
+    """auto runs global first on a small problem in its class and returns its proven optimum: the local rule's
+    ipopt stopped at 0.5 on bolib-lucchettietal1987 (F* = 0, Lucchetti et al. 1987) and at 16 on macmpec-bilin
+    (F* = 18.4, Hansen et al. 1992); bard1998-ex5.1.1 has F* = -12 (Bard 1998)."""
+    res = registry.get(name).solve()
+    assert res.method == "global" and res.status is bl.Status.SOLVED, res.message
+    assert res.message.startswith("auto: global, for a ") and res.certificate.global_bound.proven
+    assert res.upper_objective == pytest.approx(registry.spec(name).optimum, abs=1e-6)
+
+
+def test_auto_falls_back_to_the_local_rule_and_says_what_global_did(monkeypatch) -> None:
+    """A global search that cannot finish in auto's budget hands over to the local rule, which the message names
+    with what global ended with; a problem outside global's class (a nonlinear lower level) goes to the local rule
+    directly."""
+    monkeypatch.setitem(bl.defaults, "global.node_limit", 1)
+    res = registry.get("macmpec-bilin").solve()
+    assert res.method == "ipopt" and "global ended max_iterations within" in res.message
+    assert res.stats["auto"]["global_first"].startswith("global ended max_iterations")
+    res = registry.get("bolib-floudaszlobec1998").solve()
+    assert res.method == "ipopt" and "global_first" not in res.stats["auto"]
