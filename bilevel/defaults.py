@@ -102,6 +102,9 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "probe.coordinates": (16, "up to this many upper variables the probe tries +/- each coordinate and the adjacent "
                               "pieces at a kink (count)"),
     "probe.rel_tol": (1e-8, "along random directions a neighbour is better only by more than this (relative)"),
+    "probe.min_radius": (1e-9, "where no probe at radii 0.1, 0.01, 0.001 (budget units) is feasible, the probe tries "
+                               "three decades smaller at a time down to this radius (probe.feas_tol shrinks in "
+                               "proportion)"),
     "probe.feas_tol": (1e-9, "largest upper violation (G > 0, |H|) of a probed point that counts as feasible "
                              "(absolute)"),
     "probe.descent_rel_tol": (1e-5, "along first-order directions a neighbour is better only by more than this "

@@ -6,7 +6,10 @@ the Willems KKT route, 1.6e-4 below the vertex next to it), or at a kink of y*(x
 decreases along the kink, in a cone that random directions miss. Around x the probe tries seeded random directions, the
 negative hypergradient, +/- each coordinate (up to defaults["probe.coordinates"] upper variables) and, at a kink (a
 degenerate lower active set), the descent directions of the adjacent pieces; each is scaled per entry (a recognized
-ball's radius on its block, else 1). It projects x + h d onto the box and balls for a few radii h, solves the lower
+ball's radius on its block, else 1). It projects x + h d onto the box and balls for a few radii h (RADII; where none of
+those points is upper-feasible, three decades smaller at a time down to defaults["probe.min_radius"]: around an
+attack's clean data, stealth constraints on an unstable plant's data leave a feasible set of 4e-4 of the budget, and a
+probe that saw no feasible point certified the clean data a local maximum), solves the lower
 level there independently (and at x itself, the baseline: with a non-unique lower solution F depends on the solver's
 choice; with `optimistic`, F is taken at the best lower solution, as in bilevel.solvers.optimistic; a method whose
 lower level has a unique solution may pass its own structured solver, e.g. the VRFT learner's thin QR, which then
@@ -80,25 +83,50 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
         d = d / max(float(np.linalg.norm(d / scale)), 1e-300)
         key = np.round(d / scale, 12).tobytes()
         kinds[key] = (d, kinds.get(key, (d, frozenset()))[1] | {tol})
-    probes = [(projection(x + h * d), h, tols) for d, tols in kinds.values() for h in RADII]
-    points = {x.tobytes(): x} | {xp.tobytes(): xp for xp, _, _ in probes}  # projections of probes may coincide
-    if solve is not None:  # x and the probes in one call
-        values = dict(zip(points, _structured_objectives(prep, np.array(list(points.values())), solve)))
-        baseline = values[x.tobytes()]
-        if baseline is None:
-            return None
-    else:
-        here = x.tobytes()
-        values = {key: baseline if key == here else _feasible_objective(prep, xp, fixed_y, optimistic)[0]
-                  for key, xp in points.items()}
-    reference = min(objective, baseline)
-    bars = {tol: reference - param(tol) * max(1.0, abs(reference)) for tol in ("probe.rel_tol", "probe.descent_rel_tol")}
+    here = x.tobytes()
+    values: dict[bytes, float | None] = {} if solve is not None else {here: baseline}
     best: Probe | None = None
-    for xp, h, tols in probes:
-        F, bar = values[xp.tobytes()], min(bars[tol] for tol in tols)
-        if F is not None and F < bar and (best is None or F < best.objective):
-            best = Probe(xp, F, h)
+    # where no probe at RADII is feasible (a feasible set much narrower than the budget around x: stealth constraints
+    # on an unstable plant's data), three decades smaller, down to defaults["probe.min_radius"]
+    for radii in _radius_rounds():
+        probes = [(projection(x + h * d), h, tols) for d, tols in kinds.values() for h in radii]
+        points = {key: xp for key, xp in ({here: x} | {xp.tobytes(): xp for xp, _, _ in probes}).items()
+                  if key not in values}  # projections of probes may coincide
+        values |= _objectives(prep, points, solve, fixed_y, optimistic, min(1.0, radii[-1] / RADII[-1]))
+        if values[here] is None:
+            return None
+        reference = min(objective, values[here])
+        bars = {tol: reference - param(tol) * max(1.0, abs(reference))
+                for tol in ("probe.rel_tol", "probe.descent_rel_tol")}
+        for xp, h, tols in probes:
+            F, bar = values[xp.tobytes()], min(bars[tol] for tol in tols)
+            if F is not None and F < bar and (best is None or F < best.objective):
+                best = Probe(xp, F, h)
+        if any(values[xp.tobytes()] is not None for xp, _, _ in probes):
+            break
     return best
+
+
+def _radius_rounds() -> list[tuple[float, ...]]:
+    """RADII, then RADII scaled by 1e-3, 1e-6, .. while their smallest is at least defaults["probe.min_radius"]."""
+    rounds, factor, floor = [], 1.0, max(param("probe.min_radius"), 1e-300)
+    while not rounds or RADII[-1] * factor >= floor:
+        rounds.append(tuple(h * factor for h in RADII))
+        factor *= 1e-3
+    return rounds
+
+
+def _objectives(prep: "Prepared", points: dict[bytes, np.ndarray], solve: LowerSolve | None,
+                fixed_y: np.ndarray | None, optimistic: bool, shrink: float) -> dict[bytes, float | None]:
+    """F at each point as _feasible_objective finds it (None where unsolved or infeasible by more than
+    defaults["probe.feas_tol"] times `shrink`: below RADII, in proportion to the radius, so that no more is gained
+    by violating a constraint than at RADII); with `solve`, all in one call (_structured_objectives)."""
+    if not points:
+        return {}
+    feas_tol = shrink * param("probe.feas_tol")
+    if solve is not None:
+        return dict(zip(points, _structured_objectives(prep, np.array(list(points.values())), solve, feas_tol)))
+    return {key: _feasible_objective(prep, xp, fixed_y, optimistic, feas_tol)[0] for key, xp in points.items()}
 
 
 def _first_order_directions(prep: "Prepared", x: np.ndarray, scale: np.ndarray,
@@ -154,7 +182,8 @@ def _least_norm_combination(G: np.ndarray) -> np.ndarray:
     return G @ (lam / max(float(lam.sum()), 1e-300))
 
 
-def _structured_objectives(prep: "Prepared", X: np.ndarray, solve: LowerSolve) -> list[float | None]:
+def _structured_objectives(prep: "Prepared", X: np.ndarray, solve: LowerSolve,
+                           feas_tol: float | None = None) -> list[float | None]:
     """F at each row of X as _feasible_objective finds it, the lower solutions by `solve` in one call and F, G, H at
     every point in one call of the problem's functions mapped over them (None where `solve` finds no solution)."""
     try:
@@ -164,11 +193,11 @@ def _structured_objectives(prep: "Prepared", X: np.ndarray, solve: LowerSolve) -
     known = [i for i, y in enumerate(ys) if y is not None]
     mapped = _mapped_functions(prep, len(known)) if known else None
     if mapped is None:
-        return [None if y is None else _feasible_objective(prep, x, y)[0] for x, y in zip(X, ys)]
+        return [None if y is None else _feasible_objective(prep, x, y, feas_tol=feas_tol)[0] for x, y in zip(X, ys)]
     F, G, H = mapped(X[known].T, np.array([ys[i] for i in known]).T)
     values: list[float | None] = [None] * len(X)
     for j, i in enumerate(known):
-        values[i] = _feasible_value(prep, X[i], ys[i], F[:, j], G[:, j], H[:, j])
+        values[i] = _feasible_value(prep, X[i], ys[i], F[:, j], G[:, j], H[:, j], feas_tol)
     return values
 
 
@@ -184,21 +213,21 @@ def _mapped_functions(prep: "Prepared", n: int) -> CompiledFunction | None:
 
 
 def _feasible_value(prep: "Prepared", x: np.ndarray, y: np.ndarray, F: np.ndarray, G: np.ndarray,
-                    H: np.ndarray) -> float | None:
-    """The upper objective at (x, y) from the problem's F, G, H there, or None if (x, y) is upper-infeasible or it is
-    not finite."""
+                    H: np.ndarray, feas_tol: float | None = None) -> float | None:
+    """The upper objective at (x, y) from the problem's F, G, H there, or None if (x, y) is upper-infeasible (by more
+    than feas_tol, default defaults["probe.feas_tol"]) or it is not finite."""
     value = prep.canon.upper_F(x, y, F[0])
-    feas_tol = param("probe.feas_tol")
+    feas_tol = param("probe.feas_tol", feas_tol)
     if np.any(G > feas_tol) or np.any(np.abs(H) > feas_tol) or not np.isfinite(value):
         return None
     return value
 
 
 def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = None,
-                        optimistic: bool = False) -> tuple[float | None, bool]:
+                        optimistic: bool = False, feas_tol: float | None = None) -> tuple[float | None, bool]:
     """F(x, y), y from the lower level's own solver unless given (with `optimistic`, also the best verified lower
     solution there found from that one, the better of the two), and whether such a selection was verified;
-    F is None if the solve fails or (x, y) is upper-infeasible."""
+    F is None if the solve fails or (x, y) is upper-infeasible (by more than feas_tol, as _feasible_value)."""
     try:
         sol = None if y is not None else prep.canon.lower.solve(x)
     except BilevelError:
@@ -207,6 +236,6 @@ def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = 
     if optimistic and sol is not None:
         sel = optimistic_selection(prep, x, float(prep.canon.lower.evaluate(x, sol.y)[0]), [sol.y])
         ys += [] if sel is None else [sel.y]
-    values = [_feasible_value(prep, x, yv, *(np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, yv)))
-              for yv in ys]
+    values = [_feasible_value(prep, x, yv, *(np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, yv)),
+                              feas_tol) for yv in ys]
     return min((v for v in values if v is not None), default=None), len(ys) > 1
