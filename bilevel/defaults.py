@@ -95,6 +95,8 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "global.scip_feastol": (1e-9, "SCIP's feasibility tolerance (SCIP's own default is 1e-6; absolute)"),
     # multistart selection and dispatch (bilevel.solvers.base, bilevel.solvers.registry)
     "solvers.feasibility_tol": (1e-6, "largest residual at which a start's end point counts as feasible"),
+    "solvers.tie_rtol": (1e-9, "multistart: feasible end points whose objectives are within this of the best's tie, "
+                               "and the first start among them wins (relative)"),
     "solvers.small_lower": (256, "lower levels with at most this many variables run with one BLAS thread (count)"),
     "auto.min_upper": (20, "method auto takes hypergradient from this many upper entries on (count)"),
     # the local probe and the optimistic selection (bilevel.solvers.probe, bilevel.solvers.optimistic)

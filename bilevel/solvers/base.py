@@ -187,11 +187,18 @@ def unbounded_lower(prep: Prepared, x: np.ndarray) -> str | None:
 
 def best_of(candidates: list[tuple[np.ndarray, float, float]]) -> int:
     """Index of the feasible candidate (residual <= defaults["solvers.feasibility_tol"]) with the lowest objective, else
-    the least infeasible one."""
+    the least infeasible one. Objectives within defaults["solvers.tie_rtol"] (relative) of the lowest are tied, and
+    the first of them wins: starts that reach one local solution differ in the last bits, which the BLAS kernel
+    decides (deepc-tracking's default: start 5 under one OpenBLAS kernel, 6 under another)."""
     tol = param("solvers.feasibility_tol")
     feasible = [i for i, (_, _, r) in enumerate(candidates) if r <= tol]
+    values = [candidates[i][1] for i in feasible]
+    if any(v == v for v in values):  # some objective that is not NaN
+        lowest = min(v for v in values if v == v)
+        bar = lowest + param("solvers.tie_rtol") * max(1.0, abs(lowest)) if np.isfinite(lowest) else lowest
+        return next(i for i, v in zip(feasible, values) if v <= bar)
     if feasible:
-        return min(feasible, key=lambda i: candidates[i][1])
+        return feasible[0]
     return min(range(len(candidates)), key=lambda i: candidates[i][2])
 
 

@@ -44,7 +44,7 @@ BEFORE = {  # the module constants and option defaults the registry replaced, as
     "evolution.members": 64, "evolution.evaluations": 3000, "global.time_limit": 60.0, "global.node_limit": 100_000,
     "global.gap": 1e-6, "global.bigm_safety": 1e-6, "global.fix_tol": 1e-6, "global.complementarity_tol": 1e-9,
     "global.convexity_tol": 1e-9, "global.max_box_vertices": 4096, "global.scip_feastol": 1e-9,
-    "solvers.feasibility_tol": 1e-6, "solvers.small_lower": 256, "auto.min_upper": 20, "probe.directions": 4,
+    "solvers.feasibility_tol": 1e-6, "solvers.tie_rtol": 1e-9, "solvers.small_lower": 256, "auto.min_upper": 20, "probe.directions": 4,
     "probe.coordinates": 16, "probe.rel_tol": 1e-8, "probe.min_radius": 1e-9, "probe.feas_tol": 1e-9, "probe.descent_rel_tol": 1e-5,
     "optimistic.slack": 1e-9, "optimistic.row_tol": 1e-8, "optimistic.improve_rel_tol": 1e-5,
     "destabilize.starts": 64, "destabilize.max_iter": 100, "destabilize.pool": 512, "classify.y_probes": 16,
