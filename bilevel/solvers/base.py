@@ -21,7 +21,7 @@ from ..reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
 from ..result import BilevelResult, Status
 from .optimistic import optimistic_selection
 from .options import RENAMED_OPTIONS
-from .probe import LowerSolve, improving_neighbour
+from .probe import LowerSolve, probe_neighbours
 from .projections import Projection
 from .structure import Ball, ball_forms, find_balls, upper_projection
 
@@ -253,10 +253,19 @@ def _local_verdict(prep: Prepared, run: MethodRun, point: KKTPoint, cert: Certif
                 f"not a local solution of the optimistic bilevel problem: the lower solution is not unique at x and "
                 f"the method's selection is not the optimistic one; the lower solution in stats['optimistic'] gives "
                 f"upper objective {prep.declared(sel.objective):.8g} (here {prep.declared(F):.8g}) ({message})")
-    better = improving_neighbour(prep, point.x, F, run.feasible_set or prep.projection, optimistic=ambiguous,
-                                 lower_solve=run.lower_solve)
+    outcome = probe_neighbours(prep, point.x, F, run.feasible_set or prep.projection, optimistic=ambiguous,
+                               lower_solve=run.lower_solve)
+    better = outcome.better
     stats["probe"] = None if better is None else {"x": better.x, "objective": prep.declared(better.objective),
                                                   "radius": better.radius}
+    if better is None and outcome.nonconvex is not None:
+        xp, radius, why = outcome.nonconvex
+        stats["probe"] = {"x": xp, "nonconvex": why, "radius": radius}
+        return Status.INACCURATE, (
+            f"{message}; but the lower level is not convex at a neighbour at relative distance {radius:g} ({why}): "
+            "x is at the edge of where it is convex, and beyond that edge the lower solutions, hence the upper "
+            "objective, are not what the method computes, so x is not shown to be a local solution (the point is in "
+            "stats['probe'])")
     if better is None:
         return status, message
     advice = ("the method stopped where the callback's goal was reached, not at a local solution" if run.at_goal

@@ -29,7 +29,7 @@ import numpy as np
 from scipy.optimize import nnls
 
 from ..defaults import param
-from ..errors import BilevelError
+from ..errors import BilevelError, NonConvexLowerLevel
 from ..parameters import CompiledFunction
 from .optimistic import optimistic_selection
 from .projections import Projection
@@ -54,23 +54,43 @@ class Probe:
     radius: float
 
 
+@dataclass(frozen=True)
+class ProbeOutcome:
+    """What the probe found around x: a better feasible neighbour (or None) and, where it found none, the nearest
+    probed point within the smallest radius RADII[-1] at which the lower level is not convex (point, radius, the
+    Hessian's eigenvalue in words; or None): x is then at the edge of where the lower level is convex (a method that
+    follows the convex lower level's solution stops there), and beyond it the probe cannot judge F."""
+
+    better: Probe | None
+    nonconvex: tuple[np.ndarray, float, str] | None = None
+
+
 def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, projection: Projection,
                         seed: int = 0, optimistic: bool = False, lower_solve: LowerSolve | None = None) -> Probe | None:
+    """The better neighbour of probe_neighbours (same arguments), or None."""
+    return probe_neighbours(prep, x, objective, projection, seed, optimistic, lower_solve).better
+
+
+def probe_neighbours(prep: "Prepared", x: np.ndarray, objective: float, projection: Projection,
+                     seed: int = 0, optimistic: bool = False, lower_solve: LowerSolve | None = None) -> ProbeOutcome:
     """The best neighbour of x in `projection`'s set, upper-feasible, with upper objective < objective -
-    defaults["probe.rel_tol"] max(1, |objective|) (defaults["probe.descent_rel_tol"] along first-order directions); None
-    if the probe finds none. optimistic: F at each point with the optimistic selection among the lower solutions
-    there; lower_solve: the lower level's unique solution at each row of a matrix of points (LowerSolve), used instead
-    of the lower level's own solver (not with `optimistic`)."""
+    defaults["probe.rel_tol"] max(1, |objective|) (defaults["probe.descent_rel_tol"] along first-order directions), if
+    the probe finds one, else the nearest probed point within RADII[-1] where the lower level is not convex, if any
+    (ProbeOutcome).
+    optimistic: F at each point with the optimistic selection among the lower solutions there; lower_solve: the lower
+    level's unique solution at each row of a matrix of points (LowerSolve), used instead of the lower level's own
+    solver (not with `optimistic`)."""
+    none = ProbeOutcome(None)
     low = prep.canon.lower
     solve = None if optimistic else lower_solve
     try:  # the same lower solver as at the probes: a non-unique lower solution must not pass for a better point
         fixed_y = low.solve(x).y if low.fixed and not optimistic and solve is None else None  # ignores x: once
     except BilevelError:
-        return None
+        return none
     if solve is None:
-        baseline, verified = _feasible_objective(prep, x, fixed_y, optimistic)
+        baseline, verified, _ = _feasible_objective(prep, x, fixed_y, optimistic)
         if baseline is None:
-            return None
+            return none
         optimistic = optimistic and verified  # where IPOPT verifies no selection at x, it is not asked at the probes
     rng = np.random.default_rng(seed)
     scale = budget_scale(prep.canon, prep.balls)
@@ -85,16 +105,19 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
         kinds[key] = (d, kinds.get(key, (d, frozenset()))[1] | {tol})
     here = x.tobytes()
     values: dict[bytes, float | None] = {} if solve is not None else {here: baseline}
+    nonconvex: dict[bytes, str] = {}  # the probed points where the lower level is not convex, and why
     best: Probe | None = None
+    probes_seen: list[tuple[np.ndarray, float, frozenset[str]]] = []
     # where no probe at RADII is feasible (a feasible set much narrower than the budget around x: stealth constraints
     # on an unstable plant's data), three decades smaller, down to defaults["probe.min_radius"]
     for radii in _radius_rounds():
         probes = [(projection(x + h * d), h, tols) for d, tols in kinds.values() for h in radii]
+        probes_seen += probes
         points = {key: xp for key, xp in ({here: x} | {xp.tobytes(): xp for xp, _, _ in probes}).items()
                   if key not in values}  # projections of probes may coincide
-        values |= _objectives(prep, points, solve, fixed_y, optimistic, min(1.0, radii[-1] / RADII[-1]))
+        values |= _objectives(prep, points, solve, fixed_y, optimistic, min(1.0, radii[-1] / RADII[-1]), nonconvex)
         if values[here] is None:
-            return None
+            return none
         reference = min(objective, values[here])
         bars = {tol: reference - param(tol) * max(1.0, abs(reference))
                 for tol in ("probe.rel_tol", "probe.descent_rel_tol")}
@@ -104,7 +127,13 @@ def improving_neighbour(prep: "Prepared", x: np.ndarray, objective: float, proje
                 best = Probe(xp, F, h)
         if any(values[xp.tobytes()] is not None for xp, _, _ in probes):
             break
-    return best
+    if best is not None:
+        return ProbeOutcome(best)
+    found = [(h, xp) for xp, h, _ in probes_seen if h <= RADII[-1] and xp.tobytes() in nonconvex]
+    if not found:
+        return none
+    h, xp = min(found, key=lambda t: t[0])
+    return ProbeOutcome(None, (xp, h, nonconvex[xp.tobytes()]))
 
 
 def _radius_rounds() -> list[tuple[float, ...]]:
@@ -117,16 +146,23 @@ def _radius_rounds() -> list[tuple[float, ...]]:
 
 
 def _objectives(prep: "Prepared", points: dict[bytes, np.ndarray], solve: LowerSolve | None,
-                fixed_y: np.ndarray | None, optimistic: bool, shrink: float) -> dict[bytes, float | None]:
+                fixed_y: np.ndarray | None, optimistic: bool, shrink: float,
+                nonconvex: dict[bytes, str]) -> dict[bytes, float | None]:
     """F at each point as _feasible_objective finds it (None where unsolved or infeasible by more than
     defaults["probe.feas_tol"] times `shrink`: below RADII, in proportion to the radius, so that no more is gained
-    by violating a constraint than at RADII); with `solve`, all in one call (_structured_objectives)."""
+    by violating a constraint than at RADII); with `solve`, all in one call (_structured_objectives). The points
+    where the lower level is not convex are added to `nonconvex` with why."""
     if not points:
         return {}
     feas_tol = shrink * param("probe.feas_tol")
     if solve is not None:
         return dict(zip(points, _structured_objectives(prep, np.array(list(points.values())), solve, feas_tol)))
-    return {key: _feasible_objective(prep, xp, fixed_y, optimistic, feas_tol)[0] for key, xp in points.items()}
+    values = {}
+    for key, xp in points.items():
+        values[key], _, why = _feasible_objective(prep, xp, fixed_y, optimistic, feas_tol)
+        if why:
+            nonconvex[key] = why
+    return values
 
 
 def _first_order_directions(prep: "Prepared", x: np.ndarray, scale: np.ndarray,
@@ -224,18 +260,22 @@ def _feasible_value(prep: "Prepared", x: np.ndarray, y: np.ndarray, F: np.ndarra
 
 
 def _feasible_objective(prep: "Prepared", x: np.ndarray, y: np.ndarray | None = None,
-                        optimistic: bool = False, feas_tol: float | None = None) -> tuple[float | None, bool]:
+                        optimistic: bool = False, feas_tol: float | None = None
+                        ) -> tuple[float | None, bool, str]:
     """F(x, y), y from the lower level's own solver unless given (with `optimistic`, also the best verified lower
-    solution there found from that one, the better of the two), and whether such a selection was verified;
-    F is None if the solve fails or (x, y) is upper-infeasible (by more than feas_tol, as _feasible_value)."""
+    solution there found from that one, the better of the two), whether such a selection was verified, and why the
+    lower level is not convex at x where its solver refused it for that ('' otherwise); F is None if the solve fails
+    or (x, y) is upper-infeasible (by more than feas_tol, as _feasible_value)."""
     try:
         sol = None if y is not None else prep.canon.lower.solve(x)
+    except NonConvexLowerLevel as exc:
+        return None, False, str(exc)
     except BilevelError:
-        return None, False
+        return None, False, ""
     ys = [y if sol is None else sol.y]
     if optimistic and sol is not None:
         sel = optimistic_selection(prep, x, float(prep.canon.lower.evaluate(x, sol.y)[0]), [sol.y])
         ys += [] if sel is None else [sel.y]
     values = [_feasible_value(prep, x, yv, *(np.asarray(v, dtype=float).ravel() for v in prep.canon.functions(x, yv)),
                               feas_tol) for yv in ys]
-    return min((v for v in values if v is not None), default=None), len(ys) > 1
+    return min((v for v in values if v is not None), default=None), len(ys) > 1, ""
