@@ -14,7 +14,8 @@ from .lower import LowerLevel, LowerSolution, build_lower
 from .linear_maps import Images
 from .lower.images import ImageLower, Lift
 from .lower.matrix import MatrixLower
-from .lower.residual import NumericSquares, numeric_squares, sum_of_squares
+from .lower.least_squares import sum_of_squares
+from .lower.residual import NumericSquares, numeric_squares
 from .model import BilevelProblem, LowerQP, MatrixFunction, Variable, check_constants, check_depends, unflatten_all
 from .parameters import ParameterSet, scalar
 from .reduction import KKTPoint, Reduction

@@ -95,6 +95,8 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "global.scip_feastol": (1e-9, "SCIP's feasibility tolerance (SCIP's own default is 1e-6; absolute)"),
     # multistart selection and dispatch (bilevel.solvers.base, bilevel.solvers.registry)
     "solvers.feasibility_tol": (1e-6, "largest residual at which a start's end point counts as feasible"),
+    "solvers.tie_rtol": (1e-9, "multistart: feasible end points whose objectives are within this of the best's tie, "
+                               "and the first start among them wins (relative)"),
     "solvers.small_lower": (256, "lower levels with at most this many variables run with one BLAS thread (count)"),
     "auto.min_upper": (20, "method auto takes hypergradient from this many upper entries on (count)"),
     "auto.global_time": (5.0, "method auto first tries global for at most this long on a problem in its class "
@@ -106,6 +108,9 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "probe.coordinates": (16, "up to this many upper variables the probe tries +/- each coordinate and the adjacent "
                               "pieces at a kink (count)"),
     "probe.rel_tol": (1e-8, "along random directions a neighbour is better only by more than this (relative)"),
+    "probe.min_radius": (1e-9, "where no probe at radii 0.1, 0.01, 0.001 (budget units) is feasible, the probe tries "
+                               "three decades smaller at a time down to this radius (probe.feas_tol shrinks in "
+                               "proportion)"),
     "probe.feas_tol": (1e-9, "largest upper violation (G > 0, |H|) of a probed point that counts as feasible "
                              "(absolute)"),
     "probe.descent_rel_tol": (1e-5, "along first-order directions a neighbour is better only by more than this "

@@ -48,6 +48,8 @@ class BilevelResult:
 
     history: per-iteration (or per-relaxation-step) records of the method; stats: raw backend output,
     with no stability promise; start_records: one summary per multistart start (option `starts` is their count).
+    Whatever the status, upper_objective is F at the reported (x, y), and where the certificate shows that the
+    method's y is no lower solution at x, y is the certificate's re-solve (the method's in stats["method_y"]).
     """
 
     status: Status

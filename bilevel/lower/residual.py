@@ -9,7 +9,6 @@ the implicit derivative's x-adjoint is the transposed product, or one reverse sw
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -22,43 +21,7 @@ from ..errors import BilevelError
 from ..linear_maps import Gather, affine_in, jacobian_nonzeros_exceed
 from ..parameters import CompiledFunction, ParameterSet, scalar
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
-from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
-
-
-def sum_of_squares(f: ca.SX, y: ca.SX) -> tuple[ca.SX, ca.SX] | None:
-    """(r, c) with f = 1/2 ||r||^2 + c, r affine in y and c free of y, read from f's top-level sum of weighted squares
-    (a least squares); None if f is not of that form (a term with y that is not a square, a square with a negative
-    weight, or a squared expression nonlinear in y)."""
-    rows, scales, rest, stack = [], [], [], [(f, 1.0)]
-    while stack:
-        e, w = stack.pop()
-        if e.is_constant():
-            rest.append(w * e)
-        elif e.is_op(ca.OP_ADD) or e.is_op(ca.OP_SUB):
-            stack += [(e.dep(0), w), (e.dep(1), w if e.is_op(ca.OP_ADD) else -w)]
-        elif e.is_op(ca.OP_NEG):
-            stack.append((e.dep(0), -w))
-        elif e.is_op(ca.OP_MUL) and (e.dep(0).is_constant() or e.dep(1).is_constant()):
-            const, other = (e.dep(0), e.dep(1)) if e.dep(0).is_constant() else (e.dep(1), e.dep(0))
-            stack.append((other, w * float(ca.evalf(const))))
-        elif e.is_op(ca.OP_DIV) and e.dep(1).is_constant():
-            stack.append((e.dep(0), w / float(ca.evalf(e.dep(1)))))
-        elif e.is_op(ca.OP_SQ) or (e.is_op(ca.OP_MUL) and ca.is_equal(e.dep(0), e.dep(1), 1)):
-            if w < 0:
-                return None
-            if w > 0:
-                rows.append(e.dep(0))
-                scales.append(math.sqrt(2.0 * w))
-        elif ca.depends_on(e, y):
-            return None
-        else:
-            rest.append(w * e)
-    if not rows:
-        return None
-    r = ca.vertcat(*rows)
-    if any(ca.which_depends(r, y, 2, False)):
-        return None
-    return r * ca.DM(scales), (ca.sum1(ca.vertcat(*rest)) if rest else ca.SX(0.0))  # one elementwise product
+from .least_squares import LeastSquaresLower, factor_solve, hessian_factor, sum_of_squares
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from ..reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
 from ..result import BilevelResult, Status
 from .optimistic import optimistic_selection
 from .options import RENAMED_OPTIONS
-from .probe import LowerSolve, improving_neighbour
+from .probe import LowerSolve, probe_neighbours
 from .projections import Projection
 from .structure import Ball, ball_forms, find_balls, upper_projection
 
@@ -187,11 +187,18 @@ def unbounded_lower(prep: Prepared, x: np.ndarray) -> str | None:
 
 def best_of(candidates: list[tuple[np.ndarray, float, float]]) -> int:
     """Index of the feasible candidate (residual <= defaults["solvers.feasibility_tol"]) with the lowest objective, else
-    the least infeasible one."""
+    the least infeasible one. Objectives within defaults["solvers.tie_rtol"] (relative) of the lowest are tied, and
+    the first of them wins: starts that reach one local solution differ in the last bits, which the BLAS kernel
+    decides (deepc-tracking's default: start 5 under one OpenBLAS kernel, 6 under another)."""
     tol = param("solvers.feasibility_tol")
     feasible = [i for i, (_, _, r) in enumerate(candidates) if r <= tol]
+    values = [candidates[i][1] for i in feasible]
+    if any(v == v for v in values):  # some objective that is not NaN
+        lowest = min(v for v in values if v == v)
+        bar = lowest + param("solvers.tie_rtol") * max(1.0, abs(lowest)) if np.isfinite(lowest) else lowest
+        return next(i for i, v in zip(feasible, values) if v <= bar)
     if feasible:
-        return min(feasible, key=lambda i: candidates[i][1])
+        return feasible[0]
     return min(range(len(candidates)), key=lambda i: candidates[i][2])
 
 
@@ -246,10 +253,19 @@ def _local_verdict(prep: Prepared, run: MethodRun, point: KKTPoint, cert: Certif
                 f"not a local solution of the optimistic bilevel problem: the lower solution is not unique at x and "
                 f"the method's selection is not the optimistic one; the lower solution in stats['optimistic'] gives "
                 f"upper objective {prep.declared(sel.objective):.8g} (here {prep.declared(F):.8g}) ({message})")
-    better = improving_neighbour(prep, point.x, F, run.feasible_set or prep.projection, optimistic=ambiguous,
-                                 lower_solve=run.lower_solve)
+    outcome = probe_neighbours(prep, point.x, F, run.feasible_set or prep.projection, optimistic=ambiguous,
+                               lower_solve=run.lower_solve)
+    better = outcome.better
     stats["probe"] = None if better is None else {"x": better.x, "objective": prep.declared(better.objective),
                                                   "radius": better.radius}
+    if better is None and outcome.nonconvex is not None:
+        xp, radius, why = outcome.nonconvex
+        stats["probe"] = {"x": xp, "nonconvex": why, "radius": radius}
+        return Status.INACCURATE, (
+            f"{message}; but the lower level is not convex at a neighbour at relative distance {radius:g} ({why}): "
+            "x is at the edge of where it is convex, and beyond that edge the lower solutions, hence the upper "
+            "objective, are not what the method computes, so x is not shown to be a local solution (the point is in "
+            "stats['probe'])")
     if better is None:
         return status, message
     advice = ("the method stopped where the callback's goal was reached, not at a local solution" if run.at_goal
@@ -258,6 +274,21 @@ def _local_verdict(prep: Prepared, run: MethodRun, point: KKTPoint, cert: Certif
         f"not a local solution: a feasible point at relative distance {better.radius:g} has upper objective "
         f"{prep.declared(better.objective):.8g} (here {prep.declared(F):.8g}), so the method's point is not optimal "
         f"({message}); {advice}")
+
+
+def _not_a_lower_solution(prep: Prepared, point: KKTPoint, cert: Certificate) -> bool:
+    """Whether the certificate shows that the method's y is not a lower solution at x where its independent re-solve
+    found one (finite y_ref): y differs from the unique re-solved y through F (lower_solution), breaks a lower
+    constraint (lower_feasibility), or its lower objective exceeds the re-solve's (lower_gap; where y's is the lower
+    one, the re-solve is the suspect). finalize then reports (x, y_ref), so that a result's objective is always the
+    one its x gets from the lower level, whatever the status (an IV learner solved by normal equations at
+    cond(Z'Phi) = 1e8 gave F = 79.4 where the learner gives 48.7)."""
+    if not np.all(np.isfinite(cert.lower_reference_y)):
+        return False
+    if {"lower_solution", "lower_feasibility"} & set(cert.failed):
+        return True
+    f, f_ref = float(prep.canon.lower.evaluate(point.x, point.y)[0]), cert.lower_reference
+    return "lower_gap" in cert.failed and f_ref < f - cert.tolerance * (1.0 + abs(f_ref))
 
 
 def _declared_records(prep: Prepared, records: list[dict[str, Any]]) -> tuple[dict[str, Any], ...]:
@@ -291,8 +322,8 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
     if cert is not None and not cert.passed:
         message += f"; certificate failed on {cert.describe_failures()}"
     stats = dict(run.stats)
-    if cert is not None and "lower_solution" in cert.failed:
-        # report the bilevel-feasible point (x, y_ref): its y is the unique lower solution at x
+    if cert is not None and _not_a_lower_solution(prep, point, cert):
+        # report the bilevel-feasible point (x, y_ref): the objective is the one the lower level gives at x
         method_F = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse).upper_objective
         stats |= {"method_y": point.y.tolist(), "method_upper_objective": method_F}
         point = replace(point, y=np.asarray(cert.lower_reference_y), lam=np.zeros_like(point.lam),

@@ -19,7 +19,8 @@ from bilevel.defaults import defaults
 from bilevel.errors import ModelError
 from bilevel.lower.images import ImageLower
 from bilevel.lower.least_squares import factor_solve, hessian_factor
-from bilevel.lower.residual import ResidualLeastSquares, sum_of_squares
+from bilevel.lower.least_squares import sum_of_squares
+from bilevel.lower.residual import ResidualLeastSquares
 from bilevel.solvers.base import prepare
 from bilevel.solvers.implicit import Hypergradient
 
