@@ -97,6 +97,8 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "solvers.feasibility_tol": (1e-6, "largest residual at which a start's end point counts as feasible"),
     "solvers.tie_rtol": (1e-9, "multistart: feasible end points whose objectives are within this of the best's tie, "
                                "and the first start among them wins (relative)"),
+    "solvers.spread_rtol": (0.01, "a result's message reports its starts' spread when a feasible start ended this far "
+                                  "(relative) from the best"),
     "solvers.small_lower": (256, "lower levels with at most this many variables run with one BLAS thread (count)"),
     "auto.min_upper": (20, "method auto takes hypergradient from this many upper entries on (count)"),
     "auto.global_time": (5.0, "method auto first tries global for at most this long on a problem in its class "

@@ -297,6 +297,26 @@ def _declared_records(prep: Prepared, records: list[dict[str, Any]]) -> tuple[di
                  for r in records)
 
 
+def _start_spread(prep: Prepared, records: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """How far apart a multistart's feasible starts ended (declared-sense objectives), where some start ended more
+    than defaults["solvers.spread_rtol"] (relative; at least the feasibility tolerance, absolute) from the best; None
+    where they agree or there is one start."""
+    tol = param("solvers.feasibility_tol")
+    values = [float(r["objective"]) for r in records
+              if r.get("objective") is not None and np.isfinite(r["objective"]) and r.get("residual", 0.0) <= tol]
+    if len(values) < 2:
+        return None
+    sign = -1.0 if prep.problem.upper_objective.sense == "max" else 1.0  # sign * value: lower is better
+    ordered = sorted(values, key=lambda v: sign * v)
+    best = ordered[0]  # apart: farther than spread_rtol relative, and than the feasibility tolerance absolute
+    bar = max(param("solvers.spread_rtol") * abs(best), tol)
+    apart = [v for v in ordered if abs(v - best) > bar]
+    if not apart:
+        return None
+    return {"starts": len(values), "best": best, "reached_best": len(values) - len(apart), "second": apart[0],
+            "worst": apart[-1]}
+
+
 def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol: float | None = None) -> BilevelResult:
     """Certify the run's point (up to tol; None: defaults["certificate.tol"]), map it back to declared names and
     senses, and decide the status."""
@@ -333,6 +353,11 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
     proven = run.global_bound is not None and run.global_bound.proven  # a global proof needs no local probe
     if status in (Status.SOLVED, Status.INACCURATE) and not proven:
         status, message = _local_verdict(prep, run, point, cert, stats, status, message)
+    if not proven and (spread := _start_spread(prep, run.start_records)) is not None:
+        stats["starts_spread"] = spread
+        message += (f"; the {spread['starts']} feasible starts ended apart: {spread['reached_best']} at the best "
+                    f"{spread['best']:.6g}, the others between {spread['worst']:.6g} and {spread['second']:.6g} "
+                    f"(several local answers; more starts, e.g. starts={4 * spread['starts']}, may find a better one)")
     sol = prep.front.invert(kkt_solution(prep.canon, point), prep.front_inverse)
     values = np.concatenate([point.x, point.y, prep.canon.params.value])
 

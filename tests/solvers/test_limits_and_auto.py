@@ -154,3 +154,18 @@ def test_auto_falls_back_to_the_local_rule_and_says_what_global_did(monkeypatch)
     assert res.stats["auto"]["global_first"].startswith("global ended max_iterations")
     res = registry.get("bolib-floudaszlobec1998").solve()
     assert res.method == "ipopt" and "global_first" not in res.stats["auto"]
+
+
+def test_a_result_says_when_its_starts_ended_at_different_local_answers() -> None:
+    """macmpec-bilin (F* = 18.4, Hansen et al. 1992) has several local maxima for ipopt's starts (16, 14.6, 5.6, ...):
+    the message says how far apart the starts ended and suggests more starts; on macmpec-ex9.2.6 (De Silva's
+    projection, F* = -1) every start reaches the optimum and the message says nothing of a spread, nor on
+    bard1998-ex7.2.2, whose starts differ only by 3e-11 around F* = 0."""
+    res = bl.solve(registry.get("macmpec-bilin"), method="ipopt", starts=8, seed=0)
+    spread = res.stats["starts_spread"]
+    assert spread["starts"] == 8 and 1 <= spread["reached_best"] < 8
+    assert spread["best"] == pytest.approx(res.upper_objective, rel=1e-6) and spread["worst"] < spread["best"]
+    assert "feasible starts ended apart" in res.message and "starts=32" in res.message
+    for name in ("macmpec-ex9.2.6", "bard1998-ex7.2.2"):
+        agree = bl.solve(registry.get(name), method="ipopt", starts=8, seed=0)
+        assert "starts_spread" not in agree.stats and "ended apart" not in agree.message, name
