@@ -257,7 +257,7 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
                     done[task["key"]] = row
                 fh.flush()
                 ran += 1
-                if progress and (ran % report_every == 0 or ran == len(computed)):
+                if progress and (ran == 1 or ran % report_every == 0 or ran == len(computed)):  # an ETA from the first
                     rate = ran / (time.perf_counter() - t0)
                     progress(f"\r[{label}] {len(done)}/{len(tasks)} done, {rate:.2f} tasks/s, "
                              f"ETA {(len(computed) - ran) / rate:.0f} s")

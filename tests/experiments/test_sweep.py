@@ -245,3 +245,14 @@ def test_scenario_a_simulations_are_one_attack_run_once(tmp_path, objective, met
     assert _strip_times([{k: v for k, v in r.items() if k in separately[0][0]} for r in rows[:2]]) == separately[0] * 2
     noise = vrft.cell_tasks(2, 0, "paper", "maxmin", "white-noise", eps_u=(0.1,), eps_y=(0.05,))
     assert len({vrft.same_attack(t) for t in noise}) == len(noise)
+
+
+def test_a_sweep_gives_its_rate_and_eta_from_the_first_finished_task(tmp_path) -> None:
+    """Long tasks (a defenses bisection takes minutes) must not leave the user without an estimate until 5 % of the
+    tasks are done: the first finished task already prints the rate and the ETA (issue 50)."""
+    lines: list[str] = []
+    tasks = vrft.cell_tasks(3, 0, "paper", "maxmin", "white-noise")  # 45 tasks: an update every 2 after the first
+    assert len(tasks) >= 40
+    run_sweep(vrft.attack_task, tasks, str(tmp_path / "t.jsonl"), LocalExecutor(1), lines.append, "t")
+    updates = [ln for ln in lines if "tasks/s, ETA" in ln]
+    assert updates and updates[0].startswith("\r[t] 1/")
