@@ -135,6 +135,11 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "willems.evolution.max_iter": (300, "generations of de_attack (count)"),
     "willems.evolution.popsize": (5, "de_attack's population is this many members per poisoned entry (scipy's "
                                      "popsize)"),
+    # the robust De Persis-Tesi learner (bilevel.ddc.robust_depersis_tesi)
+    "robust_willems.lmi_margin": (1e-5, "the robust SDP's LMI is >= this * I (strict, so that numpy's re-check has room;"
+                                        " absolute)"),
+    "robust_willems.check_margin": (1e-10, "verify_gain passes where G's and P's smallest eigenvalues are >= this "
+                                           "times the scale of G's terms (relative; rounding is ~1e-16)"),
     # lower levels (bilevel.lower)
     "classify.y_probes": (16, "lower points drawn per upper sample when a lower Hessian depends on y (count)"),
     "convexity.psd_tol": (1e-9, "a Hessian counts as PSD when its smallest eigenvalue >= -this * max(1, its largest "
