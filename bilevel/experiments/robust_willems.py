@@ -62,11 +62,11 @@ class Plan:
 
 
 def make_plan(sims: int, quick: bool) -> Plan:
-    """The full plan (T = 15; designs 0.05 and 0.1 attacked, 0.01-0.15 on clean data; 2 engine starts) or the CI plan
-    (at most 2 data sets, design 0.1 attacked at its full budget only, 1 start)."""
+    """The full plan (T = 15; design 0.1 attacked at FRACTIONS of it, 0.01-0.15 on clean data; 1 engine start per
+    criterion: the clean data) or the CI plan (at most 2 data sets, design 0.1 attacked at its full budget only)."""
     if quick:
         return Plan(min(sims, 2), 15, (0.1,), (1.0,), (0.05, 0.1), 1)
-    return Plan(sims, 15, (0.05, 0.1), FRACTIONS, (0.01, 0.025, 0.05, 0.1, 0.15), 2)
+    return Plan(sims, 15, (0.1,), FRACTIONS, (0.01, 0.025, 0.05, 0.1, 0.15), 1)
 
 
 def true_h2_cost(setting: WillemsSetting, gain: np.ndarray) -> float:
