@@ -8,14 +8,13 @@ mechanism is exact. Budgets are RMS per entry (||Du||_F <= delta sqrt(m T)). One
 
 from __future__ import annotations
 
-import csv
 import os
 import time
 from typing import Any, Callable
 
 import numpy as np
 
-from ..files import atomic_open
+from ..files import atomic_open, write_rows_csv
 from ..problems.willems import build_attack
 from ..problems.willems_instance import WillemsSetting
 from ..robust import as_target, attack_bound, certified_margin, sample_soundness
@@ -80,10 +79,7 @@ def run_dpt_margins(sims: int = 32, out_dir: str = "out/certify-dpt", seed: int 
         rows = run_sweep(margin_task, tasks, os.path.join(out_dir, "margins.jsonl"), executor, progress,
                          "certify-dpt", valid=lambda r: check_fields(r, ROW_SCHEMA))
     os.makedirs(out_dir, exist_ok=True)
-    with atomic_open(os.path.join(out_dir, "margins.csv"), newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(ROW_SCHEMA))
-        writer.writeheader()
-        writer.writerows({k: r[k] for k in ROW_SCHEMA} for r in rows)
+    write_rows_csv(os.path.join(out_dir, "margins.csv"), rows, ROW_SCHEMA)
     table = summary_markdown(rows)
     with atomic_open(os.path.join(out_dir, "margins.md")) as fh:
         fh.write(table)

@@ -15,7 +15,6 @@ lqr design's). One resumable sweep task per (learner, delta_d, delta, data set).
 
 from __future__ import annotations
 
-import csv
 import os
 import time
 from dataclasses import dataclass
@@ -26,7 +25,7 @@ import numpy as np
 from ..attacks.willems import destabilize_attack
 from ..ddc.robust_depersis_tesi import RobustController, robust_lqr_controller
 from ..errors import BilevelError
-from ..files import atomic_open
+from ..files import atomic_open, write_rows_csv
 from ..problems.defended_willems import ROBUST_OBJECTIVES, declare_robust
 from ..problems.willems import build_attack
 from ..problems.willems_instance import WillemsSetting, criterion_values
@@ -195,10 +194,7 @@ def summary_markdown(summary: list[dict[str, Any]]) -> str:
 def write_outputs(rows: list[dict[str, Any]], out_dir: str) -> str:
     """robust.csv (per data set) and robust.md (summary_markdown); returns the table."""
     os.makedirs(out_dir, exist_ok=True)
-    with atomic_open(os.path.join(out_dir, "robust.csv"), newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(ROW_SCHEMA))
-        writer.writeheader()
-        writer.writerows({k: r[k] for k in ROW_SCHEMA} for r in rows)
+    write_rows_csv(os.path.join(out_dir, "robust.csv"), rows, ROW_SCHEMA)
     table = summary_markdown(summarize(rows))
     with atomic_open(os.path.join(out_dir, "robust.md")) as fh:
         fh.write(table)
