@@ -1,6 +1,7 @@
 """The bracket [delta_lb, delta_ub] of the smallest destabilizing input poisoning of the De Persis–Tesi learners
 (issue 46; bilevel.robust.depersis_tesi): per horizon, selection and data set, delta_lb by certified_margin (bisection
-with certificates), delta_ub by the budget search with the minimal attack (both to a bracket of rel_tol), their ratio and times, and the sampling
+with certificates), delta_ub by the budget search with the minimal attack (both to a bracket of rel_tol), their ratio
+and times, and the sampling
 check at delta_lb (random poisonings on the budget sphere and both attacks, judged by the numpy re-fit). Data: the
 batch reactor (n = 4, m = 2) at T = 15 and 50, and a 2-state, 1-input plant (N2_PLANT) where the stability-triangle
 mechanism is exact. Budgets are RMS per entry (||Du||_F <= delta sqrt(m T)). One resumable sweep task per row.
@@ -8,6 +9,7 @@ mechanism is exact. Budgets are RMS per entry (||Du||_F <= delta sqrt(m T)). One
 
 from __future__ import annotations
 
+import csv
 import os
 import time
 from typing import Any, Callable
@@ -67,11 +69,31 @@ def summary_markdown(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def linf_markdown(rows: list[dict[str, Any]], frontier_csv: str) -> str:
+    """The reactor's min-norm delta_lb (proven for the l2 ball, so for the linf box |Du_ij| <= delta inside it) against
+    delta* of the defenses frontier (`frontier_csv`: the undefended De Persis–Tesi learner, reg 1e-8, under the
+    project's linf destabilize attack) on the same data sets (equal data seeds): per horizon, paired median, worst
+    and best ratio delta* / delta_lb."""
+    with open(frontier_csv, newline="") as fh:
+        frontier = [r for r in csv.DictReader(fh) if r["learner"] == "willems" and float(r["param"]) == 1e-8]
+    lines = ["| T | data sets | median delta_lb | median linf delta* | median ratio | worst ratio | best ratio |",
+             "|---|---|---|---|---|---|---|"]
+    for horizon in sorted({r["horizon"] for r in rows if r["plant"] == "reactor"}):
+        star = {int(r["data_seed"]): float(r["delta_star"]) for r in frontier if int(r["N"]) == horizon}
+        pairs = np.array([(r["delta_lb"], star[r["data_seed"]]) for r in rows if (r["plant"], r["horizon"],
+                          r["selection"]) == ("reactor", horizon, "min-norm") and r["data_seed"] in star])
+        if pairs.size:
+            ratio = pairs[:, 1] / pairs[:, 0]
+            lines.append(f"| {horizon} | {len(pairs)} | {np.median(pairs[:, 0]):.4g} | {np.median(pairs[:, 1]):.4g} | "
+                         f"{np.median(ratio):.3g} | {ratio.max():.3g} | {ratio.min():.3g} |")
+    return "\n".join(lines) + "\n"
+
+
 def run_dpt_margins(sims: int = 32, out_dir: str = "out/certify-dpt", seed: int = 0, samples: int = 10_000,
-                    rel_tol: float = 0.01, workers: int | None = None,
+                    rel_tol: float = 0.01, workers: int | None = None, frontier_csv: str | None = None,
                     progress: Callable[[str], None] | None = stderr_progress) -> str:
-    """Every case of CASES on `sims` data sets (resumable, margins.jsonl), margins.csv and margins.md; returns the
-    table."""
+    """Every case of CASES on `sims` data sets (resumable, margins.jsonl), margins.csv and margins.md (with
+    linf_markdown against frontier_csv where given); returns the table."""
     tasks = [{"key": f"{plant}|N={n}|{selection}|sim={i}", "plant": plant, "N": n, "selection": selection,
               "seed": data_seed, "samples": samples, "rel_tol": rel_tol, "root_seed": seed}
              for plant, n, selection in CASES for i, data_seed in enumerate(sim_seeds(seed, sims))]
@@ -81,6 +103,9 @@ def run_dpt_margins(sims: int = 32, out_dir: str = "out/certify-dpt", seed: int 
     os.makedirs(out_dir, exist_ok=True)
     write_rows_csv(os.path.join(out_dir, "margins.csv"), rows, ROW_SCHEMA)
     table = summary_markdown(rows)
+    if frontier_csv is not None:
+        table += ("\nThe linf input budget: delta_lb against the linf attack's delta*\n\n"
+                  + linf_markdown(rows, frontier_csv))
     with atomic_open(os.path.join(out_dir, "margins.md")) as fh:
         fh.write(table)
     return table

@@ -113,7 +113,9 @@ def robust_task(task: dict[str, Any]) -> dict[str, Any]:
     answered = radii[np.isfinite(radii)]
     return {"learner": "robust", "design": task["design"], "budget": task["budget"], "horizon": task["N"],
             "data_seed": task["seed"], "answers": len(answers), "abstained": int(sum(not a.certified for a in answers)),
-            "engine_abstained": int(sum(not a.certified for a in answers[:engine])), "unstable": int(np.sum(answered >= 1.0)), "radius": float(answered.max()) if answered.size else float("nan"),
+            "engine_abstained": int(sum(not a.certified for a in answers[:engine])),
+            "unstable": int(np.sum(answered >= 1.0)),
+            "radius": float(answered.max()) if answered.size else float("nan"),
             "clean_cost": clean_cost, "seconds": time.perf_counter() - t0}
 
 
@@ -131,7 +133,8 @@ def nominal_task(task: dict[str, Any]) -> dict[str, Any]:
     else:
         radius = destabilize_attack(attack, seed=task["attack_seed"]).stats["spectral_radius"]
     return {"learner": task["learner"], "design": 0.0, "budget": task["budget"], "horizon": task["N"],
-            "data_seed": task["seed"], "answers": 1, "abstained": 0, "engine_abstained": 0, "unstable": int(radius >= 1.0), "radius": radius,
+            "data_seed": task["seed"], "answers": 1, "abstained": 0, "engine_abstained": 0,
+            "unstable": int(radius >= 1.0), "radius": radius,
             "clean_cost": clean_performance(attack), "seconds": time.perf_counter() - t0}
 
 
@@ -181,13 +184,15 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def summary_markdown(summary: list[dict[str, Any]]) -> str:
     """The table: one line per (learner, design, budget)."""
-    lines = ["| learner | design budget | attack budget | data sets | abstention rate (by the engine's attacks) | unstable loops / answers | "
-             "median true radius | largest true radius | clean H2 cost (mean over certified) | clean cost ratio to "
-             "undefended (median) | seconds per data set |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| learner | design budget | attack budget | data sets | abstention rate (by the engine's attacks) | "
+             "unstable loops / answers | median true radius | largest true radius | clean H2 cost (mean over "
+             "certified) | clean cost ratio to undefended (median) | seconds per data set |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for s in summary:
         lines.append(f"| {s['learner']} | {s['design']:g} | {s['budget']:g} | {s['data_sets']} | "
-                     f"{s['abstention_rate']:.3g} ({s['engine_abstention_rate']:.3g}) | {s['unstable']} / {s['answers']} | {s['median_radius']:.4g} | "
-                     f"{s['max_radius']:.4g} | {s['clean_cost']:.4g} | {s['cost_ratio']:.4g} | {s['seconds']:.3g} |")
+                     f"{s['abstention_rate']:.3g} ({s['engine_abstention_rate']:.3g}) | "
+                     f"{s['unstable']} / {s['answers']} | {s['median_radius']:.4g} | {s['max_radius']:.4g} | "
+                     f"{s['clean_cost']:.4g} | {s['cost_ratio']:.4g} | {s['seconds']:.3g} |")
     return "\n".join(lines) + "\n"
 
 

@@ -44,10 +44,11 @@ def declare_robust(setting: WillemsSetting, design_delta: float, objective: str 
     (ROBUST_OBJECTIVES; [B_id A_id] identified from the clean data, the true plant for noise-free data). Where the
     learner abstains (its SDP infeasible at some poisoning) the engine reports the lower level infeasible."""
     if objective not in ROBUST_OBJECTIVES:
-        raise ModelError(f"defense-willems-robust: objective={objective!r} is not one of {', '.join(ROBUST_OBJECTIVES)}")
+        raise ModelError(f"defense-willems-robust: objective={objective!r} is not one of "
+                         f"{', '.join(ROBUST_OBJECTIVES)}")
     if setting.poison != "u" or setting.design != "lqr":
-        raise ModelError("defense-willems-robust: the robust learner is declared for input poisoning of the lqr design; "
-                         f"got poison={setting.poison!r}, design={setting.design!r}")
+        raise ModelError("defense-willems-robust: the robust learner is declared for input poisoning of the lqr "
+                         f"design; got poison={setting.poison!r}, design={setting.design!r}")
     if not design_delta > 0:
         raise ModelError(f"defense-willems-robust: design_delta must be > 0 (0 is the nominal learner), got "
                          f"{design_delta}")
