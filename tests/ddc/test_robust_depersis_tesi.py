@@ -1,6 +1,6 @@
-"""The robust De Persis–Tesi learner (issue 46): its consistent set contains the true plant under
-worst-case poisoning, its gain stabilizes plants sampled from that set (numpy), it abstains where the budget is too large, its re-check
-rejects a tampered certificate, and the engine's lower level agrees with it."""
+"""The robust De Persis–Tesi learner (issue 46): its consistent set contains the true plant under worst-case
+poisoning, its gain stabilizes plants sampled from that set (numpy), it abstains where the budget is too large, its
+re-check rejects a tampered certificate, and the engine's lower level agrees with it."""
 
 import numpy as np
 import pytest
