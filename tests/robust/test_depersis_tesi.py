@@ -14,6 +14,7 @@ from bilevel.problems.willems import build_attack
 from bilevel.problems.willems_instance import WillemsSetting
 from bilevel.robust import Proof, as_target, certified_margin, certify, sample_soundness
 from bilevel.robust.depersis_tesi import recheck_small_gain
+from tests.docs_pages import run_page
 
 
 def _target(selection="min-norm", plant=None, horizon=15, seed=1):
@@ -69,3 +70,7 @@ def test_other_settings_are_refused():
     atk = build_attack(WillemsSetting(objective="destabilize", horizon=15, seed=1))
     with pytest.raises(ModelError, match="poison='u'"):
         as_target(dataclasses.replace(atk, setting=dataclasses.replace(atk.setting, selection="tikhonov")))
+
+
+def test_page_runs():
+    run_page("certify_dpt.md")
