@@ -138,6 +138,9 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     # the robust De Persis-Tesi learner (bilevel.ddc.robust_depersis_tesi)
     "robust_willems.lmi_margin": (1e-5, "the robust SDP's LMI is >= this * I (strict, so that numpy's re-check has room;"
                                         " absolute)"),
+    "robust_willems.margin_steps": (3, "solves of the robust SDP, tau growing by margin_factor, until numpy's re-check "
+                                       "passes (count)"),
+    "robust_willems.margin_factor": (100.0, "growth of tau between the robust SDP's solves"),
     "robust_willems.check_margin": (1e-10, "verify_gain passes where G's and P's smallest eigenvalues are >= this "
                                            "times the scale of G's terms (relative; rounding is ~1e-16)"),
     # lower levels (bilevel.lower)

@@ -23,11 +23,15 @@ By a Schur complement, G = M - alpha N - diag(I, 0) >= 0 with M = [[P, 0], [0, -
 Sigma [I; Z']' G [I; Z'] >= 0 gives P - (A + B K) P (A + B K)' >= I: the gain stabilizes every plant consistent with the
 data and the budget, the true one included, and tr(Qx P) bounds the H2 cost of each (the matrix S-lemma makes the
 condition lossless where N has a Slater point). The learner returns a gain only after verify_gain (numpy alone)
-re-checks G's smallest eigenvalue above a margin over rounding; else, or where the SDP is infeasible, it abstains.
+re-checks G's smallest eigenvalue above a margin over rounding; where the re-check fails (small budgets make alpha
+large, and the Schur complement of alpha N loses the solver's accuracy) it re-solves with tau larger by
+robust_willems.margin_factor, at most robust_willems.margin_steps solves; else, or where the SDP is infeasible, it
+abstains.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -151,17 +155,22 @@ def robust_lqr_controller(x: ArrayLike, u: ArrayLike, delta_u: float, delta_x: f
     lmi = cp.bmat([[p - np.eye(n) - alpha * n_mat[:n, :n], -alpha * n_mat[:n, n:], np.zeros((n, n))],
                    [-alpha * n_mat[n:, :n], -alpha * n_mat[n:, n:], py],
                    [np.zeros((n, n)), py.T, p]])
-    tau = param("robust_willems.lmi_margin")
+    tau = cp.Parameter(nonneg=True)
     problem = cp.Problem(cp.Minimize(cp.trace(qx @ p)), [(lmi + lmi.T) / 2 >> tau * np.eye(3 * n + m)])
-    try:
-        solve_clarabel(problem, "the robust De Persis-Tesi SDP", options=dict(solver_options or {}))
-    except LowerLevelInfeasible:
-        return RobustController(INFEASIBLE, eps, n_mat)
-    except SolverFailed:
-        return RobustController(UNVERIFIED, eps, n_mat)
-    p_val = (p.value + p.value.T) / 2
-    k = np.linalg.solve(p_val, y.value.T).T
-    a_val = float(alpha.value)
-    passed, low, margin = verify_gain(k, p_val, a_val, n_mat)
-    return RobustController(CERTIFIED if passed else UNVERIFIED, eps, n_mat, k, p_val, a_val, float(problem.value),
-                            low, margin)
+    answer = RobustController(INFEASIBLE, eps, n_mat)
+    for step in range(param("robust_willems.margin_steps")):
+        tau.value = param("robust_willems.lmi_margin") * param("robust_willems.margin_factor") ** step
+        try:
+            solve_clarabel(problem, "the robust De Persis-Tesi SDP", options=dict(solver_options or {}))
+        except LowerLevelInfeasible:
+            return answer if step == 0 else dataclasses.replace(answer, status=UNVERIFIED)
+        except SolverFailed:
+            return RobustController(UNVERIFIED, eps, n_mat)
+        p_val = (p.value + p.value.T) / 2
+        k = np.linalg.solve(p_val, y.value.T).T
+        passed, low, margin = verify_gain(k, p_val, float(alpha.value), n_mat)
+        answer = RobustController(CERTIFIED if passed else UNVERIFIED, eps, n_mat, k, p_val, float(alpha.value),
+                                  float(problem.value), low, margin)
+        if passed:
+            break
+    return answer

@@ -99,3 +99,12 @@ def test_engine_lower_level_matches_learner(reactor):
     problem = registry.get("defense-willems-robust", seed=1, delta_u=0.05, design_delta=DESIGN)
     lower = shared_oracle(prepare(problem)).evaluate(np.zeros(30)).lower
     assert float(lower.objective) == pytest.approx(robust_lqr_controller(x, u, DESIGN).value, rel=1e-6)
+
+
+@pytest.mark.parametrize("seed", [673228719, 2078861726])
+def test_small_budgets_are_certified(seed):
+    """At design budget 0.01 alpha is ~1e3 and one solve at the first tau failed numpy's re-check on these data (a
+    measured case); the learner re-solves with a larger tau and returns a verified gain."""
+    x, u = WillemsSetting(horizon=15, seed=seed).experiment()
+    r = robust_lqr_controller(x, u, 0.01)
+    assert r.status == CERTIFIED and verify_gain(r.k, r.p, r.alpha, r.n_mat)[0]
