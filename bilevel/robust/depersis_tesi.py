@@ -48,6 +48,8 @@ PATH = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0)
 """The attack's budget path (RMS per-entry delta) before bisection."""
 FREQUENCIES, DIRECTIONS = 256, 64
 """The minimal attack's grid: frequencies in (0, pi) and random directions v per frequency."""
+PUSH = 1.0 + 1e-6
+"""A poisoning on the unit circle's boundary scaled by this to reach past it (the attack, the triangle's refutation)."""
 
 
 def learner_q(attack: WillemsAttack) -> np.ndarray:
@@ -154,12 +156,12 @@ def _minimal(loop: DPTLoop) -> np.ndarray:
 
 
 def minimal_poisoning(target: Target, delta: float) -> np.ndarray:
-    """The minimal destabilizing Du (module docstring) pushed 1e-6 past the unit circle, or, where that exceeds the
+    """The minimal destabilizing Du (module docstring) scaled by PUSH past the unit circle, or, where that exceeds the
     budget's radius, scaled to the radius (then it need not destabilize)."""
     du = _minimal(target.declaration)
     radius = target.radii(delta)["u"]
     norm = np.linalg.norm(du)
-    return du * min(1.0 + 1e-6, radius / norm)
+    return du * min(PUSH, radius / norm)
 
 
 def _margin(*sizes: float) -> float:
@@ -186,14 +188,14 @@ def triangle(target: Target, delta: float | None, options: dict[str, Any]) -> Ev
                         f"every ||Du||_F <= {r:.6g} (delta = {delta:.6g}) leaves the true loop stable: the gain "
                         f"ellipse lies in the stability triangle (exact radius {safe:.6g})",
                         {"radius": r, "exact_radius": safe}, _recheck_triangle(target, r), time.perf_counter() - t0)
-    if r < safe * (1 + 1e-6):
+    if r < safe * PUSH:
         return Evidence("stability-triangle", Proof.UNKNOWN, f"radius {r:.6g} is at the exact radius {safe:.6g}",
                         {"radius": r, "exact_radius": safe}, Check(False, "not attempted: on the boundary"),
                         time.perf_counter() - t0)
-    du = -safe * (1 + 1e-6) * gd[:, i][None, :] / np.linalg.norm(gd[:, i])
+    du = -safe * PUSH * gd[:, i][None, :] / np.linalg.norm(gd[:, i])
     rho = target.true_radius({"u": du})
     return Evidence("stability-triangle", Proof.REFUTED,
-                    f"a poisoning of norm {safe * (1 + 1e-6):.6g} <= {r:.6g} puts a closed-loop eigenvalue on or past "
+                    f"a poisoning of norm {safe * PUSH:.6g} <= {r:.6g} puts a closed-loop eigenvalue on or past "
                     f"the unit circle (exact radius {safe:.6g})", {"radius": r, "exact_radius": safe},
                     Check(rho >= 1.0, "numpy: the true loop's spectral radius under the re-fitted gain",
                           {"spectral_radius": rho}), time.perf_counter() - t0)
