@@ -55,3 +55,9 @@ def test_margin_brackets_the_attack(atk) -> None:
     assert 0 < margin.delta_lb <= margin.delta_ub < np.inf
     assert margin.certificate is not None and margin.certificate.proven
     assert any(rho >= 1.0 for _, rho in margin.attack_runs)
+
+
+def test_docs_page_runs() -> None:
+    from tests.docs_pages import run_page
+
+    run_page("certify.md")
