@@ -29,6 +29,7 @@ import numpy as np
 
 from ..ddc.model_based import lqr_gain
 from ..defaults import param
+from ..errors import ModelError
 from ..problems.identification import declare
 from ..problems.identification_instance import IdentificationAttack, least_squares_fit
 from ..solvers.registry import solve
@@ -63,7 +64,8 @@ def ce_radius(atk: IdentificationAttack, theta: np.ndarray) -> float:
 def identification_target(atk: IdentificationAttack, starts: int = 1, **options: Any) -> Target:
     """The Target of a state-space identification instance (module docstring)."""
     if atk.learner != "ss":
-        raise ValueError("certificates cover the state-space learner (ident-ss) with certainty-equivalence LQR")
+        raise ModelError(f"certificates cover the state-space learner (ident-ss) with certainty-equivalence LQR, not "
+                         f"{atk.learner!r}: build the instance with attack_instance('ss', ...)")
 
     def engine(delta: float, seed: int) -> Signals:
         instance = IdentificationAttack(atk.setting, "ss", dict(atk.signals), {"X": delta, "U": delta}, "ce-lqr",
@@ -201,7 +203,7 @@ def recheck(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Che
     eigs = {name: float(np.linalg.eigvalsh(_sym(M))[0]) for name, M in zip(names, mats)}
     sizes = {name: float(np.max(np.abs(M))) for name, M in zip(names, mats)}
     margin = param("robust.check_margin")
-    ok = [eigs[k] >= -margin * sizes[k] * 0 + margin * sizes[k] for k in ("upper", "lower", "loop")]
+    ok = [eigs[k] >= margin * sizes[k] for k in ("upper", "lower", "loop")]
     passed = all(ok) and eigs["gap"] >= -margin * sizes["gap"] and float(np.linalg.eigvalsh(Y)[0]) >= 0 \
         and sol["mu1"] > 0 and sol["mu2"] > 0 and sol["mu3"] > 0 and sol["tau"] > 0
     return Check(passed, "numpy eigenvalues of the LMIs at the SDP's solution (smallest, against a margin of "
