@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..defaults import param
+from ..threads import single_threaded_call
 from .target import Signals, Target
 
 
@@ -40,6 +41,7 @@ def sphere_poisoning(target: Target, delta: float, rng: np.random.Generator) -> 
     return out
 
 
+@single_threaded_call
 def sample_soundness(target: Target, delta: float, samples: int | None = None, seed: int = 0,
                      attacks: bool = True) -> Soundness:
     """Soundness at delta (module docstring): `samples` sphere poisonings (defaults["robust.soundness_samples"]) and,
