@@ -1,6 +1,6 @@
 """bilevel: bilevel optimization with convex lower levels, reduced to KKT form, solved and certified."""
 
-from .certificate import Certificate, certify
+from .certificate import Certificate, certify_point
 from .defaults import defaults, reset_defaults, set_defaults
 from .errors import (BilevelError, InvalidData, LowerLevelInfeasible, LowerLevelUnbounded, ModelError,
                      NonConvexLowerLevel, NotPersistentlyExciting, RankDeficientRegressor, ReferenceModelError,
@@ -9,13 +9,14 @@ from .model import BilevelProblem
 from .mpcc import MPCC, Branch, Exact, FischerBurmeister, KanzowSchwartz, Product, Scholtes
 from .problems.registry import problem_builder
 from .result import BilevelResult, Status
+from .robust import Margin, Proof, RobustnessCertificate, certified_margin, certify
 from .solvers import METHODS, register_method, show_options, solve
 
 __all__ = [
     "BilevelError", "BilevelProblem", "BilevelResult", "Branch", "Certificate", "Exact", "FischerBurmeister",
-    "InvalidData", "KanzowSchwartz", "LowerLevelInfeasible", "LowerLevelUnbounded", "METHODS", "MPCC",
-    "ModelError", "NonConvexLowerLevel", "NotPersistentlyExciting", "Product", "RankDeficientRegressor",
-    "ReferenceModelError", "Scholtes", "SolverFailed", "Status", "UnknownName", "UnknownOption", "UnsupportedPair",
-    "certify", "defaults", "problem_builder", "register_method", "reset_defaults", "set_defaults", "show_options",
-    "solve",
+    "InvalidData", "KanzowSchwartz", "LowerLevelInfeasible", "LowerLevelUnbounded", "METHODS", "MPCC", "Margin",
+    "ModelError", "NonConvexLowerLevel", "NotPersistentlyExciting", "Product", "Proof", "RankDeficientRegressor",
+    "ReferenceModelError", "RobustnessCertificate", "Scholtes", "SolverFailed", "Status", "UnknownName",
+    "UnknownOption", "UnsupportedPair", "certified_margin", "certify", "certify_point", "defaults", "problem_builder",
+    "register_method", "reset_defaults", "set_defaults", "show_options", "solve",
 ]

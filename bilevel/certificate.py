@@ -241,7 +241,7 @@ def _reduced_hessian_unique(low, x: np.ndarray, ref, tol: float) -> bool | None:
     return True
 
 
-def certify(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | None = None, sense: str = "min") -> Certificate:
+def certify_point(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | None = None, sense: str = "min") -> Certificate:
     """Scaled KKT residuals of the lower level at `point` and its gap to an independent lower-level solve, accepted
     up to tol (None: defaults["certificate.tol"]). The independent re-solve of a nonlinear lower level starts from
     the point's y, the default and random points (defaults["certificate.nlp_starts"] in all). sense: the declared

@@ -342,7 +342,8 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     return _run_sweeps(work)
 
 
-REPRODUCE_FLAGS = {"--quick": ("willems", "identification", "defenses"), "--selection": ("willems",),
+REPRODUCE_FLAGS = {"--quick": ("willems", "identification", "defenses", "certify", "robust-willems"),
+                   "--selection": ("willems",),
                    "--learners": ("defenses",)}
 """The `reproduce` flags that only some targets take."""
 
@@ -375,6 +376,14 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
         learners = None if args.learners is None else args.learners.split(",")
         return _run_sweeps(lambda: run_defenses(args.sims, out, args.quick, args.seed, args.workers, args.dask,
                                                 learners=learners))
+    if args.target == "certify":
+        from .experiments.certify import run_certify
+
+        return _run_sweeps(lambda: run_certify(args.sims, out, args.quick, args.seed, args.workers, args.dask))
+    if args.target == "robust-willems":
+        from .experiments.robust_willems import run_robust_willems
+
+        return _run_sweeps(lambda: run_robust_willems(args.sims, out, args.quick, args.seed, args.workers, args.dask))
     if args.target == "willems-budget":
         from .experiments.willems_budget import run_budget
 
@@ -443,10 +452,13 @@ def build_parser() -> argparse.ArgumentParser:
                        help="run on a Dask cluster: tcp://HOST:PORT of its scheduler, or 'local' (docs/clusters.md)")
     p_cmp.set_defaults(run=_cmd_compare)
     p_rep = sub.add_parser("reproduce", help="reproduce the paper's tables and figures (resumable)")
-    p_rep.add_argument("target", choices=["vrft", "willems", "willems-budget", "identification", "defenses"],
+    p_rep.add_argument("target", choices=["vrft", "willems", "willems-budget", "identification", "defenses", "certify",
+                                          "robust-willems"],
                        help="willems-budget: delta_u*, the smallest destabilizing input budget, per data set; "
                             "identification: stealthy poisoning of state-space least squares; defenses: the defended "
-                            "learners' clean cost against delta* (docs/defenses.md)")
+                            "learners' clean cost against delta* (docs/defenses.md); certify: the certified bracket "
+                            "[delta_lb, delta_ub] per learner and data set (docs/certify.md); robust-willems: the "
+                            "robust De Persis-Tesi learner under adaptive attack (docs/defenses.md)")
     p_rep.add_argument("--sims", type=int, default=32, help="simulations per cell (the paper: 512 vrft, 256 willems; "
                        "identification: 100)")
     p_rep.add_argument("--out", default=None, help="output directory (default out/<target>); one holding another "
@@ -459,7 +471,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="run on a Dask cluster: tcp://HOST:PORT of its scheduler, or 'local' (docs/clusters.md)")
     p_rep.add_argument("--quick", action="store_true", help="willems: the small CI-sized grid (4 sims, 3 budgets); "
                        "identification: T = 100, delta 0.01 and 0.05, 2 sims; defenses: 8 sims, VRFT N = 128, "
-                       "De Persis-Tesi T = 15, identification T = 25, DeePC T = 60")
+                       "De Persis-Tesi T = 15, identification T = 25, DeePC T = 60; certify: 2 sims, VRFT N = 64, "
+                       "200 samples; robust-willems: 2 sims, design 0.1 attacked at its full budget")
     p_rep.add_argument("--selection", choices=WILLEMS_SELECTIONS, default=None,
                        help="willems: the learner's choice among its optimal Q (tikhonov: the session-1 sweep's; "
                             "clarabel, scs: the solver's own Q, input poisoning only; default min-norm)")
@@ -470,7 +483,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 TARGET_FILES = {"vrft": "maxmin-paper.jsonl", "willems": "paper.jsonl", "willems-budget": "budget.jsonl",
-                "identification": "stealthy.jsonl", "defenses": "defenses.jsonl"}
+                "identification": "stealthy.jsonl", "defenses": "defenses.jsonl", "certify": "certify.jsonl",
+                "robust-willems": "robust.jsonl"}
 """The sweep file only `bilevel reproduce TARGET` writes: a directory holding another target's is that target's run."""
 
 

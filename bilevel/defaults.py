@@ -146,6 +146,14 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "willems.evolution.max_iter": (300, "generations of de_attack (count)"),
     "willems.evolution.popsize": (5, "de_attack's population is this many members per poisoned entry (scipy's "
                                      "popsize)"),
+    # the robust De Persis-Tesi learner (bilevel.ddc.robust_depersis_tesi)
+    "robust_willems.lmi_margin": (1e-5, "the robust SDP's LMI is >= this * I (strict, so that numpy's re-check has room;"
+                                        " absolute)"),
+    "robust_willems.margin_steps": (3, "solves of the robust SDP, tau growing by margin_factor, until numpy's re-check "
+                                       "passes (count)"),
+    "robust_willems.margin_factor": (100.0, "growth of tau between the robust SDP's solves"),
+    "robust_willems.check_margin": (1e-10, "verify_gain passes where G's and P's smallest eigenvalues are >= this "
+                                           "times the scale of G's terms (relative; rounding is ~1e-16)"),
     # lower levels (bilevel.lower)
     "classify.y_probes": (16, "lower points drawn per upper sample when a lower Hessian depends on y (count)"),
     "convexity.psd_tol": (1e-9, "a Hessian counts as PSD when its smallest eigenvalue >= -this * max(1, its largest "
@@ -174,6 +182,13 @@ ENTRIES: dict[str, tuple[Any, str]] = {
                                             "a matrix (count)"),
     "spectral_radius.defective_cond": (1e12, "eigenvector matrices with a larger condition number are treated as "
                                              "singular (a defective top eigenvalue)"),
+    # certified robustness (bilevel.robust)
+    "robust.margin_rel_tol": (0.05, "certified_margin bisects delta_lb to a bracket of this times its top (relative)"),
+    "robust.attack_rel_tol": (0.05, "the attack's budget search for delta_ub stops at this bracket (relative)"),
+    "robust.smallest_delta": (1e-4, "certified_margin gives up below this fraction of delta_ub (delta_lb = 0)"),
+    "robust.soundness_samples": (10_000, "random poisonings on the budget sphere of the sampling check (count)"),
+    "robust.check_margin": (1e-9, "an independent re-check passes only with this margin above zero, relative to the "
+                                  "size of the numbers it compares (rounding cannot make it pass)"),
 }
 """The registry's entries: key -> (default value, what it is and its unit)."""
 

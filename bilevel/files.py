@@ -6,8 +6,10 @@ readers never meet a truncated table, report, figure or timings.json.
 
 from __future__ import annotations
 
+import csv
 import os
 import uuid
+from collections.abc import Iterable, Mapping
 from contextlib import contextmanager
 from typing import IO, Any, Iterator
 
@@ -58,3 +60,12 @@ def save_figure(fig: Any, out_dir: str, name: str) -> str:
 
     plt.close(fig)
     return f"{name}.png"
+
+
+def write_rows_csv(path: str, rows: Iterable[Mapping[str, Any]], fields: Iterable[str]) -> None:
+    """Write `fields` of each row as CSV (a header line, then one line per row), atomically."""
+    fields = list(fields)
+    with atomic_open(path, newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows({k: r[k] for k in fields} for r in rows)

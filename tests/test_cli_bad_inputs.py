@@ -151,7 +151,8 @@ CASES: dict[str, tuple[list[str], str]] = {
     "unknown structured attack option": (["solve", "vrft-maxmin", "--option", "tol=1"],
                                          "takes max_iter, gain_tol, time_limit, verbose, attack, path, save"),
     "data seed twice": (["solve", "vrft-maxmin", "--seed", "2", "--param", "seed=3"], "give one"),
-    "--quick on vrft": (["reproduce", "vrft", "--quick"], "only `reproduce willems`, `reproduce identification` and `reproduce defenses` take it"),
+    "--quick on vrft": (["reproduce", "vrft", "--quick"], "only `reproduce willems`, `reproduce identification`, "
+                        "`reproduce defenses`, `reproduce certify` and `reproduce robust-willems` take it"),
     "--learners on vrft": (["reproduce", "vrft", "--learners", "vrft"], "only `reproduce defenses` takes it"),
     "unknown defenses learner": (["reproduce", "defenses", "--learners", "vrft,dpt"],
                                  "unknown learner(s) 'dpt'; give a comma-separated subset of vrft,willems,ident,deepc"),

@@ -21,7 +21,6 @@ order-statistic interval; the clean cost's mean has a t interval. One resumable 
 
 from __future__ import annotations
 
-import csv
 import os
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -34,7 +33,7 @@ from matplotlib.figure import Figure  # noqa: E402
 
 from ..errors import ModelError  # noqa: E402
 from ..result import Status  # noqa: E402
-from ..files import atomic_open, atomic_path  # noqa: E402
+from ..files import atomic_open, atomic_path, write_rows_csv  # noqa: E402
 from ..problems import defended_deepc, defended_identification  # noqa: E402
 from ..problems.deepc import declare as declare_deepc  # noqa: E402
 from ..problems.deepc_instance import attack_instance as deepc_instance  # noqa: E402
@@ -327,10 +326,7 @@ def write_outputs(rows: list[dict[str, Any]], out_dir: str, learners: Sequence[s
     """frontier.csv (per data set), frontier.md (learners_line, then summary_markdown) and fig_frontier.png; returns
     frontier.md's text."""
     os.makedirs(out_dir, exist_ok=True)
-    with atomic_open(os.path.join(out_dir, "frontier.csv"), newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(ROW_SCHEMA))
-        writer.writeheader()
-        writer.writerows({k: r[k] for k in ROW_SCHEMA} for r in rows)
+    write_rows_csv(os.path.join(out_dir, "frontier.csv"), rows, ROW_SCHEMA)
     summary = summarize(rows)
     fig = frontier_figure(summary, learners)
     with atomic_path(os.path.join(out_dir, "fig_frontier.png")) as tmp:

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..canonical import (CanonicalBilevel, Canonicalize, NormalizeSense, in_sense, kkt_solution, objectives,
                          suggested_starts)
-from ..certificate import LOCAL_EVIDENCE, Certificate, GlobalBound, certify
+from ..certificate import LOCAL_EVIDENCE, Certificate, GlobalBound, certify_point
 from ..defaults import param
 from ..errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption, did_you_mean
 from ..model import BilevelProblem
@@ -329,7 +329,7 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
                              tuple(run.history), tuple(run.start_records), run.stats)
     point = prep.point(run.w)
     try:
-        cert = certify(prep.canon, point, tol, prep.problem.upper_objective.sense)
+        cert = certify_point(prep.canon, point, tol, prep.problem.upper_objective.sense)
         if run.global_bound is not None:
             cert = replace(cert, global_bound=run.global_bound)
     except BilevelError as exc:  # evaluation failed: keep the point, say why

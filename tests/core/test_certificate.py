@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import bilevel as bl
-from bilevel.certificate import certify
+from bilevel.certificate import certify_point
 from bilevel.solvers.base import prepare
 from tests.conftest import bard_511, projection_qp
 
@@ -38,17 +38,17 @@ def test_certificate_passes_at_projection_qp_optimum() -> None:
 ])
 def test_perturbed_point_fails_certificate(field: str, delta: float, failing: str) -> None:
     prep, point, _ = _solved_point(bard_511())
-    assert certify(prep.canon, point).passed
+    assert certify_point(prep.canon, point).passed
     bad = dataclasses.replace(point, **{field: getattr(point, field) + delta})
-    cert = certify(prep.canon, bad)
+    cert = certify_point(prep.canon, bad)
     assert not cert.passed and failing in cert.failed
 
 
 def test_negative_multiplier_and_upper_infeasibility_fail() -> None:
     prep, point, _ = _solved_point(bard_511())
-    cert = certify(prep.canon, dataclasses.replace(point, lam=point.lam - 1.0))
+    cert = certify_point(prep.canon, dataclasses.replace(point, lam=point.lam - 1.0))
     assert "dual_feasibility" in cert.failed
-    cert = certify(prep.canon, dataclasses.replace(point, x=np.array([-1.0])))
+    cert = certify_point(prep.canon, dataclasses.replace(point, x=np.array([-1.0])))
     assert "upper_feasibility" in cert.failed
 
 
@@ -63,7 +63,7 @@ def test_infeasible_lower_level_gives_a_failed_certificate_with_a_note() -> None
     with pytest.raises(bl.LowerLevelInfeasible):
         prep.canon.lower.solve(np.array([2.0]))
     point = prep.point(np.concatenate([[2.0], [1.0], np.zeros(3)]))
-    cert = certify(prep.canon, point)
+    cert = certify_point(prep.canon, point)
     assert not cert.passed and "infeasible" in cert.note
     res = p.solve(starts=4)  # the leader must stay where the follower is feasible: x = 1
     assert res.success and res.x["x"] == pytest.approx(1.0, abs=1e-6)
@@ -117,6 +117,6 @@ def test_certificate_quotes_a_maximized_objective_in_its_own_sign() -> None:
     p.minimize_lower((y - x) ** 2)
     canon = prepare(p).canon
     point = KKTPoint(np.array([2.0]), np.array([2.5]), np.zeros(0), np.zeros(0), [])
-    cert = certify(canon, point, sense="max")
+    cert = certify_point(canon, point, sense="max")
     assert "lower_solution" in cert.failed
     assert "F there = 2" in cert.describe_failures()

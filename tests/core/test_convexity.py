@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import bilevel as bl
-from bilevel.certificate import LOCAL_EVIDENCE, certify
+from bilevel.certificate import LOCAL_EVIDENCE, certify_point
 from bilevel.errors import BilevelError, ModelError, NonConvexLowerLevel
 from bilevel.lower.convexity import proven_convex
 from bilevel.lower.interval import enclose
@@ -129,7 +129,7 @@ def test_corner_global_refuses_instead_of_proving_zero() -> None:
 def test_certificate_names_the_negative_eigenvalue_at_the_certified_point() -> None:
     prep = prepare(_corner())
     point = KKTPoint(np.array([1.0]), np.array([0.0]), np.zeros(2), np.zeros(0), [])
-    cert = certify(prep.canon, point)
+    cert = certify_point(prep.canon, point)
     assert not cert.passed
     assert "lower_convexity" in cert.failed
     assert "eigenvalue -0.06" in cert.worst["lower_convexity"]
@@ -144,7 +144,7 @@ def test_lower_gap_is_two_sided() -> None:
     p.minimize_lower(y)
     p.lower_constraint(y >= 1 + x)
     prep = prepare(p)
-    cert = certify(prep.canon, KKTPoint(np.array([0.0]), np.array([0.0]), np.ones(1), np.zeros(0), []))
+    cert = certify_point(prep.canon, KKTPoint(np.array([0.0]), np.array([0.0]), np.ones(1), np.zeros(0), []))
     assert cert.lower_gap == pytest.approx(-0.5, abs=1e-8)  # (0 - 1) / (1 + 1)
     assert "lower_gap" in cert.failed and "below" in cert.worst["lower_gap"]
 

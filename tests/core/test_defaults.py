@@ -59,6 +59,8 @@ BEFORE = {  # the module constants and option defaults the registry replaced, as
     "vrft.gain_tol": 1e-4, "willems.shared_kept": 4, "willems.hypergradient.starts": 8,
     "willems.hypergradient.max_iter": 300, "willems.hypergradient.ftol": 1e-10, "willems.evolution.max_iter": 300,
     "willems.evolution.popsize": 5,
+    "robust.margin_rel_tol": 0.05, "robust.attack_rel_tol": 0.05, "robust.smallest_delta": 1e-4,
+    "robust.soundness_samples": 10_000, "robust.check_margin": 1e-9,
 }
 
 METHOD_FUNCTIONS = {**{name: fn for name, fn in bl.METHODS.items()}, "destabilize": destabilize,

@@ -16,7 +16,7 @@ import pytest
 import scipy.linalg as sla
 
 import bilevel as bl
-from bilevel.certificate import certify
+from bilevel.certificate import certify_point
 from bilevel.errors import InvalidData, ModelError, NonConvexLowerLevel
 from bilevel.mpcc import psd_factor
 from bilevel.result import BilevelResult
@@ -170,7 +170,7 @@ def test_feasibility_is_scaled_by_the_size_of_the_row() -> None:
     prep = prepare(_big_row_problem(1e6))
     point = prep.lower_point(np.array([2.0]))
     bad = dataclasses.replace(point, y=point.y + 1e-10)
-    cert = certify(prep.canon, bad)
+    cert = certify_point(prep.canon, bad)
     assert "lower_feasibility" not in cert.failed
     assert cert.lower_feasibility == pytest.approx(1e-4 / (1 + 1e6), rel=1e-3)
 
@@ -178,7 +178,7 @@ def test_feasibility_is_scaled_by_the_size_of_the_row() -> None:
 def test_failing_row_is_named() -> None:
     prep = prepare(_big_row_problem(1.0))
     point = prep.lower_point(np.array([2.0]))
-    cert = certify(prep.canon, dataclasses.replace(point, y=point.y + 0.1))
+    cert = certify_point(prep.canon, dataclasses.replace(point, y=point.y + 0.1))
     assert "lower_feasibility" in cert.failed and cert.worst["lower_feasibility"] == "cap[0]"
     assert "lower_feasibility (cap[0])" in cert.describe_failures()
 

@@ -18,6 +18,7 @@ PACKAGE = Path(bilevel.__file__).parent
 LAYERS = (
     ("cli", "__main__"),
     ("experiments",),
+    ("robust",),  # certified robustness: certificates over the attacks and learners, used by experiments
     ("attacks",),
     ("problems",),
     ("ddc",),  # the control substrate: plants, learners, closed-loop analysis; built on the lower-level kinds

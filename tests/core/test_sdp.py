@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import bilevel as bl
-from bilevel.certificate import certify
+from bilevel.certificate import certify_point
 from bilevel.lower.base import LowerSolution
 from bilevel.solvers.base import prepare
 from tests.core.test_polish import dual_bound, lmi_feasibility
@@ -90,10 +90,10 @@ def test_wrong_sdp_point_fails_certificate() -> None:
     problem = random_sdp_instance(3)
     prep = prepare(problem)
     point = prep.lower_point(np.array([1.0, -0.5]))
-    assert certify(prep.canon, point).passed
-    cert = certify(prep.canon, dataclasses.replace(point, y=point.y + 0.05))
+    assert certify_point(prep.canon, point).passed
+    cert = certify_point(prep.canon, dataclasses.replace(point, y=point.y + 0.05))
     assert not cert.passed
-    cert = certify(prep.canon, dataclasses.replace(point, Z=[point.Z[0] - np.eye(3)]))
+    cert = certify_point(prep.canon, dataclasses.replace(point, Z=[point.Z[0] - np.eye(3)]))
     assert not cert.passed and "dual_feasibility" in cert.failed
 
 
@@ -172,10 +172,10 @@ def test_certificate_measures_the_gap_from_a_dual_bound_when_the_re_solve_stops_
     stopped = LowerSolution(off, f_star + 0.5 * reg * t ** 2, np.zeros(0), np.zeros(0), [np.copy(point.Z[0])],
                             "optimal_inaccurate", "cvxpy+clarabel")
     low.reference_solve = lambda _: dataclasses.replace(stopped)  # the instance's re-solve stops short
-    cert = certify(prep.canon, point)
+    cert = certify_point(prep.canon, point)
     assert (stopped.objective - f_star) / (1 + f_star) > 10 * cert.tolerance  # comparing with it would fail
     assert cert.passed and cert.lower_bound == pytest.approx(f_star, abs=1e-12)
     assert abs(cert.lower_gap) <= 1e-10 and "weak duality proves" in cert.note
-    wrong = certify(prep.canon, dataclasses.replace(point, y=off))  # as far off as the re-solve, same multipliers
+    wrong = certify_point(prep.canon, dataclasses.replace(point, y=off))  # as far off as the re-solve, same multipliers
     assert wrong.failed == ("lower_gap",) and wrong.lower_gap == pytest.approx(0.5 * reg * t ** 2 / (1 + f_star),
                                                                                 rel=1e-6)

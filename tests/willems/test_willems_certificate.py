@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 
 from bilevel.attacks.willems import random_attack
-from bilevel.certificate import certify
+from bilevel.certificate import certify_point
 from bilevel.experiments.willems import DELTA_Y, sim_seeds
 from bilevel.problems.willems import build_attack
 from bilevel.solvers.base import prepare
@@ -30,5 +30,5 @@ def test_remark_point_is_certified_by_weak_duality_and_the_re_solves_point_is_no
     f = float(prep.canon.lower.evaluate(point.x, point.y)[0])
     assert (cert.lower_reference - f) / (1 + f) > 10 * cert.tolerance  # the case: the re-solve stops short
     assert cert.lower_bound is not None and abs(f - cert.lower_bound) <= 1e-9 * (1 + f)
-    wrong = certify(prep.canon, dataclasses.replace(point, y=np.asarray(cert.lower_reference_y)))
+    wrong = certify_point(prep.canon, dataclasses.replace(point, y=np.asarray(cert.lower_reference_y)))
     assert "lower_gap" in wrong.failed and wrong.lower_gap > 10 * wrong.tolerance

@@ -1,0 +1,215 @@
+"""Least-squares identification + certainty-equivalence LQR as a certificate target, and its mechanism "lyapunov".
+
+Learner: [A B] = argmin ||X+ - [A B] [X; U]||_F on T poisoned states and inputs, then u = K x, the LQR gain of the
+model (weights Q = q I, R = r I); judged by the true plant's loop A + B K. Budget: ||dX||_F <= delta ||X||_F and
+||dU||_F <= delta ||U||_F. The attack is the engine's on the registered ident-ss problem, objective ce-lqr.
+
+Mechanism "lyapunov", three proven steps:
+1. The model: Theta_a - Theta0 = [E0 dZ' + (dY - Theta0 dZ) Z_a'] (Z_a Z_a')^-1 (E0 the clean residual, E0 Z' = 0),
+   so ||Theta_a - Theta0||_2 <= eps = ||E0|| r_Z / s^2 + ||[I, -Theta0]|| sqrt(2 r_X^2 + r_U^2) / s with
+   s = sigma_min(Z) - r_Z > 0.
+2. The gain: for every model in that ball, X >= P_K0 (K0's cost matrix, a robust Lyapunov LMI: Petersen's lemma on
+   the norm-bounded model error) and Y <= P (the optimal cost matrix: any Y with [Theta'Y Theta + diag(Q - Y, R)] >= 0
+   bounds it from below, made robust the same way); the LQR cost difference identity
+   (K0 - K)'(R + B'PB)(K0 - K) <= P_K0 - P gives ||K - K0||^2 <= lambda_max(X - Y) / r. One SDP (cvxpy + Clarabel)
+   minimizes lambda_max(X - Y).
+3. The true loop: A + B (K0 + D_K) is Schur stable for every ||D_K|| <= eps_K (a robust Lyapunov LMI, Petersen again).
+The re-check recomputes step 1 from SVDs and checks every LMI at the SDP's solution by numpy eigenvalues with a
+margin above rounding; step 2's bound on the gain is recomputed from those eigenvalues.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import cvxpy as cp
+import numpy as np
+
+from ..ddc.model_based import lqr_gain
+from ..defaults import param
+from ..errors import ModelError
+from ..problems.identification import declare
+from ..problems.identification_instance import IdentificationAttack, least_squares_fit
+from ..solvers.registry import solve
+from ..spectral_radius import radius
+from .target import Signals, Target, register_mechanism, register_target
+from .verdict import Check, Evidence, Proof
+
+PATH = (0.002, 0.005, 0.01, 0.02, 0.05, 0.1)
+"""The attack's budget path before bisection (the defenses frontier's identification path)."""
+STRICT = 1e-7
+"""Every LMI is solved with this much room (times its scale), so that the numpy re-check passes above rounding."""
+
+
+def _fit(atk: IdentificationAttack, signals: Signals) -> np.ndarray:
+    Y, Z = atk.regression(signals)
+    return least_squares_fit(Y, Z)
+
+
+def ce_radius(atk: IdentificationAttack, theta: np.ndarray) -> float:
+    """The true loop's spectral radius under the model's certainty-equivalence LQR gain (inf if the model's Riccati
+    equation has no stabilizing solution)."""
+    A, B = atk.setting.state_space
+    n = A.shape[0]
+    q, r = atk.lqr_weights
+    try:
+        K, _ = lqr_gain(theta[:, :n], theta[:, n:], q * np.eye(n), r * np.eye(B.shape[1]))
+    except (np.linalg.LinAlgError, ValueError):
+        return float("inf")
+    return radius(A + B @ K)
+
+
+def identification_target(atk: IdentificationAttack, starts: int = 1, **options: Any) -> Target:
+    """The Target of a state-space identification instance (module docstring)."""
+    if atk.learner != "ss":
+        raise ModelError(f"certificates cover the state-space learner (ident-ss) with certainty-equivalence LQR, not "
+                         f"{atk.learner!r}: build the instance with attack_instance('ss', ...)")
+
+    def engine(delta: float, seed: int) -> Signals:
+        instance = IdentificationAttack(atk.setting, "ss", dict(atk.signals), {"X": delta, "U": delta}, "ce-lqr",
+                                        None, atk.lags, atk.orders, atk.lqr_weights)
+        result = solve(declare(instance), starts=starts, seed=seed)
+        return {"X": np.asarray(result.x["dX"], float), "U": np.asarray(result.x["dU"], float)}
+
+    return Target(f"ident-ss-T{atk.signals['U'].shape[1]}", "ident-ce-lqr", atk, dict(atk.signals),
+                  {k: float(np.linalg.norm(v)) for k, v in atk.signals.items()}, lambda s: _fit(atk, s),
+                  lambda theta: ce_radius(atk, theta), {"engine": engine}, PATH, options=options)
+
+
+def model_radius(atk: IdentificationAttack, delta: float) -> tuple[float, float]:
+    """(eps, s) of step 1: the certified radius of the model ball and the poisoned regressor's smallest singular value
+    bound (eps inf where s <= 0)."""
+    Y, Z = atk.regression(atk.signals)
+    theta0 = least_squares_fit(Y, Z)
+    E0 = Y - theta0 @ Z
+    r_X, r_U = delta * np.linalg.norm(atk.signals["X"]), delta * np.linalg.norm(atk.signals["U"])
+    r_Z = float(np.hypot(r_X, r_U))
+    s = float(np.linalg.svd(Z, compute_uv=False)[-1]) - r_Z
+    if s <= 0:
+        return float("inf"), s
+    lead = np.linalg.svd(np.hstack([np.eye(theta0.shape[0]), -theta0]), compute_uv=False)[0]
+    return float(np.linalg.svd(E0, compute_uv=False)[0] * r_Z / s ** 2
+                 + lead * np.sqrt(2 * r_X ** 2 + r_U ** 2) / s), s
+
+
+@dataclass(frozen=True)
+class Lmis:
+    """The three LMIs' matrices at a solution (each must be positive semidefinite) and the gain bound."""
+
+    upper: np.ndarray
+    lower: np.ndarray
+    gap: np.ndarray
+    loop: np.ndarray
+    eps_K: float
+
+
+def _blocks(atk: IdentificationAttack, theta0: np.ndarray, eps: float, X, Y, mu1, mu2, t, Z, mu3, eps_K, tau,
+            lib) -> list:
+    """The LMI matrices (cvxpy expressions with lib=cp, numbers with lib=np): robust upper bound on P_K0, robust
+    lower bound on P, X - Y <= t I, and the true loop's robust Lyapunov LMI."""
+    A, B = atk.setting.state_space
+    n, m = B.shape
+    q, r = atk.lqr_weights
+    K0, _ = lqr_gain(theta0[:, :n], theta0[:, n:], q * np.eye(n), r * np.eye(m))
+    F = np.vstack([np.eye(n), K0])
+    Acl = theta0 @ F
+    Qc = q * np.eye(n) + r * K0.T @ K0
+    H = np.hstack([F, np.zeros((n + m, n))])
+    bmat = lib.bmat if lib is cp else np.block
+    zero = lambda a, b: np.zeros((a, b))  # noqa: E731
+    upper = bmat([[bmat([[X - Qc, Acl.T @ X], [X @ Acl, X]]) - mu1 * eps ** 2 * (H.T @ H),
+                   bmat([[zero(n, n)], [X]])], [bmat([[zero(n, n), X]]), mu1 * np.eye(n)]])
+    diag = bmat([[q * np.eye(n) - Y, zero(n, m)], [zero(m, n), r * np.eye(m)]])
+    lower = bmat([[theta0.T @ Y @ theta0 + diag - mu2 * eps ** 2 * np.eye(n + m), theta0.T @ Y],
+                  [Y @ theta0, mu2 * np.eye(n)]])
+    gap = t * np.eye(n) - (X - Y)
+    Ac = A + B @ K0
+    Hl = np.hstack([np.eye(n), zero(n, n)])
+    loop = bmat([[bmat([[Z - tau * np.eye(n), Ac.T @ Z], [Z @ Ac, Z]]) - mu3 * eps_K ** 2 * (Hl.T @ Hl),
+                  bmat([[zero(n, m)], [Z @ B]])], [bmat([[zero(m, n), B.T @ Z]]), mu3 * np.eye(m)]])
+    return [upper, lower, gap, loop]
+
+
+def _sym(M):
+    return 0.5 * (M + M.T)
+
+
+def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
+    """Mechanism "lyapunov" (module docstring)."""
+    atk = target.declaration
+    t0 = time.perf_counter()
+    eps, s = model_radius(atk, delta)
+    if not np.isfinite(eps):
+        return Evidence("lyapunov", Proof.UNKNOWN, f"the poisoned regressor may be singular (s = {s:.3g})", {"s": s},
+                        Check(False, "nothing to check"), time.perf_counter() - t0)
+    Y0, Z0 = atk.regression(atk.signals)
+    theta0 = least_squares_fit(Y0, Z0)
+    n = theta0.shape[0]
+    m = theta0.shape[1] - n
+    r = atk.lqr_weights[1]
+    X, Yv = cp.Variable((n, n), symmetric=True), cp.Variable((n, n), symmetric=True)
+    mu1, mu2, t = cp.Variable(nonneg=True), cp.Variable(nonneg=True), cp.Variable()
+    Zdummy = np.eye(n)
+    upper, lower, gap, _ = _blocks(atk, theta0, eps, X, Yv, mu1, mu2, t, Zdummy, 1.0, 0.0, 0.0, cp)
+    scale = 1.0 + float(np.max(np.abs(lqr_gain(theta0[:, :n], theta0[:, n:], atk.lqr_weights[0] * np.eye(n),
+                                                r * np.eye(m))[1])))
+    room = STRICT * scale
+    cons = [_sym(upper) >> room * np.eye(upper.shape[0]), _sym(lower) >> room * np.eye(lower.shape[0]),
+            _sym(gap) >> 0, Yv >> room * np.eye(n), mu1 >= room, mu2 >= room]
+    numbers: dict[str, float] = {"eps_model": eps, "s": s}
+    try:
+        cp.Problem(cp.Minimize(t), cons).solve(solver=cp.CLARABEL)
+    except cp.SolverError:
+        X.value = None
+    if X.value is None or t.value is None:
+        return Evidence("lyapunov", Proof.UNKNOWN, "the gain bound's SDP found no robust cost bounds", numbers,
+                        Check(False, "nothing to check"), time.perf_counter() - t0)
+    eps_K = float(np.sqrt(max(float(t.value), 0.0) / r))
+    Z, mu3, tau = cp.Variable((n, n), symmetric=True), cp.Variable(nonneg=True), cp.Variable()
+    loop = _blocks(atk, theta0, eps, X.value, Yv.value, 1.0, 1.0, 0.0, Z, mu3, eps_K * (1 + 1e-6), tau, cp)[3]
+    cons = [_sym(loop) >> 0, Z >> np.eye(n), Z << 1e6 * np.eye(n), tau <= 1.0]
+    try:
+        cp.Problem(cp.Maximize(tau), cons).solve(solver=cp.CLARABEL)
+    except cp.SolverError:
+        Z.value = None
+    numbers.update(eps_K=eps_K, tau=float("nan") if tau.value is None else float(tau.value))
+    if Z.value is None or tau.value is None or tau.value <= 0:
+        return Evidence("lyapunov", Proof.UNKNOWN, f"no robust Lyapunov function for gain errors up to {eps_K:.3g}",
+                        numbers, Check(False, "nothing to check"), time.perf_counter() - t0)
+    solution = {"X": X.value, "Y": Yv.value, "mu1": float(mu1.value), "mu2": float(mu2.value), "t": float(t.value),
+                "Z": Z.value, "mu3": float(mu3.value), "tau": float(tau.value)}
+    check = recheck(atk, delta, solution)
+    return Evidence("lyapunov", Proof.PROVEN, f"no poisoning with ||dX||_F <= {delta:.6g} ||X||_F, ||dU||_F <= "
+                    f"{delta:.6g} ||U||_F destabilizes the true loop under certainty-equivalence LQR (model ball "
+                    f"{eps:.3g}, gain ball {eps_K:.3g}, robust Lyapunov decrease {float(tau.value):.3g})", numbers,
+                    check, time.perf_counter() - t0)
+
+
+def recheck(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Check:
+    """Step 1 again from SVDs (model_radius is that computation; its inputs re-fitted by numpy lstsq), the gain bound
+    from numpy eigenvalues of X - Y, and every LMI's smallest eigenvalue by numpy with a margin above rounding."""
+    Y0, Z0 = atk.regression(atk.signals)
+    theta0 = np.linalg.lstsq(Z0.T, Y0.T, rcond=None)[0].T
+    eps, _ = model_radius(atk, delta)
+    r = atk.lqr_weights[1]
+    X, Y = _sym(sol["X"]), _sym(sol["Y"])
+    gap_top = float(np.linalg.eigvalsh(X - Y)[-1])
+    eps_K = float(np.sqrt(max(gap_top, 0.0) / r))
+    mats = _blocks(atk, theta0, eps * (1 + 1e-9), X, Y, sol["mu1"], sol["mu2"], gap_top, _sym(sol["Z"]),
+                   sol["mu3"], eps_K * (1 + 1e-9), sol["tau"], np)
+    names = ("upper", "lower", "gap", "loop")
+    eigs = {name: float(np.linalg.eigvalsh(_sym(M))[0]) for name, M in zip(names, mats)}
+    sizes = {name: float(np.max(np.abs(M))) for name, M in zip(names, mats)}
+    margin = param("robust.check_margin")
+    ok = [eigs[k] >= margin * sizes[k] for k in ("upper", "lower", "loop")]
+    passed = all(ok) and eigs["gap"] >= -margin * sizes["gap"] and float(np.linalg.eigvalsh(Y)[0]) >= 0 \
+        and sol["mu1"] > 0 and sol["mu2"] > 0 and sol["mu3"] > 0 and sol["tau"] > 0
+    return Check(passed, "numpy eigenvalues of the LMIs at the SDP's solution (smallest, against a margin of "
+                 f"{margin:.0e} times each matrix's size): " + ", ".join(f"{k} {v:.3g}" for k, v in eigs.items()),
+                 {**{f"min_eig_{k}": v for k, v in eigs.items()}, "eps_K": eps_K, "eps_model": eps})
+
+
+register_target(IdentificationAttack, identification_target)
+register_mechanism("ident-ce-lqr", lyapunov, "lyapunov", cost=1.0)

@@ -1,0 +1,30 @@
+"""`bilevel reproduce certify --quick` (the CI path): brackets per family, resumable rows, outputs."""
+
+from __future__ import annotations
+
+import json
+import os
+
+from bilevel.cli import main
+from bilevel.experiments.certify import ROW_SCHEMA, run_certify
+
+
+def test_quick_certify_writes_consistent_brackets_and_resumes(tmp_path) -> None:
+    notes: list[str] = []
+    path = run_certify(sims=1, out_dir=str(tmp_path), quick=True, workers=1, progress=notes.append)
+    rows = [json.loads(line) for line in open(tmp_path / "certify.jsonl")]
+    assert {r["family"] for r in rows} == {"vrft", "ident"} and set(ROW_SCHEMA) <= set(rows[0])
+    vrft = next(r for r in rows if r["family"] == "vrft")
+    assert 0 < vrft["delta_lb"] <= vrft["delta_ub"] and vrft["unstable"] == 0 and vrft["samples"] == 200
+    assert vrft["worst_radius"] < 1 and vrft["attack_radius"] < 1
+    ident = next(r for r in rows if r["family"] == "ident")
+    assert ident["delta_lb"] <= ident["delta_ub"]
+    assert os.path.exists(tmp_path / "fig_brackets.png") and "| vrft | 64 |" in open(path).read()
+    notes.clear()
+    run_certify(sims=1, out_dir=str(tmp_path), quick=True, workers=1, progress=notes.append)
+    assert not any("running" in n for n in notes)  # resumed: nothing recomputed
+
+
+def test_cli_refuses_a_flag_certify_does_not_take(capsys) -> None:
+    assert main(["reproduce", "certify", "--selection", "clarabel"]) != 0
+    assert "--selection" in capsys.readouterr().err
