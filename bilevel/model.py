@@ -23,6 +23,7 @@ import numpy as np
 from .errors import InvalidData, ModelError
 from .linear_maps import Image, LinearMap, Operator
 from .parameters import ParameterSet
+from .real_data import refuse_complex
 from .spectral_radius import rho_and_gradient
 from .vech import symmetric_from_vech, unvech, vech
 
@@ -172,6 +173,8 @@ def _shape_of(value: Any, where: str) -> tuple[int, int]:
 
 def _expression(value: Any, where: str, want: str = "a CasADi expression or numbers") -> ca.SX:
     """value (a CasADi expression, a number or an array of numbers) as an SX; ModelError naming `where` otherwise."""
+    if not isinstance(value, (ca.SX, ca.MX, ca.DM)):
+        refuse_complex(value, where)
     try:
         return value if isinstance(value, ca.SX) else ca.SX(value)
     except (NotImplementedError, TypeError, RuntimeError):

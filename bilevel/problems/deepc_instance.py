@@ -28,6 +28,7 @@ from ..ddc.data import simulate
 from ..ddc.plants import flexible_transmission
 from ..ddc.systems import num_den
 from ..errors import InvalidData, ModelError, NotPersistentlyExciting
+from ..real_data import real_array
 from ..solvers.options import check_common_options
 from .budget import Budget
 
@@ -74,7 +75,7 @@ class DeePCAttack:
         if self.objective not in OBJECTIVES:
             raise ModelError(f"objective {self.objective!r} is not one of {', '.join(OBJECTIVES)}")
         for name in ("u", "y", "past_u", "past_y"):
-            s = np.asarray(getattr(self, name), dtype=float).ravel()
+            s = real_array(getattr(self, name), f"signal {name}").ravel()
             if not np.all(np.isfinite(s)):
                 raise InvalidData(f"signal {name} contains NaN or inf")
             setattr(self, name, s)

@@ -27,6 +27,7 @@ from ..ddc.plants import flexible_transmission
 from ..ddc.residual_tests import ResidualTest, regression_tests
 from ..ddc.systems import num_den
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
+from ..real_data import real_array
 from ..solvers.options import check_common_options
 
 Learner = Literal["ss", "arx"]
@@ -158,7 +159,7 @@ class IdentificationAttack:
             raise ModelError(f"the {self.learner} learner takes signals and budgets {names}, got signals "
                              f"{sorted(self.signals)} and budgets {sorted(self.eps)}")
         for name in names:
-            s = np.asarray(self.signals[name], dtype=float)
+            s = real_array(self.signals[name], f"signal {name}")
             if not np.all(np.isfinite(s)):
                 raise InvalidData(f"signal {name} contains NaN or inf")
             self.signals[name] = s[:, None] if self.learner == "arx" and s.ndim == 1 else np.atleast_2d(s)
