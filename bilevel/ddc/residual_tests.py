@@ -14,9 +14,11 @@
 Each statistic is computed in the data's own units (residuals over sigma, each output's residuals over their RMS, Y
 over its largest entry): the statistics are invariant to that scaling, and data at 1e-200 or 1e200 neither underflow
 nor overflow. Limits: a zero residual is a variance statistic of 0 (p-value 0: far too small a residual for the
-noise); an exact fit of the full model (residuals below EXACT of max|Y|) where the restricted one leaves a residual is F = inf (p-value 0); where the
-statistic is undefined (an output whose residuals are all zero, linearly dependent outputs so that R_0 is singular,
-both F models exact) the test raises InvalidData naming why, never a NaN p-value.
+noise); an exact fit of the full model (residuals below EXACT of max|Y|) where the restricted one leaves a residual
+is F = inf (p-value 0); where the statistic is undefined (an output whose residuals are all zero, linearly dependent
+outputs so that R_0 is singular, both F models exact) the test raises InvalidData naming why, never a NaN p-value;
+a negative or float count, duplicate or out-of-range input rows and an infinite noise_std are ModelError or
+InvalidData naming the argument.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import numpy as np
 from scipy import stats
 
 from ..errors import InvalidData
-from ..real_data import real_array
+from ..real_data import integer, real_array
 
 
 def _two_sided_chi2(v: float, dof: int) -> float:
@@ -73,18 +75,11 @@ def _matrix(a: np.ndarray, name: str) -> np.ndarray:
     return a
 
 
-def _count(value: object, name: str, low: int = 0) -> int:
-    """value as an integer >= low; InvalidData naming it otherwise (a float, a bool, a negative count)."""
-    if not isinstance(value, (int, np.integer)) or isinstance(value, (bool, np.bool_)) or value < low:
-        raise InvalidData(f"{name}={value!r} is invalid: it must be an integer >= {low}")
-    return int(value)
-
-
 def variance_test(residuals: np.ndarray, noise_std: float, n_regressors: int) -> ResidualTest:
     """Chi-square test of ||E||_F^2 / sigma^2 against n (N - k) degrees of freedom (two-sided)."""
     E = _matrix(residuals, "residuals")
     n, N = E.shape
-    k = _count(n_regressors, "variance test: n_regressors")
+    k = integer(n_regressors, "variance test: n_regressors", 0)
     if not (isinstance(noise_std, (int, float, np.integer, np.floating)) and not isinstance(noise_std, bool)
             and np.isfinite(noise_std) and noise_std > 0):
         raise InvalidData(f"variance test: noise_std={noise_std!r} is invalid: it must be a finite number > 0 (the "
@@ -110,7 +105,7 @@ def whiteness_test(residuals: np.ndarray, lags: int) -> ResidualTest:
     """Portmanteau test Q = N^2 sum_j tr(R_j' R_0^-1 R_j R_0^-1) / (N - j) against n^2 s degrees of freedom."""
     E = _matrix(residuals, "residuals")
     n, N = E.shape
-    lags = _count(lags, "whiteness test: lags", 1)
+    lags = integer(lags, "whiteness test: lags", 1)
     if not lags < N:
         raise InvalidData(f"whiteness test: needs 0 < lags < N, got lags={lags} for N={N} samples")
     peak = np.abs(E).max(axis=1)
@@ -136,7 +131,7 @@ def input_test(Y: np.ndarray, Z: np.ndarray, Theta: np.ndarray, input_rows: list
     """F-test that the rows `input_rows` of Z contribute to Y ~ Theta Z (the restricted model refitted without them)."""
     Y, Z, Theta = _matrix(Y, "Y"), _matrix(Z, "Z"), _matrix(Theta, "Theta")
     (n, N), k = Y.shape, Z.shape[0]
-    rows = [_count(i, "input test: an input row") for i in np.ravel(np.asarray(input_rows, dtype=object))]
+    rows = [integer(i, "input test: an input row", 0) for i in np.ravel(np.asarray(input_rows, dtype=object))]
     if len(set(rows)) != len(rows) or any(i >= k for i in rows):
         raise InvalidData(f"input test: input_rows {rows} must be distinct rows of Z, each in 0 .. {k - 1}")
     q = len(rows)
