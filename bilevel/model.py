@@ -165,6 +165,8 @@ def _bound_array(value: Any, size: int, what: str, symmetric: bool = False) -> n
 
 
 def _shape_of(value: Any, where: str) -> tuple[int, int]:
+    if not isinstance(value, (ca.SX, ca.MX, ca.DM)):
+        refuse_complex(value, where)
     try:
         return tuple(ca.SX(value).shape)
     except (NotImplementedError, TypeError, RuntimeError):
@@ -464,6 +466,8 @@ class BilevelProblem:
 
     # -- objectives ------------------------------------------------------------------------------
     def _objective(self, expr: Any, sense: Sense, where: str, assume_convex: bool = False) -> Objective:
+        if not isinstance(expr, (ca.SX, ca.MX, ca.DM)):
+            refuse_complex(expr, where)
         try:
             expr = ca.SX(expr) if not isinstance(expr, ca.SX) else expr
         except (NotImplementedError, TypeError, RuntimeError):

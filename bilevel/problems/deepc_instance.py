@@ -74,6 +74,7 @@ class DeePCAttack:
             raise ModelError(f"a DeePC budget is l2 or linf without sparsity, got {self.budget}")
         if self.objective not in OBJECTIVES:
             raise ModelError(f"objective {self.objective!r} is not one of {', '.join(OBJECTIVES)}")
+        self.t_ini, self.horizon = integer(self.t_ini, "t_ini", 1), integer(self.horizon, "horizon", 1)
         for name in ("u", "y", "past_u", "past_y"):
             s = real_array(getattr(self, name), f"signal {name}").ravel()
             if not np.all(np.isfinite(s)):
@@ -82,7 +83,6 @@ class DeePCAttack:
         if self.u.size != self.y.size or self.past_u.size != self.past_y.size or self.past_u.size < self.t_ini:
             raise InvalidData(f"u and y have {self.u.size} and {self.y.size} samples, past_u and past_y "
                               f"{self.past_u.size} and {self.past_y.size}: give equal lengths, a past of >= t_ini")
-        self.t_ini, self.horizon = integer(self.t_ini, "t_ini", 1), integer(self.horizon, "horizon", 1)
         weights = {"q": self.q, "r_weight": self.r_weight, "lambda_g": self.lambda_g, "lambda_y": self.lambda_y}
         if not all(real_number(v, k) >= 0 for k, v in weights.items()) or self.q + self.r_weight == 0:
             raise ModelError(f"the weights must be finite and >= 0, q + r_weight > 0, got {weights}")
