@@ -485,7 +485,7 @@ CASES: dict[str, tuple[Callable[[], Any], Any, str]] = {
                                 "trusted_instrument=1 is invalid"),
     "IV trusted_instrument None": (lambda: registry.get("defense-vrft-iv", trusted_instrument=None), ModelError,
                                    "trusted_instrument=None"),
-    # -- the defaults registry -------------------------------------------------------------------------------------------
+    # -- the defaults registry -----------------------------------------------------------------------------------------
     "'name' in defaults": (lambda: ("name" in bl.defaults) is False, VALUE, "False"),
     "defaults.get of an unknown key": (lambda: bl.defaults.get("hypergradient.maxiter", 7) == 7, VALUE, "default"),
     "defaults[unknown]": (lambda: bl.defaults["nope"], UnknownName, "unknown default 'nope'"),
