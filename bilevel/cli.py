@@ -449,7 +449,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_cmp.add_argument("--methods", default="",
                        help="comma-separated methods (default: all registered); structured: an attack problem's own "
                             "attack")
-    p_cmp.add_argument("--starts", type=int, default=8)
+    p_cmp.add_argument("--starts", type=int, default=8,
+                       help="the one multistart count every compared method runs (default 8: methods compared at "
+                            "equal starts, not at their registry defaults)")
     p_cmp.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                        help="problem parameter, for every selected problem that has it (e.g. N=512)")
     p_cmp.add_argument("--seed", type=int, default=0)

@@ -599,3 +599,14 @@ def test_the_probe_covers_150_new_inputs() -> None:
     counts = Counter(_outcome(case) for case in CASES)
     assert sum(counts.values()) >= 150, counts
     assert counts["named error"] >= 100 and counts["correct value"] >= 15 and counts["honest status"] >= 1, counts
+
+
+@pytest.mark.parametrize("method, starts", [("reduced", 1), ("hypergradient", 4)])
+def test_flags_not_given_leave_the_registrys_defaults(method: str, starts: int, tmp_path, capsys) -> None:
+    """`bilevel solve` without --starts runs the method's registry default (it sent starts=8 to every method)."""
+    import json
+
+    path = str(tmp_path / "r.json")
+    assert main(["solve", "bolib-hendersonquandt1958", "--method", method, "--json", path]) == 0
+    assert len(json.load(open(path))["start_records"]) == starts == bl.defaults[f"{method}.starts"]
+    capsys.readouterr()
