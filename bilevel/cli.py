@@ -191,6 +191,21 @@ def _method_options(raw: dict[str, str]) -> dict[str, object]:
     return {k: _convert("--option", k, v, None) for k, v in raw.items()}
 
 
+OPTION_RULE = ("an explicit flag (--starts, --seed) > --option NAME=VALUE > the registry's default (bilevel.defaults: "
+               "e.g. starts of reduced 1, hypergradient 4, ipopt 8); a flag and an --option for the same option is an "
+               "error, and a flag not given sends nothing")
+"""How `bilevel solve` resolves a method option given more than one way (docs/options.md, `bilevel solve --help`)."""
+
+
+def _with_flags(options: dict[str, object], flags: dict[str, object]) -> dict[str, object]:
+    """The method options with the flags given (not None) added; a flag also given as --option is refused."""
+    if both := sorted(k for k, v in flags.items() if v is not None and k in options):
+        name = both[0]
+        raise ModelError(f"--{name} {flags[name]} and --option {name}={options[name]!r} give option {name} twice; "
+                         f"give one ({OPTION_RULE})")
+    return {**options, **{k: v for k, v in flags.items() if v is not None}}
+
+
 STRUCTURED = "structured"
 """--method of a registered attack problem's own attack (bilevel.attacks.registry), its default."""
 
@@ -246,9 +261,8 @@ def _cmd_solve(args: argparse.Namespace) -> int:
             raise ModelError(f"{args.problem} has no structured attack; choose {AUTO} or a registered method: "
                              f"{', '.join(sorted(METHODS))}")
         problem = registry.get(args.problem, **params)
-        options = _method_options(raw_options)
-        result = solve(problem, method=args.method or AUTO,
-                       **{"starts": 8 if args.starts is None else args.starts, "seed": args.seed or 0, **options})
+        options = _with_flags(_method_options(raw_options), {"starts": args.starts, "seed": args.seed})
+        result = solve(problem, method=args.method or AUTO, **{"seed": 0, **options})
     print(result)
     if "spectral_radius" in result.stats:  # an attack's outcome on the true closed loop
         from .attacks.outcome import unstable
@@ -426,13 +440,15 @@ def build_parser() -> argparse.ArgumentParser:
                          help=f"{', '.join([AUTO, STRUCTURED, *sorted(METHODS)])} (default: {STRUCTURED} for a problem "
                               f"with a structured attack (vrft-*, willems-*), else {AUTO}: chosen by structure)")
     p_solve.add_argument("--starts", type=int, default=None,
-                         help="multistart count (default 8; a structured attack: its own)")
+                         help="multistart count (default: the method's registry default, bilevel.defaults, e.g. "
+                              "reduced 1, hypergradient 4, ipopt 8; a structured attack: its own)")
     p_solve.add_argument("--seed", type=int, default=None, help="the method's random seed (default 0; a problem's "
                          "data seed is --param seed=S where it has one; a structured attack's seed is its data's too)")
     p_solve.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                          help="problem parameter (bilevel list --params NAME lists them)")
     p_solve.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
-                         help="method option, or the structured attack's (bilevel list --params NAME lists them)")
+                         help="method option, or the structured attack's (bilevel list --params NAME lists them); an "
+                              f"option given several ways: {OPTION_RULE}")
     p_solve.add_argument("--json", default=None, metavar="PATH", help="write the result as JSON")
     p_solve.set_defaults(run=_cmd_solve)
     p_cmp = sub.add_parser("compare", help="run solvers on problems; write CSV and Markdown (resumable)",
@@ -442,7 +458,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_cmp.add_argument("--methods", default="",
                        help="comma-separated methods (default: all registered); structured: an attack problem's own "
                             "attack")
-    p_cmp.add_argument("--starts", type=int, default=8)
+    p_cmp.add_argument("--starts", type=int, default=8,
+                       help="the one multistart count every compared method runs (default 8: methods compared at "
+                            "equal starts, not at their registry defaults)")
     p_cmp.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                        help="problem parameter, for every selected problem that has it (e.g. N=512)")
     p_cmp.add_argument("--seed", type=int, default=0)
@@ -516,6 +534,9 @@ def _check_paths(args: argparse.Namespace) -> None:
             parent = os.path.dirname(os.path.abspath(path))
             if os.path.isdir(path):
                 raise ModelError(f"--{flag} {path!r} is a directory; give a file name inside it")
+            if os.path.exists(path) and not os.path.isfile(path):
+                raise ModelError(f"--{flag} {path!r} is not a regular file (a device, pipe or socket): results are "
+                                 "written whole to a file beside it and renamed over it; give a file path")
             if not os.path.isdir(parent):
                 raise ModelError(f"--{flag} {path!r}: directory {parent!r} does not exist; create it first")
             _probe_directory(flag, path, parent)

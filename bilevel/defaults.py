@@ -11,10 +11,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, MutableMapping
+from dataclasses import dataclass
 from numbers import Integral, Real
 from typing import Any
 
-from .errors import ModelError, did_you_mean
+import numpy as np
+
+from .errors import ModelError, UnknownName, did_you_mean
 
 ENTRIES: dict[str, tuple[Any, str]] = {
     # the certificate (bilevel.certificate)
@@ -192,19 +195,70 @@ ENTRIES: dict[str, tuple[Any, str]] = {
 }
 """The registry's entries: key -> (default value, what it is and its unit)."""
 
+@dataclass(frozen=True)
+class Range:
+    """The values an entry takes: low <= value <= high (strict where open), integers for an integer default."""
+
+    low: float = 0.0
+    high: float = math.inf
+    open_low: bool = False
+    open_high: bool = False
+
+    def holds(self, value: float) -> bool:
+        above = value > self.low if self.open_low else value >= self.low
+        below = value < self.high if self.open_high else value <= self.high
+        return above and below
+
+    def __str__(self) -> str:
+        text = lambda v: f"{v:g}" if isinstance(v, float) else str(v)  # noqa: E731
+        if self.high == math.inf:
+            return f"{'>' if self.open_low else '>='} {text(self.low)}"
+        return (f"in {'(' if self.open_low else '['}{text(self.low)}, {text(self.high)}"
+                f"{')' if self.open_high else ']'}")
+
+
+COUNT, POSITIVE, FRACTION = Range(1), Range(0.0, open_low=True), Range(0.0, 1.0, True, True)
+RANGES: dict[str, Range] = {
+    **{key: COUNT for key in ENTRIES if key.endswith((".starts", ".nlp_starts", ".popsize", ".members", ".evaluations",
+                                                        ".pool", ".window", ".shared_kept", ".max_faces", ".y_probes",
+                                                        ".max_box_vertices"))},
+    **{key: POSITIVE for key in ENTRIES if key.endswith(("scale", "_tol", ".t0", ".t_min", "max_wall_time", ".penalty",
+                                                         ".gtol"))
+       and key not in ("ipopt.polish_tie",)},
+    **{key: Range() for key in ("probe.rel_tol", "probe.descent_rel_tol", "probe.feas_tol", "optimistic.row_tol",
+                                "optimistic.improve_rel_tol", "polish.active_tol", "polish.flip_tol", "sdp.psd_tol",
+                                "convexity.psd_tol", "global.convexity_tol", "global.complementarity_tol",
+                                "global.fix_tol", "hypergradient.tie_rtol", "implicit.kink_tol")},
+    "certificate.tol": Range(2.0 ** -52),  # a scaled residual is no smaller than the rounding of its evaluation
+    "global.node_limit": Range(1, 2 ** 63 - 1),  # SCIP's node limit is a 64-bit integer
+    "global.time_limit": POSITIVE,
+    "global.gap": FRACTION, "relaxation.factor": FRACTION, "hypergradient.min_step": FRACTION,
+    "ascent.armijo": FRACTION,
+    "global.scip_feastol": Range(1e-17, 1e-3),  # SCIP's own range for numerics/feastol
+    "residual.sparse_squares": Range(0.0, 1.0),
+    "spectral_radius.defective_cond": Range(1.0),
+}
+"""Each entry's valid values where they are narrower than the default's, an integer >= 0 or a finite number >= 0:
+counts are >= 1, step sizes and most tolerances > 0, fractions in (0, 1), and SCIP's limits SCIP's ranges."""
+
+
 def _check_key(key: str) -> None:
     if key not in ENTRIES:
-        raise ModelError(f"unknown default {key!r}; {did_you_mean(key, ENTRIES)}the keys are listed by "
-                         "bilevel.defaults.describe()")
+        raise UnknownName(f"unknown default {key!r}; {did_you_mean(key, ENTRIES)}the keys are listed by "
+                          "bilevel.defaults.describe()")
 
 
-def _check_value(key: str, value: Any) -> None:
-    default = ENTRIES[key][0]
-    ok = (isinstance(value, Integral) and not isinstance(value, bool) and value >= 0 if isinstance(default, int)
-          else isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value) and value >= 0)
+def check(key: str, value: Any, name: str | None = None) -> None:
+    """ModelError unless `value` is a valid value of entry `key` (its default's type, integer or finite number, in
+    RANGES[key]); `name`: the option it was given as (None: set as the default itself)."""
+    default, allowed = ENTRIES[key][0], RANGES.get(key, Range())
+    integer = isinstance(default, int)
+    ok = (isinstance(value, Integral) if integer else isinstance(value, Real) and math.isfinite(value)) \
+        and not isinstance(value, (bool, np.bool_)) and allowed.holds(value)
     if not ok:
-        want = "an integer >= 0" if isinstance(default, int) else "a finite number >= 0"
-        raise ModelError(f"default {key}={value!r} is invalid: it must be {want} ({ENTRIES[key][1]})")
+        want = f"{'an integer' if integer else 'a finite number'} {allowed}"
+        what = f"default {key}" if name is None else f"option {name}"
+        raise ModelError(f"{what}={value!r} is invalid: it must be {want} ({ENTRIES[key][1]})")
 
 
 class Defaults(MutableMapping):
@@ -222,7 +276,7 @@ class Defaults(MutableMapping):
 
     def __setitem__(self, key: str, value: Any) -> None:
         _check_key(key)
-        _check_value(key, value)
+        check(key, value)
         self._values[key] = value
 
     def __delitem__(self, key: str) -> None:
@@ -249,9 +303,11 @@ package exports it under the module's name), so `bilevel.defaults.describe("prob
 
 
 def param(key: str, given: Any = None) -> Any:
-    """The value to use: `given` where the caller passed one (not None), else defaults[key] (read directly: this runs
-    inside the methods' loops)."""
+    """The value to use: `given` where the caller passed one (not None; checked against the entry's type and range,
+    the one check of every option the registry holds), else defaults[key] (read directly: this runs inside the
+    methods' loops)."""
     if given is not None:
+        check(key, given, key.split(".")[1] if key.startswith("vrft.max_iter.") else key.rsplit(".", 1)[1])
         return given
     try:
         return defaults._values[key]

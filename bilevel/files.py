@@ -7,6 +7,7 @@ readers never meet a truncated table, report, figure or timings.json.
 from __future__ import annotations
 
 import csv
+import errno
 import os
 import uuid
 from collections.abc import Iterable, Mapping
@@ -17,7 +18,11 @@ from typing import IO, Any, Iterator
 @contextmanager
 def atomic_path(path: str) -> Iterator[str]:
     """A temporary name beside `path` (same extension, so savefig and np.savez keep the format) to write to;
-    on normal exit it is fsynced and renamed over `path`, on an exception removed."""
+    on normal exit it is fsynced and renamed over `path`, on an exception removed. A `path` that exists and is no
+    regular file (a device such as /dev/full, a pipe) is an OSError before anything is written: the rename would
+    replace it."""
+    if os.path.exists(path) and not os.path.isfile(path):  # a rename would replace a device (/dev/full) or a pipe
+        raise OSError(errno.EINVAL, "not a regular file (a device, pipe or socket); give a file path", path)
     directory, name = os.path.split(os.path.abspath(path))
     ext = os.path.splitext(name)[1]
     tmp = os.path.join(directory, f".{name}.{os.getpid()}-{uuid.uuid4().hex[:8]}{ext}")

@@ -10,6 +10,7 @@ few entries (a filter matrix) is applied by FFT convolution (bilevel.toeplitz).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -20,6 +21,7 @@ from scipy.sparse.linalg import LinearOperator
 
 from .defaults import param
 from .errors import InvalidData, ModelError
+from .real_data import refuse_complex
 from .toeplitz import ToeplitzBank, toeplitz_split
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -144,6 +146,7 @@ class Operator:
     "sparse", "operator" (a LinearOperator) or "toeplitz" (a dense matrix applied as a ToeplitzBank of one, `bank`)."""
 
     def __init__(self, matrix: Any, what: str) -> None:
+        refuse_complex(matrix, f"{what}: the matrix")
         if isinstance(matrix, LinearOperator):
             self.kind, self.data = "operator", matrix
         elif sp.issparse(matrix):
@@ -166,6 +169,10 @@ class Operator:
         split = toeplitz_split(self.data) if self.kind == "dense" else None
         if split is not None:
             self.kind, self.bank = "toeplitz", ToeplitzBank([split], self.shape[1])
+        self.what = what
+        if self.kind == "operator":  # its code is the user's: one product each way now, so a broken one fails here
+            self.apply(np.ones(self.shape[1]))
+            self.adjoint(np.ones(self.shape[0]))
 
     @classmethod
     def stacked(cls, operators: list["Operator"]) -> "Operator | ToeplitzBank | None":
@@ -187,12 +194,32 @@ class Operator:
         """A X (X of shape (n,) or (n, k))."""
         if self.kind == "toeplitz":
             return self.bank.apply(X)
-        return self.data.matmat(X) if self.kind == "operator" and X.ndim == 2 else self.data @ X
+        if self.kind == "operator":
+            return self._checked(lambda: self.data.matmat(X) if X.ndim == 2 else self.data.matvec(X),
+                                 (self.shape[0],) + X.shape[1:], "matvec")
+        return self.data @ X
+
+    def _checked(self, product: Any, shape: tuple[int, ...], which: str) -> np.ndarray:
+        """A LinearOperator's product (the user's code) as a finite real array of `shape`; InvalidData otherwise."""
+        try:
+            out = product()
+        except ValueError as exc:  # scipy's own shape check of what the user's code returned
+            raise InvalidData(f"{self.what}: the LinearOperator's {which} failed ({exc}); it must return an array of "
+                              f"shape {shape}") from None
+        refuse_complex(out, f"{self.what}: the LinearOperator's {which} output")
+        out = np.asarray(out, dtype=float).reshape(shape) if np.size(out) == math.prod(shape) else None
+        if out is None:
+            raise InvalidData(f"{self.what}: the LinearOperator's {which} returned the wrong number of entries; it "
+                              f"must return an array of shape {shape}")
+        if not np.all(np.isfinite(out)):
+            raise InvalidData(f"{self.what}: the LinearOperator's {which} returned NaN or inf")
+        return out
 
     def adjoint(self, Y: np.ndarray) -> np.ndarray:
         """A' Y (Y of shape (m,) or (m, k))."""
         if self.kind == "operator":
-            return self.data.rmatmat(Y) if Y.ndim == 2 else self.data.rmatvec(Y)
+            return self._checked(lambda: self.data.rmatmat(Y) if Y.ndim == 2 else self.data.rmatvec(Y),
+                                 (self.shape[1],) + Y.shape[1:], "rmatvec")
         if self.kind == "toeplitz":
             return self.bank.adjoint(Y)
         return self.data.T @ Y
@@ -207,7 +234,7 @@ class Operator:
         if self.shape[0] * self.shape[1] > param("linear_maps.dense_limit"):
             raise ModelError(f"{what} is a LinearOperator of shape {self.shape}, too large to form as a matrix for the "
                              "KKT reformulation; use method='hypergradient', which applies it by its products")
-        return np.asarray(self.data.matmat(np.eye(self.shape[1])), dtype=float)
+        return self.apply(np.eye(self.shape[1]))
 
     def casadi(self, what: str) -> ca.DM:
         """The matrix as a CasADi DM with its structural zeros (for the expanded, KKT form)."""

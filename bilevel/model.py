@@ -23,6 +23,7 @@ import numpy as np
 from .errors import InvalidData, ModelError
 from .linear_maps import Image, LinearMap, Operator
 from .parameters import ParameterSet
+from .real_data import refuse_complex
 from .spectral_radius import rho_and_gradient
 from .vech import symmetric_from_vech, unvech, vech
 
@@ -164,6 +165,8 @@ def _bound_array(value: Any, size: int, what: str, symmetric: bool = False) -> n
 
 
 def _shape_of(value: Any, where: str) -> tuple[int, int]:
+    if not isinstance(value, (ca.SX, ca.MX, ca.DM)):
+        refuse_complex(value, where)
     try:
         return tuple(ca.SX(value).shape)
     except (NotImplementedError, TypeError, RuntimeError):
@@ -172,6 +175,8 @@ def _shape_of(value: Any, where: str) -> tuple[int, int]:
 
 def _expression(value: Any, where: str, want: str = "a CasADi expression or numbers") -> ca.SX:
     """value (a CasADi expression, a number or an array of numbers) as an SX; ModelError naming `where` otherwise."""
+    if not isinstance(value, (ca.SX, ca.MX, ca.DM)):
+        refuse_complex(value, where)
     try:
         return value if isinstance(value, ca.SX) else ca.SX(value)
     except (NotImplementedError, TypeError, RuntimeError):
@@ -461,6 +466,8 @@ class BilevelProblem:
 
     # -- objectives ------------------------------------------------------------------------------
     def _objective(self, expr: Any, sense: Sense, where: str, assume_convex: bool = False) -> Objective:
+        if not isinstance(expr, (ca.SX, ca.MX, ca.DM)):
+            refuse_complex(expr, where)
         try:
             expr = ca.SX(expr) if not isinstance(expr, ca.SX) else expr
         except (NotImplementedError, TypeError, RuntimeError):

@@ -15,6 +15,7 @@ import casadi as ca
 import numpy as np
 
 from .errors import InvalidData, ModelError
+from .real_data import refuse_complex
 
 
 @dataclass
@@ -163,9 +164,7 @@ class ParameterSet:
             raw = np.asarray(value)
         except (TypeError, ValueError):  # e.g. a ragged list
             raw = np.asarray(None)
-        if np.iscomplexobj(raw):
-            raise InvalidData(f"value of parameter {name!r} is complex; parameters take real numbers: pass its real "
-                              "part (np.real), or the real and imaginary parts as two parameters")
+        refuse_complex(raw, f"value of parameter {name!r}")
         if raw.dtype.kind not in "biuf":
             raise InvalidData(f"value of parameter {name!r} must be real numbers, got {type(value).__name__}"
                               f"{f' of dtype {raw.dtype}' if raw.dtype.kind != 'O' else ''}; pass a float array")

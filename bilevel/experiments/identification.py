@@ -25,8 +25,8 @@ from ..problems.identification import problem_for
 from ..problems.identification_instance import IdentificationAttack, attack_instance
 from .executor import open_executor
 from .identification_baseline import SLSQP_ITERATIONS, START_SCALE, judge, slsqp_attack
-from .sweep import FINITE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of, sim_seeds, \
-    stderr_progress
+from .sweep import FINITE, NONNEGATIVE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of, \
+    sim_seeds, stderr_progress
 
 DELTAS = (0.01, 0.025, 0.05, 0.075, 0.1)
 HORIZONS = (100, 500)
@@ -41,7 +41,8 @@ points it ends at gave the same ||d[A B]||_2 to 7 digits as at 1e-8 (T = 100, 19
 0.1), and the last 3-4 of 20-45 iterations (from the start before its restoration) are saved."""
 WARM_UP_SEED = 2**32 - 1
 """Seed of the warm-up instance's data; the warm-up's result is discarded."""
-JUDGED = {"norm2": NUMBER, "frobenius": NUMBER, "stealthy": bool, "max_relative_change": NUMBER, "budget_used": dict,
+JUDGED = {"norm2": NONNEGATIVE, "frobenius": NONNEGATIVE, "stealthy": bool, "max_relative_change": NUMBER,
+          "budget_used": dict,
           "residual_norm": dict, "before": dict, "after": dict, "wall_time": FINITE, "cpu_time": FINITE}
 """wall_time: the solve's (engine: problem_for's re-targeting excluded) or the baseline's; cpu_time: the process's
 CPU seconds in problem_for and the solve, or in the baseline (comparable under other load)."""

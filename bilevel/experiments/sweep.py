@@ -69,9 +69,11 @@ def stderr_progress(text: str) -> None:
 
 
 Kind = Any
-"""A field's kind in a row schema: bool, int, str, list, dict, None, FINITE, NUMBER, or a tuple of kinds."""
+"""A field's kind in a row schema: bool, int, str, list, dict, None, FINITE, NUMBER, NONNEGATIVE (a norm), or a tuple of
+kinds."""
 FINITE = "finite number"
 NUMBER = "number (inf and nan allowed)"
+NONNEGATIVE = "finite number >= 0"
 ROW_SCHEMA: dict[str, Kind] = {"key": str, "digest": str, "version": str, "task": dict}
 """Fields every row has, whatever the sweep."""
 Validator = Callable[[dict[str, Any]], str]
@@ -83,9 +85,9 @@ def _is(value: Any, kind: Kind) -> bool:
         return any(_is(value, k) for k in kind)
     if kind is None:
         return value is None
-    if kind in (FINITE, NUMBER):
+    if kind in (FINITE, NUMBER, NONNEGATIVE):
         number = isinstance(value, (int, float)) and not isinstance(value, bool)
-        return number and (kind == NUMBER or math.isfinite(value))
+        return number and (kind == NUMBER or math.isfinite(value)) and (kind != NONNEGATIVE or value >= 0)
     if kind is int:
         return isinstance(value, int) and not isinstance(value, bool)
     return isinstance(value, kind)  # bool is exact: the string "false" is no bool

@@ -21,6 +21,7 @@ from ..errors import (InvalidData, LowerLevelInfeasible, LowerLevelUnbounded, Mo
                       SolverFailed)
 from ..model import LowerQP
 from ..parameters import ParameterSet
+from ..real_data import refuse_complex
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
 from .quadratic import LinearLower, QPData, QuadraticLower, clarabel_solution, solve_qp_clarabel
@@ -209,6 +210,7 @@ def as_dense(matrix: object, cols: int, what: str) -> np.ndarray:
     """A numeric matrix (numpy or scipy.sparse) as a dense float array with `cols` columns (0 rows if None)."""
     if matrix is None:
         return np.zeros((0, cols))
+    refuse_complex(matrix, f"lower_qp: {what}")
     try:
         arr = matrix.toarray() if sp.issparse(matrix) else np.asarray(matrix, dtype=float)
     except (TypeError, ValueError):

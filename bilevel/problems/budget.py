@@ -9,6 +9,7 @@ from typing import Literal
 import numpy as np
 
 from ..errors import ModelError
+from ..real_data import real_number
 from ..solvers.projections import NormBall, Projection, SparseNormBall
 
 Norm = Literal["l2", "linf", "l1"]
@@ -24,11 +25,11 @@ class Budget:
     rho: float | None = None
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.eps) and self.eps >= 0):
+        if real_number(self.eps, "budget eps") < 0:
             raise ModelError(f"budget eps must be finite and >= 0, got {self.eps}")
         if self.norm not in _ORDER:
             raise ModelError(f"budget norm {self.norm!r} is not one of {', '.join(_ORDER)}")
-        if self.rho is not None and not 0.0 <= self.rho <= 1.0:
+        if self.rho is not None and not 0.0 <= real_number(self.rho, "sparsity fraction rho") <= 1.0:
             raise ModelError(f"sparsity fraction rho must be in [0, 1], got {self.rho}")
 
     @classmethod

@@ -28,6 +28,7 @@ from ..ddc.data import simulate
 from ..ddc.plants import flexible_transmission
 from ..ddc.systems import num_den
 from ..errors import InvalidData, ModelError, NotPersistentlyExciting
+from ..real_data import integer, real_array, real_number
 from ..solvers.options import check_common_options
 from .budget import Budget
 
@@ -73,21 +74,20 @@ class DeePCAttack:
             raise ModelError(f"a DeePC budget is l2 or linf without sparsity, got {self.budget}")
         if self.objective not in OBJECTIVES:
             raise ModelError(f"objective {self.objective!r} is not one of {', '.join(OBJECTIVES)}")
+        self.t_ini, self.horizon = integer(self.t_ini, "t_ini", 1), integer(self.horizon, "horizon", 1)
         for name in ("u", "y", "past_u", "past_y"):
-            s = np.asarray(getattr(self, name), dtype=float).ravel()
+            s = real_array(getattr(self, name), f"signal {name}").ravel()
             if not np.all(np.isfinite(s)):
                 raise InvalidData(f"signal {name} contains NaN or inf")
             setattr(self, name, s)
         if self.u.size != self.y.size or self.past_u.size != self.past_y.size or self.past_u.size < self.t_ini:
             raise InvalidData(f"u and y have {self.u.size} and {self.y.size} samples, past_u and past_y "
                               f"{self.past_u.size} and {self.past_y.size}: give equal lengths, a past of >= t_ini")
-        for name in ("t_ini", "horizon"):
-            if not isinstance(getattr(self, name), (int, np.integer)) or getattr(self, name) < 1:
-                raise ModelError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
         weights = {"q": self.q, "r_weight": self.r_weight, "lambda_g": self.lambda_g, "lambda_y": self.lambda_y}
-        if not all(np.isfinite(v) and v >= 0 for v in weights.values()) or self.q + self.r_weight == 0:
+        if not all(real_number(v, k) >= 0 for k, v in weights.items()) or self.q + self.r_weight == 0:
             raise ModelError(f"the weights must be finite and >= 0, q + r_weight > 0, got {weights}")
-        if self.u_max is not None and not (np.isfinite(self.u_max) and self.u_max > 0):
+        self.reference = self._reference(self.reference)
+        if self.u_max is not None and not real_number(self.u_max, "u_max") > 0:
             raise ModelError(f"u_max must be a positive bound or None (no input bound), got {self.u_max}")
         depth = self.t_ini + self.horizon
         order = len(num_den(self.plant)[1]) - 1
@@ -102,6 +102,25 @@ class DeePCAttack:
         impulse = simulate(self.plant, np.eye(N)[0])
         self.step = toeplitz(impulse, np.zeros(N))
         self.u0_clean = float(self.plan(self.u, self.y)[0])
+
+    @staticmethod
+    def _reference(reference: object) -> float:
+        """The setpoint r: one finite number (the tracking cost's and the closed loop's)."""
+        r = real_array(reference, "reference")
+        if r.size != 1:
+            raise InvalidData(f"reference has shape {r.shape}: the setpoint r is one finite number")
+        return real_number(float(r.ravel()[0]), "reference")
+
+    def _recorded(self, u: object, y: object) -> tuple[np.ndarray, np.ndarray]:
+        """Recorded data (u, y) as the learner takes them: finite real 1-D signals of the instance's length (its
+        Hankel matrices have that many columns; a longer record is not cut)."""
+        u, y = (real_array(s, name).ravel() for s, name in ((u, "recorded u"), (y, "recorded y")))
+        if u.size != self.u.size or y.size != self.u.size:
+            raise InvalidData(f"recorded u and y have {u.size} and {y.size} samples; this learner's Hankel matrices "
+                              f"are built from {self.u.size} (make a DeePCAttack of the new length instead)")
+        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
+            raise InvalidData("recorded u or y contains NaN or inf")
+        return u, y
 
     def learner(self) -> tuple[cp.Problem, dict[str, cp.Parameter | cp.Variable]]:
         """The DeePC QP as a cvxpy Problem with Parameters "Hu", "Hy" (the depth t_ini + horizon Hankel matrices;
@@ -129,6 +148,8 @@ class DeePCAttack:
         """Receding horizon on the true plant with the learner fitted to recorded data (u, y): at each of `steps`
         steps it re-solves DeePC from the last t_ini inputs and outputs and applies the first planned input.
         Returns the applied inputs, the outputs at the same times (y_t before u_t acts) and the last plan."""
+        u, y = self._recorded(u, y)
+        steps = integer(steps, "closed_loop steps", 0)
         problem, v = self.learner()
         depth, k = self.t_ini + self.horizon, self.t_ini
         v["Hu"].value, v["Hy"].value = np.array(hankel(u, depth)), np.array(hankel(y, depth))
@@ -153,6 +174,9 @@ class DeePCAttack:
     def true_output(self, plan: np.ndarray | ca.SX) -> np.ndarray | ca.SX:
         """The true plant's outputs under planned inputs, from the state its past left it in: free + S u."""
         if isinstance(plan, np.ndarray):
+            plan = real_array(plan, "plan").ravel()
+            if plan.size != self.horizon:
+                raise InvalidData(f"a plan has {self.horizon} inputs (the horizon), got {plan.size}")
             return self.free + self.step @ plan
         return ca.DM(self.free) + ca.mtimes(ca.DM(self.step), plan)
 
@@ -184,7 +208,7 @@ def attack_instance(T: int = 200, eps: float = 0.05, norm: Norm = "l2", objectiv
     check_common_options({"seed": seed})
     if not isinstance(T, (int, np.integer)) or isinstance(T, bool) or T < 1:
         raise InvalidData(f"T={T!r}: give a positive integer number of samples (e.g. 200)")
-    if not (np.isfinite(noise_std) and noise_std >= 0 and np.isfinite(past_std) and past_std >= 0):
+    if not (real_number(noise_std, "noise_std") >= 0 and real_number(past_std, "past_std") >= 0):
         raise ModelError(f"noise_std and past_std must be finite and >= 0, got {noise_std}, {past_std}")
     plant = flexible_transmission()
     rng = np.random.default_rng(seed)

@@ -21,6 +21,7 @@ import numpy as np
 
 from ..errors import ModelError
 from ..lower.quadratic import solve_clarabel
+from ..real_data import real_number
 from ..model import BilevelProblem
 from .identification import SOURCE
 from .identification_instance import IdentificationAttack, attack_instance, ss_regression
@@ -30,6 +31,8 @@ Loss = Literal["ls", "huber", "lad"]
 LOSSES = ("ls", "huber", "lad")
 HUBER_K = 1.345
 """The Huber threshold in noise standard deviations (95% efficiency under Gaussian noise)."""
+HUBER_K_MIN = 1e-3
+"""The smallest threshold k (noise stds) taken: below it the Huber learner is LAD scaled by the threshold."""
 
 
 def robust_fit(Y: np.ndarray, Z: np.ndarray, loss: Loss, threshold: float = 0.0) -> np.ndarray:
@@ -58,9 +61,14 @@ class DefendedIdentification:
             raise ModelError("defended identification takes the state-space learner without stealth constraints")
         if self.loss not in LOSSES:
             raise ModelError(f"loss {self.loss!r} is not one of {', '.join(LOSSES)}")
-        if not (np.isfinite(self.k) and self.k > 0):
-            raise ModelError(f"the Huber threshold k (noise stds) must be > 0, got {self.k}")
+        if real_number(self.k, "the Huber threshold k (noise stds)") < HUBER_K_MIN:
+            raise ModelError(f"the Huber threshold k={self.k!r} noise stds is below {HUBER_K_MIN:g}: there the Huber "
+                             "loss is the LAD loss scaled by the threshold, its quadratic part never acting, and the "
+                             "learner's problem is solved to no accuracy; use loss 'lad'")
         self.threshold = self.k * self.atk.setting.noise_std
+        if self.loss == "huber" and not self.threshold > 0:
+            raise ModelError(f"the Huber threshold is k * noise_std = {self.threshold:g}: the setting's noise_std "
+                             f"{self.atk.setting.noise_std!r} must be > 0 for the Huber learner (or use loss 'lad')")
         self.theta_clean = self.learn(self.atk.signals)
 
     def learn(self, signals: dict[str, np.ndarray]) -> np.ndarray:

@@ -31,6 +31,7 @@ from ..ddc.operators import LTIOperator
 from ..ddc.vrft import instrumental_variables
 from ..errors import InvalidData, ModelError
 from ..model import BilevelProblem
+from ..solvers.options import check_flags
 from .budget import Budget
 from .registry import register
 from .vrft import filtered
@@ -188,5 +189,6 @@ def defense_vrft_iv(objective: Objective = "destabilize", scenario: str = "B", e
                     seed: int = 0, N: int = 512, noise: float = 0.02,
                     trusted_instrument: bool = False) -> BilevelProblem:
     """IV VRFT under poisoning of (u, y, y2), or of (u, y) with trusted_instrument."""
+    check_flags({"trusted_instrument": trusted_instrument}, ("trusted_instrument",))
     defense = "iv-trusted" if trusted_instrument else "iv"
     return declare(defended_instance(defense, objective, 0.0, scenario, eps_u, eps_y, seed, N, noise))

@@ -27,6 +27,7 @@ from ..ddc.plants import flexible_transmission
 from ..ddc.residual_tests import ResidualTest, regression_tests
 from ..ddc.systems import num_den
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
+from ..real_data import integer, real_array, real_number
 from ..solvers.options import check_common_options
 
 Learner = Literal["ss", "arx"]
@@ -151,26 +152,45 @@ class IdentificationAttack:
         if self.objective in MODEL_BASED and self.learner != "ss":
             raise ModelError(f"objective {self.objective!r} is a property of a state-space model: use the 'ss' "
                              "learner (ident-ss)")
-        if not all(np.isfinite(w) and w > 0 for w in self.lqr_weights):
+        if not all(real_number(w, "lqr weight") > 0 for w in self.lqr_weights):
             raise ModelError(f"lqr_weights (q, r) must be positive and finite, got {self.lqr_weights}")
         names = ("X", "U") if self.learner == "ss" else ("u", "y")
         if set(self.signals) != set(names) or set(self.eps) != set(names):
             raise ModelError(f"the {self.learner} learner takes signals and budgets {names}, got signals "
                              f"{sorted(self.signals)} and budgets {sorted(self.eps)}")
+        self.lags = integer(self.lags, "lags (the whiteness test's)", 1)
+        if self.learner == "arx":
+            self.orders = (integer(self.orders[0], "ARX order na", 0), integer(self.orders[1], "ARX order nb", 1))
         for name in names:
-            s = np.asarray(self.signals[name], dtype=float)
+            s = real_array(self.signals[name], f"signal {name}")
             if not np.all(np.isfinite(s)):
                 raise InvalidData(f"signal {name} contains NaN or inf")
-            self.signals[name] = s[:, None] if self.learner == "arx" and s.ndim == 1 else np.atleast_2d(s)
-            if not (np.isfinite(self.eps[name]) and self.eps[name] >= 0):
+            if s.ndim > 2 or (self.learner == "arx" and s.ndim == 2 and 1 not in s.shape):
+                raise InvalidData(f"signal {name} has shape {s.shape}: give " + ("a 1-D signal" if self.learner == "arx"
+                                  else "a matrix (channels x samples)"))
+            self.signals[name] = s.reshape(-1, 1) if self.learner == "arx" else np.atleast_2d(s)
+            if real_number(self.eps[name], f"budget eps_{name}") < 0:
                 raise ModelError(f"budget eps_{name} must be finite and >= 0, got {self.eps[name]}")
-        if self.stealth is not None and not 0 < self.stealth < 1:
+        self._check_lengths()
+        if self.stealth is not None and not 0 < real_number(self.stealth, "stealth") < 1:
             raise ModelError(f"stealth must be a relative tolerance in (0, 1) (e.g. 0.05) or None, got {self.stealth}")
         self.Y0, self.Z0 = self.regression(self.signals)
         if self.Y0.shape[1] <= self.Z0.shape[0] + self.lags:
             raise InvalidData(f"{self.Y0.shape[1]} regression samples for {self.Z0.shape[0]} regressors and "
                               f"{self.lags} whiteness lags: record a longer experiment")
         self.theta0 = least_squares_fit(self.Y0, self.Z0)
+
+    def _check_lengths(self) -> None:
+        """The signals' lengths fit the learner (never a signal cut to the others' length): X has one sample more
+        than U (states x_0 .. x_T for inputs u_0 .. u_{T-1}); u and y are equally long."""
+        if self.learner == "ss":
+            (n, cols), (m, T) = self.signals["X"].shape, self.signals["U"].shape
+            if cols != T + 1:
+                raise InvalidData(f"signal X has shape {(n, cols)} and U {(m, T)}: X holds the states x_0 .. x_T of T "
+                                  f"inputs, so it needs T + 1 = {T + 1} columns (states x samples; transposed?)")
+        elif self.signals["u"].size != self.signals["y"].size:
+            raise InvalidData(f"signals u and y have {self.signals['u'].size} and {self.signals['y'].size} samples; "
+                              "the ARX learner needs them equally long")
 
     def regression(self, signals: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """(Y, Z) of the learner on the signals given (as numbers)."""

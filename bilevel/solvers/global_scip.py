@@ -33,6 +33,8 @@ from .global_nodes import G_SIDE, H_SIDE, Relaxation
 
 INSTALL = "pip install pyscipopt (or pip install 'bilevel[global]')"
 
+SCIP_NO_TIME_LIMIT = 1e20
+"""SCIP's largest time limit (seconds), its 'no limit': a longer time_limit is given to SCIP as this."""
 SCIP_ENDED = {"optimal": "proven", "gaplimit": "proven", "timelimit": "time_limit", "nodelimit": "node_limit",
               "totalnodelimit": "node_limit", "infeasible": "infeasible", "unbounded": "unbounded",
               "inforunbd": "unbounded", "userinterrupt": "interrupted"}
@@ -192,7 +194,7 @@ def solve_scip(relax: Relaxation, big_m: BigM, box: tuple[np.ndarray, np.ndarray
     assert leader is not None, "solve_scip needs a form built with nonconvex_leader=True"
     t0 = time.perf_counter()
     model, w = _build(scip, relax, leader, big_m, *box)
-    model.setParam("limits/time", max(time_limit - (time.perf_counter() - t0), 1e-3))
+    model.setParam("limits/time", min(max(time_limit - (time.perf_counter() - t0), 1e-3), SCIP_NO_TIME_LIMIT))
     model.setParam("limits/nodes", int(node_limit))
     model.setParam("numerics/feastol", param("global.scip_feastol"))
     model.setParam("limits/gap", gap_tol)      # SCIP's relative gap divides by min(|primal|, |dual|): it closing

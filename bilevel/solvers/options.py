@@ -9,6 +9,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from ..defaults import check
 from ..errors import ModelError
 
 
@@ -75,7 +76,7 @@ def check_common_options(options: dict[str, Any], certificate_tol: Any = None) -
                   nonnegative=("ftol",))
     check_flags(options, ("polish", "branch_polish", "verbose"))
     if certificate_tol is not None:
-        check_numbers({"certificate_tol": certificate_tol}, positive=("certificate_tol",))
+        check("certificate.tol", certificate_tol, "certificate_tol")
     seed = options.get("seed")
     if not (seed is None or isinstance(seed, (np.random.Generator, np.random.SeedSequence))
             or (_integer(seed) and seed >= 0)):

@@ -16,7 +16,6 @@ from ..defaults import param
 from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
 from .base import MethodRun, Prepared, best_of, check_options
-from .options import check_numbers
 from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish_best, residual, run_nlp, settled
 from .limits import Deadline, progress, stopped
 
@@ -59,14 +58,10 @@ def solve_relaxation(prep: Prepared, *, scheme: str = "scholtes", t0: float | No
     comp_tol; starts, seed, scale, warm, branch_polish, nlp_tol, max_iter, ipopt, verbose: as for method ipopt;
     time_limit (seconds): the sequence and the starts stop, status MAX_ITERATIONS."""
     check_options("relaxation", unknown, solve_relaxation)
-    given = {name: value for name, value in dict(t0=t0, factor=factor, t_min=t_min, comp_tol=comp_tol).items()
-             if value is not None}
-    check_numbers(given, positive=("t0", "factor", "t_min", "comp_tol"))
+    t0, factor = float(param("relaxation.t0", t0)), float(param("relaxation.factor", factor))
+    t_min, comp_tol = float(param("relaxation.t_min", t_min)), float(param("relaxation.comp_tol", comp_tol))
     if scheme not in SCHEMES:
         raise ModelError(f"unknown relaxation scheme {scheme!r}; choose one of {', '.join(SCHEMES)}")
-    factor = float(param("relaxation.factor", factor))
-    if not 0.0 < factor < 1.0:
-        raise ModelError(f"relaxation factor must be in (0, 1), got {factor}")
     mode = SCHEMES[scheme]()
     limit, verbose = Deadline(time_limit), bool(verbose)
     points, source, warm = kkt_starts(prep, "relaxation", starts, seed, scale, warm, verbose, limit)
@@ -77,9 +72,7 @@ def solve_relaxation(prep: Prepared, *, scheme: str = "scholtes", t0: float | No
         if k and limit.expired():
             break
         t_start = time.perf_counter()
-        run, path = relaxation_path(prep, nlp, w0, opts, float(param("relaxation.t0", t0)), factor,
-                                    float(param("relaxation.t_min", t_min)),
-                                    float(param("relaxation.comp_tol", comp_tol)), limit, verbose)
+        run, path = relaxation_path(prep, nlp, w0, opts, t0, factor, t_min, comp_tol, limit, verbose)
         res = residual(prep, run.w)
         candidates.append((run.w, run.objective, res))
         finals.append(run)

@@ -101,7 +101,8 @@ OPTION_CASES = {
     "certificate_tol zero": ({"certificate_tol": 0.0}, ModelError, "certificate_tol=0.0 is invalid"),
     "certificate_tol string": ({"certificate_tol": "1e-6"}, ModelError, "certificate_tol='1e-6' is invalid"),
     "seed negative": ({"seed": -1}, ModelError, "seed=-1 is invalid"),
-    "relaxation factor": ({"method": "relaxation", "factor": 2.0}, ModelError, "factor must be in"),
+    "relaxation factor": ({"method": "relaxation", "factor": 2.0}, ModelError,
+                          "factor=2.0 is invalid: it must be a finite number in \\(0, 1\\)"),
 }
 
 

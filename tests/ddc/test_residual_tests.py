@@ -113,3 +113,38 @@ def test_p_values_are_calibrated_on_clean_data(learner: str) -> None:
     rates = rejection_rates(learner, data_sets)
     for name, rate in rates.items():
         assert low / data_sets <= rate <= high / data_sets, (name, rates)
+
+
+# -- degenerate inputs (issue 44, item 4): a correct limit or a named error, never NaN or a traceback ------------------
+@pytest.mark.parametrize("scale", [1e-200, 1e200])
+def test_statistics_do_not_depend_on_the_data_scale(scale: float) -> None:
+    """At 1e-200 the squares underflowed (ZeroDivisionError, a singular R_0), at 1e200 they overflowed (NaN p-values):
+    the statistics are invariant to the scale and are now computed in the data's own units."""
+    rng = np.random.default_rng(5)
+    Z = rng.standard_normal((4, 90))
+    Theta = np.array([[0.5, -0.2, 1.0, 0.3], [0.1, 0.4, -0.3, 0.2]])
+    Y = Theta @ Z + 0.2 * rng.standard_normal((2, 90))
+    Theta = np.linalg.lstsq(Z.T, Y.T, rcond=None)[0].T
+    base = regression_tests(Y, Z, Theta, [2, 3], 0.2, 5)
+    scaled = regression_tests(scale * Y, Z, scale * Theta, [2, 3], 0.2 * scale, 5)
+    for name, test in base.items():
+        assert scaled[name].statistic == pytest.approx(test.statistic, rel=1e-10)
+        assert 0.0 <= scaled[name].p_value <= 1.0
+
+
+def test_exact_fits_give_the_tests_limits() -> None:
+    """Zero residuals: the variance statistic is 0 (p-value 0, a residual far too small for the noise); the input
+    test's full model exact and its restriction not: F = inf (p-value 0); both exact, or a zero output for the
+    whiteness test: a named error."""
+    rng = np.random.default_rng(6)
+    Z = rng.standard_normal((3, 40))
+    Theta = np.array([[1.0, -0.5, 2.0]])
+    Y = Theta @ Z
+    variance = variance_test(Y - Theta @ Z, 0.1, 3)
+    assert variance.statistic == 0.0 and variance.p_value == 0.0
+    f = input_test(Y, Z, Theta, [2])
+    assert f.statistic == np.inf and f.p_value == 0.0
+    with pytest.raises(InvalidData, match="both the model and its restriction"):
+        input_test(Theta[:, :2] @ Z[:2], Z, np.array([[1.0, -0.5, 0.0]]), [2])
+    with pytest.raises(InvalidData, match="all zero"):
+        whiteness_test(np.zeros((1, 40)), 3)
