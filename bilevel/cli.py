@@ -251,6 +251,11 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     if structured:
         options = _attack_options(args.problem, raw_options)
         starts = {} if args.starts is None else {"starts": args.starts}
+        if args.verbose:
+            if "verbose" not in _attack_parameters(args.problem)[0]:
+                raise ModelError(f"--verbose: the structured attack of {args.problem} reports no progress; give a "
+                                 f"generic --method (e.g. --method {AUTO}), whose methods all do")
+            options = _with_flags(options, {"verbose": True})
         if "seed" in params and args.seed is not None and args.seed != params["seed"]:
             raise ModelError(f"--seed {args.seed} and --param seed={params['seed']}: a structured attack's seed is also "
                              "its data's; give one")
@@ -261,9 +266,13 @@ def _cmd_solve(args: argparse.Namespace) -> int:
             raise ModelError(f"{args.problem} has no structured attack; choose {AUTO} or a registered method: "
                              f"{', '.join(sorted(METHODS))}")
         problem = registry.get(args.problem, **params)
-        options = _with_flags(_method_options(raw_options), {"starts": args.starts, "seed": args.seed})
+        options = _with_flags(_method_options(raw_options), {"starts": args.starts, "seed": args.seed,
+                                                             "verbose": True if args.verbose else None})
         result = solve(problem, method=args.method or AUTO, **{"seed": 0, **options})
     print(result)
+    if clean := {k: v for k, v in result.stats.items() if k.endswith("_clean") and np.ndim(v) == 0}:
+        print("clean data (the scale of the attack's numbers): " + ", ".join(f"{k} {float(v):.6g}"
+                                                                           for k, v in clean.items()))
     if "spectral_radius" in result.stats:  # an attack's outcome on the true closed loop
         from .attacks.outcome import unstable
 
@@ -439,6 +448,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_solve.add_argument("--method", default=None,
                          help=f"{', '.join([AUTO, STRUCTURED, *sorted(METHODS)])} (default: {STRUCTURED} for a problem "
                               f"with a structured attack (vrft-*, willems-*), else {AUTO}: chosen by structure)")
+    p_solve.add_argument("--verbose", action="store_true",
+                         help="progress on stderr while the method works (a line per start, iteration or generation)")
     p_solve.add_argument("--starts", type=int, default=None,
                          help="multistart count (default: the method's registry default, bilevel.defaults, e.g. "
                               "reduced 1, hypergradient 4, ipopt 8; a structured attack: its own)")

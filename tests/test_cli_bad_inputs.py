@@ -346,3 +346,17 @@ def test_a_stray_package_name_in_the_working_directory_is_not_imported(workdir: 
                      "--workers", "1", "--out", "cmp"], workdir)
     assert compared.returncode == 0 and "stray" not in compared.stderr, compared.stderr
     assert "-24" in (workdir / "cmp" / "compare.csv").read_text()
+
+
+def test_solve_verbose_shows_progress_and_attacks_show_their_clean_scale(capsys) -> None:
+    """`bilevel solve --verbose` prints the method's progress on stderr; an attack's output names its clean-data
+    values next to the attacked ones (issue 50); a structured attack without progress reports says so in one line."""
+    assert main(["solve", "bard1998-ex5.1.1", "--method", "ipopt", "--starts", "2", "--verbose"]) == 0
+    out, err = capsys.readouterr()
+    assert "[ipopt] start 1/2:" in err and "[ipopt] start 2/2:" in err
+    assert main(["solve", "vrft-maxmin", "--param", "N=64", "--starts", "1"]) == 0
+    out, _ = capsys.readouterr()
+    assert "clean data (the scale of the attack's numbers): value_clean " in out
+    assert main(["solve", "willems-eigen", "--verbose"]) == 2
+    _, err = capsys.readouterr()
+    assert "--verbose: the structured attack of willems-eigen reports no progress" in err
