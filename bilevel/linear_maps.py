@@ -195,12 +195,13 @@ class Operator:
         if self.kind == "toeplitz":
             return self.bank.apply(X)
         if self.kind == "operator":
-            return self._checked(lambda: self.data.matmat(X) if X.ndim == 2 else self.data.matvec(X),
+            return self._checked(lambda: self.data.matmat(X) if X.ndim == 2 else self.data.matvec(X), X,
                                  (self.shape[0],) + X.shape[1:], "matvec")
         return self.data @ X
 
-    def _checked(self, product: Any, shape: tuple[int, ...], which: str) -> np.ndarray:
-        """A LinearOperator's product (the user's code) as a finite real array of `shape`; InvalidData otherwise."""
+    def _checked(self, product: Any, arg: np.ndarray, shape: tuple[int, ...], which: str) -> np.ndarray:
+        """A LinearOperator's product (the user's code) of `arg` as a real array of `shape`, finite where `arg` is;
+        InvalidData otherwise."""
         try:
             out = product()
         except ValueError as exc:  # scipy's own shape check of what the user's code returned
@@ -211,14 +212,14 @@ class Operator:
         if out is None:
             raise InvalidData(f"{self.what}: the LinearOperator's {which} returned the wrong number of entries; it "
                               f"must return an array of shape {shape}")
-        if not np.all(np.isfinite(out)):
-            raise InvalidData(f"{self.what}: the LinearOperator's {which} returned NaN or inf")
+        if not np.all(np.isfinite(out)) and np.all(np.isfinite(arg)):
+            raise InvalidData(f"{self.what}: the LinearOperator's {which} returned NaN or inf of finite input")
         return out
 
     def adjoint(self, Y: np.ndarray) -> np.ndarray:
         """A' Y (Y of shape (m,) or (m, k))."""
         if self.kind == "operator":
-            return self._checked(lambda: self.data.rmatmat(Y) if Y.ndim == 2 else self.data.rmatvec(Y),
+            return self._checked(lambda: self.data.rmatmat(Y) if Y.ndim == 2 else self.data.rmatvec(Y), Y,
                                  (self.shape[1],) + Y.shape[1:], "rmatvec")
         if self.kind == "toeplitz":
             return self.bank.adjoint(Y)
