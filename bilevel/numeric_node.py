@@ -27,12 +27,15 @@ class _Point:
         self.values: np.ndarray | None = None
         self.blocks: Sequence[np.ndarray] | None = None
 
-    def at(self, args: Sequence[Any], jacobian: bool) -> tuple[np.ndarray, Sequence[np.ndarray] | None]:
-        mats = [np.asarray(a, dtype=float).reshape(s, order="F") for a, s in zip(args, self.shapes)]
-        key = b"".join(m.tobytes(order="F") for m in mats)
+    def at(self, args: Sequence[memoryview], jacobian: bool) -> tuple[np.ndarray, Sequence[np.ndarray] | None]:
+        """Values and (with jacobian) Jacobian blocks at the inputs in CasADi's (column-major) buffers."""
+        key = b"".join(bytes(a) for a in args)
         if key != self.key or (jacobian and self.blocks is None):
+            mats = [np.frombuffer(a, dtype=np.float64).reshape(s, order="F").copy() for a, s in zip(args, self.shapes)]
             self.key = key
             self.values, self.blocks = self.evaluate(*mats, jacobian=jacobian)
+            if self.blocks is not None:  # as (rows, input entries in CasADi's order) for the seeds' products
+                self.blocks = [b.transpose(0, 2, 1).reshape(len(self.values), -1) for b in self.blocks]
         return self.values, self.blocks
 
 
@@ -55,8 +58,12 @@ class _Node(ca.Callback):
     def get_sparsity_out(self, i: int) -> ca.Sparsity:
         return ca.Sparsity.dense(self.size, 1)
 
-    def eval(self, arg: list[ca.DM]) -> list[np.ndarray]:
-        return [self.point.at(arg, False)[0]]
+    def has_eval_buffer(self) -> bool:
+        return True
+
+    def eval_buffer(self, arg: tuple[memoryview, ...], res: tuple[memoryview, ...]) -> int:
+        np.frombuffer(res[0], dtype=np.float64)[:] = self.point.at(arg, False)[0]
+        return 0
 
     def has_reverse(self, nadj: int) -> bool:
         return True
@@ -91,11 +98,16 @@ class _Reverse(ca.Callback):
         rows, cols = self.point.shapes[i]
         return ca.Sparsity.dense(rows, cols * self.nadj)
 
-    def eval(self, arg: list[ca.DM]) -> list[np.ndarray]:
+    def has_eval_buffer(self) -> bool:
+        return True
+
+    def eval_buffer(self, arg: tuple[memoryview, ...], res: tuple[memoryview, ...]) -> int:
         k = len(self.point.shapes)
         _, blocks = self.point.at(arg[:k], True)
-        seeds = np.asarray(arg[k + 1], dtype=float).reshape(self.size, self.nadj, order="F")
-        return [np.hstack([np.tensordot(seeds[:, j], b, axes=1) for j in range(self.nadj)]) for b in blocks]
+        seeds = np.frombuffer(arg[k + 1], dtype=np.float64).reshape(self.nadj, self.size)  # column j: direction j
+        for out, block in zip(res, blocks):
+            np.frombuffer(out, dtype=np.float64).reshape(self.nadj, -1)[:] = seeds @ block
+        return 0
 
 
 def numeric_node(name: str, evaluate: Evaluate, in_shapes: Sequence[tuple[int, int]], size: int) -> ca.Function:
