@@ -361,7 +361,8 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
                             else ""))
     if args.paper is not None:
         if args.quick:
-            raise ModelError("--paper runs the authors' own grid (T = 100 and 500, 10 data sets, 5 deltas); drop --quick")
+            raise ModelError("--paper runs the authors' own grid (T = 100 and 500, 10 data sets, 5 deltas); "
+                             "drop --quick")
         from .experiments.identification_paper import run_paper
 
         paper_out = args.out or "out/identification-paper"
