@@ -10,7 +10,7 @@ same (T, data set, delta), after one warm-up attack per T (declaration and compi
 are time.process_time of each side's attack. Both answers are checked by bilevel.ddc.stealth_check (tolerance 1e-6).
 
 Run: python benchmarks/bench_identification_authors.py --authors DIR --python PY --data DIR [--horizons 100,500]
-[--sims 10] [--sims-500 N] [--results FILE]; DIR: their example_stealthy_attack folder, PY: a python with torch
+[--sims 10] [--sims-500 N] [--results FILE] [--recorded-only]; DIR: their example_stealthy_attack folder, PY: a python with torch
 (CPU), numpy, scipy and momentchi2 (docs/identification.md), --data: their extracted datasets folder. Output:
 benchmarks/results/bench_identification_authors.txt.
 """
@@ -48,7 +48,7 @@ def authors_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[
             rows[(r["T"], r["sim"], r["delta"])] = r
     for T, sim in plan:
         missing = [d for d in DELTAS if (T, sim, d) not in rows]
-        if not missing:
+        if not missing or args.recorded_only:
             continue
         out = subprocess.run([args.python, RUNNER, args.authors, args.data, str(T), str(sim),
                               ",".join(map(str, missing))], capture_output=True, text=True, check=True,
@@ -87,6 +87,7 @@ def main() -> None:
     p.add_argument("--sims", type=int, default=10)
     p.add_argument("--sims-500", type=int, default=None, help="data sets at T = 500 (default --sims)")
     p.add_argument("--results", default="authors_slsqp.jsonl")
+    p.add_argument("--recorded-only", action="store_true", help="compare on the SLSQP rows --results holds, run none")
     args = p.parse_args()
     horizons = [int(t) for t in args.horizons.split(",")]
     plan = [(T, s) for T in horizons for s in range(args.sims if T != 500 or args.sims_500 is None else args.sims_500)]
