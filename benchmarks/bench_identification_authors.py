@@ -10,8 +10,9 @@ same (T, data set, delta), after one warm-up attack per T (declaration and compi
 are time.process_time of each side's attack. Both answers are checked by bilevel.ddc.stealth_check (tolerance 1e-6).
 
 Run: python benchmarks/bench_identification_authors.py --authors DIR --python PY --data DIR [--horizons 100,500]
-[--sims 10] [--sims-500 N] [--results FILE] [--recorded-only]; DIR: their example_stealthy_attack folder, PY: a python with torch
-(CPU), numpy, scipy and momentchi2 (docs/identification.md), --data: their extracted datasets folder. Output:
+[--sims 10] [--sims-500 N] [--results FILE] [--recorded-only]; DIR: their example_stealthy_attack folder, PY: a
+python with torch (CPU), numpy, scipy and momentchi2 (docs/identification.md: `python3 -m venv V && V/bin/pip install
+torch numpy scipy momentchi2`), --data: their extracted datasets folder. Output:
 benchmarks/results/bench_identification_authors.txt.
 """
 
