@@ -484,7 +484,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 TARGET_FILES = {"vrft": "maxmin-paper.jsonl", "willems": "paper.jsonl", "willems-budget": "budget.jsonl",
-                "identification": "stealthy.jsonl", "defenses": "defenses.jsonl", "identification-paper": "paper.jsonl"}
+                "identification": "stealthy.jsonl", "defenses": "defenses.jsonl",
+                "identification-paper": "authors_terms.jsonl"}
 """The sweep file only `bilevel reproduce TARGET` writes: a directory holding another target's is that target's run."""
 
 

@@ -168,12 +168,12 @@ def table(rows: list[dict[str, Any]]) -> str:
 def run_paper(folder: str, out_dir: str = "out/identification-paper", workers: int | None = None,
               progress: Callable[[str], None] | None = stderr_progress, dask: str | None = None,
               horizons: tuple[int, ...] = HORIZONS, sims: int = SIMS) -> str:
-    """The sweep over the authors' data sets in `folder` (out_dir/paper.jsonl, resumable) and report.md with the
+    """The sweep over the authors' data sets in `folder` (out_dir/authors_terms.jsonl, resumable) and report.md with the
     side-by-side table; returns the report's path."""
     tasks = paper_tasks(folder, horizons, sims)
     os.makedirs(out_dir, exist_ok=True)
     with open_executor(workers, dask) as executor:
-        rows = run_sweep(attack_task, tasks, os.path.join(out_dir, "paper.jsonl"), executor, progress, "paper",
+        rows = run_sweep(attack_task, tasks, os.path.join(out_dir, "authors_terms.jsonl"), executor, progress, "paper",
                          valid=lambda row: check_fields(row, ROW_SCHEMA))
     path = os.path.join(out_dir, "report.md")
     with atomic_open(path) as fh:

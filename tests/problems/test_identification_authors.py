@@ -163,7 +163,7 @@ def test_reproduce_paper_on_data_in_their_format(tmp_path) -> None:
     data.mkdir()
     write_authors_format(str(data), 100, 1, seed=5)
     assert main(["reproduce", "identification", "--paper", str(data), "--out", out, "--workers", "1"]) == 0
-    rows = [json.loads(line) for line in open(os.path.join(out, "paper.jsonl"))]
+    rows = [json.loads(line) for line in open(os.path.join(out, "authors_terms.jsonl"))]
     assert sorted(r["task"]["delta"] for r in rows) == [0.01, 0.025, 0.05, 0.075, 0.1]
     assert all(r["stealthy"] and r["violation"] <= 1e-6 for r in rows), [(r["worst"], r["violation"]) for r in rows]
     report = open(os.path.join(out, "report.md")).read()
