@@ -169,3 +169,20 @@ def test_reproduce_paper_on_data_in_their_format(tmp_path) -> None:
     report = open(os.path.join(out, "report.md")).read()
     assert "| 100 | 0.05 | 1 | 1 |" in report
     assert main(["reproduce", "identification", "--paper", str(data), "--quick", "--out", out]) == 2
+
+
+def test_numeric_node_reverse_in_several_directions() -> None:
+    """The node's reverse derivative with two adjoint directions at once gives each seed times the Jacobian."""
+    rng = np.random.default_rng(6)
+    X, U = rng.standard_normal((4, 61)), rng.standard_normal((1, 60))
+    Y, Z, theta, theta_r = fit_parts(X, U)
+    stats = StealthStatistics(4, 5, 60, (0, 1, 2, 3), 2)
+    node = numeric_node("t2", stats.evaluate, [Y.shape, Z.shape, theta.shape, theta_r.shape], stats.size)
+    seeds = rng.standard_normal((stats.size, 2))
+    outs = node.reverse(2)(Y, Z, theta, theta_r, node(Y, Z, theta, theta_r), seeds)
+    _, blocks = stats.evaluate(Y, Z, theta, theta_r, jacobian=True)
+    for out, block in zip(outs, blocks):
+        got, cols = np.array(out), block.shape[2]  # direction j: columns j cols .. (j + 1) cols - 1
+        for j in range(2):
+            want = np.tensordot(seeds[:, j], block, axes=1)
+            assert np.allclose(got[:, j * cols:(j + 1) * cols], want, rtol=1e-12, atol=1e-12)
