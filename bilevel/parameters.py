@@ -108,6 +108,10 @@ class ValueAndJacobian:
         self._rows = CompiledFunction(rows, params if len(params) else None)
         self._seeds = np.eye(n)
 
+    def value(self, *args: np.ndarray) -> np.ndarray:
+        """e (a column) at args, without its Jacobian."""
+        return np.asarray(self._value(*args), dtype=float)
+
     def __call__(self, *args: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """e (a column) and de/d inputs[wrt] (rows by entry of e; column-major, as CompiledFunction returns matrices:
         BLAS then sums in the same order) at args."""

@@ -135,7 +135,8 @@ def report(rows: Rows, baseline: Rows, figures: dict[str, str], plan: Plan, timi
     all_pairs = sum(c["n"] for c in vs.values())
     all_wins = sum(c["at_least_baseline"] for c in vs.values())
     parts = [
-        "# Stealthy poisoning of state-space identification (`bilevel reproduce identification`)", "",
+        "# Stealthy poisoning of state-space identification (`bilevel reproduce identification`; the project's own "
+        "stealth definition, stealth_kind \"tests\")", "",
         "Plant: the flexible transmission (Landau 1995, Ts = 0.05 s) in controllable canonical state-space form "
         "(4 states, 1 input), x+ = A x + B u + w, u ~ N(0, 1), w ~ N(0, 0.1^2 I), x_0 = 0. Learner: least squares "
         "[A B] = argmin ||X+ - [A B][X; U]||_F^2. Attacker: changes X and U with ||dX||_F <= delta ||X||_F and "

@@ -10,8 +10,12 @@ spectral radius of dTheta dTheta'), or, on [A B], a numeric function of the iden
 each residual statistic of bilevel.ddc.residual_tests (variance, whiteness, input F) within delta of its clean value;
 the F statistic's restricted model (Y regressed on Z without its input rows) is a second least-squares block of the
 lower level. Each statistic enters its constraints as a call of its MX Function of (Y, Z, theta, theta_r)
-(statistics_functions). The clean data and statistics are parameters: load_instance re-targets a declared problem,
-and with stealth suggests a start inside the stealth constraints (stealth_start).
+(statistics_functions). With stealth_kind "authors" the constraints are instead Russo & Proutiere's (the state-space
+learner): 1 - delta <= stat'/stat <= 1 + delta for the residual energy, Z_d and the correlation ratio of each lag
+tau = 1..s, all from one numeric call node with exact first derivatives (authors_node: bilevel.ddc.stealth_statistics
+through bilevel.numeric_node), their c_x, c_u being the budgets (eps = delta), and |entries| <= box on dX and dU.
+The clean data and statistics are parameters: load_instance re-targets a declared problem, and with stealth suggests a
+start inside the stealth constraints (stealth_start).
 """
 
 from __future__ import annotations
@@ -23,19 +27,22 @@ import casadi as ca
 import numpy as np
 
 from ..ddc.model_based import CertaintyEquivalenceRadius, H2Norm
+from ..ddc.stealth_statistics import StealthStatistics, statistic_names
 from ..errors import ModelError
 from ..kept import kept
 from ..model import BilevelProblem
+from ..numeric_node import numeric_node
 from ..solvers.base import prepare
 from ..solvers.implicit import shared_oracle
 from ..solvers.restoration import restore
 from ..solvers.starts import conditioning_start
-from .identification_instance import IdentificationAttack, Objective, arx_regression, attack_instance, ss_regression
+from .identification_instance import IdentificationAttack, Objective, StealthKind, arx_regression, attack_instance, \
+    least_squares_fit, ss_regression
 from .registry import register
 
 SOURCE = ("beyond the paper: least-squares identification of the flexible transmission (Russo & Proutiere, Analysis "
           "and Detectability of Offline Data Poisoning Attacks on Linear Systems, 2023)")
-DEFAULTS = {"T": 100, "eps": 0.05, "objective": "frobenius", "stealth": None, "seed": 0, "lags": 10}
+DEFAULTS = {"T": 100, "eps": 0.05, "objective": "frobenius", "stealth": None, "seed": 0, "lags": None}
 STATISTICS = ("variance", "whiteness", "input")
 
 
@@ -68,12 +75,21 @@ def statistics_functions(n: int, k: int, N: int, keep: tuple[int, ...], noise_st
                  for name in STATISTICS)
 
 
+@lru_cache(maxsize=8)
+def authors_node(stats: StealthStatistics) -> ca.Function:
+    """The authors' statistics [r, Z_d, f_1..f_s] of (Y, Z, theta, theta_r) as one numeric call node with exact first
+    derivatives (kept per size: CasADi holds no Python reference to it)."""
+    shapes = [(stats.n, stats.N), (stats.k, stats.N), (stats.n, stats.k), (stats.n, len(stats.keep))]
+    return numeric_node("authors_statistics", stats.evaluate, shapes, stats.size)
+
+
 def declare(atk: IdentificationAttack) -> BilevelProblem:
     """The bilevel program of an attack instance, declared with the generic API (budgets as balls)."""
     p = BilevelProblem(f"ident-{atk.learner}")
     poisoned = {}
+    bound = np.inf if atk.box is None else atk.box
     for name, clean in atk.signals.items():
-        d = p.upper_variable(f"d{name}", clean.shape)
+        d = p.upper_variable(f"d{name}", clean.shape, lb=-bound, ub=bound)
         p.upper_constraint(ca.sumsqr(d) <= p.parameter(f"delta_{name}") ** 2, name=f"budget_{name}")
         poisoned[name] = p.parameter(name, clean.shape) + d
     if atk.learner == "ss":
@@ -88,10 +104,15 @@ def declare(atk: IdentificationAttack) -> BilevelProblem:
         theta_r = p.lower_variable("theta_restricted", (atk.theta0.shape[0], len(keep)))
         E_r = Y - ca.mtimes(theta_r, Z[keep, :])
         lower += ca.sumsqr(E_r)
-        nodes = statistics_functions(Y.shape[0], *Z.shape, tuple(keep), atk.setting.noise_std, atk.lags)
         delta = p.parameter("stealth")
-        for node, name in zip(nodes, STATISTICS):
-            ratio = node(Y, Z, theta, theta_r) / p.parameter(f"{name}_clean")
+        if atk.stealth_kind == "authors":
+            values = authors_node(atk.authors_statistics)(Y, Z, theta, theta_r)
+            stats = [(values[i], name) for i, name in enumerate(statistic_names(atk.lags))]
+        else:
+            nodes = statistics_functions(Y.shape[0], *Z.shape, tuple(keep), atk.setting.noise_std, atk.lags)
+            stats = [(node(Y, Z, theta, theta_r), name) for node, name in zip(nodes, STATISTICS)]
+        for value, name in stats:
+            ratio = value / p.parameter(f"{name}_clean")
             p.upper_constraint(ratio <= 1 + delta, name=f"stealth_{name}_high")
             p.upper_constraint(ratio >= 1 - delta, name=f"stealth_{name}_low")
     p.minimize_lower(lower)
@@ -121,7 +142,7 @@ def problem_for(atk: IdentificationAttack) -> BilevelProblem:
     """The declared problem of `atk`, loaded with its data: declared once per learner, signal shapes, orders,
     objective and stealth declaration in this process, re-targeted with load_instance after."""
     key = (atk.learner, tuple(v.shape for v in atk.signals.values()), atk.orders, atk.objective, atk.lags,
-           atk.stealth is None, atk.lqr_weights)
+           atk.stealth is None, atk.lqr_weights, atk.stealth_kind, atk.box)
     problem, made = kept(_DECLARED, key, lambda: declare(atk), DECLARED_CACHE)
     if not made:
         load_instance(problem, atk)
@@ -141,8 +162,7 @@ def load_instance(problem: BilevelProblem, atk: IdentificationAttack) -> None:
     if "plant" in declared:
         values["plant"] = np.hstack(atk.setting.state_space)
     if atk.stealth is not None:
-        clean = atk.tests()
-        values |= {"stealth": atk.stealth} | {f"{name}_clean": clean[name].statistic for name in STATISTICS}
+        values |= {"stealth": atk.stealth} | {f"{name}_clean": value for name, value in clean_statistics(atk).items()}
     for name, value in values.items():
         problem.set_value(name, value)
     problem.suggested_starts.clear()  # a start suggested for the previous instance
@@ -150,6 +170,16 @@ def load_instance(problem: BilevelProblem, atk: IdentificationAttack) -> None:
         start = stealth_start(problem)
         layout = problem.upper_layout()
         problem.suggest_start(**{f"d{k}": start[layout[f"d{k}"]] for k in atk.signals})
+
+
+def clean_statistics(atk: IdentificationAttack) -> dict[str, float]:
+    """The clean data's value of each statistic the stealth constraints of `atk` bound, by name."""
+    if atk.stealth_kind == "authors":
+        theta_r = least_squares_fit(atk.Y0, np.delete(atk.Z0, atk.input_rows, axis=0))
+        values = atk.authors_statistics.evaluate(atk.Y0, atk.Z0, atk.theta0, theta_r)[0]
+        return dict(zip(statistic_names(atk.lags), map(float, values)))
+    clean = atk.tests()
+    return {name: clean[name].statistic for name in STATISTICS}
 
 
 STEALTH_HALVINGS = 40
@@ -180,19 +210,23 @@ def stealth_start(problem: BilevelProblem) -> np.ndarray:
     return np.zeros_like(x)
 
 
-@register("ident-ss", source=SOURCE, tags=("attack", "identification"), defaults={**DEFAULTS, "q": 1.0, "r": 1.0},
+@register("ident-ss", source=SOURCE, tags=("attack", "identification"), defaults={**DEFAULTS, "q": 1.0, "r": 1.0,
+                                                                                  "stealth_kind": "tests"},
           description="poisoning of state-space least squares [A B] (maximize the parameter error, the model's H2 "
                       "norm, or the true loop's spectral radius under certainty-equivalence LQR)")
 def ident_ss(T: int = 100, eps: float = 0.05, objective: Objective = "frobenius", stealth: float | None = None,
-             seed: int = 0, lags: int = 10, q: float = 1.0, r: float = 1.0) -> BilevelProblem:
+             seed: int = 0, lags: int | None = None, q: float = 1.0, r: float = 1.0, stealth_kind: StealthKind = "tests"
+             ) -> BilevelProblem:
     """[A B] from T poisoned states and inputs of the flexible transmission (controllable canonical form); q, r: the
-    LQR weights Q = q I, R = r I of objective "ce-lqr"."""
-    return declare(attack_instance("ss", T, eps, objective, stealth, seed, lags, lqr_weights=(q, r)))
+    LQR weights Q = q I, R = r I of objective "ce-lqr"; stealth_kind "tests" (the project's residual tests) or
+    "authors" (Russo & Proutiere's statistics and box)."""
+    return declare(attack_instance("ss", T, eps, objective, stealth, seed, lags, lqr_weights=(q, r),
+                                   stealth_kind=stealth_kind))
 
 
 @register("ident-arx", source=SOURCE, tags=("attack", "identification"), defaults={**DEFAULTS, "na": 4, "nb": 4},
           description="poisoning of ARX(na, nb) least squares (maximize the parameter error)")
 def ident_arx(T: int = 100, eps: float = 0.05, objective: Objective = "frobenius", stealth: float | None = None,
-              seed: int = 0, lags: int = 10, na: int = 4, nb: int = 4) -> BilevelProblem:
+              seed: int = 0, lags: int | None = None, na: int = 4, nb: int = 4) -> BilevelProblem:
     """ARX(na, nb) from T poisoned input/output samples of the flexible transmission."""
     return declare(attack_instance("arx", T, eps, objective, stealth, seed, lags, na, nb))

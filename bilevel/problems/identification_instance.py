@@ -10,7 +10,10 @@ for the state-space learner, a model-based quantity (bilevel.ddc.model_based): "
 from input to state, or "ce-lqr", the spectral radius of the true plant under the certainty-equivalence LQR gain of
 the identified model (weights Q = q I, R = r I; rho >= 1: the true loop is unstable); with
 stealth = delta it keeps each residual test statistic (bilevel.ddc.residual_tests) within |1 - stat'/stat| <= delta of
-its clean value. bilevel.problems.identification declares the instance as a BilevelProblem.
+its clean value (stealth_kind "tests", the project's own definition), or, with stealth_kind "authors", bounds each
+statistic of Russo & Proutiere's stealthy attack (bilevel.ddc.stealth_statistics: the residual energy, Z_d and the
+correlation ratio of every lag tau = 1..s, s = 2 floor(0.025 T)) within delta of its clean value and every entry of dX
+and dU within [-box, box] (their 0.5). bilevel.problems.identification declares the instance as a BilevelProblem.
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ from scipy.signal import lfilter
 from ..ddc.data import state_trajectory
 from ..ddc.plants import flexible_transmission
 from ..ddc.residual_tests import ResidualTest, regression_tests
+from ..ddc.stealth_check import BOX
+from ..ddc.stealth_statistics import StealthStatistics, authors_lags
 from ..ddc.systems import num_den
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
 from ..real_data import integer, real_array, real_number
@@ -35,6 +40,13 @@ Objective = Literal["frobenius", "spectral", "h2", "ce-lqr"]
 OBJECTIVES = ("frobenius", "spectral", "h2", "ce-lqr")
 MODEL_BASED = ("h2", "ce-lqr")
 """Objectives of a state-space model: the state-space learner only."""
+TEST_LAGS = 10
+"""The whiteness test's lags of stealth_kind "tests" unless given."""
+StealthKind = Literal["tests", "authors"]
+STEALTH_KINDS = ("tests", "authors")
+"""What stealth = delta bounds: "tests", the project's residual tests (bilevel.ddc.residual_tests: variance,
+portmanteau whiteness over `lags` lags, input F-test); "authors", Russo & Proutiere's statistics, each lag apart, and a
+box on every entry (bilevel.ddc.stealth_statistics; state-space learner only)."""
 
 
 def controllable_canonical(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -128,8 +140,9 @@ def least_squares_fit(Y: np.ndarray, Z: np.ndarray) -> np.ndarray:
 @dataclass
 class IdentificationAttack:
     """One attack instance: clean signals (X, U for "ss"; u, y for "arx"), relative l2 budgets per signal (Frobenius
-    norm), the objective, the ARX orders, the whiteness test's lags, the stealth level (None: no stealth) and the LQR
-    weights (q, r) of objective "ce-lqr" (Q = q I, R = r I)."""
+    norm), the objective, the ARX orders, the lags (of the whiteness test, or the authors' s), the stealth level
+    (None: no stealth), the LQR weights (q, r) of objective "ce-lqr" (Q = q I, R = r I), the stealth kind
+    (STEALTH_KINDS) and the box on every entry of the changes (None: none; "authors" defaults to their 0.5)."""
 
     setting: IdentificationSetting
     learner: Learner
@@ -140,6 +153,8 @@ class IdentificationAttack:
     lags: int = 10
     orders: tuple[int, int] = (4, 4)
     lqr_weights: tuple[float, float] = (1.0, 1.0)
+    stealth_kind: StealthKind = "tests"
+    box: float | None = None
     Y0: np.ndarray = field(init=False)
     Z0: np.ndarray = field(init=False)
     theta0: np.ndarray = field(init=False)
@@ -174,11 +189,25 @@ class IdentificationAttack:
         self._check_lengths()
         if self.stealth is not None and not 0 < real_number(self.stealth, "stealth") < 1:
             raise ModelError(f"stealth must be a relative tolerance in (0, 1) (e.g. 0.05) or None, got {self.stealth}")
+        if self.stealth_kind not in STEALTH_KINDS:
+            raise ModelError(f"stealth_kind {self.stealth_kind!r} is not one of {', '.join(STEALTH_KINDS)}")
+        if self.stealth_kind == "authors":
+            if self.learner != "ss":
+                raise ModelError("stealth_kind 'authors' constrains the state-space learner's statistics: use 'ss'")
+            if self.lags != authors_lags(self.signals["U"].shape[1]):
+                raise ModelError(f"stealth_kind 'authors' has s = 2 floor(0.025 T) = "
+                                 f"{authors_lags(self.signals['U'].shape[1])} lags, got lags={self.lags}; pass "
+                                 "lags=None to attack_instance")
+            self.box = BOX if self.box is None else self.box
+        if self.box is not None and not (np.isfinite(self.box) and self.box > 0):
+            raise ModelError(f"box must be a positive bound on every entry of the changes or None, got {self.box}")
         self.Y0, self.Z0 = self.regression(self.signals)
         if self.Y0.shape[1] <= self.Z0.shape[0] + self.lags:
             raise InvalidData(f"{self.Y0.shape[1]} regression samples for {self.Z0.shape[0]} regressors and "
                               f"{self.lags} whiteness lags: record a longer experiment")
         self.theta0 = least_squares_fit(self.Y0, self.Z0)
+        if self.stealth_kind == "authors":
+            self.authors_statistics  # noqa: B018 (checks the sizes)
 
     def _check_lengths(self) -> None:
         """The signals' lengths fit the learner (never a signal cut to the others' length): X has one sample more
@@ -205,6 +234,12 @@ class IdentificationAttack:
         q = self.signals["U"].shape[0] if self.learner == "ss" else self.orders[1]
         return list(range(k - q, k))
 
+    @property
+    def authors_statistics(self) -> StealthStatistics:
+        """The authors' statistics of this instance's regression (stealth_kind "authors")."""
+        keep = tuple(i for i in range(self.Z0.shape[0]) if i not in self.input_rows)
+        return StealthStatistics(self.Y0.shape[0], self.Z0.shape[0], self.Y0.shape[1], keep, self.lags)
+
     def radius(self, name: str) -> float:
         """delta_S = eps_S ||S||_F."""
         return float(self.eps[name] * np.linalg.norm(self.signals[name]))
@@ -216,9 +251,11 @@ class IdentificationAttack:
 
 
 def attack_instance(learner: Learner, T: int = 100, eps: float = 0.05, objective: Objective = "frobenius",
-                    stealth: float | None = None, seed: int = 0, lags: int = 10, na: int = 4,
-                    nb: int = 4, lqr_weights: tuple[float, float] = (1.0, 1.0)) -> IdentificationAttack:
-    """The flexible transmission's instance (data drawn with default_rng(seed)), budget eps on every signal."""
+                    stealth: float | None = None, seed: int = 0, lags: int | None = None, na: int = 4,
+                    nb: int = 4, lqr_weights: tuple[float, float] = (1.0, 1.0), stealth_kind: StealthKind = "tests",
+                    box: float | None = None) -> IdentificationAttack:
+    """The flexible transmission's instance (data drawn with default_rng(seed)), budget eps on every signal; lags None:
+    the kind's (10 for "tests", s = 2 floor(0.025 T) for "authors")."""
     check_common_options({"seed": seed})
     if not isinstance(T, (int, np.integer)) or isinstance(T, bool) or T < 1:
         raise InvalidData(f"T={T!r}: give a positive integer number of samples (e.g. 100)")
@@ -230,5 +267,7 @@ def attack_instance(learner: Learner, T: int = 100, eps: float = 0.05, objective
     else:
         u, y = setting.arx_data(int(T), rng)
         signals = {"u": u, "y": y}
+    if lags is None:
+        lags = authors_lags(int(T)) if stealth_kind == "authors" else TEST_LAGS
     return IdentificationAttack(setting, learner, signals, {k: eps for k in signals}, objective, stealth, lags,
-                                (na, nb), lqr_weights)
+                                (na, nb), lqr_weights, stealth_kind, box)

@@ -259,8 +259,9 @@ class Hypergradient:
                 upper[0] = value
                 if len(upper) > 3:  # the unswept zeros, partials included
                     upper[4] = gradient
-        if self._spectral is not None:
-            upper = self._with_spectral(x, sol.y, self.partials(x, sol.y, upper))
+        if self._spectral is not None:  # its derivatives when a derivative asks (partials), like the others'
+            upper = self._with_spectral(x, sol.y, upper) if len(upper) > 3 else [self._spectral_value(x, sol.y),
+                                                                                  *upper[1:]]
         F, G, H = float(upper[0][0, 0]), upper[1].ravel(), upper[2].ravel()
         if G.size + H.size == 0:  # nothing penalized
             return Evaluation(x, F, F, 0.0, sol, upper, vals)
@@ -275,7 +276,15 @@ class Hypergradient:
             upper += self._expanded(_shaped(self._partials(x, y), self._upper_shapes[3:]))
             if self._squares is not None:
                 upper[4] = self._squares(y)[1]
+            if self._spectral is not None:
+                upper[:] = self._with_spectral(x, y, upper)
         return upper
+
+    def _spectral_value(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """F of the spectral objective at (x, y) (1 x 1), without its derivatives."""
+        m = np.asarray(self._spectral.value(x, y), dtype=float)
+        return np.array([[self.canon.spectral_sign * float(self.canon.matrix_function(
+            m.reshape(self.canon.spectral.shape, order="F"))[0])]])
 
     def _expanded(self, partials: list[np.ndarray]) -> list[np.ndarray]:
         """The swept partials with G's by row from those of its distinct cores."""

@@ -1,0 +1,143 @@
+"""The stealthy identification attack on Russo & Proutiere's terms: the engine against the authors' own SLSQP code
+on their own data sets, side by side, every answer judged by the independent numpy check of their constraints.
+
+Their code (rssalessio/data-poisoning-linear-systems, example_stealthy_attack: algorithm.py's ComputeAttack, SLSQP
+with torch derivatives, 100 iterations, bounds [-0.5, 0.5], their start: 1e-5 normals from numpy seed 0) runs in their
+own environment through benchmarks/authors_slsqp_runner.py, one process per data set, one torch/BLAS thread; its rows
+are kept in a JSONL file (--results) and not rerun. The engine (bilevel.experiments.identification_paper: stealth_kind
+"authors", objective ||d[A B]||_2, bilevel.experiments.identification.METHOD) runs here with one BLAS thread on the
+same (T, data set, delta), after one warm-up attack per T (declaration and compilation, once per process). CPU times
+are time.process_time of each side's attack. Both answers are checked by bilevel.ddc.stealth_check (tolerance 1e-6).
+
+Run: python benchmarks/bench_identification_authors.py --authors DIR --python PY --data DIR [--horizons 100,500]
+[--sims 10] [--sims-500 N] [--results FILE] [--recorded-only]; DIR: their example_stealthy_attack folder, PY: a
+python with torch (CPU), numpy, scipy and momentchi2 (docs/identification.md: `python3 -m venv V && V/bin/pip install
+torch numpy scipy momentchi2`), --data: their extracted datasets folder. Output:
+benchmarks/results/bench_identification_authors.txt.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from datetime import datetime, timezone
+
+import numpy as np
+
+from bilevel.ddc.stealth_check import check_stealth
+from bilevel.experiments.identification import METHOD
+from bilevel.experiments.identification_paper import DELTAS, PUBLISHED_MEDIANS, dataset_path, load_dataset, \
+    paper_instance
+from bilevel.problems.identification import problem_for
+from bilevel.threads import single_threaded
+
+RUNNER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "authors_slsqp_runner.py")
+ONE_THREAD = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+
+
+def authors_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[tuple[int, int, float], dict]:
+    """Their SLSQP's rows by (T, data set, delta), run where --results lacks them."""
+    rows = {}
+    if os.path.exists(args.results):
+        for line in open(args.results):
+            r = json.loads(line)
+            rows[(r["T"], r["sim"], r["delta"])] = r
+    for T, sim in plan:
+        missing = [d for d in DELTAS if (T, sim, d) not in rows]
+        if not missing or args.recorded_only:
+            continue
+        out = subprocess.run([args.python, RUNNER, args.authors, args.data, str(T), str(sim),
+                              ",".join(map(str, missing))], capture_output=True, text=True, check=True,
+                             env={**os.environ, **ONE_THREAD})
+        with open(args.results, "a") as fh:
+            for line in out.stdout.splitlines():
+                r = json.loads(line)
+                rows[(r["T"], r["sim"], r["delta"])] = r
+                fh.write(line + "\n")
+    return rows
+
+
+def engine_row(T: int, sim: int, delta: float, folder: str) -> dict:
+    data = load_dataset(dataset_path(folder, T, sim))
+    atk = paper_instance(data, delta)
+    cpu = time.process_time()
+    result = problem_for(atk).solve(**METHOD, seed=0)
+    cpu = time.process_time() - cpu
+    dX, dU = (np.reshape(result.x[k], atk.signals[k[1:]].shape) for k in ("dX", "dU"))
+    return {**check_stealth(data.X, data.U, dX, dU, delta), "cpu_time": cpu, "status": result.status.value}
+
+
+def authors_check(row: dict, folder: str) -> dict:
+    data = load_dataset(dataset_path(folder, row["T"], row["sim"]))
+    x = np.asarray(row["x"])
+    dX, dU = x[:data.X.size].reshape(data.X.shape), x[data.X.size:].reshape(data.U.shape)  # their row-major split
+    return check_stealth(data.X, data.U, dX, dU, row["delta"])
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("--authors", required=True)
+    p.add_argument("--python", required=True)
+    p.add_argument("--data", required=True)
+    p.add_argument("--horizons", default="100,500")
+    p.add_argument("--sims", type=int, default=10)
+    p.add_argument("--sims-500", type=int, default=None, help="data sets at T = 500 (default --sims)")
+    p.add_argument("--results", default="authors_slsqp.jsonl")
+    p.add_argument("--recorded-only", action="store_true", help="compare on the SLSQP rows --results holds, run none")
+    args = p.parse_args()
+    horizons = [int(t) for t in args.horizons.split(",")]
+    plan = [(T, s) for T in horizons for s in range(args.sims if T != 500 or args.sims_500 is None else args.sims_500)]
+    print(f"# bench_identification_authors  {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC  {platform.node()}  "
+          f"{platform.processor() or platform.machine()}  cores={os.cpu_count()}  python {platform.python_version()}  "
+          f"load {os.getloadavg()[0]:.1f}")
+    print(f"engine {METHOD}, stealth_kind 'authors'; the authors' SLSQP (their code, 100 iterations); one thread "
+          "each; CPU seconds per attack; stealthy: the independent numpy check of their constraints, tol 1e-6\n")
+    theirs = authors_rows(args, plan)
+    ours = {}
+    with single_threaded():
+        for T in horizons:
+            first = next(s for t, s in plan if t == T)
+            problem_for(paper_instance(load_dataset(dataset_path(args.data, T, first)), DELTAS[0])).solve(
+                **METHOD, seed=0)  # warm-up: declaration and compilation, once per process
+            for t, sim in plan:
+                if t == T:
+                    for d in DELTAS:
+                        ours[(T, sim, d)] = engine_row(T, sim, d, args.data)
+    print("| T | delta | data sets | engine stealthy | SLSQP stealthy | engine >= SLSQP | engine >= SLSQP or SLSQP not "
+          "stealthy | median ||d[A B]||_2 engine | SLSQP | authors' published median* | median CPU s engine | SLSQP | "
+          "median SLSQP/engine CPU |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    ratios, counts = [], np.zeros(3, dtype=int)
+    for T in horizons:
+        for d in DELTAS:
+            keys = [(t, s, dd) for (t, s, dd) in ours if t == T and dd == d and (t, s, dd) in theirs]
+            if not keys:
+                continue
+            e = [ours[k] for k in keys]
+            a = [authors_check(theirs[k], args.data) for k in keys]
+            ac = [theirs[k]["cpu_time"] for k in keys]
+            r = [x / y["cpu_time"] for x, y in zip(ac, e)]
+            ratios += r
+            wins = sum(x["norm2"] >= y["norm2"] * (1 - 1e-6) for x, y in zip(e, a))
+            fair = sum(x["norm2"] >= y["norm2"] * (1 - 1e-6) or not y["stealthy"] for x, y in zip(e, a))
+            counts += (len(keys), wins, fair)
+            pub = PUBLISHED_MEDIANS.get(T, {}).get(d)
+            print(f"| {T} | {d} | {len(keys)} | {sum(x['stealthy'] for x in e)} | {sum(y['stealthy'] for y in a)} | "
+                  f"{wins} | {fair} | {np.median([x['norm2'] for x in e]):.3f} | "
+                  f"{np.median([y['norm2'] for y in a]):.3f} | "
+                  f"{'-' if pub is None else pub} | {np.median([x['cpu_time'] for x in e]):.3f} | "
+                  f"{np.median(ac):.2f} | {np.median(r):.1f}x |")
+    print(f"\nall cells: median SLSQP/engine CPU per data set {np.median(ratios):.1f}x (min {min(ratios):.1f}x, "
+          f"max {max(ratios):.1f}x) over {len(ratios)} attacks; engine >= SLSQP on {counts[1]}/{counts[0]}, >= SLSQP "
+          f"or SLSQP not stealthy on {counts[2]}/{counts[0]}")
+    print("* of ||[A B]' - [A B]_true||_2 for their best of 10 starts, read off their figure (T = 500); the columns "
+          "beside are ||[A B]' - [A B]_clean||_2 of one start (theirs: seed 0)")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

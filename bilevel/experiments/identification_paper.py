@@ -1,0 +1,186 @@
+"""`bilevel reproduce identification --paper DIR`: the stealthy attack on Russo & Proutiere's own data sets and on
+their terms (L4DC 2023, arXiv 2211.08804, section 5; code and data: rssalessio/data-poisoning-linear-systems,
+example_stealthy_attack), side by side with their published medians.
+
+DIR holds their data sets as their extract_data.py writes them: data_{T}timesteps_{i}.pkl, each a pickled
+utils.CollectedData (X: n x (T+1), U: m x T, W, std_u, std_w) of the flexible transmission (docs/identification.md
+says how to get them; the project ships none). load_dataset reads one with an unpickler that admits only that record
+and numpy arrays. Each task attacks one data set at one delta in DELTAS with stealth_kind "authors" (every statistic
+of bilevel.ddc.stealth_statistics within delta, budgets ||dX||_F <= delta ||X||_F and ||dU||_F <= delta ||U||_F, every
+entry in [-0.5, 0.5]) and objective ||d[A B]||_2 (theirs), by METHOD on the problem declared once per worker process;
+every answer is judged by the independent numpy check (bilevel.ddc.stealth_check, tolerance CHECK_TOL).
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import pickle
+import time
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
+from scipy.signal import tf2ss
+
+from ..ddc.stealth_check import CHECK_TOL, check_stealth
+from ..ddc.stealth_statistics import authors_lags
+from ..errors import InvalidData
+from ..files import atomic_open
+from ..problems.identification import problem_for
+from ..problems.identification_instance import IdentificationAttack, IdentificationSetting
+from .executor import open_executor
+from .identification import METHOD
+from .sweep import FINITE, NUMBER, check_fields, run_sweep, stderr_progress
+
+DELTAS = (0.01, 0.025, 0.05, 0.075, 0.1)
+HORIZONS = (100, 500)
+SIMS = 10
+"""Data sets per T (their analyse_results.py reads data sets 0..9)."""
+PLANT = ([0.28261, 0.50666], [1, -1.41833, 1.58939, -1.31608, 0.88642])
+"""Their plant (extract_data.py): the flexible transmission's num, den, Ts = 0.05."""
+PUBLISHED_MEDIANS = {500: {0.01: 0.25, 0.025: 0.7, 0.05: 1.8, 0.075: 2.7, 0.1: 3.0}}
+"""Median ||[A B]' - [A B]_true||_2 of their SLSQP attacks (the best of 10 random starts per data set, 10 data sets),
+read off their published figure (figures/main_plot.png, left panel, T = 500) to about 0.05."""
+ROW_SCHEMA = {"norm2": NUMBER, "norm2_true": NUMBER, "stealthy": bool, "violation": NUMBER, "worst": str,
+              "status": str, "cpu_time": FINITE, "wall_time": FINITE}
+
+
+class CollectedData(NamedTuple):
+    """The record of one data set in the authors' format (their utils.CollectedData)."""
+
+    X: np.ndarray
+    U: np.ndarray
+    W: np.ndarray
+    std_u: float
+    std_w: float
+
+
+_ADMITTED = {("utils", "CollectedData"): CollectedData, ("numpy", "dtype"): np.dtype,
+             ("numpy", "ndarray"): np.ndarray}
+_ARRAYS = {("numeric", "_frombuffer"), ("multiarray", "_reconstruct")}
+"""numpy's array reconstructors (in numpy.core, numpy._core from numpy 2 on) a pickled array calls."""
+
+
+class _Unpickler(pickle.Unpickler):
+    """Admits the authors' record and numpy's array reconstructors, nothing else (a pickle can run any callable)."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) in _ADMITTED:
+            return _ADMITTED[(module, name)]
+        package, _, leaf = module.rpartition(".")
+        if package in ("numpy.core", "numpy._core") and (leaf, name) in _ARRAYS:
+            core = "numpy._core" if hasattr(np, "_core") else "numpy.core"  # numpy 2 renamed numpy.core
+            return getattr(importlib.import_module(f"{core}.{leaf}"), name)
+        raise InvalidData(f"a data set in the authors' format holds utils.CollectedData and numpy arrays; this file "
+                          f"asks for {module}.{name}: not one of theirs")
+
+
+def dataset_path(folder: str, T: int, sim: int) -> str:
+    """Where their extract_data.py writes data set `sim` of horizon T."""
+    return os.path.join(folder, f"data_{T}timesteps_{sim}.pkl")
+
+
+def load_dataset(path: str) -> CollectedData:
+    """One data set in the authors' format, checked: finite X (n x (T+1)) and U (m x T)."""
+    try:
+        with open(path, "rb") as fh:
+            data = _Unpickler(fh).load()
+    except FileNotFoundError:
+        raise InvalidData(f"no data set {path}: extract the authors' datasets.7z into that folder "
+                          "(docs/identification.md)") from None
+    if not isinstance(data, CollectedData):
+        raise InvalidData(f"{path} does not hold a CollectedData record")
+    X, U = np.asarray(data.X, dtype=float), np.asarray(data.U, dtype=float)
+    if X.ndim != 2 or U.ndim != 2 or X.shape[1] != U.shape[1] + 1 or not (np.all(np.isfinite(X))
+                                                                          and np.all(np.isfinite(U))):
+        raise InvalidData(f"{path}: need finite X (n x (T+1)) and U (m x T), got X {X.shape}, U {U.shape}")
+    return data._replace(X=X, U=U)
+
+
+def paper_instance(data: CollectedData, delta: float) -> IdentificationAttack:
+    """The authors' stealthy attack on one of their data sets at level delta (module docstring)."""
+    num, den = PLANT
+    setting = IdentificationSetting(np.array(num, float), np.array(den, float), float(data.std_u), float(data.std_w))
+    return IdentificationAttack(setting, "ss", {"X": data.X, "U": data.U}, {"X": delta, "U": delta}, "spectral",
+                                delta, authors_lags(data.U.shape[1]), stealth_kind="authors")
+
+
+def true_parameters() -> np.ndarray:
+    """[A B] of their realization of the plant (scipy's TransferFunction.to_ss, i.e. tf2ss)."""
+    A, B, _, _ = tf2ss(*PLANT)
+    return np.hstack([A, B])
+
+
+_WARMED: set[int] = set()
+"""Horizons whose problem this process has declared and compiled."""
+
+
+def attack_task(task: dict[str, Any]) -> dict[str, Any]:
+    """The engine's attack on one (data set, delta), judged by the independent check; CPU time of the re-targeting
+    and solve (the process's first attack at a T, which declares and compiles the problem, is run once before on
+    the same data and not counted)."""
+    data = load_dataset(task["path"])
+    atk = paper_instance(data, task["delta"])
+    if task["T"] not in _WARMED:
+        problem_for(atk).solve(**METHOD, seed=0)
+        _WARMED.add(task["T"])
+    cpu, wall = time.process_time(), time.perf_counter()
+    result = problem_for(atk).solve(**METHOD, seed=0)
+    cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+    dX, dU = (np.reshape(result.x[k], atk.signals[k[1:]].shape) for k in ("dX", "dU"))
+    check = check_stealth(data.X, data.U, dX, dU, task["delta"], tol=CHECK_TOL)
+    return {"norm2": check["norm2"], "norm2_true": float(np.linalg.norm(check["AB"] - true_parameters(), 2)),
+            "stealthy": check["stealthy"], "violation": check["violation"], "worst": check["worst"],
+            "status": result.status.value, "cpu_time": cpu, "wall_time": wall,
+            "dX": dX.tolist(), "dU": dU.tolist()}
+
+
+def paper_tasks(folder: str, horizons: tuple[int, ...] = HORIZONS, sims: int = SIMS,
+                deltas: tuple[float, ...] = DELTAS) -> list[dict[str, Any]]:
+    """One task per (T, data set, delta) whose file is in `folder`; InvalidData if none is."""
+    tasks = [{"key": f"paper/{T}/{delta}/{i}", "T": T, "delta": delta, "sim": i,
+              "path": os.path.abspath(dataset_path(folder, T, i)), "method": repr(sorted(METHOD.items()))}
+             for T in horizons for i in range(sims) for delta in deltas if os.path.exists(dataset_path(folder, T, i))]
+    if not tasks:
+        raise InvalidData(f"{folder} holds none of the authors' data sets data_{{T}}timesteps_{{i}}.pkl (T in "
+                          f"{horizons}, i < {sims}): extract their datasets.7z there (docs/identification.md)")
+    return tasks
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """Per (T, delta): data sets, stealthy by the check, medians of ||d[A B]||_2 (from the clean fit) and of the
+    distance to the true [A B], the authors' published median, the median CPU time per attack."""
+    lines = ["| T | delta | data sets | stealthy (check, tol 1e-6) | median ||d[A B]||_2 "
+             "| median ||[A B]' - [A B]_true||_2 | authors' published median | median CPU s |",
+             "|---|---|---|---|---|---|---|---|"]
+    cells: dict[tuple[int, float], list[dict[str, Any]]] = {}
+    for r in rows:
+        cells.setdefault((r["task"]["T"], r["task"]["delta"]), []).append(r)
+    for (T, delta), rs in sorted(cells.items()):
+        published = PUBLISHED_MEDIANS.get(T, {}).get(delta)
+        lines.append(f"| {T} | {delta} | {len(rs)} | {sum(r['stealthy'] for r in rs)} | "
+                     f"{np.median([r['norm2'] for r in rs]):.3f} | {np.median([r['norm2_true'] for r in rs]):.3f} | "
+                     f"{'-' if published is None else f'about {published}'} | "
+                     f"{np.median([r['cpu_time'] for r in rs]):.3f} |")
+    return "\n".join(lines) + "\n"
+
+
+def run_paper(folder: str, out_dir: str = "out/identification-paper", workers: int | None = None,
+              progress: Callable[[str], None] | None = stderr_progress, dask: str | None = None,
+              horizons: tuple[int, ...] = HORIZONS, sims: int = SIMS) -> str:
+    """The sweep over the authors' data sets in `folder` (out_dir/authors_terms.jsonl, resumable) and report.md with the
+    side-by-side table; returns the report's path."""
+    tasks = paper_tasks(folder, horizons, sims)
+    os.makedirs(out_dir, exist_ok=True)
+    with open_executor(workers, dask) as executor:
+        rows = run_sweep(attack_task, tasks, os.path.join(out_dir, "authors_terms.jsonl"), executor, progress, "paper",
+                         valid=lambda row: check_fields(row, ROW_SCHEMA))
+    path = os.path.join(out_dir, "report.md")
+    with atomic_open(path) as fh:
+        fh.write("# The stealthy identification attack on Russo & Proutiere's data sets and constraints\n\n"
+                 f"Engine: {METHOD}, stealth_kind 'authors', objective ||d[A B]||_2; every answer checked by "
+                 "bilevel.ddc.stealth_check (numpy refit, tolerance 1e-6). The authors' medians are of their SLSQP "
+                 "(best of 10 starts per data set), read off their figure (T = 500 only).\n\n" + table(rows))
+    if progress:
+        progress(f"wrote {path}")
+    return path
