@@ -29,7 +29,7 @@ LAYERS = (
     ("lower",),
     ("model",),
     ("linear_maps", "toeplitz", "parameters", "spectral_radius", "sampling", "vech", "threads", "files", "defaults", "kept",
-     "real_data", "errors", "sparse_jacobian"),
+     "real_data", "errors", "sparse_jacobian", "numeric_node"),
 )
 """Top to bottom; a module of bilevel/NAME.py or bilevel/NAME/ is in the layer that lists NAME."""
 
