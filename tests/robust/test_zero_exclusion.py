@@ -17,7 +17,7 @@ def family(radius: float):
 
 
 def true_distance(base: np.ndarray, slopes: np.ndarray, radius: float) -> float:
-    """min over the circle of dist(0, p0(z) + S_z ball): the support bound maximized over 720 directions, 2^14 points."""
+    """min over the circle of dist(0, p0(z) + S_z ball): the support bound best of 720 directions, 2^14 points."""
     powers = np.arange(base.size - 1, -1, -1)
     z = np.exp(1j * np.linspace(0.0, np.pi, 2 ** 14))
     vander = z[:, None] ** powers
