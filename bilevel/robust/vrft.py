@@ -228,8 +228,10 @@ def recheck(atk: VRFTAttack, P: Perturbation, delta: float) -> Check:
                          P.norm_y)
     worst = Perturbation(theta0, R, again.K_u, again.K_y,
                          max(P.lin_u, again.lin_u), max(P.lin_y, again.lin_y), max(P.eta1, again.eta1),
-                         max(P.beta1, again.beta1), np.maximum(P.q_u, again.q_u), np.maximum(P.q_y, again.q_y), P.norm_u, P.norm_y)
-    agree = max(abs(again.eta1 - P.eta1) / P.eta1, abs(again.beta1 - P.beta1) / P.beta1, float(np.max(np.abs(again.K_y - P.K_y)) / np.max(np.abs(P.K_y))),
+                         max(P.beta1, again.beta1), np.maximum(P.q_u, again.q_u), np.maximum(P.q_y, again.q_y),
+                         P.norm_u, P.norm_y)
+    agree = max(abs(again.eta1 - P.eta1) / P.eta1, abs(again.beta1 - P.beta1) / P.beta1,
+                float(np.max(np.abs(again.K_y - P.K_y)) / np.max(np.abs(P.K_y))),
                 float(np.max(np.abs(again.K_u - P.K_u)) / np.max(np.abs(P.K_u))))
     _, _, found = _sweep(atk, worst, delta, refine=2)
     scale = float(np.max(np.abs(atk.setting.loop.coefficients(theta0))))
