@@ -95,41 +95,67 @@ def model_radius(atk: IdentificationAttack, delta: float) -> tuple[float, float]
 
 
 @dataclass(frozen=True)
-class Lmis:
-    """The three LMIs' matrices at a solution (each must be positive semidefinite) and the gain bound."""
+class Clean:
+    """The clean model's numbers every step uses: Theta0, its LQR gain K0 and cost matrix P0 (any symmetric P0 and
+    K0 serve: the gain bound carries K0's residual W0), F = [I; K0], the model's loop Acl0 = Theta0 F and W0."""
 
-    upper: np.ndarray
-    lower: np.ndarray
-    gap: np.ndarray
-    loop: np.ndarray
-    eps_K: float
+    theta0: np.ndarray
+    K0: np.ndarray
+    P0: np.ndarray
+    F: np.ndarray
+    Acl0: np.ndarray
+    W0: np.ndarray
 
 
-def _blocks(atk: IdentificationAttack, theta0: np.ndarray, eps: float, X, Y, mu1, mu2, t, Z, mu3, eps_K, tau,
-            lib) -> list:
-    """The LMI matrices (cvxpy expressions with lib=cp, numbers with lib=np): robust upper bound on P_K0, robust
-    lower bound on P, X - Y <= t I, and the true loop's robust Lyapunov LMI."""
+def clean(atk: IdentificationAttack, theta0: np.ndarray) -> Clean:
+    n = theta0.shape[0]
+    m = theta0.shape[1] - n
+    q, r = atk.lqr_weights
+    K0, P0 = lqr_gain(theta0[:, :n], theta0[:, n:], q * np.eye(n), r * np.eye(m))
+    P0 = _sym(P0)
+    F = np.vstack([np.eye(n), K0])
+    Acl0 = theta0 @ F
+    return Clean(theta0, K0, P0, F, Acl0, theta0[:, n:].T @ P0 @ Acl0 + r * K0)
+
+
+def gain_radius(c: Clean, r: float, eps: float, t: float, Y: np.ndarray) -> float:
+    """Step 2's bound on ||K(Theta) - K0|| over the model ball ||Theta - Theta0|| <= eps, given every model's Riccati
+    solution P within ||P - P0|| <= t and P >= Y >= 0 (module docstring); inf where the bound's denominator vanishes."""
+    n = c.theta0.shape[0]
+    B0 = c.theta0[:, n:]
+    nrm = lambda M: float(np.linalg.svd(np.atleast_2d(M), compute_uv=False)[0])  # noqa: E731
+    f, a = nrm(c.F), nrm(c.Acl0)
+    w = (nrm(c.W0) + eps * nrm(c.P0 @ c.Acl0) + eps * f * nrm(B0.T @ c.P0) + eps ** 2 * f * nrm(c.P0)
+         + (nrm(B0) + eps) * t * (a + eps * f))
+    lam, V = np.linalg.eigh(_sym(Y))
+    root = V @ np.diag(np.sqrt(np.maximum(lam, 0.0))) @ V.T
+    low = float(np.linalg.svd(root @ B0, compute_uv=False)[-1]) - float(np.sqrt(max(lam[-1], 0.0))) * eps
+    denominator = r + max(low, 0.0) ** 2
+    return w / denominator
+
+
+def _blocks(atk: IdentificationAttack, c: Clean, eps: float, X, Y, mu1, mu2, t, Z, mu3, eps_K, tau, lib) -> list:
+    """The LMI matrices (cvxpy expressions with lib=cp, numbers with lib=np): robust upper bound X on K0's cost matrix,
+    robust lower bound Y on the optimal one, X - P0 <= t I, P0 - Y <= t I, and the true loop's robust Lyapunov LMI."""
     A, B = atk.setting.state_space
     n, m = B.shape
     q, r = atk.lqr_weights
-    K0, _ = lqr_gain(theta0[:, :n], theta0[:, n:], q * np.eye(n), r * np.eye(m))
-    F = np.vstack([np.eye(n), K0])
-    Acl = theta0 @ F
-    Qc = q * np.eye(n) + r * K0.T @ K0
-    H = np.hstack([F, np.zeros((n + m, n))])
+    Qc = q * np.eye(n) + r * c.K0.T @ c.K0
+    H = np.hstack([c.F, np.zeros((n + m, n))])
     bmat = lib.bmat if lib is cp else np.block
     zero = lambda a, b: np.zeros((a, b))  # noqa: E731
-    upper = bmat([[bmat([[X - Qc, Acl.T @ X], [X @ Acl, X]]) - mu1 * eps ** 2 * (H.T @ H),
+    upper = bmat([[bmat([[X - Qc, c.Acl0.T @ X], [X @ c.Acl0, X]]) - mu1 * eps ** 2 * (H.T @ H),
                    bmat([[zero(n, n)], [X]])], [bmat([[zero(n, n), X]]), mu1 * np.eye(n)]])
     diag = bmat([[q * np.eye(n) - Y, zero(n, m)], [zero(m, n), r * np.eye(m)]])
-    lower = bmat([[theta0.T @ Y @ theta0 + diag - mu2 * eps ** 2 * np.eye(n + m), theta0.T @ Y],
-                  [Y @ theta0, mu2 * np.eye(n)]])
-    gap = t * np.eye(n) - (X - Y)
-    Ac = A + B @ K0
+    th = c.theta0
+    lower = bmat([[th.T @ Y @ th + diag - mu2 * eps ** 2 * np.eye(n + m), th.T @ Y], [Y @ th, mu2 * np.eye(n)]])
+    above = t * np.eye(n) - (X - c.P0)
+    below = t * np.eye(n) - (c.P0 - Y)
+    Ac = A + B @ c.K0
     Hl = np.hstack([np.eye(n), zero(n, n)])
     loop = bmat([[bmat([[Z - tau * np.eye(n), Ac.T @ Z], [Z @ Ac, Z]]) - mu3 * eps_K ** 2 * (Hl.T @ Hl),
                   bmat([[zero(n, m)], [Z @ B]])], [bmat([[zero(m, n), B.T @ Z]]), mu3 * np.eye(m)]])
-    return [upper, lower, gap, loop]
+    return [upper, lower, above, below, loop]
 
 
 def _sym(M):
@@ -145,19 +171,16 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
         return Evidence("lyapunov", Proof.UNKNOWN, f"the poisoned regressor may be singular (s = {s:.3g})", {"s": s},
                         Check(False, "nothing to check"), time.perf_counter() - t0)
     Y0, Z0 = atk.regression(atk.signals)
-    theta0 = least_squares_fit(Y0, Z0)
-    n = theta0.shape[0]
-    m = theta0.shape[1] - n
+    c = clean(atk, least_squares_fit(Y0, Z0))
+    n = c.theta0.shape[0]
     r = atk.lqr_weights[1]
     X, Yv = cp.Variable((n, n), symmetric=True), cp.Variable((n, n), symmetric=True)
     mu1, mu2, t = cp.Variable(nonneg=True), cp.Variable(nonneg=True), cp.Variable()
-    Zdummy = np.eye(n)
-    upper, lower, gap, _ = _blocks(atk, theta0, eps, X, Yv, mu1, mu2, t, Zdummy, 1.0, 0.0, 0.0, cp)
-    scale = 1.0 + float(np.max(np.abs(lqr_gain(theta0[:, :n], theta0[:, n:], atk.lqr_weights[0] * np.eye(n),
-                                                r * np.eye(m))[1])))
-    room = STRICT * scale
+    upper, lower, above, below, _ = _blocks(atk, c, eps, X, Yv, mu1, mu2, t, np.eye(n), 1.0, 0.0, 0.0, cp)
+    room = STRICT * (1.0 + float(np.max(np.abs(c.P0))))
     cons = [_sym(upper) >> room * np.eye(upper.shape[0]), _sym(lower) >> room * np.eye(lower.shape[0]),
-            _sym(gap) >> 0, Yv >> room * np.eye(n), mu1 >= room, mu2 >= room]
+            _sym(above) >> room * np.eye(n), _sym(below) >> room * np.eye(n), Yv >> room * np.eye(n), mu1 >= room,
+            mu2 >= room]
     numbers: dict[str, float] = {"eps_model": eps, "s": s}
     try:
         cp.Problem(cp.Minimize(t), cons).solve(solver=cp.CLARABEL)
@@ -166,15 +189,19 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
     if X.value is None or t.value is None:
         return Evidence("lyapunov", Proof.UNKNOWN, "the gain bound's SDP found no robust cost bounds", numbers,
                         Check(False, "nothing to check"), time.perf_counter() - t0)
-    eps_K = float(np.sqrt(max(float(t.value), 0.0) / r))
+    eps_K = gain_radius(c, r, eps, float(t.value), Yv.value)
+    numbers.update(t_cost=float(t.value), eps_K=eps_K)
+    if not np.isfinite(eps_K):
+        return Evidence("lyapunov", Proof.UNKNOWN, "the gain bound is infinite", numbers,
+                        Check(False, "nothing to check"), time.perf_counter() - t0)
     Z, mu3, tau = cp.Variable((n, n), symmetric=True), cp.Variable(nonneg=True), cp.Variable()
-    loop = _blocks(atk, theta0, eps, X.value, Yv.value, 1.0, 1.0, 0.0, Z, mu3, eps_K * (1 + 1e-6), tau, cp)[3]
+    loop = _blocks(atk, c, eps, X.value, Yv.value, 1.0, 1.0, 0.0, Z, mu3, eps_K * (1 + 1e-6), tau, cp)[4]
     cons = [_sym(loop) >> 0, Z >> np.eye(n), Z << 1e6 * np.eye(n), tau <= 1.0]
     try:
         cp.Problem(cp.Maximize(tau), cons).solve(solver=cp.CLARABEL)
     except cp.SolverError:
         Z.value = None
-    numbers.update(eps_K=eps_K, tau=float("nan") if tau.value is None else float(tau.value))
+    numbers.update(tau=float("nan") if tau.value is None else float(tau.value))
     if Z.value is None or tau.value is None or tau.value <= 0:
         return Evidence("lyapunov", Proof.UNKNOWN, f"no robust Lyapunov function for gain errors up to {eps_K:.3g}",
                         numbers, Check(False, "nothing to check"), time.perf_counter() - t0)
@@ -188,27 +215,27 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
 
 
 def recheck(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Check:
-    """Step 1 again from SVDs (model_radius is that computation; its inputs re-fitted by numpy lstsq), the gain bound
-    from numpy eigenvalues of X - Y, and every LMI's smallest eigenvalue by numpy with a margin above rounding."""
+    """Step 1 again from SVDs (model_radius is that computation; its inputs re-fitted by numpy lstsq), t from numpy
+    eigenvalues of X - P0 and P0 - Y, the gain bound from them, and every LMI's smallest eigenvalue by numpy with a
+    margin above rounding."""
     Y0, Z0 = atk.regression(atk.signals)
-    theta0 = np.linalg.lstsq(Z0.T, Y0.T, rcond=None)[0].T
+    c = clean(atk, np.linalg.lstsq(Z0.T, Y0.T, rcond=None)[0].T)
     eps, _ = model_radius(atk, delta)
-    r = atk.lqr_weights[1]
+    eps = eps * (1 + 1e-9)
     X, Y = _sym(sol["X"]), _sym(sol["Y"])
-    gap_top = float(np.linalg.eigvalsh(X - Y)[-1])
-    eps_K = float(np.sqrt(max(gap_top, 0.0) / r))
-    mats = _blocks(atk, theta0, eps * (1 + 1e-9), X, Y, sol["mu1"], sol["mu2"], gap_top, _sym(sol["Z"]),
-                   sol["mu3"], eps_K * (1 + 1e-9), sol["tau"], np)
-    names = ("upper", "lower", "gap", "loop")
+    t = max(float(np.linalg.eigvalsh(X - c.P0)[-1]), float(np.linalg.eigvalsh(c.P0 - Y)[-1]), 0.0) * (1 + 1e-9)
+    eps_K = gain_radius(c, atk.lqr_weights[1], eps, t, Y) * (1 + 1e-9)
+    mats = _blocks(atk, c, eps, X, Y, sol["mu1"], sol["mu2"], t, _sym(sol["Z"]), sol["mu3"], eps_K, sol["tau"], np)
+    names = ("upper", "lower", "above", "below", "loop")
     eigs = {name: float(np.linalg.eigvalsh(_sym(M))[0]) for name, M in zip(names, mats)}
     sizes = {name: float(np.max(np.abs(M))) for name, M in zip(names, mats)}
     margin = param("robust.check_margin")
     ok = [eigs[k] >= margin * sizes[k] for k in ("upper", "lower", "loop")]
-    passed = all(ok) and eigs["gap"] >= -margin * sizes["gap"] and float(np.linalg.eigvalsh(Y)[0]) >= 0 \
-        and sol["mu1"] > 0 and sol["mu2"] > 0 and sol["mu3"] > 0 and sol["tau"] > 0
+    passed = all(ok) and min(eigs["above"], eigs["below"]) >= 0 and float(np.linalg.eigvalsh(Y)[0]) >= 0 \
+        and np.isfinite(eps_K) and sol["mu1"] > 0 and sol["mu2"] > 0 and sol["mu3"] > 0 and sol["tau"] > 0
     return Check(passed, "numpy eigenvalues of the LMIs at the SDP's solution (smallest, against a margin of "
                  f"{margin:.0e} times each matrix's size): " + ", ".join(f"{k} {v:.3g}" for k, v in eigs.items()),
-                 {**{f"min_eig_{k}": v for k, v in eigs.items()}, "eps_K": eps_K, "eps_model": eps})
+                 {**{f"min_eig_{k}": v for k, v in eigs.items()}, "eps_K": eps_K, "eps_model": eps, "t_cost": t})
 
 
 register_target(IdentificationAttack, identification_target)
