@@ -118,20 +118,34 @@ def clean(atk: IdentificationAttack, theta0: np.ndarray) -> Clean:
     return Clean(theta0, K0, P0, F, Acl0, theta0[:, n:].T @ P0 @ Acl0 + r * K0)
 
 
-def gain_radius(c: Clean, r: float, eps: float, t: float, Y: np.ndarray) -> float:
+def _root(M: np.ndarray) -> np.ndarray:
+    """The symmetric square root of a symmetric matrix's positive part."""
+    lam, V = np.linalg.eigh(_sym(M))
+    return V @ np.diag(np.sqrt(np.maximum(lam, 0.0))) @ V.T
+
+
+def _norm(M: np.ndarray) -> float:
+    return float(np.linalg.svd(np.atleast_2d(M), compute_uv=False)[0])
+
+
+def cost_radius(c: Clean, X: np.ndarray, Y: np.ndarray) -> float:
+    """t = max(lambda_max(X - P0), lambda_max(P0 - Y)): Y <= P <= X gives ||P - P0|| <= t."""
+    return max(float(np.linalg.eigvalsh(_sym(X - c.P0))[-1]), float(np.linalg.eigvalsh(_sym(c.P0 - Y))[-1]), 0.0)
+
+
+def gain_radius(c: Clean, r: float, eps: float, X: np.ndarray, Y: np.ndarray) -> float:
     """Step 2's bound on ||K(Theta) - K0|| over the model ball ||Theta - Theta0|| <= eps, given every model's Riccati
-    solution P within ||P - P0|| <= t and P >= Y >= 0 (module docstring); inf where the bound's denominator vanishes."""
+    solution P within Y <= P <= X, Y >= 0 (module docstring)."""
     n = c.theta0.shape[0]
     B0 = c.theta0[:, n:]
-    nrm = lambda M: float(np.linalg.svd(np.atleast_2d(M), compute_uv=False)[0])  # noqa: E731
-    f, a = nrm(c.F), nrm(c.Acl0)
-    w = (nrm(c.W0) + eps * nrm(c.P0 @ c.Acl0) + eps * f * nrm(B0.T @ c.P0) + eps ** 2 * f * nrm(c.P0)
-         + (nrm(B0) + eps) * t * (a + eps * f))
-    lam, V = np.linalg.eigh(_sym(Y))
-    root = V @ np.diag(np.sqrt(np.maximum(lam, 0.0))) @ V.T
-    low = float(np.linalg.svd(root @ B0, compute_uv=False)[-1]) - float(np.sqrt(max(lam[-1], 0.0))) * eps
-    denominator = r + max(low, 0.0) ** 2
-    return w / denominator
+    t = cost_radius(c, X, Y)
+    f, a, b = _norm(c.F), _norm(c.Acl0), _norm(B0)
+    H, C = 0.5 * _sym(X - Y), 0.5 * _sym(X + Y) - c.P0  # P - P0 = C + S with -H <= S <= H
+    centre = _norm(B0.T @ C @ c.Acl0) + _norm(_root(H) @ B0) * _norm(_root(H) @ c.Acl0)
+    w = (_norm(c.W0) + eps * _norm(c.P0 @ c.Acl0) + eps * f * _norm(B0.T @ c.P0) + eps ** 2 * f * _norm(c.P0)
+         + min(centre, b * t * a) + eps * t * (a + (b + eps) * f))
+    low = float(np.linalg.svd(_root(Y) @ B0, compute_uv=False)[-1]) - _norm(_root(Y)) * eps
+    return w / (r + max(low, 0.0) ** 2)
 
 
 def _blocks(atk: IdentificationAttack, c: Clean, eps: float, X, Y, mu1, mu2, t, Z, mu3, eps_K, tau, lib) -> list:
@@ -189,7 +203,7 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
     if X.value is None or t.value is None:
         return Evidence("lyapunov", Proof.UNKNOWN, "the gain bound's SDP found no robust cost bounds", numbers,
                         Check(False, "nothing to check"), time.perf_counter() - t0)
-    eps_K = gain_radius(c, r, eps, float(t.value), Yv.value)
+    eps_K = gain_radius(c, r, eps, X.value, Yv.value)
     numbers.update(t_cost=float(t.value), eps_K=eps_K)
     if not np.isfinite(eps_K):
         return Evidence("lyapunov", Proof.UNKNOWN, "the gain bound is infinite", numbers,
@@ -223,8 +237,8 @@ def recheck(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Che
     eps, _ = model_radius(atk, delta)
     eps = eps * (1 + 1e-9)
     X, Y = _sym(sol["X"]), _sym(sol["Y"])
-    t = max(float(np.linalg.eigvalsh(X - c.P0)[-1]), float(np.linalg.eigvalsh(c.P0 - Y)[-1]), 0.0) * (1 + 1e-9)
-    eps_K = gain_radius(c, atk.lqr_weights[1], eps, t, Y) * (1 + 1e-9)
+    t = cost_radius(c, X, Y) * (1 + 1e-9)
+    eps_K = gain_radius(c, atk.lqr_weights[1], eps, X, Y) * (1 + 1e-9)
     mats = _blocks(atk, c, eps, X, Y, sol["mu1"], sol["mu2"], t, _sym(sol["Z"]), sol["mu3"], eps_K, sol["tau"], np)
     names = ("upper", "lower", "above", "below", "loop")
     eigs = {name: float(np.linalg.eigvalsh(_sym(M))[0]) for name, M in zip(names, mats)}
