@@ -8,14 +8,19 @@ Mechanism "lyapunov", three proven steps:
 1. The model: Theta_a - Theta0 = [E0 dZ' + (dY - Theta0 dZ) Z_a'] (Z_a Z_a')^-1 (E0 the clean residual, E0 Z' = 0),
    so ||Theta_a - Theta0||_2 <= eps = ||E0|| r_Z / s^2 + ||[I, -Theta0]|| sqrt(2 r_X^2 + r_U^2) / s with
    s = sigma_min(Z) - r_Z > 0.
-2. The gain: for every model in that ball, X >= P_K0 (K0's cost matrix, a robust Lyapunov LMI: Petersen's lemma on
-   the norm-bounded model error) and Y <= P (the optimal cost matrix: any Y with [Theta'Y Theta + diag(Q - Y, R)] >= 0
-   bounds it from below, made robust the same way); the LQR cost difference identity
-   (K0 - K)'(R + B'PB)(K0 - K) <= P_K0 - P gives ||K - K0||^2 <= lambda_max(X - Y) / r. One SDP (cvxpy + Clarabel)
-   minimizes lambda_max(X - Y).
+2. The gain: for every model in that ball, Y <= P(Theta) <= X (P the model's Riccati solution): X >= P_K0(Theta) (K0's
+   cost matrix, a robust Lyapunov LMI: Petersen's lemma on the norm-bounded model error) and Y <= P (any Y with
+   [Theta'Y Theta + diag(Q - Y, R)] >= 0 bounds it from below, made robust the same way); one SDP (cvxpy + Clarabel)
+   minimizes t = max(lambda_max(X - P0), lambda_max(P0 - Y)), so ||P - P0|| <= t, linear in eps. The gain error is
+   exactly K - K0 = -M^-1 W, M = R + B'PB, W = B'P Theta F + R K0 (F = [I; K0]); expanding W around (Theta0, P0) with
+   B = B0 + dB, Theta F = Acl0 + dTheta F, P = P0 + E bounds ||W|| by ||W0|| + eps (||P0 Acl0|| + ||F|| ||B0'P0||) +
+   eps^2 ||F|| ||P0|| + ||B0'E Acl0|| + eps t (||Acl0|| + (||B0|| + eps) ||F||), where ||B0'E Acl0|| <=
+   ||B0'C Acl0|| + ||H^1/2 B0|| ||H^1/2 Acl0|| (C, H the sandwich's centre and half-width: E - C lies in [-H, H]);
+   lambda_min(M) >= r + (sigma_min(Y^1/2 B0) - ||Y^1/2|| eps)^2. So ||K - K0|| <= eps_K, linear in eps (the earlier
+   route through the cost difference identity grew like sqrt(eps)).
 3. The true loop: A + B (K0 + D_K) is Schur stable for every ||D_K|| <= eps_K (a robust Lyapunov LMI, Petersen again).
-The re-check recomputes step 1 from SVDs and checks every LMI at the SDP's solution by numpy eigenvalues with a
-margin above rounding; step 2's bound on the gain is recomputed from those eigenvalues.
+The re-check recomputes step 1 from SVDs, t and eps_K from numpy eigenvalues of X - P0, P0 - Y, X - Y and Y at the
+SDP's solution, and checks every LMI there by numpy eigenvalues with a margin above rounding.
 """
 
 from __future__ import annotations
@@ -108,6 +113,7 @@ class Clean:
 
 
 def clean(atk: IdentificationAttack, theta0: np.ndarray) -> Clean:
+    """The Clean numbers of the model theta0 (lqr_gain's K0 and P0)."""
     n = theta0.shape[0]
     m = theta0.shape[1] - n
     q, r = atk.lqr_weights
@@ -176,6 +182,26 @@ def _sym(M):
     return 0.5 * (M + M.T)
 
 
+def sandwich(atk: IdentificationAttack, c: Clean, eps: float) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+    """(X, Y, mu1, mu2) of step 2: Y <= P(Theta) <= X for every model in the ball ||Theta - Theta0|| <= eps (robust
+    LMIs, Petersen's lemma), minimizing t = max(lambda_max(X - P0), lambda_max(P0 - Y)); None if the SDP finds none."""
+    n = c.theta0.shape[0]
+    X, Y = cp.Variable((n, n), symmetric=True), cp.Variable((n, n), symmetric=True)
+    mu1, mu2, t = cp.Variable(nonneg=True), cp.Variable(nonneg=True), cp.Variable()
+    upper, lower, above, below, _ = _blocks(atk, c, eps, X, Y, mu1, mu2, t, np.eye(n), 1.0, 0.0, 0.0, cp)
+    room = STRICT * (1.0 + float(np.max(np.abs(c.P0))))
+    cons = [_sym(upper) >> room * np.eye(upper.shape[0]), _sym(lower) >> room * np.eye(lower.shape[0]),
+            _sym(above) >> room * np.eye(n), _sym(below) >> room * np.eye(n), Y >> room * np.eye(n), mu1 >= room,
+            mu2 >= room]
+    try:
+        cp.Problem(cp.Minimize(t), cons).solve(solver=cp.CLARABEL)
+    except cp.SolverError:
+        return None
+    if X.value is None or Y.value is None or mu1.value is None or mu2.value is None:
+        return None
+    return _sym(X.value), _sym(Y.value), float(mu1.value), float(mu2.value)
+
+
 def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
     """Mechanism "lyapunov" (module docstring)."""
     atk = target.declaration
@@ -188,28 +214,19 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
     c = clean(atk, least_squares_fit(Y0, Z0))
     n = c.theta0.shape[0]
     r = atk.lqr_weights[1]
-    X, Yv = cp.Variable((n, n), symmetric=True), cp.Variable((n, n), symmetric=True)
-    mu1, mu2, t = cp.Variable(nonneg=True), cp.Variable(nonneg=True), cp.Variable()
-    upper, lower, above, below, _ = _blocks(atk, c, eps, X, Yv, mu1, mu2, t, np.eye(n), 1.0, 0.0, 0.0, cp)
-    room = STRICT * (1.0 + float(np.max(np.abs(c.P0))))
-    cons = [_sym(upper) >> room * np.eye(upper.shape[0]), _sym(lower) >> room * np.eye(lower.shape[0]),
-            _sym(above) >> room * np.eye(n), _sym(below) >> room * np.eye(n), Yv >> room * np.eye(n), mu1 >= room,
-            mu2 >= room]
     numbers: dict[str, float] = {"eps_model": eps, "s": s}
-    try:
-        cp.Problem(cp.Minimize(t), cons).solve(solver=cp.CLARABEL)
-    except cp.SolverError:
-        X.value = None
-    if X.value is None or t.value is None:
+    found = sandwich(atk, c, eps)
+    if found is None:
         return Evidence("lyapunov", Proof.UNKNOWN, "the gain bound's SDP found no robust cost bounds", numbers,
                         Check(False, "nothing to check"), time.perf_counter() - t0)
-    eps_K = gain_radius(c, r, eps, X.value, Yv.value)
-    numbers.update(t_cost=float(t.value), eps_K=eps_K)
+    X, Yv, mu1, mu2 = found
+    eps_K = gain_radius(c, r, eps, X, Yv)
+    numbers.update(t_cost=cost_radius(c, X, Yv), eps_K=eps_K)
     if not np.isfinite(eps_K):
         return Evidence("lyapunov", Proof.UNKNOWN, "the gain bound is infinite", numbers,
                         Check(False, "nothing to check"), time.perf_counter() - t0)
     Z, mu3, tau = cp.Variable((n, n), symmetric=True), cp.Variable(nonneg=True), cp.Variable()
-    loop = _blocks(atk, c, eps, X.value, Yv.value, 1.0, 1.0, 0.0, Z, mu3, eps_K * (1 + 1e-6), tau, cp)[4]
+    loop = _blocks(atk, c, eps, X, Yv, 1.0, 1.0, 0.0, Z, mu3, eps_K * (1 + 1e-6), tau, cp)[4]
     cons = [_sym(loop) >> 0, Z >> np.eye(n), Z << 1e6 * np.eye(n), tau <= 1.0]
     try:
         cp.Problem(cp.Maximize(tau), cons).solve(solver=cp.CLARABEL)
@@ -219,8 +236,7 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
     if Z.value is None or tau.value is None or tau.value <= 0:
         return Evidence("lyapunov", Proof.UNKNOWN, f"no robust Lyapunov function for gain errors up to {eps_K:.3g}",
                         numbers, Check(False, "nothing to check"), time.perf_counter() - t0)
-    solution = {"X": X.value, "Y": Yv.value, "mu1": float(mu1.value), "mu2": float(mu2.value), "t": float(t.value),
-                "Z": Z.value, "mu3": float(mu3.value), "tau": float(tau.value)}
+    solution = {"X": X, "Y": Yv, "mu1": mu1, "mu2": mu2, "Z": Z.value, "mu3": float(mu3.value), "tau": float(tau.value)}
     check = recheck(atk, delta, solution)
     return Evidence("lyapunov", Proof.PROVEN, f"no poisoning with ||dX||_F <= {delta:.6g} ||X||_F, ||dU||_F <= "
                     f"{delta:.6g} ||U||_F destabilizes the true loop under certainty-equivalence LQR (model ball "
@@ -230,7 +246,7 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
 
 def recheck(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Check:
     """Step 1 again from SVDs (model_radius is that computation; its inputs re-fitted by numpy lstsq), t from numpy
-    eigenvalues of X - P0 and P0 - Y, the gain bound from them, and every LMI's smallest eigenvalue by numpy with a
+    eigenvalues of X - P0 and P0 - Y (and X - Y >= 0), the gain bound from them, and every LMI's smallest eigenvalue by numpy with a
     margin above rounding."""
     Y0, Z0 = atk.regression(atk.signals)
     c = clean(atk, np.linalg.lstsq(Z0.T, Y0.T, rcond=None)[0].T)
@@ -246,6 +262,7 @@ def recheck(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Che
     margin = param("robust.check_margin")
     ok = [eigs[k] >= margin * sizes[k] for k in ("upper", "lower", "loop")]
     passed = all(ok) and min(eigs["above"], eigs["below"]) >= 0 and float(np.linalg.eigvalsh(Y)[0]) >= 0 \
+        and float(np.linalg.eigvalsh(X - Y)[0]) >= 0 \
         and np.isfinite(eps_K) and sol["mu1"] > 0 and sol["mu2"] > 0 and sol["mu3"] > 0 and sol["tau"] > 0
     return Check(passed, "numpy eigenvalues of the LMIs at the SDP's solution (smallest, against a margin of "
                  f"{margin:.0e} times each matrix's size): " + ", ".join(f"{k} {v:.3g}" for k, v in eigs.items()),
