@@ -246,8 +246,8 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
 
 def recheck(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Check:
     """Step 1 again from SVDs (model_radius is that computation; its inputs re-fitted by numpy lstsq), t from numpy
-    eigenvalues of X - P0 and P0 - Y (and X - Y >= 0), the gain bound from them, and every LMI's smallest eigenvalue by numpy with a
-    margin above rounding."""
+    eigenvalues of X - P0 and P0 - Y (and X - Y >= 0), the gain bound from them, and every LMI's smallest eigenvalue
+    by numpy with a margin above rounding."""
     Y0, Z0 = atk.regression(atk.signals)
     c = clean(atk, np.linalg.lstsq(Z0.T, Y0.T, rcond=None)[0].T)
     eps, _ = model_radius(atk, delta)

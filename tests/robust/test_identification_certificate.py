@@ -13,7 +13,7 @@ from bilevel.robust import Proof, as_target, certify, sample_soundness, sphere_p
 from bilevel.robust.identification import clean, lyapunov, model_radius, recheck
 
 PROVEN = 0.0005
-"""A budget the mechanism proves on seed 0 (T = 100): its bracket's delta_lb is about 0.0009."""
+"""A budget the mechanism proves on data seed 0 (T = 100), where certified_margin bisects to delta_lb 0.00102."""
 
 
 @pytest.fixture(scope="module")
