@@ -41,7 +41,7 @@ def test_the_model_ball_contains_the_refit(atk) -> None:
 def test_a_small_budget_is_proven_and_its_gain_ball_contains_every_gain_found(atk, evidence) -> None:
     assert evidence.proof is Proof.PROVEN and evidence.check.passed
     eps, eps_K = evidence.numbers["eps_model"], evidence.numbers["eps_K"]
-    assert 0 < eps_K < 0.36  # the true loop's complex stability radius in the gain is about 0.36 on seed 0
+    assert 0 < eps_K < 0.35  # below the true loop's complex stability radius in the gain (0.350 on data seed 0)
     c = clean(atk, atk.theta0)
     n = c.theta0.shape[0]
     rng = np.random.default_rng(3)
