@@ -6,15 +6,19 @@ model (weights Q = q I, R = r I); judged by the true plant's loop A + B K. Budge
 
 Mechanism "lyapunov", three proven steps:
 1. The model: Theta_a - Theta0 = [E0 dZ' + (dY - Theta0 dZ) Z_a'] (Z_a Z_a')^-1 (E0 the clean residual, E0 Z' = 0),
-   so ||Theta_a - Theta0||_2 <= eps = ||E0|| r_Z / s^2 + ||[I, -Theta0]|| sqrt(2 r_X^2 + r_U^2) / s with
-   s = sigma_min(Z) - r_Z > 0.
+   so ||Theta_a - Theta0||_F <= ||E0|| r_Z / s^2 + ||[I, -Theta0]|| sqrt(2 r_X^2 + r_U^2) / s =: e1 with
+   s = sigma_min(Z) - r_Z > 0. Tighter where the poisoning moves [A B] along few directions: with Z' = Q R and
+   D = dZ' R^-1 (||D|| <= eta = r_Z / sigma_min(Z) < 1), Theta_a - Theta0 = [E0 D + V (Q + D)] (A'A)^-1 R^-T,
+   A = Q + D, V = dY - Theta0 dZ; its linear part [E0 D + V Q] R^-T is a linear map of (dX, dU) whose exact operator
+   norms bound it, and the rest is at most ((||E0|| eta + ||V||) ((1 - eta)^-2 - 1) + ||V|| eta (1 - eta)^-2) /
+   sigma_min(Z). eps is the smaller of the two bounds.
 2. The gain: for every model in that ball, Y <= P(Theta) <= X (P the model's Riccati solution): X >= P_K0(Theta) (K0's
    cost matrix, a robust Lyapunov LMI: Petersen's lemma on the norm-bounded model error) and Y <= P (any Y with
    [Theta'Y Theta + diag(Q - Y, R)] >= 0 bounds it from below, made robust the same way); one SDP (cvxpy + Clarabel)
    minimizes t = max(lambda_max(X - P0), lambda_max(P0 - Y)), so ||P - P0|| <= t, linear in eps. The gain error is
    exactly K - K0 = -M^-1 W, M = R + B'PB, W = B'P Theta F + R K0 (F = [I; K0]); expanding W around (Theta0, P0) with
-   B = B0 + dB, Theta F = Acl0 + dTheta F, P = P0 + E bounds ||W|| by ||W0|| + eps (||P0 Acl0|| + ||F|| ||B0'P0||) +
-   eps^2 ||F|| ||P0|| + ||B0'E Acl0|| + eps t (||Acl0|| + (||B0|| + eps) ||F||), where ||B0'E Acl0|| <=
+   B = B0 + dB, Theta F = Acl0 + dTheta F, P = P0 + E bounds ||W|| by ||W0|| + eps ||l|| (l: dTheta -> dB'P0 Acl0 +
+   B0'P0 dTheta F, its exact operator norm on the Frobenius ball) + eps^2 ||F|| ||P0|| + ||B0'E Acl0|| + eps t (||Acl0|| + (||B0|| + eps) ||F||), where ||B0'E Acl0|| <=
    ||B0'C Acl0|| + ||H^1/2 B0|| ||H^1/2 Acl0|| (C, H the sandwich's centre and half-width: E - C lies in [-H, H]);
    lambda_min(M) >= r + (sigma_min(Y^1/2 B0) - ||Y^1/2|| eps)^2. So ||K - K0|| <= eps_K, linear in eps (the earlier
    route through the cost difference identity grew like sqrt(eps)).
@@ -83,20 +87,55 @@ def identification_target(atk: IdentificationAttack, starts: int = 1, **options:
                   lambda theta: ce_radius(atk, theta), {"engine": engine}, PATH, options=options)
 
 
-def model_radius(atk: IdentificationAttack, delta: float) -> tuple[float, float]:
-    """(eps, s) of step 1: the certified radius of the model ball and the poisoned regressor's smallest singular value
-    bound (eps inf where s <= 0)."""
+def model_maps(atk: IdentificationAttack, whitened: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The linear part of the poisoned fit, dTheta_lin = [E0 dZ' + (dY - Theta0 dZ) Z0'] G0^-1, as matrices from vec(dX)
+    and vec(dU) to vec(dTheta); whitened: the same map computed as [E0 D + V Q] R^-T (Z0' = Q R, D = dZ' R^-1), the
+    re-check's second route."""
+    Y0, Z0 = atk.regression(atk.signals)
+    theta0 = least_squares_fit(Y0, Z0)
+    E0 = Y0 - theta0 @ Z0
+    T = Z0.shape[1]
+    Qz, Rz = np.linalg.qr(Z0.T)
+    G0inv = np.linalg.inv(Z0 @ Z0.T)
+    maps = []
+    for name in ("X", "U"):
+        cols = []
+        for k in range(atk.signals[name].size):
+            d = {key: np.zeros(v.shape) for key, v in atk.signals.items()}
+            d[name].flat[k] = 1.0
+            dY, dZ = d["X"][:, 1:T + 1], np.vstack([d["X"][:, :T], d["U"]])
+            V = dY - theta0 @ dZ
+            if whitened:
+                D = np.linalg.solve(Rz.T, dZ).T
+                cols.append(np.linalg.solve(Rz, (E0 @ D + V @ Qz).T).T.ravel())
+            else:
+                cols.append(((E0 @ dZ.T + V @ Z0.T) @ G0inv).ravel())
+        maps.append(np.array(cols).T)
+    return maps[0], maps[1]
+
+
+def model_radius(atk: IdentificationAttack, delta: float, whitened: bool = False) -> tuple[float, float]:
+    """(eps, s) of step 1: the certified radius of the model ball (Frobenius, hence spectral) and the poisoned
+    regressor's smallest singular value bound (eps inf where s <= 0); eps is the smaller of the norm-product bound and
+    the linear part's exact operator norm plus a bound on the rest (module docstring)."""
     Y, Z = atk.regression(atk.signals)
     theta0 = least_squares_fit(Y, Z)
     E0 = Y - theta0 @ Z
     r_X, r_U = delta * np.linalg.norm(atk.signals["X"]), delta * np.linalg.norm(atk.signals["U"])
     r_Z = float(np.hypot(r_X, r_U))
-    s = float(np.linalg.svd(Z, compute_uv=False)[-1]) - r_Z
+    sigma = float(np.linalg.svd(Z, compute_uv=False)[-1])
+    s = sigma - r_Z
     if s <= 0:
         return float("inf"), s
-    lead = np.linalg.svd(np.hstack([np.eye(theta0.shape[0]), -theta0]), compute_uv=False)[0]
-    return float(np.linalg.svd(E0, compute_uv=False)[0] * r_Z / s ** 2
-                 + lead * np.sqrt(2 * r_X ** 2 + r_U ** 2) / s), s
+    e0 = float(np.linalg.svd(E0, compute_uv=False)[0])
+    lin_V = float(np.linalg.svd(np.hstack([np.eye(theta0.shape[0]), -theta0]), compute_uv=False)[0]
+                  * np.sqrt(2 * r_X ** 2 + r_U ** 2))
+    products = e0 * r_Z / s ** 2 + lin_V / s
+    eta = r_Z / sigma
+    rest = ((e0 * eta + lin_V) * ((1 - eta) ** -2 - 1) + lin_V * eta * (1 - eta) ** -2) / sigma
+    GX, GU = model_maps(atk, whitened)
+    linear = float(np.linalg.svd(GX, compute_uv=False)[0] * r_X + np.linalg.svd(GU, compute_uv=False)[0] * r_U)
+    return float(min(products, linear + rest)), s
 
 
 @dataclass(frozen=True)
@@ -140,7 +179,7 @@ def cost_radius(c: Clean, X: np.ndarray, Y: np.ndarray) -> float:
 
 
 def gain_radius(c: Clean, r: float, eps: float, X: np.ndarray, Y: np.ndarray) -> float:
-    """Step 2's bound on ||K(Theta) - K0|| over the model ball ||Theta - Theta0|| <= eps, given every model's Riccati
+    """Step 2's bound on ||K(Theta) - K0|| over the model ball ||Theta - Theta0||_F <= eps, given every model's Riccati
     solution P within Y <= P <= X, Y >= 0 (module docstring)."""
     n = c.theta0.shape[0]
     B0 = c.theta0[:, n:]
@@ -148,7 +187,9 @@ def gain_radius(c: Clean, r: float, eps: float, X: np.ndarray, Y: np.ndarray) ->
     f, a, b = _norm(c.F), _norm(c.Acl0), _norm(B0)
     H, C = 0.5 * _sym(X - Y), 0.5 * _sym(X + Y) - c.P0  # P - P0 = C + S with -H <= S <= H
     centre = _norm(B0.T @ C @ c.Acl0) + _norm(_root(H) @ B0) * _norm(_root(H) @ c.Acl0)
-    w = (_norm(c.W0) + eps * _norm(c.P0 @ c.Acl0) + eps * f * _norm(B0.T @ c.P0) + eps ** 2 * f * _norm(c.P0)
+    units = np.eye(c.theta0.size).reshape(-1, *c.theta0.shape)
+    first = np.array([(D[:, n:].T @ c.P0 @ c.Acl0 + B0.T @ c.P0 @ D @ c.F).ravel() for D in units]).T
+    w = (_norm(c.W0) + eps * _norm(first) + eps ** 2 * f * _norm(c.P0)
          + min(centre, b * t * a) + eps * t * (a + (b + eps) * f))
     low = float(np.linalg.svd(_root(Y) @ B0, compute_uv=False)[-1]) - _norm(_root(Y)) * eps
     return w / (r + max(low, 0.0) ** 2)
@@ -250,7 +291,7 @@ def recheck(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Che
     by numpy with a margin above rounding."""
     Y0, Z0 = atk.regression(atk.signals)
     c = clean(atk, np.linalg.lstsq(Z0.T, Y0.T, rcond=None)[0].T)
-    eps, _ = model_radius(atk, delta)
+    eps, _ = model_radius(atk, delta, whitened=True)
     eps = eps * (1 + 1e-9)
     X, Y = _sym(sol["X"]), _sym(sol["Y"])
     t = cost_radius(c, X, Y) * (1 + 1e-9)
