@@ -18,13 +18,15 @@ Mechanism "lyapunov", three proven steps:
    minimizes t = max(lambda_max(X - P0), lambda_max(P0 - Y)), so ||P - P0|| <= t, linear in eps. The gain error is
    exactly K - K0 = -M^-1 W, M = R + B'PB, W = B'P Theta F + R K0 (F = [I; K0]); expanding W around (Theta0, P0) with
    B = B0 + dB, Theta F = Acl0 + dTheta F, P = P0 + E bounds ||W|| by ||W0|| + eps ||l|| (l: dTheta -> dB'P0 Acl0 +
-   B0'P0 dTheta F, its exact operator norm on the Frobenius ball) + eps^2 ||F|| ||P0|| + ||B0'E Acl0|| + eps t (||Acl0|| + (||B0|| + eps) ||F||), where ||B0'E Acl0|| <=
-   ||B0'C Acl0|| + ||H^1/2 B0|| ||H^1/2 Acl0|| (C, H the sandwich's centre and half-width: E - C lies in [-H, H]);
-   lambda_min(M) >= r + (sigma_min(Y^1/2 B0) - ||Y^1/2|| eps)^2. So ||K - K0|| <= eps_K, linear in eps (the earlier
-   route through the cost difference identity grew like sqrt(eps)).
+   B0'P0 dTheta F, its exact operator norm on the Frobenius ball) + eps^2 ||F|| ||P0|| + ||B0'E Acl0|| +
+   eps t (||Acl0|| + (||B0|| + eps) ||F||), where ||B0'E Acl0|| <= ||B0'C Acl0|| + ||H^1/2 B0|| ||H^1/2 Acl0||
+   (C, H the sandwich's centre and half-width: E - C lies in [-H, H]); lambda_min(M) >= r + (sigma_min(Y^1/2 B0) -
+   ||Y^1/2|| eps)^2. So ||K - K0|| <= eps_K, linear in eps (the earlier route through the cost difference identity
+   grew like sqrt(eps)).
 3. The true loop: A + B (K0 + D_K) is Schur stable for every ||D_K|| <= eps_K (a robust Lyapunov LMI, Petersen again).
-The re-check recomputes step 1 from SVDs, t and eps_K from numpy eigenvalues of X - P0, P0 - Y, X - Y and Y at the
-SDP's solution, and checks every LMI there by numpy eigenvalues with a margin above rounding.
+The re-check recomputes step 1 from SVDs (the linear map built the whitened way), t and eps_K from numpy eigenvalues
+of X - P0, P0 - Y, X - Y and Y at the SDP's solution, and checks every LMI there by numpy eigenvalues with a margin
+above rounding.
 """
 
 from __future__ import annotations
