@@ -41,6 +41,7 @@ import numpy as np
 from ..ddc.model_based import lqr_gain
 from ..defaults import param
 from ..errors import ModelError
+from ..lower.quadratic import solve_quietly
 from ..problems.identification import declare
 from ..problems.identification_instance import IdentificationAttack, least_squares_fit
 from ..solvers.registry import solve
@@ -237,7 +238,7 @@ def sandwich(atk: IdentificationAttack, c: Clean, eps: float) -> tuple[np.ndarra
             _sym(above) >> room * np.eye(n), _sym(below) >> room * np.eye(n), Y >> room * np.eye(n), mu1 >= room,
             mu2 >= room]
     try:
-        cp.Problem(cp.Minimize(t), cons).solve(solver=cp.CLARABEL)
+        solve_quietly(cp.Problem(cp.Minimize(t), cons), solver=cp.CLARABEL)  # the numpy re-check decides
     except cp.SolverError:
         return None
     if X.value is None or Y.value is None or mu1.value is None or mu2.value is None:
@@ -272,7 +273,7 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
     loop = _blocks(atk, c, eps, X, Yv, 1.0, 1.0, 0.0, Z, mu3, eps_K * (1 + 1e-6), tau, cp)[4]
     cons = [_sym(loop) >> 0, Z >> np.eye(n), Z << 1e6 * np.eye(n), tau <= 1.0]
     try:
-        cp.Problem(cp.Maximize(tau), cons).solve(solver=cp.CLARABEL)
+        solve_quietly(cp.Problem(cp.Maximize(tau), cons), solver=cp.CLARABEL)
     except cp.SolverError:
         Z.value = None
     numbers.update(tau=float("nan") if tau.value is None else float(tau.value))
