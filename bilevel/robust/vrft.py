@@ -6,16 +6,20 @@ defenses frontier's eps_u = eps_y = eps). The attack is the project's joint atta
 (the attacker's ARX model of the loop), the random baseline its white-noise poisoning.
 
 Mechanism "perturbation": with d = theta - theta0, r0 the clean residual, v = t(a_u) - Phi(a_y) theta0 and
-Phi0 = Q R, the poisoned fit is exactly x = R d = (A'A)^-1 A'(r0 + v), A = Q + D, D = Phi(a_y) R^-1 (Q'r0 = 0). Its
-linear part x_lin = Q'v + D'r0 is a linear map of (a_u, a_y) whose image of the budget balls has an exact support
-function; the rest, [(A'A)^-1 - I] x_lin + (A'A)^-1 D'v, has norm at most rho2 = ((1-eta)^-2 - 1) max||x_lin|| +
-(1-eta)^-2 max||D'v|| where ||D|| <= eta = eta1 ||a_y|| < 1 (eta1^2 the largest eigenvalue of sum_i M_i'M_i, the
-whitened regressor operators M_i) and each entry of D'v is a quadratic form in (a_u, a_y) bounded by its largest
-singular value. The set {d} is then inside the linear image plus R^-1 times a ball of radius rho2, and the true loop's
-characteristic polynomial, affine in theta, is proven Schur stable over it by zero exclusion on the unit circle
-(bilevel.robust.zero_exclusion). The re-check rebuilds the operators by filtering unit impulses (the learner's own
-filters, not the dense matrices), recomputes eta1 by an SVD and the Grams from the explicit maps, and re-runs the
-sweep on a grid twice as fine with twice the directions from those numbers.
+Phi0 = Q R, the poisoned fit is exactly x = R d = M^-1 (x_lin + D'v), M = A'A, A = Q + D, D = Phi(a_y) R^-1
+(Q'r0 = 0), x_lin = Q'v + D'r0. x_lin is a linear map of (a_u, a_y) whose image of the budget balls has an exact support
+function. Split D = Q B + E (B = Q'D, E orthogonal to Q): M = (I + B)'(I + B) + E'E, so (1 - beta)^2 I <= M <=
+((1 + beta)^2 + eta^2) I where ||B|| <= beta = beta1 ||a_y|| < 1 and ||E|| <= ||D|| <= eta = eta1 ||a_y|| (beta1^2,
+eta1^2 the largest eigenvalues of the stacked whitened regressor operators, projected on Q and not): only the part of
+the regressor perturbation inside the clean regressor's range can make the poisoned fit singular; the rest (E'E >= 0)
+only damps it. The remainder x - x_lin = D'v + (M^-1 - I)(x_lin + D'v) lies in a box plus a ball: each entry of D'v is
+a quadratic form in (a_u, a_y) bounded by its largest singular value (the box), and ||M^-1 - I|| <= spread =
+max((1 - beta)^-2 - 1, 1 - ((1 + beta)^2 + eta^2)^-1) times max||x_lin|| + the box's norm (the ball). The set {d}
+is then inside the linear image plus R^-1 times that ball and box, and the true loop's characteristic polynomial,
+affine in theta, is proven Schur stable over it by zero exclusion on the unit circle (bilevel.robust.zero_exclusion).
+The re-check rebuilds the operators by filtering unit impulses (the learner's own filters, not the dense matrices),
+recomputes beta1 and eta1 by SVDs and the Grams from the explicit maps, and re-runs the sweep on a grid twice as fine
+with twice the directions from those numbers.
 """
 
 from __future__ import annotations
@@ -73,8 +77,8 @@ def vrft_target(atk: VRFTAttack, starts: int = ATTACK_STARTS, **options: Any) ->
 class Perturbation:
     """What the VRFT perturbation bound needs of one data set, per unit budget (module `bound` docstring): theta0,
     the clean regressor's R (Phi0 = Q R), the Grams of the linear maps a_u -> d, a_y -> d (K_u, K_y) and the norms of
-    R L_u, R L_y, eta1 (||Phi(a_y) R^-1|| <= eta1 ||a_y||), the second-order coefficients (q_u[i], q_y[i]) and
-    ||u||, ||y||."""
+    R L_u, R L_y, eta1 (||Phi(a_y) R^-1|| <= eta1 ||a_y||), beta1 (||Q'Phi(a_y) R^-1|| <= beta1 ||a_y||), the
+    second-order coefficients (q_u[i], q_y[i]) and ||u||, ||y||."""
 
     theta0: np.ndarray
     R: np.ndarray
@@ -83,6 +87,7 @@ class Perturbation:
     lin_u: float
     lin_y: float
     eta1: float
+    beta1: float
     q_u: np.ndarray
     q_y: np.ndarray
     norm_u: float
@@ -108,13 +113,18 @@ def perturbation(atk: VRFTAttack) -> Perturbation:
     L_u = G0inv @ (phi0.T @ Tu)
     L_y = G0inv @ (np.einsum("r,irn->in", r0, T) - phi0.T @ F)
     M = np.tensordot(Rinv, T, axes=(0, 0))  # Phi(a_y) R^-1 x = sum_i x_i M_i a_y
-    stacked = M.reshape(-1, M.shape[-1])
-    eta1 = float(np.sqrt(np.linalg.eigvalsh(stacked.T @ stacked)[-1]))
+    eta1, beta1 = _gains(M, phi0 @ Rinv, lambda op: float(np.sqrt(np.linalg.eigvalsh(op.T @ op)[-1])))
     q_u = np.array([np.linalg.norm(Tu.T @ m, 2) for m in M])
     q_y = np.array([np.max(np.abs(np.linalg.eigvalsh(0.5 * (m.T @ F + F.T @ m)))) for m in M])
     return Perturbation(theta0, R, L_u @ L_u.T, L_y @ L_y.T, float(np.linalg.norm(R @ L_u, 2)),
-                        float(np.linalg.norm(R @ L_y, 2)), eta1, q_u, q_y, float(np.linalg.norm(atk.u)),
+                        float(np.linalg.norm(R @ L_y, 2)), eta1, beta1, q_u, q_y, float(np.linalg.norm(atk.u)),
                         float(np.linalg.norm(atk.y)))
+
+
+def _gains(M: np.ndarray, Q: np.ndarray, norm) -> tuple[float, float]:
+    """(eta1, beta1): the norms (by `norm`) of a_y -> Phi(a_y) R^-1 and a_y -> Q'Phi(a_y) R^-1 (stacked M_i, Q'M_i)."""
+    N = M.shape[-1]
+    return norm(M.reshape(-1, N)), norm(np.einsum("rj,irn->ijn", Q, M).reshape(-1, N))
 
 
 def _impulse_operators(atk: VRFTAttack) -> tuple[np.ndarray, np.ndarray]:
@@ -135,25 +145,28 @@ def _cached(atk: VRFTAttack) -> Perturbation:
     return kept(_KEPT, id(atk), lambda: (atk, perturbation(atk)), KEPT, usable=lambda hit: hit[0] is atk)[0][1]
 
 
-def remainder(P: Perturbation, delta: float) -> tuple[float, float]:
-    """(eta, rho2) at budget delta: the bound on ||D|| and on the second-order part's norm (inf where eta >= 1)."""
+def remainder(P: Perturbation, delta: float) -> tuple[float, float, np.ndarray]:
+    """(beta, ball, box) at budget delta: the bound on ||B||, the radius of the remainder's ball and the entries' bounds
+    of its box (module docstring; ball inf where beta >= 1)."""
     r_u, r_y = delta * P.norm_u, delta * P.norm_y
-    eta = r_y * P.eta1
-    if eta >= 1.0:
-        return eta, float("inf")
-    lin = r_u * P.lin_u + r_y * P.lin_y
-    dv = float(np.linalg.norm(r_y * r_u * P.q_u + r_y ** 2 * P.q_y))
-    return eta, ((1 - eta) ** -2 - 1) * lin + dv / (1 - eta) ** 2
+    beta, eta = r_y * P.beta1, r_y * P.eta1
+    box = r_y * r_u * P.q_u + r_y ** 2 * P.q_y
+    if beta >= 1.0:
+        return beta, float("inf"), box
+    spread = max((1 - beta) ** -2 - 1, 1 - 1 / ((1 + beta) ** 2 + eta ** 2))
+    return beta, spread * (r_u * P.lin_u + r_y * P.lin_y + float(np.linalg.norm(box))), box
 
 
-def support(P: Perturbation, delta: float, rho2: float):
-    """The support function of the certified set of d at budget delta (columns of W -> values)."""
+def support(P: Perturbation, delta: float, ball: float, box: np.ndarray):
+    """The support function of the certified set of d at budget delta (columns of W -> values): the linear image plus
+    R^-1 times the remainder's ball and box."""
     r_u, r_y = delta * P.norm_u, delta * P.norm_y
     rinv_t = np.linalg.inv(P.R).T
 
     def h(W: np.ndarray) -> np.ndarray:
         quad = lambda K: np.sqrt(np.maximum(np.einsum("im,ij,jm->m", W, K, W), 0.0))  # noqa: E731
-        return r_u * quad(P.K_u) + r_y * quad(P.K_y) + rho2 * np.linalg.norm(rinv_t @ W, axis=0)
+        X = rinv_t @ W
+        return r_u * quad(P.K_u) + r_y * quad(P.K_y) + ball * np.linalg.norm(X, axis=0) + box @ np.abs(X)
     return h
 
 
@@ -162,12 +175,12 @@ ANGLES = 9
 
 
 def _sweep(atk: VRFTAttack, P: Perturbation, delta: float, refine: int = 1) -> tuple[float, float, Sweep | None]:
-    eta, rho2 = remainder(P, delta)
-    if not np.isfinite(rho2):
-        return eta, rho2, None
+    beta, ball, box = remainder(P, delta)
+    if not np.isfinite(ball):
+        return beta, ball, None
     loop = atk.setting.loop
     base = loop.coefficients(P.theta0)
-    return eta, rho2, sweep(base, loop.slopes, support(P, delta, rho2), GRID * refine, ANGLES * refine)
+    return beta, ball, sweep(base, loop.slopes, support(P, delta, ball, box), GRID * refine, ANGLES * refine)
 
 
 def perturbation_bound(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
@@ -175,12 +188,12 @@ def perturbation_bound(target: Target, delta: float, options: dict[str, Any]) ->
     atk = target.declaration
     t0 = time.perf_counter()
     P = _cached(atk)
-    eta, rho2, found = _sweep(atk, P, delta)
+    beta, ball, found = _sweep(atk, P, delta)
     if found is None:
-        return Evidence("perturbation", Proof.UNKNOWN, f"eta = {eta:.3g} >= 1: the poisoned regressor's conditioning "
-                        "is not bounded at this budget", {"eta": eta}, Check(False, "nothing to check"),
+        return Evidence("perturbation", Proof.UNKNOWN, f"beta = {beta:.3g} >= 1: the poisoned regressor's conditioning "
+                        "is not bounded at this budget", {"beta": beta}, Check(False, "nothing to check"),
                         time.perf_counter() - t0)
-    numbers = {"eta": eta, "rho2": rho2, "excluded_by": found.excluded_by, "lipschitz": found.lipschitz,
+    numbers = {"beta": beta, "ball": ball, "excluded_by": found.excluded_by, "lipschitz": found.lipschitz,
                "leading": found.leading}
     if not found.proven:
         return Evidence("perturbation", Proof.UNKNOWN, f"zero exclusion fails at delta = {delta:.6g} (guaranteed "
@@ -203,7 +216,7 @@ def recheck(atk: VRFTAttack, P: Perturbation, delta: float) -> Check:
     R = R * np.sign(np.diag(R))[:, None] * np.sign(np.diag(P.R))[:, None]
     Rinv = np.linalg.inv(R)
     M = np.tensordot(Rinv, T, axes=(0, 0))
-    eta1 = float(np.linalg.norm(M.reshape(-1, M.shape[-1]), 2))
+    eta1, beta1 = _gains(M, phi0 @ Rinv, lambda op: float(np.linalg.svd(op, compute_uv=False)[0]))
     F = np.einsum("i,irn->rn", theta0, T)
     G0inv = Rinv @ Rinv.T
     L_u = np.linalg.solve(phi0.T @ phi0, phi0.T @ Tu)
@@ -211,11 +224,14 @@ def recheck(atk: VRFTAttack, P: Perturbation, delta: float) -> Check:
     q_u = np.array([np.linalg.svd(Tu.T @ m, compute_uv=False)[0] for m in M])
     q_y = np.array([np.linalg.svd(0.5 * (m.T @ F + F.T @ m), compute_uv=False)[0] for m in M])
     again = Perturbation(theta0, R, L_u @ L_u.T, L_y @ L_y.T, float(np.linalg.svd(R @ L_u, compute_uv=False)[0]),
-                         float(np.linalg.svd(R @ L_y, compute_uv=False)[0]), eta1, q_u, q_y, P.norm_u, P.norm_y)
+                         float(np.linalg.svd(R @ L_y, compute_uv=False)[0]), eta1, beta1, q_u, q_y, P.norm_u,
+                         P.norm_y)
     worst = Perturbation(theta0, R, again.K_u, again.K_y,
                          max(P.lin_u, again.lin_u), max(P.lin_y, again.lin_y), max(P.eta1, again.eta1),
-                         np.maximum(P.q_u, again.q_u), np.maximum(P.q_y, again.q_y), P.norm_u, P.norm_y)
-    agree = max(abs(again.eta1 - P.eta1) / P.eta1, float(np.max(np.abs(again.K_y - P.K_y)) / np.max(np.abs(P.K_y))),
+                         max(P.beta1, again.beta1), np.maximum(P.q_u, again.q_u), np.maximum(P.q_y, again.q_y),
+                         P.norm_u, P.norm_y)
+    agree = max(abs(again.eta1 - P.eta1) / P.eta1, abs(again.beta1 - P.beta1) / P.beta1,
+                float(np.max(np.abs(again.K_y - P.K_y)) / np.max(np.abs(P.K_y))),
                 float(np.max(np.abs(again.K_u - P.K_u)) / np.max(np.abs(P.K_u))))
     _, _, found = _sweep(atk, worst, delta, refine=2)
     scale = float(np.max(np.abs(atk.setting.loop.coefficients(theta0))))
