@@ -6,16 +6,27 @@ model (weights Q = q I, R = r I); judged by the true plant's loop A + B K. Budge
 
 Mechanism "lyapunov", three proven steps:
 1. The model: Theta_a - Theta0 = [E0 dZ' + (dY - Theta0 dZ) Z_a'] (Z_a Z_a')^-1 (E0 the clean residual, E0 Z' = 0),
-   so ||Theta_a - Theta0||_2 <= eps = ||E0|| r_Z / s^2 + ||[I, -Theta0]|| sqrt(2 r_X^2 + r_U^2) / s with
-   s = sigma_min(Z) - r_Z > 0.
-2. The gain: for every model in that ball, X >= P_K0 (K0's cost matrix, a robust Lyapunov LMI: Petersen's lemma on
-   the norm-bounded model error) and Y <= P (the optimal cost matrix: any Y with [Theta'Y Theta + diag(Q - Y, R)] >= 0
-   bounds it from below, made robust the same way); the LQR cost difference identity
-   (K0 - K)'(R + B'PB)(K0 - K) <= P_K0 - P gives ||K - K0||^2 <= lambda_max(X - Y) / r. One SDP (cvxpy + Clarabel)
-   minimizes lambda_max(X - Y).
+   so ||Theta_a - Theta0||_F <= ||E0|| r_Z / s^2 + ||[I, -Theta0]|| sqrt(2 r_X^2 + r_U^2) / s =: e1 with
+   s = sigma_min(Z) - r_Z > 0. Tighter where the poisoning moves [A B] along few directions: with Z' = Q R and
+   D = dZ' R^-1 (||D|| <= eta = r_Z / sigma_min(Z) < 1), Theta_a - Theta0 = [E0 D + V (Q + D)] (A'A)^-1 R^-T,
+   A = Q + D, V = dY - Theta0 dZ; its linear part [E0 D + V Q] R^-T is a linear map of (dX, dU) whose exact operator
+   norms bound it, and the rest is at most ((||E0|| eta + ||V||) ((1 - eta)^-2 - 1) + ||V|| eta (1 - eta)^-2) /
+   sigma_min(Z). eps is the smaller of the two bounds.
+2. The gain: for every model in that ball, Y <= P(Theta) <= X (P the model's Riccati solution): X >= P_K0(Theta) (K0's
+   cost matrix, a robust Lyapunov LMI: Petersen's lemma on the norm-bounded model error) and Y <= P (any Y with
+   [Theta'Y Theta + diag(Q - Y, R)] >= 0 bounds it from below, made robust the same way); one SDP (cvxpy + Clarabel)
+   minimizes t = max(lambda_max(X - P0), lambda_max(P0 - Y)), so ||P - P0|| <= t, linear in eps. The gain error is
+   exactly K - K0 = -M^-1 W, M = R + B'PB, W = B'P Theta F + R K0 (F = [I; K0]); expanding W around (Theta0, P0) with
+   B = B0 + dB, Theta F = Acl0 + dTheta F, P = P0 + E bounds ||W|| by ||W0|| + eps ||l|| (l: dTheta -> dB'P0 Acl0 +
+   B0'P0 dTheta F, its exact operator norm on the Frobenius ball) + eps^2 ||F|| ||P0|| + ||B0'E Acl0|| +
+   eps t (||Acl0|| + (||B0|| + eps) ||F||), where ||B0'E Acl0|| <= ||B0'C Acl0|| + ||H^1/2 B0|| ||H^1/2 Acl0||
+   (C, H the sandwich's centre and half-width: E - C lies in [-H, H]); lambda_min(M) >= r + (sigma_min(Y^1/2 B0) -
+   ||Y^1/2|| eps)^2. So ||K - K0|| <= eps_K, linear in eps (the earlier route through the cost difference identity
+   grew like sqrt(eps)).
 3. The true loop: A + B (K0 + D_K) is Schur stable for every ||D_K|| <= eps_K (a robust Lyapunov LMI, Petersen again).
-The re-check recomputes step 1 from SVDs and checks every LMI at the SDP's solution by numpy eigenvalues with a
-margin above rounding; step 2's bound on the gain is recomputed from those eigenvalues.
+The re-check recomputes step 1 from SVDs (the linear map built the whitened way), t and eps_K from numpy eigenvalues
+of X - P0, P0 - Y, X - Y and Y at the SDP's solution, and checks every LMI there by numpy eigenvalues with a margin
+above rounding.
 """
 
 from __future__ import annotations
@@ -30,6 +41,7 @@ import numpy as np
 from ..ddc.model_based import lqr_gain
 from ..defaults import param
 from ..errors import ModelError
+from ..lower.quadratic import solve_quietly
 from ..problems.identification import declare
 from ..problems.identification_instance import IdentificationAttack, least_squares_fit
 from ..solvers.registry import solve
@@ -78,62 +90,160 @@ def identification_target(atk: IdentificationAttack, starts: int = 1, **options:
                   lambda theta: ce_radius(atk, theta), {"engine": engine}, PATH, options=options)
 
 
-def model_radius(atk: IdentificationAttack, delta: float) -> tuple[float, float]:
-    """(eps, s) of step 1: the certified radius of the model ball and the poisoned regressor's smallest singular value
-    bound (eps inf where s <= 0)."""
+def model_maps(atk: IdentificationAttack, whitened: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The linear part of the poisoned fit, dTheta_lin = [E0 dZ' + (dY - Theta0 dZ) Z0'] G0^-1, as matrices from vec(dX)
+    and vec(dU) to vec(dTheta); whitened: the same map computed as [E0 D + V Q] R^-T (Z0' = Q R, D = dZ' R^-1), the
+    re-check's second route."""
+    Y0, Z0 = atk.regression(atk.signals)
+    theta0 = least_squares_fit(Y0, Z0)
+    E0 = Y0 - theta0 @ Z0
+    T = Z0.shape[1]
+    Qz, Rz = np.linalg.qr(Z0.T)
+    G0inv = np.linalg.inv(Z0 @ Z0.T)
+    maps = []
+    for name in ("X", "U"):
+        cols = []
+        for k in range(atk.signals[name].size):
+            d = {key: np.zeros(v.shape) for key, v in atk.signals.items()}
+            d[name].flat[k] = 1.0
+            dY, dZ = d["X"][:, 1:T + 1], np.vstack([d["X"][:, :T], d["U"]])
+            V = dY - theta0 @ dZ
+            if whitened:
+                D = np.linalg.solve(Rz.T, dZ).T
+                cols.append(np.linalg.solve(Rz, (E0 @ D + V @ Qz).T).T.ravel())
+            else:
+                cols.append(((E0 @ dZ.T + V @ Z0.T) @ G0inv).ravel())
+        maps.append(np.array(cols).T)
+    return maps[0], maps[1]
+
+
+def model_radius(atk: IdentificationAttack, delta: float, whitened: bool = False) -> tuple[float, float]:
+    """(eps, s) of step 1: the certified radius of the model ball (Frobenius, hence spectral) and the poisoned
+    regressor's smallest singular value bound (eps inf where s <= 0); eps is the smaller of the norm-product bound and
+    the linear part's exact operator norm plus a bound on the rest (module docstring)."""
     Y, Z = atk.regression(atk.signals)
     theta0 = least_squares_fit(Y, Z)
     E0 = Y - theta0 @ Z
     r_X, r_U = delta * np.linalg.norm(atk.signals["X"]), delta * np.linalg.norm(atk.signals["U"])
     r_Z = float(np.hypot(r_X, r_U))
-    s = float(np.linalg.svd(Z, compute_uv=False)[-1]) - r_Z
+    sigma = float(np.linalg.svd(Z, compute_uv=False)[-1])
+    s = sigma - r_Z
     if s <= 0:
         return float("inf"), s
-    lead = np.linalg.svd(np.hstack([np.eye(theta0.shape[0]), -theta0]), compute_uv=False)[0]
-    return float(np.linalg.svd(E0, compute_uv=False)[0] * r_Z / s ** 2
-                 + lead * np.sqrt(2 * r_X ** 2 + r_U ** 2) / s), s
+    e0 = float(np.linalg.svd(E0, compute_uv=False)[0])
+    lin_V = float(np.linalg.svd(np.hstack([np.eye(theta0.shape[0]), -theta0]), compute_uv=False)[0]
+                  * np.sqrt(2 * r_X ** 2 + r_U ** 2))
+    products = e0 * r_Z / s ** 2 + lin_V / s
+    eta = r_Z / sigma
+    rest = ((e0 * eta + lin_V) * ((1 - eta) ** -2 - 1) + lin_V * eta * (1 - eta) ** -2) / sigma
+    GX, GU = model_maps(atk, whitened)
+    linear = float(np.linalg.svd(GX, compute_uv=False)[0] * r_X + np.linalg.svd(GU, compute_uv=False)[0] * r_U)
+    return float(min(products, linear + rest)), s
 
 
 @dataclass(frozen=True)
-class Lmis:
-    """The three LMIs' matrices at a solution (each must be positive semidefinite) and the gain bound."""
+class Clean:
+    """The clean model's numbers every step uses: Theta0, its LQR gain K0 and cost matrix P0 (any symmetric P0 and
+    K0 serve: the gain bound carries K0's residual W0), F = [I; K0], the model's loop Acl0 = Theta0 F and W0."""
 
-    upper: np.ndarray
-    lower: np.ndarray
-    gap: np.ndarray
-    loop: np.ndarray
-    eps_K: float
+    theta0: np.ndarray
+    K0: np.ndarray
+    P0: np.ndarray
+    F: np.ndarray
+    Acl0: np.ndarray
+    W0: np.ndarray
 
 
-def _blocks(atk: IdentificationAttack, theta0: np.ndarray, eps: float, X, Y, mu1, mu2, t, Z, mu3, eps_K, tau,
-            lib) -> list:
-    """The LMI matrices (cvxpy expressions with lib=cp, numbers with lib=np): robust upper bound on P_K0, robust
-    lower bound on P, X - Y <= t I, and the true loop's robust Lyapunov LMI."""
+def clean(atk: IdentificationAttack, theta0: np.ndarray) -> Clean:
+    """The Clean numbers of the model theta0 (lqr_gain's K0 and P0)."""
+    n = theta0.shape[0]
+    m = theta0.shape[1] - n
+    q, r = atk.lqr_weights
+    K0, P0 = lqr_gain(theta0[:, :n], theta0[:, n:], q * np.eye(n), r * np.eye(m))
+    P0 = _sym(P0)
+    F = np.vstack([np.eye(n), K0])
+    Acl0 = theta0 @ F
+    return Clean(theta0, K0, P0, F, Acl0, theta0[:, n:].T @ P0 @ Acl0 + r * K0)
+
+
+def _root(M: np.ndarray) -> np.ndarray:
+    """The symmetric square root of a symmetric matrix's positive part."""
+    lam, V = np.linalg.eigh(_sym(M))
+    return V @ np.diag(np.sqrt(np.maximum(lam, 0.0))) @ V.T
+
+
+def _norm(M: np.ndarray) -> float:
+    return float(np.linalg.svd(np.atleast_2d(M), compute_uv=False)[0])
+
+
+def cost_radius(c: Clean, X: np.ndarray, Y: np.ndarray) -> float:
+    """t = max(lambda_max(X - P0), lambda_max(P0 - Y)): Y <= P <= X gives ||P - P0|| <= t."""
+    return max(float(np.linalg.eigvalsh(_sym(X - c.P0))[-1]), float(np.linalg.eigvalsh(_sym(c.P0 - Y))[-1]), 0.0)
+
+
+def gain_radius(c: Clean, r: float, eps: float, X: np.ndarray, Y: np.ndarray) -> float:
+    """Step 2's bound on ||K(Theta) - K0|| over the model ball ||Theta - Theta0||_F <= eps, given every model's Riccati
+    solution P within Y <= P <= X, Y >= 0 (module docstring)."""
+    n = c.theta0.shape[0]
+    B0 = c.theta0[:, n:]
+    t = cost_radius(c, X, Y)
+    f, a, b = _norm(c.F), _norm(c.Acl0), _norm(B0)
+    H, C = 0.5 * _sym(X - Y), 0.5 * _sym(X + Y) - c.P0  # P - P0 = C + S with -H <= S <= H
+    centre = _norm(B0.T @ C @ c.Acl0) + _norm(_root(H) @ B0) * _norm(_root(H) @ c.Acl0)
+    units = np.eye(c.theta0.size).reshape(-1, *c.theta0.shape)
+    first = np.array([(D[:, n:].T @ c.P0 @ c.Acl0 + B0.T @ c.P0 @ D @ c.F).ravel() for D in units]).T
+    w = (_norm(c.W0) + eps * _norm(first) + eps ** 2 * f * _norm(c.P0)
+         + min(centre, b * t * a) + eps * t * (a + (b + eps) * f))
+    low = float(np.linalg.svd(_root(Y) @ B0, compute_uv=False)[-1]) - _norm(_root(Y)) * eps
+    return w / (r + max(low, 0.0) ** 2)
+
+
+def _blocks(atk: IdentificationAttack, c: Clean, eps: float, X, Y, mu1, mu2, t, Z, mu3, eps_K, tau, lib) -> list:
+    """The LMI matrices (cvxpy expressions with lib=cp, numbers with lib=np): robust upper bound X on K0's cost matrix,
+    robust lower bound Y on the optimal one, X - P0 <= t I, P0 - Y <= t I, and the true loop's robust Lyapunov LMI."""
     A, B = atk.setting.state_space
     n, m = B.shape
     q, r = atk.lqr_weights
-    K0, _ = lqr_gain(theta0[:, :n], theta0[:, n:], q * np.eye(n), r * np.eye(m))
-    F = np.vstack([np.eye(n), K0])
-    Acl = theta0 @ F
-    Qc = q * np.eye(n) + r * K0.T @ K0
-    H = np.hstack([F, np.zeros((n + m, n))])
+    Qc = q * np.eye(n) + r * c.K0.T @ c.K0
+    H = np.hstack([c.F, np.zeros((n + m, n))])
     bmat = lib.bmat if lib is cp else np.block
     zero = lambda a, b: np.zeros((a, b))  # noqa: E731
-    upper = bmat([[bmat([[X - Qc, Acl.T @ X], [X @ Acl, X]]) - mu1 * eps ** 2 * (H.T @ H),
+    upper = bmat([[bmat([[X - Qc, c.Acl0.T @ X], [X @ c.Acl0, X]]) - mu1 * eps ** 2 * (H.T @ H),
                    bmat([[zero(n, n)], [X]])], [bmat([[zero(n, n), X]]), mu1 * np.eye(n)]])
     diag = bmat([[q * np.eye(n) - Y, zero(n, m)], [zero(m, n), r * np.eye(m)]])
-    lower = bmat([[theta0.T @ Y @ theta0 + diag - mu2 * eps ** 2 * np.eye(n + m), theta0.T @ Y],
-                  [Y @ theta0, mu2 * np.eye(n)]])
-    gap = t * np.eye(n) - (X - Y)
-    Ac = A + B @ K0
+    th = c.theta0
+    lower = bmat([[th.T @ Y @ th + diag - mu2 * eps ** 2 * np.eye(n + m), th.T @ Y], [Y @ th, mu2 * np.eye(n)]])
+    above = t * np.eye(n) - (X - c.P0)
+    below = t * np.eye(n) - (c.P0 - Y)
+    Ac = A + B @ c.K0
     Hl = np.hstack([np.eye(n), zero(n, n)])
     loop = bmat([[bmat([[Z - tau * np.eye(n), Ac.T @ Z], [Z @ Ac, Z]]) - mu3 * eps_K ** 2 * (Hl.T @ Hl),
                   bmat([[zero(n, m)], [Z @ B]])], [bmat([[zero(m, n), B.T @ Z]]), mu3 * np.eye(m)]])
-    return [upper, lower, gap, loop]
+    return [upper, lower, above, below, loop]
 
 
 def _sym(M):
     return 0.5 * (M + M.T)
+
+
+def sandwich(atk: IdentificationAttack, c: Clean, eps: float) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+    """(X, Y, mu1, mu2) of step 2: Y <= P(Theta) <= X for every model in the ball ||Theta - Theta0|| <= eps (robust
+    LMIs, Petersen's lemma), minimizing t = max(lambda_max(X - P0), lambda_max(P0 - Y)); None if the SDP finds none."""
+    n = c.theta0.shape[0]
+    X, Y = cp.Variable((n, n), symmetric=True), cp.Variable((n, n), symmetric=True)
+    mu1, mu2, t = cp.Variable(nonneg=True), cp.Variable(nonneg=True), cp.Variable()
+    upper, lower, above, below, _ = _blocks(atk, c, eps, X, Y, mu1, mu2, t, np.eye(n), 1.0, 0.0, 0.0, cp)
+    room = STRICT * (1.0 + float(np.max(np.abs(c.P0))))
+    cons = [_sym(upper) >> room * np.eye(upper.shape[0]), _sym(lower) >> room * np.eye(lower.shape[0]),
+            _sym(above) >> room * np.eye(n), _sym(below) >> room * np.eye(n), Y >> room * np.eye(n), mu1 >= room,
+            mu2 >= room]
+    try:
+        solve_quietly(cp.Problem(cp.Minimize(t), cons), solver=cp.CLARABEL)  # the numpy re-check decides
+    except cp.SolverError:
+        return None
+    if X.value is None or Y.value is None or mu1.value is None or mu2.value is None:
+        return None
+    return _sym(X.value), _sym(Y.value), float(mu1.value), float(mu2.value)
 
 
 def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
@@ -145,41 +255,32 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
         return Evidence("lyapunov", Proof.UNKNOWN, f"the poisoned regressor may be singular (s = {s:.3g})", {"s": s},
                         Check(False, "nothing to check"), time.perf_counter() - t0)
     Y0, Z0 = atk.regression(atk.signals)
-    theta0 = least_squares_fit(Y0, Z0)
-    n = theta0.shape[0]
-    m = theta0.shape[1] - n
+    c = clean(atk, least_squares_fit(Y0, Z0))
+    n = c.theta0.shape[0]
     r = atk.lqr_weights[1]
-    X, Yv = cp.Variable((n, n), symmetric=True), cp.Variable((n, n), symmetric=True)
-    mu1, mu2, t = cp.Variable(nonneg=True), cp.Variable(nonneg=True), cp.Variable()
-    Zdummy = np.eye(n)
-    upper, lower, gap, _ = _blocks(atk, theta0, eps, X, Yv, mu1, mu2, t, Zdummy, 1.0, 0.0, 0.0, cp)
-    scale = 1.0 + float(np.max(np.abs(lqr_gain(theta0[:, :n], theta0[:, n:], atk.lqr_weights[0] * np.eye(n),
-                                                r * np.eye(m))[1])))
-    room = STRICT * scale
-    cons = [_sym(upper) >> room * np.eye(upper.shape[0]), _sym(lower) >> room * np.eye(lower.shape[0]),
-            _sym(gap) >> 0, Yv >> room * np.eye(n), mu1 >= room, mu2 >= room]
     numbers: dict[str, float] = {"eps_model": eps, "s": s}
-    try:
-        cp.Problem(cp.Minimize(t), cons).solve(solver=cp.CLARABEL)
-    except cp.SolverError:
-        X.value = None
-    if X.value is None or t.value is None:
+    found = sandwich(atk, c, eps)
+    if found is None:
         return Evidence("lyapunov", Proof.UNKNOWN, "the gain bound's SDP found no robust cost bounds", numbers,
                         Check(False, "nothing to check"), time.perf_counter() - t0)
-    eps_K = float(np.sqrt(max(float(t.value), 0.0) / r))
+    X, Yv, mu1, mu2 = found
+    eps_K = gain_radius(c, r, eps, X, Yv)
+    numbers.update(t_cost=cost_radius(c, X, Yv), eps_K=eps_K)
+    if not np.isfinite(eps_K):
+        return Evidence("lyapunov", Proof.UNKNOWN, "the gain bound is infinite", numbers,
+                        Check(False, "nothing to check"), time.perf_counter() - t0)
     Z, mu3, tau = cp.Variable((n, n), symmetric=True), cp.Variable(nonneg=True), cp.Variable()
-    loop = _blocks(atk, theta0, eps, X.value, Yv.value, 1.0, 1.0, 0.0, Z, mu3, eps_K * (1 + 1e-6), tau, cp)[3]
+    loop = _blocks(atk, c, eps, X, Yv, 1.0, 1.0, 0.0, Z, mu3, eps_K * (1 + 1e-6), tau, cp)[4]
     cons = [_sym(loop) >> 0, Z >> np.eye(n), Z << 1e6 * np.eye(n), tau <= 1.0]
     try:
-        cp.Problem(cp.Maximize(tau), cons).solve(solver=cp.CLARABEL)
+        solve_quietly(cp.Problem(cp.Maximize(tau), cons), solver=cp.CLARABEL)
     except cp.SolverError:
         Z.value = None
-    numbers.update(eps_K=eps_K, tau=float("nan") if tau.value is None else float(tau.value))
+    numbers.update(tau=float("nan") if tau.value is None else float(tau.value))
     if Z.value is None or tau.value is None or tau.value <= 0:
         return Evidence("lyapunov", Proof.UNKNOWN, f"no robust Lyapunov function for gain errors up to {eps_K:.3g}",
                         numbers, Check(False, "nothing to check"), time.perf_counter() - t0)
-    solution = {"X": X.value, "Y": Yv.value, "mu1": float(mu1.value), "mu2": float(mu2.value), "t": float(t.value),
-                "Z": Z.value, "mu3": float(mu3.value), "tau": float(tau.value)}
+    solution = {"X": X, "Y": Yv, "mu1": mu1, "mu2": mu2, "Z": Z.value, "mu3": float(mu3.value), "tau": float(tau.value)}
     check = recheck(atk, delta, solution)
     return Evidence("lyapunov", Proof.PROVEN, f"no poisoning with ||dX||_F <= {delta:.6g} ||X||_F, ||dU||_F <= "
                     f"{delta:.6g} ||U||_F destabilizes the true loop under certainty-equivalence LQR (model ball "
@@ -188,27 +289,28 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
 
 
 def recheck(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Check:
-    """Step 1 again from SVDs (model_radius is that computation; its inputs re-fitted by numpy lstsq), the gain bound
-    from numpy eigenvalues of X - Y, and every LMI's smallest eigenvalue by numpy with a margin above rounding."""
+    """Step 1 again from SVDs (model_radius is that computation; its inputs re-fitted by numpy lstsq), t from numpy
+    eigenvalues of X - P0 and P0 - Y (and X - Y >= 0), the gain bound from them, and every LMI's smallest eigenvalue
+    by numpy with a margin above rounding."""
     Y0, Z0 = atk.regression(atk.signals)
-    theta0 = np.linalg.lstsq(Z0.T, Y0.T, rcond=None)[0].T
-    eps, _ = model_radius(atk, delta)
-    r = atk.lqr_weights[1]
+    c = clean(atk, np.linalg.lstsq(Z0.T, Y0.T, rcond=None)[0].T)
+    eps, _ = model_radius(atk, delta, whitened=True)
+    eps = eps * (1 + 1e-9)
     X, Y = _sym(sol["X"]), _sym(sol["Y"])
-    gap_top = float(np.linalg.eigvalsh(X - Y)[-1])
-    eps_K = float(np.sqrt(max(gap_top, 0.0) / r))
-    mats = _blocks(atk, theta0, eps * (1 + 1e-9), X, Y, sol["mu1"], sol["mu2"], gap_top, _sym(sol["Z"]),
-                   sol["mu3"], eps_K * (1 + 1e-9), sol["tau"], np)
-    names = ("upper", "lower", "gap", "loop")
+    t = cost_radius(c, X, Y) * (1 + 1e-9)
+    eps_K = gain_radius(c, atk.lqr_weights[1], eps, X, Y) * (1 + 1e-9)
+    mats = _blocks(atk, c, eps, X, Y, sol["mu1"], sol["mu2"], t, _sym(sol["Z"]), sol["mu3"], eps_K, sol["tau"], np)
+    names = ("upper", "lower", "above", "below", "loop")
     eigs = {name: float(np.linalg.eigvalsh(_sym(M))[0]) for name, M in zip(names, mats)}
     sizes = {name: float(np.max(np.abs(M))) for name, M in zip(names, mats)}
     margin = param("robust.check_margin")
     ok = [eigs[k] >= margin * sizes[k] for k in ("upper", "lower", "loop")]
-    passed = all(ok) and eigs["gap"] >= -margin * sizes["gap"] and float(np.linalg.eigvalsh(Y)[0]) >= 0 \
-        and sol["mu1"] > 0 and sol["mu2"] > 0 and sol["mu3"] > 0 and sol["tau"] > 0
+    passed = all(ok) and min(eigs["above"], eigs["below"]) >= 0 and float(np.linalg.eigvalsh(Y)[0]) >= 0 \
+        and float(np.linalg.eigvalsh(X - Y)[0]) >= 0 \
+        and np.isfinite(eps_K) and sol["mu1"] > 0 and sol["mu2"] > 0 and sol["mu3"] > 0 and sol["tau"] > 0
     return Check(passed, "numpy eigenvalues of the LMIs at the SDP's solution (smallest, against a margin of "
                  f"{margin:.0e} times each matrix's size): " + ", ".join(f"{k} {v:.3g}" for k, v in eigs.items()),
-                 {**{f"min_eig_{k}": v for k, v in eigs.items()}, "eps_K": eps_K, "eps_model": eps})
+                 {**{f"min_eig_{k}": v for k, v in eigs.items()}, "eps_K": eps_K, "eps_model": eps, "t_cost": t})
 
 
 register_target(IdentificationAttack, identification_target)

@@ -18,7 +18,8 @@ def test_quick_certify_writes_consistent_brackets_and_resumes(tmp_path) -> None:
     assert 0 < vrft["delta_lb"] <= vrft["delta_ub"] and vrft["unstable"] == 0 and vrft["samples"] == 200
     assert vrft["worst_radius"] < 1 and vrft["attack_radius"] < 1
     ident = next(r for r in rows if r["family"] == "ident")
-    assert ident["delta_lb"] <= ident["delta_ub"]
+    assert 0 < ident["delta_lb"] <= ident["delta_ub"] and ident["unstable"] == 0 and ident["samples"] == 200
+    assert ident["worst_radius"] < 1 and ident["attack_radius"] < 1
     assert os.path.exists(tmp_path / "fig_brackets.png") and "| vrft | 64 |" in open(path).read()
     notes.clear()
     run_certify(sims=1, out_dir=str(tmp_path), quick=True, workers=1, progress=notes.append)

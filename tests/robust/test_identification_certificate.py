@@ -1,19 +1,29 @@
-"""The identification + CE LQR certificate: the certified model ball contains the exact re-fit's model, and a
-certificate is proven only with its LMIs re-checked."""
+"""The identification + CE LQR certificate: the certified model ball contains the exact re-fit's model, the certified
+gain ball contains the gains of sphere re-fits and of models on the ball's boundary, a small budget is proven with its
+LMIs re-checked, a tampered solution fails its re-check, and an unproven budget is unknown."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from bilevel.ddc.model_based import lqr_gain
 from bilevel.problems.identification_instance import attack_instance
-from bilevel.robust import Proof, as_target, certify, sphere_poisoning
-from bilevel.robust.identification import model_radius
+from bilevel.robust import Proof, as_target, certify, sample_soundness, sphere_poisoning
+from bilevel.robust.identification import clean, lyapunov, model_maps, model_radius, recheck
+
+PROVEN = 0.0005
+"""A budget the mechanism proves on data seed 0 (T = 100), where certified_margin bisects to delta_lb 0.00148."""
 
 
 @pytest.fixture(scope="module")
 def atk():
     return attack_instance("ss", 100, 0.0, "ce-lqr", seed=0)
+
+
+@pytest.fixture(scope="module")
+def evidence(atk):
+    return lyapunov(as_target(atk), PROVEN, {})
 
 
 def test_the_model_ball_contains_the_refit(atk) -> None:
@@ -28,8 +38,50 @@ def test_the_model_ball_contains_the_refit(atk) -> None:
             assert np.linalg.norm(theta - theta0, 2) <= eps
 
 
+def test_the_fit_map_two_ways_and_the_tighter_ball(atk) -> None:
+    for plain, whitened in zip(model_maps(atk), model_maps(atk, whitened=True)):
+        assert np.allclose(plain, whitened, rtol=0, atol=1e-10 * np.abs(plain).max())
+    target = as_target(atk)
+    theta0 = target.refit(target.signals)
+    rng = np.random.default_rng(4)
+    eps, _ = model_radius(atk, 1e-3)
+    found = max(np.linalg.norm(target.refit(target.poisoned(sphere_poisoning(target, 1e-3, rng))) - theta0)
+                for _ in range(100))
+    assert found <= eps < 0.75 * 0.0327  # the norm-product bound alone is 0.0327 here (data seed 0), this 0.0231
+
+
+def test_a_small_budget_is_proven_and_its_gain_ball_contains_every_gain_found(atk, evidence) -> None:
+    assert evidence.proof is Proof.PROVEN and evidence.check.passed
+    eps, eps_K = evidence.numbers["eps_model"], evidence.numbers["eps_K"]
+    assert 0 < eps_K < 0.35  # below the true loop's complex stability radius in the gain (0.350 on data seed 0)
+    c = clean(atk, atk.theta0)
+    n = c.theta0.shape[0]
+    rng = np.random.default_rng(3)
+    target = as_target(atk)
+    for k in range(300):
+        if k % 2:  # a model on the ball's boundary: every singular value of Theta - Theta0 equal to eps
+            U, _, Vt = np.linalg.svd(rng.standard_normal(c.theta0.shape), full_matrices=False)
+            theta = c.theta0 + eps * U @ Vt
+        else:  # the re-fit of a poisoning on the budget sphere
+            theta = target.refit(target.poisoned(sphere_poisoning(target, PROVEN, rng)))
+        K, _ = lqr_gain(theta[:, :n], theta[:, n:], np.eye(n), np.eye(c.theta0.shape[1] - n))
+        assert np.linalg.norm(K - c.K0, 2) <= eps_K
+
+
+def test_a_tampered_solution_fails_its_recheck(atk, evidence) -> None:
+    solution = {"X": np.eye(4), "Y": np.eye(4), "mu1": 1.0, "mu2": 1.0, "t": 0.0, "Z": np.eye(4), "mu3": 1.0,
+                "tau": 0.5}
+    assert not recheck(atk, PROVEN, solution).passed
+
+
+def test_soundness_at_the_proven_budget(atk) -> None:
+    found = sample_soundness(as_target(atk), PROVEN, samples=300, attacks=False)
+    assert found.sound and found.worst_radius < 1
+
+
 def test_the_clean_loop_is_stable_and_an_unproven_budget_is_unknown(atk) -> None:
     target = as_target(atk)
     assert target.true_radius({}) < 1
     cert = certify(atk, 0.01)
     assert cert.proof is Proof.UNKNOWN and not cert.proven
+    assert certify(atk, PROVEN).proven
