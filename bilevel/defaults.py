@@ -146,6 +146,11 @@ ENTRIES: dict[str, tuple[Any, str]] = {
                                      "popsize)"),
     # lower levels (bilevel.lower)
     "classify.y_probes": (16, "lower points drawn per upper sample when a lower Hessian depends on y (count)"),
+    "classify.matrix_entries": (25_000_000, "a lower level declared by expressions is recognized as a matrix QP "
+                                            "(lower_qp's form) when its constraint matrix has at most this many "
+                                            "entries, stored dense (count)"),
+    "classify.matrix_rtol": (1e-9, "the recognized matrix QP must reproduce the expressions' values to this times "
+                                   "each entry's scale (the sum of its terms' magnitudes)"),
     "convexity.psd_tol": (1e-9, "a Hessian counts as PSD when its smallest eigenvalue >= -this * max(1, its largest "
                                 "entry)"),
     "sdp.psd_tol": (1e-9, "relative PSD violation of M_k and Z_k tolerated in a polished SDP iterate"),

@@ -1,6 +1,6 @@
-"""A lower QP given by matrices: min 1/2 ||C y - d||^2 + 1/2 y'Py + q'y s.t. A y <= b, E y = e.
+"""A lower QP given by matrices: min 1/2 ||C y - d||^2 + 1/2 y'Py + q'y + r s.t. A y <= b, E y = e.
 
-C, P, A, E are numbers (fixed data); d, q, b, e are CasADi expressions of the upper variables and parameters
+C, P, A, E are numbers (fixed data); d, q, b, e (and the constant r) are CasADi expressions of the upper variables and parameters
 (the data the attacker moves). No expression of size C x y is ever built: values, KKT systems and the adjoint
 R' v are matrix products with the numeric data plus one reverse sweep through the small vector expressions.
 This is what lets a dense least squares with thousands of variables be declared and differentiated in seconds.
@@ -28,7 +28,8 @@ from .quadratic import LinearLower, QPData, QuadraticLower, clarabel_solution, s
 
 @dataclass
 class MatrixLower(LowerLevel):
-    """The lower QP of `BilevelProblem.lower_qp`; bounds of y are rows of A (named like declared constraints).
+    """The lower QP of `BilevelProblem.lower_qp`, or of expressions recognized as one (bilevel.lower.qp_form); bounds
+    of y are rows of A (named like declared constraints).
 
     Kind: least-squares (no constraints, C'C + P positive definite: Cholesky, factored once), lp (no quadratic
     term: HiGHS dual simplex, a vertex with exact duals) or qp (Clarabel). The certificate's re-solve is
@@ -50,7 +51,8 @@ class MatrixLower(LowerLevel):
         self.C, self.P, self.A, self.E, self.d, self.q, self.b, self.e = (qp.C, qp.P, qp.A, qp.E, qp.d, qp.q, qp.b,
                                                                           qp.e)
         self.hess = self.C.T @ self.C + self.P
-        self._vectors = self.params.function("qp_vectors", [self.x], [self.d, self.q, self.b, self.e])
+        self.r = qp.r
+        self._vectors = self.params.function("qp_vectors", [self.x], [self.d, self.q, self.b, self.e, self.r])
         v = [ca.SX.sym(n, int(s.numel())) for n, s in (("v_d", self.d), ("v_q", self.q), ("v_b", self.b),
                                                           ("v_e", self.e))]
         adj = sum((ca.jtimes(s, self.x, w, True) for s, w in zip((self.d, self.q, self.b, self.e), v) if s.numel()),
@@ -77,6 +79,10 @@ class MatrixLower(LowerLevel):
 
     def vectors(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """d, q, b, e at x."""
+        return self.values(x)[:4]
+
+    def values(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        """d, q, b, e and r (as a 1-vector) at x, one sweep."""
         return tuple(np.asarray(v, dtype=float).ravel() for v in self._vectors(x))
 
     def linear_term(self, x: np.ndarray) -> np.ndarray:
@@ -85,9 +91,9 @@ class MatrixLower(LowerLevel):
         return q - self.C.T @ d
 
     def evaluate(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, list[np.ndarray]]:
-        d, q, b, e = self.vectors(x)
-        r = self.C @ y - d
-        f = 0.5 * float(r @ r) + 0.5 * float(y @ self.P @ y) + float(q @ y)
+        d, q, b, e, r = self.values(x)
+        res = self.C @ y - d
+        f = 0.5 * float(res @ res) + 0.5 * float(y @ self.P @ y) + float(q @ y) + float(r[0])
         return f, self.A @ y - b, self.E @ y - e, []
 
     def derivatives(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
@@ -121,8 +127,8 @@ class MatrixLower(LowerLevel):
 
     def data(self, x: np.ndarray) -> QPData:
         """The QP coefficients at x in the form of the expression kinds (g = A y - b, h = E y - e)."""
-        d, q, b, e = self.vectors(self.check_point(x))
-        return QPData(self.hess, q - self.C.T @ d, 0.5 * float(d @ d), self.A, -b, self.E, -e)
+        d, q, b, e, r = self.values(self.check_point(x))
+        return QPData(self.hess, q - self.C.T @ d, 0.5 * float(d @ d) + float(r[0]), self.A, -b, self.E, -e)
 
     def solve(self, x: np.ndarray) -> LowerSolution:
         """Closed form (least squares), HiGHS (LP) or Clarabel (QP) at x."""
@@ -198,7 +204,7 @@ class MatrixLower(LowerLevel):
     def _symbolic(self) -> ExpressionLower:
         y = self.y
         r = ca.mtimes(_dm(self.C), y) - self.d
-        f = 0.5 * ca.sumsqr(r) + 0.5 * ca.mtimes(y.T, ca.mtimes(_dm(self.P), y)) + ca.dot(self.q, y)
+        f = 0.5 * ca.sumsqr(r) + 0.5 * ca.mtimes(y.T, ca.mtimes(_dm(self.P), y)) + ca.dot(self.q, y) + self.r
         g = ca.mtimes(_dm(self.A), y) - self.b
         h = ca.mtimes(_dm(self.E), y) - self.e
         cls = {"least-squares": LeastSquaresLower, "lp": LinearLower}.get(self.kind, QuadraticLower)
