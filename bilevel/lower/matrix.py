@@ -23,6 +23,7 @@ from ..model import LowerQP
 from ..parameters import ParameterSet
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
+from .polish import polish
 from .quadratic import LinearLower, QPData, QuadraticLower, clarabel_solution, solve_qp_clarabel
 
 
@@ -186,12 +187,15 @@ class MatrixLower(LowerLevel):
         return LowerSolution(y, self.evaluate(x, y)[0], np.maximum(lam, 0.0), mu, [], "optimal", "highs (dual simplex)")
 
     def reference_solve(self, x: np.ndarray) -> LowerSolution:
-        """Clarabel for LP/QP; for least squares an LU solve (not the Cholesky factor the methods use)."""
+        """Clarabel through cvxpy for LP/QP, polished onto its optimal face as the expression kinds' re-solve is (an
+        interior point stops about 1e-6 inside a face that is active with a zero multiplier); for least squares an LU
+        solve (not the Cholesky factor the methods use)."""
         x = self.check_point(x)
         if self.kind == "least-squares":
             y = np.linalg.solve(self.hess, -self.linear_term(x))
             return LowerSolution(y, self.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal", "LU solve")
-        return clarabel_solution(self.data(x), "(a matrix QP, independent re-solve)", psd_verified=True)
+        data = self.data(x)
+        return polish(data, (), clarabel_solution(data, "(a matrix QP, independent re-solve)", psd_verified=True))
 
     def symbolic(self) -> ExpressionLower:
         """The same QP as CasADi expressions, for the KKT reduction (ipopt, relaxation, global).

@@ -54,7 +54,8 @@ def matrix_form(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, hess_f: ca.SX,
     ng = int(g.numel())
     offsets = ca.substitute(ca.vertcat(gh, ca.gradient(f, y), f), y, ca.DM.zeros(n))
     c, q, r = offsets[:rows], offsets[rows:rows + n], offsets[rows + n]
-    low = MatrixLower(x, y, LowerQP(None, np.zeros((0, n)), P, J[:ng], J[ng:], ca.SX(0, 1), q, -c[:ng], -c[ng:], r),
+    b, e = ca.vec(-c[:ng]), ca.vec(-c[ng:])  # 0 x 1 where empty (a slice of no entries is 1 x 0)
+    low = MatrixLower(x, y, LowerQP(None, np.zeros((0, n)), P, J[:ng], J[ng:], ca.SX(0, 1), ca.vec(q), b, e, r),
                       g_names, h_names, params)
     return low if _reproduces(low, params.function("qp_form_check", [x, y], [f, gh]), points) else None
 
