@@ -163,7 +163,7 @@ class MatrixLower(LowerLevel):
         y, lam_b = w[:n], w[n:n + na]
         scale = 1.0 + np.abs(b)
         active_tol = param("polish.active_tol")
-        if np.any(lam_b < -active_tol) or np.any(self.A @ y - b > 1e-9 * scale) or not np.all(np.isfinite(w)):
+        if np.any(lam_b < -active_tol) or np.any(self.A @ y - b > param("matrix.feas_tol") * scale) or not np.all(np.isfinite(w)):
             return None
         lam = np.zeros(self.A.shape[0])
         lam[rows] = np.maximum(lam_b, 0.0)
@@ -174,7 +174,7 @@ class MatrixLower(LowerLevel):
         d, q, b, e = self.vectors(x)
         res = linprog(q - self.C.T @ d, A_ub=self.A if self.A.size else None, b_ub=b if b.size else None,
                       A_eq=self.E if self.E.size else None, b_eq=e if e.size else None, bounds=(None, None),
-                      method="highs-ds")
+                      method="highs-ds", options={"primal_feasibility_tolerance": param("matrix.feas_tol")})
         if res.status == 2:
             raise LowerLevelInfeasible("the lower LP is infeasible at this upper point (HiGHS)")
         if res.status == 3:
