@@ -139,10 +139,20 @@ class MatrixLower(LowerLevel):
             return LowerSolution(y, self.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal", "closed-form")
         sol = self._from_active_set(x)
         if sol is None:
-            sol = (self._solve_highs(x) if self.kind == "lp"
-                   else solve_qp_clarabel(self.data(x), "(a matrix QP)", psd_verified=True))
+            sol = self._solve_highs(x) if self.kind == "lp" else None
+            if sol is None or self._violates(x, sol.y):  # Clarabel decides near the edge of the feasible set
+                sol = solve_qp_clarabel(self.data(x), "(a matrix QP)", psd_verified=True)
             self._active = np.flatnonzero(sol.lam > param("polish.active_tol"))
         return sol
+
+    def _violates(self, x: np.ndarray, y: np.ndarray) -> bool:
+        """Whether y violates a row of A y <= b or E y = e at x by more than defaults["matrix.feas_tol"] of the row's
+        scale (1 + |b| + |A| |y|): HiGHS's tolerance is 1e-7 at the least, and the certificate's re-solve (Clarabel)
+        finds the lower level infeasible where a row is violated by 1e-10 (Bard's 5.1.1 at x = 4 + 1e-8)."""
+        _, _, b, e = self.vectors(x)
+        tol, ay = param("matrix.feas_tol"), np.abs(y)
+        return bool(np.any(self.A @ y - b > tol * (1.0 + np.abs(b) + np.abs(self.A) @ ay))
+                    or np.any(np.abs(self.E @ y - e) > tol * (1.0 + np.abs(e) + np.abs(self.E) @ ay)))
 
     def _from_active_set(self, x: np.ndarray) -> LowerSolution | None:
         """The solution with the last solve's active set, if it is still optimal at x (None otherwise).
@@ -161,9 +171,7 @@ class MatrixLower(LowerLevel):
         except np.linalg.LinAlgError:
             return None
         y, lam_b = w[:n], w[n:n + na]
-        scale = 1.0 + np.abs(b)
-        active_tol = param("polish.active_tol")
-        if np.any(lam_b < -active_tol) or np.any(self.A @ y - b > param("matrix.feas_tol") * scale) or not np.all(np.isfinite(w)):
+        if np.any(lam_b < -param("polish.active_tol")) or not np.all(np.isfinite(w)) or self._violates(x, y):
             return None
         lam = np.zeros(self.A.shape[0])
         lam[rows] = np.maximum(lam_b, 0.0)
@@ -174,7 +182,7 @@ class MatrixLower(LowerLevel):
         d, q, b, e = self.vectors(x)
         res = linprog(q - self.C.T @ d, A_ub=self.A if self.A.size else None, b_ub=b if b.size else None,
                       A_eq=self.E if self.E.size else None, b_eq=e if e.size else None, bounds=(None, None),
-                      method="highs-ds", options={"primal_feasibility_tolerance": param("matrix.feas_tol")})
+                      method="highs-ds")
         if res.status == 2:
             raise LowerLevelInfeasible("the lower LP is infeasible at this upper point (HiGHS)")
         if res.status == 3:

@@ -21,8 +21,8 @@ def matrix_form(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, hess_f: ca.SX,
     """The lower level min f s.t. g <= 0, h = 0 as min 1/2 y'Py + q(x)'y + r(x) s.t. A y <= b(x), E y = e(x), or None
     (the expression kinds take it) unless all of this holds:
 
-    - it has constraints, at most defaults["classify.matrix_entries"] entries in [A; E], and P (hess_f) is numeric
-      (free of x, y and the parameters) and PSD;
+    - [A; E] has between defaults["classify.matrix_min_entries"] and defaults["classify.matrix_entries"] entries, and
+      P (hess_f) is numeric (free of x, y and the parameters) and PSD;
     - the derivative of [g; h] along a symbolic direction v of y (one forward sweep) is free of x, y and the
       parameters, and depends on the same entries of v as [g; h] does on y: then [g; h] = J y + c(x) exactly, with no
       dependence on y that the derivative does not see (as in floor(y));
@@ -34,7 +34,8 @@ def matrix_form(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, hess_f: ca.SX,
     """
     n, rows = int(y.numel()), int(g.numel() + h.numel())
     data = ca.vertcat(x, params.sym)
-    if not rows or rows * n > param("classify.matrix_entries") or ca.depends_on(hess_f, ca.vertcat(data, y)):
+    if not rows or not param("classify.matrix_min_entries") <= rows * n <= param("classify.matrix_entries") \
+            or ca.depends_on(hess_f, ca.vertcat(data, y)):
         return None
     P = np.asarray(ca.evalf(hess_f), dtype=float).reshape(n, n)
     P = 0.5 * (P + P.T)

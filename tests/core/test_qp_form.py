@@ -15,6 +15,14 @@ from bilevel.solvers.base import prepare
 M, N, DELTA = 300, 30, 0.2
 
 
+@pytest.fixture
+def small_matrices():
+    """Small lower levels recognized too (defaults["classify.matrix_min_entries"] keeps them on the expression kinds)."""
+    bl.set_defaults("classify", matrix_min_entries=1)
+    yield
+    bl.reset_defaults()
+
+
 def _lp_data() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """bench_scale's right-hand-side attack at 300 rows x 30 variables: y = the uniform draw stays feasible."""
     rng = np.random.default_rng(0)
@@ -43,8 +51,9 @@ def _lp(form: str) -> bl.BilevelProblem:
 
 @pytest.mark.parametrize("form", ["vector", "rows"])
 def test_expression_lp_is_the_matrix_lp_and_solves_like_lower_qp(form: str) -> None:
-    """300 rows x 30 variables declared by expressions: the same A (bounds appended), b(x) and kind as lower_qp's,
-    read exactly, and hypergradient ends at the same point with the same objective as on the lower_qp declaration."""
+    """300 rows x 30 variables declared by expressions (360 x 30 entries with the bounds, above
+    classify.matrix_min_entries): the same A, b(x) and kind as lower_qp's, read exactly, and hypergradient ends at the
+    same point with the same objective as on the lower_qp declaration."""
     A, b, c = _lp_data()
     low = prepare(p := _lp(form)).canon.lower
     ref = prepare(q := _lp("lower_qp")).canon.lower
@@ -81,7 +90,7 @@ def _qp(shift: float = 0.0) -> bl.BilevelProblem:
     return p
 
 
-def test_quadratic_form_reproduces_the_expressions() -> None:
+def test_quadratic_form_reproduces_the_expressions(small_matrices) -> None:
     """P, the x-dependent q, b, e and the constant term r(x) of the recognized QP give the expressions' f, g, h at
     random points; the solve agrees with the expression kinds' Clarabel solve there."""
     prep = prepare(p := _qp(shift=3.0))
@@ -109,7 +118,7 @@ def test_quadratic_form_reproduces_the_expressions() -> None:
     assert res.lower_objective == pytest.approx(f_declared, rel=1e-12)
 
 
-def test_parameters_in_the_data_are_read_at_their_current_values() -> None:
+def test_parameters_in_the_data_are_read_at_their_current_values(small_matrices) -> None:
     """b may hold parameters (re-set without rebuilding); A may not: a parameter in a coefficient of y keeps the
     expression kinds."""
     p = bl.BilevelProblem("param-rhs")
@@ -140,7 +149,7 @@ def test_parameters_in_the_data_are_read_at_their_current_values() -> None:
     lambda x, y: ca.floor(y[0]) + y[0] + y[1] <= 1,  # the same, with a linear term in y[0]: caught at the samples
     lambda x, y: ca.fmod(y[0], 1.0) + y[1] <= 1,  # derivative 1, not affine: caught at the samples
 ])
-def test_not_a_matrix_qp_keeps_the_expression_kinds(constraint) -> None:
+def test_not_a_matrix_qp_keeps_the_expression_kinds(constraint, small_matrices) -> None:
     """A constraint that is not affine in y with numeric coefficients is never read as a matrix."""
     p = bl.BilevelProblem()
     x = p.upper_variable("x", 1, lb=0.5, ub=1)
@@ -151,7 +160,7 @@ def test_not_a_matrix_qp_keeps_the_expression_kinds(constraint) -> None:
     assert not isinstance(prepare(p).canon.lower, MatrixLower)
 
 
-def test_non_convex_quadratic_is_still_refused() -> None:
+def test_non_convex_quadratic_is_still_refused(small_matrices) -> None:
     """An indefinite constant Hessian is not taken as a matrix QP: the expression kinds name the eigenvalue."""
     p = bl.BilevelProblem()
     x = p.upper_variable("x", 1, lb=0, ub=1)
@@ -160,3 +169,15 @@ def test_non_convex_quadratic_is_still_refused() -> None:
     p.minimize_upper(x)
     with pytest.raises(NonConvexLowerLevel, match="eigenvalue -2"):
         prepare(p)
+
+
+def test_small_lower_levels_keep_the_expression_kinds() -> None:
+    """Below classify.matrix_min_entries (Bard's 5.1.1: 5 rows x 1 variable) the expression kinds solve, as before."""
+    p = bl.BilevelProblem()
+    x = p.upper_variable("x", 1, lb=0)
+    y = p.lower_variable("y", 1, lb=0)
+    p.minimize_upper(x - 4 * y)
+    p.minimize_lower(y)
+    for c in (-x - y <= -3, -2 * x + y <= 0, 2 * x + y <= 12, 3 * x - 2 * y <= 4):
+        p.lower_constraint(c)
+    assert isinstance(prepare(p).canon.lower, LinearLower)
