@@ -1,6 +1,7 @@
 """A lower QP given by matrices: min 1/2 ||C y - d||^2 + 1/2 y'Py + q'y + r s.t. A y <= b, E y = e.
 
-C, P, A, E are numbers (fixed data); d, q, b, e (and the constant r) are CasADi expressions of the upper variables and parameters
+C, P, A, E are numbers (fixed data); d, q, b, e (and the constant r) are CasADi expressions of the upper variables
+and parameters
 (the data the attacker moves). No expression of size C x y is ever built: values, KKT systems and the adjoint
 R' v are matrix products with the numeric data plus one reverse sweep through the small vector expressions.
 This is what lets a dense least squares with thousands of variables be declared and differentiated in seconds.

@@ -17,7 +17,7 @@ M, N, DELTA = 300, 30, 0.2
 
 @pytest.fixture
 def small_matrices():
-    """Small lower levels recognized too (defaults["classify.matrix_min_entries"] keeps them on the expression kinds)."""
+    """Small lower levels recognized too (classify.matrix_min_entries keeps them on the expression kinds)."""
     bl.set_defaults("classify", matrix_min_entries=1)
     yield
     bl.reset_defaults()
