@@ -88,7 +88,8 @@ class CanonicalBilevel:
             x, samples = ca.vertcat(self.x, self.images.sym), [lift(s) for s in samples]
         low = build_lower(x, self.y, self.f, self.g, self.h, self.psd,
                           [f"{n}[{i}]" for n, i in self.g_rows], [f"{n}[{i}]" for n, i in self.h_rows],
-                          self.psd_names, samples, self.y_lb, self.y_ub, self.assume_convex, self.params)
+                          self.psd_names, samples, self.y_lb, self.y_ub, self.assume_convex, self.params,
+                          matrices=lift is None)
         return low if lift is None else ImageLower(low, lift, self.x, self.params)
 
     @cached_property
@@ -185,7 +186,7 @@ def _eliminate(canon: CanonicalBilevel, problem: BilevelProblem) -> CanonicalBil
                   H=ca.vertcat(canon.H, equations), x_suggested=[], lower_reference=None)
     mats = canon.matrices
     if mats is not None:
-        mats = replace(mats, d=sub(mats.d), q=sub(mats.q), b=sub(mats.b), e=sub(mats.e))
+        mats = replace(mats, d=sub(mats.d), q=sub(mats.q), b=sub(mats.b), e=sub(mats.e), r=sub(mats.r))
     return replace(canon, F=sub(canon.F), G=sub(canon.G), H=sub(canon.H), f=sub(canon.f), g=sub(canon.g),
                    h=sub(canon.h), psd=[sub(m) for m in canon.psd], matrices=mats, lifting=Lifting(z, value, raw),
                    spectral=None if canon.spectral is None else sub(canon.spectral))

@@ -159,6 +159,18 @@ ENTRIES: dict[str, tuple[Any, str]] = {
                                            "times the scale of G's terms (relative; rounding is ~1e-16)"),
     # lower levels (bilevel.lower)
     "classify.y_probes": (16, "lower points drawn per upper sample when a lower Hessian depends on y (count)"),
+    "classify.matrix_entries": (25_000_000, "a lower level declared by expressions is recognized as a matrix QP "
+                                            "(lower_qp's form) when its constraint matrix has at most this many "
+                                            "entries, stored dense (count)"),
+    "classify.matrix_min_entries": (5_000, "... and at least this many: smaller lower levels keep the expression "
+                                           "kinds, whose symbolic Jacobians cost little there and whose Clarabel "
+                                           "solves (central on a degenerate face, where HiGHS gives a vertex) the "
+                                           "textbook problems' multistart results hold with (count)"),
+    "classify.matrix_rtol": (1e-9, "the recognized matrix QP must reproduce the expressions' values to this times "
+                                   "each entry's scale (the sum of its terms' magnitudes)"),
+    "matrix.feas_tol": (1e-12, "a matrix LP's HiGHS solution, or the previous solve's active set, is kept where it "
+                               "violates no row by more than this * (1 + |b| + |A| |y|); else Clarabel solves (and "
+                               "finds an LP infeasible that HiGHS, at its tolerance 1e-7, solved: Bard's 5.1.1, x > 4)"),
     "convexity.psd_tol": (1e-9, "a Hessian counts as PSD when its smallest eigenvalue >= -this * max(1, its largest "
                                 "entry)"),
     "sdp.psd_tol": (1e-9, "relative PSD violation of M_k and Z_k tolerated in a polished SDP iterate"),

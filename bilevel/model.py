@@ -14,7 +14,7 @@ Expressions are CasADi SX expressions of the declared variables.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable, Literal
 
 import casadi as ca
@@ -118,9 +118,10 @@ class PSDConstraint:
 @dataclass(frozen=True)
 class LowerQP:
     """A lower level given by matrices (BilevelProblem.lower_qp): numeric C, P, A, E and vector expressions d, q,
-    b, e of the upper variables and parameters."""
+    b, e of the upper variables and parameters, and a constant term r of theirs (0 for lower_qp)."""
 
-    variable: Variable
+    variable: Variable | None
+    """The declared lower variable; None for a form recognized from expressions (bilevel.lower.qp_form)."""
     C: np.ndarray
     P: np.ndarray
     A: np.ndarray
@@ -129,6 +130,7 @@ class LowerQP:
     q: ca.SX
     b: ca.SX
     e: ca.SX
+    r: ca.SX = field(default_factory=lambda: ca.SX.zeros(1))
 
 
 @dataclass

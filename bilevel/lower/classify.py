@@ -13,6 +13,7 @@ from .base import LowerLevel
 from .convexity import ConvexityProbe
 from .least_squares import LeastSquaresLower
 from .nlp import ConvexNLPLower
+from .qp_form import matrix_form
 from .quadratic import LinearLower, QuadraticLower
 from .residual import ResidualLeastSquares
 from .sdp import SemidefiniteLower
@@ -32,8 +33,10 @@ def _probe(hessians: list[tuple[CompiledFunction, str]],
 def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.SX], g_names: list[str],
                 h_names: list[str], psd_names: list[str], x_samples: list[np.ndarray],
                 y_lb: np.ndarray | None = None, y_ub: np.ndarray | None = None,
-                assume_convex: bool = False, params: ParameterSet | None = None) -> LowerLevel:
-    """Classify as least squares, LP, QP or convex NLP and build it.
+                assume_convex: bool = False, params: ParameterSet | None = None,
+                matrices: bool = True) -> LowerLevel:
+    """Classify as least squares, LP, QP or convex NLP and build it; with matrices, an LP or QP with constraints whose
+    matrices are numbers becomes lower_qp's matrix form (qp_form.matrix_form).
 
     Convexity in y is probed at the upper samples times defaults["classify.y_probes"] lower points inside the declared
     bounds [y_lb, y_ub] (a probe, not a proof: the certificate's re-solve is the second line of defence);
@@ -42,9 +45,6 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
     if not ca.depends_on(f, y):
         raise ModelError("the lower objective does not depend on the lower variables; "
                          "a bilevel problem needs a lower level that optimizes over y")
-    if h.numel() and ca.depends_on(ca.jacobian(h, y), y):
-        raise NonConvexLowerLevel("a lower-level equality constraint is not affine in the lower variables; "
-                                  "only affine equalities keep the lower level convex")
     args = (x, y, f, g, h, psd, g_names, h_names, psd_names)
     params = ParameterSet() if params is None else params
     function = params.function
@@ -59,6 +59,13 @@ def build_lower(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, psd: list[ca.S
     probes = param("classify.y_probes")
     points = [(xs, sample_in_bounds(y_lb, y_ub, rng, 3.0)) for xs in x_samples for _ in range(probes)]
     hess_f = ca.hessian(f, y)[0]
+    if matrices and not psd:
+        low = matrix_form(x, y, f, g, h, hess_f, g_names, h_names, points[::probes], params)
+        if low is not None:
+            return low
+    if h.numel() and ca.depends_on(ca.jacobian(h, y), y):
+        raise NonConvexLowerLevel("a lower-level equality constraint is not affine in the lower variables; "
+                                  "only affine equalities keep the lower level convex")
     nonlinear_f = np.asarray(ca.which_depends(f, y, 2, False), dtype=bool)  # sparsity propagation, no simplify
     affine_g = not (g.numel() and any(ca.which_depends(g, y, 2, False)))
     objective = [(function("hf", [x, y], [hess_f]), "the lower objective")]

@@ -1,6 +1,7 @@
-"""A lower QP given by matrices: min 1/2 ||C y - d||^2 + 1/2 y'Py + q'y s.t. A y <= b, E y = e.
+"""A lower QP given by matrices: min 1/2 ||C y - d||^2 + 1/2 y'Py + q'y + r s.t. A y <= b, E y = e.
 
-C, P, A, E are numbers (fixed data); d, q, b, e are CasADi expressions of the upper variables and parameters
+C, P, A, E are numbers (fixed data); d, q, b, e (and the constant r) are CasADi expressions of the upper variables
+and parameters
 (the data the attacker moves). No expression of size C x y is ever built: values, KKT systems and the adjoint
 R' v are matrix products with the numeric data plus one reverse sweep through the small vector expressions.
 This is what lets a dense least squares with thousands of variables be declared and differentiated in seconds.
@@ -24,12 +25,14 @@ from ..parameters import ParameterSet
 from ..real_data import refuse_complex
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
+from .polish import polish
 from .quadratic import LinearLower, QPData, QuadraticLower, clarabel_solution, solve_qp_clarabel
 
 
 @dataclass
 class MatrixLower(LowerLevel):
-    """The lower QP of `BilevelProblem.lower_qp`; bounds of y are rows of A (named like declared constraints).
+    """The lower QP of `BilevelProblem.lower_qp`, or of expressions recognized as one (bilevel.lower.qp_form); bounds
+    of y are rows of A (named like declared constraints).
 
     Kind: least-squares (no constraints, C'C + P positive definite: Cholesky, factored once), lp (no quadratic
     term: HiGHS dual simplex, a vertex with exact duals) or qp (Clarabel). The certificate's re-solve is
@@ -51,7 +54,8 @@ class MatrixLower(LowerLevel):
         self.C, self.P, self.A, self.E, self.d, self.q, self.b, self.e = (qp.C, qp.P, qp.A, qp.E, qp.d, qp.q, qp.b,
                                                                           qp.e)
         self.hess = self.C.T @ self.C + self.P
-        self._vectors = self.params.function("qp_vectors", [self.x], [self.d, self.q, self.b, self.e])
+        self.r = qp.r
+        self._vectors = self.params.function("qp_vectors", [self.x], [self.d, self.q, self.b, self.e, self.r])
         v = [ca.SX.sym(n, int(s.numel())) for n, s in (("v_d", self.d), ("v_q", self.q), ("v_b", self.b),
                                                           ("v_e", self.e))]
         adj = sum((ca.jtimes(s, self.x, w, True) for s, w in zip((self.d, self.q, self.b, self.e), v) if s.numel()),
@@ -78,6 +82,10 @@ class MatrixLower(LowerLevel):
 
     def vectors(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """d, q, b, e at x."""
+        return self.values(x)[:4]
+
+    def values(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
+        """d, q, b, e and r (as a 1-vector) at x, one sweep."""
         return tuple(np.asarray(v, dtype=float).ravel() for v in self._vectors(x))
 
     def linear_term(self, x: np.ndarray) -> np.ndarray:
@@ -86,9 +94,9 @@ class MatrixLower(LowerLevel):
         return q - self.C.T @ d
 
     def evaluate(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, list[np.ndarray]]:
-        d, q, b, e = self.vectors(x)
-        r = self.C @ y - d
-        f = 0.5 * float(r @ r) + 0.5 * float(y @ self.P @ y) + float(q @ y)
+        d, q, b, e, r = self.values(x)
+        res = self.C @ y - d
+        f = 0.5 * float(res @ res) + 0.5 * float(y @ self.P @ y) + float(q @ y) + float(r[0])
         return f, self.A @ y - b, self.E @ y - e, []
 
     def derivatives(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
@@ -122,8 +130,8 @@ class MatrixLower(LowerLevel):
 
     def data(self, x: np.ndarray) -> QPData:
         """The QP coefficients at x in the form of the expression kinds (g = A y - b, h = E y - e)."""
-        d, q, b, e = self.vectors(self.check_point(x))
-        return QPData(self.hess, q - self.C.T @ d, 0.5 * float(d @ d), self.A, -b, self.E, -e)
+        d, q, b, e, r = self.values(self.check_point(x))
+        return QPData(self.hess, q - self.C.T @ d, 0.5 * float(d @ d) + float(r[0]), self.A, -b, self.E, -e)
 
     def solve(self, x: np.ndarray) -> LowerSolution:
         """Closed form (least squares), HiGHS (LP) or Clarabel (QP) at x."""
@@ -133,10 +141,20 @@ class MatrixLower(LowerLevel):
             return LowerSolution(y, self.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal", "closed-form")
         sol = self._from_active_set(x)
         if sol is None:
-            sol = (self._solve_highs(x) if self.kind == "lp"
-                   else solve_qp_clarabel(self.data(x), "(a matrix QP)", psd_verified=True))
+            sol = self._solve_highs(x) if self.kind == "lp" else None
+            if sol is None or self._violates(x, sol.y):  # Clarabel decides near the edge of the feasible set
+                sol = solve_qp_clarabel(self.data(x), "(a matrix QP)", psd_verified=True)
             self._active = np.flatnonzero(sol.lam > param("polish.active_tol"))
         return sol
+
+    def _violates(self, x: np.ndarray, y: np.ndarray) -> bool:
+        """Whether y violates a row of A y <= b or E y = e at x by more than defaults["matrix.feas_tol"] of the row's
+        scale (1 + |b| + |A| |y|): HiGHS's tolerance is 1e-7 at the least, and the certificate's re-solve (Clarabel)
+        finds the lower level infeasible where a row is violated by 1e-10 (Bard's 5.1.1 at x = 4 + 1e-8)."""
+        _, _, b, e = self.vectors(x)
+        tol, ay = param("matrix.feas_tol"), np.abs(y)
+        return bool(np.any(self.A @ y - b > tol * (1.0 + np.abs(b) + np.abs(self.A) @ ay))
+                    or np.any(np.abs(self.E @ y - e) > tol * (1.0 + np.abs(e) + np.abs(self.E) @ ay)))
 
     def _from_active_set(self, x: np.ndarray) -> LowerSolution | None:
         """The solution with the last solve's active set, if it is still optimal at x (None otherwise).
@@ -155,9 +173,7 @@ class MatrixLower(LowerLevel):
         except np.linalg.LinAlgError:
             return None
         y, lam_b = w[:n], w[n:n + na]
-        scale = 1.0 + np.abs(b)
-        active_tol = param("polish.active_tol")
-        if np.any(lam_b < -active_tol) or np.any(self.A @ y - b > 1e-9 * scale) or not np.all(np.isfinite(w)):
+        if np.any(lam_b < -param("polish.active_tol")) or not np.all(np.isfinite(w)) or self._violates(x, y):
             return None
         lam = np.zeros(self.A.shape[0])
         lam[rows] = np.maximum(lam_b, 0.0)
@@ -181,12 +197,15 @@ class MatrixLower(LowerLevel):
         return LowerSolution(y, self.evaluate(x, y)[0], np.maximum(lam, 0.0), mu, [], "optimal", "highs (dual simplex)")
 
     def reference_solve(self, x: np.ndarray) -> LowerSolution:
-        """Clarabel for LP/QP; for least squares an LU solve (not the Cholesky factor the methods use)."""
+        """Clarabel through cvxpy for LP/QP, polished onto its optimal face as the expression kinds' re-solve is (an
+        interior point stops about 1e-6 inside a face that is active with a zero multiplier); for least squares an LU
+        solve (not the Cholesky factor the methods use)."""
         x = self.check_point(x)
         if self.kind == "least-squares":
             y = np.linalg.solve(self.hess, -self.linear_term(x))
             return LowerSolution(y, self.evaluate(x, y)[0], np.zeros(0), np.zeros(0), [], "optimal", "LU solve")
-        return clarabel_solution(self.data(x), "(a matrix QP, independent re-solve)", psd_verified=True)
+        data = self.data(x)
+        return polish(data, (), clarabel_solution(data, "(a matrix QP, independent re-solve)", psd_verified=True))
 
     def symbolic(self) -> ExpressionLower:
         """The same QP as CasADi expressions, for the KKT reduction (ipopt, relaxation, global).
@@ -199,7 +218,7 @@ class MatrixLower(LowerLevel):
     def _symbolic(self) -> ExpressionLower:
         y = self.y
         r = ca.mtimes(_dm(self.C), y) - self.d
-        f = 0.5 * ca.sumsqr(r) + 0.5 * ca.mtimes(y.T, ca.mtimes(_dm(self.P), y)) + ca.dot(self.q, y)
+        f = 0.5 * ca.sumsqr(r) + 0.5 * ca.mtimes(y.T, ca.mtimes(_dm(self.P), y)) + ca.dot(self.q, y) + self.r
         g = ca.mtimes(_dm(self.A), y) - self.b
         h = ca.mtimes(_dm(self.E), y) - self.e
         cls = {"least-squares": LeastSquaresLower, "lp": LinearLower}.get(self.kind, QuadraticLower)

@@ -16,6 +16,7 @@ import scipy.sparse as sp
 
 from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
 from ..vech import smat, svec
+from ..parameters import CompiledFunction
 from .base import ExpressionLower, LowerSolution
 from .convexity import require_psd
 from .polish import Lmi, polish
@@ -229,14 +230,16 @@ class QuadraticLower(ExpressionLower):
 
     kind = "qp"
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
+    @cached_property
+    def _coeffs(self) -> CompiledFunction:
+        """x -> the QP coefficients, built on first use: the symbolic form of a matrix QP (MatrixLower.symbolic, for
+        the KKT reduction) never solves itself, and the constraints' Jacobians cost seconds at 1,000 x 100."""
         zero = ca.DM.zeros(self.n_y)
         grad = ca.gradient(self.f, self.y)
         outs = [self.hess_f, grad, self.f, ca.jacobian(self.g, self.y), self.g,
                 ca.jacobian(self.h, self.y), self.h]
         outs = [ca.substitute(o, self.y, zero) for o in outs]
-        self._coeffs = self.params.function("qp_coeffs", [self.x], outs)
+        return self.params.function("qp_coeffs", [self.x], outs)
 
     def data(self, x: np.ndarray) -> QPData:
         """The QP coefficients at upper point x."""

@@ -26,6 +26,7 @@ import numpy as np
 from ..errors import BilevelError, ModelError
 from ..lower.images import ImageLower
 from ..lower.nlp import NLPSOL_QUIET
+from ..lower.matrix import MatrixLower
 from ..lower.quadratic import QuadraticLower
 from ..reduction import KKTPoint
 from ..result import Status
@@ -58,7 +59,7 @@ def unique_lower(prep: Prepared) -> str | None:
     inner = low.inner if isinstance(low, ImageLower) else low
     if low.kind == "least-squares":
         return None
-    if low.kind == "qp" and isinstance(inner, QuadraticLower):
+    if low.kind == "qp" and isinstance(inner, (QuadraticLower, MatrixLower)):  # P numeric in MatrixLower
         x0 = low.lift(prep.canon.x_start) if isinstance(low, ImageLower) else prep.canon.x_start
         P = inner.data(x0).P
         if np.linalg.eigvalsh(0.5 * (P + P.T))[0] > 1e-10 * max(1.0, float(np.abs(P).max())):

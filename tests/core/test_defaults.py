@@ -50,6 +50,7 @@ BEFORE = {  # the module constants and option defaults the registry replaced, as
     "probe.rel_tol": 1e-8, "probe.min_radius": 1e-9, "probe.feas_tol": 1e-9, "probe.descent_rel_tol": 1e-5,
     "optimistic.slack": 1e-9, "optimistic.row_tol": 1e-8, "optimistic.improve_rel_tol": 1e-5,
     "destabilize.starts": 64, "destabilize.max_iter": 100, "destabilize.pool": 512, "classify.y_probes": 16,
+    "classify.matrix_entries": 25_000_000, "classify.matrix_min_entries": 5_000, "classify.matrix_rtol": 1e-9, "matrix.feas_tol": 1e-12,
     "convexity.psd_tol": 1e-9, "sdp.psd_tol": 1e-9, "sdp.polished_tol": 1e-6, "sdp.free_rtol": 1e-10,
     "sdp.continuation_tol": 1e-9, "sdp.continuation_steps": 6,
     "polish.active_tol": 1e-6, "polish.flip_tol": 1e-13, "polish.max_steps": 8, "polish.max_faces": 4,
