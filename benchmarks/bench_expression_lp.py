@@ -19,10 +19,9 @@ import sys
 import time
 from datetime import datetime, timezone
 
-import casadi as ca
-import numpy as np
 
 from bilevel import BilevelProblem
+from bilevel.problems.rhs_lp import rhs_lp
 from bilevel.solvers.base import prepare
 
 DELTA = 0.2
@@ -30,24 +29,7 @@ DELTA = 0.2
 
 def declare(form: str, m: int, n: int) -> BilevelProblem:
     """The attack at m x n, its lower level declared by `form`: lower_qp, vector or rows."""
-    rng = np.random.default_rng(0)
-    A = rng.standard_normal((m, n))
-    b = A @ rng.uniform(-0.5, 0.5, n) + rng.uniform(0.3, 1.0, m)
-    c = rng.standard_normal(n)
-    p = BilevelProblem(f"rhs-{form}")
-    x = p.upper_variable("x", m, lb=-DELTA, ub=DELTA)
-    y = p.lower_variable("y", n, lb=-1, ub=1)
-    p.maximize_upper(ca.dot(ca.DM(c), y))
-    if form == "lower_qp":
-        p.lower_qp(y, q=c, A=A, b=b + x)
-    elif form == "vector":
-        p.minimize_lower(ca.dot(ca.DM(c), y))
-        p.lower_constraint(ca.mtimes(ca.DM(A), y) <= b + x)
-    else:
-        p.minimize_lower(ca.dot(ca.DM(c), y))
-        for i in range(m):
-            p.lower_constraint(ca.dot(ca.DM(A[i]), y) <= b[i] + x[i])
-    return p
+    return rhs_lp(m, n, form, DELTA)
 
 
 def timed(form: str, m: int, n: int, method: str) -> tuple[list[float], object, str]:

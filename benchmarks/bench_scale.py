@@ -35,11 +35,10 @@ def ls_data() -> tuple[np.ndarray, np.ndarray]:
 
 
 def lp_data() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(0)
-    m, n = LP_SHAPE
-    A = rng.standard_normal((m, n))
-    b = A @ rng.uniform(-0.5, 0.5, n) + rng.uniform(0.3, 1.0, m)  # that y stays feasible for every attack
-    return A, b, rng.standard_normal(n)
+    """The LP instance (bilevel.problems.rhs_lp) at LP_SHAPE."""
+    from bilevel.problems.rhs_lp import rhs_lp_data
+
+    return rhs_lp_data(*LP_SHAPE)
 
 
 def declare(instance: str, form: str, data: tuple):

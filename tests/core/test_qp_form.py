@@ -10,6 +10,7 @@ import bilevel as bl
 from bilevel.errors import NonConvexLowerLevel
 from bilevel.lower import LinearLower, QuadraticLower
 from bilevel.lower.matrix import MatrixLower
+from bilevel.problems.rhs_lp import rhs_lp, rhs_lp_data
 from bilevel.solvers.base import prepare
 
 M, N, DELTA = 300, 30, 0.2
@@ -24,29 +25,13 @@ def small_matrices():
 
 
 def _lp_data() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """bench_scale's right-hand-side attack at 300 rows x 30 variables: y = the uniform draw stays feasible."""
-    rng = np.random.default_rng(0)
-    A = rng.standard_normal((M, N))
-    return A, A @ rng.uniform(-0.5, 0.5, N) + rng.uniform(0.3, 1.0, M), rng.standard_normal(N)
+    """bench_scale's right-hand-side attack at 300 rows x 30 variables (bilevel.problems.rhs_lp)."""
+    return rhs_lp_data(M, N)
 
 
 def _lp(form: str) -> bl.BilevelProblem:
     """The leader moves the right-hand sides within [-0.2, 0.2] to raise the follower's optimal cost c'y."""
-    A, b, c = _lp_data()
-    p = bl.BilevelProblem(f"rhs-{form}")
-    x = p.upper_variable("x", M, lb=-DELTA, ub=DELTA)
-    y = p.lower_variable("y", N, lb=-1, ub=1)
-    p.maximize_upper(ca.dot(ca.DM(c), y))
-    if form == "lower_qp":
-        p.lower_qp(y, q=c, A=A, b=b + x)
-    elif form == "vector":
-        p.minimize_lower(ca.dot(ca.DM(c), y))
-        p.lower_constraint(ca.mtimes(ca.DM(A), y) <= b + x)
-    else:  # one constraint per row
-        p.minimize_lower(ca.dot(ca.DM(c), y))
-        for i in range(M):
-            p.lower_constraint(ca.dot(ca.DM(A[i]), y) <= b[i] + x[i], name=f"row{i}")
-    return p
+    return rhs_lp(M, N, form, DELTA)
 
 
 @pytest.mark.parametrize("form", ["vector", "rows"])
