@@ -6,7 +6,6 @@ data set; certify.md, certify.csv and a figure of the sorted brackets."""
 
 from __future__ import annotations
 
-import csv
 import os
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -17,7 +16,7 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from ..files import atomic_open, atomic_path  # noqa: E402
+from ..files import atomic_open, atomic_path, write_rows_csv  # noqa: E402
 from ..problems.identification_instance import attack_instance as ident_instance  # noqa: E402
 from ..problems.vrft_instance import attack_instance as vrft_instance  # noqa: E402
 from ..robust import as_target, certified_margin, sample_soundness  # noqa: E402
@@ -137,10 +136,7 @@ def bracket_figure(rows: list[dict[str, Any]]) -> Figure:
 def write_outputs(rows: list[dict[str, Any]], out_dir: str) -> str:
     """certify.csv, certify.md and fig_brackets.png; returns the path of certify.md."""
     os.makedirs(out_dir, exist_ok=True)
-    with atomic_open(os.path.join(out_dir, "certify.csv"), newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(ROW_SCHEMA))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_rows_csv(os.path.join(out_dir, "certify.csv"), rows, ROW_SCHEMA)
     with atomic_path(os.path.join(out_dir, "fig_brackets.png")) as tmp:
         bracket_figure(rows).savefig(tmp, dpi=120)
     path = os.path.join(out_dir, "certify.md")

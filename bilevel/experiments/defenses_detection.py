@@ -18,7 +18,6 @@ sets drawn with seeds independent of the attacked ones.
 
 from __future__ import annotations
 
-import csv
 import os
 from typing import Any, Callable
 
@@ -27,7 +26,7 @@ import numpy as np
 from ..attacks.willems import destabilize_attack, hypergradient_attack
 from ..ddc.input_integrity import filtered_white_spectrum, whittle_deviance
 from ..ddc.plants import flexible_transmission_prefilter
-from ..files import atomic_open
+from ..files import atomic_open, write_rows_csv
 from ..problems.defended_vrft import declare, defended_instance
 from ..problems.identification import problem_for
 from ..problems.identification_instance import attack_instance, least_squares_fit
@@ -150,10 +149,7 @@ def run_detection(sims: int, N: int, T: int, out_dir: str, seed: int = 0, execut
              for case in CASES if case.split("-")[0] in families for i, (data_seed, attack_seed) in seeds]
     rows = run_sweep(detection_task, tasks, os.path.join(out_dir, "detection.jsonl"), executor, progress,
                      "defenses-detection", valid=lambda r: check_fields(r, ROW_SCHEMA))
-    with atomic_open(os.path.join(out_dir, "detection.csv"), newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(ROW_SCHEMA))
-        writer.writeheader()
-        writer.writerows({k: r[k] for k in ROW_SCHEMA} for r in rows)
+    write_rows_csv(os.path.join(out_dir, "detection.csv"), rows, ROW_SCHEMA)
     table = detection_markdown(rows, thresholds(N, T, seed, calibration, families))
     with atomic_open(os.path.join(out_dir, "detection.md")) as fh:
         fh.write(table)

@@ -5,7 +5,6 @@ horizon and learner selection. One resumable sweep task per data set (bilevel.ex
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import os
 from typing import Any, Callable
@@ -18,7 +17,7 @@ from matplotlib.figure import Figure  # noqa: E402
 
 from ..attacks.willems import destabilize_attack  # noqa: E402
 from ..errors import ModelError  # noqa: E402
-from ..files import atomic_open, atomic_path  # noqa: E402
+from ..files import atomic_open, atomic_path, write_rows_csv  # noqa: E402
 from ..problems.willems import build_attack  # noqa: E402
 from ..problems.willems_instance import WillemsSetting  # noqa: E402
 from ..solvers.budget_search import BudgetSearch, smallest_budget  # noqa: E402
@@ -130,10 +129,7 @@ def budget_figure(rows: list[dict[str, float]]) -> Figure:
 def write_outputs(rows: list[dict[str, float]], out_dir: str) -> str:
     """budget.csv, budget.md (summary_markdown) and fig_budget_cdf.png (empirical CDF per horizon and selection)."""
     os.makedirs(out_dir, exist_ok=True)
-    with atomic_open(os.path.join(out_dir, "budget.csv"), newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_rows_csv(os.path.join(out_dir, "budget.csv"), rows, rows[0])
     fig = budget_figure(rows)
     with atomic_path(os.path.join(out_dir, "fig_budget_cdf.png")) as tmp:
         fig.savefig(tmp, dpi=150)

@@ -10,14 +10,13 @@ attacks model (reg -> 0); "clarabel" is what Clarabel's interior point returns w
 
 from __future__ import annotations
 
-import csv
 import os
 
 import numpy as np
 
 from ..ddc.data import batch_reactor_data
 from ..ddc.depersis_tesi import lqr_controller, min_norm_q
-from ..files import atomic_open
+from ..files import write_rows_csv
 
 SELECTIONS = ("min-norm", "clarabel")
 
@@ -44,10 +43,7 @@ def selection_table(horizons: tuple[int, ...], seeds: list[int], out_dir: str) -
         gains = [input_gains(*batch_reactor_data(n, np.random.default_rng(s))) for s in seeds]
         rows.append({"horizon": n, "sims": len(seeds), **{k: float(np.median([g[k] for g in gains]))
                                                           for k in (*SELECTIONS, "null_share")}})
-    with atomic_open(os.path.join(out_dir, "table_selection.csv"), newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_rows_csv(os.path.join(out_dir, "table_selection.csv"), rows, rows[0])
     lines = ["| N | sims | gain, min-norm Q | gain, Clarabel's Q | Clarabel's Q: null-space part / min-norm part |",
              "|---|---|---|---|---|"]
     lines += [f"| {r['horizon']} | {r['sims']} | {r['min-norm']:.2f} | {r['clarabel']:.2f} | {r['null_share']:.2f} |"

@@ -90,9 +90,9 @@ def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
     level (unique and smooth in x: IPOPT over x alone keeps those rows as constraints); `hypergradient` where the
     upper objective is a numeric function of a matrix, or where the lower level is least squares (solved in closed
     form, y*(x) smooth) or does not depend on x (solved once), with at least defaults["auto.min_upper"] upper entries
-    and no upper constraint on the lower solution, or with an l_inf budget row; `ipopt` otherwise (constrained lower levels whose solution depends
-    on x: its KKT system is solved with the upper level in one NLP). Options only one of the methods accepts decide
-    for it."""
+    or an l_inf budget row, and no upper constraint on the lower solution; `ipopt` otherwise (constrained lower levels
+    whose solution depends on x: its KKT system is solved with the upper level in one NLP). Options only one of the
+    methods accepts decide for it."""
     low, n = prep.canon.lower, int(prep.canon.x.numel())
     given, hypergradient, ipopt = set(options), options_of(solve_hypergradient), options_of(solve_ipopt)
     coupled = coupled_upper_rows(prep)
@@ -159,10 +159,9 @@ def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol:
           **options: Any) -> BilevelResult:
     """Solve a bilevel problem with a registered method name, "auto" (default: global first where a proof is cheap,
     see global_first, then the local method choose_method picks; the result's method is the one that ran, its message
-    and stats["auto"] say why) or a
-    callable(prepared, **options) -> MethodRun. The methods: ipopt, relaxation, hypergradient, block-exact, global,
-    differential-evolution, reduced (and any registered with register_method); show_options(method) lists a method's
-    options and their defaults. certificate_tol: None takes defaults["certificate.tol"] (bilevel.defaults)."""
+    and stats["auto"] say why) or a callable(prepared, **options) -> MethodRun. The methods: ipopt, relaxation,
+    hypergradient, block-exact, global, differential-evolution, reduced (and any registered with register_method);
+    show_options(method) lists a method's options and their defaults. certificate_tol: None takes defaults["certificate.tol"] (bilevel.defaults)."""
     if not isinstance(problem, BilevelProblem):
         raise ModelError(f"solve: expected a BilevelProblem, got {type(problem).__name__}; declare one with "
                          "bilevel.BilevelProblem(...) or build a registered one with bilevel.problems.registry.get")
