@@ -161,7 +161,8 @@ def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol:
     see global_first, then the local method choose_method picks; the result's method is the one that ran, its message
     and stats["auto"] say why) or a callable(prepared, **options) -> MethodRun. The methods: ipopt, relaxation,
     hypergradient, block-exact, global, differential-evolution, reduced (and any registered with register_method);
-    show_options(method) lists a method's options and their defaults. certificate_tol: None takes defaults["certificate.tol"] (bilevel.defaults)."""
+    show_options(method) lists a method's options and their defaults. certificate_tol: None takes
+    defaults["certificate.tol"] (bilevel.defaults)."""
     if not isinstance(problem, BilevelProblem):
         raise ModelError(f"solve: expected a BilevelProblem, got {type(problem).__name__}; declare one with "
                          "bilevel.BilevelProblem(...) or build a registered one with bilevel.problems.registry.get")
