@@ -41,8 +41,8 @@ from ..problems.willems_instance import (DEFAULT_REG, SOLVER_SELECTIONS, Willems
 from ..result import BilevelResult  # noqa: E402
 from .stats import mean_interval, wilson_interval  # noqa: E402
 from .executor import open_executor  # noqa: E402
-from .sweep import (FINITE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of,  # noqa: E402
-                    stderr_progress)
+from .sweep import (FINITE, NUMBER, check_fields, committed_timings, load_timings, run_sweep,  # noqa: E402
+                    settings_of, stderr_progress)
 from .willems_selection import selection_table  # noqa: E402
 
 DELTA_Y = 1e-3
@@ -572,16 +572,14 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
               "designs": (design_tasks(plan, seed, selection), ("design", "poison", "criterion", "delta_u"))}
     sweeps = {name: ([t for t in tasks if selection_applies(selection, t["poison"], t["design"])], fields)
               for name, (tasks, fields) in sweeps.items()}
-    timings_path = os.path.join(out_dir, "timings.json")
-    rows, summaries, wall = {}, {}, load_timings(timings_path, progress)
+    rows, summaries = {}, {}
     with open_executor(workers, dask) as executor:
         for name, (tasks, fields) in sweeps.items():
             rows[name] = run_sweep(attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress,
-                                   f"willems-{name}",
-                                   lambda ran, seconds: record_timing(timings_path, wall, name, len(ran), seconds),
-                                   valid_row)
+                                   f"willems-{name}", valid_row, timing=name, reference=committed_timings("willems"))
             summaries[name] = summarize(rows[name], fields)
             write_csv(summaries[name], fields, os.path.join(out_dir, f"table_{name}.csv"))
+    wall = load_timings(os.path.join(out_dir, "timings.json"), progress)
     tables = {"paper": paper_table, "remark": remark_table, "designs": design_table}
     for name, fn in tables.items():
         with atomic_open(os.path.join(out_dir, f"table_{name}.md")) as fh:
