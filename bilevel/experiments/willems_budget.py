@@ -116,7 +116,7 @@ def budget_figure(rows: list[dict[str, float]]) -> Figure:
         shown = np.isfinite(d)
         ax.step(np.append(d[shown], right), np.append(reached[shown], reached[shown][-1] if shown.any() else 0.0),
                 where="post", label=f"N = {key[0]}, {key[1]}")
-    ax.set_xlabel("delta_u* (smallest destabilizing linf input budget)")
+    ax.set_xlabel("delta_u* (smallest destabilizing linf input budget, input units)")
     ax.set_ylabel("fraction of data sets")
     ax.set_xlim(0, right)
     ax.set_ylim(0, 1)
