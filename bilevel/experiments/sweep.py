@@ -35,8 +35,26 @@ try:
     _PACKAGE = metadata.version("bilevel")
 except metadata.PackageNotFoundError:  # pragma: no cover - running from a source tree without install
     _PACKAGE = "unknown"
-ALGORITHM_VERSION = f"bilevel-{_PACKAGE}/sweep-4"
-"""Part of every row's digest: bump the suffix when an attack changes its numbers for the same task."""
+
+
+def _source_hash() -> str:
+    """12 hex digits of a hash of every .py file of the installed package (paths and contents): any code change gives
+    new digests, so rows computed by other code are never reused."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    h = hashlib.sha256()
+    for folder, dirs, files in sorted(os.walk(root)):
+        dirs.sort()
+        for name in sorted(f for f in files if f.endswith(".py")):
+            path = os.path.join(folder, name)
+            h.update(os.path.relpath(path, root).encode())
+            with open(path, "rb") as fh:
+                h.update(fh.read())
+    return h.hexdigest()[:12]
+
+
+ALGORITHM_VERSION = f"bilevel-{_PACKAGE}/sweep-4/src-{_source_hash()}"
+"""Part of every row's digest: the package version and a hash of its source, so that a rerun after any code change
+recomputes (an interrupted run of the same code resumes)."""
 
 
 class SweepInterrupted(KeyboardInterrupt):
