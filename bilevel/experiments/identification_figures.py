@@ -217,6 +217,13 @@ def report(rows: Rows, baseline: Rows, figures: dict[str, str], plan: Plan, timi
                      f"{c['time_ratio']:.1f}x |")
     parts += ["", "## Figures", "",
               f"![||d[A B]||_2 per budget]({figures['error']})", "",
+              "Figure 1: the identified model's error ||[A B]' - [A B]_clean||_2 of the stealthy answers per budget "
+              "delta (box: quartiles, whiskers 1.5 IQR, circles beyond), the engine on every data set and the SLSQP "
+              "baseline on its subset; one panel per T.", "",
               f"![residual norm and whiteness statistic before and after]({figures['statistics']})", "",
-              f"![p-values of the three tests before and after]({figures['p_values']})", ""]
+              "Figure 2: the residual norm ||E||_F (state units) and the whiteness statistic Q of the fit on the clean "
+              "(grey) and the poisoned (blue) data, per budget; one column per T.", "",
+              f"![p-values of the three tests before and after]({figures['p_values']})", "",
+              "Figure 3: each residual test's p-value on the clean and the poisoned data, per budget (red: the 5 % "
+              "level, below which the test rejects); the input test's on a log10 scale.", ""]
     return "\n".join(parts)

@@ -496,6 +496,8 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
         "delta_u*: per data set, the smallest budget of the grid at which the destabilizing attack (max rho) made "
         "the true loop unstable (grid resolution; `smallest_destabilizing_budget` bisects further):", "",
         budget_md, "![delta_u* CDF](fig_budget_cdf.png)", "",
+        "Figure: the empirical CDF of delta_u* over the data sets (fraction of data sets destabilized at or below each "
+        "input budget), per horizon.", "",
         "## Settings", "",
         "- Plant: batch reactor (Walsh & Ye 2001), Ts = 0.1, n = 4, m = 2; data: u ~ N(0, 1) white, x_0 = 0, "
         "noise free. The attacker uses [B A] = X1 [U0; X0]^+ from the clean data (equal to the plant here).",
