@@ -243,7 +243,7 @@ def _reduced_hessian_unique(low, x: np.ndarray, ref, tol: float) -> bool | None:
     rows = np.vstack([jh, jg[strong]])
     if rows.size:
         _, sv, vt = np.linalg.svd(rows)
-        rank = int(np.sum(sv > 1e-9 * max(1.0, float(sv.max(initial=0.0)))))
+        rank = int(np.sum(sv > param("certificate.unique_rtol") * max(1.0, float(sv.max(initial=0.0)))))
         null = vt[rank:].T
     else:
         null = np.eye(low.n_y)
@@ -251,7 +251,7 @@ def _reduced_hessian_unique(low, x: np.ndarray, ref, tol: float) -> bool | None:
         return True
     hess = low.hessian(x, ref.y)
     reduced = hess if rows.size == 0 else null.T @ hess @ null
-    shift = 1e-9 * max(1.0, float(np.abs(hess).max()))
+    shift = param("certificate.unique_rtol") * max(1.0, float(np.abs(hess).max()))
     try:  # smallest eigenvalue > shift, by a Cholesky factorization of the shifted matrix
         np.linalg.cholesky(0.5 * (reduced + reduced.T) - shift * np.eye(reduced.shape[0]))
     except np.linalg.LinAlgError:
