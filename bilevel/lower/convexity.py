@@ -145,13 +145,16 @@ def _gershgorin_psd(lo: np.ndarray, hi: np.ndarray) -> bool:
     return bool(np.all(np.diag(lo) - off >= -param("convexity.psd_tol") * scale))
 
 
-def proven_convex(low: "LowerLevel", x: np.ndarray, y_lb: np.ndarray, y_ub: np.ndarray) -> bool:
-    """True when interval bounds (interval.py) prove every lower Hessian PSD at upper point x for all y in the box
-    [y_lb, y_ub]: then the lower level at x is convex on a convex set containing its feasible set, and a local
-    lower solution is global. False means not proven (not that it is non-convex)."""
+def proven_convex(low: "LowerLevel", x: np.ndarray, y_lb: np.ndarray, y_ub: np.ndarray,
+                  x_ub: np.ndarray | None = None) -> bool:
+    """True when interval bounds (interval.py) prove every lower Hessian PSD at upper point x (or, given x_ub, at
+    every point of the upper box [x, x_ub]) for all y in the box [y_lb, y_ub]: then the lower level there is convex
+    on a convex set containing its feasible set, and a local lower solution is global. False means not proven (not
+    that it is non-convex)."""
     for compiled in low.curvature_functions():
         fun = compiled.fun
-        boxes = [(x, x), (y_lb, y_ub)] + ([(compiled.params.value,) * 2] if compiled.params is not None else [])
+        boxes = [(x, x if x_ub is None else x_ub), (y_lb, y_ub)] + ([(compiled.params.value,) * 2]
+                                                                   if compiled.params is not None else [])
         enclosures = enclose(fun, boxes)
         if enclosures is None:
             return False
