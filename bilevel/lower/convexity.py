@@ -12,6 +12,7 @@ import numpy as np
 
 from ..defaults import param
 from ..errors import NonConvexLowerLevel
+from .curvature import convex_by_rules
 from .interval import enclose
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -143,6 +144,17 @@ def _gershgorin_psd(lo: np.ndarray, hi: np.ndarray) -> bool:
     finite = size[np.isfinite(size)]
     scale = max(1.0, float(finite.max(initial=0.0)))
     return bool(np.all(np.diag(lo) - off >= -param("convexity.psd_tol") * scale))
+
+
+def convex_on_box(low: "LowerLevel", x: np.ndarray, y_lb: np.ndarray, y_ub: np.ndarray,
+                  x_ub: np.ndarray | None = None) -> bool:
+    """True when the lower level is proven convex in y at x (or on the upper box [x, x_ub]) for all y in [y_lb, y_ub]:
+    by interval bounds on its Hessians (proven_convex) or by composition rules on f and g (curvature.py)."""
+    if proven_convex(low, x, y_lb, y_ub, x_ub):
+        return True
+    expr = low.symbolic()
+    functions = expr.params.substitute(ca.vertcat(expr.f, expr.g))
+    return convex_by_rules(expr.x, expr.y, functions, (x, x if x_ub is None else x_ub), (y_lb, y_ub))
 
 
 def proven_convex(low: "LowerLevel", x: np.ndarray, y_lb: np.ndarray, y_ub: np.ndarray,

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..defaults import param
 from ..errors import ModelError, NonConvexLowerLevel
-from ..lower.convexity import proven_convex, require_convex_everywhere
+from ..lower.convexity import convex_on_box, require_convex_everywhere
 from ..mpcc import ScalarPair
 from ..parameters import ParameterSet, scalar
 from .base import Prepared
@@ -187,16 +187,17 @@ def _require_convex_on_box(low: LowerLevel, x_lb: np.ndarray, x_ub: np.ndarray) 
 def _require_proven_convex(low: LowerLevel, canon: CanonicalBilevel) -> None:
     """A convex NLP lower level is convex at every x of the declared upper box for every y of the declared lower
     box (a convex set holding its feasible set): interval bounds on its Hessians (lower/interval.py) with
-    Gershgorin's discs prove it; a ModelError naming the class otherwise (not proven is not non-convex)."""
+    Gershgorin's discs, or composition rules on f and g (lower/curvature.py), prove it; a ModelError naming the class
+    otherwise (not proven is not non-convex)."""
     n_y = low.n_y
     y_lb = np.full(n_y, -np.inf) if canon.y_lb is None else canon.y_lb
     y_ub = np.full(n_y, np.inf) if canon.y_ub is None else canon.y_ub
-    if not proven_convex(low, canon.x_lb, y_lb, y_ub, canon.x_ub):
+    if not convex_on_box(low, canon.x_lb, y_lb, y_ub, canon.x_ub):
         raise ModelError("method 'global' proves a convex NLP lower level convex on the declared box before trusting "
                          "its KKT conditions; interval bounds on the Hessians of its objective and nonlinear rows "
                          "over the upper box times the lower variables' bounds do not prove them positive "
-                         "semidefinite (class: lower level not provably convex on the box; declare tighter bounds on "
-                         f"x and y, or {LOCAL_METHODS})")
+                         "semidefinite, nor do composition rules prove them convex (class: lower level not provably "
+                         f"convex on the box; declare tighter bounds on x and y, or {LOCAL_METHODS})")
 
 
 def _refuse(nonconvex: str) -> ModelError:

@@ -75,6 +75,24 @@ def _corners(x_lb: np.ndarray, x_ub: np.ndarray, dims: np.ndarray) -> list[np.nd
     return points
 
 
+def _box_max(exprs: ca.SX, x: ca.SX, box: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
+    """An upper bound on each entry of exprs (in x only) over the box: exact for an entry affine in x (its value at
+    the centre plus |gradient| times the half-widths), an interval enclosure otherwise; None where none exists."""
+    lo, hi = box
+    finite = np.isfinite(lo) & np.isfinite(hi)
+    centre, half = np.where(finite, 0.5 * (lo + hi), 0.0), np.where(finite, 0.5 * (hi - lo), np.inf)
+    enclosed = enclose(ca.Function("box_max", [x], [ca.densify(exprs)]), [box])
+    bounds = np.full(int(exprs.numel()), np.inf) if enclosed is None else enclosed[0][1].copy()
+    for i in range(int(exprs.numel())):
+        grad = ca.gradient(exprs[i], x)
+        if not ca.depends_on(grad, x):
+            at = ca.Function("affine_at", [x], [exprs[i], grad])
+            value, slope = (np.asarray(v, dtype=float).ravel() for v in at(centre))
+            moving = slope != 0.0
+            bounds[i] = min(bounds[i], float(value[0] + np.abs(slope[moving]) @ half[moving]))
+    return bounds if np.all(np.isfinite(bounds)) else None
+
+
 def _slater_point(x: ca.SX, y: ca.SX, g: ca.SX, corners: list[np.ndarray], y_start: np.ndarray
                   ) -> tuple[np.ndarray, float]:
     """(y, s): the largest common margin s <= 1 of the rows g at the given upper points (IPOPT)."""
@@ -106,28 +124,35 @@ def slater_bounds(x: ca.SX, y: ca.SX, f: ca.SX, g: ca.SX, h: ca.SX, names: list[
         raise _refuse("the lower rows or objective depend on upper variables without finite bounds; declare bounds "
                       "on them")
     point, margin = _slater_point(x, y, g_rows, _corners(x_lb, x_ub, dims), y_start)
-    rows_at = enclose(ca.Function("rows_at", [x], [ca.densify(ca.substitute(g_rows, y, ca.DM(point)))]), [x_box])
-    if not np.all(np.isfinite(point)) or rows_at is None:
+    rows_at = _box_max(ca.substitute(g_rows, y, ca.DM(point)), x, x_box) if np.all(np.isfinite(point)) else None
+    if rows_at is None:
         raise _refuse("no Slater point was found")
-    margins = -rows_at[0][1]
+    margins = -rows_at
     if not np.all(margins > 0.0):
         tight = [names[i] for i, s in zip(rows, margins) if not s > 0.0]
         raise _refuse(f"no point satisfies the lower rows {', '.join(tight)} strictly at every x of the upper box "
                       f"(the best common margin found is {margin:.3g}): Slater's condition is not shown")
-    f_fun = ca.Function("f_box", [x, y], [f])
-    high = enclose(f_fun, [x_box, (point, point)])
+    high = _box_max(ca.substitute(f, y, ca.DM(point)), x, x_box)
     n_x = int(x.numel())
-    low = enclose(f_fun, [(xy_box[0][:n_x], xy_box[1][:n_x]), (xy_box[0][n_x:], xy_box[1][n_x:])])
-    if high is None or low is None or not (np.isfinite(high[0][1]) and np.isfinite(low[0][0])):
+    low = enclose(ca.Function("f_box", [x, y], [f]), [(xy_box[0][:n_x], xy_box[1][:n_x]),
+                                                      (xy_box[0][n_x:], xy_box[1][n_x:])])
+    if high is None or low is None or not (np.isfinite(high[0]) and np.isfinite(low[0][0][0])):
         raise _refuse("the lower objective has no finite range on the derived box of (x, y); declare bounds on the "
                       "lower variables")
-    f_high, f_low = float(high[0][1][0]), float(low[0][0][0])
+    f_high, f_low = float(high[0]), float(low[0][0][0])
     safety = param("global.bigm_safety")
     bounds = np.full(int(g.numel()), np.inf)
     bounds[rows] = max(f_high - f_low, 0.0) / margins * (1.0 + safety) + safety
     all_margins = np.full(int(g.numel()), np.nan)
     all_margins[rows] = margins
     return SlaterBounds(point, all_margins, f_low, f_high, bounds, tuple(names))
+
+
+def curved_rows(prep: Prepared) -> bool:
+    """True when some lower row is nonlinear in y: Slater's condition is then what makes the KKT conditions
+    necessary (affine rows need no constraint qualification)."""
+    low = prep.canon.lower.symbolic()
+    return any(ca.depends_on(ca.jacobian(low.g[i], low.y), low.y) for i in range(int(low.g.numel())))
 
 
 def bound_multipliers(prep: Prepared, form: LinearMPCC, box: tuple[np.ndarray, np.ndarray], big_m: BigM,
@@ -144,8 +169,10 @@ def bound_multipliers(prep: Prepared, form: LinearMPCC, box: tuple[np.ndarray, n
     x_cols = prep.mpcc.blocks["x"]
     y_cols = prep.mpcc.blocks["y"]
     xy = (np.concatenate([box[0][x_cols], box[0][y_cols]]), np.concatenate([box[1][x_cols], box[1][y_cols]]))
-    y_start = np.clip(0.5 * (xy[0][low.n_x:] + xy[1][low.n_x:]), -1e6, 1e6)
-    y_start = np.where(np.isfinite(y_start), y_start, 0.0)
+    y_lo, y_hi = xy[0][low.n_x:], xy[1][low.n_x:]
+    y_start = np.clip(0.0, y_lo, y_hi)
+    both = np.isfinite(y_lo) & np.isfinite(y_hi)
+    y_start[both] = 0.5 * (y_lo[both] + y_hi[both])
     slater = slater_bounds(low.x, low.y, sub(low.f), sub(low.g), sub(low.h), list(low.g_names),
                            (canon.x_lb, canon.x_ub), xy, y_start)
     lo, hi = box[0].copy(), box[1].copy()
