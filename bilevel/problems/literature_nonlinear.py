@@ -144,16 +144,16 @@ def bolib_allendestill2013() -> BilevelProblem:
     source=f"{_BOLIB} Outrata1990Ex2e, F* = 0.9, f* = -14.94 (flag 2: best known, rounded); {_OUTRATA_1990}, "
            "Example 2(e)",
     optimum=0.89745982, solution={"x": [3.99853521], "y": [1.66500895, 3.8872235]}, lower_optimum=None,
-    tags=("quadratic-quadratic", "x-matrix", "textbook"))
-def bolib_outrata1990ex2e() -> BilevelProblem:
+    tags=("quadratic-quadratic", "x-matrix", "textbook"), defaults={"x_ub": 10.0})
+def bolib_outrata1990ex2e(x_ub: float = 10.0) -> BilevelProblem:
     """A strictly convex QP follower whose constraint rows (x/10 - 0.333) y1 + y2 <= x and y1 - (x/10 + 0.333) y2
     <= 2 and Hessian diag(1 + x, 1) depend on x; the leader wants y near (3, 4).
 
     BOLIB bounds x below only; the declared x <= 10 holds the optimum (x* = 3.998), and the brute-force test finds
-    nothing better on [0, 20].
+    nothing better on [0, 20] (x_ub=20).
     """
     p = BilevelProblem()
-    x = p.upper_variable("x", 1, lb=0, ub=10)
+    x = p.upper_variable("x", 1, lb=0, ub=x_ub)
     y = p.lower_variable("y", 2, lb=0, ub=20)
     p.minimize_upper(0.5 * (y[0] - 3) ** 2 + 0.5 * (y[1] - 4) ** 2)
     p.minimize_lower(0.5 * (x + 1) * y[0] ** 2 - (1.333 * x + 3) * y[0] - x * y[1] + 0.5 * y[1] ** 2)
@@ -167,16 +167,16 @@ def bolib_outrata1990ex2e() -> BilevelProblem:
     source=f"{_BOLIB} Outrata1993Ex31, F* = 1.56, f* = -11.68 (flag 2: best known, rounded); Outrata (1993), "
            "'Necessary optimality conditions for Stackelberg problems', JOTA 76:305-320, Example 3.1",
     optimum=1.56287383, solution={"x": [1.90951797], "y": [2.97858787, 2.23215126]}, lower_optimum=None,
-    tags=("quadratic-quadratic", "x-matrix", "textbook"))
-def bolib_outrata1993ex31() -> BilevelProblem:
+    tags=("quadratic-quadratic", "x-matrix", "textbook"), defaults={"x_ub": 10.0})
+def bolib_outrata1993ex31(x_ub: float = 10.0) -> BilevelProblem:
     """Outrata's Example 2 with x also in the right-hand sides and in both diagonal Hessian entries.
 
     Rows (x/10 - 0.333) y1 + y2 <= 2 - x/10 and y1 - (x/10 + 0.333) y2 <= 2 - x/10; Hessian diag(x/5 + 1,
     x/10 + 1). BOLIB bounds x below only; the declared x <= 10 holds the optimum (x* = 1.91), and the brute-force
-    test finds nothing better on [0, 20].
+    test finds nothing better on [0, 20] (x_ub=20).
     """
     p = BilevelProblem()
-    x = p.upper_variable("x", 1, lb=0, ub=10)
+    x = p.upper_variable("x", 1, lb=0, ub=x_ub)
     y = p.lower_variable("y", 2, lb=0, ub=20)
     p.minimize_upper(0.5 * (y[0] - 3) ** 2 + 0.5 * (y[1] - 4) ** 2)
     p.minimize_lower((x / 10 + 0.5) * y[0] ** 2 - x * y[1] - (1.333 * x + 3) * y[0] + (x / 20 + 0.5) * y[1] ** 2)
@@ -190,17 +190,17 @@ def bolib_outrata1993ex31() -> BilevelProblem:
     source=f"{_BOLIB} Outrata1993Ex32, F* = 3.208, f* = -20.531 (flag 2: best known, rounded); Outrata (1993), "
            "'Necessary optimality conditions for Stackelberg problems', JOTA 76:305-320, Example 3.2",
     optimum=3.20770002, solution={"x": [4.06040643], "y": [2.68224443, 1.48714675]}, lower_optimum=None,
-    tags=("quadratic-quadratic", "nonlinear-convex", "convex-nlp", "textbook"))
-def bolib_outrata1993ex32() -> BilevelProblem:
+    tags=("quadratic-quadratic", "nonlinear-convex", "convex-nlp", "textbook"), defaults={"x_ub": 10.0})
+def bolib_outrata1993ex32(x_ub: float = 10.0) -> BilevelProblem:
     """A convex quadratic constraint y1^2 + y2^2 <= 9 + x/10 and the row y2 - 0.333 y1 <= 1 - x/10 on Outrata's
     follower with Hessian diag(x/5 + 1, x/10 + 1).
 
     BOLIB bounds x below only; the declared x <= 10 holds the optimum (x* = 4.06), and the brute-force test finds
-    nothing better on [0, 20]; the declared y <= 4 never binds (the disc keeps |y| <= sqrt(10)) and gives the
+    nothing better on [0, 20] (x_ub=20); the declared y <= 4 never binds (the disc keeps |y| <= sqrt(10)) and gives the
     multiplier bound its range of f.
     """
     p = BilevelProblem()
-    x = p.upper_variable("x", 1, lb=0, ub=10)
+    x = p.upper_variable("x", 1, lb=0, ub=x_ub)
     y = p.lower_variable("y", 2, lb=0, ub=4)
     p.minimize_upper(0.5 * (y[0] - 3) ** 2 + 0.5 * (y[1] - 4) ** 2)
     p.minimize_lower((x / 10 + 0.5) * y[0] ** 2 - x * y[1] - (1.333 * x + 3) * y[0] + (x / 20 + 0.5) * y[1] ** 2)
