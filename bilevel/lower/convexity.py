@@ -136,14 +136,20 @@ def _dense(fun: ca.Function, k: int, nonzeros: np.ndarray) -> np.ndarray:
     return out
 
 
-def _gershgorin_psd(lo: np.ndarray, hi: np.ndarray) -> bool:
-    """Every symmetric matrix with entries in [lo, hi] is PSD (up to defaults["convexity.psd_tol"]): each diagonal lower
-    bound covers the row's largest possible off-diagonal sum."""
+def _interval_psd(lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Every symmetric matrix with entries in [lo, hi] is PSD (up to defaults["convexity.psd_tol"]): by Gershgorin's
+    discs (each diagonal lower bound covers the row's largest possible off-diagonal sum), or by Weyl's inequality
+    (the midpoint's smallest eigenvalue is at least the spectral norm of the radius, here bounded by its Frobenius
+    norm), which is exact for a constant matrix."""
     size = np.maximum(np.abs(lo), np.abs(hi))
     off = np.where(np.eye(size.shape[0], dtype=bool), 0.0, size).sum(axis=1)
     finite = size[np.isfinite(size)]
-    scale = max(1.0, float(finite.max(initial=0.0)))
-    return bool(np.all(np.diag(lo) - off >= -param("convexity.psd_tol") * scale))
+    tol = param("convexity.psd_tol") * max(1.0, float(finite.max(initial=0.0)))
+    if np.all(np.diag(lo) - off >= -tol):
+        return True
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        return False
+    return min_eigenvalue(0.5 * (lo + hi)) - float(np.linalg.norm(0.5 * (hi - lo))) >= -tol
 
 
 def convex_on_box(low: "LowerLevel", x: np.ndarray, y_lb: np.ndarray, y_ub: np.ndarray,
@@ -171,6 +177,6 @@ def proven_convex(low: "LowerLevel", x: np.ndarray, y_lb: np.ndarray, y_ub: np.n
         if enclosures is None:
             return False
         for k, (lo, hi) in enumerate(enclosures):
-            if not _gershgorin_psd(_dense(fun, k, lo), _dense(fun, k, hi)):
+            if not _interval_psd(_dense(fun, k, lo), _dense(fun, k, hi)):
                 return False
     return True
