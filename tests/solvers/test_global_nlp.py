@@ -22,26 +22,15 @@ from hypothesis import strategies as st
 from scipy.optimize import minimize_scalar
 
 import bilevel as bl
-from bilevel.experiments.compare import relative_gap
 from bilevel.problems import registry
 from bilevel.problems.random_convex import ConvexData, build_convex_bilevel, random_convex_data
 
 from ..problems.bruteforce import BruteForce, search
+from .test_global_scip import GAP, _check_proven
 
 pytest.importorskip("pyscipopt")
 
 NONLINEAR_LOWER = sorted({*registry.names("convex-nlp"), *registry.names("x-matrix"), "bolib-floudaszlobec1998"})
-GAP = 1e-6
-
-
-def _check_proven(res: bl.BilevelResult, known: float) -> None:
-    gb = res.certificate.global_bound
-    assert res.status is bl.Status.SOLVED, res.message
-    assert res.stats["algorithm"].startswith("scip")
-    assert res.certificate.passed and gb is not None and gb.proven and gb.gap <= GAP
-    assert relative_gap(res.upper_objective, known) <= GAP, (res.upper_objective, known)
-    slack = GAP * max(1.0, abs(known))
-    assert gb.lower_bound - slack <= known <= gb.upper_bound + slack, (gb, known)
 
 
 def test_the_set_holds_six_convex_nlp_and_two_x_matrix_literature_problems() -> None:
