@@ -38,8 +38,8 @@ def main() -> None:
         times.append(tg)
         ratios.append(tg / ti)
         errors.append(abs(res.upper_objective - known) / max(1.0, abs(known)) / max(gb.gap, gb.tolerance))
-        print(f"| {name:<26} | {known:>12.8g} | {gb.lower_bound:>14.10g} | {gb.upper_bound:>14.10g} | {gb.gap:>8.1e} | "
-              f"{gb.nodes:>5} | {'proven' if proven else res.status.value:<8} | {tg:>10.3f} | "
+        print(f"| {name:<26} | {known:>12.8g} | {gb.lower_bound:>14.10g} | {gb.upper_bound:>14.10g} | "
+              f"{gb.gap:>8.1e} | {gb.nodes:>5} | {'proven' if proven else res.status.value:<8} | {tg:>10.3f} | "
               f"{ri.upper_objective:>12.8g} | {ti:>9.3f} | {tg / ti:>5.2f} |", flush=True)
     print(f"\n{len(NAMES)} problems; median time {statistics.median(times):.3f} s, worst {max(times):.3f} s; median ratio "
           f"global / ipopt {statistics.median(ratios):.2f}; largest |F - F*| / max(1, |F*|) over the stated gap (or "
@@ -82,7 +82,8 @@ def auto_table() -> None:
           f"{sum(reached(n, r) for n, *_, r in rows)} solved at F*, {sum(r[3] for r in rows):.1f} s in all")
     for name, t_auto, res, t_local, local in rows:
         if not reached(name, res) or res.method != "global":
-            print(f"  {name}: auto took {res.method} ({res.status.value}, F = {res.upper_objective:.8g}, {t_auto:.2f} s)")
+            print(f"  {name}: auto took {res.method} ({res.status.value}, F = {res.upper_objective:.8g}, "
+                  f"{t_auto:.2f} s)")
         if not reached(name, local):
             print(f"  {name}: the local rule ends {local.status.value} at F = {local.upper_objective:.8g} "
                   f"(F* = {known[name]:.8g})")

@@ -215,9 +215,9 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
     nlp = low.kind == "nlp"
     if low.kind not in ("lp", "qp", "least-squares") and not (nlp and nonconvex_leader):
         fix = SCIP_FIX if nlp else NOT_IN_SCIP
-        raise ModelError(f"method 'global' handles LP and convex-QP lower levels with affine constraints, and convex NLP "
-                         f"ones with algorithm 'scip'; this lower level is of kind {low.kind!r} (class: nonlinear lower "
-                         f"level; {fix}); {LOCAL_METHODS}")
+        raise ModelError(f"method 'global' handles LP and convex-QP lower levels with affine constraints, and convex "
+                         f"NLP ones with algorithm 'scip'; this lower level is of kind {low.kind!r} (class: nonlinear "
+                         f"lower level; {fix}); {LOCAL_METHODS}")
     mpcc = prep.mpcc
     w = mpcc.w
     canon = prep.canon
