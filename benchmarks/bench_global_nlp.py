@@ -42,8 +42,8 @@ def main() -> None:
               f"{gb.gap:>8.1e} | {gb.nodes:>5} | {'proven' if proven else res.status.value:<8} | {tg:>10.3f} | "
               f"{ri.upper_objective:>12.8g} | {ti:>9.3f} | {tg / ti:>5.2f} |", flush=True)
     print(f"\n{len(NAMES)} problems; median time {statistics.median(times):.3f} s, worst {max(times):.3f} s; "
-          f"median ratio global / ipopt {statistics.median(ratios):.2f}; largest |F - F*| / max(1, |F*|) over the stated gap (or "
-          f"its tolerance) {max(errors):.2f}")
+          f"median ratio global / ipopt {statistics.median(ratios):.2f}; largest |F - F*| / max(1, |F*|) over the "
+          f"stated gap (or its tolerance) {max(errors):.2f}")
     auto_table()
     print(f"# load average at end: {', '.join(f'{v:.2f}' for v in os.getloadavg())}")
 
