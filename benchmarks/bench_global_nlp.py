@@ -22,7 +22,7 @@ NAMES = sorted({*registry.names("convex-nlp"), *registry.names("x-matrix"), "bol
 
 
 def main() -> None:
-    header()
+    header("bench_global_nlp.py")
     print(f"\n## Convex-NLP and x-dependent-matrix lower levels, method='global' (median of {REPEATS} runs) vs ipopt "
           "(8 starts)")
     print(f"| {'problem':<26} | {'F*':>12} | {'lower bound':>14} | {'upper bound':>14} | {'gap':>8} | {'nodes':>5} | "
