@@ -43,7 +43,7 @@ non-convex bilevel program).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -161,7 +161,9 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
     if canon.lower_reference is not None:
         ref = canon.lower_reference(canon.x, x, y)
         unique = None if low.psd else _reduced_hessian_unique(low, x, low.solve(x), tol)
-        return ref, 0.0, unique, f"independent re-solve: {ref.solver}"
+        face = _on_face(low, x, ref, tol)
+        return face, 0.0, unique, f"independent re-solve: {ref.solver}" + (
+            "; y from the canonical re-solve polished onto its optimal face (the same value)" if face is not ref else "")
     if low.kind != "nlp":
         ref = low.reference_solve(x)
         return ref, 0.0, _reduced_hessian_unique(low, x, ref, tol), ""
@@ -184,6 +186,22 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
     note = (f"nonlinear lower level: re-solved by IPOPT from {len(starts)} starts ({len(sols)} converged), "
             "local evidence, not a proof of lower-level optimality")
     return best, spread, unique, note
+
+
+def _on_face(low: "LowerLevel", x: np.ndarray, ref, tol: float):
+    """The user's re-solve with y replaced by the canonical LP/QP re-solve polished onto its optimal face, where both
+    reach the same value within tol: an interior-point solve of the user's formulation stops ~sqrt(eps) off a
+    degenerate face (e.g. DeePC's l1 slack penalty: 5e-5 in y at equal values), which would fail a correct y. Values
+    differing (a wrong canonical form) keep the user's y."""
+    if low.kind == "nlp" or low.psd:
+        return ref
+    try:
+        own = low.reference_solve(x)
+    except BilevelError:
+        return ref
+    if abs(own.objective - ref.objective) > tol * (1.0 + abs(ref.objective)):
+        return ref
+    return replace(ref, y=own.y)
 
 
 def _dual_bound(low: "LowerLevel", x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarray,
