@@ -151,6 +151,8 @@ def solve_global(prep: Prepared, *, algorithm: str = "auto", time_limit: float |
     history = [h if sense == "min" else {"node": h["node"], "lower": -h["upper"], "upper": -h["lower"]}
                for h in outcome.history]  # the bounds' trajectory, in the declared sense like the bounds
     summary = f"{name}: bounds [{low:.10g}, {high:.10g}], relative gap {gap:.2e}, {outcome.nodes} nodes"
+    if outcome.note:
+        summary += f"; {outcome.note}"
     if use_scip and free and not proven:
         summary += (f"; {', '.join(free)} enter nonconvex terms with no finite bound, which SCIP's relaxation needs: "
                     "declare bounds on them")

@@ -24,6 +24,7 @@ from scipy.optimize import minimize_scalar
 import bilevel as bl
 from bilevel.problems import registry
 from bilevel.problems.random_convex import ConvexData, build_convex_bilevel, random_convex_data
+from bilevel.solvers import global_scip
 
 from ..problems.bruteforce import BruteForce, search
 from .test_global_scip import GAP, _check_proven
@@ -133,3 +134,18 @@ def test_random_quadratic_constraint_lower_matches_brute_force(seed: int, n_y: i
     slack = GAP * max(1.0, abs(brute))  # the method's stated gap
     assert gb.lower_bound <= brute + slack, (gb.lower_bound, brute)  # the proven bound holds at the brute-force point
     assert abs(res.upper_objective - brute) <= slack, (res.upper_objective, brute)
+
+
+def test_an_internal_scip_error_is_a_status_with_its_cause(monkeypatch) -> None:
+    """SCIP raising inside optimize (as on BOLIB's GumusFloudas2001Ex1, LP numerics at feastol 1e-9) ends the search
+    with status error and SCIP's message, never an exception out of solve."""
+    class Failing:
+        def setParam(self, name: str, value: object) -> None:
+            pass
+
+        def optimize(self) -> None:
+            raise Exception("SCIP: error in LP solver!")
+
+    monkeypatch.setattr(global_scip, "_build", lambda *args: (Failing(), []))
+    res = bl.solve(registry.get("bolib-colson2002bipa1"), method="global")
+    assert res.status is bl.Status.ERROR and "error in LP solver" in res.message and "scip_feastol" in res.message
