@@ -52,14 +52,15 @@ class SlaterBounds:
         """One line for the point and the range, one per bounded multiplier."""
         head = (f"multiplier bounds from the Slater point y^ = {np.array2string(self.point, precision=4)}: "
                 f"lam_i <= (max f(x, y^) = {self.f_high:.6g} - min f = {self.f_low:.6g}) / s_i, s_i = -max_x g_i(x, y^)"
-                " (interval enclosures over the upper box)",)
+                " over the upper box (exact for rows affine in x, interval enclosures otherwise)",)
         return head + tuple(f"{n}: lam <= {b:.6g} (s = {s:.4g})" for n, s, b in zip(self.names, self.margins,
                                                                                    self.bounds) if np.isfinite(b))
 
 
 def _refuse(what: str) -> ModelError:
-    return ModelError(f"method 'global' needs bounds on the lower multipliers that enter products in the KKT "
-                      f"stationarity, derived from a Slater point; {what} ({CLASS}); {LOCAL_METHODS}")
+    return ModelError("method 'global' needs a Slater point of the lower level (for its KKT conditions to be "
+                      "necessary at rows nonlinear in y, and for bounds on the multipliers that enter products in the "
+                      f"KKT stationarity); {what} ({CLASS}); {LOCAL_METHODS}")
 
 
 def _corners(x_lb: np.ndarray, x_ub: np.ndarray, dims: np.ndarray) -> list[np.ndarray]:
