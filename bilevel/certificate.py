@@ -51,7 +51,7 @@ import numpy as np
 from .canonical import in_sense
 from .defaults import param
 from .errors import BilevelError
-from .lower.convexity import convexity_violation, proven_convex, psd_from_eigen, psd_violation, symmetric_eigen
+from .lower.convexity import convex_on_box, convexity_violation, psd_from_eigen, psd_violation, symmetric_eigen
 from .sampling import sample_in_bounds
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -332,7 +332,7 @@ def certify_point(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | Non
         checks["lower_solution"] = (abs(F - F_ref) / (slack / tol) if np.isfinite(F) else np.inf,
                                     f"y is {y_distance:.2e} from the unique re-solved y; F there = "
                                     f"{in_sense(F_ref, sense):.10g}")
-    proven = low.kind != "nlp" or proven_convex(low, x, *_y_box(canon))
+    proven = low.kind != "nlp" or convex_on_box(low, x, *_y_box(canon))
     if not proven:
         note = "; ".join(filter(None, [note, LOCAL_EVIDENCE]))
     checks["upper_objective"] = (0.0 if np.isfinite(F) else np.inf, "" if np.isfinite(F) else f"F = {F}")
