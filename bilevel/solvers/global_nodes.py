@@ -18,6 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import linprog
 
+from ..lower.quadratic import clarabel_settings
 from .global_form import LinearMPCC
 
 G_SIDE, H_SIDE = 0, 1
@@ -151,11 +152,8 @@ class Relaxation:
         A = np.vstack([A_eq, self.A_ub, -eye[lo], eye[hi]])
         b = np.concatenate([b_eq, self.b_ub, -f.lb[lo], f.ub[hi]])
         cones = ([clarabel.ZeroConeT(b_eq.size)] if b_eq.size else []) + [clarabel.NonnegativeConeT(b.size - b_eq.size)]
-        settings = clarabel.DefaultSettings()
-        settings.verbose = False
-        settings.tol_gap_abs = settings.tol_gap_rel = settings.tol_feas = 1e-10
-        settings.tol_ktratio = 1e-8
-        sol = clarabel.DefaultSolver(sp.csc_matrix(np.triu(f.Q)), f.c, sp.csc_matrix(A), b, cones, settings).solve()
+        sol = clarabel.DefaultSolver(sp.csc_matrix(np.triu(f.Q)), f.c, sp.csc_matrix(A), b, cones,
+                                     clarabel_settings()).solve()
         status = str(sol.status)
         if status == "Solved":
             w = np.asarray(sol.x)
