@@ -24,16 +24,13 @@ import os
 import platform
 import subprocess
 import sys
-import time
 from datetime import datetime, timezone
 
 import numpy as np
 
 from bilevel.ddc.stealth_check import check_stealth
-from bilevel.experiments.identification import METHOD
-from bilevel.experiments.identification_paper import DELTAS, PUBLISHED_MEDIANS, dataset_path, load_dataset, \
-    paper_instance
-from bilevel.problems.identification import problem_for
+from bilevel.experiments.identification_paper import DELTAS, MONOTONE_FROM, PUBLISHED_MEDIANS, dataset_path, \
+    load_dataset, paper_attack, paper_method, true_parameters
 from bilevel.threads import single_threaded
 
 RUNNER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "authors_slsqp_runner.py")
@@ -63,13 +60,8 @@ def authors_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[
 
 
 def engine_row(T: int, sim: int, delta: float, folder: str) -> dict:
-    data = load_dataset(dataset_path(folder, T, sim))
-    atk = paper_instance(data, delta)
-    cpu = time.process_time()
-    result = problem_for(atk).solve(**METHOD, seed=0)
-    cpu = time.process_time() - cpu
-    dX, dU = (np.reshape(result.x[k], atk.signals[k[1:]].shape) for k in ("dX", "dU"))
-    return {**check_stealth(data.X, data.U, dX, dU, delta), "cpu_time": cpu, "status": result.status.value}
+    run = paper_attack(load_dataset(dataset_path(folder, T, sim)), delta)
+    return {**run.check, "cpu_time": run.cpu_time, "status": run.result.status.value}
 
 
 def authors_check(row: dict, folder: str) -> dict:
@@ -95,15 +87,13 @@ def main() -> None:
     print(f"# bench_identification_authors  {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC  {platform.node()}  "
           f"{platform.processor() or platform.machine()}  cores={os.cpu_count()}  python {platform.python_version()}  "
           f"load {os.getloadavg()[0]:.1f}")
-    print(f"engine {METHOD}, stealth_kind 'authors'; the authors' SLSQP (their code, 100 iterations); one thread "
-          "each; CPU seconds per attack; stealthy: the independent numpy check of their constraints, tol 1e-6\n")
+    print(f"engine {paper_method(100)} (from T = {MONOTONE_FROM}: {paper_method(MONOTONE_FROM)}), stealth_kind "
+          "'authors'; the authors' SLSQP (their code, 100 iterations); one thread each; CPU seconds per attack; "
+          "stealthy: the independent numpy check of their constraints, tol 1e-6\n")
     theirs = authors_rows(args, plan)
     ours = {}
     with single_threaded():
         for T in horizons:
-            first = next(s for t, s in plan if t == T)
-            problem_for(paper_instance(load_dataset(dataset_path(args.data, T, first)), DELTAS[0])).solve(
-                **METHOD, seed=0)  # warm-up: declaration and compilation, once per process
             for t, sim in plan:
                 if t == T:
                     for d in DELTAS:
@@ -137,6 +127,20 @@ def main() -> None:
           f"or SLSQP not stealthy on {counts[2]}/{counts[0]}")
     print("* of ||[A B]' - [A B]_true||_2 for their best of 10 starts, read off their figure (T = 500); the columns "
           "beside are ||[A B]' - [A B]_clean||_2 of one start (theirs: seed 0)")
+    print("\nThe engine on every data set it ran (with or without an SLSQP row):\n")
+    print("| T | delta | data sets | stealthy | solved | median ||d[A B]||_2 | median ||[A B]' - [A B]_true||_2 | "
+          "authors' published median | median CPU s | total CPU s |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    truth = true_parameters()
+    for T in horizons:
+        for d in DELTAS:
+            e = [v for (t, _, dd), v in ours.items() if t == T and dd == d]
+            pub = PUBLISHED_MEDIANS.get(T, {}).get(d)
+            print(f"| {T} | {d} | {len(e)} | {sum(x['stealthy'] for x in e)} | "
+                  f"{sum(x['status'] == 'solved' for x in e)} | {np.median([x['norm2'] for x in e]):.3f} | "
+                  f"{np.median([np.linalg.norm(x['AB'] - truth, 2) for x in e]):.3f} | {'-' if pub is None else pub} | "
+                  f"{np.median([x['cpu_time'] for x in e]):.3f} | {sum(x['cpu_time'] for x in e):.1f} |")
+    print(f"\n# load at the end {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":
