@@ -4,16 +4,18 @@ on their own data sets, side by side, every answer judged by the independent num
 Their code (rssalessio/data-poisoning-linear-systems, example_stealthy_attack: algorithm.py's ComputeAttack, SLSQP
 with torch derivatives, 100 iterations, bounds [-0.5, 0.5], their start: 1e-5 normals from numpy seed 0) runs in their
 own environment through benchmarks/authors_slsqp_runner.py, one process per data set, one torch/BLAS thread; its rows
-are kept in a JSONL file (--results) and not rerun. The engine (bilevel.experiments.identification_paper: stealth_kind
-"authors", objective ||d[A B]||_2, bilevel.experiments.identification.METHOD) runs here with one BLAS thread on the
-same (T, data set, delta), after one warm-up attack per T (declaration and compilation, once per process). CPU times
-are time.process_time of each side's attack. Both answers are checked by bilevel.ddc.stealth_check (tolerance 1e-6).
+are kept in a JSONL file (--results) and not rerun. The engine (bilevel.experiments.identification_paper.paper_attack:
+stealth_kind "authors", objective ||d[A B]||_2, paper_method(T)) runs here with one BLAS thread on the same (T, data
+set, delta), after one warm-up attack per T (declaration and compilation, once per process); its rows are kept in
+--engine-results the same way. CPU times are time.process_time of each side's attack. Both answers are checked by
+bilevel.ddc.stealth_check (tolerance 1e-6).
 
 Run: python benchmarks/bench_identification_authors.py --authors DIR --python PY --data DIR [--horizons 100,500]
-[--sims 10] [--sims-500 N] [--results FILE] [--recorded-only]; DIR: their example_stealthy_attack folder, PY: a
-python with torch (CPU), numpy, scipy and momentchi2 (docs/identification.md: `python3 -m venv V && V/bin/pip install
-torch numpy scipy momentchi2`), --data: their extracted datasets folder. Output:
-benchmarks/results/bench_identification_authors.txt.
+[--sims 10] [--sims-500 N] [--results FILE] [--engine-results FILE] [--recorded-only]; DIR: their
+example_stealthy_attack folder, PY: a python with torch (CPU), numpy, scipy and momentchi2 (docs/identification.md:
+`python3 -m venv V && V/bin/pip install torch numpy scipy momentchi2`), --data: their extracted datasets folder.
+Output: benchmarks/results/bench_identification_authors.txt. The side-by-side table is over the (T, data set, delta)
+both sides have; the second table is the engine's on every data set of the plan.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import numpy as np
 
 from bilevel.ddc.stealth_check import check_stealth
 from bilevel.experiments.identification_paper import DELTAS, MONOTONE_FROM, PUBLISHED_MEDIANS, dataset_path, \
-    load_dataset, paper_attack, paper_method, true_parameters
+    load_dataset, PaperAttack, paper_attack, paper_method, true_parameters
 from bilevel.threads import single_threaded
 
 RUNNER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "authors_slsqp_runner.py")
@@ -59,9 +61,29 @@ def authors_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[
     return rows
 
 
-def engine_row(T: int, sim: int, delta: float, folder: str) -> dict:
-    run = paper_attack(load_dataset(dataset_path(folder, T, sim)), delta)
-    return {**run.check, "cpu_time": run.cpu_time, "status": run.result.status.value}
+def engine_row(T: int, sim: int, delta: float, run: PaperAttack) -> dict:
+    return {"T": T, "sim": sim, "delta": delta, "norm2": run.check["norm2"], "stealthy": run.check["stealthy"],
+            "AB": run.check["AB"].tolist(), "cpu_time": run.cpu_time, "status": run.result.status.value,
+            "iterations": run.result.nit}
+
+
+def engine_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[tuple[int, int, float], dict]:
+    """The engine's rows by (T, data set, delta), run (one BLAS thread) where --engine-results lacks them."""
+    rows = {}
+    if os.path.exists(args.engine_results):
+        for line in open(args.engine_results):
+            r = json.loads(line)
+            rows[(r["T"], r["sim"], r["delta"])] = r
+    with single_threaded(), open(args.engine_results, "a") as fh:
+        for T, sim in plan:
+            smaller = None  # each delta from the last smaller delta's answer where it is better (paper_attack)
+            for d in DELTAS:
+                if (T, sim, d) not in rows:
+                    smaller = paper_attack(load_dataset(dataset_path(args.data, T, sim)), d, smaller)
+                    rows[(T, sim, d)] = engine_row(T, sim, d, smaller)
+                    fh.write(json.dumps(rows[(T, sim, d)]) + "\n")
+                    fh.flush()
+    return rows
 
 
 def authors_check(row: dict, folder: str) -> dict:
@@ -80,6 +102,7 @@ def main() -> None:
     p.add_argument("--sims", type=int, default=10)
     p.add_argument("--sims-500", type=int, default=None, help="data sets at T = 500 (default --sims)")
     p.add_argument("--results", default="authors_slsqp.jsonl")
+    p.add_argument("--engine-results", default="engine_authors_terms.jsonl")
     p.add_argument("--recorded-only", action="store_true", help="compare on the SLSQP rows --results holds, run none")
     args = p.parse_args()
     horizons = [int(t) for t in args.horizons.split(",")]
@@ -90,14 +113,8 @@ def main() -> None:
     print(f"engine {paper_method(100)} (from T = {MONOTONE_FROM}: {paper_method(MONOTONE_FROM)}), stealth_kind "
           "'authors'; the authors' SLSQP (their code, 100 iterations); one thread each; CPU seconds per attack; "
           "stealthy: the independent numpy check of their constraints, tol 1e-6\n")
+    ours = engine_rows(args, plan)
     theirs = authors_rows(args, plan)
-    ours = {}
-    with single_threaded():
-        for T in horizons:
-            for t, sim in plan:
-                if t == T:
-                    for d in DELTAS:
-                        ours[(T, sim, d)] = engine_row(T, sim, d, args.data)
     print("| T | delta | data sets | engine stealthy | SLSQP stealthy | engine >= SLSQP | engine >= SLSQP or SLSQP not "
           "stealthy | median ||d[A B]||_2 engine | SLSQP | authors' published median* | median CPU s engine | SLSQP | "
           "median SLSQP/engine CPU |")
@@ -105,7 +122,7 @@ def main() -> None:
     ratios, counts = [], np.zeros(3, dtype=int)
     for T in horizons:
         for d in DELTAS:
-            keys = [(t, s, dd) for (t, s, dd) in ours if t == T and dd == d and (t, s, dd) in theirs]
+            keys = [(t, s, dd) for (t, s, dd) in ours if t == T and dd == d and (t, s, dd) in theirs and (t, s) in plan]
             if not keys:
                 continue
             e = [ours[k] for k in keys]
@@ -134,11 +151,12 @@ def main() -> None:
     truth = true_parameters()
     for T in horizons:
         for d in DELTAS:
-            e = [v for (t, _, dd), v in ours.items() if t == T and dd == d]
+            e = [v for (t, s, dd), v in ours.items() if t == T and dd == d and (t, s) in plan]
             pub = PUBLISHED_MEDIANS.get(T, {}).get(d)
             print(f"| {T} | {d} | {len(e)} | {sum(x['stealthy'] for x in e)} | "
                   f"{sum(x['status'] == 'solved' for x in e)} | {np.median([x['norm2'] for x in e]):.3f} | "
-                  f"{np.median([np.linalg.norm(x['AB'] - truth, 2) for x in e]):.3f} | {'-' if pub is None else pub} | "
+                  f"{np.median([np.linalg.norm(np.array(x['AB']) - truth, 2) for x in e]):.3f} | "
+                  f"{'-' if pub is None else pub} | "
                   f"{np.median([x['cpu_time'] for x in e]):.3f} | {sum(x['cpu_time'] for x in e):.1f} |")
     print(f"\n# load at the end {os.getloadavg()[0]:.1f}")
 

@@ -141,25 +141,46 @@ class PaperAttack(NamedTuple):
     wall_time: float
 
 
-def paper_attack(data: CollectedData, delta: float) -> PaperAttack:
+def paper_attack(data: CollectedData, delta: float, smaller: PaperAttack | None = None) -> PaperAttack:
     """The engine's attack on one data set at delta (module docstring); CPU and wall time of the re-targeting and
     solve (the process's first attack at a T, which declares and compiles the problem, is run once before on the same
-    data and not counted)."""
+    data and not counted). smaller: the stealthy answer at a smaller delta on the same data set, which is feasible at
+    delta (each constraint at delta contains the one at any smaller delta); where it is above this attack's answer,
+    IPOPT runs again from it and the better stealthy answer is kept (both runs timed)."""
     atk = paper_instance(data, delta)
     T = data.U.shape[1]
     if T not in _WARMED:
         problem_for(atk).solve(**paper_method(T), seed=0)
         _WARMED.add(T)
     cpu, wall = time.process_time(), time.perf_counter()
-    result = problem_for(atk).solve(**paper_method(T), seed=0)
-    cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
-    dX, dU = (np.reshape(result.x[k], atk.signals[k[1:]].shape) for k in ("dX", "dU"))
-    return PaperAttack(result, dX, dU, check_stealth(data.X, data.U, dX, dU, delta, tol=CHECK_TOL), cpu, wall)
+    problem = problem_for(atk)
+    run = _judged(problem.solve(**paper_method(T), seed=0), data, delta)
+    if smaller is not None and smaller.check["stealthy"] and smaller.check["norm2"] > run.check["norm2"]:
+        problem.suggest_start(dX=smaller.dX, dU=smaller.dU)
+        problem.suggested_starts.insert(0, problem.suggested_starts.pop())  # the start IPOPT takes (starts=1)
+        again = _judged(problem.solve(**paper_method(T), seed=0), data, delta)
+        if again.check["stealthy"] and (again.check["norm2"] > run.check["norm2"] or not run.check["stealthy"]):
+            run = again
+    return run._replace(cpu_time=time.process_time() - cpu, wall_time=time.perf_counter() - wall)
+
+
+def _judged(result: BilevelResult, data: CollectedData, delta: float) -> PaperAttack:
+    dX, dU = (np.reshape(result.x[k], getattr(data, k[1:]).shape) for k in ("dX", "dU"))
+    return PaperAttack(result, dX, dU, check_stealth(data.X, data.U, dX, dU, delta, tol=CHECK_TOL), 0.0, 0.0)
+
+
+_SMALLER: dict[str, tuple[float, PaperAttack]] = {}
+"""The last answer of this process per data set (path): its delta and the attack (paper_attack's `smaller`)."""
 
 
 def attack_task(task: dict[str, Any]) -> dict[str, Any]:
-    """One task's row: paper_attack on (data set, delta), with the distance to the true [A B] and the changes."""
-    run = paper_attack(load_dataset(task["path"]), task["delta"])
+    """One task's row: paper_attack on (data set, delta), with the distance to the true [A B] and the changes; a data
+    set's deltas run in one worker in increasing order (run_paper), each from the last smaller delta's answer this
+    process found (paper_attack's `smaller`; none after a resume)."""
+    last = _SMALLER.get(task["path"])
+    run = paper_attack(load_dataset(task["path"]), task["delta"],
+                       last[1] if last is not None and last[0] < task["delta"] else None)
+    _SMALLER[task["path"]] = (task["delta"], run)
     check = run.check
     return {"norm2": check["norm2"], "norm2_true": float(np.linalg.norm(check["AB"] - true_parameters(), 2)),
             "stealthy": check["stealthy"], "violation": check["violation"], "worst": check["worst"],
@@ -206,11 +227,12 @@ def run_paper(folder: str, out_dir: str = "out/identification-paper", workers: i
     os.makedirs(out_dir, exist_ok=True)
     with open_executor(workers, dask) as executor:
         rows = run_sweep(attack_task, tasks, os.path.join(out_dir, "authors_terms.jsonl"), executor, progress, "paper",
-                         valid=lambda row: check_fields(row, ROW_SCHEMA))
+                         valid=lambda row: check_fields(row, ROW_SCHEMA), together=lambda t: t["path"])
     path = os.path.join(out_dir, "report.md")
     with atomic_open(path) as fh:
         fh.write("# The stealthy identification attack on Russo & Proutiere's data sets and constraints\n\n"
-                 f"Engine: {METHOD} (from T = {MONOTONE_FROM} with IPOPT's monotone barrier update), stealth_kind 'authors', objective ||d[A B]||_2; every answer checked by "
+                 f"Engine: {METHOD} (from T = {MONOTONE_FROM} with IPOPT's monotone barrier update), stealth_kind "
+                 "'authors', objective ||d[A B]||_2; every answer checked by "
                  "bilevel.ddc.stealth_check (numpy refit, tolerance 1e-6). The authors' medians are of their SLSQP "
                  "(best of 10 starts per data set), read off their figure (T = 500 only).\n\n" + table(rows))
     if progress:
