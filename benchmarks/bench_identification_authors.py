@@ -74,6 +74,9 @@ def engine_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[t
         for line in open(args.engine_results):
             r = json.loads(line)
             rows[(r["T"], r["sim"], r["delta"])] = r
+    if args.recorded_only:  # the data sets whose every delta the file holds
+        plan[:] = [(T, sim) for T, sim in plan if all((T, sim, d) in rows for d in DELTAS)]
+        return rows
     with single_threaded(), open(args.engine_results, "a") as fh:
         for T, sim in plan:
             smaller = None  # each delta from the last smaller delta's answer where it is better (paper_attack)
@@ -103,7 +106,8 @@ def main() -> None:
     p.add_argument("--sims-500", type=int, default=None, help="data sets at T = 500 (default --sims)")
     p.add_argument("--results", default="authors_slsqp.jsonl")
     p.add_argument("--engine-results", default="engine_authors_terms.jsonl")
-    p.add_argument("--recorded-only", action="store_true", help="compare on the SLSQP rows --results holds, run none")
+    p.add_argument("--recorded-only", action="store_true", help="compare on the rows --results and --engine-results "
+                   "hold (the engine's data sets with every delta), run none")
     args = p.parse_args()
     horizons = [int(t) for t in args.horizons.split(",")]
     plan = [(T, s) for T in horizons for s in range(args.sims if T != 500 or args.sims_500 is None else args.sims_500)]
@@ -119,7 +123,7 @@ def main() -> None:
           "stealthy | median ||d[A B]||_2 engine | SLSQP | authors' published median* | median CPU s engine | SLSQP | "
           "median SLSQP/engine CPU |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    ratios, counts = [], np.zeros(3, dtype=int)
+    ratios, counts, per_T = [], np.zeros(3, dtype=int), {}
     for T in horizons:
         for d in DELTAS:
             keys = [(t, s, dd) for (t, s, dd) in ours if t == T and dd == d and (t, s, dd) in theirs and (t, s) in plan]
@@ -130,6 +134,7 @@ def main() -> None:
             ac = [theirs[k]["cpu_time"] for k in keys]
             r = [x / y["cpu_time"] for x, y in zip(ac, e)]
             ratios += r
+            per_T.setdefault(T, []).extend(zip(r, ac, [x["cpu_time"] for x in e]))
             wins = sum(x["norm2"] >= y["norm2"] * (1 - 1e-6) for x, y in zip(e, a))
             fair = sum(x["norm2"] >= y["norm2"] * (1 - 1e-6) or not y["stealthy"] for x, y in zip(e, a))
             counts += (len(keys), wins, fair)
@@ -142,6 +147,10 @@ def main() -> None:
     print(f"\nall cells: median SLSQP/engine CPU per data set {np.median(ratios):.1f}x (min {min(ratios):.1f}x, "
           f"max {max(ratios):.1f}x) over {len(ratios)} attacks; engine >= SLSQP on {counts[1]}/{counts[0]}, >= SLSQP "
           f"or SLSQP not stealthy on {counts[2]}/{counts[0]}")
+    for T, v in per_T.items():
+        r, a, e = np.array(v).T
+        print(f"T = {T}: median SLSQP/engine CPU {np.median(r):.1f}x over {len(r)} attacks (min {r.min():.1f}x, max "
+              f"{r.max():.1f}x); total CPU SLSQP {a.sum():.1f} s, engine {e.sum():.1f} s ({a.sum() / e.sum():.1f}x)")
     print("* of ||[A B]' - [A B]_true||_2 for their best of 10 starts, read off their figure (T = 500); the columns "
           "beside are ||[A B]' - [A B]_clean||_2 of one start (theirs: seed 0)")
     print("\nThe engine on every data set it ran (with or without an SLSQP row):\n")
