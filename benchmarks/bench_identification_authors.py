@@ -39,13 +39,19 @@ RUNNER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "authors_slsqp
 ONE_THREAD = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
 
-def authors_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[tuple[int, int, float], dict]:
-    """Their SLSQP's rows by (T, data set, delta), run where --results lacks them."""
+def recorded(path: str) -> dict[tuple[int, int, float], dict]:
+    """The rows a JSONL file holds, by (T, data set, delta) (none if there is no file)."""
     rows = {}
-    if os.path.exists(args.results):
-        for line in open(args.results):
+    if os.path.exists(path):
+        for line in open(path):
             r = json.loads(line)
             rows[(r["T"], r["sim"], r["delta"])] = r
+    return rows
+
+
+def authors_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[tuple[int, int, float], dict]:
+    """Their SLSQP's rows by (T, data set, delta), run where --results lacks them."""
+    rows = recorded(args.results)
     for T, sim in plan:
         missing = [d for d in DELTAS if (T, sim, d) not in rows]
         if not missing or args.recorded_only:
@@ -69,11 +75,7 @@ def engine_row(T: int, sim: int, delta: float, run: PaperAttack) -> dict:
 
 def engine_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[tuple[int, int, float], dict]:
     """The engine's rows by (T, data set, delta), run (one BLAS thread) where --engine-results lacks them."""
-    rows = {}
-    if os.path.exists(args.engine_results):
-        for line in open(args.engine_results):
-            r = json.loads(line)
-            rows[(r["T"], r["sim"], r["delta"])] = r
+    rows = recorded(args.engine_results)
     if args.recorded_only:  # the data sets whose every delta the file holds
         plan[:] = [(T, sim) for T, sim in plan if all((T, sim, d) in rows for d in DELTAS)]
         return rows
