@@ -158,7 +158,8 @@ def test_loader_reads_their_format_and_nothing_else(tmp_path) -> None:
 
 def test_reproduce_paper_on_data_in_their_format(tmp_path) -> None:
     """`reproduce identification --paper DIR` on one T = 100 data set written in their format: five rows (one per
-    delta), every answer stealthy by the independent check, the table in report.md."""
+    delta), every answer stealthy by the independent check and at least the answer at a smaller delta (whose feasible
+    set lies inside), the table in report.md."""
     data, out = tmp_path / "datasets", str(tmp_path / "out")
     data.mkdir()
     write_authors_format(str(data), 100, 1, seed=5)
@@ -166,6 +167,8 @@ def test_reproduce_paper_on_data_in_their_format(tmp_path) -> None:
     rows = [json.loads(line) for line in open(os.path.join(out, "authors_terms.jsonl"))]
     assert sorted(r["task"]["delta"] for r in rows) == [0.01, 0.025, 0.05, 0.075, 0.1]
     assert all(r["stealthy"] and r["violation"] <= 1e-6 for r in rows), [(r["worst"], r["violation"]) for r in rows]
+    norms = [r["norm2"] for r in sorted(rows, key=lambda r: r["task"]["delta"])]
+    assert all(b >= a for a, b in zip(norms, norms[1:])), norms  # nested budgets: each from the smaller's answer
     report = open(os.path.join(out, "report.md")).read()
     assert "| 100 | 0.05 | 1 | 1 |" in report
     assert main(["reproduce", "identification", "--paper", str(data), "--quick", "--out", out]) == 2
