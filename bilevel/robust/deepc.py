@@ -294,7 +294,8 @@ def sensitivity(target: Target, delta: float | None, options: dict[str, Any]) ->
         return Evidence("kkt-sensitivity", Proof.PROVEN,
                         f"every poisoning with ||du|| <= {radii[0]:.6g}, ||dy|| <= {radii[1]:.6g} (delta = "
                         f"{delta:.6g}) leaves the true tracking cost at most {found['bound']:.6g} < "
-                        f"{cost.level:.6g} (the level, {cost.level / cost.clean_cost:g} x the clean {cost.clean_cost:.6g})",
+                        f"{cost.level:.6g} (the level, {cost.level / cost.clean_cost:g} x the clean "
+                        f"{cost.clean_cost:.6g})",
                         numbers, check, time.perf_counter() - t0)
     return Evidence("kkt-sensitivity", Proof.BOUNDED,
                     f"the true tracking cost is at most {found['bound']:.6g} for every poisoning within delta = "
