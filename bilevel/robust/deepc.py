@@ -16,13 +16,15 @@ Mechanism "kkt-sensitivity" (a proof at delta):
   in the cost, r0 + G a, is bounded over the product of the two balls by Lagrangian duality (S-lemma):
   sup ||r0 + G a||^2 <= r0' (I - Q)^-1 r0 + l_u rho_u^2 + l_y rho_y^2 for any l_u, l_y > 0 with
   Q = G_u G_u' / l_u + G_y G_y' / l_y < I;
-- the rest, exactly v - v0 - dv1 = -M^-1 [W Delta' dv1 + Delta dg1] (dg1 = W0' dv1 + Delta' v0), is bounded with
-  M >= lambda_g Pi (so (lambda_g / r_weight) ||Mm E_uf M^-1/2|| <= ||Mm|| sqrt(lambda_g / r_weight)),
-  ||M^-1/2 W|| <= 1, and M >= (1 - beta)^2 M0 where beta >= ||M0^-1/2 Delta|| (so ||M^-1/2 Delta|| <= beta /
-  (1 - beta)): every norm of a linear map of the poisoning is bounded by the sum of its two blocks' spectral norms
-  times the radii;
-- sqrt(J) <= sqrt(linear bound) + remainder bound; the slack stays zero if 2 lambda_g ||v_yp||_inf < lambda_y over
-  the set (the same bounds on v).
+- the rest is exactly v - v0 - dv1 = R2 + R3 with the quadratic R2 = -M0^-1 [W0 Delta' dv1 + Delta dg1]
+  (dg1 = W0' dv1 + Delta' v0) and R3 = -M^-1 [W Delta' R2 + Delta (W0' R2 + Delta' dv1)]. R2's image in the cost
+  is a quadratic form of the poisoning per cost entry, a' B_i a, each bounded over the balls by its blocks' spectral
+  norms; R3 is bounded with M >= lambda_g Pi (so (lambda_g / r_weight) ||Mm E_uf M^-1/2|| <= ||Mm||
+  sqrt(lambda_g / r_weight)), ||M^-1/2 W|| <= 1, ||M0^-1/2 W0|| <= 1 and M >= (1 - beta)^2 M0 where beta >=
+  ||M0^-1/2 Delta|| (so ||M^-1/2 Delta|| <= beta / (1 - beta)); the norm of a linear map of the poisoning is bounded
+  by the sum of its two blocks' spectral norms times the radii;
+- sqrt(J) <= sqrt(linear bound) + the two remainders' bounds; the slack stays zero if 2 lambda_g ||v_yp||_inf <
+  lambda_y over the set (v - v0 - dv1 = -M^-1 [W Delta' dv1 + Delta dg1] bounded the same way).
 The re-check builds the linear maps a second way (implicit differentiation of the learner's KKT system in g, numpy),
 the clean plan by cvxpy + Clarabel (DeePCAttack.plan), recomputes every norm by SVD and the dual bound at the
 mechanism's multipliers from those maps; it passes if the recomputed bound is at most the claimed one (above
@@ -160,22 +162,41 @@ class Maps:
     dg1: float
     out: float
     s_norm: float
+    quad: np.ndarray
+    quad_m0: np.ndarray
 
 
-def _maps(cost: DeePCCost, dv1: np.ndarray, dg1: np.ndarray, v0: np.ndarray, m0: np.ndarray, u0: np.ndarray,
-          units: np.ndarray) -> Maps:
-    """The bounds' numbers from the linear maps dv1 (2T, 2L), dg1 (2T, C), the clean v0, M0 and plan u0."""
+def _quadratic_blocks(p: np.ndarray, w0: np.ndarray, units: np.ndarray, dv1: np.ndarray, dg1: np.ndarray,
+                      t: int) -> np.ndarray:
+    """Per cost entry i, the spectral norms of the blocks (uu, uy, yy) of B_i, a' B_i a = (P [W0 Delta' dv1 + Delta
+    dg1])_i (P: v -> cost residual, Delta, dv1, dg1 at the poisoning a): (2N, 3)."""
+    x = np.tensordot(p @ w0, units, axes=([1], [2]))  # (i, s, r): Delta(e_s) (P W0)_i'
+    y = np.tensordot(p, units, axes=([1], [1]))  # (i, s, c): P_i Delta(e_s)
+    b = x @ dv1.T + y @ dg1.T
+    b = (b + b.transpose(0, 2, 1)) / 2
+    return np.array([[np.linalg.norm(bi[:t, :t], 2), np.linalg.norm(bi[:t, t:], 2), np.linalg.norm(bi[t:, t:], 2)]
+                     for bi in b])
+
+
+def _maps(cost: DeePCCost, dv1: np.ndarray, dg1: np.ndarray, v0: np.ndarray, w0: np.ndarray, m0_inv_uf: np.ndarray,
+          u0: np.ndarray, units: np.ndarray) -> Maps:
+    """The bounds' numbers from the linear maps dv1 (2T, 2L), dg1 (2T, C), the clean v0, W0, the u_f rows of M0^-1
+    and the clean plan u0."""
     atk = cost.attack
-    t, k, n = atk.u.size, atk.t_ini, atk.horizon
+    t, k, n, lam = atk.u.size, atk.t_ini, atk.horizon, atk.lambda_g
     radii = (float(np.linalg.norm(atk.u)), float(np.linalg.norm(atk.y)))
     mm, c = _cost_metric(atk)
-    lam, vec = np.linalg.eigh(m0)
-    s = vec @ np.diag(lam ** -0.5) @ vec.T  # M0^-1/2
-    g = mm @ (-(atk.lambda_g / atk.r_weight) * dv1[:, 2 * k:2 * k + n].T)
-    return Maps(mm @ u0 - c, g, v0, _block_norm(np.einsum("ij,sjc->sic", s, units), t, radii),
+    pi = np.concatenate([np.zeros(2 * k), np.full(n, 1 / atk.r_weight), np.full(n, 1 / atk.q)])
+    m0 = w0 @ w0.T + lam * np.diag(pi)
+    ev, vec = np.linalg.eigh(m0)
+    s = vec @ np.diag(ev ** -0.5) @ vec.T  # M0^-1/2
+    g = mm @ (-(lam / atk.r_weight) * dv1[:, 2 * k:2 * k + n].T)
+    p = (lam / atk.r_weight) * mm @ m0_inv_uf
+    return Maps(mm @ u0 - c, g, v0, _block_norm(np.tensordot(units, s, axes=([1], [1])), t, radii),
                 _block_norm(units, t, radii), _block_norm(dv1, t, radii),
                 _block_norm(dv1 @ np.linalg.cholesky(m0), t, radii), _block_norm(dg1, t, radii),
-                float(np.linalg.norm(mm, 2) * np.sqrt(atk.lambda_g / atk.r_weight)), float(lam[0] ** -0.5))
+                float(np.linalg.norm(mm, 2) * np.sqrt(lam / atk.r_weight)), float(ev[0] ** -0.5),
+                _quadratic_blocks(p, w0, units, dv1, dg1, t), _quadratic_blocks(s, w0, units, dv1, dg1, t))
 
 
 def gram_maps(cost: DeePCCost) -> Maps:
@@ -193,8 +214,8 @@ def gram_maps(cost: DeePCCost) -> Maps:
     units = _unit_rows(atk)
     dvt_v0 = np.einsum("src,r->sc", units, v0)  # Delta(e_s)' v0
     dv1 = -np.linalg.solve(m0, (np.einsum("src,c->sr", units, g0) + dvt_v0 @ w0.T).T).T
-    cost.cache["gram"] = _maps(cost, dv1, dv1 @ w0 + dvt_v0, v0, m0, -(lam / atk.r_weight) * v0[2 * k:2 * k + n],
-                               units)
+    cost.cache["gram"] = _maps(cost, dv1, dv1 @ w0 + dvt_v0, v0, w0, np.linalg.inv(m0)[2 * k:2 * k + n],
+                               -(lam / atk.r_weight) * v0[2 * k:2 * k + n], units)
     return cost.cache["gram"]
 
 
@@ -226,9 +247,10 @@ def kkt_maps(cost: DeePCCost) -> Maps:
     dv1 = np.hstack([-dmu / (2 * lam), -rw * du_plan / lam, -q * dy_plan / lam])
     u_plan, y_plan = uf @ g0, yf @ g0
     v0 = np.concatenate([-mu0 / (2 * lam), -rw * u_plan / lam, -q * (y_plan - atk.reference) / lam])
-    pi = np.diag(np.concatenate([np.zeros(2 * k), np.full(n, 1 / rw), np.full(n, 1 / q)]))
-    m0 = w0 @ w0.T + lam * pi
-    cost.cache["kkt"] = _maps(cost, dv1, dg, v0, m0, atk.plan(atk.u, atk.y), units)
+    pi = np.concatenate([np.zeros(2 * k), np.full(n, 1 / rw), np.full(n, 1 / q)])
+    chol = scipy.linalg.cho_factor(w0 @ w0.T + lam * np.diag(pi))
+    m0_inv_uf = scipy.linalg.cho_solve(chol, np.eye(2 * k + 2 * n)[:, 2 * k:2 * k + n]).T
+    cost.cache["kkt"] = _maps(cost, dv1, dg, v0, w0, m0_inv_uf, atk.plan(atk.u, atk.y), units)
     return cost.cache["kkt"]
 
 
@@ -261,13 +283,17 @@ def cost_bound(maps: Maps, atk: DeePCAttack, delta: float, mult: tuple[float, fl
     if beta >= 1.0 or not np.isfinite(linear):
         return {"beta": beta, "linear": linear, "remainder": float("inf"), "bound": float("inf"),
                 "slack_multiplier": float("inf")}
-    quad = delta ** 2 * maps.delta_frob * min(maps.dv1, maps.dv1_m0 * maps.beta) + beta / (1 - beta) * maps.dg1 * delta
-    remainder = maps.out * quad
-    dv = maps.dv1 * delta + maps.s_norm / (1 - beta) * quad
+    a2 = delta ** 2 * maps.delta_frob * min(maps.dv1, maps.dv1_m0 * maps.beta)  # ||Delta' dv1||
+    squares = np.array([radii[0] ** 2, 2 * radii[0] * radii[1], radii[1] ** 2])
+    b2 = min(a2 + beta * maps.dg1 * delta, float(np.linalg.norm(maps.quad_m0 @ squares)))  # ||M0^1/2 R2||
+    second = float(np.linalg.norm(maps.quad @ squares))
+    third = maps.out * (beta * b2 + beta / (1 - beta) * (b2 + a2))
+    remainder = second + third
+    dv = maps.dv1 * delta + maps.s_norm / (1 - beta) * (a2 + beta / (1 - beta) * maps.dg1 * delta)
     k = atk.t_ini
     slack = 2 * atk.lambda_g * (float(np.max(np.abs(maps.v0[k:2 * k]))) + dv)
-    return {"beta": beta, "linear": linear, "remainder": remainder, "bound": (np.sqrt(linear) + remainder) ** 2,
-            "slack_multiplier": slack}
+    return {"beta": beta, "linear": linear, "second_order": second, "remainder": remainder,
+            "bound": (np.sqrt(linear) + remainder) ** 2, "slack_multiplier": slack}
 
 
 def sensitivity(target: Target, delta: float | None, options: dict[str, Any]) -> Evidence | None:
