@@ -251,6 +251,7 @@ RANGES: dict[str, Range] = {
     "global.scip_feastol": Range(1e-17, 1e-3),  # SCIP's own range for numerics/feastol
     "residual.sparse_squares": Range(0.0, 1.0),
     "spectral_radius.defective_cond": Range(1.0),
+    "robust.deepc_cost_factor": Range(1.0, open_low=True),  # a level above the clean plan's own cost
 }
 """Each entry's valid values where they are narrower than the default's, an integer >= 0 or a finite number >= 0:
 counts are >= 1, step sizes and most tolerances > 0, fractions in (0, 1), and SCIP's limits SCIP's ranges."""

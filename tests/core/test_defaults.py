@@ -61,7 +61,8 @@ BEFORE = {  # the module constants and option defaults the registry replaced, as
     "willems.hypergradient.max_iter": 300, "willems.hypergradient.ftol": 1e-10, "willems.evolution.max_iter": 300,
     "willems.evolution.popsize": 5,
     "robust.margin_rel_tol": 0.05, "robust.attack_rel_tol": 0.05, "robust.smallest_delta": 1e-4,
-    "robust.soundness_samples": 10_000, "robust.check_margin": 1e-9, "robust_willems.lmi_margin": 1e-5,
+    "robust.deepc_cost_factor": 2.0, "robust.soundness_samples": 10_000, "robust.check_margin": 1e-9,
+    "robust_willems.lmi_margin": 1e-5,
     "robust_willems.margin_steps": 3, "robust_willems.margin_factor": 100.0, "robust_willems.check_margin": 1e-10,
 }
 
