@@ -39,10 +39,10 @@ TIME_LIMIT = 60.0
 SIZES = (4, 8, 12, 16, 20, 24, 32)
 
 
-def header() -> None:
+def header(script: str = "bench_global_scip.py") -> None:
     """Machine, date, load and versions, so the numbers can be read in context."""
     uname = subprocess.run(["uname", "-a"], capture_output=True, text=True).stdout.strip()
-    print(f"# bench_global_scip.py — {datetime.now(timezone.utc):%Y-%m-%d %H:%M:%S} UTC")
+    print(f"# {script} — {datetime.now(timezone.utc):%Y-%m-%d %H:%M:%S} UTC")
     print(f"# uname -a: {uname}")
     print(f"# nproc: {os.cpu_count()}; load average at start: {', '.join(f'{v:.2f}' for v in os.getloadavg())}")
     print("# NOTE: the machine may be shared with other jobs; compare the ratio column, not absolute times")

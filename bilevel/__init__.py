@@ -9,8 +9,19 @@ from .model import BilevelProblem
 from .mpcc import MPCC, Branch, Exact, FischerBurmeister, KanzowSchwartz, Product, Scholtes
 from .problems.registry import problem_builder
 from .result import BilevelResult, Status
-from .robust import Margin, Proof, RobustnessCertificate, certified_margin, certify
 from .solvers import METHODS, register_method, show_options, solve
+
+_ROBUST = ("Margin", "Proof", "RobustnessCertificate", "certified_margin", "certify")
+"""Loaded on first use (bilevel.robust imports the learners, python-control and matplotlib: about a second)."""
+
+
+def __getattr__(name: str):
+    """The certified-robustness names, imported from bilevel.robust on first access."""
+    if name in _ROBUST:
+        from . import robust
+
+        return getattr(robust, name)
+    raise AttributeError(f"module 'bilevel' has no attribute {name!r}")
 
 __all__ = [
     "BilevelError", "BilevelProblem", "BilevelResult", "Branch", "Certificate", "Exact", "FischerBurmeister",

@@ -43,7 +43,7 @@ non-convex bilevel program).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -51,7 +51,7 @@ import numpy as np
 from .canonical import in_sense
 from .defaults import param
 from .errors import BilevelError
-from .lower.convexity import convexity_violation, proven_convex, psd_from_eigen, psd_violation, symmetric_eigen
+from .lower.convexity import convex_on_box, convexity_violation, psd_from_eigen, psd_violation, symmetric_eigen
 from .sampling import sample_in_bounds
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -161,7 +161,9 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
     if canon.lower_reference is not None:
         ref = canon.lower_reference(canon.x, x, y)
         unique = None if low.psd else _reduced_hessian_unique(low, x, low.solve(x), tol)
-        return ref, 0.0, unique, f"independent re-solve: {ref.solver}"
+        face = _on_face(low, x, ref, tol)
+        return face, 0.0, unique, f"independent re-solve: {ref.solver}" + (
+            "; y from the canonical re-solve polished onto its optimal face (the same value)" if face is not ref else "")
     if low.kind != "nlp":
         ref = low.reference_solve(x)
         return ref, 0.0, _reduced_hessian_unique(low, x, ref, tol), ""
@@ -184,6 +186,22 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
     note = (f"nonlinear lower level: re-solved by IPOPT from {len(starts)} starts ({len(sols)} converged), "
             "local evidence, not a proof of lower-level optimality")
     return best, spread, unique, note
+
+
+def _on_face(low: "LowerLevel", x: np.ndarray, ref, tol: float):
+    """The user's re-solve with y replaced by the canonical LP/QP re-solve polished onto its optimal face, where both
+    reach the same value within tol: an interior-point solve of the user's formulation stops ~sqrt(eps) off a
+    degenerate face (e.g. DeePC's l1 slack penalty: 5e-5 in y at equal values), which would fail a correct y. Values
+    differing (a wrong canonical form) keep the user's y."""
+    if low.kind == "nlp" or low.psd:
+        return ref
+    try:
+        own = low.reference_solve(x)
+    except BilevelError:
+        return ref
+    if abs(own.objective - ref.objective) > tol * (1.0 + abs(ref.objective)):
+        return ref
+    return replace(ref, y=own.y)
 
 
 def _dual_bound(low: "LowerLevel", x: np.ndarray, y: np.ndarray, lam: np.ndarray, mu: np.ndarray,
@@ -225,7 +243,7 @@ def _reduced_hessian_unique(low, x: np.ndarray, ref, tol: float) -> bool | None:
     rows = np.vstack([jh, jg[strong]])
     if rows.size:
         _, sv, vt = np.linalg.svd(rows)
-        rank = int(np.sum(sv > 1e-9 * max(1.0, float(sv.max(initial=0.0)))))
+        rank = int(np.sum(sv > param("certificate.unique_rtol") * max(1.0, float(sv.max(initial=0.0)))))
         null = vt[rank:].T
     else:
         null = np.eye(low.n_y)
@@ -233,7 +251,7 @@ def _reduced_hessian_unique(low, x: np.ndarray, ref, tol: float) -> bool | None:
         return True
     hess = low.hessian(x, ref.y)
     reduced = hess if rows.size == 0 else null.T @ hess @ null
-    shift = 1e-9 * max(1.0, float(np.abs(hess).max()))
+    shift = param("certificate.unique_rtol") * max(1.0, float(np.abs(hess).max()))
     try:  # smallest eigenvalue > shift, by a Cholesky factorization of the shifted matrix
         np.linalg.cholesky(0.5 * (reduced + reduced.T) - shift * np.eye(reduced.shape[0]))
     except np.linalg.LinAlgError:
@@ -314,7 +332,7 @@ def certify_point(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | Non
         checks["lower_solution"] = (abs(F - F_ref) / (slack / tol) if np.isfinite(F) else np.inf,
                                     f"y is {y_distance:.2e} from the unique re-solved y; F there = "
                                     f"{in_sense(F_ref, sense):.10g}")
-    proven = low.kind != "nlp" or proven_convex(low, x, *_y_box(canon))
+    proven = low.kind != "nlp" or convex_on_box(low, x, *_y_box(canon))
     if not proven:
         note = "; ".join(filter(None, [note, LOCAL_EVIDENCE]))
     checks["upper_objective"] = (0.0 if np.isfinite(F) else np.inf, "" if np.isfinite(F) else f"F = {F}")

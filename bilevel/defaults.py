@@ -24,6 +24,9 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "certificate.tol": (1e-6, "tolerance of the certificate's scaled checks: lower KKT residuals, feasibility, gap to"
                               " the re-solve"),
     "certificate.nlp_starts": (8, "starts of the independent re-solve of a nonlinear lower level (count)"),
+    "certificate.unique_rtol": (1e-9, "judging the re-solved lower solution unique, singular values of the active rows "
+                                      "and eigenvalues of the reduced Hessian count as zero below this * max(1, the "
+                                      "largest)"),
     # method hypergradient (and block-exact, the descent after differential-evolution)
     "hypergradient.starts": (4, "multistart starts of hypergradient and block-exact (count)"),
     "hypergradient.scale": (10.0, "half-width of the random starts' box where a bound is infinite (units of x)"),
@@ -113,9 +116,11 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "probe.coordinates": (16, "up to this many upper variables the probe tries +/- each coordinate and the adjacent "
                               "pieces at a kink (count)"),
     "probe.rel_tol": (1e-8, "along random directions a neighbour is better only by more than this (relative)"),
-    "probe.min_radius": (1e-9, "where no probe at radii 0.1, 0.01, 0.001 (budget units) is feasible, the probe tries "
-                               "three decades smaller at a time down to this radius (probe.feas_tol shrinks in "
-                               "proportion)"),
+    "probe.radius": (0.1, "largest radius of the local probe; it also probes at a tenth and a hundredth of it "
+                          "(budget units)"),
+    "probe.min_radius": (1e-9, "where no probe at radius probe.radius, a tenth or a hundredth of it is feasible, the "
+                               "probe tries three decades smaller at a time down to this radius (probe.feas_tol "
+                               "shrinks in proportion)"),
     "probe.feas_tol": (1e-9, "largest upper violation (G > 0, |H|) of a probed point that counts as feasible "
                              "(absolute)"),
     "probe.descent_rel_tol": (1e-5, "along first-order directions a neighbour is better only by more than this "
@@ -180,6 +185,14 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "sdp.continuation_tol": (1e-9, "KKT residual a Newton continuation from a nearby SDP solution must reach (no worse "
                                    "than a polished conic solve)"),
     "sdp.continuation_steps": (6, "Newton steps of the continuation from a nearby SDP solution (count)"),
+    "lower.clarabel_tol": (1e-10, "Clarabel's tol_gap_abs, tol_gap_rel and tol_feas in every lower-level solve and the "
+                                  "certificate's LP/QP/SDP re-solve (tighter than its 1e-8: certificates compare "
+                                  "against these solutions)"),
+    "lower.clarabel_ktratio": (1e-8, "Clarabel's tol_ktratio in the same solves"),
+    "lower.nlp_tol": (1e-12, "IPOPT's tol in the solves of a convex NLP lower level (the certificate's re-solves)"),
+    "lower.nlp_acceptable_tol": (1e-9, "IPOPT's acceptable_tol in the same solves"),
+    "mpcc.tau": (1e-8, "relaxation parameter of a complementarity mode built without one (Scholtes(), Product(), "
+                       "KanzowSchwartz(), FischerBurmeister()); method ipopt's own mode takes ipopt.complementarity_t"),
     "polish.active_tol": (1e-6, "a row or LMI eigenvalue is active when within this * (1 + its scale) of zero"),
     "polish.flip_tol": (1e-13, "a face's solution violating a sign condition by more than this * (1 + scale) moves "
                                "that constraint"),
@@ -242,10 +255,10 @@ RANGES: dict[str, Range] = {
     **{key: Range() for key in ("probe.rel_tol", "probe.descent_rel_tol", "probe.feas_tol", "optimistic.row_tol",
                                 "optimistic.improve_rel_tol", "polish.active_tol", "polish.flip_tol", "sdp.psd_tol",
                                 "convexity.psd_tol", "global.convexity_tol", "global.complementarity_tol",
-                                "global.fix_tol", "hypergradient.tie_rtol", "implicit.kink_tol")},
+                                "global.fix_tol", "hypergradient.tie_rtol", "implicit.kink_tol", "mpcc.tau")},
     "certificate.tol": Range(2.0 ** -52),  # a scaled residual is no smaller than the rounding of its evaluation
     "global.node_limit": Range(1, 2 ** 63 - 1),  # SCIP's node limit is a 64-bit integer
-    "global.time_limit": POSITIVE,
+    "global.time_limit": POSITIVE, "probe.radius": POSITIVE, "lower.clarabel_ktratio": POSITIVE,
     "global.gap": FRACTION, "relaxation.factor": FRACTION, "hypergradient.min_step": FRACTION,
     "ascent.armijo": FRACTION,
     "global.scip_feastol": Range(1e-17, 1e-3),  # SCIP's own range for numerics/feastol

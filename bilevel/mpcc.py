@@ -15,6 +15,7 @@ import casadi as ca
 import numpy as np
 
 from . import sparse_jacobian
+from .defaults import param
 from .errors import ModelError, UnsupportedPair
 from .parameters import ParameterSet, scalar
 from .vech import lower_triangular, vech_sx
@@ -75,7 +76,10 @@ class ComplementarityMode(ABC):
     tau: float = 0.0
 
     def __post_init__(self) -> None:
-        """A relaxation parameter is a finite number >= 0 (a negative one makes the relaxed set empty)."""
+        """A relaxation parameter is a finite number >= 0 (a negative one makes the relaxed set empty); None takes
+        defaults["mpcc.tau"]."""
+        if getattr(self, "tau", 0.0) is None:
+            self.tau = param("mpcc.tau")
         tau = getattr(self, "tau", 0.0)
         if isinstance(tau, bool) or not isinstance(tau, (int, float, np.integer, np.floating)) \
                 or not np.isfinite(tau) or tau < 0:
@@ -132,7 +136,7 @@ class Exact(ComplementarityMode):
 class Scholtes(ComplementarityMode):
     """G >= 0, H >= 0, G_i H_i <= t (Scholtes 2001); t -> 0 recovers the MPCC."""
 
-    tau: float = 1e-8
+    tau: float | None = None
 
     def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
         n = int(pair.G.numel())
@@ -147,7 +151,7 @@ class Scholtes(ComplementarityMode):
 class Product(ComplementarityMode):
     """G >= 0, H >= 0, sum_i G_i H_i <= eps: one aggregated product constraint per pair."""
 
-    tau: float = 1e-8
+    tau: float | None = None
 
     def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
         return self._nonneg(pair) + [(ca.dot(pair.G, pair.H) - tau, -np.inf, 0.0)]
@@ -160,7 +164,7 @@ class Product(ComplementarityMode):
 class KanzowSchwartz(ComplementarityMode):
     """G >= 0, H >= 0, phi_t(G_i, H_i) <= 0 with the Kanzow–Schwartz (2013) piecewise function."""
 
-    tau: float = 1e-8
+    tau: float | None = None
 
     def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
         a, b = pair.G - tau, pair.H - tau
@@ -173,7 +177,7 @@ class KanzowSchwartz(ComplementarityMode):
 class FischerBurmeister(ComplementarityMode):
     """G + H - sqrt(G^2 + H^2 + 2 mu) = 0: smoothed Fischer–Burmeister (G, H > 0, G H = mu)."""
 
-    tau: float = 1e-8
+    tau: float | None = None
 
     def scalar_pair(self, pair: ScalarPair, tau: ca.SX) -> list[Row]:
         n = int(pair.G.numel())

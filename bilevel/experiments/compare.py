@@ -21,7 +21,7 @@ from ..result import BilevelResult
 from ..solvers import solve
 from ..solvers.registry import METHODS_VERSION
 from .executor import open_executor
-from .sweep import NUMBER, check_fields, run_sweep, stderr_progress
+from .sweep import NUMBER, check_fields, committed_timings, run_sweep, stderr_progress
 
 NOT_APPLICABLE = "not_applicable"
 """Status of a row whose method rejected the problem as outside its scope (a ModelError, e.g. 'global' on an NLP)."""
@@ -124,7 +124,7 @@ def compare(problems: Sequence[str], methods: Sequence[str], csv_path: str, star
              for name in problems for method in methods]
     with open_executor(workers, dask) as executor:
         rows = run_sweep(compare_task, tasks, os.path.splitext(csv_path)[0] + ".jsonl", executor, progress,
-                         "compare", valid=lambda r: check_fields(r, ROW_SCHEMA))
+                         "compare", valid=lambda r: check_fields(r, ROW_SCHEMA), reference=committed_timings("compare"))
     out = [CompareRow(**{c: r[c] for c in COLUMNS}) for r in rows]
     os.makedirs(os.path.dirname(os.path.abspath(csv_path)), exist_ok=True)
     with atomic_open(csv_path, newline="") as fh:

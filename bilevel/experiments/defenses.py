@@ -46,7 +46,8 @@ from .defenses_detection import FAMILIES, run_detection  # noqa: E402
 from .executor import open_executor  # noqa: E402
 from .stats import mean_interval, median_interval  # noqa: E402
 from .willems_budget import smallest_destabilizing_budget  # noqa: E402
-from .sweep import NUMBER, check_fields, check_subset, run_sweep, sim_seeds, stderr_progress  # noqa: E402
+from .sweep import (NUMBER, check_fields, check_subset, committed_timings, run_sweep, sim_seeds,  # noqa: E402
+                    stderr_progress)
 
 LEARNERS = ("vrft", "willems", "ident", "deepc")
 """The learners of the sweep, in run order (`learners` of run_defenses picks a subset)."""
@@ -337,14 +338,16 @@ def run_defenses(sims: int = 64, out_dir: str = "out/defenses", quick: bool = Fa
     (bilevel.experiments.defenses_detection: detection.jsonl, detection.md); returns the path of frontier.md."""
     plan = make_plan(sims, quick)
     chosen = check_learners(learners)
+    committed = committed_timings("defenses-quick" if quick else "defenses")
     with open_executor(workers, dask) as executor:
         rows = run_sweep(frontier_task, frontier_tasks(plan, seed, chosen), os.path.join(out_dir, "defenses.jsonl"),
-                         executor, progress, "defenses", valid=lambda r: check_fields(r, ROW_SCHEMA))
+                         executor, progress, "defenses", valid=lambda r: check_fields(r, ROW_SCHEMA),
+                         reference=committed)
         write_outputs(rows, out_dir, chosen)
         families = tuple(name for name in chosen if name in FAMILIES)
         if families:
             run_detection(plan.sims, plan.vrft_n, plan.horizons[0], out_dir, seed, executor, progress,
-                          families=families)
+                          families=families, reference=committed)
     path = os.path.join(out_dir, "frontier.md")
     if progress:
         progress(f"wrote {path}")

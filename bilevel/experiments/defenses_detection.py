@@ -140,15 +140,15 @@ def detection_markdown(rows: list[dict[str, Any]], limits: dict[str, float]) -> 
 
 def run_detection(sims: int, N: int, T: int, out_dir: str, seed: int = 0, executor: Any = None,
                   progress: Callable[[str], None] | None = stderr_progress, calibration: int = CALIBRATION,
-                  families: tuple[str, ...] = FAMILIES) -> str:
+                  families: tuple[str, ...] = FAMILIES, reference: str | None = None) -> str:
     """The detection sweep of the cases attacking `families` (resumable, detection.jsonl), detection.csv (one row per
-    attack) and detection.md; returns the table."""
+    attack) and detection.md; returns the table. reference: a committed timings.json to estimate from."""
     seeds = list(enumerate(zip(sim_seeds(seed, sims), sim_seeds(seed + 1, sims))))
     tasks = [{"key": f"{case}|N={N}|T={T}|sim={i}", "case": case, "N": N, "T": T, "seed": data_seed,
               "attack_seed": attack_seed, "root_seed": seed}
              for case in CASES if case.split("-")[0] in families for i, (data_seed, attack_seed) in seeds]
     rows = run_sweep(detection_task, tasks, os.path.join(out_dir, "detection.jsonl"), executor, progress,
-                     "defenses-detection", valid=lambda r: check_fields(r, ROW_SCHEMA))
+                     "defenses-detection", valid=lambda r: check_fields(r, ROW_SCHEMA), reference=reference)
     write_rows_csv(os.path.join(out_dir, "detection.csv"), rows, ROW_SCHEMA)
     table = detection_markdown(rows, thresholds(N, T, seed, calibration, families))
     with atomic_open(os.path.join(out_dir, "detection.md")) as fh:

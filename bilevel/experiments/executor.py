@@ -69,6 +69,7 @@ class Executor(ABC):
     """Runs sweep tasks somewhere; a context manager that releases its workers on exit."""
 
     description: str
+    workers: int
 
     @abstractmethod
     def imap_unordered(self, fn: Callable[[Task], Row], tasks: list[Task],
@@ -259,6 +260,7 @@ class DaskExecutor(Executor):
         else:
             self.client = Client(address, timeout="30s")
         n = len(self.client.scheduler_info(n_workers=-1)["workers"])
+        self.workers = n
         self.description = f"Dask cluster {address} ({n} worker{'s' if n != 1 else ''} at start)"
         self._futures: list[Any] = []
 

@@ -25,8 +25,8 @@ from ..problems.identification import problem_for
 from ..problems.identification_instance import IdentificationAttack, attack_instance
 from .executor import open_executor
 from .identification_baseline import SLSQP_ITERATIONS, START_SCALE, judge, slsqp_attack
-from .sweep import FINITE, NONNEGATIVE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of, \
-    sim_seeds, stderr_progress
+from .sweep import FINITE, NONNEGATIVE, NUMBER, check_fields, committed_timings, load_timings, run_sweep, \
+    settings_of, sim_seeds, stderr_progress
 
 DELTAS = (0.01, 0.025, 0.05, 0.075, 0.1)
 HORIZONS = (100, 500)
@@ -162,8 +162,6 @@ def run_reproduction(sims: int = 100, out_dir: str = "out/identification", quick
     if seed < 0:
         raise ValueError(f"identification reproduction: seed must be >= 0, got {seed}")
     os.makedirs(out_dir, exist_ok=True)
-    timings_path = os.path.join(out_dir, "timings.json")
-    timings = load_timings(timings_path, progress)
     sweeps = {"stealthy": (attack_task, plan.sims, False, ROW_SCHEMA),
               "slsqp": (baseline_task, plan.baseline_sims, True, BASELINE_SCHEMA)}
     runs: dict[str, list[dict[str, Any]]] = {}
@@ -171,9 +169,9 @@ def run_reproduction(sims: int = 100, out_dir: str = "out/identification", quick
         for name, (fn, n, baseline, schema) in sweeps.items():
             tasks = cell_tasks(n, seed, plan.horizons, plan.deltas, baseline=baseline) if n else []
             runs[name] = run_sweep(fn, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress, name,
-                                   lambda ran, seconds, name=name: record_timing(timings_path, timings, name,
-                                                                                 len(ran), seconds),
-                                   lambda row, schema=schema: check_fields(row, schema)) if tasks else []
+                                   lambda row, schema=schema: check_fields(row, schema),
+                                   reference=committed_timings("identification")) if tasks else []
+    timings = load_timings(os.path.join(out_dir, "timings.json"), progress)
     figures = identification_figures.make_all(runs["stealthy"], runs["slsqp"], out_dir)
     settings = settings_of(runs["stealthy"], "root_seed", "lags", "method") \
         | {"version": sorted({r["version"] for rs in runs.values() for r in rs})}

@@ -69,7 +69,8 @@ def figure_error(rows: Rows, baseline: Rows, out_dir: str) -> str:
         ax.set_title(f"T = {T}: identified model's error\n{BUDGET_TEXT}", fontsize=8)
         ax.legend([Patch(color=ENGINE, alpha=0.6), Patch(color=BASELINE, alpha=0.6)],
                   [f"engine ({_method(rows)}), {n} data sets", f"SLSQP baseline, first {nb} data sets",
-                   ][:len(groups)], fontsize=7, title="stealthy results only (counts in report.md)", title_fontsize=7)
+                   ][:len(groups)], fontsize=7, title="stealthy results only (counts in report.md)", title_fontsize=7,
+                  loc="upper left")
     return save_figure(fig, out_dir, "error_norm")
 
 
@@ -85,15 +86,17 @@ def figure_statistics(rows: Rows, out_dir: str) -> str:
                         (_by_cell(rows, T, deltas, lambda r: get(r, "after")), ENGINE)], deltas)
             ax.set_ylabel(label)
             ax.set_title(f"T = {T}; {BUDGET_TEXT}", fontsize=8)
-            ax.legend([Patch(color=BEFORE, alpha=0.6), Patch(color=ENGINE, alpha=0.6)],
-                      ["clean data (before)", "poisoned by the stealthy attack (after)"], fontsize=7)
+    fig.legend([Patch(color=BEFORE, alpha=0.6), Patch(color=ENGINE, alpha=0.6)],
+               ["clean data (before)", "poisoned by the stealthy attack (after)"], loc="outside upper center", ncols=2,
+               fontsize=8)
     return save_figure(fig, out_dir, "statistics")
 
 
 def figure_p_values(rows: Rows, out_dir: str) -> str:
     """Each test's p-value before and after the attack, per delta and T, with the 5% level."""
     horizons, deltas = _grid(rows)
-    fig, axes = plt.subplots(len(STATISTICS), len(horizons), figsize=(5.5 * len(horizons), 9.5), squeeze=False, layout="constrained")
+    fig, axes = plt.subplots(len(STATISTICS), len(horizons), figsize=(5.5 * len(horizons), 9.5), squeeze=False,
+                             layout="constrained")
     for i, name in enumerate(STATISTICS):
         for ax, T in zip(axes[i], horizons):
             # the input test's p-values are tiny (the input drives the plant): on a log10 scale, floored at 1e-300
@@ -105,8 +108,9 @@ def figure_p_values(rows: Rows, out_dir: str) -> str:
             if name != "input":
                 ax.set_ylim(0, 1)
             ax.set_title(f"{TEST_NAMES[name]}, T = {T}\n{BUDGET_TEXT}", fontsize=8)
-            ax.legend([Patch(color=BEFORE, alpha=0.6), Patch(color=ENGINE, alpha=0.6), line],
-                      ["clean data (before)", "poisoned (after)", "5% level: below it the test rejects"], fontsize=7)
+    fig.legend([Patch(color=BEFORE, alpha=0.6), Patch(color=ENGINE, alpha=0.6), line],
+               ["clean data (before)", "poisoned (after)", "5% level: below it the test rejects"],
+               loc="outside upper center", ncols=3, fontsize=8)
     return save_figure(fig, out_dir, "p_values")
 
 
@@ -213,6 +217,13 @@ def report(rows: Rows, baseline: Rows, figures: dict[str, str], plan: Plan, timi
                      f"{c['time_ratio']:.1f}x |")
     parts += ["", "## Figures", "",
               f"![||d[A B]||_2 per budget]({figures['error']})", "",
+              "Figure 1: the identified model's error ||[A B]' - [A B]_clean||_2 of the stealthy answers per budget "
+              "delta (box: quartiles, whiskers 1.5 IQR, circles beyond), the engine on every data set and the SLSQP "
+              "baseline on its subset; one panel per T.", "",
               f"![residual norm and whiteness statistic before and after]({figures['statistics']})", "",
-              f"![p-values of the three tests before and after]({figures['p_values']})", ""]
+              "Figure 2: the residual norm ||E||_F (state units) and the whiteness statistic Q of the fit on the clean "
+              "(grey) and the poisoned (blue) data, per budget; one column per T.", "",
+              f"![p-values of the three tests before and after]({figures['p_values']})", "",
+              "Figure 3: each residual test's p-value on the clean and the poisoned data, per budget (red: the 5 % "
+              "level, below which the test rejects); the input test's on a log10 scale.", ""]
     return "\n".join(parts)

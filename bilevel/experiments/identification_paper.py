@@ -30,7 +30,7 @@ from ..problems.identification import problem_for
 from ..problems.identification_instance import IdentificationAttack, IdentificationSetting
 from .executor import open_executor
 from .identification import METHOD
-from .sweep import FINITE, NUMBER, check_fields, run_sweep, stderr_progress
+from .sweep import FINITE, NUMBER, check_fields, committed_timings, run_sweep, stderr_progress
 
 DELTAS = (0.01, 0.025, 0.05, 0.075, 0.1)
 HORIZONS = (100, 500)
@@ -174,7 +174,8 @@ def run_paper(folder: str, out_dir: str = "out/identification-paper", workers: i
     os.makedirs(out_dir, exist_ok=True)
     with open_executor(workers, dask) as executor:
         rows = run_sweep(attack_task, tasks, os.path.join(out_dir, "authors_terms.jsonl"), executor, progress, "paper",
-                         valid=lambda row: check_fields(row, ROW_SCHEMA))
+                         valid=lambda row: check_fields(row, ROW_SCHEMA),
+                         reference=committed_timings("identification-paper"))
     path = os.path.join(out_dir, "report.md")
     with atomic_open(path) as fh:
         fh.write("# The stealthy identification attack on Russo & Proutiere's data sets and constraints\n\n"

@@ -32,7 +32,7 @@ from ..problems.willems_instance import WillemsSetting, criterion_values
 from ..solvers.registry import solve
 from .defenses import clean_gain, clean_performance
 from .executor import open_executor
-from .sweep import NUMBER, check_fields, run_sweep, sim_seeds, stderr_progress
+from .sweep import NUMBER, check_fields, committed_timings, run_sweep, sim_seeds, stderr_progress
 
 ROW_SCHEMA = {"learner": str, "design": NUMBER, "budget": NUMBER, "horizon": int, "data_seed": int,
               "answers": int, "abstained": int, "engine_abstained": int, "unstable": int, "radius": NUMBER,
@@ -214,7 +214,8 @@ def run_robust_willems(sims: int = 64, out_dir: str = "out/robust-willems", quic
     plan = make_plan(sims, quick)
     with open_executor(workers, dask) as executor:
         rows = run_sweep(task_row, tasks(plan, seed), os.path.join(out_dir, "robust.jsonl"), executor, progress,
-                         "robust-willems", valid=lambda r: check_fields(r, ROW_SCHEMA))
+                         "robust-willems", valid=lambda r: check_fields(r, ROW_SCHEMA),
+                         reference=committed_timings("robust-willems"))
     write_outputs(rows, out_dir)
     path = os.path.join(out_dir, "robust.md")
     if progress:

@@ -36,8 +36,26 @@ try:
     _PACKAGE = metadata.version("bilevel")
 except metadata.PackageNotFoundError:  # pragma: no cover - running from a source tree without install
     _PACKAGE = "unknown"
-ALGORITHM_VERSION = f"bilevel-{_PACKAGE}/sweep-4"
-"""Part of every row's digest: bump the suffix when an attack changes its numbers for the same task."""
+
+
+def _source_hash() -> str:
+    """12 hex digits of a hash of every .py file of the installed package (paths and contents): any code change gives
+    new digests, so rows computed by other code are never reused."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    h = hashlib.sha256()
+    for folder, dirs, files in sorted(os.walk(root)):
+        dirs.sort()
+        for name in sorted(f for f in files if f.endswith(".py")):
+            path = os.path.join(folder, name)
+            h.update(os.path.relpath(path, root).encode())
+            with open(path, "rb") as fh:
+                h.update(fh.read())
+    return h.hexdigest()[:12]
+
+
+ALGORITHM_VERSION = f"bilevel-{_PACKAGE}/sweep-4/src-{_source_hash()}"
+"""Part of every row's digest: the package version and a hash of its source, so that a rerun after any code change
+recomputes (an interrupted run of the same code resumes)."""
 
 
 class SweepInterrupted(KeyboardInterrupt):
@@ -201,11 +219,77 @@ def load_timings(path: str, report: Callable[[str], None] | None = None) -> dict
         return {}
 
 
-def record_timing(path: str, timings: dict[str, tuple[int, float]], name: str, count: int, seconds: float) -> None:
-    """Store one sweep's (attacks run, wall seconds) in `timings` and rewrite timings.json atomically."""
+def record_timing(path: str, timings: dict[str, tuple[int, float]], name: str, count: int, seconds: float,
+                  workers: int | None = None) -> None:
+    """Store one sweep's (attacks run, wall seconds) in `timings` and rewrite timings.json atomically, with the
+    worker count beside each entry when known (what an estimate of a later run scales by)."""
     timings[name] = (int(count), float(seconds))
+    known = {k: v for k in timings if k != name and (v := _workers(path, k))}
+    if workers:
+        known[name] = int(workers)
+    out = {k: [*v, known[k]] if k in known else list(v) for k, v in timings.items()}
     with atomic_open(path) as fh:
-        json.dump(timings, fh, indent=1)
+        json.dump(out, fh, indent=1)
+
+
+COMMITTED = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "docs",
+                         "results")
+"""The repository's committed results (present in a clone, absent from an installed wheel)."""
+
+
+def _entry(path: str | None, name: str) -> tuple[int, float, int] | None:
+    """(count, seconds, workers) of sweep `name` in timings.json `path`, if recorded with its worker count."""
+    if not path or not os.path.exists(path):
+        return None
+    try:
+        with open(path, encoding="utf-8") as fh:
+            entry = json.load(fh)[name]
+        count, seconds, workers = int(entry[0]), float(entry[1]), int(entry[2])
+    except (ValueError, TypeError, AttributeError, IndexError, KeyError):
+        return None
+    return (count, seconds, workers) if count > 0 and workers > 0 and math.isfinite(seconds) and seconds >= 0 \
+        else None
+
+
+def _workers(path: str, name: str) -> int | None:
+    """The worker count recorded beside sweep `name` in timings.json `path`, if any."""
+    entry = _entry(path, name)
+    return entry[2] if entry else None
+
+
+def pace(name: str, paths: Iterable[str | None]) -> tuple[float, str] | None:
+    """(worker-seconds per counted unit, the timings.json it came from) of sweep `name` in the first of `paths` that
+    recorded it with its worker count; None where none did."""
+    for path in paths:
+        entry = _entry(path, name)
+        if entry:
+            return entry[1] * entry[2] / entry[0], str(path)
+    return None
+
+
+def committed_timings(folder: str) -> str:
+    """The timings.json of the committed results in docs/results/<folder> (a reference pace for estimates)."""
+    return os.path.join(COMMITTED, folder, "timings.json")
+
+
+def estimate(label: str, count: int, executor: Executor, paths: Iterable[str | None]) -> str | None:
+    """One line: the wall time `count` units should take on `executor` at the first recorded pace in `paths`."""
+    found = pace(label, paths)
+    if found is None:
+        return None
+    per_unit, source = found
+    seconds = per_unit * count / max(1, executor.workers)
+    folder = os.path.relpath(os.path.dirname(os.path.abspath(source)), os.path.dirname(os.path.dirname(COMMITTED)))
+    where = f"the committed run in {folder}" if os.path.abspath(source).startswith(COMMITTED) else \
+        "an earlier run in this folder"
+    return f"estimate ~{_duration(seconds)} on {executor.workers} worker(s), at the pace of {where}"
+
+
+def _duration(seconds: float) -> str:
+    """'45 s', '12 min' or '2.5 h'."""
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min" if seconds < 7200 else f"{seconds / 3600:.1f} h"
 
 
 @contextmanager
@@ -228,13 +312,15 @@ def _signals_raise() -> Iterator[None]:
 
 def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[dict[str, Any]], path: str,
               executor: Executor | None = None, progress: Callable[[str], None] | None = stderr_progress,
-              label: str = "sweep", timed: Callable[[list[dict[str, Any]], float], None] | None = None,
-              valid: Validator | None = None, shared: Callable[[dict[str, Any]], Hashable] | None = None,
-              together: Together | None = None) -> list[dict[str, Any]]:
+              label: str = "sweep", valid: Validator | None = None,
+              shared: Callable[[dict[str, Any]], Hashable] | None = None, together: Together | None = None,
+              timing: str | None = None, units: Callable[[list[dict[str, Any]]], int] = len,
+              reference: str | None = None) -> list[dict[str, Any]]:
     """Run fn on every task without a matching row in `path` (on `executor`, default all local cores), appending
     rows as they finish; rows come back in task order. Tasks with equal shared(task) are computed once (the first of
-    them); those with equal together(task) in one worker, in task order. timed(tasks computed, wall seconds) follows
-    the last one."""
+    them); those with equal together(task) in one worker, in task order. The sweep's (units(tasks computed), wall
+    seconds, workers) is recorded under `timing` (default `label`) in timings.json beside `path`; before starting it
+    prints an estimate at the pace recorded there by an earlier run, else in `reference` (a committed timings.json)."""
     tasks = list(tasks)
     keys = [t["key"] for t in tasks]
     if len(set(keys)) != len(keys):
@@ -257,12 +343,17 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     own = executor is None
     executor = executor or LocalExecutor()
+    beside = os.path.join(os.path.dirname(os.path.abspath(path)), "timings.json")
+    timing = timing or label
+    guess = estimate(timing, units(computed), executor, [beside, reference])
     if progress:
         progress(f"[{label}] {len(done)} of {len(tasks)} already done"
                  + (f" ({stale} row(s) of other settings not reused)" if stale else "")
                  + f"; running {len(todo)}" + (f" ({len(computed)} distinct)" if len(computed) < len(todo) else "")
                  + f" on {executor.description} -> {path}")
+        progress(f"[{label}] {guess or 'no earlier run recorded to estimate from; an ETA follows the first task'}")
     t0, ran = time.perf_counter(), 0
+    t_first = t0
     report_every = max(1, len(computed) // 20)
     try:
         with _signals_raise(), open(path, "a", encoding="utf-8") as fh:
@@ -274,10 +365,17 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
                     done[task["key"]] = row
                 fh.flush()
                 ran += 1
-                if progress and (ran == 1 or ran % report_every == 0 or ran == len(computed)):  # an ETA from the first
-                    rate = ran / (time.perf_counter() - t0)
+                now = time.perf_counter()
+                t_first = now if ran == 1 else t_first
+                if progress and ran == 1 and guess:
+                    progress(f"\r[{label}] {len(done)}/{len(tasks)} done, the first after {now - t0:.1f} s "
+                             "(with the workers' start-up)")
+                elif progress and (ran == 1 or ran % report_every == 0 or ran == len(computed)):
+                    # once every worker has finished a task, the pace since the first excludes the start-up
+                    rate = (ran - 1) / max(now - t_first, 1e-9) if ran > max(1, executor.workers) else \
+                        ran / max(now - t0, 1e-9)
                     progress(f"\r[{label}] {len(done)}/{len(tasks)} done, {rate:.2f} tasks/s, "
-                             f"ETA {(len(computed) - ran) / rate:.0f} s")
+                             f"ETA {(len(computed) - ran) / max(rate, 1e-9):.0f} s")
     except SweepInterrupted as exc:
         executor.abort()
         if progress:
@@ -289,6 +387,6 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
         raise
     if own:
         executor.close()
-    if timed is not None:
-        timed(computed, time.perf_counter() - t0)
+    record_timing(beside, load_timings(beside, progress), timing, units(computed), time.perf_counter() - t0,
+                  executor.workers)
     return [done[k] for k in keys]

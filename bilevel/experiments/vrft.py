@@ -20,8 +20,8 @@ from ..problems.vrft_instance import CONVENTIONS, PAPER_EPS_Y, VRFTAttack, attac
 from ..result import BilevelResult
 from .stats import mean_interval, wilson_interval
 from .executor import open_executor
-from .sweep import (FINITE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of, sim_seeds,
-                    stderr_progress)
+from .sweep import (FINITE, NUMBER, check_fields, committed_timings, load_timings, run_sweep, settings_of,
+                    sim_seeds, stderr_progress)
 
 EPS_U = (0.0, 0.1, 0.2)
 EPS_Y = PAPER_EPS_Y
@@ -198,6 +198,11 @@ def sweep_plan(sims: int, side: int) -> list[tuple[str, int, str, str, str]]:
                    ("targeted-paper", side, "paper", "targeted", "alternating")]
 
 
+def attacks_in(tasks: list[dict[str, Any]]) -> int:
+    """Attacks the tasks run (a path task runs one per budget; timings.json counts attacks)."""
+    return sum(len(t["eps_y"]) if t["method"] == "path" else 1 for t in tasks)
+
+
 def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, workers: int | None = None,
                      side_sims: int | None = None, progress: Callable[[str], None] | None = stderr_progress,
                      dask: str | None = None) -> str:
@@ -213,16 +218,13 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
     os.makedirs(out_dir, exist_ok=True)
     runs: dict[str, list[dict[str, Any]]] = {}
     plan = sweep_plan(sims, side)
-    timings_path = os.path.join(out_dir, "timings.json")
-    timings = load_timings(timings_path, progress)
     with open_executor(workers, dask) as executor:
         for name, n, convention, objective, method in plan:
             tasks = cell_tasks(n, seed, convention, objective, method)
-            runs[name] = run_sweep(
-                attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress, name,
-                lambda ran, seconds: record_timing(timings_path, timings, name,
-                                                   sum(len(t["eps_y"]) if t["method"] == "path" else 1 for t in ran),
-                                                   seconds), valid_row, same_attack, same_data)
+            runs[name] = run_sweep(attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress, name,
+                                   valid_row, same_attack, same_data, units=attacks_in,
+                                   reference=committed_timings("vrft"))
+    timings = load_timings(os.path.join(out_dir, "timings.json"), progress)
     summaries = {name: summarize(rows) for name, rows in runs.items()}
     for name, s in summaries.items():
         write_csv(s, os.path.join(out_dir, f"table_{name}.csv"))

@@ -41,8 +41,8 @@ from ..problems.willems_instance import (DEFAULT_REG, SOLVER_SELECTIONS, Willems
 from ..result import BilevelResult  # noqa: E402
 from .stats import mean_interval, wilson_interval  # noqa: E402
 from .executor import open_executor  # noqa: E402
-from .sweep import (FINITE, NUMBER, check_fields, load_timings, record_timing, run_sweep, settings_of,  # noqa: E402
-                    stderr_progress)
+from .sweep import (FINITE, NUMBER, check_fields, committed_timings, load_timings, run_sweep,  # noqa: E402
+                    settings_of, stderr_progress)
 from .willems_selection import selection_table  # noqa: E402
 
 DELTA_Y = 1e-3
@@ -349,6 +349,10 @@ def _series(summary: dict[tuple, dict[str, float]], n: int, method: str, deltas:
                                                           for d, c in cells])) if cells else (np.zeros(0),) * 4
 
 
+BUDGET_LABEL = "delta_u: linf budget, |Du| <= delta_u (input units)"
+"""The x label of the figures over the input budget."""
+
+
 def figure_eigenvalues(summary: dict[tuple, dict[str, float]], plan: Plan, out_dir: str) -> str:
     """Fig. 7: mean max |eig(A+BK)| (black, left) and mean sum |eig| (red, right) vs delta_u (N=15 solid, 50 dashed)."""
     fig = Figure(figsize=(12, 4), layout="constrained")
@@ -360,11 +364,12 @@ def figure_eigenvalues(summary: dict[tuple, dict[str, float]], plan: Plan, out_d
                 axis.plot(d, m, style, color=color, marker="o", ms=3, label=f"N={n}")
                 axis.fill_between(d, lo, hi, color=color, alpha=0.12)
         ax.axhline(1.0, color="0.6", lw=0.8, ls=":")
-        ax.set_xlabel("delta_u (linf budget)")
+        ax.set_xlabel(BUDGET_LABEL)
         ax.set_ylabel("max |eig(A+BK)|")
         twin.set_ylabel("sum |eig(A+BK)|", color="tab:red")
         ax.set_title(METHODS[method])
-        ax.legend(loc="upper left", fontsize=8)
+        ax.legend(loc="upper left", fontsize=8, title="black: max (left axis)\nred: sum (right axis)",
+                  title_fontsize=7)
     return save_figure(fig, out_dir, "fig7_eigenvalues")
 
 
@@ -377,8 +382,8 @@ def figure_objective(summary: dict[tuple, dict[str, float]], plan: Plan, out_dir
             d, m, lo, hi = _series(summary, n, method, plan.deltas, "objective")
             ax.plot(d, m, style, color=color, marker="o", ms=3, label=f"{METHODS[method]}, N={n}")
             ax.fill_between(d, lo, hi, color=color, alpha=0.15)
-    ax.set_xlabel("delta_u (linf budget)")
-    ax.set_ylabel("attacker objective log det(Acl Acl')")
+    ax.set_xlabel(BUDGET_LABEL)
+    ax.set_ylabel("attacker objective log det(Acl Acl') (dimensionless)")
     ax.legend(fontsize=8)
     return save_figure(fig, out_dir, "fig8_objective")
 
@@ -395,7 +400,7 @@ def signal_delta(summary: dict[tuple, dict[str, float]], plan: Plan, n: int) -> 
 def figure_signals(rows: list[dict[str, Any]], summary: dict[tuple, dict[str, float]], plan: Plan,
                    out_dir: str) -> tuple[str, dict[int, tuple[float, int]]]:
     """Fig. 9: clean and poisoned inputs of the loops our attack destabilized (mean over sims, 95% CI band)."""
-    fig = Figure(figsize=(11, 5))
+    fig = Figure(figsize=(11, 5.4), layout="constrained")
     axes = fig.subplots(2, len(plan.horizons), squeeze=False)
     used = {}
     for col, n in enumerate(plan.horizons):
@@ -411,15 +416,18 @@ def figure_signals(rows: list[dict[str, Any]], summary: dict[tuple, dict[str, fl
         t = np.arange(n)
         for ch in range(2):
             ax = axes[ch, col]
-            for sig, color, label in ((clean, "tab:blue", "clean u"), (poisoned, "tab:orange", "poisoned u'")):
+            for sig, color, label in ((clean, "tab:blue", "clean u (mean)"),
+                                      (poisoned, "tab:orange", "poisoned u' (mean, 95% CI band)")):
                 stats = np.array([mean_interval(sig[:, ch, j]) for j in range(n)])
                 ax.step(t, stats[:, 0], where="post", color=color, label=label)
                 if color == "tab:orange":
                     ax.fill_between(t, stats[:, 1], stats[:, 2], step="post", color=color, alpha=0.25)
-            ax.set_ylabel(f"u_{ch + 1}")
+            ax.set_ylabel(f"u_{ch + 1} (input units)")
             ax.set_title(f"N={n}, delta_u={d:g}: mean of {len(sel)} destabilized loops" if ch == 0 else "")
-        axes[1, col].set_xlabel("t")
-        axes[0, col].legend(fontsize=8)
+        axes[1, col].set_xlabel("t (samples)")
+    handles, labels = next(((h, lab) for ax in axes.flat for h, lab in [ax.get_legend_handles_labels()] if h), ([], []))
+    if handles:
+        fig.legend(handles, labels, loc="outside upper center", ncols=2, fontsize=8)
     return save_figure(fig, out_dir, "fig9_signals"), used
 
 
@@ -488,6 +496,8 @@ def write_report(out_dir: str, plan: Plan, settings: dict[str, list], summaries:
         "delta_u*: per data set, the smallest budget of the grid at which the destabilizing attack (max rho) made "
         "the true loop unstable (grid resolution; `smallest_destabilizing_budget` bisects further):", "",
         budget_md, "![delta_u* CDF](fig_budget_cdf.png)", "",
+        "Figure: the empirical CDF of delta_u* over the data sets (fraction of data sets destabilized at or below each "
+        "input budget), per horizon.", "",
         "## Settings", "",
         "- Plant: batch reactor (Walsh & Ye 2001), Ts = 0.1, n = 4, m = 2; data: u ~ N(0, 1) white, x_0 = 0, "
         "noise free. The attacker uses [B A] = X1 [U0; X0]^+ from the clean data (equal to the plant here).",
@@ -572,16 +582,14 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
               "designs": (design_tasks(plan, seed, selection), ("design", "poison", "criterion", "delta_u"))}
     sweeps = {name: ([t for t in tasks if selection_applies(selection, t["poison"], t["design"])], fields)
               for name, (tasks, fields) in sweeps.items()}
-    timings_path = os.path.join(out_dir, "timings.json")
-    rows, summaries, wall = {}, {}, load_timings(timings_path, progress)
+    rows, summaries = {}, {}
     with open_executor(workers, dask) as executor:
         for name, (tasks, fields) in sweeps.items():
             rows[name] = run_sweep(attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress,
-                                   f"willems-{name}",
-                                   lambda ran, seconds: record_timing(timings_path, wall, name, len(ran), seconds),
-                                   valid_row)
+                                   f"willems-{name}", valid_row, timing=name, reference=committed_timings("willems"))
             summaries[name] = summarize(rows[name], fields)
             write_csv(summaries[name], fields, os.path.join(out_dir, f"table_{name}.csv"))
+    wall = load_timings(os.path.join(out_dir, "timings.json"), progress)
     tables = {"paper": paper_table, "remark": remark_table, "designs": design_table}
     for name, fn in tables.items():
         with atomic_open(os.path.join(out_dir, f"table_{name}.md")) as fh:

@@ -22,7 +22,7 @@ from ..problems.willems import build_attack  # noqa: E402
 from ..problems.willems_instance import WillemsSetting  # noqa: E402
 from ..solvers.budget_search import BudgetSearch, smallest_budget  # noqa: E402
 from .executor import open_executor  # noqa: E402
-from .sweep import NUMBER, check_fields, run_sweep, stderr_progress  # noqa: E402
+from .sweep import NUMBER, check_fields, committed_timings, run_sweep, stderr_progress  # noqa: E402
 from .willems import sim_seeds  # noqa: E402
 
 BUDGET_SCHEMA = {"horizon": int, "selection": str, "data_seed": int, "delta_star": NUMBER, "attacks": int}
@@ -68,7 +68,7 @@ def budget_distribution(horizons: tuple[int, ...], selections: tuple[str, ...], 
              for n in horizons for sel in selections for i, (data_seed, attack_seed) in seeds]
     with open_executor(workers, dask) as executor:
         rows = run_sweep(budget_task, tasks, path, executor, progress, "willems-budget",
-                         valid=lambda r: check_fields(r, BUDGET_SCHEMA))
+                         valid=lambda r: check_fields(r, BUDGET_SCHEMA), reference=committed_timings("willems/budget"))
     return [{k: r[k] for k in BUDGET_SCHEMA} for r in rows]
 
 
@@ -116,7 +116,7 @@ def budget_figure(rows: list[dict[str, float]]) -> Figure:
         shown = np.isfinite(d)
         ax.step(np.append(d[shown], right), np.append(reached[shown], reached[shown][-1] if shown.any() else 0.0),
                 where="post", label=f"N = {key[0]}, {key[1]}")
-    ax.set_xlabel("delta_u* (smallest destabilizing linf input budget)")
+    ax.set_xlabel("delta_u* (smallest destabilizing linf input budget, input units)")
     ax.set_ylabel("fraction of data sets")
     ax.set_xlim(0, right)
     ax.set_ylim(0, 1)

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..defaults import param
 from ..errors import NonConvexLowerLevel
+from .curvature import convex_by_rules
 from .interval import enclose
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -135,27 +136,47 @@ def _dense(fun: ca.Function, k: int, nonzeros: np.ndarray) -> np.ndarray:
     return out
 
 
-def _gershgorin_psd(lo: np.ndarray, hi: np.ndarray) -> bool:
-    """Every symmetric matrix with entries in [lo, hi] is PSD (up to defaults["convexity.psd_tol"]): each diagonal lower
-    bound covers the row's largest possible off-diagonal sum."""
+def _interval_psd(lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Every symmetric matrix with entries in [lo, hi] is PSD (up to defaults["convexity.psd_tol"]): by Gershgorin's
+    discs (each diagonal lower bound covers the row's largest possible off-diagonal sum), or by Weyl's inequality
+    (the midpoint's smallest eigenvalue is at least the spectral norm of the radius, here bounded by its Frobenius
+    norm), which is exact for a constant matrix."""
     size = np.maximum(np.abs(lo), np.abs(hi))
     off = np.where(np.eye(size.shape[0], dtype=bool), 0.0, size).sum(axis=1)
     finite = size[np.isfinite(size)]
-    scale = max(1.0, float(finite.max(initial=0.0)))
-    return bool(np.all(np.diag(lo) - off >= -param("convexity.psd_tol") * scale))
+    tol = param("convexity.psd_tol") * max(1.0, float(finite.max(initial=0.0)))
+    if np.all(np.diag(lo) - off >= -tol):
+        return True
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        return False
+    return min_eigenvalue(0.5 * (lo + hi)) - float(np.linalg.norm(0.5 * (hi - lo))) >= -tol
 
 
-def proven_convex(low: "LowerLevel", x: np.ndarray, y_lb: np.ndarray, y_ub: np.ndarray) -> bool:
-    """True when interval bounds (interval.py) prove every lower Hessian PSD at upper point x for all y in the box
-    [y_lb, y_ub]: then the lower level at x is convex on a convex set containing its feasible set, and a local
-    lower solution is global. False means not proven (not that it is non-convex)."""
+def convex_on_box(low: "LowerLevel", x: np.ndarray, y_lb: np.ndarray, y_ub: np.ndarray,
+                  x_ub: np.ndarray | None = None) -> bool:
+    """True when the lower level is proven convex in y at x (or on the upper box [x, x_ub]) for all y in [y_lb, y_ub]:
+    by interval bounds on its Hessians (proven_convex) or by composition rules on f and g (curvature.py)."""
+    if proven_convex(low, x, y_lb, y_ub, x_ub):
+        return True
+    expr = low.symbolic()
+    functions = expr.params.substitute(ca.vertcat(expr.f, expr.g))
+    return convex_by_rules(expr.x, expr.y, functions, (x, x if x_ub is None else x_ub), (y_lb, y_ub))
+
+
+def proven_convex(low: "LowerLevel", x: np.ndarray, y_lb: np.ndarray, y_ub: np.ndarray,
+                  x_ub: np.ndarray | None = None) -> bool:
+    """True when interval bounds (interval.py) prove every lower Hessian PSD at upper point x (or, given x_ub, at
+    every point of the upper box [x, x_ub]) for all y in the box [y_lb, y_ub]: then the lower level there is convex
+    on a convex set containing its feasible set, and a local lower solution is global. False means not proven (not
+    that it is non-convex)."""
     for compiled in low.curvature_functions():
         fun = compiled.fun
-        boxes = [(x, x), (y_lb, y_ub)] + ([(compiled.params.value,) * 2] if compiled.params is not None else [])
+        boxes = [(x, x if x_ub is None else x_ub), (y_lb, y_ub)] + ([(compiled.params.value,) * 2]
+                                                                   if compiled.params is not None else [])
         enclosures = enclose(fun, boxes)
         if enclosures is None:
             return False
         for k, (lo, hi) in enumerate(enclosures):
-            if not _gershgorin_psd(_dense(fun, k, lo), _dense(fun, k, hi)):
+            if not _interval_psd(_dense(fun, k, lo), _dense(fun, k, hi)):
                 return False
     return True

@@ -2,7 +2,7 @@
 
 Natural interval extension, operation by operation, of the function's algorithm (no directed rounding: an
 enclosure up to floating-point rounding). Operations it does not know make it return None (nothing is claimed).
-Used to prove a lower-level Hessian PSD on a box (convexity.py).
+Used to prove a lower-level Hessian PSD on a box (convexity.py) and to follow curvature (curvature.py).
 """
 
 from __future__ import annotations
@@ -128,8 +128,14 @@ def enclose(fun: ca.Function, boxes: list[tuple[np.ndarray, np.ndarray]]) -> lis
         elif op == ca.OP_ASSIGN:
             work[out[0]] = work[inp[0]]
         else:
-            value = _unary(op, work[inp[0]]) if len(inp) == 1 else _binary(op, work[inp[0]], work[inp[1]])
-            if value is None or any(math.isnan(v) for v in value):
+            value = apply(op, [work[i] for i in inp])
+            if value is None:
                 return None
             work[out[0]] = value
     return outs
+
+
+def apply(op: int, args: list[Interval]) -> Interval | None:
+    """Enclosure of CasADi operation `op` on argument intervals (None if unknown or not defined on all of them)."""
+    value = _unary(op, args[0]) if len(args) == 1 else _binary(op, args[0], args[1])
+    return None if value is None or any(math.isnan(v) for v in value) else value

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import casadi as ca
 import numpy as np
 
+from ..defaults import param
 from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
 from .base import ExpressionLower, LowerSolution
 
@@ -15,6 +17,13 @@ NLPSOL_QUIET = {"print_time": False, "show_eval_warnings": False}
 """CasADi nlpsol options of every IPOPT solve: no timing report, and no console warning when a function evaluation
 gives NaN or inf (outside its domain). IPOPT handles such a point (it shortens the step) or stops with status
 Invalid_Number_Detected, which the caller's status and message carry."""
+
+
+def ipopt_options(tol: float, max_iter: int, settings: dict[str, Any] | None = None) -> dict[str, Any]:
+    """CasADi nlpsol options of a quiet IPOPT (NLPSOL_QUIET, print_level 0, no banner) with tolerance `tol`, iteration
+    limit `max_iter` and further IPOPT `settings` (which may override these): the one builder of every IPOPT solve."""
+    return {**NLPSOL_QUIET, "ipopt": {"print_level": 0, "sb": "yes", "tol": tol, "max_iter": max_iter,
+                                      **(settings or {})}}
 
 
 @dataclass
@@ -26,8 +35,7 @@ class ConvexNLPLower(ExpressionLower):
     def __post_init__(self) -> None:
         super().__post_init__()
         nlp = {"x": self.y, "p": ca.vertcat(self.x, self.params.sym), "f": self.f, "g": ca.vertcat(self.g, self.h)}
-        opts = {**NLPSOL_QUIET, "ipopt": {"print_level": 0, "tol": 1e-12, "acceptable_tol": 1e-9, "max_iter": 3000,
-                                          "sb": "yes"}}
+        opts = ipopt_options(param("lower.nlp_tol"), 3000, {"acceptable_tol": param("lower.nlp_acceptable_tol")})
         self._solver = ca.nlpsol("lower_nlp", "ipopt", nlp, opts)
         self._ng = int(self.g.numel())
 

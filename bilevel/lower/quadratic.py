@@ -14,6 +14,7 @@ import cvxpy as cp
 import numpy as np
 import scipy.sparse as sp
 
+from ..defaults import param
 from ..errors import LowerLevelInfeasible, LowerLevelUnbounded, SolverFailed
 from ..vech import smat, svec
 from ..parameters import CompiledFunction
@@ -22,8 +23,21 @@ from .convexity import require_psd
 from .polish import Lmi, polish
 
 
-CLARABEL_TOLERANCES = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10, "tol_ktratio": 1e-8}
-"""Tighter than Clarabel's defaults (1e-8): certificates compare against these solutions."""
+def clarabel_tolerances() -> dict[str, float]:
+    """Clarabel's tolerances in every lower-level solve, defaults["lower.clarabel_tol"] and
+    defaults["lower.clarabel_ktratio"]: tighter than its own (1e-8), since certificates compare against these
+    solutions. The one source of Clarabel's settings (clarabel_settings for its own interface)."""
+    tol = param("lower.clarabel_tol")
+    return {"tol_gap_abs": tol, "tol_gap_rel": tol, "tol_feas": tol, "tol_ktratio": param("lower.clarabel_ktratio")}
+
+
+def clarabel_settings() -> clarabel.DefaultSettings:
+    """Settings of a direct Clarabel solve (its own interface): quiet, at clarabel_tolerances()."""
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    for name, value in clarabel_tolerances().items():
+        setattr(settings, name, value)
+    return settings
 
 
 @dataclass(frozen=True)
@@ -59,10 +73,10 @@ def solve_quietly(problem: cp.Problem, **options: Any) -> None:
 
 def solve_clarabel(problem: cp.Problem, what: str, infeasible_hint: str = "",
                    options: dict[str, Any] | None = None) -> None:
-    """Solve a cvxpy problem with Clarabel at CLARABEL_TOLERANCES (overridable); map every non-optimal status
+    """Solve a cvxpy problem with Clarabel at clarabel_tolerances() (overridable); map every non-optimal status
     to a named error: LowerLevelInfeasible, LowerLevelUnbounded or SolverFailed."""
     try:
-        solve_quietly(problem, solver=cp.CLARABEL, **{**CLARABEL_TOLERANCES, **(options or {})})
+        solve_quietly(problem, solver=cp.CLARABEL, **{**clarabel_tolerances(), **(options or {})})
     except cp.error.SolverError as exc:
         raise SolverFailed(f"Clarabel failed on {what} ({exc}); rescale the data or loosen tolerances") from exc
     if problem.status in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
@@ -105,11 +119,7 @@ def clarabel_direct(d: QPData, context: str, psd_verified: bool = False, lmis: t
         rhs.append(svec(np.asarray(m0).T))
         cones.append(clarabel.PSDTriangleConeT(k))
     A = sp.csc_matrix(np.vstack(rows)) if sum(r.shape[0] for r in rows) else sp.csc_matrix((0, n))
-    settings = clarabel.DefaultSettings()
-    settings.verbose = False
-    for name, value in CLARABEL_TOLERANCES.items():
-        setattr(settings, name, value)
-    out = clarabel.DefaultSolver(P, d.q, A, np.concatenate(rhs), cones, settings).solve()
+    out = clarabel.DefaultSolver(P, d.q, A, np.concatenate(rhs), cones, clarabel_settings()).solve()
     status = str(out.status)
     where = f"the lower level {context}"
     if status in ("PrimalInfeasible", "AlmostPrimalInfeasible"):
@@ -146,9 +156,9 @@ def clarabel_solution(d: QPData, context: str, lmis: tuple[Lmi, ...] = (),
         solve_clarabel(prob, f"the lower level {context}", options=DROP_ZEROS)
         return _solution(d, y, cons, prob.status)
     with stated[3]:
-        for param, value in zip(stated[2], data):
-            if isinstance(param, cp.Parameter):
-                param.value = value
+        for slot, value in zip(stated[2], data):
+            if isinstance(slot, cp.Parameter):
+                slot.value = value
         solve_clarabel(stated[0], f"the lower level {context}", options=DROP_ZEROS)
         return _solution(d, stated[1], stated[0].constraints, stated[0].status)
 

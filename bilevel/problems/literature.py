@@ -12,4 +12,4 @@ maximize_*), "nonunique-lower" (follower's response not unique at the solution; 
 applies: the leader picks the follower response best for itself).
 """
 
-from . import literature_bilinear, literature_linear, literature_quadratic  # noqa: F401  (registration on import)
+from . import literature_bilinear, literature_linear, literature_nonlinear, literature_quadratic  # noqa: F401

@@ -12,7 +12,6 @@ VRFTAttack; the structured attacks on the declared problem are in bilevel.attack
 from __future__ import annotations
 
 from typing import Any, Callable, Literal
-from weakref import WeakKeyDictionary
 
 import casadi as ca
 import numpy as np
@@ -103,7 +102,7 @@ little slower; the KKT reformulation forms them as dense matrices). benchmarks/b
 both."""
 
 
-def attack_problem(atk: VRFTAttack, filters: str = "recursions") -> BilevelProblem:
+def attack_problem(atk: VRFTAttack, filters: str = "recursions") -> VRFTProblem:
     """The bilevel program of an attack instance (l2 budgets as balls, linf budgets as bounds), declared with the
     generic API.
 
@@ -115,7 +114,7 @@ def attack_problem(atk: VRFTAttack, filters: str = "recursions") -> BilevelProbl
     return declare(atk, filters)
 
 
-def declare(atk: VRFTAttack, filters: str = "recursions") -> BilevelProblem:
+def declare(atk: VRFTAttack, filters: str = "recursions") -> VRFTProblem:
     """attack_problem without its check of the budgets: an l1 budget becomes the constraint ||a||_1 <= delta, and a
     sparsity fraction rho is left out (the declared set is the norm ball; a method that keeps the sparsity searches
     the narrower set and says so: MethodRun.feasible_set). filters: one of FILTERS."""
@@ -124,7 +123,7 @@ def declare(atk: VRFTAttack, filters: str = "recursions") -> BilevelProblem:
     reg = atk.setting.regressor
     N, k = atk.N, reg.n_params
     rows = reg.rows(N)
-    p = BilevelProblem(f"vrft-{atk.objective}")
+    p = VRFTProblem(atk)
     signals = {}
     for name, budget, delta in (("a_u", atk.budget_u, atk.delta_u), ("a_y", atk.budget_y, atk.delta_y)):
         box = {"lb": -delta, "ub": delta} if budget.norm == "linf" else {}  # bounds: every method projects on them
@@ -163,26 +162,32 @@ def declare(atk: VRFTAttack, filters: str = "recursions") -> BilevelProblem:
     return p
 
 
-_INSTANCES: WeakKeyDictionary[BilevelProblem, VRFTAttack] = WeakKeyDictionary()
-_NORMS: WeakKeyDictionary[BilevelProblem, dict[str, str]] = WeakKeyDictionary()
-"""The instance each declared problem holds, and the budget norm of each signal it was declared with."""
+class VRFTProblem(BilevelProblem):
+    """A BilevelProblem declared from a VRFT attack instance (declare): it carries the instance it is loaded with, so
+    the structured attacks (bilevel.attacks.vrft_methods) read their data from the problem they are handed."""
+
+    def __init__(self, atk: VRFTAttack) -> None:
+        super().__init__(f"vrft-{atk.objective}")
+        self.instance: VRFTAttack = atk
+        """The instance whose data the parameters hold (load_instance replaces it); its budget norms are the declared
+        ones."""
 
 
 def instance_of(problem: BilevelProblem) -> VRFTAttack:
     """The instance a problem from attack_problem (or a vrft-* builder) currently holds (load_instance sets it)."""
-    if problem not in _INSTANCES:
+    if not isinstance(problem, VRFTProblem):
         raise ModelError(f"problem {problem.name!r} was not declared from a VRFT instance; declare it with "
                          "bilevel.problems.vrft.attack_problem(atk) or build a registered vrft-* problem")
-    return _INSTANCES[problem]
+    return problem.instance
 
 
 DECLARED_CACHE = 4
 """problem_for keeps this many declared problems per process (declaring and preparing one at N = 512 takes about
 0.4 s, re-loading it a few ms)."""
-_DECLARED: dict[tuple[Any, ...], tuple[VRFTSetting, BilevelProblem]] = {}
+_DECLARED: dict[tuple[Any, ...], tuple[VRFTSetting, VRFTProblem]] = {}
 
 
-def problem_for(atk: VRFTAttack) -> BilevelProblem:
+def problem_for(atk: VRFTAttack) -> VRFTProblem:
     """The declared problem of `atk` (any budget `declare` takes), loaded with its data: declared once per setting,
     objective, N, budget norms (linf: radii) and ARX orders in this process, re-targeted with set_value after."""
     budgets = tuple(b.radius(s) if b.norm == "linf" else b.norm
@@ -216,14 +221,14 @@ def _load(problem: BilevelProblem, atk: VRFTAttack) -> None:
     """load_instance for any budget `declare` takes."""
     declared = {q.name: q for q in problem.parameters.items}
     rows = declared["t0"].size if "t0" in declared else 0
-    if problem.name != f"vrft-{atk.objective}" or rows != atk.t0.size:
+    if not isinstance(problem, VRFTProblem) or problem.name != f"vrft-{atk.objective}" or rows != atk.t0.size:
         raise ModelError(f"instance ({atk.objective}, N = {atk.N}) does not fit problem {problem.name!r} declared for "
                          f"{rows} regression rows; declare it with attack_problem(atk)")
     bounds = {v.name: float(v.ub[0]) for v in problem.variables if v.name in ("a_u", "a_y")}
     values = {"t0": atk.t0, "phi0": atk.phi0}
-    norms = _NORMS.get(problem, {})
+    held = problem.instance  # the declaring instance or one loaded since: its budget norms are the declared ones
     for name, budget, delta in (("u", atk.budget_u, atk.delta_u), ("y", atk.budget_y, atk.delta_y)):
-        declared_norm = norms.setdefault(name, budget.norm)
+        declared_norm = getattr(held, f"budget_{name}").norm
         if budget.norm != declared_norm:
             raise ModelError(f"this problem was declared with an {declared_norm} budget on a_{name}, the instance has "
                              f"{budget.norm}; declare the instance with attack_problem(atk)")
@@ -241,9 +246,8 @@ def _load(problem: BilevelProblem, atk: VRFTAttack) -> None:
         values |= {"loop_base": atk.model_loop.base, "loop_slopes": atk.model_loop.slopes}
     for name, value in values.items():
         problem.set_value(name, value)
-    _NORMS[problem] = norms
     problem.suggested_starts.clear()  # a_y = 0 is stationary: the engine's first start is its conditioning start
-    _INSTANCES[problem] = atk
+    problem.instance = atk
 
 
 def companion(base: np.ndarray | ca.SX, slopes: np.ndarray | ca.SX, theta: ca.SX) -> ca.SX:

@@ -36,6 +36,8 @@ class SearchOutcome:
     ended: str
     failed_nodes: int = 0
     history: list[dict[str, float]] = field(default_factory=list)
+    note: str = ""
+    """Why a search "failed", where the solver said (e.g. SCIP's error)."""
 
 
 def relative_gap(lower: float, upper: float) -> float:

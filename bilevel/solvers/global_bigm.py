@@ -29,6 +29,8 @@ class BigM:
     multiplier: np.ndarray
     labels: tuple[str, ...]
     fixed: dict[int, int] = field(default_factory=dict)
+    slater: frozenset[int] = frozenset()
+    """Pairs whose multiplier bound comes from a Slater point (global_slater.py), not from an LP over R."""
 
     @property
     def finite(self) -> bool:
@@ -37,7 +39,9 @@ class BigM:
 
     def justification(self) -> tuple[str, ...]:
         """One line per pair: its two bounds, or its forced side, and where they come from."""
-        def say(v: float) -> str:
+        def say(v: float, slater: bool = False) -> str:
+            if slater:
+                return f"{v:.6g} (Slater bound)"
             return f"{v:.6g} (LP max over R + margin)" if np.isfinite(v) else "unbounded over R (no big-M; branched)"
 
         lines = []
@@ -47,9 +51,9 @@ class BigM:
                 lines.append(f"{name}: multiplier = 0 (its slack has a positive minimum over R), slack <= {say(s)}")
             elif side == G_SIDE:
                 lines.append(f"{name}: slack = 0 (its multiplier has a positive minimum over R), "
-                             f"multiplier <= {say(m)}")
+                             f"multiplier <= {say(m, i in self.slater)}")
             else:
-                lines.append(f"{name}: slack <= {say(s)}, multiplier <= {say(m)}")
+                lines.append(f"{name}: slack <= {say(s)}, multiplier <= {say(m, i in self.slater)}")
         return tuple(lines)
 
 

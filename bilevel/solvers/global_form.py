@@ -20,12 +20,13 @@ import numpy as np
 
 from ..defaults import param
 from ..errors import ModelError, NonConvexLowerLevel
-from ..lower.convexity import require_convex_everywhere
+from ..lower.convexity import convex_on_box, require_convex_everywhere
 from ..mpcc import ScalarPair
 from ..parameters import ParameterSet, scalar
 from .base import Prepared
 
 if TYPE_CHECKING:  # pragma: no cover
+    from ..canonical import CanonicalBilevel
     from ..lower.base import LowerLevel
 
 LOCAL_METHODS = "use a local method instead: method='relaxation' (most robust) or method='ipopt'"
@@ -183,6 +184,22 @@ def _require_convex_on_box(low: LowerLevel, x_lb: np.ndarray, x_ub: np.ndarray) 
                                       "'global' proves nothing for it")
 
 
+def _require_proven_convex(low: LowerLevel, canon: CanonicalBilevel) -> None:
+    """A convex NLP lower level is convex at every x of the declared upper box for every y of the declared lower
+    box (a convex set holding its feasible set): interval bounds on its Hessians (lower/interval.py) with
+    Gershgorin's discs, or composition rules on f and g (lower/curvature.py), prove it; a ModelError naming the class
+    otherwise (not proven is not non-convex)."""
+    n_y = low.n_y
+    y_lb = np.full(n_y, -np.inf) if canon.y_lb is None else canon.y_lb
+    y_ub = np.full(n_y, np.inf) if canon.y_ub is None else canon.y_ub
+    if not convex_on_box(low, canon.x_lb, y_lb, y_ub, canon.x_ub):
+        raise ModelError("method 'global' proves a convex NLP lower level convex on the declared box before trusting "
+                         "its KKT conditions; interval bounds on the Hessians of its objective and nonlinear rows "
+                         "over the upper box times the lower variables' bounds do not prove them positive "
+                         "semidefinite, nor do composition rules prove them convex (class: lower level not provably "
+                         f"convex on the box; declare tighter bounds on x and y, or {LOCAL_METHODS})")
+
+
 def _refuse(nonconvex: str) -> ModelError:
     """The error for a leader outside the convex algorithms' scope when SCIP is not used."""
     return ModelError(f"method 'global' was given {nonconvex} (class: nonconvex leader); {SCIP_FIX}; or "
@@ -195,9 +212,12 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
     With nonconvex_leader (algorithm "scip"), a nonconvex upper objective and nonlinear upper rows are kept in
     the form's Leader instead of refused."""
     low = prep.canon.lower
-    if low.kind not in ("lp", "qp", "least-squares"):
-        raise ModelError(f"method 'global' handles LP and convex-QP lower levels with affine constraints; this lower "
-                         f"level is of kind {low.kind!r} (class: nonlinear lower level; {NOT_IN_SCIP}); {LOCAL_METHODS}")
+    nlp = low.kind == "nlp"
+    if low.kind not in ("lp", "qp", "least-squares") and not (nlp and nonconvex_leader):
+        fix = SCIP_FIX if nlp else NOT_IN_SCIP
+        raise ModelError(f"method 'global' handles LP and convex-QP lower levels with affine constraints, and convex "
+                         f"NLP ones with algorithm 'scip'; this lower level is of kind {low.kind!r} (class: nonlinear "
+                         f"lower level; {fix}); {LOCAL_METHODS}")
     mpcc = prep.mpcc
     w = mpcc.w
     canon = prep.canon
@@ -213,7 +233,9 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
                        "the lower objective's Hessian in y and the constraint matrices in y must not depend on x "
                        "(an x*y term in a lower constraint or an x-dependent quadratic term breaks this; class: "
                        f"x-dependent lower Hessian or constraint matrix; {SCIP_FIX})", mpcc.params)
-    if stationarity_nl.numel():
+    if nlp:
+        _require_proven_convex(low, canon)
+    elif stationarity_nl.numel():
         _require_convex_on_box(low, canon.x_lb, canon.x_ub)
     else:
         require_convex_everywhere(low, np.clip(np.zeros(low.n_x), canon.x_lb, canon.x_ub))  # after the affinity check
@@ -245,7 +267,9 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
     if rows_nl:
         classes.append(f"{rows_nl} upper constraint row(s) nonlinear in (x, y) (the convex algorithms need the upper "
                        "inequality constraints to be affine)")
-    if slacks:
+    if nlp:
+        classes.append("a convex NLP lower level (constraints or objective nonlinear in y)")
+    elif slacks:
         classes.append(f"{len(slacks)} lower constraint row(s) nonlinear in x")
     if stationarity_nl.numel():
         classes.append(f"an x-dependent lower Hessian or constraint matrix ({int(stationarity_nl.numel())} KKT "

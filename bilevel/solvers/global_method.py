@@ -27,6 +27,7 @@ from .global_form import linear_mpcc
 from .global_milp import solve_milp
 from .global_nodes import G_SIDE, Relaxation
 from .global_scip import require_scip, scip_available, solve_scip, unbounded_nonconvex
+from .global_slater import bound_multipliers, curved_rows
 from .limits import progress
 
 ALGORITHMS = ("auto", "milp", "branch-and-bound", "scip")
@@ -108,16 +109,16 @@ def solve_global(prep: Prepared, *, algorithm: str = "auto", time_limit: float |
     use_milp = use_milp and algorithm != "branch-and-bound"
     remaining = max(time_limit - (time.perf_counter() - t0), 1e-3)
     free: list[str] = []
+    slater = None
     if use_scip:
         name = "scip (spatial branch-and-bound, derived bounds)"
         box = derive_bounds(relax, big_m.fixed)
         free = unbounded_nonconvex(form.leader, box, prep.mpcc.blocks) if form.leader.nonconvex else []
-        if multipliers := [v for v in free if not v.startswith(("x[", "y["))]:
-            raise ModelError(f"algorithm 'scip' of method 'global': the multipliers {', '.join(multipliers)} enter "
-                             "products with x in the KKT stationarity (a lower constraint matrix depending on x) and "
-                             "have no bound derivable over the relaxed KKT polyhedron (class: x-dependent lower "
-                             "constraint matrix; algorithm 'scip' does not cover this class yet); use a local "
-                             "method: method='relaxation' or method='ipopt'")
+        multipliers = [v for v in free if not v.startswith(("x[", "y["))]
+        if multipliers or (prep.canon.lower.kind == "nlp" and curved_rows(prep)):  # Slater: KKT exact, bounds
+            box, big_m, slater = bound_multipliers(prep, form, box, big_m, multipliers)
+            free = unbounded_nonconvex(form.leader, box, prep.mpcc.blocks)
+            progress(verbose, "global", f"multiplier bounds from a Slater point ({time.perf_counter() - t0:.1f} s)")
         leaders = [v for v in free if v.startswith("x[")]
         if leaders and not form.leader.nonlinear_rows:  # with nonlinear rows, SCIP's propagation may bound them
             raise ModelError(f"algorithm 'scip' of method 'global' needs finite bounds on the leader's variables in "
@@ -141,7 +142,7 @@ def solve_global(prep: Prepared, *, algorithm: str = "auto", time_limit: float |
                                                                         "big-M not used (hull cuts only)")
     justification = (used + ": each bound is an LP "
                      "maximum over the relaxed KKT polyhedron R; a side is forced where the other's LP minimum "
-                     "over R is positive",) + big_m.justification()
+                     "over R is positive",) + big_m.justification() + (slater.justification() if slater else ())
     bound = GlobalBound(low, high, gap, gap_tol, proven, name, outcome.nodes, justification)
     stats = {"algorithm": name, "ended": outcome.ended, "nodes": outcome.nodes, "lower_bound": low,
              "upper_bound": high, "gap": gap, "failed_nodes": outcome.failed_nodes,
@@ -150,6 +151,8 @@ def solve_global(prep: Prepared, *, algorithm: str = "auto", time_limit: float |
     history = [h if sense == "min" else {"node": h["node"], "lower": -h["upper"], "upper": -h["lower"]}
                for h in outcome.history]  # the bounds' trajectory, in the declared sense like the bounds
     summary = f"{name}: bounds [{low:.10g}, {high:.10g}], relative gap {gap:.2e}, {outcome.nodes} nodes"
+    if outcome.note:
+        summary += f"; {outcome.note}"
     if use_scip and free and not proven:
         summary += (f"; {', '.join(free)} enter nonconvex terms with no finite bound, which SCIP's relaxation needs: "
                     "declare bounds on them")

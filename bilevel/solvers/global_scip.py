@@ -199,7 +199,12 @@ def solve_scip(relax: Relaxation, big_m: BigM, box: tuple[np.ndarray, np.ndarray
     model.setParam("numerics/feastol", param("global.scip_feastol"))
     model.setParam("limits/gap", gap_tol)      # SCIP's relative gap divides by min(|primal|, |dual|): it closing
     model.setParam("limits/absgap", gap_tol)   # implies ours, which divides by max(1, |upper|)
-    model.optimize()
+    try:
+        model.optimize()
+    except Exception as exc:  # SCIP stopped on an internal error (e.g. unresolved LP numerics): no proof, no point
+        return SearchOutcome(None, -np.inf, np.inf, 0, "failed",
+                             note=f"SCIP stopped on an internal error ({exc}); a looser "
+                                  "defaults['global.scip_feastol'] may get past LP numerics troubles")
     ended = SCIP_ENDED.get(model.getStatus(), "failed")
     nodes = int(model.getNTotalNodes())
     inf = model.infinity()

@@ -33,7 +33,7 @@ import scipy.optimize
 
 from ..defaults import param
 from ..errors import BilevelError, LowerLevelInfeasible, ModelError, RankDeficientRegressor
-from ..lower.nlp import NLPSOL_QUIET
+from ..lower.nlp import ipopt_options
 from ..reduction import KKTPoint
 from ..result import Status
 from .base import MethodRun, Prepared, best_of, check_options
@@ -62,9 +62,7 @@ class _Restoration:
         nlp = {"x": ca.vertcat(canon.x, canon.y), "p": ca.vertcat(v, canon.params.sym),
                "f": 0.5 * ca.sumsqr(canon.x - v),
                "g": ca.vertcat(low.g, low.h)}
-        opts = {**NLPSOL_QUIET, "ipopt": {"print_level": 0, "sb": "yes", "tol": 1e-12, "bound_relax_factor": 0.0,
-                                          "max_iter": 500}}
-        self._solver = ca.nlpsol("restoration", "ipopt", nlp, opts)
+        self._solver = ca.nlpsol("restoration", "ipopt", nlp, ipopt_options(1e-12, 500, {"bound_relax_factor": 0.0}))
         ng, nh = low.n_g, low.n_h
         ny = int(canon.y.numel())
         self._bounds = dict(lbx=np.concatenate([canon.x_lb, np.full(ny, -np.inf)]),

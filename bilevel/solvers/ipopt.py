@@ -25,7 +25,7 @@ import numpy as np
 from ..defaults import param
 from ..errors import BilevelError, ModelError
 from ..lower.base import LowerSolution
-from ..lower.nlp import NLPSOL_QUIET
+from ..lower.nlp import ipopt_options
 from ..mpcc import Branch, ComplementarityMode, NLPForm, Scholtes
 from ..reduction import KKTPoint
 from ..result import Status
@@ -64,14 +64,12 @@ class NLPRun:
     trace: dict[str, Any]
 
 
-def ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> dict[str, Any]:
-    """CasADi nlpsol options for a quiet IPOPT with the given tolerance and iteration limit (acceptable_tol and
-    max_wall_time from the registry, ipopt.NAME)."""
-    ipopt = {"print_level": 0, "sb": "yes", "tol": tol, "max_iter": max_iter,
-             "acceptable_tol": param("ipopt.acceptable_tol"), "mu_strategy": "adaptive",
-             "max_wall_time": param("ipopt.max_wall_time")}
-    ipopt.update(extra or {})
-    return {**NLPSOL_QUIET, "ipopt": ipopt}
+def checked_ipopt(extra: Any) -> dict[str, Any]:
+    """A method's option ipopt={...} (None: none), refused unless it is a dict of IPOPT options."""
+    if extra is not None and not (isinstance(extra, dict) and all(isinstance(k, str) for k in extra)):
+        raise ModelError(f"option ipopt={extra!r} is invalid: it must be a dict of IPOPT options, e.g. "
+                         "{'max_cpu_time': 60}")
+    return extra or {}
 
 
 def kkt_nlp_options(nlp_tol: float | None, max_iter: int | None, extra: dict[str, Any] | None,
@@ -80,10 +78,9 @@ def kkt_nlp_options(nlp_tol: float | None, max_iter: int | None, extra: dict[str
     with the warm limits (ipopt.warm_max_iter, ipopt.warm_max_wall_time) where its NLPs start from the warm phase's
     answer (stats `warm` from kkt_starts) and the options do not set those limits: from that near-KKT point IPOPT
     converges in a few iterations or wanders (a stopped NLP keeps the warm point, kept_warm_point)."""
-    if extra is not None and not (isinstance(extra, dict) and all(isinstance(k, str) for k in extra)):
-        raise ModelError(f"option ipopt={extra!r} is invalid: it must be a dict of IPOPT options, e.g. "
-                         "{'max_cpu_time': 60}")
-    opts = ipopt_options(float(param("ipopt.nlp_tol", nlp_tol)), int(param("ipopt.max_iter", max_iter)), extra)
+    opts = ipopt_options(float(param("ipopt.nlp_tol", nlp_tol)), int(param("ipopt.max_iter", max_iter)),
+                         {"acceptable_tol": param("ipopt.acceptable_tol"), "mu_strategy": "adaptive",
+                          "max_wall_time": param("ipopt.max_wall_time"), **checked_ipopt(extra)})
     if warm.get("warm", {}).get("used"):
         given = set(extra or {}) | ({"max_iter"} if max_iter is not None else set())
         limits = {"max_iter": param("ipopt.warm_max_iter"), "max_wall_time": param("ipopt.warm_max_wall_time")}

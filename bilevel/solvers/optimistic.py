@@ -17,7 +17,7 @@ import casadi as ca
 import numpy as np
 
 from ..defaults import param
-from ..lower.nlp import NLPSOL_QUIET
+from ..lower.nlp import ipopt_options
 
 if TYPE_CHECKING:  # pragma: no cover
     from .base import Prepared
@@ -48,9 +48,7 @@ class _SelectionNLP:
         bound = ca.SX.sym("bound")
         rows = ca.vertcat(low.g, *G, low.h, *H, low.f - bound)
         nlp = {"x": canon.y, "p": ca.vertcat(canon.x, bound, canon.params.sym), "f": canon.F, "g": rows}
-        opts = {**NLPSOL_QUIET, "ipopt": {"print_level": 0, "sb": "yes", "tol": 1e-10, "max_iter": 500,
-                                          "constr_viol_tol": 1e-10}}
-        self.solver = ca.nlpsol("optimistic", "ipopt", nlp, opts)
+        self.solver = ca.nlpsol("optimistic", "ipopt", nlp, ipopt_options(1e-10, 500, {"constr_viol_tol": 1e-10}))
         n_ineq, n_eq = int(low.g.numel()) + len(G), int(low.h.numel()) + len(H)
         self.lbg = np.concatenate([np.full(n_ineq, -np.inf), np.zeros(n_eq), [-np.inf]])
         self.ubg = np.zeros(n_ineq + n_eq + 1)

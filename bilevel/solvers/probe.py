@@ -6,15 +6,15 @@ the Willems KKT route, 1.6e-4 below the vertex next to it), or at a kink of y*(x
 decreases along the kink, in a cone that random directions miss. Around x the probe tries seeded random directions, the
 negative hypergradient, +/- each coordinate (up to defaults["probe.coordinates"] upper variables) and, at a kink (a
 degenerate lower active set), the descent directions of the adjacent pieces; each is scaled per entry (a recognized
-ball's radius on its block, else 1). It projects x + h d onto the box and balls for a few radii h (RADII; where none of
-those points is upper-feasible, three decades smaller at a time down to defaults["probe.min_radius"]: around an
-attack's clean data, stealth constraints on an unstable plant's data leave a feasible set of 4e-4 of the budget, and a
-probe that saw no feasible point certified the clean data a local maximum), solves the lower
-level there independently (and at x itself, the baseline: with a non-unique lower solution F depends on the solver's
-choice; with `optimistic`, F is taken at the best lower solution, as in bilevel.solvers.optimistic; a method whose
-lower level has a unique solution may pass its own structured solver, e.g. the VRFT learner's thin QR, which then
-solves at x and at all the probes in one call), and reports the
-best upper-feasible point whose upper objective is lower than both F at x and the baseline by more than
+ball's radius on its block, else 1). It projects x + h d onto the box and balls for a few radii h (radii(): from
+defaults["probe.radius"] down two decades; where none of those points is upper-feasible, three decades smaller at a time
+down to defaults["probe.min_radius"]: around an attack's clean data, stealth constraints on an unstable plant's data
+leave a feasible set of 4e-4 of the budget, and a probe that saw no feasible point certified the clean data a local
+maximum), solves the lower level there independently (and at x itself, the baseline: with a non-unique lower solution F
+depends on the solver's choice; with `optimistic`, F is taken at the best lower solution, as in
+bilevel.solvers.optimistic; a method whose lower level has a unique solution may pass its own structured solver, e.g.
+the VRFT learner's thin QR, which then solves at x and at all the probes in one call), and reports the best
+upper-feasible point whose upper objective is lower than both F at x and the baseline by more than
 defaults["probe.rel_tol"] (relative) along random directions, where at a stationary point the change is second order
 (the tolerance sits at the lower solves' noise, not above it), and by more than defaults["probe.descent_rel_tol"] along
 the first-order ones.
@@ -39,10 +39,15 @@ if TYPE_CHECKING:  # pragma: no cover
     from .base import Prepared
     from .implicit import Hypergradient
 
-RADII = (1e-1, 1e-2, 1e-3)
 LowerSolve = Callable[[np.ndarray], "list[np.ndarray | None]"]
 """A structured solver of a lower level with a unique solution: the rows of a matrix of upper points -> y* at each
 (None where it has none)."""
+
+
+def radii() -> tuple[float, float, float]:
+    """The probe's radii: defaults["probe.radius"], a tenth and a hundredth of it (budget units)."""
+    h = float(param("probe.radius"))
+    return h, h / 10, h / 100
 
 
 @dataclass(frozen=True)
@@ -57,7 +62,7 @@ class Probe:
 @dataclass(frozen=True)
 class ProbeOutcome:
     """What the probe found around x: a better feasible neighbour (or None) and, where it found none, the nearest
-    probed point within the smallest radius RADII[-1] at which the lower level is not convex (point, radius, the
+    probed point within the smallest radius radii()[-1] at which the lower level is not convex (point, radius, the
     Hessian's eigenvalue in words; or None): x is then at the edge of where the lower level is convex (a method that
     follows the convex lower level's solution stops there), and beyond it the probe cannot judge F."""
 
@@ -75,7 +80,7 @@ def probe_neighbours(prep: "Prepared", x: np.ndarray, objective: float, projecti
                      seed: int = 0, optimistic: bool = False, lower_solve: LowerSolve | None = None) -> ProbeOutcome:
     """The best neighbour of x in `projection`'s set, upper-feasible, with upper objective < objective -
     defaults["probe.rel_tol"] max(1, |objective|) (defaults["probe.descent_rel_tol"] along first-order directions), if
-    the probe finds one, else the nearest probed point within RADII[-1] where the lower level is not convex, if any
+    the probe finds one, else the nearest probed point within radii()[-1] where the lower level is not convex, if any
     (ProbeOutcome).
     optimistic: F at each point with the optimistic selection among the lower solutions there; lower_solve: the lower
     level's unique solution at each row of a matrix of points (LowerSolve), used instead of the lower level's own
@@ -108,14 +113,16 @@ def probe_neighbours(prep: "Prepared", x: np.ndarray, objective: float, projecti
     nonconvex: dict[bytes, str] = {}  # the probed points where the lower level is not convex, and why
     best: Probe | None = None
     probes_seen: list[tuple[np.ndarray, float, frozenset[str]]] = []
-    # where no probe at RADII is feasible (a feasible set much narrower than the budget around x: stealth constraints
+    # where no probe at radii() is feasible (a feasible set much narrower than the budget around x: stealth constraints
     # on an unstable plant's data), three decades smaller, down to defaults["probe.min_radius"]
-    for radii in _radius_rounds():
-        probes = [(projection(x + h * d), h, tols) for d, tols in kinds.values() for h in radii]
+    smallest = radii()[-1]
+    for round_radii in _radius_rounds():
+        probes = [(projection(x + h * d), h, tols) for d, tols in kinds.values() for h in round_radii]
         probes_seen += probes
         points = {key: xp for key, xp in ({here: x} | {xp.tobytes(): xp for xp, _, _ in probes}).items()
                   if key not in values}  # projections of probes may coincide
-        values |= _objectives(prep, points, solve, fixed_y, optimistic, min(1.0, radii[-1] / RADII[-1]), nonconvex)
+        values |= _objectives(prep, points, solve, fixed_y, optimistic, min(1.0, round_radii[-1] / smallest),
+                              nonconvex)
         if values[here] is None:
             return none
         reference = min(objective, values[here])
@@ -129,7 +136,7 @@ def probe_neighbours(prep: "Prepared", x: np.ndarray, objective: float, projecti
             break
     if best is not None:
         return ProbeOutcome(best)
-    found = [(h, xp) for xp, h, _ in probes_seen if h <= RADII[-1] and xp.tobytes() in nonconvex]
+    found = [(h, xp) for xp, h, _ in probes_seen if h <= smallest and xp.tobytes() in nonconvex]
     if not found:
         return none
     h, xp = min(found, key=lambda t: t[0])
@@ -137,10 +144,10 @@ def probe_neighbours(prep: "Prepared", x: np.ndarray, objective: float, projecti
 
 
 def _radius_rounds() -> list[tuple[float, ...]]:
-    """RADII, then RADII scaled by 1e-3, 1e-6, .. while their smallest is at least defaults["probe.min_radius"]."""
-    rounds, factor, floor = [], 1.0, max(param("probe.min_radius"), 1e-300)
-    while not rounds or RADII[-1] * factor >= floor:
-        rounds.append(tuple(h * factor for h in RADII))
+    """radii(), then radii() scaled by 1e-3, 1e-6, .. while their smallest is at least defaults["probe.min_radius"]."""
+    rounds, factor, floor, base = [], 1.0, max(param("probe.min_radius"), 1e-300), radii()
+    while not rounds or base[-1] * factor >= floor:
+        rounds.append(tuple(h * factor for h in base))
         factor *= 1e-3
     return rounds
 
@@ -149,8 +156,8 @@ def _objectives(prep: "Prepared", points: dict[bytes, np.ndarray], solve: LowerS
                 fixed_y: np.ndarray | None, optimistic: bool, shrink: float,
                 nonconvex: dict[bytes, str]) -> dict[bytes, float | None]:
     """F at each point as _feasible_objective finds it (None where unsolved or infeasible by more than
-    defaults["probe.feas_tol"] times `shrink`: below RADII, in proportion to the radius, so that no more is gained
-    by violating a constraint than at RADII); with `solve`, all in one call (_structured_objectives). The points
+    defaults["probe.feas_tol"] times `shrink`: below radii(), in proportion to the radius, so that no more is gained
+    by violating a constraint than at radii()); with `solve`, all in one call (_structured_objectives). The points
     where the lower level is not convex are added to `nonconvex` with why."""
     if not points:
         return {}
@@ -169,7 +176,7 @@ def _first_order_directions(prep: "Prepared", x: np.ndarray, scale: np.ndarray,
                             projection: Projection) -> list[np.ndarray]:
     """-grad F(x, y*(x)) in budget units (the hypergradient, balls projected on); for at most
     defaults["probe.coordinates"] upper variables also +/- each coordinate and, at a kink of y*(x), the descent
-    direction of each adjacent piece. The hypergradient is sampled at x +/- RADII[-1] along each coordinate; x is at a
+    direction of each adjacent piece. The hypergradient is sampled at x +/- radii()[-1] along each coordinate; x is at a
     kink when its lower active set is degenerate or a sample's active set differs (two LP vertices that tie, an edge
     between them). Then -g for each piece's g, and the steepest descent direction -(least-norm element of their convex
     hull), which follows a kink along which F decreases. A method that stopped at a kink or short of stationarity is
@@ -185,7 +192,7 @@ def _first_order_directions(prep: "Prepared", x: np.ndarray, scale: np.ndarray,
     out += steps
     if here is None:
         return out
-    samples = [g for g in (_gradient(oracle, projection(x + RADII[-1] * s)) for s in steps) if g is not None]
+    samples = [g for g in (_gradient(oracle, projection(x + radii()[-1] * s)) for s in steps) if g is not None]
     if not here[1] and all(active == here[2] for _, _, active in samples):  # one piece: its direction is there
         return out
     G = np.array([here[0]] + [g for g, _, _ in samples]) * scale  # budget units

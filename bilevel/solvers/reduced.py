@@ -25,7 +25,7 @@ import numpy as np
 
 from ..errors import BilevelError, ModelError
 from ..lower.images import ImageLower
-from ..lower.nlp import NLPSOL_QUIET
+from ..lower.nlp import ipopt_options
 from ..lower.matrix import MatrixLower
 from ..lower.quadratic import QuadraticLower
 from ..reduction import KKTPoint
@@ -33,7 +33,7 @@ from ..result import Status
 from ..defaults import param
 from .base import MethodRun, Prepared, best_of, check_options
 from .implicit import Evaluation, Hypergradient, shared_oracle
-from .ipopt import IPOPT_STATUS, within
+from .ipopt import IPOPT_STATUS, checked_ipopt, within
 from .limits import Deadline, progress, stopped
 from .options import check_numbers
 from .starts import start_points
@@ -202,14 +202,10 @@ class _Solver:
 
 
 def _ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> dict[str, Any]:
-    """IPOPT options of the reduced NLP: quiet, tol, max_iter, max_wall_time (defaults["ipopt.max_wall_time"]),
+    """nlpsol options of the reduced NLP: quiet, tol, max_iter, max_wall_time (defaults["ipopt.max_wall_time"]),
     REDUCED_IPOPT, then the option ipopt={...}."""
-    if extra is not None and not (isinstance(extra, dict) and all(isinstance(k, str) for k in extra)):
-        raise ModelError(f"option ipopt={extra!r} is invalid: it must be a dict of IPOPT options, e.g. "
-                         "{'max_cpu_time': 60}")
-    return {"print_level": 0, "sb": "yes", "tol": float(tol), "max_iter": int(max_iter),
-            "max_wall_time": param("ipopt.max_wall_time"),
-            **REDUCED_IPOPT, **(extra or {})}
+    return ipopt_options(float(tol), int(max_iter), {"max_wall_time": param("ipopt.max_wall_time"), **REDUCED_IPOPT,
+                                                     **checked_ipopt(extra)})
 
 
 def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, scale: float | None = None,
@@ -253,7 +249,7 @@ def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, s
         if k and limit.expired():
             break
         t0 = time.perf_counter()
-        nlp_opts = within({**NLPSOL_QUIET, "ipopt": ipopt_opts}, limit)  # levels of time_limit: few compiled solvers
+        nlp_opts = within(ipopt_opts, limit)  # levels of time_limit: few compiled solvers
         nlp: _Solver = prep.cached(("reduced", active_tol, repr(sorted(nlp_opts["ipopt"].items()))),
                                    lambda: _Solver(oracle, nlp_opts))
         solver = nlp.solver

@@ -64,6 +64,8 @@ BEFORE = {  # the module constants and option defaults the registry replaced, as
     "robust.deepc_cost_factor": 2.0, "robust.soundness_samples": 10_000, "robust.check_margin": 1e-9,
     "robust_willems.lmi_margin": 1e-5,
     "robust_willems.margin_steps": 3, "robust_willems.margin_factor": 100.0, "robust_willems.check_margin": 1e-10,
+    "certificate.unique_rtol": 1e-9, "probe.radius": 0.1, "lower.clarabel_tol": 1e-10, "lower.clarabel_ktratio": 1e-8,
+    "lower.nlp_tol": 1e-12, "lower.nlp_acceptable_tol": 1e-9, "mpcc.tau": 1e-8,
 }
 
 METHOD_FUNCTIONS = {**{name: fn for name, fn in bl.METHODS.items()}, "destabilize": destabilize,

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from bilevel.experiments.executor import LocalExecutor
-from bilevel.experiments.sweep import FINITE, NUMBER, check_fields, load_timings, record_timing, run_sweep
+from bilevel.experiments.sweep import FINITE, NUMBER, check_fields, load_timings, run_sweep
 from bilevel.files import atomic_open, atomic_path
 from bilevel.result import BilevelResult, Status
 
@@ -66,12 +66,10 @@ def reproduce(out: str, n: int, sleep: float = 0.0, workers: int = 2, progress: 
     """Run (or resume) the toy sweep and write every kind of output file a reproduction writes; together: the
     sweep's batches."""
     os.makedirs(out, exist_ok=True)
-    timings_path = os.path.join(out, "timings.json")
-    timings = load_timings(timings_path, progress)
     with LocalExecutor(workers) as executor:
         rows = run_sweep(toy_task, tasks(n, sleep, die), os.path.join(out, "rows.jsonl"), executor, progress, "toy",
-                         lambda ran, s: record_timing(timings_path, timings, "toy", len(ran), s), valid,
-                         together=together)
+                         valid, together=together)
+    load_timings(os.path.join(out, "timings.json"), progress)  # as the reproductions read it for their reports
     with atomic_open(os.path.join(out, "table_toy.csv"), newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["x", "value", "unstable", "time_ms"])

@@ -17,7 +17,7 @@ import pytest
 from bilevel.cli import main
 from bilevel.experiments import vrft, willems
 from bilevel.experiments.executor import LocalExecutor
-from bilevel.experiments.sweep import run_sweep
+from bilevel.experiments.sweep import pace, run_sweep
 
 from .tables import BILEVEL, row_count, tables, wait_for_rows
 
@@ -256,3 +256,22 @@ def test_a_sweep_gives_its_rate_and_eta_from_the_first_finished_task(tmp_path) -
     run_sweep(vrft.attack_task, tasks, str(tmp_path / "t.jsonl"), LocalExecutor(1), lines.append, "t")
     updates = [ln for ln in lines if "tasks/s, ETA" in ln]
     assert updates and updates[0].startswith("\r[t] 1/")
+
+
+def test_a_sweep_estimates_its_time_before_it_starts_from_an_earlier_run(tmp_path) -> None:
+    """Issue 50: reproductions print an estimate before they start. A first sweep records (tasks, wall seconds,
+    workers) in timings.json beside its rows; a later sweep of the same name in that folder estimates from that pace
+    (before any task finishes), and one in an empty folder says that it has nothing to estimate from."""
+    tasks = vrft.cell_tasks(1, 0, "paper", "maxmin", "white-noise")
+    first: list[str] = []
+    run_sweep(vrft.attack_task, tasks[:6], str(tmp_path / "a.jsonl"), LocalExecutor(1), first.append, "t")
+    assert any("no earlier run recorded" in ln for ln in first)
+    stored = json.load(open(tmp_path / "timings.json", encoding="utf-8"))["t"]
+    assert stored[0] == 6 and stored[1] > 0 and stored[2] == 1
+    later: list[str] = []
+    run_sweep(vrft.attack_task, tasks[6:12], str(tmp_path / "b.jsonl"), LocalExecutor(1), later.append, "t")
+    estimate_line = next(i for i, ln in enumerate(later) if "estimate ~" in ln)
+    assert "an earlier run in this folder" in later[estimate_line]
+    assert estimate_line < next(i for i, ln in enumerate(later) if "done, " in ln)
+    again = json.load(open(tmp_path / "timings.json", encoding="utf-8"))["t"]
+    assert pace("t", [str(tmp_path / "timings.json")]) == (again[1] * again[2] / again[0], str(tmp_path / "timings.json"))

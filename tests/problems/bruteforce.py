@@ -26,6 +26,7 @@ import casadi as ca
 import clarabel
 import numpy as np
 import scipy.sparse as sp
+from scipy.optimize import minimize
 
 from bilevel.model import BilevelProblem
 
@@ -182,6 +183,68 @@ def solve_polished(prog: ConvexProgram) -> tuple[str, np.ndarray | None, float]:
     return status, y, val
 
 
+class ConvexNLP:
+    """A convex lower level that is not quadratic in y, solved at fixed x: with one lower variable and rows affine in
+    y, by bisection on f' over the interval the rows leave (exact to rounding, also where f is flat to high order,
+    e.g. (x + 2y - 15)^4); otherwise by SLSQP from the box centre (tolerance 1e-14). The follower's response is
+    taken as unique (every registered convex-NLP lower level has a strictly convex objective or a unique minimizer
+    along its feasible set, as the problems' docstrings derive)."""
+
+    def __init__(self, X: ca.SX, Y: ca.SX, f: ca.SX, g_in: list[ca.SX], y_lb: np.ndarray, y_ub: np.ndarray) -> None:
+        g = ca.vertcat(*g_in) if g_in else ca.SX(0, 1)
+        self.f = ca.Function("f", [X, Y], [f, ca.gradient(f, Y)])
+        self.g = ca.Function("g", [X, Y], [g, ca.jacobian(g, Y)])
+        self.ny = int(Y.numel())
+        self.affine_rows = not ca.depends_on(ca.jacobian(g, Y), Y)
+        self.start = np.where(np.isfinite(y_lb) & np.isfinite(y_ub), 0.5 * (np.nan_to_num(y_lb) + np.nan_to_num(y_ub)),
+                              np.clip(0.0, y_lb, y_ub))
+
+    def _f(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
+        value, grad = self.f(x, y)
+        return float(value), np.asarray(grad, dtype=float).ravel()
+
+    def _interval(self, x: np.ndarray) -> tuple[float, float]:
+        """The feasible interval of a single y under rows a_i y + c_i <= 0."""
+        c, a = (np.asarray(v, dtype=float).ravel() for v in self.g(x, np.zeros(1)))
+        lo, hi = -np.inf, np.inf
+        for ai, ci in zip(a, c):
+            if ai > 0:
+                hi = min(hi, -ci / ai)
+            elif ai < 0:
+                lo = max(lo, -ci / ai)
+            elif ci > 0:
+                return np.inf, -np.inf
+        return lo, hi
+
+    def solve(self, x: np.ndarray) -> tuple[str, np.ndarray | None, float]:
+        """(status, y, f(x, y)) of the lower level at x."""
+        x = np.asarray(x, dtype=float)
+        if self.ny == 1 and self.affine_rows:
+            lo, hi = self._interval(x)
+            if lo > hi:
+                return "infeasible", None, np.inf
+            slope = lambda v: self._f(x, np.array([v]))[1][0]  # noqa: E731
+            if np.isfinite(lo) and slope(lo) >= 0:
+                y = lo
+            elif np.isfinite(hi) and slope(hi) <= 0:
+                y = hi
+            else:
+                a, b = (lo if np.isfinite(lo) else -1e6), (hi if np.isfinite(hi) else 1e6)
+                for _ in range(200):
+                    mid = 0.5 * (a + b)
+                    a, b = (mid, b) if slope(mid) < 0 else (a, mid)
+                y = 0.5 * (a + b)
+            point = np.array([y])
+            return "optimal", point, self._f(x, point)[0]
+        rows = lambda y: -np.asarray(self.g(x, y)[0], dtype=float).ravel()  # noqa: E731
+        jac = lambda y: -np.asarray(self.g(x, y)[1], dtype=float).reshape(-1, self.ny)  # noqa: E731
+        res = minimize(lambda y: self._f(x, y), self.start, jac=True, method="SLSQP",
+                       constraints=[{"type": "ineq", "fun": rows, "jac": jac}], options={"ftol": 1e-14, "maxiter": 500})
+        if not res.success or rows(res.x).min(initial=0.0) < -1e-9:
+            return "infeasible", None, np.inf
+        return "optimal", np.asarray(res.x), self._f(x, res.x)[0]
+
+
 def _vec(vars_: Sequence[Any]) -> ca.SX:
     return ca.vertcat(*[ca.vec(v.sym) for v in vars_]) if vars_ else ca.SX(0, 1)
 
@@ -262,8 +325,12 @@ class BruteForce:
         G_in = [c.body[i] for c in problem.upper_constraints if c.kind == "<=" for i in range(c.body.numel())]
         G_eq = [c.body[i] for c in problem.upper_constraints if c.kind == "==" for i in range(c.body.numel())]
 
-        self.f_part = QuadraticPart([self.f_expr], self.X, self.Y, "the lower objective")
-        self.g_in = QuadraticPart(g_in, self.X, self.Y, "a lower inequality")
+        try:
+            self.f_part = QuadraticPart([self.f_expr], self.X, self.Y, "the lower objective")
+            self.g_in = QuadraticPart(g_in, self.X, self.Y, "a lower inequality")
+            self.nlp: ConvexNLP | None = None
+        except Unsupported:  # exp, quartic, cubic, ... in y: a convex NLP, solved by ConvexNLP
+            self.nlp = ConvexNLP(self.X, self.Y, self.f_expr, g_in, y_lb, y_ub)
         self.g_eq = QuadraticPart(g_eq, self.X, self.Y, "a lower equality")
         if not all(self.g_eq.affine):
             raise Unsupported("a lower-level equality is not affine in y")
@@ -324,6 +391,8 @@ class BruteForce:
 
     def lower_solve(self, x: np.ndarray) -> tuple[str, np.ndarray | None, float]:
         """(status, a lower solution, lower optimal value in minimisation form) at x."""
+        if self.nlp is not None:
+            return self.nlp.solve(x)
         prog, const = self.lower_program(x)
         status, y, val = solve_polished(prog)
         return status, y, val + const
@@ -339,6 +408,10 @@ class BruteForce:
         x = np.asarray(x, dtype=float)
         if np.any(x < self.x_lb - 1e-12) or np.any(x > self.x_ub + 1e-12):
             return np.inf, None
+        if self.nlp is not None:  # strictly convex or unique by construction: F at the follower's solution
+            status, ystar, _ = self.nlp.solve(x)
+            ok = status == "optimal" and self.upper_violation(x, ystar) <= 1e-7
+            return (self.F(x, ystar), ystar) if ok else (np.inf, None)
         prog, _ = self.lower_program(x)
         status, ystar, _ = solve_polished(prog)
         if status != "optimal" or ystar is None:

@@ -7,8 +7,6 @@ tests/problems/test_literature_data.py).
 
 from __future__ import annotations
 
-from typing import Callable
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -18,6 +16,7 @@ import bilevel as bl
 from bilevel.experiments.compare import relative_gap
 from bilevel.problems import registry
 from bilevel.problems.random_linear import build_linear_bilevel, random_linear_data
+from bilevel.solvers import global_method
 from bilevel.solvers.base import prepare
 from bilevel.solvers.global_bigm import BigM, derive_big_m
 from bilevel.solvers.global_form import linear_mpcc
@@ -26,17 +25,16 @@ from bilevel.solvers.global_nodes import Relaxation
 
 from .active_sets import active_set_optimum
 
-OUT_OF_SCOPE = {
-    "bolib-floudaszlobec1998": "kind 'nlp'",                  # convex nonlinear lower constraint y1^2 + x y2 <= 1
-}
-"""Registered textbook problems outside the method's scope, with the reason its ModelError gives."""
-
 NONCONVEX_LEADER = {"bolib-hendersonquandt1958", "macmpec-ex9.2.8", "macmpec-bard3", *registry.names("bilinear"),
                     *registry.names("polynomial")}
 """Textbook problems with a nonconvex leader: algorithm "scip" (tests/solvers/test_global_scip.py)."""
 
+NONLINEAR_LOWER = {*registry.names("nonlinear-convex"), *registry.names("x-matrix")}
+"""Textbook problems with a convex NLP lower level or an x-dependent lower constraint matrix: algorithm "scip" with
+Slater bounds on the multipliers (tests/solvers/test_global_nlp.py)."""
+
 TEXTBOOK = registry.names("textbook")
-IN_SCOPE = [n for n in TEXTBOOK if n not in OUT_OF_SCOPE and n not in NONCONVEX_LEADER]
+IN_SCOPE = [n for n in TEXTBOOK if n not in NONCONVEX_LEADER | NONLINEAR_LOWER]
 GAP = 1e-6
 
 
@@ -62,32 +60,13 @@ def test_scope_covers_bilin_and_nonunique_lower_levels() -> None:
     nonunique = set(registry.names("nonunique-lower"))
     assert "macmpec-bilin" in IN_SCOPE
     assert {"macmpec-ex9.1.1", "macmpec-ex9.1.5", "macmpec-ex9.2.9"} <= nonunique & set(IN_SCOPE)
-    assert set(OUT_OF_SCOPE) <= set(TEXTBOOK)
 
 
-@pytest.mark.parametrize("name", sorted(OUT_OF_SCOPE))
-def test_out_of_scope_problems_say_why_and_what_to_use(name: str) -> None:
-    with pytest.raises(bl.ModelError, match=OUT_OF_SCOPE[name]) as err:
-        bl.solve(registry.get(name), method="global")
+def test_a_nonlinear_lower_level_without_scip_says_why_and_what_to_use(monkeypatch) -> None:
+    monkeypatch.setattr(global_method, "scip_available", lambda: False)
+    with pytest.raises(bl.ModelError, match="kind 'nlp'.*class: nonlinear lower level.*pip install pyscipopt") as err:
+        bl.solve(registry.get("bolib-floudaszlobec1998"), method="global")
     assert "relaxation" in str(err.value)
-
-
-def _one_dimensional(lower_objective: Callable, lower_row: Callable) -> bl.BilevelProblem:
-    p = bl.BilevelProblem("scope")
-    x = p.upper_variable("x", 1, lb=0, ub=1)
-    y = p.lower_variable("y", 1, lb=0, ub=5)
-    p.minimize_upper(x - y)
-    p.minimize_lower(lower_objective(x, y))
-    p.lower_constraint(lower_row(x, y))
-    return p
-
-
-def test_x_dependent_lower_constraint_matrix_is_out_of_scope() -> None:
-    """(1 + x) y <= 3: A(x)'lam in the stationarity, a product with a multiplier that has no derivable bound."""
-    problem = _one_dimensional(lambda x, y: -y, lambda x, y: (1 + x) * y <= 3)
-    assert bl.solve(problem, method="relaxation").certificate.passed  # well posed
-    with pytest.raises(bl.ModelError, match="class: x-dependent lower constraint matrix"):
-        bl.solve(problem, method="global")
 
 
 @settings(max_examples=25, deadline=None)
@@ -195,9 +174,10 @@ def test_options_are_checked() -> None:
         bl.solve(problem, method="global", algorithm="milp")
 
 
-def test_compare_runs_global_and_marks_problems_outside_its_scope(tmp_path) -> None:
+def test_compare_runs_global_and_marks_problems_outside_its_scope(tmp_path, monkeypatch) -> None:
     from bilevel.experiments.compare import NOT_APPLICABLE, compare, markdown_table
 
+    monkeypatch.setattr(global_method, "scip_available", lambda: False)  # a convex NLP lower level is then refused
     assert "global" in bl.METHODS  # `bilevel compare` iterates over METHODS
     rows = compare(["macmpec-bilin", "bolib-floudaszlobec1998"], ["global"], str(tmp_path / "c.csv"), progress=None)
     assert rows[0].reached and rows[1].status == NOT_APPLICABLE

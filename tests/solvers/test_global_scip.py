@@ -241,9 +241,9 @@ def test_command_line_names_the_class_of_a_refused_problem(monkeypatch, capsys) 
     """`bilevel solve NAME --method global` on a refused problem: exit code 2 and the class in the error."""
     from bilevel.cli import main
 
+    monkeypatch.setattr(global_method, "scip_available", lambda: False)
     assert main(["solve", "bolib-floudaszlobec1998", "--method", "global"]) == 2
     assert "class: nonlinear lower level" in capsys.readouterr().err
-    monkeypatch.setattr(global_method, "scip_available", lambda: False)
     assert main(["solve", "bolib-tollsettingp5", "--method", "global"]) == 2
     err = capsys.readouterr().err
     assert "class: nonconvex leader" in err and "pip install pyscipopt" in err

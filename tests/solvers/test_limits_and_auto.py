@@ -12,6 +12,7 @@ from bilevel.problems import registry
 from bilevel.solvers.base import prepare
 from bilevel.solvers.evolution import default_budget
 from bilevel.defaults import defaults
+from bilevel.solvers import registry as solver_registry
 from bilevel.solvers.registry import choose_method
 
 AUTO_MIN_UPPER = defaults["auto.min_upper"]
@@ -133,11 +134,13 @@ def test_auto_takes_reduced_where_an_upper_constraint_reads_a_least_squares_solu
     np.testing.assert_allclose(res.x["x"], np.full(n, 1 / np.sqrt(n)), atol=1e-5)
 
 
-@pytest.mark.parametrize("name", ["bolib-lucchettietal1987", "macmpec-bilin", "bard1998-ex5.1.1"])
+@pytest.mark.parametrize("name", ["bolib-lucchettietal1987", "macmpec-bilin", "bard1998-ex5.1.1",
+                                  "bolib-floudaszlobec1998"])
 def test_auto_proves_small_problems_in_globals_class_first(name: str) -> None:
     """auto runs global first on a small problem in its class and returns its proven optimum: the local rule's
     ipopt stopped at 0.5 on bolib-lucchettietal1987 (F* = 0, Lucchetti et al. 1987) and at 16 on macmpec-bilin
-    (F* = 18.4, Hansen et al. 1992); bard1998-ex5.1.1 has F* = -12 (Bard 1998)."""
+    (F* = 18.4, Hansen et al. 1992); bard1998-ex5.1.1 has F* = -12 (Bard 1998); bolib-floudaszlobec1998, a convex-NLP
+    lower level, has F* = 1 (Floudas & Zlobec 1998)."""
     res = registry.get(name).solve()
     assert res.method == "global" and res.status is bl.Status.SOLVED, res.message
     assert res.message.startswith("auto: global, for a ") and res.certificate.global_bound.proven
@@ -146,12 +149,13 @@ def test_auto_proves_small_problems_in_globals_class_first(name: str) -> None:
 
 def test_auto_falls_back_to_the_local_rule_and_says_what_global_did(monkeypatch) -> None:
     """A global search that cannot finish in auto's budget hands over to the local rule, which the message names
-    with what global ended with; a problem outside global's class (a nonlinear lower level) goes to the local rule
-    directly."""
+    with what global ended with; a problem outside global's class (a nonlinear lower level without pyscipopt) goes to
+    the local rule directly."""
     monkeypatch.setitem(bl.defaults, "global.node_limit", 1)
     res = registry.get("macmpec-bilin").solve()
     assert res.method == "ipopt" and "global ended max_iterations within" in res.message
     assert res.stats["auto"]["global_first"].startswith("global ended max_iterations")
+    monkeypatch.setattr(solver_registry, "scip_available", lambda: False)  # a convex-NLP lower level: outside
     res = registry.get("bolib-floudaszlobec1998").solve()
     assert res.method == "ipopt" and "global_first" not in res.stats["auto"]
 
