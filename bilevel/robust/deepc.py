@@ -283,7 +283,7 @@ def cost_bound(maps: Maps, atk: DeePCAttack, delta: float, mult: tuple[float, fl
     if beta >= 1.0 or not np.isfinite(linear):
         return {"beta": beta, "linear": linear, "remainder": float("inf"), "bound": float("inf"),
                 "slack_multiplier": float("inf")}
-    a2 = delta ** 2 * maps.delta_frob * min(maps.dv1, maps.dv1_m0 * maps.beta)  # ||Delta' dv1||
+    a2 = delta ** 2 * min(maps.delta_frob * maps.dv1, maps.beta * maps.dv1_m0)  # ||Delta' dv1||
     squares = np.array([radii[0] ** 2, 2 * radii[0] * radii[1], radii[1] ** 2])
     b2 = min(a2 + beta * maps.dg1 * delta, float(np.linalg.norm(maps.quad_m0 @ squares)))  # ||M0^1/2 R2||
     second = float(np.linalg.norm(maps.quad @ squares))
