@@ -366,7 +366,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 REPRODUCE_FLAGS = {"--quick": ("willems", "identification", "defenses", "certify", "robust-willems"),
-                   "--selection": ("willems",), "--learners": ("defenses",), "--paper": ("identification",)}
+                   "--selection": ("willems",), "--learners": ("defenses", "certify"), "--paper": ("identification",)}
 """The `reproduce` flags that only some targets take."""
 
 
@@ -411,7 +411,9 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     if args.target == "certify":
         from .experiments.certify import run_certify
 
-        return _run_sweeps(lambda: run_certify(args.sims, out, args.quick, args.seed, args.workers, args.dask))
+        families = None if args.learners is None else args.learners.split(",")
+        return _run_sweeps(lambda: run_certify(args.sims, out, args.quick, args.seed, args.workers, args.dask,
+                                               families))
     if args.target == "robust-willems":
         from .experiments.robust_willems import run_robust_willems
 
@@ -510,7 +512,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_rep.add_argument("--quick", action="store_true", help="willems: the small CI-sized grid (4 sims, 3 budgets); "
                        "identification: T = 100, delta 0.01 and 0.05, 2 sims; defenses: 8 sims, VRFT N = 128, "
                        "De Persis-Tesi T = 15, identification T = 25, DeePC T = 60; certify: 2 sims, VRFT N = 64, "
-                       "200 samples; robust-willems: 2 sims, design 0.1 attacked at its full budget")
+                       "De Persis-Tesi T = 15, DeePC T = 60, 200 samples; robust-willems: 2 sims, design 0.1 attacked "
+                       "at its full budget")
     p_rep.add_argument("--selection", choices=WILLEMS_SELECTIONS, default=None,
                        help="willems: the learner's choice among its optimal Q (tikhonov: the session-1 sweep's; "
                             "clarabel, scs: the solver's own Q, input poisoning only; default min-norm)")
@@ -519,7 +522,9 @@ def build_parser() -> argparse.ArgumentParser:
                             "in DIR; docs/identification.md says how to get them) on their stealth constraints, with "
                             "their published medians beside")
     p_rep.add_argument("--learners", default=None, metavar="LIST",
-                       help="defenses: a comma-separated subset of vrft,willems,ident,deepc to run (default all)")
+                       help="defenses: a comma-separated subset of vrft,willems,ident,deepc to run; certify: a "
+                            "subset of its families (vrft, ident, dpt-reactor-min-norm, dpt-reactor-clarabel, "
+                            "dpt-n2-min-norm, dpt-n2-clarabel, deepc); default all")
     p_rep.set_defaults(run=_cmd_reproduce)
     return parser
 

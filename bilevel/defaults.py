@@ -214,6 +214,8 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "robust.margin_rel_tol": (0.05, "certified_margin bisects delta_lb to a bracket of this times its top (relative)"),
     "robust.attack_rel_tol": (0.05, "the attack's budget search for delta_ub stops at this bracket (relative)"),
     "robust.smallest_delta": (1e-4, "certified_margin gives up below this fraction of delta_ub (delta_lb = 0)"),
+    "robust.deepc_cost_factor": (2.0, "DeePC certificates prove the true tracking cost stays below this times the "
+                                      "clean plan's (the defenses sweep's degradation goal; ratio)"),
     "robust.soundness_samples": (10_000, "random poisonings on the budget sphere of the sampling check (count)"),
     "robust.check_margin": (1e-9, "an independent re-check passes only with this margin above zero, relative to the "
                                   "size of the numbers it compares (rounding cannot make it pass)"),
@@ -262,6 +264,7 @@ RANGES: dict[str, Range] = {
     "global.scip_feastol": Range(1e-17, 1e-3),  # SCIP's own range for numerics/feastol
     "residual.sparse_squares": Range(0.0, 1.0),
     "spectral_radius.defective_cond": Range(1.0),
+    "robust.deepc_cost_factor": Range(1.0, open_low=True),  # a level above the clean plan's own cost
 }
 """Each entry's valid values where they are narrower than the default's, an integer >= 0 or a finite number >= 0:
 counts are >= 1, step sizes and most tolerances > 0, fractions in (0, 1), and SCIP's limits SCIP's ranges."""

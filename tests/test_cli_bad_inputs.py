@@ -153,9 +153,12 @@ CASES: dict[str, tuple[list[str], str]] = {
     "data seed twice": (["solve", "vrft-maxmin", "--seed", "2", "--param", "seed=3"], "give one"),
     "--quick on vrft": (["reproduce", "vrft", "--quick"], "only `reproduce willems`, `reproduce identification`, "
                         "`reproduce defenses`, `reproduce certify` and `reproduce robust-willems` take it"),
-    "--learners on vrft": (["reproduce", "vrft", "--learners", "vrft"], "only `reproduce defenses` takes it"),
+    "--learners on vrft": (["reproduce", "vrft", "--learners", "vrft"],
+                           "only `reproduce defenses` and `reproduce certify` take it"),
     "unknown defenses learner": (["reproduce", "defenses", "--learners", "vrft,dpt"],
                                  "unknown learner(s) 'dpt'; give a comma-separated subset of vrft,willems,ident,deepc"),
+    "unknown certify family": (["reproduce", "certify", "--learners", "vrft,foo"],
+                               "certify families: unknown family(s) 'foo'; give a comma-separated subset of vrft,"),
     "bad dask address": (["reproduce", "vrft", "--dask", "nowhere"], "--dask"),
     "unknown command": (["frobnicate"], "invalid choice"),
     "unknown flag": (["solve", "macmpec-bard1", "--frob"], "unrecognized arguments"),

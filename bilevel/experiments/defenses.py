@@ -31,7 +31,6 @@ matplotlib.use("Agg")
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from ..errors import ModelError  # noqa: E402
 from ..result import Status  # noqa: E402
 from ..files import atomic_open, atomic_path, write_rows_csv  # noqa: E402
 from ..problems import defended_deepc, defended_identification  # noqa: E402
@@ -47,7 +46,8 @@ from .defenses_detection import FAMILIES, run_detection  # noqa: E402
 from .executor import open_executor  # noqa: E402
 from .stats import mean_interval, median_interval  # noqa: E402
 from .willems_budget import smallest_destabilizing_budget  # noqa: E402
-from .sweep import NUMBER, check_fields, committed_timings, run_sweep, sim_seeds, stderr_progress  # noqa: E402
+from .sweep import (NUMBER, check_fields, check_subset, committed_timings, run_sweep, sim_seeds,  # noqa: E402
+                    stderr_progress)
 
 LEARNERS = ("vrft", "willems", "ident", "deepc")
 """The learners of the sweep, in run order (`learners` of run_defenses picks a subset)."""
@@ -174,15 +174,7 @@ def frontier_task(task: dict[str, Any]) -> dict[str, Any]:
 
 def check_learners(learners: Sequence[str] | None) -> tuple[str, ...]:
     """The learners to run, in LEARNERS' order (None: all); an unknown or repeated name, or none, is refused."""
-    if learners is None:
-        return LEARNERS
-    learners = [str(name).strip() for name in learners]
-    unknown = [name for name in learners if name not in LEARNERS]
-    if unknown or not learners or len(set(learners)) != len(learners):
-        problem = (f"unknown learner(s) {', '.join(map(repr, unknown))}" if unknown else
-                   "no learner given" if not learners else f"a learner is repeated in {','.join(learners)}")
-        raise ModelError(f"defenses learners: {problem}; give a comma-separated subset of {','.join(LEARNERS)}")
-    return tuple(name for name in LEARNERS if name in learners)
+    return check_subset(learners, LEARNERS, "learner", "defenses learners")
 
 
 def frontier_tasks(plan: Plan, seed: int, learners: Sequence[str] | None = None) -> list[dict[str, Any]]:

@@ -24,10 +24,11 @@ import threading
 import time
 from contextlib import contextmanager
 from importlib import metadata
-from typing import Any, Callable, Hashable, Iterable, Iterator
+from typing import Any, Callable, Hashable, Iterable, Iterator, Sequence
 
 import numpy as np
 
+from ..errors import ModelError
 from ..files import atomic_open
 from .executor import Executor, LocalExecutor, Together
 
@@ -115,6 +116,20 @@ def _kind_name(kind: Kind) -> str:
     if isinstance(kind, tuple):
         return " or ".join(map(_kind_name, kind))
     return "null" if kind is None else kind if isinstance(kind, str) else kind.__name__
+
+
+def check_subset(names: Sequence[str] | None, valid: Sequence[str], what: str, context: str) -> tuple[str, ...]:
+    """The chosen names in `valid`'s order (None: all of them); an unknown or repeated name, or none, is refused
+    ("{context}: unknown {what}(s) ...")."""
+    if names is None:
+        return tuple(valid)
+    names = [str(name).strip() for name in names]
+    unknown = [name for name in names if name not in valid]
+    if unknown or not names or len(set(names)) != len(names):
+        problem = (f"unknown {what}(s) {', '.join(map(repr, unknown))}" if unknown else
+                   f"no {what} given" if not names else f"a {what} is repeated in {','.join(names)}")
+        raise ModelError(f"{context}: {problem}; give a comma-separated subset of {','.join(valid)}")
+    return tuple(name for name in valid if name in names)
 
 
 def check_fields(row: dict[str, Any], schema: dict[str, Kind], what: str = "result field") -> str:

@@ -5,25 +5,34 @@ from __future__ import annotations
 import json
 import os
 
+import pytest
+
 from bilevel.cli import main
-from bilevel.experiments.certify import ROW_SCHEMA, run_certify
+from bilevel.errors import ModelError
+from bilevel.experiments.certify import DEEPC_BUDGETS, FAMILIES, ROW_SCHEMA, run_certify
 
 
 def test_quick_certify_writes_consistent_brackets_and_resumes(tmp_path) -> None:
     notes: list[str] = []
     path = run_certify(sims=1, out_dir=str(tmp_path), quick=True, workers=1, progress=notes.append)
     rows = [json.loads(line) for line in open(tmp_path / "certify.jsonl")]
-    assert {r["family"] for r in rows} == {"vrft", "ident"} and set(ROW_SCHEMA) <= set(rows[0])
-    vrft = next(r for r in rows if r["family"] == "vrft")
-    assert 0 < vrft["delta_lb"] <= vrft["delta_ub"] and vrft["unstable"] == 0 and vrft["samples"] == 200
-    assert vrft["worst_radius"] < 1 and vrft["attack_radius"] < 1
-    ident = next(r for r in rows if r["family"] == "ident")
-    assert 0 < ident["delta_lb"] <= ident["delta_ub"] and ident["unstable"] == 0 and ident["samples"] == 200
-    assert ident["worst_radius"] < 1 and ident["attack_radius"] < 1
-    assert os.path.exists(tmp_path / "fig_brackets.png") and "| vrft | 64 |" in open(path).read()
+    assert [r["family"] for r in rows] == list(FAMILIES) and all(set(ROW_SCHEMA) <= set(r) for r in rows)
+    for r in rows:  # every family: a consistent bracket, and nothing sampled or attacked at delta_lb reached the goal
+        assert 0 < r["delta_lb"] <= r["delta_ub"] and r["unstable"] == 0 and r["samples"] == 200, r["family"]
+        assert r["worst_radius"] < 1 and r["attack_radius"] < 1 and r["mechanism"], r["family"]
+    deepc = rows[-1]
+    assert [b[0] for b in deepc["budgets"]] == list(DEEPC_BUDGETS)
+    assert all(bound >= attack >= 1.0 for _, bound, attack in deepc["budgets"])  # the proven bound is above the attack
+    report = open(path).read()
+    assert os.path.exists(tmp_path / "fig_brackets.png") and "| vrft | 64 |" in report and "| deepc | 60 |" in report
     notes.clear()
     run_certify(sims=1, out_dir=str(tmp_path), quick=True, workers=1, progress=notes.append)
     assert not any("running" in n for n in notes)  # resumed: nothing recomputed
+
+
+def test_unknown_family_is_refused(tmp_path) -> None:
+    with pytest.raises(ModelError, match="certify families: unknown family"):
+        run_certify(sims=1, out_dir=str(tmp_path), quick=True, families=("vrft", "lqr"))
 
 
 def test_cli_refuses_a_flag_certify_does_not_take(capsys) -> None:

@@ -9,7 +9,7 @@ import pytest
 
 from bilevel.ddc.depersis_tesi import lqr_controller
 from bilevel.errors import ModelError
-from bilevel.experiments.certify_dpt import N2_PLANT
+from bilevel.experiments.certify import N2_PLANT
 from bilevel.problems.willems import build_attack
 from bilevel.problems.willems_instance import WillemsSetting
 from bilevel.robust import Proof, as_target, certified_margin, certify, sample_soundness
