@@ -368,26 +368,39 @@ def recheck(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Che
 @dataclass(frozen=True)
 class GainSet:
     """A convex outer set of the gain errors d = (K - K0)' over the budget (one input), by its support function: K - K0
-    = -W / M with M in [m_lo, m_hi] and W in W0 + l(the budget's image) + B0'E Acl0 + a ball (module docstring)."""
+    = -W / M with M in [m_lo, m_hi] and W - W0 = l(dTheta) + B0'E Acl0 + dB'P0 dTheta F + dB'E Acl0 + B0'E dTheta F
+    + dB'E dTheta F (module docstring), E = P - P0 = C + S with -H <= S <= H, ||E|| <= t, ||dTheta|| <= eps."""
 
     gram_X: np.ndarray   # l's image of the X ball: L_X L_X' (n x n)
     gram_U: np.ndarray   # and of the U ball
-    centre: np.ndarray   # B0'C Acl0 (C the sandwich's centre minus P0), as a vector
-    half_B: float        # ||H^1/2 B0|| (H the sandwich's half-width)
+    ball: float          # ||W0|| + ||l|| times the fit's nonlinear part
+    centre: np.ndarray   # B0'C Acl0 as a vector
+    half_B: float        # ||H^1/2 B0||
+    half: float          # ||H^1/2||
     half_A: np.ndarray   # H^1/2 Acl0
-    cap: float           # ||B0|| t: |B0'E Acl0 w| <= cap ||Acl0 w||
+    CA: np.ndarray       # C Acl0
     acl0: np.ndarray     # Acl0
-    ball: float          # ||W0||, l of the fit's nonlinear part and W's second-order terms
+    F: np.ndarray        # [I; K0]
+    eps: float
+    t: float
+    b: float             # ||B0||
+    p: float             # ||P0||
+    e_B: float           # bound on ||E B0||: min(||C B0|| + ||H^1/2|| ||H^1/2 B0||, t ||B0||)
     m_lo: float
     m_hi: float
 
     def support(self, W: np.ndarray) -> np.ndarray:
-        """max over the set of w'd for each column w of W (n x k): an upper bound, sharp on l's image."""
+        """An upper bound on max over the set of w'd for each column w of W (n x k), sharp on l's image."""
         def quad(G):
             return np.sqrt(np.maximum(np.einsum("im,ij,jm->m", W, G, W), 0.0))
-        e_term = np.minimum(-self.centre @ W + self.half_B * np.linalg.norm(self.half_A @ W, axis=0),
-                            self.cap * np.linalg.norm(self.acl0 @ W, axis=0))
-        g = quad(self.gram_X) + quad(self.gram_U) + self.ball * np.linalg.norm(W, axis=0) + e_term
+
+        def norm(M):
+            return np.linalg.norm(M @ W, axis=0)
+        a_w, f_w, h_w = norm(self.acl0), norm(self.F), norm(self.half_A)
+        e_term = np.minimum(-self.centre @ W + self.half_B * h_w, self.b * self.t * a_w)  # B0'E Acl0 w
+        second = self.eps * (self.eps * (self.p + self.t) * f_w + self.e_B * f_w
+                             + np.minimum(norm(self.CA) + self.half * h_w, self.t * a_w))
+        g = quad(self.gram_X) + quad(self.gram_U) + self.ball * np.linalg.norm(W, axis=0) + e_term + second
         return np.maximum(g / self.m_lo, g / self.m_hi)
 
 
@@ -401,11 +414,13 @@ def gain_set(atk: IdentificationAttack, c: Clean, delta: float, eps: float, X: n
     _, rest, _, _ = _fit_parts(atk, delta)
     t = cost_radius(c, X, Y)
     H, C = 0.5 * _sym(X - Y), 0.5 * _sym(X + Y) - c.P0
+    root = _root(H)
     LX, LU = lmap @ maps[0] * r_X, lmap @ maps[1] * r_U
-    ball = _norm(c.W0) + _norm(lmap) * rest + _second_order(c, eps, t)
     m_lo, m_hi = _gain_denominators(c, atk.lqr_weights[1], eps, X, Y)
-    return GainSet(LX @ LX.T, LU @ LU.T, (B0.T @ C @ c.Acl0).ravel(), _norm(_root(H) @ B0), _root(H) @ c.Acl0,
-                   _norm(B0) * t, c.Acl0, ball, m_lo, m_hi)
+    half_B = _norm(root @ B0)
+    return GainSet(LX @ LX.T, LU @ LU.T, _norm(c.W0) + _norm(lmap) * rest, (B0.T @ C @ c.Acl0).ravel(), half_B,
+                   _norm(root), root @ c.Acl0, C @ c.Acl0, c.Acl0, c.F, eps, t, _norm(B0), _norm(c.P0),
+                   min(_norm(C @ B0) + _norm(root) * half_B, t * _norm(B0)), m_lo, m_hi)
 
 
 def loop_polynomial(A: np.ndarray, B: np.ndarray, K0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -448,7 +463,7 @@ def directional(target: Target, delta: float, options: dict[str, Any]) -> Eviden
     X, Yv, mu1, mu2 = found
     gains = gain_set(atk, c, delta, eps, X, Yv, model_maps(atk), first_order_map(c))
     swept = sweep(*loop_polynomial(A, B, c.K0), gains.support, GRID, ANGLES)
-    numbers.update(t_cost=cost_radius(c, X, Yv), ball=gains.ball, excluded_by=swept.excluded_by,
+    numbers.update(t_cost=gains.t, ball=gains.ball, excluded_by=swept.excluded_by,
                    lipschitz=swept.lipschitz)
     if not swept.proven:
         return Evidence("directional", Proof.UNKNOWN, f"zero exclusion fails at delta = {delta:.6g} (guaranteed "
@@ -457,7 +472,7 @@ def directional(target: Target, delta: float, options: dict[str, Any]) -> Eviden
     check = recheck_directional(atk, delta, {"X": X, "Y": Yv, "mu1": mu1, "mu2": mu2})
     return Evidence("directional", Proof.PROVEN, f"no poisoning with ||dX||_F <= {delta:.6g} ||X||_F, ||dU||_F <= "
                     f"{delta:.6g} ||U||_F destabilizes the true loop under certainty-equivalence LQR (model ball "
-                    f"{eps:.3g}, the gain's first-order image of the budget plus a ball of {gains.ball:.3g}, zero "
+                    f"{eps:.3g}, the gain's first-order image of the budget plus a ball of {gains.ball:.3g} and second-order terms, zero "
                     f"excluded by {swept.excluded_by:.3g})", numbers, check, time.perf_counter() - t0)
 
 
