@@ -269,10 +269,14 @@ def _sym(M):
     return 0.5 * (M + M.T)
 
 
-def sandwich(atk: IdentificationAttack, c: Clean, eps: float) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+def sandwich(atk: IdentificationAttack, c: Clean, eps: float,
+             shaped: bool = False) -> tuple[np.ndarray, np.ndarray, float, float] | None:
     """(X, Y, mu1, mu2) of step 2: Y <= P(Theta) <= X for every model in the ball ||Theta - Theta0|| <= eps (robust
-    LMIs, Petersen's lemma), minimizing t = max(lambda_max(X - P0), lambda_max(P0 - Y)); None if the SDP finds none."""
+    LMIs, Petersen's lemma), minimizing t = max(lambda_max(X - P0), lambda_max(P0 - Y)) and, shaped, also the width
+    X - Y seen through B0 and Acl0 (lambda_max of B0'(X - Y)B0 and of Acl0'(X - Y)Acl0: the terms that dominate the
+    directional gain set); None if the SDP finds none."""
     n = c.theta0.shape[0]
+    B0 = c.theta0[:, n:]
     X, Y = cp.Variable((n, n), symmetric=True), cp.Variable((n, n), symmetric=True)
     mu1, mu2, t = cp.Variable(nonneg=True), cp.Variable(nonneg=True), cp.Variable()
     upper, lower, above, below, _ = _blocks(atk, c, eps, X, Y, mu1, mu2, t, np.eye(n), 1.0, 0.0, 0.0, cp)
@@ -280,8 +284,14 @@ def sandwich(atk: IdentificationAttack, c: Clean, eps: float) -> tuple[np.ndarra
     cons = [_sym(upper) >> room * np.eye(upper.shape[0]), _sym(lower) >> room * np.eye(lower.shape[0]),
             _sym(above) >> room * np.eye(n), _sym(below) >> room * np.eye(n), Y >> room * np.eye(n), mu1 >= room,
             mu2 >= room]
+    objective = t
+    if shaped:
+        t_B, t_A = cp.Variable(), cp.Variable()
+        cons += [_sym(B0.T @ (X - Y) @ B0) << t_B * np.eye(B0.shape[1]),
+                 _sym(c.Acl0.T @ (X - Y) @ c.Acl0) << t_A * np.eye(n)]
+        objective = t + t_B + t_A
     try:
-        solve_quietly(cp.Problem(cp.Minimize(t), cons), solver=cp.CLARABEL)  # the numpy re-check decides
+        solve_quietly(cp.Problem(cp.Minimize(objective), cons), solver=cp.CLARABEL)  # the numpy re-check decides
     except cp.SolverError:
         return None
     if X.value is None or Y.value is None or mu1.value is None or mu2.value is None:
@@ -456,7 +466,7 @@ def directional(target: Target, delta: float, options: dict[str, Any]) -> Eviden
     Y0, Z0 = atk.regression(atk.signals)
     c = clean(atk, least_squares_fit(Y0, Z0))
     numbers: dict[str, float] = {"eps_model": eps, "s": s}
-    found = sandwich(atk, c, eps)
+    found = sandwich(atk, c, eps, shaped=True)
     if found is None:
         return Evidence("directional", Proof.UNKNOWN, "the gain bound's SDP found no robust cost bounds", numbers,
                         Check(False, "nothing to check"), time.perf_counter() - t0)
