@@ -1,6 +1,8 @@
 """The identification + CE LQR certificate: the certified model ball contains the exact re-fit's model, the certified
 gain ball contains the gains of sphere re-fits and of models on the ball's boundary, a small budget is proven with its
-LMIs re-checked, a tampered solution fails its re-check, and an unproven budget is unknown."""
+LMIs re-checked, a tampered solution fails its re-check, and an unproven budget is unknown; mechanism directional's gain
+set contains the gains of sphere re-fits and of the attack, its maps agree with their second routes, and it proves
+budgets lyapunov does not."""
 
 from __future__ import annotations
 
@@ -10,10 +12,14 @@ import pytest
 from bilevel.ddc.model_based import lqr_gain
 from bilevel.problems.identification_instance import attack_instance
 from bilevel.robust import Proof, as_target, certify, sample_soundness, sphere_poisoning
-from bilevel.robust.identification import clean, lyapunov, model_maps, model_radius, recheck
+from bilevel.robust.identification import (_first_order_map_kron, clean, directional, first_order_map, gain_set,
+                                           loop_polynomial, lyapunov, model_maps, model_radius, recheck,
+                                           recheck_directional, sandwich)
 
 PROVEN = 0.0005
-"""A budget the mechanism proves on data seed 0 (T = 100), where certified_margin bisects to delta_lb 0.00148."""
+"""A budget lyapunov proves on data seed 0 (T = 100), where it alone bisects to delta_lb 0.00148."""
+BEYOND = 0.0025
+"""A budget directional proves on data seed 0 and lyapunov does not (the attack's delta_ub there is 0.0325)."""
 
 
 @pytest.fixture(scope="module")
@@ -85,3 +91,42 @@ def test_the_clean_loop_is_stable_and_an_unproven_budget_is_unknown(atk) -> None
     cert = certify(atk, 0.01)
     assert cert.proof is Proof.UNKNOWN and not cert.proven
     assert certify(atk, PROVEN).proven
+
+
+def test_the_directional_gain_set_contains_the_gains_of_refits_and_of_the_attack(atk) -> None:
+    target = as_target(atk)
+    c = clean(atk, atk.theta0)
+    n = c.theta0.shape[0]
+    eps, _ = model_radius(atk, BEYOND)
+    X, Y, _, _ = sandwich(atk, c, eps, shaped=True)
+    gains = gain_set(atk, c, BEYOND, eps, X, Y, model_maps(atk), first_order_map(c))
+    rng = np.random.default_rng(5)
+    poisonings = [sphere_poisoning(target, BEYOND, rng) for _ in range(100)]
+    poisonings.append(target.attacks["engine"](BEYOND, 0))
+    W = rng.standard_normal((n, 200))
+    W = np.hstack([W / np.linalg.norm(W, axis=0), np.eye(n), -np.eye(n)])
+    bound = gains.support(W)
+    for a in poisonings:
+        theta = target.refit(target.poisoned(a))
+        K, _ = lqr_gain(theta[:, :n], theta[:, n:], np.eye(n), np.eye(1))
+        assert np.all((K - c.K0) @ W <= bound)
+
+
+def test_the_directional_maps_agree_with_their_second_routes(atk) -> None:
+    c = clean(atk, atk.theta0)
+    assert np.allclose(_first_order_map_kron(c), first_order_map(c), rtol=0, atol=1e-12)
+    A, B = atk.setting.state_space
+    base, slopes = loop_polynomial(A, B, c.K0)
+    assert np.allclose(base, np.poly(A + B @ c.K0), atol=1e-12)
+    d = np.array([0.1, -0.2, 0.05, 0.3])
+    assert np.allclose(base + d @ slopes, np.poly(A + B @ (c.K0 + d[None, :])), atol=1e-12)
+
+
+def test_directional_proves_beyond_lyapunov_and_a_tampered_solution_fails(atk) -> None:
+    target = as_target(atk)
+    found = directional(target, BEYOND, {})
+    assert found.proof is Proof.PROVEN and found.check.passed and found.check.numbers["excluded_by"] > 0
+    assert lyapunov(target, BEYOND, {}).proof is Proof.UNKNOWN
+    assert certify(atk, PROVEN).evidence[0].mechanism == "directional"
+    tampered = {"X": 0.5 * np.eye(4), "Y": 0.5 * np.eye(4), "mu1": 1.0, "mu2": 1.0}
+    assert not recheck_directional(atk, BEYOND, tampered).passed
