@@ -241,9 +241,37 @@ def _gain_denominators(c: Clean, r: float, eps: float, X: np.ndarray, Y: np.ndar
     return r + max(low, 0.0) ** 2, r + (_norm(_root(X) @ B0) + _norm(_root(X)) * eps) ** 2
 
 
-def _blocks(atk: IdentificationAttack, c: Clean, eps: float, X, Y, mu1, mu2, t, Z, mu3, eps_K, tau, lib) -> list:
+@dataclass(frozen=True)
+class ModelShape:
+    """The model set as an ellipsoid plus a ball: Theta - Theta0 = sum_j w_j D_j + D_r, ||w|| <= 1, ||D_r|| <= rho (the
+    D_j side by side in `D`, n x (n + m) k), from the fit's linear image of the budget (model_shape)."""
+
+    D: np.ndarray
+    k: int
+    rho: float
+
+
+def model_shape(atk: IdentificationAttack, delta: float, maps: tuple[np.ndarray, np.ndarray]) -> ModelShape:
+    """The ModelShape at budget delta: the image GX a_X + GU a_U of the two balls lies in the ellipsoid v'S^-1 v <= 1,
+    S = (1 + beta) S_X + (1 + 1/beta) S_U (S_X = r_X^2 GX GX', beta = sqrt(tr S_U / tr S_X)), whose semi-axes give the
+    D_j; the fit's part beyond its linear map is the ball (step 1's rest)."""
+    theta0 = atk.theta0
+    r_X, r_U = delta * np.linalg.norm(atk.signals["X"]), delta * np.linalg.norm(atk.signals["U"])
+    S_X, S_U = r_X ** 2 * maps[0] @ maps[0].T, r_U ** 2 * maps[1] @ maps[1].T
+    beta = float(np.sqrt(np.trace(S_U) / np.trace(S_X)))
+    lam, V = np.linalg.eigh(_sym((1 + beta) * S_X + (1 + 1 / beta) * S_U))
+    axes = V * np.sqrt(np.maximum(lam, 0.0))
+    D = np.hstack([axes[:, j].reshape(theta0.shape) for j in range(axes.shape[1])])
+    return ModelShape(D, axes.shape[1], _fit_parts(atk, delta)[1])
+
+
+def _blocks(atk: IdentificationAttack, c: Clean, eps: float, X, Y, mu1, mu2, t, Z, mu3, eps_K, tau, lib,
+            shape: ModelShape | None = None, L1=None, L2=None) -> list:
     """The LMI matrices (cvxpy expressions with lib=cp, numbers with lib=np): robust upper bound X on K0's cost matrix,
-    robust lower bound Y on the optimal one, X - P0 <= t I, P0 - Y <= t I, and the true loop's robust Lyapunov LMI."""
+    robust lower bound Y on the optimal one, X - P0 <= t I, P0 - Y <= t I, and the true loop's robust Lyapunov LMI.
+    With a shape the model error is its ellipsoid (multipliers L1 on x, L2 on z: sum_j p_j'L p_j <= q'L q for
+    p = w kron q, ||w|| <= 1; the upper LMI's channel is the loop's, D_j F x) plus its ball of radius rho in place of the ball eps, its channel scaled by rho (mu1, mu2 then stand
+    for mu1 rho^2, mu2 rho^2: the same LMI by a congruence, better scaled)."""
     A, B = atk.setting.state_space
     n, m = B.shape
     q, r = atk.lqr_weights
@@ -251,11 +279,25 @@ def _blocks(atk: IdentificationAttack, c: Clean, eps: float, X, Y, mu1, mu2, t, 
     H = np.hstack([c.F, np.zeros((n + m, n))])
     bmat = lib.bmat if lib is cp else np.block
     zero = lambda a, b: np.zeros((a, b))  # noqa: E731
-    upper = bmat([[bmat([[X - Qc, c.Acl0.T @ X], [X @ c.Acl0, X]]) - mu1 * eps ** 2 * (H.T @ H),
-                   bmat([[zero(n, n)], [X]])], [bmat([[zero(n, n), X]]), mu1 * np.eye(n)]])
-    diag = bmat([[q * np.eye(n) - Y, zero(n, m)], [zero(m, n), r * np.eye(m)]])
     th = c.theta0
-    lower = bmat([[th.T @ Y @ th + diag - mu2 * eps ** 2 * np.eye(n + m), th.T @ Y], [Y @ th, mu2 * np.eye(n)]])
+    diag = bmat([[q * np.eye(n) - Y, zero(n, m)], [zero(m, n), r * np.eye(m)]])
+    if shape is None:
+        upper = bmat([[bmat([[X - Qc, c.Acl0.T @ X], [X @ c.Acl0, X]]) - mu1 * eps ** 2 * (H.T @ H),
+                       bmat([[zero(n, n)], [X]])], [bmat([[zero(n, n), X]]), mu1 * np.eye(n)]])
+        lower = bmat([[th.T @ Y @ th + diag - mu2 * eps ** 2 * np.eye(n + m), th.T @ Y], [Y @ th, mu2 * np.eye(n)]])
+    else:
+        kron = lib.kron
+        w, v = (n + m) * shape.k, n * shape.k
+        DF = np.hstack([shape.D[:, j * (n + m):(j + 1) * (n + m)] @ c.F for j in range(shape.k)])  # Acl's directions
+        XD, YD = X @ DF, th.T @ Y @ shape.D
+        rho = shape.rho
+        Hn = np.hstack([np.eye(n), zero(n, n)])
+        upper = bmat([[bmat([[X - Qc, c.Acl0.T @ X], [X @ c.Acl0, X]]) - mu1 * (H.T @ H) - Hn.T @ L1 @ Hn,
+                       bmat([[zero(n, n)], [rho * X]]), bmat([[zero(n, v)], [XD]])],
+                      [bmat([[zero(n, n), rho * X]]), mu1 * np.eye(n), zero(n, v)],
+                      [bmat([[zero(v, n), XD.T]]), zero(v, n), kron(np.eye(shape.k), L1)]])
+        lower = bmat([[th.T @ Y @ th + diag - mu2 * np.eye(n + m) - L2, rho * th.T @ Y, YD],
+                      [rho * Y @ th, mu2 * np.eye(n), zero(n, w)], [YD.T, zero(w, n), kron(np.eye(shape.k), L2)]])
     above = t * np.eye(n) - (X - c.P0)
     below = t * np.eye(n) - (c.P0 - Y)
     Ac = A + B @ c.K0
@@ -269,34 +311,41 @@ def _sym(M):
     return 0.5 * (M + M.T)
 
 
-def sandwich(atk: IdentificationAttack, c: Clean, eps: float,
-             shaped: bool = False) -> tuple[np.ndarray, np.ndarray, float, float] | None:
-    """(X, Y, mu1, mu2) of step 2: Y <= P(Theta) <= X for every model in the ball ||Theta - Theta0|| <= eps (robust
-    LMIs, Petersen's lemma), minimizing t = max(lambda_max(X - P0), lambda_max(P0 - Y)) and, shaped, also the width
+def sandwich(atk: IdentificationAttack, c: Clean, eps: float, shaped: bool = False,
+             shape: ModelShape | None = None) -> dict[str, Any] | None:
+    """{X, Y, mu1, mu2 (and L1, L2 with a shape)} of step 2: Y <= P(Theta) <= X for every model in the ball
+    ||Theta - Theta0|| <= eps, or in the shape's ellipsoid plus ball (robust LMIs: Petersen's lemma, the repeated
+    multipliers of _blocks), minimizing t = max(lambda_max(X - P0), lambda_max(P0 - Y)) and, shaped, also the width
     X - Y seen through B0 and Acl0 (lambda_max of B0'(X - Y)B0 and of Acl0'(X - Y)Acl0: the terms that dominate the
     directional gain set); None if the SDP finds none."""
     n = c.theta0.shape[0]
     B0 = c.theta0[:, n:]
     X, Y = cp.Variable((n, n), symmetric=True), cp.Variable((n, n), symmetric=True)
     mu1, mu2, t = cp.Variable(nonneg=True), cp.Variable(nonneg=True), cp.Variable()
-    upper, lower, above, below, _ = _blocks(atk, c, eps, X, Y, mu1, mu2, t, np.eye(n), 1.0, 0.0, 0.0, cp)
+    L1, L2 = (None, None) if shape is None else (cp.Variable((n, n), symmetric=True),
+                                                   cp.Variable((c.F.shape[0],) * 2, symmetric=True))
+    upper, lower, above, below, _ = _blocks(atk, c, eps, X, Y, mu1, mu2, t, np.eye(n), 1.0, 0.0, 0.0, cp, shape, L1,
+                                            L2)
     room = STRICT * (1.0 + float(np.max(np.abs(c.P0))))
     cons = [_sym(upper) >> room * np.eye(upper.shape[0]), _sym(lower) >> room * np.eye(lower.shape[0]),
             _sym(above) >> room * np.eye(n), _sym(below) >> room * np.eye(n), Y >> room * np.eye(n), mu1 >= room,
             mu2 >= room]
     objective = t
+    if shape is not None:
+        cons += [L1 >> 0, L2 >> 0]
     if shaped:
         t_B, t_A = cp.Variable(), cp.Variable()
         cons += [_sym(B0.T @ (X - Y) @ B0) << t_B * np.eye(B0.shape[1]),
                  _sym(c.Acl0.T @ (X - Y) @ c.Acl0) << t_A * np.eye(n)]
-        objective = t + t_B + t_A
+        objective = objective + t_B + t_A
     try:
         solve_quietly(cp.Problem(cp.Minimize(objective), cons), solver=cp.CLARABEL)  # the numpy re-check decides
     except cp.SolverError:
         return None
-    if X.value is None or Y.value is None or mu1.value is None or mu2.value is None:
+    found = {"X": X, "Y": Y, "mu1": mu1, "mu2": mu2, **({} if shape is None else {"L1": L1, "L2": L2})}
+    if any(v.value is None for v in found.values()):
         return None
-    return _sym(X.value), _sym(Y.value), float(mu1.value), float(mu2.value)
+    return {k: _sym(v.value) if v.ndim == 2 else float(v.value) for k, v in found.items()}
 
 
 def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
@@ -316,7 +365,7 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
     if found is None:
         return Evidence("lyapunov", Proof.UNKNOWN, "the gain bound's SDP found no robust cost bounds", numbers,
                         Check(False, "nothing to check"), time.perf_counter() - t0)
-    X, Yv, mu1, mu2 = found
+    X, Yv, mu1, mu2 = found["X"], found["Y"], found["mu1"], found["mu2"]
     eps_K = gain_radius(c, r, eps, X, Yv)
     numbers.update(t_cost=cost_radius(c, X, Yv), eps_K=eps_K)
     if not np.isfinite(eps_K):
@@ -466,12 +515,12 @@ def directional(target: Target, delta: float, options: dict[str, Any]) -> Eviden
     Y0, Z0 = atk.regression(atk.signals)
     c = clean(atk, least_squares_fit(Y0, Z0))
     numbers: dict[str, float] = {"eps_model": eps, "s": s}
-    found = sandwich(atk, c, eps, shaped=True)
+    maps = model_maps(atk)
+    found = sandwich(atk, c, eps, shaped=True, shape=model_shape(atk, delta, maps))
     if found is None:
         return Evidence("directional", Proof.UNKNOWN, "the gain bound's SDP found no robust cost bounds", numbers,
                         Check(False, "nothing to check"), time.perf_counter() - t0)
-    X, Yv, mu1, mu2 = found
-    gains = gain_set(atk, c, delta, eps, X, Yv, model_maps(atk), first_order_map(c))
+    gains = gain_set(atk, c, delta, eps, found["X"], found["Y"], maps, first_order_map(c))
     swept = sweep(*loop_polynomial(A, B, c.K0), gains.support, GRID, ANGLES)
     numbers.update(t_cost=gains.t, ball=gains.ball, excluded_by=swept.excluded_by,
                    lipschitz=swept.lipschitz)
@@ -479,11 +528,11 @@ def directional(target: Target, delta: float, options: dict[str, Any]) -> Eviden
         return Evidence("directional", Proof.UNKNOWN, f"zero exclusion fails at delta = {delta:.6g} (guaranteed "
                         f"distance {swept.excluded_by:.3g})", numbers, Check(False, "nothing to check"),
                         time.perf_counter() - t0)
-    check = recheck_directional(atk, delta, {"X": X, "Y": Yv, "mu1": mu1, "mu2": mu2})
+    check = recheck_directional(atk, delta, found)
     return Evidence("directional", Proof.PROVEN, f"no poisoning with ||dX||_F <= {delta:.6g} ||X||_F, ||dU||_F <= "
                     f"{delta:.6g} ||U||_F destabilizes the true loop under certainty-equivalence LQR (model ball "
-                    f"{eps:.3g}, the gain's first-order image of the budget plus a ball of {gains.ball:.3g} and second-order terms, zero "
-                    f"excluded by {swept.excluded_by:.3g})", numbers, check, time.perf_counter() - t0)
+                    f"{eps:.3g}, the gain's first-order image of the budget plus a ball of {gains.ball:.3g} and "
+                    f"second-order terms, zero excluded by {swept.excluded_by:.3g})", numbers, check, time.perf_counter() - t0)
 
 
 def _first_order_map_kron(c: Clean) -> np.ndarray:
@@ -497,8 +546,8 @@ def _first_order_map_kron(c: Clean) -> np.ndarray:
 
 
 def recheck_directional(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Check:
-    """The sandwich's LMIs by numpy eigenvalues at the SDP's solution (margin above rounding), the model ball and the
-    fit's maps the whitened way, l's matrix from Kronecker products, the loop polynomial from numpy's np.poly, and the
+    """The sandwich's LMIs (and its multipliers L1, L2 >= 0) by numpy eigenvalues at the SDP's solution (margin above
+    rounding), the model ball, the fit's maps and the model's ellipsoid the whitened way, l's matrix from Kronecker products, the loop polynomial from numpy's np.poly, and the
     sweep on a grid twice as fine with twice the directions."""
     A, B = atk.setting.state_space
     c = _refit_clean(atk)
@@ -506,10 +555,14 @@ def recheck_directional(atk: IdentificationAttack, delta: float, sol: dict[str, 
     eps = model_radius(atk, delta, whitened=True)[0] * (1 + 1e-9)
     X, Y = _sym(sol["X"]), _sym(sol["Y"])
     t = cost_radius(c, X, Y) * (1 + 1e-9)
-    mats = _blocks(atk, c, eps, X, Y, sol["mu1"], sol["mu2"], t, np.eye(n), 1.0, 0.0, 0.0, np)[:4]
-    eigs, ok = _smallest_eigs(mats, ("upper", "lower", "above", "below"))
+    maps = model_maps(atk, whitened=True)
+    shape = model_shape(atk, delta, maps)
+    shape = ModelShape(shape.D, shape.k, shape.rho * (1 + 1e-9))
+    L1, L2 = _sym(sol["L1"]), _sym(sol["L2"])
+    mats = _blocks(atk, c, eps, X, Y, sol["mu1"], sol["mu2"], t, np.eye(n), 1.0, 0.0, 0.0, np, shape, L1, L2)[:4]
+    eigs, ok = _smallest_eigs(mats + [L1, L2], ("upper", "lower", "above", "below", "L1", "L2"))
     lmap = _first_order_map_kron(c)
-    gains = gain_set(atk, c, delta, eps, X, Y, model_maps(atk, whitened=True), lmap)
+    gains = gain_set(atk, c, delta, eps, X, Y, maps, lmap)
     Acl = A + B @ c.K0
     base = np.poly(Acl)
     slopes = np.array([np.poly(Acl + B @ e[None, :]) - base for e in np.eye(n)])
@@ -520,7 +573,7 @@ def recheck_directional(atk: IdentificationAttack, delta: float, sol: dict[str, 
     slopes = np.where(np.abs(slopes) >= np.abs(fl_slopes), slopes, fl_slopes)  # the larger of each pair
     swept = sweep(base, slopes, gains.support, 2 * GRID, 2 * ANGLES)
     margin = param("robust.check_margin") * float(np.max(np.abs(base)))
-    passed = ok["upper"] and ok["lower"] and min(eigs["above"], eigs["below"]) >= 0 \
+    passed = ok["upper"] and ok["lower"] and min(eigs["above"], eigs["below"], eigs["L1"], eigs["L2"]) >= 0 \
         and float(np.linalg.eigvalsh(Y)[0]) >= 0 and float(np.linalg.eigvalsh(X - Y)[0]) >= 0 \
         and sol["mu1"] > 0 and sol["mu2"] > 0 and swept.excluded_by > margin and swept.leading > margin \
         and agree < 1e-6
