@@ -54,7 +54,7 @@ FAMILIES: dict[str, Family] = {
 
 
 def certify_task(task: dict[str, Any]) -> dict[str, Any]:
-    """One data set: certified_margin, then the sampling check at delta_lb (its attacks with the task's check_starts)."""
+    """One data set: certified_margin, then the sampling check at delta_lb (its attacks with check_starts starts)."""
     family = FAMILIES[task["family"]]
     target = as_target(family.build(task["size"], task["seed"]), starts=family.starts)
     margin = certified_margin(target, seed=task["attack_seed"])

@@ -25,19 +25,24 @@ Mechanism "lyapunov", three proven steps:
    ||Y^1/2|| eps)^2. So ||K - K0|| <= eps_K, linear in eps (the earlier route through the cost difference identity
    grew like sqrt(eps)).
 3. The true loop: A + B (K0 + D_K) is Schur stable for every ||D_K|| <= eps_K (a robust Lyapunov LMI, Petersen again).
-Mechanism "directional" (one input, tried first): steps 1 and 2's sandwich as above, then the gain errors as a set
-with shape instead of a ball. W - W0 = l(dTheta) + B0'E Acl0 + (second-order terms), with l the linear map above: its
-part on the fit's linear image of the budget is the image of two balls under an exact linear map (an ellipsoid sum,
-support function sqrt(w'L L'w)), l of the fit's nonlinear part and the second-order terms a ball; B0'E Acl0 w with E =
-C + S, -H <= S <= H (the sandwich's centre and half-width) is at most -(B0'C Acl0) w + ||H^1/2 B0|| ||H^1/2 Acl0 w||
-(and ||B0|| t ||Acl0 w||); K - K0 = -W / M with M in [lo, hi] from the sandwich. With one input the true loop's
-characteristic polynomial det(zI - A - B (K0 + d')) is affine in d, so zero exclusion on the unit circle over that
-convex set (bilevel.robust.zero_exclusion, Lipschitz-rigorous between grid points) proves every reachable gain
-stabilizing: exact for the set, where step 3's Lyapunov LMI asks for one quadratic Lyapunov function for a ball.
+Mechanism "directional" (one input, tried first) keeps the shapes lyapunov's balls lose:
+- the model set: the fit's linear image of the two budget balls lies in the ellipsoid v'S^-1 v <= 1 with S = (1 + beta)
+  S_X + (1 + 1/beta) S_U (the outer ellipsoid of a Minkowski sum), so Theta - Theta0 = sum_j w_j D_j + D_r, ||w|| <= 1,
+  ||D_r|| <= rest; the sandwich's robust LMIs take that structure (repeated-scalar multipliers: sum_j p_j'L p_j <= q'L q
+  for p = w kron q) and also minimize the width X - Y seen through B0 and Acl0;
+- the gains: W - W0 = l(dTheta) + B0'E Acl0 + dB'P0 dTheta F + dB'E Acl0 + B0'E dTheta F + dB'E dTheta F exactly. l on
+  the fit's linear image is the image of two balls under an exact linear map (support function sqrt(w'L L'w)), l of
+  the rest a ball; with E = C + S, -H <= S <= H (the sandwich's centre and half-width, |x'Sy| <= ||H^1/2 x|| ||H^1/2
+  y||), -B0'E Acl0 w <= -(B0'C Acl0) w + ||H^1/2 B0|| ||H^1/2 Acl0 w|| (or ||B0|| t ||Acl0 w||), and the second-order
+  terms are bounded per direction w the same way with ||F w||; K - K0 = -W / M with M = R + B'PB between bounds from the
+  sandwich. That is a convex set of gain errors d given by its support function;
+- the loop: with one input det(zI - A - B (K0 + d')) is affine in d, so zero exclusion on the unit circle over that
+  set (bilevel.robust.zero_exclusion, Lipschitz-rigorous between grid points) proves every reachable gain stabilizing:
+  exact for the set, where step 3's Lyapunov LMI asks for one quadratic Lyapunov function for a ball.
 The re-check recomputes step 1 from SVDs (the linear map built the whitened way), t and eps_K from numpy eigenvalues
 of X - P0, P0 - Y, X - Y and Y at the SDP's solution, and checks every LMI there by numpy eigenvalues with a margin
-above rounding; for "directional", l's matrix from Kronecker products, the loop polynomial from np.poly and the sweep
-on a grid twice as fine.
+above rounding; for "directional", the ellipsoid from the whitened maps, the multipliers L1, L2 >= 0, l's matrix from
+Kronecker products, the loop polynomial from np.poly and the sweep on a grid twice as fine with twice the directions.
 """
 
 from __future__ import annotations
@@ -268,10 +273,11 @@ def model_shape(atk: IdentificationAttack, delta: float, maps: tuple[np.ndarray,
 def _blocks(atk: IdentificationAttack, c: Clean, eps: float, X, Y, mu1, mu2, t, Z, mu3, eps_K, tau, lib,
             shape: ModelShape | None = None, L1=None, L2=None) -> list:
     """The LMI matrices (cvxpy expressions with lib=cp, numbers with lib=np): robust upper bound X on K0's cost matrix,
-    robust lower bound Y on the optimal one, X - P0 <= t I, P0 - Y <= t I, and the true loop's robust Lyapunov LMI.
-    With a shape the model error is its ellipsoid (multipliers L1 on x, L2 on z: sum_j p_j'L p_j <= q'L q for
-    p = w kron q, ||w|| <= 1; the upper LMI's channel is the loop's, D_j F x) plus its ball of radius rho in place of the ball eps, its channel scaled by rho (mu1, mu2 then stand
-    for mu1 rho^2, mu2 rho^2: the same LMI by a congruence, better scaled)."""
+    robust lower bound Y on the optimal one, X - P0 <= t I, P0 - Y <= t I, and the true loop's robust Lyapunov LMI. With
+    a shape the model error is its ellipsoid (multipliers L1 on x, L2 on z: sum_j p_j'L p_j <= q'L q for p = w kron q,
+    ||w|| <= 1; the upper LMI's channel is the loop's, D_j F x) plus its ball of radius rho in place of the ball eps,
+    its channel scaled by rho (mu1, mu2 then stand for mu1 rho^2, mu2 rho^2: the same LMI by a congruence, better
+    scaled)."""
     A, B = atk.setting.state_space
     n, m = B.shape
     q, r = atk.lqr_weights
@@ -532,7 +538,8 @@ def directional(target: Target, delta: float, options: dict[str, Any]) -> Eviden
     return Evidence("directional", Proof.PROVEN, f"no poisoning with ||dX||_F <= {delta:.6g} ||X||_F, ||dU||_F <= "
                     f"{delta:.6g} ||U||_F destabilizes the true loop under certainty-equivalence LQR (model ball "
                     f"{eps:.3g}, the gain's first-order image of the budget plus a ball of {gains.ball:.3g} and "
-                    f"second-order terms, zero excluded by {swept.excluded_by:.3g})", numbers, check, time.perf_counter() - t0)
+                    f"second-order terms, zero excluded by {swept.excluded_by:.3g})", numbers, check,
+                    time.perf_counter() - t0)
 
 
 def _first_order_map_kron(c: Clean) -> np.ndarray:
@@ -547,8 +554,9 @@ def _first_order_map_kron(c: Clean) -> np.ndarray:
 
 def recheck_directional(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Check:
     """The sandwich's LMIs (and its multipliers L1, L2 >= 0) by numpy eigenvalues at the SDP's solution (margin above
-    rounding), the model ball, the fit's maps and the model's ellipsoid the whitened way, l's matrix from Kronecker products, the loop polynomial from numpy's np.poly, and the
-    sweep on a grid twice as fine with twice the directions."""
+    rounding), the model ball, the fit's maps and the model's ellipsoid the whitened way, l's matrix from Kronecker
+    products, the loop polynomial from numpy's np.poly, and the sweep on a grid twice as fine with twice the directions.
+    """
     A, B = atk.setting.state_space
     c = _refit_clean(atk)
     n = c.theta0.shape[0]

@@ -1,8 +1,8 @@
 """The identification + CE LQR certificate: the certified model ball contains the exact re-fit's model, the certified
 gain ball contains the gains of sphere re-fits and of models on the ball's boundary, a small budget is proven with its
-LMIs re-checked, a tampered solution fails its re-check, and an unproven budget is unknown; mechanism directional's gain
-ellipsoid, sandwich and gain set contain the models, Riccati solutions and gains of sphere re-fits and of the attack, its maps agree with their second routes, and it proves
-budgets lyapunov does not."""
+LMIs re-checked, a tampered solution fails its re-check, and an unproven budget is unknown; mechanism directional's
+ellipsoid, sandwich and gain set contain the models, Riccati solutions and gains of sphere re-fits and of the attack,
+its maps agree with their second routes, and it proves budgets lyapunov does not."""
 
 from __future__ import annotations
 
