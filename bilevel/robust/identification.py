@@ -37,8 +37,9 @@ Mechanism "directional" (one input, tried first) keeps the shapes lyapunov's bal
   terms are bounded per direction w the same way with ||F w||; K - K0 = -W / M with M = R + B'PB between bounds from the
   sandwich. That is a convex set of gain errors d given by its support function;
 - the loop: with one input det(zI - A - B (K0 + d')) is affine in d, so zero exclusion on the unit circle over that
-  set (bilevel.robust.zero_exclusion, Lipschitz-rigorous between grid points) proves every reachable gain stabilizing:
-  exact for the set, where step 3's Lyapunov LMI asks for one quadratic Lyapunov function for a ball.
+  set (bilevel.robust.zero_exclusion, Lipschitz-rigorous between grid points) proves every reachable gain stabilizing
+  once the clean data's gain (d = 0) is (checked by eigenvalues): exact for the set, where step 3's Lyapunov LMI asks
+  for one quadratic Lyapunov function for a ball.
 The re-check recomputes step 1 from SVDs (the linear map built the whitened way), t and eps_K from numpy eigenvalues
 of X - P0, P0 - Y, X - Y and Y at the SDP's solution, and checks every LMI there by numpy eigenvalues with a margin
 above rounding; for "directional", the ellipsoid from the whitened maps, the multipliers L1, L2 >= 0, l's matrix from
@@ -521,6 +522,11 @@ def directional(target: Target, delta: float, options: dict[str, Any]) -> Eviden
     Y0, Z0 = atk.regression(atk.signals)
     c = clean(atk, least_squares_fit(Y0, Z0))
     numbers: dict[str, float] = {"eps_model": eps, "s": s}
+    clean_radius = radius(A + B @ c.K0)  # zero exclusion needs one stable member: the clean data's gain d = 0
+    numbers["clean_radius"] = clean_radius
+    if not clean_radius < 1:
+        return Evidence("directional", Proof.UNKNOWN, f"the clean loop is not stable (spectral radius "
+                        f"{clean_radius:.4g})", numbers, Check(False, "nothing to check"), time.perf_counter() - t0)
     maps = model_maps(atk)
     found = sandwich(atk, c, eps, shaped=True, shape=model_shape(atk, delta, maps))
     if found is None:
@@ -553,10 +559,10 @@ def _first_order_map_kron(c: Clean) -> np.ndarray:
 
 
 def recheck_directional(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Check:
-    """The sandwich's LMIs (and its multipliers L1, L2 >= 0) by numpy eigenvalues at the SDP's solution (margin above
-    rounding), the model ball, the fit's maps and the model's ellipsoid the whitened way, l's matrix from Kronecker
-    products, the loop polynomial from numpy's np.poly, and the sweep on a grid twice as fine with twice the directions.
-    """
+    """The clean loop's stability and the sandwich's LMIs (and its multipliers L1, L2 >= 0) by numpy eigenvalues at the
+    SDP's solution (margin above rounding), the model ball, the fit's maps and the model's ellipsoid the whitened way,
+    l's matrix from Kronecker products, the loop polynomial from numpy's np.poly, and the sweep on a grid twice as fine
+    with twice the directions."""
     A, B = atk.setting.state_space
     c = _refit_clean(atk)
     n = c.theta0.shape[0]
@@ -581,15 +587,17 @@ def recheck_directional(atk: IdentificationAttack, delta: float, sol: dict[str, 
     slopes = np.where(np.abs(slopes) >= np.abs(fl_slopes), slopes, fl_slopes)  # the larger of each pair
     swept = sweep(base, slopes, gains.support, 2 * GRID, 2 * ANGLES)
     margin = param("robust.check_margin") * float(np.max(np.abs(base)))
-    passed = ok["upper"] and ok["lower"] and min(eigs["above"], eigs["below"], eigs["L1"], eigs["L2"]) >= 0 \
+    clean_radius = float(np.max(np.abs(np.linalg.eigvals(Acl))))
+    passed = clean_radius < 1 - margin and ok["upper"] and ok["lower"] \
+        and min(eigs["above"], eigs["below"], eigs["L1"], eigs["L2"]) >= 0 \
         and float(np.linalg.eigvalsh(Y)[0]) >= 0 and float(np.linalg.eigvalsh(X - Y)[0]) >= 0 \
         and sol["mu1"] > 0 and sol["mu2"] > 0 and swept.excluded_by > margin and swept.leading > margin \
         and agree < 1e-6
     return Check(passed, f"numpy eigenvalues of the sandwich's LMIs (smallest: "
                  + ", ".join(f"{k} {v:.3g}" for k, v in eigs.items())
                  + f"); maps rebuilt agree to {agree:.1e}; the sweep at {2 * GRID} frequencies excludes zero by "
-                 f"{swept.excluded_by:.3g} (margin {margin:.1e})",
-                 {**{f"min_eig_{k}": v for k, v in eigs.items()}, "agreement": agree,
+                 f"{swept.excluded_by:.3g} (margin {margin:.1e}); the clean loop's spectral radius {clean_radius:.4g}",
+                 {**{f"min_eig_{k}": v for k, v in eigs.items()}, "agreement": agree, "clean_radius": clean_radius,
                   "excluded_by": swept.excluded_by, "margin": margin, "eps_model": eps, "t_cost": t})
 
 

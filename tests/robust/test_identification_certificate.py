@@ -2,7 +2,8 @@
 gain ball contains the gains of sphere re-fits and of models on the ball's boundary, a small budget is proven with its
 LMIs re-checked, a tampered solution fails its re-check, and an unproven budget is unknown; mechanism directional's
 ellipsoid, sandwich and gain set contain the models, Riccati solutions and gains of sphere re-fits and of the attack,
-its maps agree with their second routes, and it proves budgets lyapunov does not."""
+its maps agree with their second routes, it proves budgets lyapunov does not, and nothing where the clean loop is
+unstable."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 from bilevel.ddc.model_based import lqr_gain
-from bilevel.problems.identification_instance import attack_instance
+from bilevel.problems.identification_instance import IdentificationAttack, IdentificationSetting, attack_instance
 from bilevel.robust import Proof, as_target, certify, sample_soundness, sphere_poisoning
 from bilevel.robust.identification import (_first_order_map_kron, clean, directional, first_order_map, gain_set,
                                            loop_polynomial, lyapunov, model_maps, model_radius, model_shape, recheck,
@@ -137,3 +138,13 @@ def test_directional_proves_beyond_lyapunov_and_a_tampered_solution_fails(atk) -
     assert certify(atk, PROVEN).evidence[0].mechanism == "directional"
     tampered = {"X": 0.5 * np.eye(4), "Y": 0.5 * np.eye(4), "mu1": 1.0, "mu2": 1.0, "L1": np.eye(4), "L2": np.eye(5)}
     assert not recheck_directional(atk, BEYOND, tampered).passed
+
+
+def test_directional_proves_nothing_for_a_true_plant_its_clean_gain_does_not_stabilize(atk) -> None:
+    s = atk.setting  # the same data, judged on a plant whose poles are 1.3 times the data's (the clean loop unstable)
+    other = IdentificationSetting(s.num, np.poly(1.3 * np.roots(s.den)), s.input_std, s.noise_std)
+    wrong = IdentificationAttack(other, "ss", dict(atk.signals), dict(atk.eps), "ce-lqr", None, atk.lags, atk.orders,
+                                 atk.lqr_weights)
+    assert as_target(wrong).true_radius({}) > 1
+    found = directional(as_target(wrong), PROVEN, {})
+    assert found.proof is Proof.UNKNOWN and "not stable" in found.claim
