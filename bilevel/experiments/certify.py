@@ -48,8 +48,9 @@ DEEPC_BUDGETS = (5e-5, 1e-4, 2e-4, 5e-4)
 class Family:
     """A learner family of the reproduction: its data-set builder (size, seed) -> declaration, the sizes of the full
     run and the size of the quick one, the attack's starts (None: the target's own attack takes none), its label, the
-    brackets' relative tolerance (None: the robust.* defaults) and an extra measurement per data set
-    (target, delta_lb, attack seed) -> fields kept in certify.jsonl (None: none)."""
+    brackets' relative tolerance (None: the robust.* defaults), an extra measurement per data set
+    (target, delta_lb, attack seed) -> fields kept in certify.jsonl (None: none) and the starts of the attacks in the
+    full run's soundness check at delta_lb (None: the attack's)."""
 
     build: Callable[[int, int], Any]
     sizes: tuple[int, ...]
@@ -58,6 +59,7 @@ class Family:
     label: str
     rel_tol: float | None = None
     extra: Callable[[Target, float, int], dict[str, Any]] | None = None
+    check_starts: int | None = None
 
 
 def _dpt(plant: Any, selection: str) -> Callable[[int, int], Any]:
@@ -82,7 +84,7 @@ FAMILIES: dict[str, Family] = {
     "vrft": Family(lambda n, seed: vrft_instance("destabilize", "B", 0.0, 0.0, seed=seed, N=n), (512,), 64, 8,
                    "VRFT, scenario B (N samples)"),
     "ident": Family(lambda n, seed: ident_instance("ss", n, 0.0, "ce-lqr", seed=seed), (100,), 100, 1,
-                    "identification + CE LQR (T samples)"),
+                    "identification + CE LQR (T samples)", check_starts=64),
     "dpt-reactor-min-norm": Family(_dpt(None, "min-norm"), (15, 50), 15, None,
                                    "De Persis-Tesi, batch reactor, min-norm (T samples)", 0.01),
     "dpt-reactor-clarabel": Family(_dpt(None, "clarabel"), (15, 50), 15, None,
@@ -98,8 +100,8 @@ FAMILIES: dict[str, Family] = {
 
 
 def certify_task(task: dict[str, Any]) -> dict[str, Any]:
-    """One data set: the attack's delta_ub, certified_margin below it, then the sampling check at delta_lb (and the
-    family's extra measurement)."""
+    """One data set: the attack's delta_ub, certified_margin below it, then the sampling check at delta_lb (its attacks
+    with check_starts starts) and the family's extra measurement."""
     family = FAMILIES[task["family"]]
     target = as_target(family.build(task["size"], task["seed"]),
                        **({} if family.starts is None else {"starts": family.starts}))
@@ -114,7 +116,9 @@ def certify_task(task: dict[str, Any]) -> dict[str, Any]:
            "mechanism": next((e.mechanism for e in cert.evidence if e.holds), "") if cert else "",
            "attack_runs": [list(r) for r in runs]}
     if margin.delta_lb > 0:
-        found = sample_soundness(target, margin.delta_lb, task["samples"], seed=task["attack_seed"])
+        checked = target if task["check_starts"] == family.starts else \
+            as_target(family.build(task["size"], task["seed"]), starts=task["check_starts"])
+        found = sample_soundness(checked, margin.delta_lb, task["samples"], seed=task["attack_seed"])
         row.update(samples=found.samples, unstable=found.unstable, worst_radius=found.worst_radius,
                    attack_radius=max(found.attack_radius.values(), default=float("nan")))
     if family.extra is not None:
@@ -127,9 +131,11 @@ def certify_tasks(sims: int, quick: bool, seed: int, samples: int, families: tup
     seeds = list(enumerate(zip(sim_seeds(seed, sims), sim_seeds(seed + 1, sims))))
     tasks = []
     for name in families:
-        for size in (FAMILIES[name].quick_size,) if quick else FAMILIES[name].sizes:
+        family = FAMILIES[name]
+        starts = family.starts if quick or family.check_starts is None else family.check_starts
+        for size in (family.quick_size,) if quick else family.sizes:
             tasks += [{"key": f"{name}|size={size}|sim={i}", "family": name, "size": size, "seed": data_seed,
-                       "attack_seed": attack_seed, "samples": samples, "root_seed": seed}
+                       "attack_seed": attack_seed, "samples": samples, "root_seed": seed, "check_starts": starts}
                       for i, (data_seed, attack_seed) in seeds]
     return tasks
 
@@ -244,7 +250,7 @@ def run_certify(sims: int = 32, out_dir: str = "out/certify", quick: bool = Fals
                 progress: Callable[[str], None] | None = stderr_progress, frontier_csv: str | None = None) -> str:
     """`bilevel reproduce certify`: the chosen families' brackets (None: all; rows appended to certify.jsonl as they
     finish, so a rerun resumes), then the outputs; quick: 2 data sets, each family's quick size (VRFT N = 64,
-    De Persis-Tesi T = 15, DeePC T = 60), 200 samples."""
+    De Persis-Tesi T = 15, DeePC T = 60), 200 samples, the soundness check's attacks with the attack's own starts."""
     chosen = check_subset(families, tuple(FAMILIES), "family", "certify families")
     samples = 200 if quick else 10_000
     tasks = certify_tasks(min(sims, 2) if quick else sims, quick, seed, samples, chosen)

@@ -1,4 +1,5 @@
-"""Least-squares identification + certainty-equivalence LQR as a certificate target, and its mechanism "lyapunov".
+"""Least-squares identification + certainty-equivalence LQR as a certificate target, its mechanisms "lyapunov" and
+"directional".
 
 Learner: [A B] = argmin ||X+ - [A B] [X; U]||_F on T poisoned states and inputs, then u = K x, the LQR gain of the
 model (weights Q = q I, R = r I); judged by the true plant's loop A + B K. Budget: ||dX||_F <= delta ||X||_F and
@@ -24,9 +25,25 @@ Mechanism "lyapunov", three proven steps:
    ||Y^1/2|| eps)^2. So ||K - K0|| <= eps_K, linear in eps (the earlier route through the cost difference identity
    grew like sqrt(eps)).
 3. The true loop: A + B (K0 + D_K) is Schur stable for every ||D_K|| <= eps_K (a robust Lyapunov LMI, Petersen again).
+Mechanism "directional" (one input, tried first) keeps the shapes lyapunov's balls lose:
+- the model set: the fit's linear image of the two budget balls lies in the ellipsoid v'S^-1 v <= 1 with S = (1 + beta)
+  S_X + (1 + 1/beta) S_U (the outer ellipsoid of a Minkowski sum), so Theta - Theta0 = sum_j w_j D_j + D_r, ||w|| <= 1,
+  ||D_r|| <= rest; the sandwich's robust LMIs take that structure (repeated-scalar multipliers: sum_j p_j'L p_j <= q'L q
+  for p = w kron q) and also minimize the width X - Y seen through B0 and Acl0;
+- the gains: W - W0 = l(dTheta) + B0'E Acl0 + dB'P0 dTheta F + dB'E Acl0 + B0'E dTheta F + dB'E dTheta F exactly. l on
+  the fit's linear image is the image of two balls under an exact linear map (support function sqrt(w'L L'w)), l of
+  the rest a ball; with E = C + S, -H <= S <= H (the sandwich's centre and half-width, |x'Sy| <= ||H^1/2 x|| ||H^1/2
+  y||), -B0'E Acl0 w <= -(B0'C Acl0) w + ||H^1/2 B0|| ||H^1/2 Acl0 w|| (or ||B0|| t ||Acl0 w||), and the second-order
+  terms are bounded per direction w the same way with ||F w||; K - K0 = -W / M with M = R + B'PB between bounds from the
+  sandwich. That is a convex set of gain errors d given by its support function;
+- the loop: with one input det(zI - A - B (K0 + d')) is affine in d, so zero exclusion on the unit circle over that
+  set (bilevel.robust.zero_exclusion, Lipschitz-rigorous between grid points) proves every reachable gain stabilizing
+  once the clean data's gain (d = 0) is (checked by eigenvalues): exact for the set, where step 3's Lyapunov LMI asks
+  for one quadratic Lyapunov function for a ball.
 The re-check recomputes step 1 from SVDs (the linear map built the whitened way), t and eps_K from numpy eigenvalues
 of X - P0, P0 - Y, X - Y and Y at the SDP's solution, and checks every LMI there by numpy eigenvalues with a margin
-above rounding.
+above rounding; for "directional", the ellipsoid from the whitened maps, the multipliers L1, L2 >= 0, l's matrix from
+Kronecker products, the loop polynomial from np.poly and the sweep on a grid twice as fine with twice the directions.
 """
 
 from __future__ import annotations
@@ -48,6 +65,7 @@ from ..solvers.registry import solve
 from ..spectral_radius import radius
 from .target import Signals, Target, register_mechanism, register_target
 from .verdict import Check, Evidence, Proof
+from .zero_exclusion import sweep
 
 PATH = (0.002, 0.005, 0.01, 0.02, 0.05, 0.1)
 """The attack's budget path before bisection (the defenses frontier's identification path)."""
@@ -117,10 +135,9 @@ def model_maps(atk: IdentificationAttack, whitened: bool = False) -> tuple[np.nd
     return maps[0], maps[1]
 
 
-def model_radius(atk: IdentificationAttack, delta: float, whitened: bool = False) -> tuple[float, float]:
-    """(eps, s) of step 1: the certified radius of the model ball (Frobenius, hence spectral) and the poisoned
-    regressor's smallest singular value bound (eps inf where s <= 0); eps is the smaller of the norm-product bound and
-    the linear part's exact operator norm plus a bound on the rest (module docstring)."""
+def _fit_parts(atk: IdentificationAttack, delta: float) -> tuple[float, float, float, float]:
+    """(products, rest, s, r_Z) of step 1 at budget delta: the norm-product bound, the bound on the fit's part beyond
+    its linear map (module docstring), the poisoned regressor's smallest singular value bound s and r_Z."""
     Y, Z = atk.regression(atk.signals)
     theta0 = least_squares_fit(Y, Z)
     E0 = Y - theta0 @ Z
@@ -129,13 +146,23 @@ def model_radius(atk: IdentificationAttack, delta: float, whitened: bool = False
     sigma = float(np.linalg.svd(Z, compute_uv=False)[-1])
     s = sigma - r_Z
     if s <= 0:
-        return float("inf"), s
+        return float("inf"), float("inf"), s, r_Z
     e0 = float(np.linalg.svd(E0, compute_uv=False)[0])
     lin_V = float(np.linalg.svd(np.hstack([np.eye(theta0.shape[0]), -theta0]), compute_uv=False)[0]
                   * np.sqrt(2 * r_X ** 2 + r_U ** 2))
-    products = e0 * r_Z / s ** 2 + lin_V / s
     eta = r_Z / sigma
     rest = ((e0 * eta + lin_V) * ((1 - eta) ** -2 - 1) + lin_V * eta * (1 - eta) ** -2) / sigma
+    return e0 * r_Z / s ** 2 + lin_V / s, float(rest), s, r_Z
+
+
+def model_radius(atk: IdentificationAttack, delta: float, whitened: bool = False) -> tuple[float, float]:
+    """(eps, s) of step 1: the certified radius of the model ball (Frobenius, hence spectral) and the poisoned
+    regressor's smallest singular value bound (eps inf where s <= 0); eps is the smaller of the norm-product bound and
+    the linear part's exact operator norm plus a bound on the rest (module docstring)."""
+    products, rest, s, _ = _fit_parts(atk, delta)
+    if s <= 0:
+        return float("inf"), s
+    r_X, r_U = delta * np.linalg.norm(atk.signals["X"]), delta * np.linalg.norm(atk.signals["U"])
     GX, GU = model_maps(atk, whitened)
     linear = float(np.linalg.svd(GX, compute_uv=False)[0] * r_X + np.linalg.svd(GU, compute_uv=False)[0] * r_U)
     return float(min(products, linear + rest)), s
@@ -190,17 +217,68 @@ def gain_radius(c: Clean, r: float, eps: float, X: np.ndarray, Y: np.ndarray) ->
     f, a, b = _norm(c.F), _norm(c.Acl0), _norm(B0)
     H, C = 0.5 * _sym(X - Y), 0.5 * _sym(X + Y) - c.P0  # P - P0 = C + S with -H <= S <= H
     centre = _norm(B0.T @ C @ c.Acl0) + _norm(_root(H) @ B0) * _norm(_root(H) @ c.Acl0)
+    w = (_norm(c.W0) + eps * _norm(first_order_map(c)) + _second_order(c, eps, t) + min(centre, b * t * a))
+    return w / _gain_denominators(c, r, eps, X, Y)[0]
+
+
+def first_order_map(c: Clean) -> np.ndarray:
+    """The matrix of l: dTheta -> dB'P0 Acl0 + B0'P0 dTheta F (row-major vec to row-major vec), the part of the gain
+    equation's residual W linear in the model with the Riccati solution held at P0."""
+    n = c.theta0.shape[0]
+    B0 = c.theta0[:, n:]
     units = np.eye(c.theta0.size).reshape(-1, *c.theta0.shape)
-    first = np.array([(D[:, n:].T @ c.P0 @ c.Acl0 + B0.T @ c.P0 @ D @ c.F).ravel() for D in units]).T
-    w = (_norm(c.W0) + eps * _norm(first) + eps ** 2 * f * _norm(c.P0)
-         + min(centre, b * t * a) + eps * t * (a + (b + eps) * f))
+    return np.array([(D[:, n:].T @ c.P0 @ c.Acl0 + B0.T @ c.P0 @ D @ c.F).ravel() for D in units]).T
+
+
+def _second_order(c: Clean, eps: float, t: float) -> float:
+    """The bound on W's terms of second order, dB'P0 dTheta F + dB'E Acl0 + B0'E dTheta F + dB'E dTheta F, over the
+    model ball eps with ||E|| <= t: eps^2 ||F|| ||P0|| + eps t (||Acl0|| + (||B0|| + eps) ||F||)."""
+    n = c.theta0.shape[0]
+    f, a, b = _norm(c.F), _norm(c.Acl0), _norm(c.theta0[:, n:])
+    return eps ** 2 * f * _norm(c.P0) + eps * t * (a + (b + eps) * f)
+
+
+def _gain_denominators(c: Clean, r: float, eps: float, X: np.ndarray, Y: np.ndarray) -> tuple[float, float]:
+    """Bounds lo <= lambda(M) <= hi of M = R + B'PB over the model ball, from Y <= P <= X: lo = r + (sigma_min(Y^1/2 B0)
+    - ||Y^1/2|| eps)_+^2, hi = r + (||X^1/2 B0|| + ||X^1/2|| eps)^2."""
+    n = c.theta0.shape[0]
+    B0 = c.theta0[:, n:]
     low = float(np.linalg.svd(_root(Y) @ B0, compute_uv=False)[-1]) - _norm(_root(Y)) * eps
-    return w / (r + max(low, 0.0) ** 2)
+    return r + max(low, 0.0) ** 2, r + (_norm(_root(X) @ B0) + _norm(_root(X)) * eps) ** 2
 
 
-def _blocks(atk: IdentificationAttack, c: Clean, eps: float, X, Y, mu1, mu2, t, Z, mu3, eps_K, tau, lib) -> list:
+@dataclass(frozen=True)
+class ModelShape:
+    """The model set as an ellipsoid plus a ball: Theta - Theta0 = sum_j w_j D_j + D_r, ||w|| <= 1, ||D_r|| <= rho (the
+    D_j side by side in `D`, n x (n + m) k), from the fit's linear image of the budget (model_shape)."""
+
+    D: np.ndarray
+    k: int
+    rho: float
+
+
+def model_shape(atk: IdentificationAttack, delta: float, maps: tuple[np.ndarray, np.ndarray]) -> ModelShape:
+    """The ModelShape at budget delta: the image GX a_X + GU a_U of the two balls lies in the ellipsoid v'S^-1 v <= 1,
+    S = (1 + beta) S_X + (1 + 1/beta) S_U (S_X = r_X^2 GX GX', beta = sqrt(tr S_U / tr S_X)), whose semi-axes give the
+    D_j; the fit's part beyond its linear map is the ball (step 1's rest)."""
+    theta0 = atk.theta0
+    r_X, r_U = delta * np.linalg.norm(atk.signals["X"]), delta * np.linalg.norm(atk.signals["U"])
+    S_X, S_U = r_X ** 2 * maps[0] @ maps[0].T, r_U ** 2 * maps[1] @ maps[1].T
+    beta = float(np.sqrt(np.trace(S_U) / np.trace(S_X)))
+    lam, V = np.linalg.eigh(_sym((1 + beta) * S_X + (1 + 1 / beta) * S_U))
+    axes = V * np.sqrt(np.maximum(lam, 0.0))
+    D = np.hstack([axes[:, j].reshape(theta0.shape) for j in range(axes.shape[1])])
+    return ModelShape(D, axes.shape[1], _fit_parts(atk, delta)[1])
+
+
+def _blocks(atk: IdentificationAttack, c: Clean, eps: float, X, Y, mu1, mu2, t, Z, mu3, eps_K, tau, lib,
+            shape: ModelShape | None = None, L1=None, L2=None) -> list:
     """The LMI matrices (cvxpy expressions with lib=cp, numbers with lib=np): robust upper bound X on K0's cost matrix,
-    robust lower bound Y on the optimal one, X - P0 <= t I, P0 - Y <= t I, and the true loop's robust Lyapunov LMI."""
+    robust lower bound Y on the optimal one, X - P0 <= t I, P0 - Y <= t I, and the true loop's robust Lyapunov LMI. With
+    a shape the model error is its ellipsoid (multipliers L1 on x, L2 on z: sum_j p_j'L p_j <= q'L q for p = w kron q,
+    ||w|| <= 1; the upper LMI's channel is the loop's, D_j F x) plus its ball of radius rho in place of the ball eps,
+    its channel scaled by rho (mu1, mu2 then stand for mu1 rho^2, mu2 rho^2: the same LMI by a congruence, better
+    scaled)."""
     A, B = atk.setting.state_space
     n, m = B.shape
     q, r = atk.lqr_weights
@@ -208,11 +286,25 @@ def _blocks(atk: IdentificationAttack, c: Clean, eps: float, X, Y, mu1, mu2, t, 
     H = np.hstack([c.F, np.zeros((n + m, n))])
     bmat = lib.bmat if lib is cp else np.block
     zero = lambda a, b: np.zeros((a, b))  # noqa: E731
-    upper = bmat([[bmat([[X - Qc, c.Acl0.T @ X], [X @ c.Acl0, X]]) - mu1 * eps ** 2 * (H.T @ H),
-                   bmat([[zero(n, n)], [X]])], [bmat([[zero(n, n), X]]), mu1 * np.eye(n)]])
-    diag = bmat([[q * np.eye(n) - Y, zero(n, m)], [zero(m, n), r * np.eye(m)]])
     th = c.theta0
-    lower = bmat([[th.T @ Y @ th + diag - mu2 * eps ** 2 * np.eye(n + m), th.T @ Y], [Y @ th, mu2 * np.eye(n)]])
+    diag = bmat([[q * np.eye(n) - Y, zero(n, m)], [zero(m, n), r * np.eye(m)]])
+    if shape is None:
+        upper = bmat([[bmat([[X - Qc, c.Acl0.T @ X], [X @ c.Acl0, X]]) - mu1 * eps ** 2 * (H.T @ H),
+                       bmat([[zero(n, n)], [X]])], [bmat([[zero(n, n), X]]), mu1 * np.eye(n)]])
+        lower = bmat([[th.T @ Y @ th + diag - mu2 * eps ** 2 * np.eye(n + m), th.T @ Y], [Y @ th, mu2 * np.eye(n)]])
+    else:
+        kron = lib.kron
+        w, v = (n + m) * shape.k, n * shape.k
+        DF = np.hstack([shape.D[:, j * (n + m):(j + 1) * (n + m)] @ c.F for j in range(shape.k)])  # Acl's directions
+        XD, YD = X @ DF, th.T @ Y @ shape.D
+        rho = shape.rho
+        Hn = np.hstack([np.eye(n), zero(n, n)])
+        upper = bmat([[bmat([[X - Qc, c.Acl0.T @ X], [X @ c.Acl0, X]]) - mu1 * (H.T @ H) - Hn.T @ L1 @ Hn,
+                       bmat([[zero(n, n)], [rho * X]]), bmat([[zero(n, v)], [XD]])],
+                      [bmat([[zero(n, n), rho * X]]), mu1 * np.eye(n), zero(n, v)],
+                      [bmat([[zero(v, n), XD.T]]), zero(v, n), kron(np.eye(shape.k), L1)]])
+        lower = bmat([[th.T @ Y @ th + diag - mu2 * np.eye(n + m) - L2, rho * th.T @ Y, YD],
+                      [rho * Y @ th, mu2 * np.eye(n), zero(n, w)], [YD.T, zero(w, n), kron(np.eye(shape.k), L2)]])
     above = t * np.eye(n) - (X - c.P0)
     below = t * np.eye(n) - (c.P0 - Y)
     Ac = A + B @ c.K0
@@ -226,24 +318,41 @@ def _sym(M):
     return 0.5 * (M + M.T)
 
 
-def sandwich(atk: IdentificationAttack, c: Clean, eps: float) -> tuple[np.ndarray, np.ndarray, float, float] | None:
-    """(X, Y, mu1, mu2) of step 2: Y <= P(Theta) <= X for every model in the ball ||Theta - Theta0|| <= eps (robust
-    LMIs, Petersen's lemma), minimizing t = max(lambda_max(X - P0), lambda_max(P0 - Y)); None if the SDP finds none."""
+def sandwich(atk: IdentificationAttack, c: Clean, eps: float, shaped: bool = False,
+             shape: ModelShape | None = None) -> dict[str, Any] | None:
+    """{X, Y, mu1, mu2 (and L1, L2 with a shape)} of step 2: Y <= P(Theta) <= X for every model in the ball
+    ||Theta - Theta0|| <= eps, or in the shape's ellipsoid plus ball (robust LMIs: Petersen's lemma, the repeated
+    multipliers of _blocks), minimizing t = max(lambda_max(X - P0), lambda_max(P0 - Y)) and, shaped, also the width
+    X - Y seen through B0 and Acl0 (lambda_max of B0'(X - Y)B0 and of Acl0'(X - Y)Acl0: the terms that dominate the
+    directional gain set); None if the SDP finds none."""
     n = c.theta0.shape[0]
+    B0 = c.theta0[:, n:]
     X, Y = cp.Variable((n, n), symmetric=True), cp.Variable((n, n), symmetric=True)
     mu1, mu2, t = cp.Variable(nonneg=True), cp.Variable(nonneg=True), cp.Variable()
-    upper, lower, above, below, _ = _blocks(atk, c, eps, X, Y, mu1, mu2, t, np.eye(n), 1.0, 0.0, 0.0, cp)
+    L1, L2 = (None, None) if shape is None else (cp.Variable((n, n), symmetric=True),
+                                                   cp.Variable((c.F.shape[0],) * 2, symmetric=True))
+    upper, lower, above, below, _ = _blocks(atk, c, eps, X, Y, mu1, mu2, t, np.eye(n), 1.0, 0.0, 0.0, cp, shape, L1,
+                                            L2)
     room = STRICT * (1.0 + float(np.max(np.abs(c.P0))))
     cons = [_sym(upper) >> room * np.eye(upper.shape[0]), _sym(lower) >> room * np.eye(lower.shape[0]),
             _sym(above) >> room * np.eye(n), _sym(below) >> room * np.eye(n), Y >> room * np.eye(n), mu1 >= room,
             mu2 >= room]
+    objective = t
+    if shape is not None:
+        cons += [L1 >> 0, L2 >> 0]
+    if shaped:
+        t_B, t_A = cp.Variable(), cp.Variable()
+        cons += [_sym(B0.T @ (X - Y) @ B0) << t_B * np.eye(B0.shape[1]),
+                 _sym(c.Acl0.T @ (X - Y) @ c.Acl0) << t_A * np.eye(n)]
+        objective = objective + t_B + t_A
     try:
-        solve_quietly(cp.Problem(cp.Minimize(t), cons), solver=cp.CLARABEL)  # the numpy re-check decides
+        solve_quietly(cp.Problem(cp.Minimize(objective), cons), solver=cp.CLARABEL)  # the numpy re-check decides
     except cp.SolverError:
         return None
-    if X.value is None or Y.value is None or mu1.value is None or mu2.value is None:
+    found = {"X": X, "Y": Y, "mu1": mu1, "mu2": mu2, **({} if shape is None else {"L1": L1, "L2": L2})}
+    if any(v.value is None for v in found.values()):
         return None
-    return _sym(X.value), _sym(Y.value), float(mu1.value), float(mu2.value)
+    return {k: _sym(v.value) if v.ndim == 2 else float(v.value) for k, v in found.items()}
 
 
 def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
@@ -263,7 +372,7 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
     if found is None:
         return Evidence("lyapunov", Proof.UNKNOWN, "the gain bound's SDP found no robust cost bounds", numbers,
                         Check(False, "nothing to check"), time.perf_counter() - t0)
-    X, Yv, mu1, mu2 = found
+    X, Yv, mu1, mu2 = found["X"], found["Y"], found["mu1"], found["mu2"]
     eps_K = gain_radius(c, r, eps, X, Yv)
     numbers.update(t_cost=cost_radius(c, X, Yv), eps_K=eps_K)
     if not np.isfinite(eps_K):
@@ -288,30 +397,210 @@ def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence 
                     check, time.perf_counter() - t0)
 
 
+def _refit_clean(atk: IdentificationAttack) -> Clean:
+    """The clean numbers from a numpy lstsq re-fit (the re-checks' own, not least_squares_fit)."""
+    Y0, Z0 = atk.regression(atk.signals)
+    return clean(atk, np.linalg.lstsq(Z0.T, Y0.T, rcond=None)[0].T)
+
+
+def _smallest_eigs(mats: list, names: tuple[str, ...]) -> tuple[dict[str, float], dict[str, bool]]:
+    """Each matrix's smallest eigenvalue (numpy) and whether it clears the check margin times the matrix's size."""
+    margin = param("robust.check_margin")
+    eigs = {name: float(np.linalg.eigvalsh(_sym(M))[0]) for name, M in zip(names, mats)}
+    return eigs, {name: eigs[name] >= margin * float(np.max(np.abs(M))) for name, M in zip(names, mats)}
+
+
 def recheck(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Check:
     """Step 1 again from SVDs (model_radius is that computation; its inputs re-fitted by numpy lstsq), t from numpy
     eigenvalues of X - P0 and P0 - Y (and X - Y >= 0), the gain bound from them, and every LMI's smallest eigenvalue
     by numpy with a margin above rounding."""
-    Y0, Z0 = atk.regression(atk.signals)
-    c = clean(atk, np.linalg.lstsq(Z0.T, Y0.T, rcond=None)[0].T)
+    c = _refit_clean(atk)
     eps, _ = model_radius(atk, delta, whitened=True)
     eps = eps * (1 + 1e-9)
     X, Y = _sym(sol["X"]), _sym(sol["Y"])
     t = cost_radius(c, X, Y) * (1 + 1e-9)
     eps_K = gain_radius(c, atk.lqr_weights[1], eps, X, Y) * (1 + 1e-9)
     mats = _blocks(atk, c, eps, X, Y, sol["mu1"], sol["mu2"], t, _sym(sol["Z"]), sol["mu3"], eps_K, sol["tau"], np)
-    names = ("upper", "lower", "above", "below", "loop")
-    eigs = {name: float(np.linalg.eigvalsh(_sym(M))[0]) for name, M in zip(names, mats)}
-    sizes = {name: float(np.max(np.abs(M))) for name, M in zip(names, mats)}
-    margin = param("robust.check_margin")
-    ok = [eigs[k] >= margin * sizes[k] for k in ("upper", "lower", "loop")]
-    passed = all(ok) and min(eigs["above"], eigs["below"]) >= 0 and float(np.linalg.eigvalsh(Y)[0]) >= 0 \
-        and float(np.linalg.eigvalsh(X - Y)[0]) >= 0 \
+    eigs, ok = _smallest_eigs(mats, ("upper", "lower", "above", "below", "loop"))
+    passed = ok["upper"] and ok["lower"] and ok["loop"] and min(eigs["above"], eigs["below"]) >= 0 \
+        and float(np.linalg.eigvalsh(Y)[0]) >= 0 and float(np.linalg.eigvalsh(X - Y)[0]) >= 0 \
         and np.isfinite(eps_K) and sol["mu1"] > 0 and sol["mu2"] > 0 and sol["mu3"] > 0 and sol["tau"] > 0
     return Check(passed, "numpy eigenvalues of the LMIs at the SDP's solution (smallest, against a margin of "
-                 f"{margin:.0e} times each matrix's size): " + ", ".join(f"{k} {v:.3g}" for k, v in eigs.items()),
+                 f"{param('robust.check_margin'):.0e} times each matrix's size): "
+                 + ", ".join(f"{k} {v:.3g}" for k, v in eigs.items()),
                  {**{f"min_eig_{k}": v for k, v in eigs.items()}, "eps_K": eps_K, "eps_model": eps, "t_cost": t})
 
 
+@dataclass(frozen=True)
+class GainSet:
+    """A convex outer set of the gain errors d = (K - K0)' over the budget (one input), by its support function: K - K0
+    = -W / M with M in [m_lo, m_hi] and W - W0 = l(dTheta) + B0'E Acl0 + dB'P0 dTheta F + dB'E Acl0 + B0'E dTheta F
+    + dB'E dTheta F (module docstring), E = P - P0 = C + S with -H <= S <= H, ||E|| <= t, ||dTheta|| <= eps."""
+
+    gram_X: np.ndarray   # l's image of the X ball: L_X L_X' (n x n)
+    gram_U: np.ndarray   # and of the U ball
+    ball: float          # ||W0|| + ||l|| times the fit's nonlinear part
+    centre: np.ndarray   # B0'C Acl0 as a vector
+    half_B: float        # ||H^1/2 B0||
+    half: float          # ||H^1/2||
+    half_A: np.ndarray   # H^1/2 Acl0
+    CA: np.ndarray       # C Acl0
+    acl0: np.ndarray     # Acl0
+    F: np.ndarray        # [I; K0]
+    eps: float
+    t: float
+    b: float             # ||B0||
+    p: float             # ||P0||
+    e_B: float           # bound on ||E B0||: min(||C B0|| + ||H^1/2|| ||H^1/2 B0||, t ||B0||)
+    m_lo: float
+    m_hi: float
+
+    def support(self, W: np.ndarray) -> np.ndarray:
+        """An upper bound on max over the set of w'd for each column w of W (n x k), sharp on l's image."""
+        def quad(G):
+            return np.sqrt(np.maximum(np.einsum("im,ij,jm->m", W, G, W), 0.0))
+
+        def norm(M):
+            return np.linalg.norm(M @ W, axis=0)
+        a_w, f_w, h_w = norm(self.acl0), norm(self.F), norm(self.half_A)
+        e_term = np.minimum(-self.centre @ W + self.half_B * h_w, self.b * self.t * a_w)  # B0'E Acl0 w
+        second = self.eps * (self.eps * (self.p + self.t) * f_w + self.e_B * f_w
+                             + np.minimum(norm(self.CA) + self.half * h_w, self.t * a_w))
+        g = quad(self.gram_X) + quad(self.gram_U) + self.ball * np.linalg.norm(W, axis=0) + e_term + second
+        return np.maximum(g / self.m_lo, g / self.m_hi)
+
+
+def gain_set(atk: IdentificationAttack, c: Clean, delta: float, eps: float, X: np.ndarray, Y: np.ndarray,
+             maps: tuple[np.ndarray, np.ndarray], lmap: np.ndarray) -> GainSet:
+    """The GainSet at budget delta from the model ball eps, the sandwich Y <= P <= X, the fit's linear maps (GX, GU)
+    and l's matrix (first_order_map)."""
+    n = c.theta0.shape[0]
+    B0 = c.theta0[:, n:]
+    r_X, r_U = delta * np.linalg.norm(atk.signals["X"]), delta * np.linalg.norm(atk.signals["U"])
+    _, rest, _, _ = _fit_parts(atk, delta)
+    t = cost_radius(c, X, Y)
+    H, C = 0.5 * _sym(X - Y), 0.5 * _sym(X + Y) - c.P0
+    root = _root(H)
+    LX, LU = lmap @ maps[0] * r_X, lmap @ maps[1] * r_U
+    m_lo, m_hi = _gain_denominators(c, atk.lqr_weights[1], eps, X, Y)
+    half_B = _norm(root @ B0)
+    return GainSet(LX @ LX.T, LU @ LU.T, _norm(c.W0) + _norm(lmap) * rest, (B0.T @ C @ c.Acl0).ravel(), half_B,
+                   _norm(root), root @ c.Acl0, C @ c.Acl0, c.Acl0, c.F, eps, t, _norm(B0), _norm(c.P0),
+                   min(_norm(C @ B0) + _norm(root) * half_B, t * _norm(B0)), m_lo, m_hi)
+
+
+def loop_polynomial(A: np.ndarray, B: np.ndarray, K0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(base, slopes): det(zI - A - B (K0 + d')) = base(z) + d' slopes(z) (coefficients highest power first; one input,
+    so affine in d), by Faddeev-LeVerrier: adj(zI - Acl) = sum_k z^(n-1-k) N_k, N_0 = I, N_k = Acl N_k-1 + c_k I."""
+    Acl = A + B @ K0
+    n = A.shape[0]
+    base, slopes, N = [1.0], np.zeros((n, n + 1)), np.eye(n)
+    for k in range(1, n + 1):
+        slopes[:, k] = -(N @ B)[:, 0]
+        AN = Acl @ N
+        base.append(-float(np.trace(AN)) / k)
+        N = AN + base[-1] * np.eye(n)
+    return np.array(base), slopes
+
+
+GRID = 4096
+ANGLES = 9
+
+
+def directional(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
+    """Mechanism "directional" (module docstring); None for more than one input (the loop is then not affine in the
+    gain error)."""
+    atk = target.declaration
+    A, B = atk.setting.state_space
+    if B.shape[1] != 1:
+        return None
+    t0 = time.perf_counter()
+    eps, s = model_radius(atk, delta)
+    if not np.isfinite(eps):
+        return Evidence("directional", Proof.UNKNOWN, f"the poisoned regressor may be singular (s = {s:.3g})",
+                        {"s": s}, Check(False, "nothing to check"), time.perf_counter() - t0)
+    Y0, Z0 = atk.regression(atk.signals)
+    c = clean(atk, least_squares_fit(Y0, Z0))
+    numbers: dict[str, float] = {"eps_model": eps, "s": s}
+    clean_radius = radius(A + B @ c.K0)  # zero exclusion needs one stable member: the clean data's gain d = 0
+    numbers["clean_radius"] = clean_radius
+    if not clean_radius < 1:
+        return Evidence("directional", Proof.UNKNOWN, f"the clean loop is not stable (spectral radius "
+                        f"{clean_radius:.4g})", numbers, Check(False, "nothing to check"), time.perf_counter() - t0)
+    maps = model_maps(atk)
+    found = sandwich(atk, c, eps, shaped=True, shape=model_shape(atk, delta, maps))
+    if found is None:
+        return Evidence("directional", Proof.UNKNOWN, "the gain bound's SDP found no robust cost bounds", numbers,
+                        Check(False, "nothing to check"), time.perf_counter() - t0)
+    gains = gain_set(atk, c, delta, eps, found["X"], found["Y"], maps, first_order_map(c))
+    swept = sweep(*loop_polynomial(A, B, c.K0), gains.support, GRID, ANGLES)
+    numbers.update(t_cost=gains.t, ball=gains.ball, excluded_by=swept.excluded_by,
+                   lipschitz=swept.lipschitz)
+    if not swept.proven:
+        return Evidence("directional", Proof.UNKNOWN, f"zero exclusion fails at delta = {delta:.6g} (guaranteed "
+                        f"distance {swept.excluded_by:.3g})", numbers, Check(False, "nothing to check"),
+                        time.perf_counter() - t0)
+    check = recheck_directional(atk, delta, found)
+    return Evidence("directional", Proof.PROVEN, f"no poisoning with ||dX||_F <= {delta:.6g} ||X||_F, ||dU||_F <= "
+                    f"{delta:.6g} ||U||_F destabilizes the true loop under certainty-equivalence LQR (model ball "
+                    f"{eps:.3g}, the gain's first-order image of the budget plus a ball of {gains.ball:.3g} and "
+                    f"second-order terms, zero excluded by {swept.excluded_by:.3g})", numbers, check,
+                    time.perf_counter() - t0)
+
+
+def _first_order_map_kron(c: Clean) -> np.ndarray:
+    """first_order_map built from Kronecker products (the re-check's route): vec(B0'P0 D F) = (B0'P0 kron F') vec(D),
+    vec(D_B'P0 Acl0) = (S' kron (P0 Acl0)') vec(D') with D_B = D S, row-major vecs."""
+    n, k = c.theta0.shape
+    B0 = c.theta0[:, n:]
+    S = np.vstack([np.zeros((n, k - n)), np.eye(k - n)])
+    transpose = np.eye(n * k)[[i * k + j for j in range(k) for i in range(n)]]  # vec(D') = transpose @ vec(D)
+    return np.kron(B0.T @ c.P0, c.F.T) + np.kron(S.T, (c.P0 @ c.Acl0).T) @ transpose
+
+
+def recheck_directional(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Check:
+    """The clean loop's stability and the sandwich's LMIs (and its multipliers L1, L2 >= 0) by numpy eigenvalues at the
+    SDP's solution (margin above rounding), the model ball, the fit's maps and the model's ellipsoid the whitened way,
+    l's matrix from Kronecker products, the loop polynomial from numpy's np.poly, and the sweep on a grid twice as fine
+    with twice the directions."""
+    A, B = atk.setting.state_space
+    c = _refit_clean(atk)
+    n = c.theta0.shape[0]
+    eps = model_radius(atk, delta, whitened=True)[0] * (1 + 1e-9)
+    X, Y = _sym(sol["X"]), _sym(sol["Y"])
+    t = cost_radius(c, X, Y) * (1 + 1e-9)
+    maps = model_maps(atk, whitened=True)
+    shape = model_shape(atk, delta, maps)
+    shape = ModelShape(shape.D, shape.k, shape.rho * (1 + 1e-9))
+    L1, L2 = _sym(sol["L1"]), _sym(sol["L2"])
+    mats = _blocks(atk, c, eps, X, Y, sol["mu1"], sol["mu2"], t, np.eye(n), 1.0, 0.0, 0.0, np, shape, L1, L2)[:4]
+    eigs, ok = _smallest_eigs(mats + [L1, L2], ("upper", "lower", "above", "below", "L1", "L2"))
+    lmap = _first_order_map_kron(c)
+    gains = gain_set(atk, c, delta, eps, X, Y, maps, lmap)
+    Acl = A + B @ c.K0
+    base = np.poly(Acl)
+    slopes = np.array([np.poly(Acl + B @ e[None, :]) - base for e in np.eye(n)])
+    fl_base, fl_slopes = loop_polynomial(A, B, c.K0)
+    agree = max(float(np.max(np.abs(lmap - first_order_map(c))) / np.max(np.abs(lmap))),
+                float(np.max(np.abs(slopes - fl_slopes)) / np.max(np.abs(slopes))),
+                float(np.max(np.abs(base - fl_base))))
+    slopes = np.where(np.abs(slopes) >= np.abs(fl_slopes), slopes, fl_slopes)  # the larger of each pair
+    swept = sweep(base, slopes, gains.support, 2 * GRID, 2 * ANGLES)
+    margin = param("robust.check_margin") * float(np.max(np.abs(base)))
+    clean_radius = float(np.max(np.abs(np.linalg.eigvals(Acl))))
+    passed = clean_radius < 1 - margin and ok["upper"] and ok["lower"] \
+        and min(eigs["above"], eigs["below"], eigs["L1"], eigs["L2"]) >= 0 \
+        and float(np.linalg.eigvalsh(Y)[0]) >= 0 and float(np.linalg.eigvalsh(X - Y)[0]) >= 0 \
+        and sol["mu1"] > 0 and sol["mu2"] > 0 and swept.excluded_by > margin and swept.leading > margin \
+        and agree < 1e-6
+    return Check(passed, f"numpy eigenvalues of the sandwich's LMIs (smallest: "
+                 + ", ".join(f"{k} {v:.3g}" for k, v in eigs.items())
+                 + f"); maps rebuilt agree to {agree:.1e}; the sweep at {2 * GRID} frequencies excludes zero by "
+                 f"{swept.excluded_by:.3g} (margin {margin:.1e}); the clean loop's spectral radius {clean_radius:.4g}",
+                 {**{f"min_eig_{k}": v for k, v in eigs.items()}, "agreement": agree, "clean_radius": clean_radius,
+                  "excluded_by": swept.excluded_by, "margin": margin, "eps_model": eps, "t_cost": t})
+
+
 register_target(IdentificationAttack, identification_target)
+register_mechanism("ident-ce-lqr", directional, "directional", cost=0.5)
 register_mechanism("ident-ce-lqr", lyapunov, "lyapunov", cost=1.0)

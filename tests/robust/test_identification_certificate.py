@@ -1,6 +1,9 @@
 """The identification + CE LQR certificate: the certified model ball contains the exact re-fit's model, the certified
 gain ball contains the gains of sphere re-fits and of models on the ball's boundary, a small budget is proven with its
-LMIs re-checked, a tampered solution fails its re-check, and an unproven budget is unknown."""
+LMIs re-checked, a tampered solution fails its re-check, and an unproven budget is unknown; mechanism directional's
+ellipsoid, sandwich and gain set contain the models, Riccati solutions and gains of sphere re-fits and of the attack,
+its maps agree with their second routes, it proves budgets lyapunov does not, and nothing where the clean loop is
+unstable."""
 
 from __future__ import annotations
 
@@ -8,12 +11,16 @@ import numpy as np
 import pytest
 
 from bilevel.ddc.model_based import lqr_gain
-from bilevel.problems.identification_instance import attack_instance
+from bilevel.problems.identification_instance import IdentificationAttack, IdentificationSetting, attack_instance
 from bilevel.robust import Proof, as_target, certify, sample_soundness, sphere_poisoning
-from bilevel.robust.identification import clean, lyapunov, model_maps, model_radius, recheck
+from bilevel.robust.identification import (_first_order_map_kron, clean, directional, first_order_map, gain_set,
+                                           loop_polynomial, lyapunov, model_maps, model_radius, model_shape, recheck,
+                                           recheck_directional, sandwich)
 
 PROVEN = 0.0005
-"""A budget the mechanism proves on data seed 0 (T = 100), where certified_margin bisects to delta_lb 0.00148."""
+"""A budget lyapunov proves on data seed 0 (T = 100), where it alone bisects to delta_lb 0.00148."""
+BEYOND = 0.0025
+"""A budget directional proves on data seed 0 and lyapunov does not (the attack's delta_ub there is 0.0325)."""
 
 
 @pytest.fixture(scope="module")
@@ -85,3 +92,59 @@ def test_the_clean_loop_is_stable_and_an_unproven_budget_is_unknown(atk) -> None
     cert = certify(atk, 0.01)
     assert cert.proof is Proof.UNKNOWN and not cert.proven
     assert certify(atk, PROVEN).proven
+
+
+def test_the_directional_sets_contain_the_refits_and_the_attack(atk) -> None:
+    target = as_target(atk)
+    c = clean(atk, atk.theta0)
+    n = c.theta0.shape[0]
+    eps, _ = model_radius(atk, BEYOND)
+    maps = model_maps(atk)
+    shape = model_shape(atk, BEYOND, maps)
+    found = sandwich(atk, c, eps, shaped=True, shape=shape)
+    gains = gain_set(atk, c, BEYOND, eps, found["X"], found["Y"], maps, first_order_map(c))
+    rng = np.random.default_rng(5)
+    poisonings = [sphere_poisoning(target, BEYOND, rng) for _ in range(100)]
+    poisonings.append(target.attacks["engine"](BEYOND, 0))
+    W = rng.standard_normal((n, 200))
+    W = np.hstack([W / np.linalg.norm(W, axis=0), np.eye(n), -np.eye(n)])
+    bound = gains.support(W)
+    cols = c.theta0.shape[1]
+    axes = np.stack([shape.D[:, j * cols:(j + 1) * cols].ravel() for j in range(shape.k)], 1)
+    for a in poisonings:
+        theta = target.refit(target.poisoned(a))
+        K, P = lqr_gain(theta[:, :n], theta[:, n:], np.eye(n), np.eye(1))
+        assert np.all((K - c.K0) @ W <= bound)
+        assert np.linalg.eigvalsh(found["X"] - P)[0] >= 0 and np.linalg.eigvalsh(P - found["Y"])[0] >= 0
+        linear = maps[0] @ a["X"].ravel() + maps[1] @ a["U"].ravel()  # in the shape's ellipsoid: ||w|| <= 1
+        assert np.linalg.norm(np.linalg.lstsq(axes, linear, rcond=None)[0]) <= 1
+
+
+def test_the_directional_maps_agree_with_their_second_routes(atk) -> None:
+    c = clean(atk, atk.theta0)
+    assert np.allclose(_first_order_map_kron(c), first_order_map(c), rtol=0, atol=1e-12)
+    A, B = atk.setting.state_space
+    base, slopes = loop_polynomial(A, B, c.K0)
+    assert np.allclose(base, np.poly(A + B @ c.K0), atol=1e-12)
+    d = np.array([0.1, -0.2, 0.05, 0.3])
+    assert np.allclose(base + d @ slopes, np.poly(A + B @ (c.K0 + d[None, :])), atol=1e-12)
+
+
+def test_directional_proves_beyond_lyapunov_and_a_tampered_solution_fails(atk) -> None:
+    target = as_target(atk)
+    found = directional(target, BEYOND, {})
+    assert found.proof is Proof.PROVEN and found.check.passed and found.check.numbers["excluded_by"] > 0
+    assert lyapunov(target, BEYOND, {}).proof is Proof.UNKNOWN
+    assert certify(atk, PROVEN).evidence[0].mechanism == "directional"
+    tampered = {"X": 0.5 * np.eye(4), "Y": 0.5 * np.eye(4), "mu1": 1.0, "mu2": 1.0, "L1": np.eye(4), "L2": np.eye(5)}
+    assert not recheck_directional(atk, BEYOND, tampered).passed
+
+
+def test_directional_proves_nothing_for_a_true_plant_its_clean_gain_does_not_stabilize(atk) -> None:
+    s = atk.setting  # the same data, judged on a plant whose poles are 1.3 times the data's (the clean loop unstable)
+    other = IdentificationSetting(s.num, np.poly(1.3 * np.roots(s.den)), s.input_std, s.noise_std)
+    wrong = IdentificationAttack(other, "ss", dict(atk.signals), dict(atk.eps), "ce-lqr", None, atk.lags, atk.orders,
+                                 atk.lqr_weights)
+    assert as_target(wrong).true_radius({}) > 1
+    found = directional(as_target(wrong), PROVEN, {})
+    assert found.proof is Proof.UNKNOWN and "not stable" in found.claim
