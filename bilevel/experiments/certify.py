@@ -33,18 +33,19 @@ the samples at delta_lb, attack_radius: the largest among the attacks' answers t
 @dataclass(frozen=True)
 class Family:
     """A learner family of the reproduction: its data-set builder (size, seed) -> declaration, the sizes of the full
-    and the quick run, the attack's starts, and its label."""
+    and the quick run, the attack's starts, its label, and further sizes the full run also certifies."""
 
     build: Callable[[int, int], Any]
     size: int
     quick_size: int
     starts: int
     label: str
+    more_sizes: tuple[int, ...] = ()
 
 
 FAMILIES: dict[str, Family] = {
     "vrft": Family(lambda n, seed: vrft_instance("destabilize", "B", 0.0, 0.0, seed=seed, N=n), 512, 64, 8,
-                   "VRFT, scenario B (N samples)"),
+                   "VRFT, scenario B (N samples)", (64,)),
     "ident": Family(lambda n, seed: ident_instance("ss", n, 0.0, "ce-lqr", seed=seed), 100, 100, 1,
                     "identification + CE LQR (T samples)"),
 }
@@ -70,14 +71,15 @@ def certify_task(task: dict[str, Any]) -> dict[str, Any]:
 
 
 def certify_tasks(sims: int, quick: bool, seed: int, samples: int, families: tuple[str, ...]) -> list[dict[str, Any]]:
-    """One task per (family, data set)."""
+    """One task per (family, size, data set): the quick size, or the full size and the family's more_sizes."""
     seeds = list(enumerate(zip(sim_seeds(seed, sims), sim_seeds(seed + 1, sims))))
     tasks = []
     for name in families:
-        size = FAMILIES[name].quick_size if quick else FAMILIES[name].size
-        tasks += [{"key": f"{name}|size={size}|sim={i}", "family": name, "size": size, "seed": data_seed,
-                   "attack_seed": attack_seed, "samples": samples, "root_seed": seed}
-                  for i, (data_seed, attack_seed) in seeds]
+        family = FAMILIES[name]
+        for size in (family.quick_size,) if quick else (family.size, *family.more_sizes):
+            tasks += [{"key": f"{name}|size={size}|sim={i}", "family": name, "size": size, "seed": data_seed,
+                       "attack_seed": attack_seed, "samples": samples, "root_seed": seed}
+                      for i, (data_seed, attack_seed) in seeds]
     return tasks
 
 
