@@ -23,6 +23,14 @@ only damps it. Two outer sets of x, the certified set their intersection (the sm
   ball about zero (||Q'v|| / (1 - beta), ||r0|| / (2 (1 - beta))), whichever gives the smaller support; the third is a
   ball of radius min(||(I - QQ')v|| / 2, (||box|| + beta ||Q'v||) / (1 - beta)) / (1 - beta) (||v|| and each linear
   part's largest norm over the budget balls from the operators' norms).
+Then, ROUNDS times, a per-direction refinement from the set found so far: the normal equation is exactly
+x - x_lin = D'(r(a) - r0) - Q'Phi(a_y) d (r(a) the poisoned fit's residual), so along R's left singular vectors U_j
+(R = U S V'), |U_j'(x - x_lin)| <= ||a_y|| (||H(V_j)|| / s_j ||r(a) - r0|| + sum_k c_k ||H(V_k)'Q U_j||), where
+H(c) = sum_i c_i T_i is the regressor's filter, c_k >= |V_k'd| the set's extent along V_k and
+||r(a) - r0|| <= min(||r0||, ||D'r0|| / (1 - beta)) + ||v|| (r(a) - r0 = (I - P_a) v - P_a r0, P_a r0 =
+(Q + D) M^-1 E'r0). That box in U's basis is small along R's strong directions, where the fit barely moves and
+where the zero-exclusion test often looks; the certified set is the linear image plus it, intersected with the set
+before.
 The set {d} = R^-1 {x}, and the true loop's characteristic polynomial, affine in theta, is proven Schur stable over it
 by zero exclusion on the unit circle (bilevel.robust.zero_exclusion). The re-check rebuilds the operators by filtering
 unit impulses (the learner's own filters, not the dense matrices), recomputes beta1, eta1 and the operators' norms by
@@ -88,7 +96,8 @@ class Perturbation:
     R L_y, eta1 (||Phi(a_y) R^-1|| <= eta1 ||a_y||), beta1 (||Q'Phi(a_y) R^-1|| <= beta1 ||a_y||), the second-order
     coefficients (q_u[i], q_y[i]), ||u||, ||y||, and for the damped split: the Grams of a_y -> d through Q'v and
     through D'r0 (K_v, K_r), the norms of a_y -> Q'Phi(a_y) theta0 and a_y -> D'r0 (lin_v, lin_r), of
-    (I - QQ') t(.) and (I - QQ') Phi(.) theta0 (out_u, out_y) and ||r0||."""
+    (I - QQ') t(.) and (I - QQ') Phi(.) theta0 (out_u, out_y) and ||r0||; for the refinement: R's SVD (U, sv, Vt),
+    ||H(V_k)|| (HV), ||H(V_k)'Q U_j|| (HQ[j, k]) and the norms of t(.) and Phi(.) theta0 (norm_t, norm_f)."""
 
     theta0: np.ndarray
     R: np.ndarray
@@ -109,6 +118,13 @@ class Perturbation:
     out_u: float
     out_y: float
     norm_r0: float
+    U: np.ndarray
+    sv: np.ndarray
+    Vt: np.ndarray
+    HV: np.ndarray
+    HQ: np.ndarray
+    norm_t: float
+    norm_f: float
 
 
 def _operators(atk: VRFTAttack) -> tuple[np.ndarray, np.ndarray]:
@@ -139,7 +155,17 @@ def perturbation(atk: VRFTAttack) -> Perturbation:
     return Perturbation(theta0, R, L_u @ L_u.T, L_y @ L_y.T, float(np.linalg.norm(R @ L_u, 2)),
                         float(np.linalg.norm(R @ L_y, 2)), eta1, beta1, q_u, q_y, float(np.linalg.norm(atk.u)),
                         float(np.linalg.norm(atk.y)), L_v @ L_v.T, L_r @ L_r.T, float(np.linalg.norm(R @ L_v, 2)),
-                        float(np.linalg.norm(R @ L_r, 2)), out(Tu), out(F), float(np.linalg.norm(r0)))
+                        float(np.linalg.norm(R @ L_r, 2)), out(Tu), out(F), float(np.linalg.norm(r0)),
+                        *_directions(T, Q, R, lambda A: float(np.linalg.norm(A, 2))), float(np.linalg.norm(Tu, 2)),
+                        float(np.linalg.norm(F, 2)))
+
+
+def _directions(T: np.ndarray, Q: np.ndarray, R: np.ndarray, norm) -> tuple[np.ndarray, ...]:
+    """(U, sv, Vt, HV, HQ) of the refinement (Perturbation docstring), the operator norms by `norm`."""
+    U, sv, Vt = np.linalg.svd(R)
+    H = [np.tensordot(v, T, axes=(0, 0)) for v in Vt]
+    QU = Q @ U
+    return U, sv, Vt, np.array([norm(h) for h in H]), np.array([[np.linalg.norm(h.T @ q) for h in H] for q in QU.T])
 
 
 def _gains(M: np.ndarray, Q: np.ndarray, norm) -> tuple[float, float]:
@@ -214,6 +240,26 @@ def support(P: Perturbation, delta: float, rem: Remainder):
             np.minimum(r_y * quad(P.K_r) + rem.rem_r * size, rem.sat_r * size)
         damped = np.minimum(lin_u + lin_y + (rem.rem_v + rem.rem_r) * size, apart) + rem.rest * size
         return np.minimum(expansion, damped)
+    if rem.beta >= 1.0:
+        return h
+    resid = min(P.norm_r0, r_y * P.lin_r / (1 - rem.beta)) + r_u * P.norm_t + r_y * P.norm_f
+    for _ in range(ROUNDS):
+        h = _refined(P, r_u, r_y, resid, h)
+    return h
+
+
+ROUNDS = 3
+
+
+def _refined(P: Perturbation, r_u: float, r_y: float, resid: float, before):
+    """One refinement (module docstring) of the set whose support function is `before`."""
+    extent = np.maximum(before(P.Vt.T), before(-P.Vt.T))
+    box = r_y * (P.HV / P.sv * resid + P.HQ @ extent)
+    to_u = P.U.T @ np.linalg.inv(P.R).T
+
+    def h(W: np.ndarray) -> np.ndarray:
+        quad = lambda K: np.sqrt(np.maximum(np.einsum("im,ij,jm->m", W, K, W), 0.0))  # noqa: E731
+        return np.minimum(before(W), r_u * quad(P.K_u) + r_y * quad(P.K_y) + box @ np.abs(to_u @ W))
     return h
 
 
@@ -276,10 +322,11 @@ def recheck(atk: VRFTAttack, P: Perturbation, delta: float) -> Check:
     out = lambda A: top(A - phi0 @ np.linalg.lstsq(phi0, A, rcond=None)[0])  # noqa: E731
     again = Perturbation(theta0, R, L_u @ L_u.T, L_y @ L_y.T, top(R @ L_u), top(R @ L_y), eta1, beta1, q_u, q_y,
                          P.norm_u, P.norm_y, L_v @ L_v.T, L_r @ L_r.T, top(R @ L_v), top(R @ L_r), out(Tu), out(F),
-                         float(np.linalg.norm(r0)))
+                         float(np.linalg.norm(r0)), *_directions(T, phi0 @ Rinv, R, top), top(Tu), top(F))
     larger = {f.name: max(getattr(P, f.name), getattr(again, f.name)) for f in dataclasses.fields(Perturbation)
               if isinstance(getattr(P, f.name), float)}
-    worst = dataclasses.replace(again, q_u=np.maximum(P.q_u, again.q_u), q_y=np.maximum(P.q_y, again.q_y), **larger)
+    worst = dataclasses.replace(again, q_u=np.maximum(P.q_u, again.q_u), q_y=np.maximum(P.q_y, again.q_y),
+                                HV=np.maximum(P.HV, again.HV), HQ=np.maximum(P.HQ, again.HQ), **larger)
     relative = lambda a, b: float(np.max(np.abs(a - b)) / np.max(np.abs(b)))  # noqa: E731
     agree = max(abs(again.eta1 - P.eta1) / P.eta1, abs(again.beta1 - P.beta1) / P.beta1,
                 *(relative(getattr(again, K), getattr(P, K)) for K in ("K_u", "K_y", "K_v", "K_r")))

@@ -19,9 +19,10 @@ def atk():
 @pytest.mark.parametrize("beta", [0.2, 0.9])  # eta = 1.3 at 0.9
 def test_the_remainder_bounds_contain_the_exact_refit(atk, beta) -> None:
     """For poisonings on the budget sphere: R (d - d_lin) lies in the expansion's box plus ball, the damped split
-    x = M^-1 (I + B)'Q'v + M^-1 E'r0 + M^-1 E'v holds exactly with each term within its radii, and w'd <= h(w) along
-    the coordinate axes and d's own direction (the bounds are the mechanism's whole argument), also where
-    ||Phi(a_y) R^-1|| may exceed 1 (only the part in Phi0's range counts)."""
+    x = M^-1 (I + B)'Q'v + M^-1 E'r0 + M^-1 E'v holds exactly with each term within its radii, and w'd <= h(w) (after
+    the refinement along R's singular vectors) along the coordinate axes, R's right singular vectors and d's own
+    direction (the bounds are the mechanism's whole argument), also where ||Phi(a_y) R^-1|| may exceed 1 (only the
+    part in Phi0's range counts)."""
     P = _cached(atk)
     target = as_target(atk)
     reg = atk.setting.regressor
@@ -49,7 +50,7 @@ def test_the_remainder_bounds_contain_the_exact_refit(atk, beta) -> None:
         assert np.linalg.norm(parts[0] - Q.T @ v) <= rem.rem_v and np.linalg.norm(parts[0]) <= rem.sat_v
         assert np.linalg.norm(parts[1] - E.T @ r0) <= rem.rem_r and np.linalg.norm(parts[1]) <= rem.sat_r
         assert np.linalg.norm(parts[2]) <= rem.rest
-        W = np.hstack([eye, -eye, d[:, None] / np.linalg.norm(d)])
+        W = np.hstack([eye, -eye, P.Vt.T, -P.Vt.T, d[:, None] / np.linalg.norm(d)])
         assert np.all(W.T @ d <= h(W))
 
 
