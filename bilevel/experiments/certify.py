@@ -81,7 +81,7 @@ def deepc_budget_table(target: Target, delta_lb: float, seed: int) -> dict[str, 
 
 
 FAMILIES: dict[str, Family] = {
-    "vrft": Family(lambda n, seed: vrft_instance("destabilize", "B", 0.0, 0.0, seed=seed, N=n), (512,), 64, 8,
+    "vrft": Family(lambda n, seed: vrft_instance("destabilize", "B", 0.0, 0.0, seed=seed, N=n), (512, 64), 64, 8,
                    "VRFT, scenario B (N samples)"),
     "ident": Family(lambda n, seed: ident_instance("ss", n, 0.0, "ce-lqr", seed=seed), (100,), 100, 1,
                     "identification + CE LQR (T samples)", check_starts=64),
@@ -127,7 +127,7 @@ def certify_task(task: dict[str, Any]) -> dict[str, Any]:
 
 
 def certify_tasks(sims: int, quick: bool, seed: int, samples: int, families: tuple[str, ...]) -> list[dict[str, Any]]:
-    """One task per (family, data set)."""
+    """One task per (family, size, data set): the quick size, or every size of the full run."""
     seeds = list(enumerate(zip(sim_seeds(seed, sims), sim_seeds(seed + 1, sims))))
     tasks = []
     for name in families:

@@ -12,14 +12,30 @@ function. Split D = Q B + E (B = Q'D, E orthogonal to Q): M = (I + B)'(I + B) + 
 ((1 + beta)^2 + eta^2) I where ||B|| <= beta = beta1 ||a_y|| < 1 and ||E|| <= ||D|| <= eta = eta1 ||a_y|| (beta1^2,
 eta1^2 the largest eigenvalues of the stacked whitened regressor operators, projected on Q and not): only the part of
 the regressor perturbation inside the clean regressor's range can make the poisoned fit singular; the rest (E'E >= 0)
-only damps it. The remainder x - x_lin = D'v + (M^-1 - I)(x_lin + D'v) lies in a box plus a ball: each entry of D'v is
-a quadratic form in (a_u, a_y) bounded by its largest singular value (the box), and ||M^-1 - I|| <= spread =
-max((1 - beta)^-2 - 1, 1 - ((1 + beta)^2 + eta^2)^-1) times max||x_lin|| + the box's norm (the ball). The set {d}
-is then inside the linear image plus R^-1 times that ball and box, and the true loop's characteristic polynomial,
-affine in theta, is proven Schur stable over it by zero exclusion on the unit circle (bilevel.robust.zero_exclusion).
-The re-check rebuilds the operators by filtering unit impulses (the learner's own filters, not the dense matrices),
-recomputes beta1 and eta1 by SVDs and the Grams from the explicit maps, and re-runs the sweep on a grid twice as fine
-with twice the directions from those numbers.
+only damps it. Two outer sets of x, the certified set their intersection (the smaller support along each direction):
+- the expansion: x - x_lin = D'v + (M^-1 - I)(x_lin + D'v) lies in a box plus a ball: each entry of D'v is a quadratic
+  form in (a_u, a_y) bounded by its largest singular value (the box), and ||M^-1 - I|| <= spread =
+  max((1 - beta)^-2 - 1, 1 - ((1 + beta)^2 + eta^2)^-1) times max||x_lin|| + the box's norm (the ball);
+- the damped split: x = M^-1 (I + B)'Q'v + M^-1 E'r0 + M^-1 E'(I - QQ')v exactly, with ||M^-1 (I + B)'|| <= 1/(1 - beta)
+  (M >= (I + B)'(I + B)) and ||M^-1 E'|| <= 1/(2 (1 - beta)) (M^-1 E'E M^-1 <= M^-1 - (1 - beta)^2 M^-2): an E that
+  moves the fit hard also damps it. Each of the first two terms is its linear part (Q'v, E'r0: exact supports) plus a
+  ball (||M^-1 (I + B)' - I|| <= min(spread + beta (1 - beta)^-2, (beta + eta / 2) / (1 - beta)); spread for E'r0) or a
+  ball about zero (||Q'v|| / (1 - beta), ||r0|| / (2 (1 - beta))), whichever gives the smaller support; the third is a
+  ball of radius min(||(I - QQ')v|| / 2, (||box|| + beta ||Q'v||) / (1 - beta)) / (1 - beta) (||v|| and each linear
+  part's largest norm over the budget balls from the operators' norms).
+Then, ROUNDS times, a per-direction refinement from the set found so far: the normal equation is exactly
+x - x_lin = D'(r(a) - r0) - Q'Phi(a_y) d (r(a) the poisoned fit's residual), so along R's left singular vectors U_j
+(R = U S V'), |U_j'(x - x_lin)| <= ||a_y|| (||H(V_j)|| / s_j ||r(a) - r0|| + sum_k c_k ||H(V_k)'Q U_j||), where
+H(c) = sum_i c_i T_i is the regressor's filter, c_k >= |V_k'd| the set's extent along V_k and
+||r(a) - r0|| <= min(||r0||, ||D'r0|| / (1 - beta)) + ||v|| (r(a) - r0 = (I - P_a) v - P_a r0, P_a r0 =
+(Q + D) M^-1 E'r0). That box in U's basis is small along R's strong directions, where the fit barely moves and
+where the zero-exclusion test often looks; the certified set is the linear image plus it, intersected with the set
+before.
+The set {d} = R^-1 {x}, and the true loop's characteristic polynomial, affine in theta, is proven Schur stable over it
+by zero exclusion on the unit circle (bilevel.robust.zero_exclusion). The re-check rebuilds the operators by filtering
+unit impulses (the learner's own filters, not the dense matrices), recomputes beta1, eta1 and the operators' norms by
+SVDs and the Grams from the explicit maps, and re-runs the sweep on a grid twice as fine with twice the directions from
+those numbers (the larger of each pair).
 """
 
 from __future__ import annotations
@@ -75,10 +91,13 @@ def vrft_target(atk: VRFTAttack, starts: int = ATTACK_STARTS, **options: Any) ->
 
 @dataclass(frozen=True)
 class Perturbation:
-    """What the VRFT perturbation bound needs of one data set, per unit budget (module `bound` docstring): theta0,
-    the clean regressor's R (Phi0 = Q R), the Grams of the linear maps a_u -> d, a_y -> d (K_u, K_y) and the norms of
-    R L_u, R L_y, eta1 (||Phi(a_y) R^-1|| <= eta1 ||a_y||), beta1 (||Q'Phi(a_y) R^-1|| <= beta1 ||a_y||), the
-    second-order coefficients (q_u[i], q_y[i]) and ||u||, ||y||."""
+    """What the VRFT perturbation bound needs of one data set, per unit budget (module docstring): theta0, the clean
+    regressor's R (Phi0 = Q R), the Grams of the linear maps a_u -> d, a_y -> d (K_u, K_y) and the norms of R L_u,
+    R L_y, eta1 (||Phi(a_y) R^-1|| <= eta1 ||a_y||), beta1 (||Q'Phi(a_y) R^-1|| <= beta1 ||a_y||), the second-order
+    coefficients (q_u[i], q_y[i]), ||u||, ||y||, and for the damped split: the Grams of a_y -> d through Q'v and
+    through D'r0 (K_v, K_r), the norms of a_y -> Q'Phi(a_y) theta0 and a_y -> D'r0 (lin_v, lin_r), of
+    (I - QQ') t(.) and (I - QQ') Phi(.) theta0 (out_u, out_y) and ||r0||; for the refinement: R's SVD (U, sv, Vt),
+    ||H(V_k)|| (HV), ||H(V_k)'Q U_j|| (HQ[j, k]) and the norms of t(.) and Phi(.) theta0 (norm_t, norm_f)."""
 
     theta0: np.ndarray
     R: np.ndarray
@@ -92,6 +111,20 @@ class Perturbation:
     q_y: np.ndarray
     norm_u: float
     norm_y: float
+    K_v: np.ndarray
+    K_r: np.ndarray
+    lin_v: float
+    lin_r: float
+    out_u: float
+    out_y: float
+    norm_r0: float
+    U: np.ndarray
+    sv: np.ndarray
+    Vt: np.ndarray
+    HV: np.ndarray
+    HQ: np.ndarray
+    norm_t: float
+    norm_f: float
 
 
 def _operators(atk: VRFTAttack) -> tuple[np.ndarray, np.ndarray]:
@@ -116,9 +149,23 @@ def perturbation(atk: VRFTAttack) -> Perturbation:
     eta1, beta1 = _gains(M, phi0 @ Rinv, lambda op: float(np.sqrt(np.linalg.eigvalsh(op.T @ op)[-1])))
     q_u = np.array([np.linalg.norm(Tu.T @ m, 2) for m in M])
     q_y = np.array([np.max(np.abs(np.linalg.eigvalsh(0.5 * (m.T @ F + F.T @ m)))) for m in M])
+    L_v, L_r = -G0inv @ (phi0.T @ F), L_y + G0inv @ (phi0.T @ F)
+    Q = phi0 @ Rinv
+    out = lambda A: float(np.linalg.norm(A - Q @ (Q.T @ A), 2))  # noqa: E731
     return Perturbation(theta0, R, L_u @ L_u.T, L_y @ L_y.T, float(np.linalg.norm(R @ L_u, 2)),
                         float(np.linalg.norm(R @ L_y, 2)), eta1, beta1, q_u, q_y, float(np.linalg.norm(atk.u)),
-                        float(np.linalg.norm(atk.y)))
+                        float(np.linalg.norm(atk.y)), L_v @ L_v.T, L_r @ L_r.T, float(np.linalg.norm(R @ L_v, 2)),
+                        float(np.linalg.norm(R @ L_r, 2)), out(Tu), out(F), float(np.linalg.norm(r0)),
+                        *_directions(T, Q, R, lambda A: float(np.linalg.norm(A, 2))), float(np.linalg.norm(Tu, 2)),
+                        float(np.linalg.norm(F, 2)))
+
+
+def _directions(T: np.ndarray, Q: np.ndarray, R: np.ndarray, norm) -> tuple[np.ndarray, ...]:
+    """(U, sv, Vt, HV, HQ) of the refinement (Perturbation docstring), the operator norms by `norm`."""
+    U, sv, Vt = np.linalg.svd(R)
+    H = [np.tensordot(v, T, axes=(0, 0)) for v in Vt]
+    QU = Q @ U
+    return U, sv, Vt, np.array([norm(h) for h in H]), np.array([[np.linalg.norm(h.T @ q) for h in H] for q in QU.T])
 
 
 def _gains(M: np.ndarray, Q: np.ndarray, norm) -> tuple[float, float]:
@@ -145,28 +192,74 @@ def _cached(atk: VRFTAttack) -> Perturbation:
     return kept(_KEPT, id(atk), lambda: (atk, perturbation(atk)), KEPT, usable=lambda hit: hit[0] is atk)[0][1]
 
 
-def remainder(P: Perturbation, delta: float) -> tuple[float, float, np.ndarray]:
-    """(beta, ball, box) at budget delta: the bound on ||B||, the radius of the remainder's ball and the entries' bounds
-    of its box (module docstring; ball inf where beta >= 1)."""
+@dataclass(frozen=True)
+class Remainder:
+    """The radii (in x = R d) at one budget (module docstring): beta, the expansion's ball and box; the damped split's
+    balls about Q'v's and E'r0's linear parts (rem_v, rem_r) or about zero (sat_v, sat_r), and that of M^-1 E'v."""
+
+    beta: float
+    ball: float
+    box: np.ndarray
+    rem_v: float
+    sat_v: float
+    rem_r: float
+    sat_r: float
+    rest: float
+
+
+def remainder(P: Perturbation, delta: float) -> Remainder:
+    """The Remainder at budget delta (every radius inf where beta >= 1)."""
     r_u, r_y = delta * P.norm_u, delta * P.norm_y
     beta, eta = r_y * P.beta1, r_y * P.eta1
     box = r_y * r_u * P.q_u + r_y ** 2 * P.q_y
     if beta >= 1.0:
-        return beta, float("inf"), box
+        inf = float("inf")
+        return Remainder(beta, inf, box, inf, inf, inf, inf, inf)
     spread = max((1 - beta) ** -2 - 1, 1 - 1 / ((1 + beta) ** 2 + eta ** 2))
-    return beta, spread * (r_u * P.lin_u + r_y * P.lin_y + float(np.linalg.norm(box))), box
+    qv, out = r_u * P.lin_u + r_y * P.lin_v, r_u * P.out_u + r_y * P.out_y
+    norm_box = float(np.linalg.norm(box))
+    return Remainder(beta, spread * (r_u * P.lin_u + r_y * P.lin_y + norm_box), box,
+                     min(spread + beta / (1 - beta) ** 2, (beta + eta / 2) / (1 - beta)) * qv, qv / (1 - beta),
+                     spread * r_y * P.lin_r, P.norm_r0 / (2 * (1 - beta)),
+                     min(out / 2, (norm_box + beta * qv) / (1 - beta)) / (1 - beta))
 
 
-def support(P: Perturbation, delta: float, ball: float, box: np.ndarray):
-    """The support function of the certified set of d at budget delta (columns of W -> values): the linear image plus
-    R^-1 times the remainder's ball and box."""
+def support(P: Perturbation, delta: float, rem: Remainder):
+    """The support function of the certified set of d at budget delta (columns of W -> values): the smaller of the
+    expansion's (linear image plus R^-1 times ball and box) and the damped split's (module docstring)."""
     r_u, r_y = delta * P.norm_u, delta * P.norm_y
     rinv_t = np.linalg.inv(P.R).T
 
     def h(W: np.ndarray) -> np.ndarray:
         quad = lambda K: np.sqrt(np.maximum(np.einsum("im,ij,jm->m", W, K, W), 0.0))  # noqa: E731
         X = rinv_t @ W
-        return r_u * quad(P.K_u) + r_y * quad(P.K_y) + ball * np.linalg.norm(X, axis=0) + box @ np.abs(X)
+        size = np.linalg.norm(X, axis=0)
+        lin_u, lin_y = r_u * quad(P.K_u), r_y * quad(P.K_y)
+        expansion = lin_u + lin_y + rem.ball * size + rem.box @ np.abs(X)
+        apart = np.minimum(lin_u + r_y * quad(P.K_v) + rem.rem_v * size, rem.sat_v * size) + \
+            np.minimum(r_y * quad(P.K_r) + rem.rem_r * size, rem.sat_r * size)
+        damped = np.minimum(lin_u + lin_y + (rem.rem_v + rem.rem_r) * size, apart) + rem.rest * size
+        return np.minimum(expansion, damped)
+    if rem.beta >= 1.0:
+        return h
+    resid = min(P.norm_r0, r_y * P.lin_r / (1 - rem.beta)) + r_u * P.norm_t + r_y * P.norm_f
+    for _ in range(ROUNDS):
+        h = _refined(P, r_u, r_y, resid, h)
+    return h
+
+
+ROUNDS = 3
+
+
+def _refined(P: Perturbation, r_u: float, r_y: float, resid: float, before):
+    """One refinement (module docstring) of the set whose support function is `before`."""
+    extent = np.maximum(before(P.Vt.T), before(-P.Vt.T))
+    box = r_y * (P.HV / P.sv * resid + P.HQ @ extent)
+    to_u = P.U.T @ np.linalg.inv(P.R).T
+
+    def h(W: np.ndarray) -> np.ndarray:
+        quad = lambda K: np.sqrt(np.maximum(np.einsum("im,ij,jm->m", W, K, W), 0.0))  # noqa: E731
+        return np.minimum(before(W), r_u * quad(P.K_u) + r_y * quad(P.K_y) + box @ np.abs(to_u @ W))
     return h
 
 
@@ -175,12 +268,12 @@ ANGLES = 9
 
 
 def _sweep(atk: VRFTAttack, P: Perturbation, delta: float, refine: int = 1) -> tuple[float, float, Sweep | None]:
-    beta, ball, box = remainder(P, delta)
-    if not np.isfinite(ball):
-        return beta, ball, None
+    rem = remainder(P, delta)
+    if rem.beta >= 1.0:
+        return rem.beta, rem.ball, None
     loop = atk.setting.loop
     base = loop.coefficients(P.theta0)
-    return beta, ball, sweep(base, loop.slopes, support(P, delta, ball, box), GRID * refine, ANGLES * refine)
+    return rem.beta, rem.ball, sweep(base, loop.slopes, support(P, delta, rem), GRID * refine, ANGLES * refine)
 
 
 def perturbation_bound(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
@@ -223,16 +316,20 @@ def recheck(atk: VRFTAttack, P: Perturbation, delta: float) -> Check:
     L_y = G0inv @ (np.einsum("r,irn->in", r0, T) - phi0.T @ F)
     q_u = np.array([np.linalg.svd(Tu.T @ m, compute_uv=False)[0] for m in M])
     q_y = np.array([np.linalg.svd(0.5 * (m.T @ F + F.T @ m), compute_uv=False)[0] for m in M])
-    again = Perturbation(theta0, R, L_u @ L_u.T, L_y @ L_y.T, float(np.linalg.svd(R @ L_u, compute_uv=False)[0]),
-                         float(np.linalg.svd(R @ L_y, compute_uv=False)[0]), eta1, beta1, q_u, q_y, P.norm_u,
-                         P.norm_y)
-    worst = Perturbation(theta0, R, again.K_u, again.K_y,
-                         max(P.lin_u, again.lin_u), max(P.lin_y, again.lin_y), max(P.eta1, again.eta1),
-                         max(P.beta1, again.beta1), np.maximum(P.q_u, again.q_u), np.maximum(P.q_y, again.q_y),
-                         P.norm_u, P.norm_y)
+    L_v = np.linalg.solve(phi0.T @ phi0, -phi0.T @ F)
+    L_r = np.linalg.solve(phi0.T @ phi0, np.einsum("r,irn->in", r0, T))
+    top = lambda A: float(np.linalg.svd(A, compute_uv=False)[0])  # noqa: E731
+    out = lambda A: top(A - phi0 @ np.linalg.lstsq(phi0, A, rcond=None)[0])  # noqa: E731
+    again = Perturbation(theta0, R, L_u @ L_u.T, L_y @ L_y.T, top(R @ L_u), top(R @ L_y), eta1, beta1, q_u, q_y,
+                         P.norm_u, P.norm_y, L_v @ L_v.T, L_r @ L_r.T, top(R @ L_v), top(R @ L_r), out(Tu), out(F),
+                         float(np.linalg.norm(r0)), *_directions(T, phi0 @ Rinv, R, top), top(Tu), top(F))
+    larger = {f.name: max(getattr(P, f.name), getattr(again, f.name)) for f in dataclasses.fields(Perturbation)
+              if isinstance(getattr(P, f.name), float)}
+    worst = dataclasses.replace(again, q_u=np.maximum(P.q_u, again.q_u), q_y=np.maximum(P.q_y, again.q_y),
+                                HV=np.maximum(P.HV, again.HV), HQ=np.maximum(P.HQ, again.HQ), **larger)
+    relative = lambda a, b: float(np.max(np.abs(a - b)) / np.max(np.abs(b)))  # noqa: E731
     agree = max(abs(again.eta1 - P.eta1) / P.eta1, abs(again.beta1 - P.beta1) / P.beta1,
-                float(np.max(np.abs(again.K_y - P.K_y)) / np.max(np.abs(P.K_y))),
-                float(np.max(np.abs(again.K_u - P.K_u)) / np.max(np.abs(P.K_u))))
+                *(relative(getattr(again, K), getattr(P, K)) for K in ("K_u", "K_y", "K_v", "K_r")))
     _, _, found = _sweep(atk, worst, delta, refine=2)
     scale = float(np.max(np.abs(atk.setting.loop.coefficients(theta0))))
     margin = param("robust.check_margin") * scale

@@ -9,7 +9,7 @@ import pytest
 
 from bilevel.cli import main
 from bilevel.errors import ModelError
-from bilevel.experiments.certify import DEEPC_BUDGETS, FAMILIES, ROW_SCHEMA, run_certify
+from bilevel.experiments.certify import DEEPC_BUDGETS, FAMILIES, ROW_SCHEMA, certify_tasks, run_certify
 
 
 def test_quick_certify_writes_consistent_brackets_and_resumes(tmp_path) -> None:
@@ -38,3 +38,11 @@ def test_unknown_family_is_refused(tmp_path) -> None:
 def test_cli_refuses_a_flag_certify_does_not_take(capsys) -> None:
     assert main(["reproduce", "certify", "--selection", "clarabel"]) != 0
     assert "--selection" in capsys.readouterr().err
+
+
+def test_the_full_run_certifies_vrft_at_its_small_size_too() -> None:
+    """VRFT's full run: N = 512 and N = 64 on the same data and attack seeds; the quick run only N = 64."""
+    full = certify_tasks(3, False, 0, 10, ("vrft",))
+    assert [t["size"] for t in full] == [512] * 3 + [64] * 3 and len({t["key"] for t in full}) == 6
+    assert [t["seed"] for t in full[:3]] == [t["seed"] for t in full[3:]]
+    assert [t["size"] for t in certify_tasks(3, True, 0, 10, ("vrft",))] == [64] * 3

@@ -8,7 +8,7 @@ import pytest
 
 from bilevel.problems.vrft_instance import attack_instance
 from bilevel.robust import Proof, as_target, certified_margin, certify, sample_soundness, sphere_poisoning
-from bilevel.robust.vrft import _cached, remainder
+from bilevel.robust.vrft import _cached, remainder, support
 
 
 @pytest.fixture(scope="module")
@@ -17,25 +17,41 @@ def atk():
 
 
 @pytest.mark.parametrize("beta", [0.2, 0.9])  # eta = 1.3 at 0.9
-def test_the_remainder_bound_contains_the_exact_refit(atk, beta) -> None:
-    """R (d - d_lin) lies in the remainder's box plus ball for poisonings on the budget sphere (the bound is the
-    mechanism's whole argument), also where ||Phi(a_y) R^-1|| may exceed 1 (only the part in Phi0's range counts)."""
+def test_the_remainder_bounds_contain_the_exact_refit(atk, beta) -> None:
+    """For poisonings on the budget sphere: R (d - d_lin) lies in the expansion's box plus ball, the damped split
+    x = M^-1 (I + B)'Q'v + M^-1 E'r0 + M^-1 E'v holds exactly with each term within its radii, and w'd <= h(w) (after
+    the refinement along R's singular vectors) along the coordinate axes, R's right singular vectors and d's own
+    direction (the bounds are the mechanism's whole argument), also where ||Phi(a_y) R^-1|| may exceed 1 (only the
+    part in Phi0's range counts)."""
     P = _cached(atk)
     target = as_target(atk)
     reg = atk.setting.regressor
     rng = np.random.default_rng(3)
     delta = beta / (P.beta1 * P.norm_y)
-    found, ball, box = remainder(P, delta)
-    assert found == pytest.approx(beta) and P.beta1 < P.eta1
+    rem = remainder(P, delta)
+    h = support(P, delta, rem)
+    assert rem.beta == pytest.approx(beta) and P.beta1 < P.eta1
     G0 = atk.phi0.T @ atk.phi0
     r0 = atk.t0 - atk.phi0 @ atk.theta0
+    Q = atk.phi0 @ np.linalg.inv(P.R)
+    eye = np.eye(P.theta0.size)
     for _ in range(200):
         a = sphere_poisoning(target, delta, rng)
         d = target.refit(target.poisoned(a)) - atk.theta0
         v = reg.targets(a["u"]) - reg(a["y"]) @ atk.theta0
         d_lin = np.linalg.solve(G0, atk.phi0.T @ v + reg(a["y"]).T @ r0)
-        outside_box = np.maximum(np.abs(P.R @ (d - d_lin)) - box, 0.0)
-        assert np.linalg.norm(outside_box) <= ball
+        outside_box = np.maximum(np.abs(P.R @ (d - d_lin)) - rem.box, 0.0)
+        assert np.linalg.norm(outside_box) <= rem.ball
+        D = reg(a["y"]) @ np.linalg.inv(P.R)
+        B, E = Q.T @ D, D - Q @ (Q.T @ D)
+        M = (Q + D).T @ (Q + D)
+        parts = [np.linalg.solve(M, (eye + B).T @ (Q.T @ v)), np.linalg.solve(M, E.T @ r0), np.linalg.solve(M, E.T @ v)]
+        assert np.allclose(sum(parts), P.R @ d, rtol=0, atol=1e-9 * np.linalg.norm(P.R @ d))
+        assert np.linalg.norm(parts[0] - Q.T @ v) <= rem.rem_v and np.linalg.norm(parts[0]) <= rem.sat_v
+        assert np.linalg.norm(parts[1] - E.T @ r0) <= rem.rem_r and np.linalg.norm(parts[1]) <= rem.sat_r
+        assert np.linalg.norm(parts[2]) <= rem.rest
+        W = np.hstack([eye, -eye, P.Vt.T, -P.Vt.T, d[:, None] / np.linalg.norm(d)])
+        assert np.all(W.T @ d <= h(W))
 
 
 def test_a_proof_at_a_small_budget_is_rechecked_and_sound(atk) -> None:
