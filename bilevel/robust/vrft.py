@@ -289,8 +289,9 @@ def perturbation_bound(target: Target, delta: float, options: dict[str, Any]) ->
     numbers = {"beta": beta, "ball": ball, "excluded_by": found.excluded_by, "lipschitz": found.lipschitz,
                "leading": found.leading}
     if not found.proven:
-        return Evidence("perturbation", Proof.UNKNOWN, f"zero exclusion fails at delta = {delta:.6g} (guaranteed "
-                        f"distance {found.excluded_by:.3g})", numbers, Check(False, "nothing to check"),
+        why = f"the clean loop is not stable (largest root modulus {found.nominal:.4g})" if not found.nominal < 1 \
+            else f"zero exclusion fails at delta = {delta:.6g} (guaranteed distance {found.excluded_by:.3g})"
+        return Evidence("perturbation", Proof.UNKNOWN, why, numbers, Check(False, "nothing to check"),
                         time.perf_counter() - t0)
     check = recheck(atk, P, delta)
     return Evidence("perturbation", Proof.PROVEN, f"no poisoning with ||a_u|| <= {delta:.6g} ||u||, ||a_y|| <= "
@@ -333,7 +334,8 @@ def recheck(atk: VRFTAttack, P: Perturbation, delta: float) -> Check:
     _, _, found = _sweep(atk, worst, delta, refine=2)
     scale = float(np.max(np.abs(atk.setting.loop.coefficients(theta0))))
     margin = param("robust.check_margin") * scale
-    passed = found is not None and found.excluded_by > margin and found.leading > margin and agree < 1e-6
+    passed = found is not None and found.proven and found.excluded_by > margin and found.leading > margin \
+        and agree < 1e-6
     return Check(passed, f"impulse-built operators agree to {agree:.1e}; the sweep at {2 * GRID} frequencies excludes "
                  f"zero by {-np.inf if found is None else found.excluded_by:.3g} (margin {margin:.1e})",
                  {"agreement": agree, "excluded_by": -np.inf if found is None else found.excluded_by,

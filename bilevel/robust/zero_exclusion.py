@@ -34,10 +34,12 @@ class Sweep:
     spacing: float
     leading: float
     refined: int = 0
+    nominal: float = float("nan")
+    """The largest root modulus of p(.; 0) (np.roots): zero exclusion proves stability only from a stable member."""
 
     @property
     def proven(self) -> bool:
-        return self.excluded_by > 0 and self.leading > 0
+        return self.excluded_by > 0 and self.leading > 0 and self.nominal < 1
 
 
 SPLIT = 16
@@ -74,8 +76,9 @@ def sweep(base: np.ndarray, slopes: np.ndarray, support: Support, points: int, a
         smallest = min(smallest, float(np.min(inner)))
         ends = np.hstack([b_lo[split, None], inner, b_hi[split, None]])
         lo, hi, b_lo, b_hi = grid[:, :-1].ravel(), grid[:, 1:].ravel(), ends[:, :-1].ravel(), ends[:, 1:].ravel()
+    nominal = float(np.max(np.abs(np.roots(base)), initial=0.0)) if base[0] != 0 else float("inf")
     return Sweep(float(min(np.min(x) for x in settled if x.size)), smallest, lipschitz, float(w[1] - w[0]), leading,
-                 refined)
+                 refined, nominal)
 
 
 def _distances(base: np.ndarray, slopes: np.ndarray, support: Support, powers: np.ndarray, w: np.ndarray,

@@ -45,3 +45,15 @@ def test_splitting_proves_what_the_coarse_grid_cannot() -> None:
     coarse = found.smallest_distance - found.lipschitz * found.spacing / 2
     assert coarse < 0 < found.excluded_by and found.refined > 0
     assert found.excluded_by <= true_distance(base, slopes, 0.05)
+
+
+def test_an_unstable_clean_polynomial_is_never_proven() -> None:
+    """Zero exclusion proves stability only from a stable member: with the root 0.97 moved to 1.03 the family keeps
+    zero excluded on the circle (every member has that root outside), but is not proven stable."""
+    base = np.poly([1.03, 0.5 + 0.5j, 0.5 - 0.5j]).real
+    slopes = np.array([[0.0, 1.0, -0.5, 0.2], [0.0, 0.0, 1.0, -1.0]]) * 0.1
+    found = sweep(base, slopes, lambda W: 0.001 * np.linalg.norm(W, axis=0), 256, 9)
+    assert found.excluded_by > 0 and found.leading > 0
+    assert found.nominal == pytest.approx(1.03) and not found.proven
+    stable = sweep(*family(0.001), 256, 9)
+    assert stable.nominal == pytest.approx(0.97) and stable.proven
