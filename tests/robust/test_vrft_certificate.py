@@ -80,3 +80,11 @@ def test_docs_page_runs() -> None:
     from tests.docs_pages import run_page
 
     run_page("certify.md")
+
+
+def test_an_unstable_clean_loop_is_not_certified() -> None:
+    """At N = 32 the reproduction's data set 3241444873 gives an unstable clean loop (largest root modulus 1.03): no
+    budget can keep it stable, so the certificate is unknown and names why (it read proven before the clean loop's
+    stability was required)."""
+    cert = certify(as_target(attack_instance("destabilize", "B", 0.0, 0.0, seed=3241444873, N=32), starts=2), 1e-4)
+    assert cert.proof == Proof.UNKNOWN and "clean loop is not stable" in cert.evidence[0].claim
