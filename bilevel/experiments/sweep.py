@@ -203,15 +203,25 @@ def settings_of(rows: Iterable[dict[str, Any]], *fields: str) -> dict[str, list[
     return {f: sorted((json.loads(v) for v in vs), key=str) for f, vs in out.items()}
 
 
+def _stored(path: str | None) -> dict[str, list[Any]]:
+    """The entries of timings.json `path` as stored (name -> [count, seconds] or [count, seconds, workers]); {} where
+    there is no file; ValueError (or TypeError, ...) where it is unreadable."""
+    if not path or not os.path.exists(path):
+        return {}
+    with open(path, encoding="utf-8") as fh:
+        stored = json.load(fh)
+    return {str(k): [int(v[0]), float(v[1]), *([int(v[2])] if len(v) > 2 else [])] for k, v in stored.items()}
+
+
+_UNREADABLE = (ValueError, TypeError, KeyError, IndexError, AttributeError)
+
+
 def load_timings(path: str, report: Callable[[str], None] | None = None) -> dict[str, tuple[int, float]]:
     """Sweep name -> (attacks run, wall seconds) recorded by earlier invocations in a timings.json file; an
     unreadable one (e.g. cut by a run killed before writes were atomic) is reported and rewritten empty."""
-    if not os.path.exists(path):
-        return {}
     try:
-        with open(path, encoding="utf-8") as fh:
-            return {str(k): (int(v[0]), float(v[1])) for k, v in json.load(fh).items()}
-    except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
+        return {k: (v[0], v[1]) for k, v in _stored(path).items()}
+    except _UNREADABLE as exc:
         if report:
             report(f"{path}: unreadable ({type(exc).__name__}); the wall times it held are lost, it now starts empty")
         with atomic_open(path) as fh:
@@ -219,50 +229,34 @@ def load_timings(path: str, report: Callable[[str], None] | None = None) -> dict
         return {}
 
 
-def record_timing(path: str, timings: dict[str, tuple[int, float]], name: str, count: int, seconds: float,
-                  workers: int | None = None) -> None:
-    """Store one sweep's (attacks run, wall seconds) in `timings` and rewrite timings.json atomically, with the
-    worker count beside each entry when known (what an estimate of a later run scales by)."""
-    timings[name] = (int(count), float(seconds))
-    known = {k: v for k in timings if k != name and (v := _workers(path, k))}
-    if workers:
-        known[name] = int(workers)
-    out = {k: [*v, known[k]] if k in known else list(v) for k, v in timings.items()}
-    with atomic_open(path) as fh:
-        json.dump(out, fh, indent=1)
-
-
-COMMITTED = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "docs",
-                         "results")
-"""The repository's committed results (present in a clone, absent from an installed wheel)."""
-
-
-def _entry(path: str | None, name: str) -> tuple[int, float, int] | None:
-    """(count, seconds, workers) of sweep `name` in timings.json `path`, if recorded with its worker count."""
-    if not path or not os.path.exists(path):
-        return None
+def record_timing(path: str, name: str, count: int, seconds: float, workers: int,
+                  report: Callable[[str], None] | None = None) -> None:
+    """Store one sweep's (attacks run, wall seconds, workers: what an estimate of a later run scales by) under `name`
+    in timings.json `path`, keeping the other entries (an unreadable file is reported and replaced), atomically."""
     try:
-        with open(path, encoding="utf-8") as fh:
-            entry = json.load(fh)[name]
-        count, seconds, workers = int(entry[0]), float(entry[1]), int(entry[2])
-    except (ValueError, TypeError, AttributeError, IndexError, KeyError):
-        return None
-    return (count, seconds, workers) if count > 0 and workers > 0 and math.isfinite(seconds) and seconds >= 0 \
-        else None
+        stored = _stored(path)
+    except _UNREADABLE:
+        load_timings(path, report)  # reports it and starts it empty
+        stored = {}
+    stored[name] = [int(count), float(seconds), int(workers)]
+    with atomic_open(path) as fh:
+        json.dump(stored, fh, indent=1)
 
 
-def _workers(path: str, name: str) -> int | None:
-    """The worker count recorded beside sweep `name` in timings.json `path`, if any."""
-    entry = _entry(path, name)
-    return entry[2] if entry else None
+_ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+COMMITTED = os.path.join(_ROOT, "docs", "results")
+"""The repository's committed results (present in a clone, absent from an installed wheel)."""
 
 
 def pace(name: str, paths: Iterable[str | None]) -> tuple[float, str] | None:
     """(worker-seconds per counted unit, the timings.json it came from) of sweep `name` in the first of `paths` that
-    recorded it with its worker count; None where none did."""
+    recorded it with a positive count and its worker count; None where none did."""
     for path in paths:
-        entry = _entry(path, name)
-        if entry:
+        try:
+            entry = _stored(path).get(name)
+        except _UNREADABLE:
+            continue
+        if entry and len(entry) > 2 and entry[0] > 0 and entry[2] > 0 and math.isfinite(entry[1]) and entry[1] >= 0:
             return entry[1] * entry[2] / entry[0], str(path)
     return None
 
@@ -279,8 +273,8 @@ def estimate(label: str, count: int, executor: Executor, paths: Iterable[str | N
         return None
     per_unit, source = found
     seconds = per_unit * count / max(1, executor.workers)
-    folder = os.path.relpath(os.path.dirname(os.path.abspath(source)), os.path.dirname(os.path.dirname(COMMITTED)))
-    where = f"the committed run in {folder}" if os.path.abspath(source).startswith(COMMITTED) else \
+    folder = os.path.dirname(os.path.abspath(source))
+    where = f"the committed run in {os.path.relpath(folder, _ROOT)}" if folder.startswith(COMMITTED) else \
         "an earlier run in this folder"
     return f"estimate ~{_duration(seconds)} on {executor.workers} worker(s), at the pace of {where}"
 
@@ -345,7 +339,7 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
     executor = executor or LocalExecutor()
     beside = os.path.join(os.path.dirname(os.path.abspath(path)), "timings.json")
     timing = timing or label
-    guess = estimate(timing, units(computed), executor, [beside, reference])
+    guess = estimate(timing, units(computed), executor, [beside, reference]) if progress else None
     if progress:
         progress(f"[{label}] {len(done)} of {len(tasks)} already done"
                  + (f" ({stale} row(s) of other settings not reused)" if stale else "")
@@ -387,6 +381,5 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
         raise
     if own:
         executor.close()
-    record_timing(beside, load_timings(beside, progress), timing, units(computed), time.perf_counter() - t0,
-                  executor.workers)
+    record_timing(beside, timing, units(computed), time.perf_counter() - t0, executor.workers, progress)
     return [done[k] for k in keys]
