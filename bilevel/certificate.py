@@ -160,8 +160,9 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
     low = canon.lower
     if canon.lower_reference is not None:
         ref = canon.lower_reference(canon.x, x, y)
-        unique = None if low.psd else _reduced_hessian_unique(low, x, low.solve(x), tol)
-        face = _on_face(low, x, ref, tol)
+        own = None if low.psd else low.solve(x)
+        unique = None if own is None else _reduced_hessian_unique(low, x, own, tol)
+        face = _on_face(low, ref, own, tol)
         return face, 0.0, unique, f"independent re-solve: {ref.solver}" + (
             "; y from the canonical re-solve polished onto its optimal face (the same value)" if face is not ref else "")
     if low.kind != "nlp":
@@ -188,18 +189,12 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
     return best, spread, unique, note
 
 
-def _on_face(low: "LowerLevel", x: np.ndarray, ref, tol: float):
-    """The user's re-solve with y replaced by the canonical LP/QP re-solve polished onto its optimal face, where both
-    reach the same value within tol: an interior-point solve of the user's formulation stops ~sqrt(eps) off a
-    degenerate face (e.g. DeePC's l1 slack penalty: 5e-5 in y at equal values), which would fail a correct y. Values
-    differing (a wrong canonical form) keep the user's y."""
-    if low.kind == "nlp" or low.psd:
-        return ref
-    try:
-        own = low.reference_solve(x)
-    except BilevelError:
-        return ref
-    if abs(own.objective - ref.objective) > tol * (1.0 + abs(ref.objective)):
+def _on_face(low: "LowerLevel", ref, own, tol: float):
+    """The user's re-solve `ref` with y replaced by the canonical convex re-solve `own` (polished onto its optimal
+    face), where both reach the same value within tol: an interior-point solve of the user's formulation stops
+    ~sqrt(eps) off a degenerate face (e.g. DeePC's l1 slack penalty: 5e-5 in y at equal values), which would fail a
+    correct y. A nonlinear lower level's local solve, or values differing (a wrong canonical form), keep the user's y."""
+    if own is None or low.kind == "nlp" or abs(own.objective - ref.objective) > tol * (1.0 + abs(ref.objective)):
         return ref
     return replace(ref, y=own.y)
 
