@@ -186,8 +186,8 @@ def time_of_default(problem: bl.BilevelProblem) -> None:
 def evaluation_cost() -> None:
     """Where hypergradient's time goes on the DeePC learner: one evaluation of phi (lower solve + upper sweep) and its
     gradient, against the lower solve alone, at 20 points of the box."""
-    from bilevel.solvers.base import prepare
-    from bilevel.solvers.implicit import shared_oracle
+    from bilevel.solvers.engine.prepared import prepare
+    from bilevel.solvers.engine.implicit import shared_oracle
 
     prep = prepare(deepc_problem())
     oracle = shared_oracle(prep)
@@ -209,7 +209,7 @@ def evaluation_cost() -> None:
 
 def auto_section() -> None:
     from bilevel.problems import registry
-    from bilevel.solvers.base import prepare
+    from bilevel.solvers.engine.prepared import prepare
     from bilevel.solvers.registry import choose_method
 
     print("\nauto's choice on the registered problems (bilevel list):")

@@ -22,7 +22,7 @@ from datetime import datetime, timezone
 
 from bilevel import BilevelProblem
 from bilevel.problems.rhs_lp import rhs_lp
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 
 DELTA = 0.2
 

@@ -16,7 +16,7 @@ from bilevel.attacks.vrft_methods import attack
 from bilevel.problems.vrft_instance import VRFTAttack
 from bilevel.reduction import KKTPoint
 from bilevel.result import BilevelResult, Status
-from bilevel.solvers.base import MethodRun, Prepared
+from bilevel.solvers.engine.prepared import MethodRun, Prepared
 
 
 def dccp_input_step(atk: VRFTAttack, a_y: np.ndarray, seed: int) -> np.ndarray:

@@ -30,8 +30,8 @@ constraints nonlinear in y, scaled smallest eigenvalue, the worst named); the LP
 that is not PSD. For LP/QP/SDP lower levels this is exact at x. For a nonlinear one it is local, so interval bounds
 on its Hessians over the declared bounds of y try to prove convexity at x (`convexity_proven`); when they cannot,
 the note says that lower-level optimality is local evidence and the method's SOLVED is reported as INACCURATE
-(solvers/base.py). The lower_gap check is two-sided: f(x, y) below the re-solved optimum by more than tol means
-the re-solve is wrong or y infeasible, and fails.
+(solvers/verdict/finalize.py). The lower_gap check is two-sided: f(x, y) below the re-solved optimum by more than tol
+means the re-solve is wrong or y infeasible, and fails.
 
 When the re-solve says the lower solution is unique (reduced Hessian positive definite at it, or, for a
 nonlinear lower level, every start reaching the same y), y is compared with the re-solved y through

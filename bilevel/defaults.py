@@ -41,15 +41,15 @@ ENTRIES: dict[str, tuple[Any, str]] = {
                                      "objective (relative)"),
     "block_exact.gain_tol": (1e-5, "the exact-block ascent stops when its gain over ascent.window steps is below this "
                                    "(relative)"),
-    # the implicit-differentiation engine (bilevel.solvers.implicit)
+    # the implicit-differentiation engine (bilevel.solvers.engine.implicit)
     "implicit.penalty": (1e4, "weight of the upper constraints' violation added to phi where they are penalized"),
     "implicit.active_tol": (1e-6, "a lower inequality is active where lam_i > this or |g_i| <= this (absolute)"),
     "implicit.kink_tol": (1e-9, "where some |G_i| or |H_j| <= this the penalty is not differentiable (least-norm "
                                 "element used)"),
-    # the engine's ascent loop (bilevel.solvers.ascent)
+    # the engine's ascent loop (bilevel.solvers.engine.ascent)
     "ascent.armijo": (1e-4, "sufficient-increase constant of the Armijo backtracking (fraction)"),
     "ascent.window": (5, "the ascent's gain stop is measured over this many accepted steps (count)"),
-    # the start sequence (bilevel.solvers.starts)
+    # the start sequence (bilevel.solvers.engine.starts)
     "starts.conditioning_steps": (10, "projected steps of the conditioning start, one budget radius or half-width "
                                       "each (count)"),
     # the KKT methods ipopt and relaxation (bilevel.solvers.ipopt)
@@ -60,8 +60,8 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "ipopt.acceptable_tol": (1e-7, "IPOPT's acceptable_tol: its 'solved to acceptable level' threshold"),
     "ipopt.max_wall_time": (300.0, "IPOPT max_wall_time per NLP solve (seconds)"),
     # method reduced (bilevel.solvers.reduced)
-    "reduced.starts": (1, "starts of method reduced: the first of bilevel.solvers.starts (a suggested start, the "
-                          "conditioning start of a least-squares learner, else the declared start) (count)"),
+    "reduced.starts": (1, "starts of method reduced: the first of bilevel.solvers.engine.starts (a suggested start, "
+                          "the conditioning start of a least-squares learner, else the declared start) (count)"),
     "reduced.scale": (10.0, "half-width of reduced's random starts where a bound is infinite (units of x)"),
     "reduced.nlp_tol": (1e-8, "IPOPT's tol on the reduced NLP (its scaled KKT error)"),
     "reduced.max_iter": (300, "IPOPT iterations of the reduced NLP per start (count)"),
@@ -84,7 +84,7 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "evolution.pop_tol": (1e-8, "the search stops when std(population values) <= this * |mean| (relative)"),
     "evolution.members": (64, "cap on the default population size (count)"),
     "evolution.evaluations": (3000, "evaluations the default number of generations is sized to (count)"),
-    # method global (bilevel.solvers.global_*)
+    # method global (bilevel.solvers.globalopt)
     "global.time_limit": (60.0, "wall-clock limit of method global (seconds)"),
     "global.node_limit": (100_000, "branch-and-bound nodes of method global (count)"),
     "global.gap": (1e-6, "method global stops when (upper - lower bound) / max(1, |best|) is below this"),
@@ -99,7 +99,7 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "global.max_box_vertices": (4096, "vertices of the upper box on which an x-dependent lower Hessian is checked, at"
                                       " most (count)"),
     "global.scip_feastol": (1e-9, "SCIP's feasibility tolerance (SCIP's own default is 1e-6; absolute)"),
-    # multistart selection and dispatch (bilevel.solvers.base, bilevel.solvers.registry)
+    # multistart selection and dispatch (bilevel.solvers.engine.prepared, bilevel.solvers.registry)
     "solvers.feasibility_tol": (1e-6, "largest residual at which a start's end point counts as feasible"),
     "solvers.tie_rtol": (1e-9, "multistart: feasible end points whose objectives are within this of the best's tie, "
                                "and the first start among them wins (relative)"),
@@ -111,7 +111,7 @@ ENTRIES: dict[str, tuple[Any, str]] = {
                               "(seconds)"),
     "auto.global_size": (60, "method auto tries global first on problems with at most this many upper plus lower "
                              "variables (count)"),
-    # the local probe and the optimistic selection (bilevel.solvers.probe, bilevel.solvers.optimistic)
+    # the local probe and the optimistic selection (bilevel.solvers.verdict.probe, bilevel.solvers.verdict.optimistic)
     "probe.directions": (4, "random directions the local probe tries at each radius (count)"),
     "probe.coordinates": (16, "up to this many upper variables the probe tries +/- each coordinate and the adjacent "
                               "pieces at a kink (count)"),
@@ -131,7 +131,7 @@ ENTRIES: dict[str, tuple[Any, str]] = {
                                  "feasible"),
     "optimistic.improve_rel_tol": (1e-5, "F must drop by more than this (relative to max(1, |F|)) for a better "
                                          "selection"),
-    # box methods (bilevel.solvers.box_methods)
+    # box methods (bilevel.attacks.willems_methods)
     "destabilize.starts": (64, "points ascending together in method destabilize (count)"),
     "destabilize.max_iter": (100, "ascent steps of method destabilize (count)"),
     "destabilize.pool": (512, "random points screened for destabilize's starts (count)"),

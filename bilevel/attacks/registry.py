@@ -10,7 +10,7 @@ from ..errors import ModelError
 from ..problems import registry
 from ..problems.vrft_instance import PAPER_EPS_Y, VRFTAttack, attack_instance
 from ..result import BilevelResult
-from ..solvers.base import options_of
+from ..solvers.engine.prepared import options_of
 from . import vrft_methods
 from .vrft_methods import attack_budget_path
 

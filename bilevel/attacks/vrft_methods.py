@@ -1,5 +1,5 @@
 """Structured attacks on a VRFT instance, methods of `bilevel.solve` (its finalize: independent re-solve, probe) on
-its declared problem vrft-<objective>, the learner an affine least squares (bilevel.solvers.affine_ls):
+its declared problem vrft-<objective>, the learner an affine least squares (bilevel.solvers.engine.affine_ls):
 alternating (the paper's Algorithm 1, strengthened) ascends V(a_y) = max_{a_u} J(theta(u + a_u, y + a_y)), the inner
 max solved globally at every evaluation (the exact input step; quadratic objectives, plain l2 input budget); joint
 ascends (a_u, a_y) together, each block in its budget radius; white-noise: a random point on the budget boundary."""
@@ -18,9 +18,9 @@ from ..problems.vrft import instance_of, problem_for
 from ..problems.vrft_instance import VRFTAttack
 from ..reduction import KKTPoint
 from ..result import BilevelResult, Status
-from ..solvers.affine_ls import Oracle, TargetBlock
-from ..solvers.base import MethodRun, Prepared, check_options
-from ..solvers.block_exact import ascend_with_exact_block
+from ..solvers.engine.affine_ls import Oracle, TargetBlock
+from ..solvers.engine.prepared import MethodRun, Prepared, check_options
+from ..solvers.engine.block_exact import ascend_with_exact_block
 from .outcome import attack_result, attack_stat
 
 

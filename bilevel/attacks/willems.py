@@ -12,8 +12,8 @@ from ..defaults import param
 from ..errors import ModelError
 from ..problems.willems_instance import WillemsAttack
 from ..result import BilevelResult
-from ..solvers.base import check_options
-from ..solvers.box_methods import destabilize, random_signs
+from ..solvers.engine.prepared import check_options
+from .willems_methods import destabilize, random_signs
 from ..threads import single_threaded_call
 from .outcome import attack_result
 

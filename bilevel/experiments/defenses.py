@@ -14,7 +14,7 @@ Identification (flexible transmission, "ss" data, T samples; least squares, Hube
 performance is the error ||[A B] - [A B]_true||_F. DeePC (flexible transmission, T samples, horizon DEEPC_HORIZON;
 lambda_g swept): budgets eps on both signals (relative l2), the attack `solve(deepc-tracking, starts=1)`, judged by
 the learner re-solved by cvxpy; the performance is the true plant's tracking cost of the plan.
-delta* per data set comes from the package's budget search (bilevel.solvers.budget_search: an increasing path, then
+delta* per data set comes from the package's budget search (bilevel.attacks.budget_search: an increasing path, then
 bisection); a setting's margin is the median of delta* over data sets (half of the data sets destabilized), with its
 order-statistic interval; the clean cost's mean has a t interval. One resumable sweep task per data set and setting.
 """
@@ -39,8 +39,8 @@ from ..problems.deepc_instance import attack_instance as deepc_instance  # noqa:
 from ..problems.defended_vrft import declare, defended_instance, model_reference_cost  # noqa: E402
 from ..problems.willems import build_attack  # noqa: E402
 from ..problems.willems_instance import WillemsAttack, WillemsSetting, criterion_values  # noqa: E402
-from ..solvers.budget_search import smallest_budget  # noqa: E402
-from ..solvers.block_exact import SINGULAR_LEARNER  # noqa: E402
+from ..attacks.budget_search import smallest_budget  # noqa: E402
+from ..solvers.engine.block_exact import SINGULAR_LEARNER  # noqa: E402
 from ..solvers.registry import solve  # noqa: E402
 from .defenses_detection import FAMILIES, run_detection  # noqa: E402
 from .executor import open_executor  # noqa: E402

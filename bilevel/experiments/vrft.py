@@ -98,7 +98,7 @@ def same_attack(task: dict[str, Any]) -> str:
 
 def same_data(task: dict[str, Any]) -> tuple:
     """A value shared by the tasks that attack one data set (run_sweep's `together`): run in one worker, they reuse
-    its data and the conditioning starts it keeps (bilevel.solvers.starts, by data and output budget)."""
+    its data and the conditioning starts it keeps (bilevel.solvers.engine.starts, by data and output budget)."""
     return task["convention"], task["scenario"], task.get("N", N_SAMPLES), task["seed"]
 
 

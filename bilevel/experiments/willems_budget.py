@@ -20,7 +20,7 @@ from ..errors import ModelError  # noqa: E402
 from ..files import atomic_open, atomic_path, write_rows_csv  # noqa: E402
 from ..problems.willems import build_attack  # noqa: E402
 from ..problems.willems_instance import WillemsSetting  # noqa: E402
-from ..solvers.budget_search import BudgetSearch, smallest_budget  # noqa: E402
+from ..attacks.budget_search import BudgetSearch, smallest_budget  # noqa: E402
 from .executor import open_executor  # noqa: E402
 from .sweep import NUMBER, check_fields, committed_timings, run_sweep, stderr_progress  # noqa: E402
 from .willems import sim_seeds  # noqa: E402
@@ -35,7 +35,7 @@ session-1 sweep's selection, kept for reruns of it, not a learner a user would p
 
 def smallest_destabilizing_budget(setting: WillemsSetting, path: tuple[float, ...] = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0),
                                   rel_tol: float = 0.05, **options: Any) -> BudgetSearch:
-    """delta_u* of one data set: the framework's budget search (bilevel.solvers.budget_search) with destabilize_attack
+    """delta_u* of one data set: the framework's budget search (bilevel.attacks.budget_search) with destabilize_attack
     (options passed on) as the attack and an unstable true loop (spectral radius >= 1) as the goal."""
     if setting.poison != "u":
         raise ModelError(f"smallest_destabilizing_budget searches delta_u with input poisoning; got poison="

@@ -8,7 +8,7 @@ R its filter bank) and ARX identification (T a slice of the outputs, R the lagge
 
 Solved by a thin QR of C = C0 + R(b); the implicit derivative of theta* by the adjoints of T and R; and for fixed b
 the target block in closed form: theta*(B v, b) = theta_c + S v with ||B v|| = ||v||, so an upper objective quadratic
-in theta over a ball on a is a trust-region subproblem in v of dimension k (bilevel.solvers.affine_ls).
+in theta over a ball on a is a trust-region subproblem in v of dimension k (bilevel.solvers.engine.affine_ls).
 """
 
 from __future__ import annotations

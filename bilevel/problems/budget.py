@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import ModelError
 from ..real_data import real_number
-from ..solvers.projections import NormBall, Projection, SparseNormBall
+from ..solvers.engine.projections import NormBall, Projection, SparseNormBall
 
 Norm = Literal["l2", "linf", "l1"]
 _ORDER = {"l2": 2, "linf": np.inf, "l1": 1}

@@ -29,7 +29,7 @@ from ..ddc.plants import flexible_transmission
 from ..ddc.systems import num_den
 from ..errors import InvalidData, ModelError, NotPersistentlyExciting
 from ..real_data import integer, real_array, real_number
-from ..solvers.options import check_common_options
+from ..solvers.engine.options import check_common_options
 from .budget import Budget
 
 Norm = Literal["l2", "linf"]

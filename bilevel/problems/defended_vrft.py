@@ -31,7 +31,7 @@ from ..ddc.operators import LTIOperator
 from ..ddc.vrft import instrumental_variables
 from ..errors import InvalidData, ModelError
 from ..model import BilevelProblem
-from ..solvers.options import check_flags
+from ..solvers.engine.options import check_flags
 from .budget import Budget
 from .registry import register
 from .vrft import filtered

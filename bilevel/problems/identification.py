@@ -32,10 +32,10 @@ from ..errors import ModelError
 from ..kept import kept
 from ..model import BilevelProblem
 from ..numeric_node import numeric_node
-from ..solvers.base import prepare
-from ..solvers.implicit import shared_oracle
-from ..solvers.restoration import restore
-from ..solvers.starts import conditioning_start
+from ..solvers.engine.prepared import prepare
+from ..solvers.engine.implicit import shared_oracle
+from ..solvers.engine.restoration import restore
+from ..solvers.engine.starts import conditioning_start
 from .identification_instance import IdentificationAttack, Objective, StealthKind, arx_regression, attack_instance, \
     least_squares_fit, ss_regression
 from .registry import register
@@ -66,7 +66,8 @@ def statistics_functions(n: int, k: int, N: int, keep: tuple[int, ...], noise_st
     CasADi Function of (Y, Z, theta, theta_r) per statistic (in the order of STATISTICS), each kept a call node in the
     expressions that call it (never inlined): the compiled constraints and their derivatives evaluate the residuals
     and statistics as matrix operations of one MX graph, not as their expansion into scalar operations, and a
-    constraint's derivative runs the adjoint of its own statistic only (bilevel.solvers.implicit.row_jacobian)."""
+    constraint's derivative runs the adjoint of its own statistic only
+    (bilevel.solvers.engine.implicit.row_jacobian)."""
     Y, Z = ca.MX.sym("Y", n, N), ca.MX.sym("Z", k, N)
     theta, theta_r = ca.MX.sym("theta", n, k), ca.MX.sym("theta_restricted", n, len(keep))
     E, E_r = Y - ca.mtimes(theta, Z), Y - ca.mtimes(theta_r, Z[list(keep), :])
@@ -191,10 +192,10 @@ every attack, where IPOPT stopped at once."""
 
 
 def stealth_start(problem: BilevelProblem) -> np.ndarray:
-    """The engine's conditioning start (bilevel.solvers.starts) of the loaded problem, scaled by the largest 2^-k from
-    which it is restored onto the upper feasible set (bilevel.solvers.restoration: the budgets, and each statistic
-    within delta of its clean value, up to defaults["solvers.feasibility_tol"]; zero if from none), judged by the
-    engine's own evaluation of the declared statistics. At its full budget the conditioning start breaks the stealth
+    """The engine's conditioning start (bilevel.solvers.engine.starts) of the loaded problem, scaled by the largest 2^-k
+    from which it is restored onto the upper feasible set (bilevel.solvers.engine.restoration: the budgets, and each
+    statistic within delta of its clean value, up to defaults["solvers.feasibility_tol"]; zero if from none), judged by
+    the engine's own evaluation of the declared statistics. At its full budget the conditioning start breaks the stealth
     constraints, and scaled into them alone it is far from the attack, which spends the budget: restored from the
     largest scale, IPOPT starts near the attack and needs fewer iterations. Never the clean data (a stationary point,
     the attack's worst) unless no scale down to 2^-STEALTH_HALVINGS is restored."""

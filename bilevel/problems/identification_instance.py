@@ -33,7 +33,7 @@ from ..ddc.stealth_statistics import StealthStatistics, authors_lags
 from ..ddc.systems import num_den
 from ..errors import InvalidData, ModelError, RankDeficientRegressor
 from ..real_data import integer, real_array, real_number
-from ..solvers.options import check_common_options
+from ..solvers.engine.options import check_common_options
 
 Learner = Literal["ss", "arx"]
 Objective = Literal["frobenius", "spectral", "h2", "ce-lqr"]

@@ -32,9 +32,9 @@ from ..files import atomic_path
 from ..kept import kept
 from ..lower.affine_least_squares import AffineLeastSquares, AffineMaps
 from ..result import BilevelResult
-from ..solvers.affine_ls import UpperObjective
-from ..solvers.projections import Blocks, Projection
-from ..solvers.options import check_common_options
+from ..solvers.engine.affine_ls import UpperObjective
+from ..solvers.engine.projections import Blocks, Projection
+from ..solvers.engine.options import check_common_options
 from .budget import Budget
 
 Objective = Literal["maxmin", "targeted", "destabilize"]

@@ -30,9 +30,9 @@ from ..errors import InvalidData, ModelError
 from ..kept import kept
 from ..model import BilevelProblem
 from ..result import BilevelResult
-from ..solvers.base import prepare
-from ..solvers.implicit import Hypergradient, shared_oracle
-from ..solvers.options import check_common_options, check_counts, check_flags, check_numbers
+from ..solvers.engine.prepared import prepare
+from ..solvers.engine.implicit import Hypergradient, shared_oracle
+from ..solvers.engine.options import check_common_options, check_counts, check_flags, check_numbers
 
 DESIGNS = ("lqr", "lqr-r", "stabilizing")
 POISONS = ("u", "x", "xu")

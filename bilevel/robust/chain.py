@@ -1,6 +1,6 @@
 """certify: a family's mechanisms, cheapest first, until one proves or refutes at a budget; certified_margin: the
 largest budget proven safe (bisection with certificates) next to the smallest budget the project's attack reaches
-(bilevel.solvers.budget_search)."""
+(bilevel.attacks.budget_search)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Any, Sequence
 
 from ..defaults import param
 from ..errors import ModelError
-from ..solvers.budget_search import smallest_budget
+from ..attacks.budget_search import smallest_budget
 from ..threads import single_threaded
 from .target import Target, as_target, mechanisms_of
 from .verdict import Evidence, Margin, Proof, RobustnessCertificate, proof_of

@@ -3,7 +3,7 @@
 phi(x) = F(x, y*(x)) + penalty * (upper violation), from the implicit-differentiation engine (exact lower solves,
 the minimum-norm selection of a non-unique SDP solution), is minimized over the declared upper box by scipy's
 differential evolution (best1bin, Storn & Price 1997), the seeded population holding the multistart points
-(bilevel.solvers.starts) and uniform points of the box; a point where the lower level cannot be solved scores
+(bilevel.solvers.engine.starts) and uniform points of the box; a point where the lower level cannot be solved scores
 UNSOLVED; where the lower level ignores x (solved once) the population is scored by one mapped sweep per
 generation. Only a box is searched, so every upper variable needs finite bounds. With polish (default) the engine's
 projected descent (bilevel.solvers.hypergradient.descend) runs from the best member and its verdict is the run's;
@@ -29,12 +29,12 @@ from ..defaults import param
 from ..errors import BilevelError, ModelError
 from ..reduction import KKTPoint
 from ..result import Status
-from .base import MethodRun, Prepared, check_options
+from .engine.prepared import MethodRun, Prepared, check_options
 from .hypergradient import Arc, Descent, descend, intermediate
-from .implicit import shared_oracle
-from .limits import GOAL_STOP, Deadline, progress
-from .options import check_counts
-from .starts import start_points
+from .engine.implicit import shared_oracle
+from .engine.limits import GOAL_STOP, Deadline, progress
+from .engine.options import check_counts
+from .engine.starts import start_points
 
 UNSOLVED = 1e20
 """phi's stand-in where the lower level cannot be solved (differential evolution ranks finite values only)."""

@@ -1,16 +1,16 @@
 """Method `hypergradient`: projected ascent on the reduced objective phi(x) = F(x, y*(x)), y*(x) solved exactly.
 
-phi and its gradient come from the implicit-differentiation engine (bilevel.solvers.implicit). Where the declared
+phi and its gradient come from the implicit-differentiation engine (bilevel.solvers.engine.implicit). Where the declared
 structure has an exact block (a ball of upper variables on which phi is a quadratic of the ball's vector,
-bilevel.solvers.block_exact), option exact_block="auto" (default) optimizes that block globally at every
-evaluation and the rest by the engine's spectral projected gradient loop (bilevel.solvers.ascent); exact_block=True
-requires such a block (method `block-exact`), exact_block=False never uses one.
+bilevel.solvers.engine.block_exact), option exact_block="auto" (default) optimizes that block globally at every
+evaluation and the rest by the engine's spectral projected gradient loop (bilevel.solvers.engine.ascent);
+exact_block=True requires such a block (method `block-exact`), exact_block=False never uses one.
 
-Otherwise, projected hypergradient descent: recognized balls (bilevel.solvers.structure) are projected on, other
-upper constraints penalized (bilevel.solvers.implicit); a point is reported feasible when max(G, 0) and |H|
+Otherwise, projected hypergradient descent: recognized balls (bilevel.solvers.engine.structure) are projected on, other
+upper constraints penalized (bilevel.solvers.engine.implicit); a point is reported feasible when max(G, 0) and |H|
 are <= 1e-6. The iteration is x+ = P(x - t grad phi), P the projection
 onto the option `projection` (see projections.py) intersected with the declared box, by the engine's loop
-(bilevel.solvers.ascent, on -phi): long Barzilai-Borwein trial steps and Armijo backtracking along the projection
+(bilevel.solvers.engine.ascent, on -phi): long Barzilai-Borwein trial steps and Armijo backtracking along the projection
 arc. A trial point at which the lower level is infeasible is moved to
 the nearest upper point (in the box) where it is feasible, found by IPOPT on
 min ||x - v||^2 s.t. g(x, y) <= 0, h(x, y) = 0, then projected again: with the default box projection
@@ -36,14 +36,14 @@ from ..errors import BilevelError, LowerLevelInfeasible, ModelError, RankDeficie
 from ..lower.nlp import ipopt_options
 from ..reduction import KKTPoint
 from ..result import Status
-from .base import MethodRun, Prepared, best_of, check_options
-from .implicit import Evaluation, Hypergradient, shared_oracle
-from .ascent import projected_ascent
-from .block_exact import SINGULAR_LEARNER, ExactBlock, ascend_with_exact_block, exact_block_of
-from .options import check_numbers
-from .limits import GOAL_STOP, Deadline, progress, stopped
-from .starts import start_points
-from .projections import Projection
+from .engine.prepared import MethodRun, Prepared, best_of, check_options
+from .engine.implicit import Evaluation, Hypergradient, shared_oracle
+from .engine.ascent import projected_ascent
+from .engine.block_exact import SINGULAR_LEARNER, ExactBlock, ascend_with_exact_block, exact_block_of
+from .engine.options import check_numbers
+from .engine.limits import GOAL_STOP, Deadline, progress, stopped
+from .engine.starts import start_points
+from .engine.projections import Projection
 
 
 SINGULAR_CAUSE = ("the learner's regressor is rank-deficient at the poisoning reached: the attack made the learner "
@@ -151,7 +151,7 @@ def _domain_stationary(arc: Arc, cur: Evaluation, grad: np.ndarray, tol: float) 
 
 def descend(arc: Arc, start: Evaluation, tol: float, ftol: float, max_iter: int, limit: Deadline | None = None,
             report: Callable[[dict[str, Any]], None] | None = None) -> Descent:
-    """The engine's spectral projected gradient loop (bilevel.solvers.ascent) on -phi along the arc, in x units:
+    """The engine's spectral projected gradient loop (bilevel.solvers.engine.ascent) on -phi along the arc, in x units:
     long Barzilai-Borwein steps, each trial point restored into the lower level's domain; stops when
     ||P(x - grad phi) - x|| <= tol or phi's relative decrease in one step is <= ftol, or at the deadline `limit`
     (MAX_ITERATIONS); report, if given, receives each iterate's record."""
@@ -245,8 +245,8 @@ def _projection(prep: Prepared, projection: Any) -> Projection:
     if projection is None:
         return prep.projection
     if not isinstance(projection, Projection):
-        raise ModelError(f"option projection must be a Projection from bilevel.solvers.projections (Box, NormBall, "
-                         f"SparseNormBall, Blocks), got {type(projection).__name__}")
+        raise ModelError(f"option projection must be a Projection from bilevel.solvers.engine.projections (Box, "
+                         f"NormBall, SparseNormBall, Blocks), got {type(projection).__name__}")
     proj = projection.with_box(canon.x_lb, canon.x_ub)
     if proj(canon.x_start).shape != canon.x_start.shape:
         raise ModelError(f"the projection maps the {canon.x_start.size} upper entries to a vector of another size")

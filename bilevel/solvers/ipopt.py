@@ -29,11 +29,11 @@ from ..lower.nlp import ipopt_options
 from ..mpcc import Branch, ComplementarityMode, NLPForm, Scholtes
 from ..reduction import KKTPoint
 from ..result import Status
-from .base import MethodRun, Prepared, best_of, check_options, unbounded_lower
+from .engine.prepared import MethodRun, Prepared, best_of, check_options, unbounded_lower
 from .hypergradient import chosen_exact_block, solve_hypergradient
-from .implicit import shared_oracle
-from .limits import Deadline, progress, stopped
-from .starts import start_points
+from .engine.implicit import shared_oracle
+from .engine.limits import Deadline, progress, stopped
+from .engine.starts import start_points
 
 IPOPT_STATUS: dict[str, Status] = {
     "Solve_Succeeded": Status.SOLVED,
@@ -49,7 +49,7 @@ IPOPT_STATUS: dict[str, Status] = {
 WARM = ("auto", None, "hypergradient")
 """Values of option `warm` of the KKT methods: start from method hypergradient's answer ("hypergradient"), from the
 start points (None), or "auto" (default): from hypergradient's answer where it has an exact block (a ball of upper
-variables optimized globally in closed form, bilevel.solvers.block_exact), else from the start points."""
+variables optimized globally in closed form, bilevel.solvers.engine.block_exact), else from the start points."""
 
 
 @dataclass

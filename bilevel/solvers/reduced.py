@@ -2,12 +2,12 @@
 
 Every upper constraint, including the rows that read the lower solution, stays a constraint of the NLP (method
 `hypergradient` only penalizes them). At each point IPOPT asks for, the lower level is solved by the engine's own
-exact solve (bilevel.solvers.implicit.Hypergradient.evaluate: closed form for least squares, the kind's solver and an
-active-set Newton polish for a QP), and the Jacobian of (F, G, H) along y*(x) comes from the engine's one adjoint solve
-(Hypergradient.jacobian). IPOPT runs through CasADi on a ca.Callback with that Jacobian and a limited-memory Hessian;
-a point where the lower level cannot be solved is NaN to IPOPT, which shortens its step there. A recognized budget
-ball also bounds IPOPT's steps by the box around it (the ball stays a constraint). Where IPOPT stops (max_iter, an
-error) off the feasible set, the start's answer is the best feasible point it evaluated, with IPOPT's status.
+exact solve (bilevel.solvers.engine.implicit.Hypergradient.evaluate: closed form for least squares, the kind's solver
+and an active-set Newton polish for a QP), and the Jacobian of (F, G, H) along y*(x) comes from the engine's one adjoint
+solve (Hypergradient.jacobian). IPOPT runs through CasADi on a ca.Callback with that Jacobian and a limited-memory
+Hessian; a point where the lower level cannot be solved is NaN to IPOPT, which shortens its step there. A recognized
+budget ball also bounds IPOPT's steps by the box around it (the ball stays a constraint). Where IPOPT stops (max_iter,
+an error) off the feasible set, the start's answer is the best feasible point it evaluated, with IPOPT's status.
 
 It needs a unique lower solution, so that y*(x) is a function: a least-squares lower level (positive definite
 Hessian; a singular one at some x is an error there) or a QP whose Hessian is positive definite at the start. Other
@@ -31,12 +31,12 @@ from ..lower.quadratic import QuadraticLower
 from ..reduction import KKTPoint
 from ..result import Status
 from ..defaults import param
-from .base import MethodRun, Prepared, best_of, check_options
-from .implicit import Evaluation, Hypergradient, shared_oracle
+from .engine.prepared import MethodRun, Prepared, best_of, check_options
+from .engine.implicit import Evaluation, Hypergradient, shared_oracle
 from .ipopt import IPOPT_STATUS, checked_ipopt, within
-from .limits import Deadline, progress, stopped
-from .options import check_numbers
-from .starts import start_points
+from .engine.limits import Deadline, progress, stopped
+from .engine.options import check_numbers
+from .engine.starts import start_points
 
 REDUCED_IPOPT = {"hessian_approximation": "limited-memory", "acceptable_tol": 1e-6, "theta_max_fact": 1.0,
                  "mumps_permuting_scaling": 0, "mumps_pivot_order": 0, "mumps_scaling": 0, "min_refinement_steps": 0}
@@ -215,8 +215,8 @@ def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, s
     """IPOPT on the reduced NLP over x (module docstring). An option left None takes the registry's value,
     defaults["reduced.NAME"] (active_tol: implicit.active_tol).
 
-    starts: start points (bilevel.solvers.starts; seed and scale for the random ones); nlp_tol and max_iter: IPOPT's
-    tol and max_iter per start; ipopt: further IPOPT options (a dict); active_tol: the lower level's active-set
+    starts: start points (bilevel.solvers.engine.starts; seed and scale for the random ones); nlp_tol and max_iter:
+    IPOPT's tol and max_iter per start; ipopt: further IPOPT options (a dict); active_tol: the lower level's active-set
     tolerance; the best feasible end point wins. At time_limit (seconds) IPOPT stops and the
     starts not begun are skipped (MAX_ITERATIONS); verbose prints one line per start."""
     check_options("reduced", unknown, solve_reduced)

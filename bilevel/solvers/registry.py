@@ -16,14 +16,14 @@ from ..errors import ModelError, did_you_mean
 from ..model import BilevelProblem
 from ..threads import single_threaded
 from ..result import BilevelResult, Status
-from .base import MethodRun, Prepared, finalize, options_of, prepare
+from .engine.prepared import MethodRun, Prepared, finalize, options_of, prepare
 from .evolution import solve_evolution
-from .global_form import linear_mpcc
-from .global_method import solve_global
-from .global_scip import scip_available
+from .globalopt.form import linear_mpcc
+from .globalopt.method import solve_global
+from .globalopt.scip import scip_available
 from .hypergradient import solve_block_exact, solve_hypergradient
 from .ipopt import solve_ipopt
-from .options import check_common_options
+from .engine.options import check_common_options
 from .reduced import solve_reduced
 from .relaxation import solve_relaxation
 
@@ -194,7 +194,7 @@ def solve(problem: BilevelProblem, method: str | Method = AUTO, certificate_tol:
         run = fn(prep, **options)
         if not isinstance(run, MethodRun):
             raise ModelError(f"method {name!r} returned {type(run).__name__}, not a MethodRun; a method must return "
-                             "bilevel.solvers.base.MethodRun(w, status, message) (w None when it has no point)")
+                             "bilevel.solvers.MethodRun(w, status, message) (w None when it has no point)")
         result = finalize(prep, run, name, time.perf_counter() - t0, certificate_tol)
     if not auto:
         return result

@@ -15,9 +15,9 @@ import numpy as np
 from ..defaults import param
 from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
-from .base import MethodRun, Prepared, best_of, check_options
+from .engine.prepared import MethodRun, Prepared, best_of, check_options
 from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish_best, residual, run_nlp, settled
-from .limits import Deadline, progress, stopped
+from .engine.limits import Deadline, progress, stopped
 
 SCHEMES: dict[str, type[ComplementarityMode]] = {
     "scholtes": Scholtes,

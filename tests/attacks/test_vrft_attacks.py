@@ -15,16 +15,16 @@ from hypothesis import strategies as st
 import bilevel as bl
 from bilevel.problems.budget import Budget
 from bilevel.result import BilevelResult
-from bilevel.solvers.trust_region import maximize_quadratic_on_ball
+from bilevel.solvers.engine.trust_region import maximize_quadratic_on_ball
 from bilevel.ddc.loop import arx_orders_for
 from bilevel.problems.vrft_instance import CONVENTIONS, PAPER_THETA0, VRFTAttack, VRFTSetting, attack_instance
 from bilevel.attacks.outcome import unstable
 from bilevel.attacks.vrft_methods import (attack_alternating, attack_budget_path, attack_joint, attack_value,
                                          attack_white_noise)
 from bilevel.experiments.vrft import attack_summary
-from bilevel.solvers.affine_ls import TargetBlock
-from bilevel.solvers.ascent import projected_ascent
-from bilevel.solvers.projections import NormBall
+from bilevel.solvers.engine.affine_ls import TargetBlock
+from bilevel.solvers.engine.ascent import projected_ascent
+from bilevel.solvers.engine.projections import NormBall
 from bilevel.ddc import pid_basis, simulate, white_noise
 from bilevel.ddc.vrft import fit_vrft
 from bilevel.errors import ModelError, RankDeficientRegressor
@@ -288,7 +288,7 @@ def test_attack_results_carry_a_learner_certificate(objective: str) -> None:
     independent re-solve agree to round-off; a theta off by 1e-4, given to the same finalize, fails both checks."""
     from bilevel.problems.vrft import problem_for
     from bilevel.reduction import KKTPoint
-    from bilevel.solvers.base import MethodRun
+    from bilevel.solvers.engine.prepared import MethodRun
 
     atk = attack_instance(objective, "B", 0.1, 0.057, seed=0, N=256)
     res = (attack_joint if objective == "destabilize" else attack_alternating)(atk)
@@ -425,10 +425,10 @@ def test_filters_declared_as_operators_are_the_same_problem(convention: str) -> 
 def test_conditioning_start_from_the_oracles_filters_is_the_declared_problems(convention: str) -> None:
     """The engine's conditioning start evaluated with the VRFT oracle's Hessian and adjoint (numpy filters) is the one
     it computes from the declaration (measured: equal to 1.6e-11 relative at N = 512)."""
-    from bilevel.solvers.affine_ls import Oracle
+    from bilevel.solvers.engine.affine_ls import Oracle
     from bilevel.problems.vrft import problem_for
-    from bilevel.solvers.base import prepare
-    from bilevel.solvers.starts import conditioning_start
+    from bilevel.solvers.engine.prepared import prepare
+    from bilevel.solvers.engine.starts import conditioning_start
 
     atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=2, N=128, convention=convention)
     prep = prepare(problem_for(atk))
@@ -442,10 +442,10 @@ def test_keyed_conditioning_start_is_shared_by_the_input_budgets_and_objectives(
     """The VRFT oracle keys its conditioning start by the clean regressor, the filters and the output budget: the
     start of one input budget and objective, kept by key, is the one computed afresh for another; another output budget
     or data set has another key."""
-    from bilevel.solvers import starts
-    from bilevel.solvers.affine_ls import Oracle
+    from bilevel.solvers.engine import starts
+    from bilevel.solvers.engine.affine_ls import Oracle
     from bilevel.problems.vrft import problem_for
-    from bilevel.solvers.base import prepare
+    from bilevel.solvers.engine.prepared import prepare
 
     first = attack_instance("maxmin", "B", 0.0, 0.037, seed=2, N=128)
     other = attack_instance("targeted", "B", 0.2, 0.037, seed=2, N=128)

@@ -12,8 +12,8 @@ from bilevel.ddc.vrft import fit_vrft
 from bilevel.problems.budget import Budget
 from bilevel.problems.vrft import problem_for
 from bilevel.problems.vrft_instance import VRFTAttack, attack_instance
-from bilevel.solvers.base import prepare
-from bilevel.solvers.probe import improving_neighbour
+from bilevel.solvers.engine.prepared import prepare
+from bilevel.solvers.verdict.probe import improving_neighbour
 
 KINDS = [("alternating", "maxmin"), ("alternating", "targeted"), ("joint", "maxmin"), ("joint", "targeted"),
          ("joint", "destabilize"), ("white-noise", "maxmin"), ("white-noise", "targeted"),
@@ -107,7 +107,7 @@ def test_probe_by_the_learners_solve_agrees_with_the_lower_levels() -> None:
 def test_probe_points_in_one_mapped_call_equal_one_call_each() -> None:
     """The probe's F, G, H at all its points in one call of the problem's mapped functions: each point's upper
     objective is the one a call at that point alone gives, bit for bit, and a point outside the budget is None."""
-    from bilevel.solvers.probe import _feasible_objective, _structured_objectives
+    from bilevel.solvers.verdict.probe import _feasible_objective, _structured_objectives
 
     atk = attack_instance("maxmin", "B", 0.1, 0.057, seed=2, N=128)
     prep = prepare(problem_for(atk))

@@ -1,7 +1,7 @@
-"""The affine least-squares kind (bilevel.lower.affine_least_squares) and its ascent pieces (bilevel.solvers.affine_ls)
-on a learner that is not VRFT: FIR identification y_t = sum_j w_j u_{t-j}, the outputs poisoned by a (the target)
-and the inputs by b (the regressor, a Toeplitz matrix of the lagged inputs), checked against numpy's lstsq, central
-differences and a brute-force search of the target ball."""
+"""The affine least-squares kind (bilevel.lower.affine_least_squares) and its ascent pieces
+(bilevel.solvers.engine.affine_ls) on a learner that is not VRFT: FIR identification y_t = sum_j w_j u_{t-j}, the
+outputs poisoned by a (the target) and the inputs by b (the regressor, a Toeplitz matrix of the lagged inputs), checked
+against numpy's lstsq, central differences and a brute-force search of the target ball."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import scipy.linalg
 
 from bilevel.errors import RankDeficientRegressor
 from bilevel.lower.affine_least_squares import AffineLeastSquares, AffineMaps
-from bilevel.solvers.affine_ls import Oracle, TargetBlock, UpperObjective
+from bilevel.solvers.engine.affine_ls import Oracle, TargetBlock, UpperObjective
 
 T, K = 60, 4
 

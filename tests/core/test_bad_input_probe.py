@@ -25,7 +25,7 @@ from bilevel.experiments.willems import willems_row
 from bilevel.problems import registry
 from bilevel.problems.willems import build_attack
 from bilevel.problems.willems_instance import WillemsSetting
-from bilevel.solvers.base import MethodRun
+from bilevel.solvers.engine.prepared import MethodRun
 from bilevel.solvers.registry import METHODS
 from tests.conftest import bard_511, projection_qp
 

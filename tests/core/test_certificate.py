@@ -10,7 +10,7 @@ import pytest
 
 import bilevel as bl
 from bilevel.certificate import certify_point
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 from tests.conftest import bard_511, projection_qp
 
 

@@ -21,7 +21,7 @@ from bilevel.lower.convexity import proven_convex
 from bilevel.lower.interval import enclose
 from bilevel.lower.quadratic import QPData, clarabel_solution
 from bilevel.reduction import KKTPoint
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 
 METHODS = ("ipopt", "relaxation", "hypergradient", "global", "differential-evolution")
 DE_OPTIONS = {"popsize": 6, "max_iter": 30}

@@ -13,8 +13,8 @@ from bilevel.defaults import ENTRIES, param
 from bilevel.errors import ModelError, UnknownOption
 from bilevel.attacks.vrft_methods import METHODS as VRFT_METHODS
 from bilevel.attacks.willems import de_attack, destabilize_attack, hypergradient_attack
-from bilevel.solvers.base import options_of
-from bilevel.solvers.box_methods import destabilize, random_signs
+from bilevel.solvers.engine.prepared import options_of
+from bilevel.attacks.willems_methods import destabilize, random_signs
 from tests.docs_pages import run_page
 
 

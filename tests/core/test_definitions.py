@@ -15,7 +15,7 @@ from bilevel.errors import InvalidData, ModelError
 from bilevel.mpcc import Scholtes
 from bilevel.problems import registry
 from bilevel.problems.vrft import difference_equation, sx_filter
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 
 A = np.array([[1.0, 1.0], [1.0, -2.0]])
 C = np.array([1.0, 3.0])

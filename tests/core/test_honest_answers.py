@@ -20,7 +20,7 @@ from bilevel.certificate import certify_point
 from bilevel.errors import InvalidData, ModelError, NonConvexLowerLevel
 from bilevel.mpcc import psd_factor
 from bilevel.result import BilevelResult
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 from bilevel.vech import lower_triangular
 from tests.conftest import bard_511
 

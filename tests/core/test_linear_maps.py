@@ -21,8 +21,8 @@ from bilevel.lower.images import ImageLower
 from bilevel.lower.least_squares import factor_solve, hessian_factor
 from bilevel.lower.least_squares import sum_of_squares
 from bilevel.lower.residual import ResidualLeastSquares
-from bilevel.solvers.base import prepare
-from bilevel.solvers.implicit import Hypergradient
+from bilevel.solvers.engine.prepared import prepare
+from bilevel.solvers.engine.implicit import Hypergradient
 
 
 def _vrft(seed: int, N: int, wrap=None) -> bl.BilevelProblem:

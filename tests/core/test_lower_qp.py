@@ -13,9 +13,9 @@ from bilevel import BilevelProblem
 from bilevel.defaults import defaults
 from bilevel.errors import InvalidData, ModelError, RankDeficientRegressor
 from bilevel.lower.matrix import MatrixLower
-from bilevel.solvers.base import prepare
-from bilevel.solvers.block_exact import exact_block_of
-from bilevel.solvers.implicit import hypergradient
+from bilevel.solvers.engine.prepared import prepare
+from bilevel.solvers.engine.block_exact import exact_block_of
+from bilevel.solvers.engine.implicit import hypergradient
 
 RNG = np.random.default_rng(1)
 M_LS, N_LS = 30, 8
@@ -209,8 +209,8 @@ def test_lower_qp_is_the_whole_lower_level():
 def test_least_squares_adjoint_on_a_singular_hessian_is_a_failing_point() -> None:
     """Where the Hessian handed to the implicit-derivative solve is singular (a learner the attacker made
     rank-deficient, which rounding decides near the edge), the least-squares kind raises RankDeficientRegressor, which
-    the methods take as a trial point that fails (bilevel.solvers.ascent); a positive definite one is solved in full
-    rank."""
+    the methods take as a trial point that fails (bilevel.solvers.engine.ascent); a positive definite one is solved in
+    full rank."""
     p = BilevelProblem("ls-adjoint")
     x = p.upper_variable("x", lb=-1, ub=1)
     y = p.lower_variable("y", 2)

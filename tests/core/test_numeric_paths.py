@@ -13,7 +13,7 @@ from bilevel.lower.convexity import min_eigenvalue, require_psd
 from bilevel.lower.quadratic import QPData, clarabel_direct, clarabel_solution
 from bilevel.model import check_constants
 from bilevel.parameters import ParameterSet, ValueAndJacobian
-from bilevel.solvers.ascent import batched_box_ascent
+from bilevel.solvers.engine.ascent import batched_box_ascent
 from bilevel.spectral_radius import radius, spectral_radius
 
 

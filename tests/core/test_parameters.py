@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 import bilevel as bl
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 
 
 def _projection_qp(target: ca.SX | np.ndarray, rhs: ca.SX | float, p: bl.BilevelProblem | None = None

@@ -11,7 +11,7 @@ from bilevel.errors import NonConvexLowerLevel
 from bilevel.lower import LinearLower, QuadraticLower
 from bilevel.lower.matrix import MatrixLower
 from bilevel.problems.rhs_lp import rhs_lp, rhs_lp_data
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 
 M, N, DELTA = 300, 30, 0.2
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import bilevel as bl
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 from tests.conftest import bard_511, projection_qp
 
 

@@ -109,7 +109,7 @@ def test_custom_callable_method_plugs_in() -> None:
 
     def fixed_point(x):
         def method(prep, **_):
-            from bilevel.solvers.base import MethodRun
+            from bilevel.solvers.engine.prepared import MethodRun
             return MethodRun(prep.pack(prep.lower_point(np.asarray(x, dtype=float))), bl.Status.SOLVED, "fixed point")
         return method
 

@@ -56,7 +56,7 @@ def test_nlp_derivatives_match_casadis_for_every_transcription(which: str) -> No
     """The relaxed and the branch NLP of an MPCC (one with PSD factors as auxiliary variables) share the derivatives
     of f and the common rows; each one's jac_g and hess_lag equal CasADi's at random points."""
     from bilevel.mpcc import Branch, Scholtes
-    from bilevel.solvers.base import prepare
+    from bilevel.solvers.engine.prepared import prepare
 
     if which == "bard":
         from tests.conftest import bard_511 as build

@@ -15,7 +15,7 @@ import bilevel.toeplitz as toeplitz
 from bilevel.linear_maps import Operator
 from bilevel.lower.images import ImageLower
 from bilevel.problems.vrft_instance import attack_instance
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 from bilevel.toeplitz import ToeplitzBank, toeplitz_split
 
 from .test_linear_maps import _phi_and_gradient, _vrft

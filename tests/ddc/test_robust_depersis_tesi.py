@@ -11,8 +11,8 @@ from bilevel.ddc.robust_depersis_tesi import (CERTIFIED, INFEASIBLE, UNBOUNDED, 
 from bilevel.errors import InvalidData
 from bilevel.problems import registry
 from bilevel.problems.willems_instance import WillemsSetting, criterion_values
-from bilevel.solvers.implicit import shared_oracle
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.implicit import shared_oracle
+from bilevel.solvers.engine.prepared import prepare
 
 DESIGN = 0.05
 

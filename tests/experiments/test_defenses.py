@@ -132,7 +132,7 @@ def test_vrft_radius_reads_a_singular_learner_from_the_result(monkeypatch):
 
     from bilevel.experiments import defenses
     from bilevel.problems.defended_vrft import defended_instance
-    from bilevel.solvers.block_exact import SINGULAR_LEARNER
+    from bilevel.solvers.engine.block_exact import SINGULAR_LEARNER
 
     d = defended_instance("iv", "destabilize", 0.0, "B", 0.02, 0.02, 0, 128)
     clean = d.atk.setting.loop.spectral_radius(d.theta_clean)

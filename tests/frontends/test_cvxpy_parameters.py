@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import bilevel as bl
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 
 
 def data(seed: int) -> tuple[np.ndarray, ...]:

@@ -12,7 +12,7 @@ import pytest
 
 import bilevel as bl
 from bilevel.lower.quadratic import solve_clarabel
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 
 
 def multi_soc(a: cp.Parameter) -> tuple[cp.Problem, list[cp.Variable]]:

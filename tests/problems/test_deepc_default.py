@@ -2,7 +2,7 @@
 sixth of eight, 128 iterations through ill-conditioned steps) ends at 165.442 under one kernel and at 157.819, another
 genuine local solution, under Haswell and Sandybridge: no choice among the starts can undo that. What the kernel must
 not decide is the choice among starts that reach the same local solution (their objectives differ in the last bits):
-the first of those wins (bilevel.solvers.base.best_of). Run this file under OPENBLAS_CORETYPE=Haswell and
+the first of those wins (bilevel.solvers.engine.prepared.best_of). Run this file under OPENBLAS_CORETYPE=Haswell and
 =Sandybridge too."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 
 from bilevel.problems import registry
 from bilevel.problems.deepc_instance import attack_instance
-from bilevel.solvers.base import best_of
+from bilevel.solvers.engine.prepared import best_of
 from tests.problems.test_deepc import own_deepc, true_cost
 
 LOCAL_SOLUTIONS = (165.44179608822, 157.81893177315)

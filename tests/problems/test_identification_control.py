@@ -14,8 +14,8 @@ from bilevel.errors import ModelError
 from bilevel.problems import registry
 from bilevel.problems.identification import declare
 from bilevel.problems.identification_instance import attack_instance
-from bilevel.solvers.base import prepare
-from bilevel.solvers.implicit import hypergradient
+from bilevel.solvers.engine.prepared import prepare
+from bilevel.solvers.engine.implicit import hypergradient
 
 Q_WEIGHT, R_WEIGHT = 1.0, 0.5
 

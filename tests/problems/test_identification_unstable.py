@@ -10,8 +10,8 @@ import pytest
 
 from bilevel.problems.identification import declare
 from bilevel.problems.identification_instance import IdentificationAttack, IdentificationSetting
-from bilevel.solvers.base import prepare
-from bilevel.solvers.probe import improving_neighbour
+from bilevel.solvers.engine.prepared import prepare
+from bilevel.solvers.verdict.probe import improving_neighbour
 from tests.problems.test_identification_experiment import own_statistics
 
 DELTA = 0.05

@@ -15,7 +15,7 @@ from bilevel.problems import registry
 from bilevel.problems.defended_vrft import defended_instance
 from bilevel.reduction import KKTPoint
 from bilevel.result import Status
-from bilevel.solvers.base import MethodRun, prepare
+from bilevel.solvers.engine.prepared import MethodRun, prepare
 
 
 def numpy_radius(seed: int, x: dict[str, np.ndarray]) -> float:

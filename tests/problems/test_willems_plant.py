@@ -19,8 +19,8 @@ from bilevel.errors import InvalidData, ModelError, NotPersistentlyExciting
 from bilevel.problems import registry
 from bilevel.problems.willems import build_attack
 from bilevel.problems.willems_instance import WillemsSetting
-from bilevel.solvers.base import prepare
-from bilevel.solvers.implicit import Hypergradient
+from bilevel.solvers.engine.prepared import prepare
+from bilevel.solvers.engine.implicit import Hypergradient
 
 PITCH = control.ss([[-0.313, 56.7, 0.0], [-0.0139, -0.426, 0.0], [0.0, 56.7, 0.0]], [[0.232], [0.0203], [0.0]],
                    np.eye(3), np.zeros((3, 1)))

@@ -1,4 +1,5 @@
-"""The one projected ascent loop (bilevel.solvers.ascent) on a box: both Barzilai-Borwein rules and the stop hook."""
+"""The one projected ascent loop (bilevel.solvers.engine.ascent) on a box: both Barzilai-Borwein rules and the stop
+hook."""
 
 from __future__ import annotations
 
@@ -7,8 +8,8 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from bilevel.solvers.ascent import budget_direction, projected_ascent
-from bilevel.solvers.projections import Box
+from bilevel.solvers.engine.ascent import budget_direction, projected_ascent
+from bilevel.solvers.engine.projections import Box
 
 
 def _separable(c: np.ndarray, mu: np.ndarray):

@@ -11,11 +11,11 @@ from bilevel.problems.vrft_instance import attack_instance
 from bilevel.attacks.vrft_methods import attack_alternating
 from bilevel.errors import ModelError
 from bilevel.problems import registry
-from bilevel.solvers.base import prepare
-from bilevel.solvers.block_exact import SINGULAR_LEARNER, find_exact_block
-from bilevel.solvers.implicit import shared_oracle
-from bilevel.solvers.structure import find_balls
-from bilevel.solvers.trust_region import maximize_quadratic_on_ball
+from bilevel.solvers.engine.prepared import prepare
+from bilevel.solvers.engine.block_exact import SINGULAR_LEARNER, find_exact_block
+from bilevel.solvers.engine.implicit import shared_oracle
+from bilevel.solvers.engine.structure import find_balls
+from bilevel.solvers.engine.trust_region import maximize_quadratic_on_ball
 
 
 def test_balls_are_read_from_squared_norm_constraints() -> None:

@@ -1,4 +1,4 @@
-"""The budget search (bilevel.solvers.budget_search): path, then bisection, on monotone goals with a known threshold."""
+"""The budget search (bilevel.attacks.budget_search): path, then bisection, on monotone goals with a known threshold."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from bilevel.errors import ModelError
-from bilevel.solvers.budget_search import smallest_budget
+from bilevel.attacks.budget_search import smallest_budget
 
 
 @settings(max_examples=60, deadline=None)

@@ -65,8 +65,8 @@ def test_population_sweep_equals_pointwise_phi_where_the_lower_level_ignores_x()
     """willems-eigen with input poisoning (the SDP does not see Du, solved once): the mapped sweep of a population
     gives the engine's pointwise phi to 1e-12 relative; a lower level that depends on x is refused."""
     from bilevel.problems.willems import build_attack
-    from bilevel.solvers.base import prepare
-    from bilevel.solvers.implicit import Hypergradient
+    from bilevel.solvers.engine.prepared import prepare
+    from bilevel.solvers.engine.implicit import Hypergradient
 
     attack = build_attack(objective="eigen", horizon=15, seed=0, delta_u=0.6)
     oracle = Hypergradient(prepare(attack.problem))

@@ -16,12 +16,12 @@ import bilevel as bl
 from bilevel.experiments.compare import relative_gap
 from bilevel.problems import registry
 from bilevel.problems.random_linear import build_linear_bilevel, random_linear_data
-from bilevel.solvers import global_method
-from bilevel.solvers.base import prepare
-from bilevel.solvers.global_bigm import BigM, derive_big_m
-from bilevel.solvers.global_form import linear_mpcc
-from bilevel.solvers.global_milp import solve_milp
-from bilevel.solvers.global_nodes import Relaxation
+from bilevel.solvers.globalopt import method as global_method
+from bilevel.solvers.engine.prepared import prepare
+from bilevel.solvers.globalopt.bigm import BigM, derive_big_m
+from bilevel.solvers.globalopt.form import linear_mpcc
+from bilevel.solvers.globalopt.milp import solve_milp
+from bilevel.solvers.globalopt.nodes import Relaxation
 
 from .active_sets import active_set_optimum
 

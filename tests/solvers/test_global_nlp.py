@@ -24,7 +24,7 @@ from scipy.optimize import minimize_scalar
 import bilevel as bl
 from bilevel.problems import registry
 from bilevel.problems.random_convex import ConvexData, build_convex_bilevel, random_convex_data
-from bilevel.solvers import global_scip
+from bilevel.solvers.globalopt import scip as global_scip
 
 from ..problems.bruteforce import BruteForce, search
 from .test_global_scip import GAP, _check_proven

@@ -29,7 +29,7 @@ import bilevel as bl
 from bilevel.experiments.compare import relative_gap
 from bilevel.problems import registry
 from bilevel.problems.random_bilinear import BilinearData, build_bilinear_bilevel, random_bilinear_data
-from bilevel.solvers import global_method, global_scip
+from bilevel.solvers.globalopt import method as global_method, scip as global_scip
 
 pytest.importorskip("pyscipopt")
 

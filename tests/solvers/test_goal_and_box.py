@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import bilevel as bl
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 
 from .test_evolution import _wavy
 

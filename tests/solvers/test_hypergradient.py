@@ -11,10 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import bilevel as bl
-from bilevel.solvers.base import prepare
-from bilevel.solvers.block_exact import SINGULAR_LEARNER
-from bilevel.solvers.implicit import Hypergradient, hypergradient, row_jacobian
-from bilevel.solvers.projections import NormBall
+from bilevel.solvers.engine.prepared import prepare
+from bilevel.solvers.engine.block_exact import SINGULAR_LEARNER
+from bilevel.solvers.engine.implicit import Hypergradient, hypergradient, row_jacobian
+from bilevel.solvers.engine.projections import NormBall
 
 FD_STEP = 1e-5
 
@@ -272,7 +272,7 @@ def test_a_start_where_the_learner_is_singular_fails_with_its_cause() -> None:
 def test_the_declared_conditioning_start_is_kept_for_a_re_solve_at_the_same_parameter_values() -> None:
     """The conditioning start found from the declaration is reused by a re-solve (no Hessian evaluated again) and found
     again where a parameter changed; both times it is the projected descent computed afresh."""
-    from bilevel.solvers import starts
+    from bilevel.solvers.engine import starts
 
     p = bl.BilevelProblem("kept-start")
     x = p.upper_variable("x", 2, lb=-2, ub=2, start=[1.0, 0.5])

@@ -1,4 +1,4 @@
-"""Options time_limit and verbose of every method (bilevel.solvers.limits), the default budget of
+"""Options time_limit and verbose of every method (bilevel.solvers.engine.limits), the default budget of
 differential-evolution, and the default method "auto" (bilevel.solvers.registry.choose_method)."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import pytest
 
 import bilevel as bl
 from bilevel.problems import registry
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 from bilevel.solvers.evolution import default_budget
 from bilevel.defaults import defaults
 from bilevel.solvers import registry as solver_registry

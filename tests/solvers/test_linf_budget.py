@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import bilevel as bl
-from bilevel.solvers.base import prepare
-from bilevel.solvers.structure import find_balls
+from bilevel.solvers.engine.prepared import prepare
+from bilevel.solvers.engine.structure import find_balls
 
 C = np.linspace(-1.0, 1.0, 6)
 

@@ -2,8 +2,8 @@
 bilevel problem.
 
 Item 4: a lower level with a non-unique solution set, where the method's lower selection is not the optimistic
-one (bilevel.solvers.optimistic). Item 5: a point at a kink of y*(x), where the upper objective decreases along the
-kink in a direction no random probe finds (bilevel.solvers.probe: +/- coordinates and the adjacent pieces'
+one (bilevel.solvers.verdict.optimistic). Item 5: a point at a kink of y*(x), where the upper objective decreases along
+the kink in a direction no random probe finds (bilevel.solvers.verdict.probe: +/- coordinates and the adjacent pieces'
 descent directions).
 """
 
@@ -16,8 +16,8 @@ import pytest
 import bilevel as bl
 from bilevel.problems import registry
 from bilevel.result import Status
-from bilevel.solvers.base import MethodRun, finalize, prepare
-from bilevel.solvers.probe import improving_neighbour
+from bilevel.solvers.engine.prepared import MethodRun, finalize, prepare
+from bilevel.solvers.verdict.probe import improving_neighbour
 
 
 def face() -> bl.BilevelProblem:

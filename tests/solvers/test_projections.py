@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import bilevel as bl
-from bilevel.solvers.projections import Blocks, Box, NormBall, SparseNormBall
+from bilevel.solvers.engine.projections import Blocks, Box, NormBall, SparseNormBall
 
 NORMS = [1, 2, np.inf]
 TOL = 1e-9

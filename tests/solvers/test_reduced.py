@@ -60,7 +60,7 @@ def test_options_are_the_keywords_and_bad_ones_are_named() -> None:
     import inspect
 
     from bilevel.errors import UnknownOption
-    from bilevel.solvers.base import options_of
+    from bilevel.solvers.engine.prepared import options_of
     from bilevel.solvers.reduced import solve_reduced
 
     keywords = {k for k, v in inspect.signature(solve_reduced).parameters.items() if v.kind is v.KEYWORD_ONLY}

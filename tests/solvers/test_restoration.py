@@ -1,5 +1,5 @@
-"""Restoration of an upper point onto the upper feasible set along y*(x) (bilevel.solvers.restoration), on least-squares
-learners y*(x) = x whose feasible sets and Gauss-Newton iterates are known in closed form."""
+"""Restoration of an upper point onto the upper feasible set along y*(x) (bilevel.solvers.engine.restoration), on
+least-squares learners y*(x) = x whose feasible sets and Gauss-Newton iterates are known in closed form."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import bilevel as bl
-from bilevel.solvers.base import prepare
-from bilevel.solvers.implicit import shared_oracle
-from bilevel.solvers.restoration import restore
+from bilevel.solvers.engine.prepared import prepare
+from bilevel.solvers.engine.implicit import shared_oracle
+from bilevel.solvers.engine.restoration import restore
 
 
 def _copying_learner(n: int) -> tuple[bl.BilevelProblem, ca.SX]:

@@ -11,7 +11,7 @@ from bilevel.attacks.willems import random_attack
 from bilevel.certificate import certify_point
 from bilevel.experiments.willems import DELTA_Y, sim_seeds
 from bilevel.problems.willems import build_attack
-from bilevel.solvers.base import prepare
+from bilevel.solvers.engine.prepared import prepare
 
 
 def test_remark_point_is_certified_by_weak_duality_and_the_re_solves_point_is_not() -> None:

@@ -16,8 +16,8 @@ from bilevel.attacks.willems import destabilize_attack, hypergradient_attack
 from bilevel.cli import main
 from bilevel.experiments.willems_budget import smallest_destabilizing_budget
 from bilevel.ddc.plants import batch_reactor
-from bilevel.solvers.base import prepare
-from bilevel.solvers.implicit import Hypergradient
+from bilevel.solvers.engine.prepared import prepare
+from bilevel.solvers.engine.implicit import Hypergradient
 from bilevel.spectral_radius import spectral_radius
 from bilevel.ddc.data import batch_reactor_data
 from bilevel.ddc.depersis_tesi import lqr_controller

@@ -46,7 +46,7 @@ def test_numeric_conic_kkt_equals_symbolic(params: dict) -> None:
 def test_numeric_conic_kkt_with_inequalities() -> None:
     """The lam * g rows too: an SDP with two inequalities and an LMI, numeric against symbolic."""
     from bilevel import BilevelProblem
-    from bilevel.solvers.base import prepare
+    from bilevel.solvers.engine.prepared import prepare
 
     p = BilevelProblem("lmi-and-inequalities")
     x = p.upper_variable("x", 2, lb=-1, ub=1)

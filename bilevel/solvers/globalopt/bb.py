@@ -1,7 +1,7 @@
 """Branch-and-bound over the complementarity pairs of a LinearMPCC, best bound first, no big-M needed.
 
 Each node fixes some pairs to a side (G_i = 0 or H_i = 0) and solves the convex relaxation of the rest
-(global_nodes.py). A node whose relaxation is complementary is closed by re-solving it with every pair fixed to
+(nodes.py). A node whose relaxation is complementary is closed by re-solving it with every pair fixed to
 the side its point selects (an exact MPCC point, the incumbent candidate); otherwise the most violated pair
 (largest min(G_i, H_i)) is branched on. This is the classical scheme of Bard & Moore (1990), "A branch and bound
 algorithm for the bilevel programming problem", SIAM J. Sci. Stat. Comput. 11:281-292, with relaxations solved
@@ -18,8 +18,8 @@ from typing import Callable
 
 import numpy as np
 
-from ..defaults import param
-from .global_nodes import G_SIDE, H_SIDE, Relaxation
+from ...defaults import param
+from .nodes import G_SIDE, H_SIDE, Relaxation
 
 
 @dataclass

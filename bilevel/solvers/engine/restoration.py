@@ -13,8 +13,8 @@ from typing import Callable
 
 import numpy as np
 
-from ..defaults import param
-from ..errors import BilevelError
+from ...defaults import param
+from ...errors import BilevelError
 from .implicit import Evaluation, Hypergradient
 
 RESTORATION_STEPS = 6

@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..defaults import param
-from .global_nodes import G_SIDE, H_SIDE, Relaxation
+from ...defaults import param
+from .nodes import G_SIDE, H_SIDE, Relaxation
 
 
 @dataclass(frozen=True)
@@ -30,7 +30,7 @@ class BigM:
     labels: tuple[str, ...]
     fixed: dict[int, int] = field(default_factory=dict)
     slater: frozenset[int] = frozenset()
-    """Pairs whose multiplier bound comes from a Slater point (global_slater.py), not from an LP over R."""
+    """Pairs whose multiplier bound comes from a Slater point (slater.py), not from an LP over R."""
 
     @property
     def finite(self) -> bool:

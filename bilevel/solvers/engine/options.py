@@ -9,8 +9,8 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from ..defaults import check
-from ..errors import ModelError
+from ...defaults import check
+from ...errors import ModelError
 
 
 def _bad(name: str, value: Any, want: str) -> ModelError:

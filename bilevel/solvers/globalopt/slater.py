@@ -1,7 +1,7 @@
 """Bounds on the lower level's multipliers from a Slater point: method "global" on a convex NLP lower level or on
 lower constraint matrices depending on x, where multipliers enter products in the KKT stationarity.
 
-Let the lower level be convex in y on a convex set Y holding its feasible set (proven before, global_form.py) and
+Let the lower level be convex in y on a convex set Y holding its feasible set (proven before, form.py) and
 let one point y^ of Y satisfy every lower row that depends on y strictly at every x of the upper box X:
 g_i(x, y^) <= -s_i < 0. Then (i) Slater's condition holds at every x, so the KKT conditions are necessary and the
 reformulation is exact; (ii) at a KKT point (y*, lam) at x, y* minimizes the convex Lagrangian L(., lam) = f + lam'g
@@ -25,13 +25,13 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from ..defaults import param
-from ..errors import ModelError
-from ..lower.interval import enclose
-from ..lower.nlp import NLPSOL_QUIET
-from .base import Prepared
-from .global_bigm import BigM
-from .global_form import LOCAL_METHODS, LinearMPCC
+from ...defaults import param
+from ...errors import ModelError
+from ...lower.interval import enclose
+from ...lower.nlp import NLPSOL_QUIET
+from ..engine.prepared import Prepared
+from .bigm import BigM
+from .form import LOCAL_METHODS, LinearMPCC
 
 CLASS = "class: lower multipliers without a derivable bound"
 

@@ -18,16 +18,16 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from ..defaults import param
-from ..errors import ModelError, NonConvexLowerLevel
-from ..lower.convexity import convex_on_box, require_convex_everywhere
-from ..mpcc import ScalarPair
-from ..parameters import ParameterSet, scalar
-from .base import Prepared
+from ...defaults import param
+from ...errors import ModelError, NonConvexLowerLevel
+from ...lower.convexity import convex_on_box, require_convex_everywhere
+from ...mpcc import ScalarPair
+from ...parameters import ParameterSet, scalar
+from ..engine.prepared import Prepared
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..canonical import CanonicalBilevel
-    from ..lower.base import LowerLevel
+    from ...canonical import CanonicalBilevel
+    from ...lower.base import LowerLevel
 
 LOCAL_METHODS = "use a local method instead: method='relaxation' (most robust) or method='ipopt'"
 SCIP_FIX = ("algorithm='scip' of method 'global' proves this class with SCIP's spatial branch-and-bound once pyscipopt is "

@@ -18,8 +18,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import linprog
 
-from ..lower.quadratic import clarabel_settings
-from .global_form import LinearMPCC
+from ...lower.quadratic import clarabel_settings
+from .form import LinearMPCC
 
 G_SIDE, H_SIDE = 0, 1
 

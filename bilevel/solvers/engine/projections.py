@@ -22,8 +22,8 @@ from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
-from ..errors import InvalidData, ModelError
-from ..model import BilevelProblem
+from ...errors import InvalidData, ModelError
+from ...model import BilevelProblem
 
 NORMS = (1, 2, np.inf)
 _BISECTIONS = 200

@@ -11,8 +11,8 @@ from typing import Callable, Hashable
 
 import numpy as np
 
-from ..lower.affine_least_squares import AffineLeastSquares, Fit
-from ..lower.base import LowerSolution
+from ...lower.affine_least_squares import AffineLeastSquares, Fit
+from ...lower.base import LowerSolution
 from .block_exact import quadratic_block_step
 from .starts import ConditioningParts
 from .structure import Ball
@@ -51,7 +51,7 @@ class Point:
 
 @dataclass
 class Oracle:
-    """phi(x) = -J(theta*(x)) and its gradient, for bilevel.solvers.block_exact's ascent."""
+    """phi(x) = -J(theta*(x)) and its gradient, for bilevel.solvers.engine.block_exact's ascent."""
 
     learner: AffineLeastSquares
     upper: UpperObjective
@@ -71,7 +71,7 @@ class Oracle:
     @property
     def hessian_parts(self) -> ConditioningParts:
         """The learner's Hessian C'C and the x-gradient of v'C'C v, for the engine's conditioning start
-        (bilevel.solvers.starts), keyed by start_key."""
+        (bilevel.solvers.engine.starts), keyed by start_key."""
         low, n, last = self.learner, self.learner.n_a, {}
 
         def regressor(x: np.ndarray) -> np.ndarray:  # the engine asks for both parts at each point

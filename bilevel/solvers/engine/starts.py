@@ -19,13 +19,13 @@ from typing import Callable, Hashable, NamedTuple
 import casadi as ca
 import numpy as np
 
-from ..defaults import param
-from ..kept import kept
-from ..lower.base import ExpressionLower
-from ..lower.images import ImageLower
-from ..lower.residual import ResidualLeastSquares
-from ..sampling import sample_in_bounds
-from .base import Prepared
+from ...defaults import param
+from ...kept import kept
+from ...lower.base import ExpressionLower
+from ...lower.images import ImageLower
+from ...lower.residual import ResidualLeastSquares
+from ...sampling import sample_in_bounds
+from .prepared import Prepared
 from .structure import depends
 
 

@@ -1,7 +1,7 @@
 """Methods over the upper box of a problem whose lower level ignores the upper variables (solved once): random signs
 at the bounds (a budget-matched baseline) and the batched, screened ascent of a spectral-radius objective over a
-symmetric box (bilevel.solvers.ascent.batched_box_ascent). Passed to bilevel.solve as callables (the Willems attacks,
-bilevel.attacks.willems)."""
+symmetric box (bilevel.solvers.engine.ascent.batched_box_ascent). Passed to bilevel.solve as callables (the Willems
+attacks, bilevel.attacks.willems)."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ from ..defaults import param
 from ..errors import ModelError
 from ..reduction import KKTPoint
 from ..result import Status
-from .ascent import batched_box_ascent
-from .base import MethodRun, Prepared, check_options
-from .implicit import shared_oracle
-from .options import check_common_options, check_counts
+from ..solvers.engine.ascent import batched_box_ascent
+from ..solvers.engine.prepared import MethodRun, Prepared, check_options
+from ..solvers.engine.implicit import shared_oracle
+from ..solvers.engine.options import check_common_options, check_counts
 
 
 def random_signs(prep: Prepared, *, seed: Any = 0, **unknown: Any) -> MethodRun:

@@ -13,10 +13,10 @@ import sys
 import time
 from typing import TYPE_CHECKING, Any
 
-from ..result import Status
+from ...result import Status
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .base import MethodRun
+    from .prepared import MethodRun
 
 
 GOAL_STOP = "stopped by the callback (the caller's goal)"

@@ -26,7 +26,7 @@ one stacked eigendecomposition.
 Upper constraints other than the projected ones are handled by an exact penalty: phi = F + penalty *
 (sum max(G, 0) + sum |H|), exact once the penalty exceeds the upper multipliers (default 1e4); where
 some |G_i| or |H_j| <= 1e-9 the least-norm subgradient of the penalty is used. The methods built on it:
-`hypergradient` (bilevel.solvers.hypergradient) and its exact-block mode (bilevel.solvers.block_exact).
+`hypergradient` (bilevel.solvers.hypergradient) and its exact-block mode (bilevel.solvers.engine.block_exact).
 """
 
 from __future__ import annotations
@@ -38,13 +38,13 @@ import casadi as ca
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from ..defaults import param
-from ..errors import ModelError
-from ..lower.base import ExpressionLower, KKTValues, LowerSolution
-from ..lower.least_squares import factor_solve
-from ..parameters import CompiledFunction, ValueAndJacobian
-from ..spectral_radius import radius, rho_and_gradient, spectral_radius
-from .base import Prepared
+from ...defaults import param
+from ...errors import ModelError
+from ...lower.base import ExpressionLower, KKTValues, LowerSolution
+from ...lower.least_squares import factor_solve
+from ...parameters import CompiledFunction, ValueAndJacobian
+from ...spectral_radius import radius, rho_and_gradient, spectral_radius
+from .prepared import Prepared
 
 
 @dataclass

@@ -16,11 +16,11 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from ..defaults import param
-from ..lower.nlp import ipopt_options
+from ...defaults import param
+from ...lower.nlp import ipopt_options
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .base import Prepared
+    from ..engine.prepared import Prepared
 
 
 @dataclass(frozen=True)

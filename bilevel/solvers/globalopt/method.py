@@ -1,10 +1,10 @@
-"""method="global": a proven global optimum for LP / convex-QP lower levels (scope in global_form.py).
+"""method="global": a proven global optimum for LP / convex-QP lower levels (scope in form.py).
 
-Big-M bounds are derived by LPs (global_bigm.py). A linear upper objective with every bound finite goes to HiGHS
-as a MILP (global_milp.py); otherwise (a convex-quadratic upper objective, or a pair with no finite bound) the
-pairs are branched on directly (global_bb.py). A nonconvex leader (bilinear or polynomial upper objective,
+Big-M bounds are derived by LPs (bigm.py). A linear upper objective with every bound finite goes to HiGHS
+as a MILP (milp.py); otherwise (a convex-quadratic upper objective, or a pair with no finite bound) the
+pairs are branched on directly (bb.py). A nonconvex leader (bilinear or polynomial upper objective,
 nonlinear upper constraints), lower constraints nonlinear in x and an x-dependent lower Hessian go to SCIP's spatial
-branch-and-bound on the same reformulation (global_scip.py).
+branch-and-bound on the same reformulation (scip.py).
 The KKT reformulation is exact for these lower levels, so its global optimum is the optimistic bilevel optimum,
 also when the lower solution is not unique.
 """
@@ -16,19 +16,19 @@ from typing import Any
 
 import numpy as np
 
-from ..certificate import GlobalBound
-from ..defaults import param
-from ..errors import BilevelError, ModelError
-from ..result import Status
-from .base import MethodRun, Prepared, check_options, unbounded_lower
-from .global_bb import Guess, SearchOutcome, branch_and_bound, relative_gap, sides_of
-from .global_bigm import derive_big_m, derive_bounds
-from .global_form import linear_mpcc
-from .global_milp import solve_milp
-from .global_nodes import G_SIDE, Relaxation
-from .global_scip import require_scip, scip_available, solve_scip, unbounded_nonconvex
-from .global_slater import bound_multipliers, curved_rows
-from .limits import progress
+from ...certificate import GlobalBound
+from ...defaults import param
+from ...errors import BilevelError, ModelError
+from ...result import Status
+from ..engine.prepared import MethodRun, Prepared, check_options, unbounded_lower
+from .bb import Guess, SearchOutcome, branch_and_bound, relative_gap, sides_of
+from .bigm import derive_big_m, derive_bounds
+from .form import linear_mpcc
+from .milp import solve_milp
+from .nodes import G_SIDE, Relaxation
+from .scip import require_scip, scip_available, solve_scip, unbounded_nonconvex
+from .slater import bound_multipliers, curved_rows
+from ..engine.limits import progress
 
 ALGORITHMS = ("auto", "milp", "branch-and-bound", "scip")
 

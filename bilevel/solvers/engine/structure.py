@@ -16,8 +16,8 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
-from ..canonical import CanonicalBilevel
-from ..parameters import scalar
+from ...canonical import CanonicalBilevel
+from ...parameters import scalar
 from .projections import Blocks, Box, NormBall, Projection
 
 _REL = 1e-12

@@ -1,4 +1,4 @@
-"""algorithm="scip" of method "global": the KKT reformulation of global_form.py with a nonconvex leader, solved by
+"""algorithm="scip" of method "global": the KKT reformulation of form.py with a nonconvex leader, solved by
 SCIP's spatial branch-and-bound (pyscipopt; Bestuzheva et al. (2023), "Global optimization of mixed-integer
 nonlinear programs with SCIP 8", J. Glob. Optim. 87:1-24).
 
@@ -23,12 +23,12 @@ import casadi as ca
 import numpy as np
 from scipy.optimize import linprog
 
-from ..defaults import param
-from ..errors import ModelError
-from .global_bb import SearchOutcome, sides_of
-from .global_bigm import BigM
-from .global_form import Leader
-from .global_nodes import G_SIDE, H_SIDE, Relaxation
+from ...defaults import param
+from ...errors import ModelError
+from .bb import SearchOutcome, sides_of
+from .bigm import BigM
+from .form import Leader
+from .nodes import G_SIDE, H_SIDE, Relaxation
 
 
 INSTALL = "pip install pyscipopt (or pip install 'bilevel[global]')"

@@ -12,7 +12,7 @@ down to defaults["probe.min_radius"]: around an attack's clean data, stealth con
 leave a feasible set of 4e-4 of the budget, and a probe that saw no feasible point certified the clean data a local
 maximum), solves the lower level there independently (and at x itself, the baseline: with a non-unique lower solution F
 depends on the solver's choice; with `optimistic`, F is taken at the best lower solution, as in
-bilevel.solvers.optimistic; a method whose lower level has a unique solution may pass its own structured solver, e.g.
+bilevel.solvers.verdict.optimistic; a method whose lower level has a unique solution may pass its own structured solver, e.g.
 the VRFT learner's thin QR, which then solves at x and at all the probes in one call), and reports the best
 upper-feasible point whose upper objective is lower than both F at x and the baseline by more than
 defaults["probe.rel_tol"] (relative) along random directions, where at a stationary point the change is second order
@@ -28,16 +28,16 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 from scipy.optimize import nnls
 
-from ..defaults import param
-from ..errors import BilevelError, NonConvexLowerLevel
-from ..parameters import CompiledFunction
+from ...defaults import param
+from ...errors import BilevelError, NonConvexLowerLevel
+from ...parameters import CompiledFunction
 from .optimistic import optimistic_selection
-from .projections import Projection
-from .structure import budget_scale
+from ..engine.projections import Projection
+from ..engine.structure import budget_scale
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .base import Prepared
-    from .implicit import Hypergradient
+    from ..engine.prepared import Prepared
+    from ..engine.implicit import Hypergradient
 
 LowerSolve = Callable[[np.ndarray], "list[np.ndarray | None]"]
 """A structured solver of a lower level with a unique solution: the rows of a matrix of upper points -> y* at each
@@ -181,7 +181,7 @@ def _first_order_directions(prep: "Prepared", x: np.ndarray, scale: np.ndarray,
     between them). Then -g for each piece's g, and the steepest descent direction -(least-norm element of their convex
     hull), which follows a kink along which F decreases. A method that stopped at a kink or short of stationarity is
     caught."""
-    from .implicit import shared_oracle  # implicit imports base, which imports this module
+    from ..engine.implicit import shared_oracle  # implicit imports prepared, which imports this module
 
     oracle = shared_oracle(prep, projected_rows=tuple(b.row for b in prep.balls))
     here = _gradient(oracle, x)

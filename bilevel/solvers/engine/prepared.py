@@ -10,18 +10,18 @@ from typing import Any, Callable, Iterable
 import casadi as ca
 import numpy as np
 
-from ..canonical import (CanonicalBilevel, Canonicalize, NormalizeSense, in_sense, kkt_solution, objectives,
+from ...canonical import (CanonicalBilevel, Canonicalize, NormalizeSense, in_sense, kkt_solution, objectives,
                          suggested_starts)
-from ..certificate import LOCAL_EVIDENCE, Certificate, GlobalBound, certify_point
-from ..defaults import param
-from ..errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption, did_you_mean
-from ..model import BilevelProblem
-from ..mpcc import MPCC
-from ..reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
-from ..result import BilevelResult, Status
-from .optimistic import optimistic_selection
+from ...certificate import LOCAL_EVIDENCE, Certificate, GlobalBound, certify_point
+from ...defaults import param
+from ...errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption, did_you_mean
+from ...model import BilevelProblem
+from ...mpcc import MPCC
+from ...reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
+from ...result import BilevelResult, Status
+from ..verdict.optimistic import optimistic_selection
 from .options import RENAMED_OPTIONS
-from .probe import LowerSolve, probe_neighbours
+from ..verdict.probe import LowerSolve, probe_neighbours
 from .projections import Projection
 from .structure import Ball, ball_forms, find_balls, upper_projection
 

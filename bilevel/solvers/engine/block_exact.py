@@ -24,19 +24,19 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.linalg.lapack import dpocon, dpotrf, dtrtri
 
-from ..canonical import CanonicalBilevel
-from ..defaults import param
-from ..errors import BilevelError, RankDeficientRegressor
-from ..linear_maps import Gather
-from ..lower.base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
-from ..lower.images import ImageLower
-from ..lower.residual import ResidualLeastSquares
-from ..lower.least_squares import factor_solve, hessian_factor
-from ..lower.matrix import MatrixLower
-from ..reduction import KKTPoint
-from ..result import Status
+from ...canonical import CanonicalBilevel
+from ...defaults import param
+from ...errors import BilevelError, RankDeficientRegressor
+from ...linear_maps import Gather
+from ...lower.base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
+from ...lower.images import ImageLower
+from ...lower.residual import ResidualLeastSquares
+from ...lower.least_squares import factor_solve, hessian_factor
+from ...lower.matrix import MatrixLower
+from ...reduction import KKTPoint
+from ...result import Status
 from .ascent import projected_ascent
-from .base import MethodRun, Prepared, best_of
+from .prepared import MethodRun, Prepared, best_of
 from .implicit import Evaluation, shared_oracle
 from .limits import Deadline, progress, stopped
 from .projections import Blocks, Projection
@@ -239,7 +239,7 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
                             time_limit: float | None = None,
                             oracle: Any = None, projection: Projection | None = None,
                             weights: np.ndarray | None = None) -> MethodRun:
-    """Multistart ascent of the other upper variables (the engine's loop, bilevel.solvers.ascent) on phi with the
+    """Multistart ascent of the other upper variables (the engine's loop, bilevel.solvers.engine.ascent) on phi with the
     exact block at its global optimum at every evaluation (exact None: every upper variable ascends); gain_tol:
     relative gain over the loop's window; at time_limit (seconds) the best point so far, status MAX_ITERATIONS. None
     takes the registry's value (hypergradient.starts, .scale, .max_iter, implicit.penalty, block_exact.gain_tol).

@@ -14,8 +14,8 @@ from typing import Any, Callable, Literal
 
 import numpy as np
 
-from ..defaults import param
-from ..errors import RankDeficientRegressor
+from ...defaults import param
+from ...errors import RankDeficientRegressor
 
 
 def budget_direction(g: np.ndarray, radius: float, order: float) -> np.ndarray:

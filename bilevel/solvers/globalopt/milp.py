@@ -12,9 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import Bounds, LinearConstraint, milp
 
-from .global_bb import SearchOutcome
-from .global_bigm import BigM
-from .global_nodes import G_SIDE, H_SIDE, Relaxation
+from .bb import SearchOutcome
+from .bigm import BigM
+from .nodes import G_SIDE, H_SIDE, Relaxation
 
 MILP_ENDED = {0: "proven", 1: "time_or_node_limit", 2: "infeasible", 3: "unbounded"}
 """scipy.optimize.milp status -> how the search ended (anything else: "failed")."""
