@@ -16,7 +16,8 @@ from ..errors import ModelError, did_you_mean
 from ..model import BilevelProblem
 from ..threads import single_threaded
 from ..result import BilevelResult, Status
-from .engine.prepared import MethodRun, Prepared, finalize, options_of, prepare
+from .engine.prepared import MethodRun, Prepared, options_of, prepare
+from .verdict.finalize import finalize
 from .evolution import solve_evolution
 from .globalopt.form import linear_mpcc
 from .globalopt.method import solve_global

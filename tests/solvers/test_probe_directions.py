@@ -16,7 +16,8 @@ import pytest
 import bilevel as bl
 from bilevel.problems import registry
 from bilevel.result import Status
-from bilevel.solvers.engine.prepared import MethodRun, finalize, prepare
+from bilevel.solvers.engine.prepared import MethodRun, prepare
+from bilevel.solvers.verdict.finalize import finalize
 from bilevel.solvers.verdict.probe import improving_neighbour
 
 

@@ -11,16 +11,13 @@ defaults["optimistic.slack"]). Lower levels with LMIs are not handled (IPOPT doe
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
 
 from ...defaults import param
 from ...lower.nlp import ipopt_options
-
-if TYPE_CHECKING:  # pragma: no cover
-    from ..engine.prepared import Prepared
+from ..engine.prepared import Prepared
 
 
 @dataclass(frozen=True)

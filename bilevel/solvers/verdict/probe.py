@@ -12,8 +12,8 @@ down to defaults["probe.min_radius"]: around an attack's clean data, stealth con
 leave a feasible set of 4e-4 of the budget, and a probe that saw no feasible point certified the clean data a local
 maximum), solves the lower level there independently (and at x itself, the baseline: with a non-unique lower solution F
 depends on the solver's choice; with `optimistic`, F is taken at the best lower solution, as in
-bilevel.solvers.verdict.optimistic; a method whose lower level has a unique solution may pass its own structured solver, e.g.
-the VRFT learner's thin QR, which then solves at x and at all the probes in one call), and reports the best
+bilevel.solvers.verdict.optimistic; a method whose lower level has a unique solution may pass its own structured solver,
+e.g. the VRFT learner's thin QR, which then solves at x and at all the probes in one call), and reports the best
 upper-feasible point whose upper objective is lower than both F at x and the baseline by more than
 defaults["probe.rel_tol"] (relative) along random directions, where at a stationary point the change is second order
 (the tolerance sits at the lower solves' noise, not above it), and by more than defaults["probe.descent_rel_tol"] along
@@ -23,7 +23,7 @@ the first-order ones.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 from scipy.optimize import nnls
@@ -32,16 +32,10 @@ from ...defaults import param
 from ...errors import BilevelError, NonConvexLowerLevel
 from ...parameters import CompiledFunction
 from .optimistic import optimistic_selection
+from ..engine.implicit import Hypergradient, shared_oracle
+from ..engine.prepared import LowerSolve, Prepared
 from ..engine.projections import Projection
 from ..engine.structure import budget_scale
-
-if TYPE_CHECKING:  # pragma: no cover
-    from ..engine.prepared import Prepared
-    from ..engine.implicit import Hypergradient
-
-LowerSolve = Callable[[np.ndarray], "list[np.ndarray | None]"]
-"""A structured solver of a lower level with a unique solution: the rows of a matrix of upper points -> y* at each
-(None where it has none)."""
 
 
 def radii() -> tuple[float, float, float]:
@@ -181,8 +175,6 @@ def _first_order_directions(prep: "Prepared", x: np.ndarray, scale: np.ndarray,
     between them). Then -g for each piece's g, and the steepest descent direction -(least-norm element of their convex
     hull), which follows a kink along which F decreases. A method that stopped at a kink or short of stationarity is
     caught."""
-    from ..engine.implicit import shared_oracle  # implicit imports prepared, which imports this module
-
     oracle = shared_oracle(prep, projected_rows=tuple(b.row for b in prep.balls))
     here = _gradient(oracle, x)
     out = [] if here is None or not np.any(here[0]) else [-here[0] * scale ** 2]
