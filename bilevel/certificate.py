@@ -165,7 +165,7 @@ def _re_solve(canon: "CanonicalBilevel", x: np.ndarray, y: np.ndarray, tol: floa
         face = _on_face(low, ref, own, tol)
         return face, 0.0, unique, f"independent re-solve: {ref.solver}" + (
             "; y from the canonical re-solve polished onto its optimal face (the same value)" if face is not ref else "")
-    if low.kind != "nlp":
+    if not low.nonlinear:
         ref = low.reference_solve(x)
         return ref, 0.0, _reduced_hessian_unique(low, x, ref, tol), ""
     rng = np.random.default_rng(0)
@@ -194,7 +194,7 @@ def _on_face(low: "LowerLevel", ref, own, tol: float):
     face), where both reach the same value within tol: an interior-point solve of the user's formulation stops
     ~sqrt(eps) off a degenerate face (e.g. DeePC's l1 slack penalty: 5e-5 in y at equal values), which would fail a
     correct y. A nonlinear lower level's local solve, or values differing (a wrong canonical form), keep the user's y."""
-    if own is None or low.kind == "nlp" or abs(own.objective - ref.objective) > tol * (1.0 + abs(ref.objective)):
+    if own is None or low.nonlinear or abs(own.objective - ref.objective) > tol * (1.0 + abs(ref.objective)):
         return ref
     return replace(ref, y=own.y)
 
@@ -304,7 +304,7 @@ def certify_point(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | Non
     checks["lower_gap"] = (abs(gap), "" if gap >= -tol else "f(x, y) is below the re-solved optimum f*(x): the "
                            "re-solve is wrong or y is infeasible")
     bound = None
-    if low.kind in ("lp", "qp", "sdp") and np.isfinite(gap) and (gap < -tol or ref.status != "optimal"):
+    if low.dual_bounded and np.isfinite(gap) and (gap < -tol or ref.status != "optimal"):
         curvature = symmetric_eigen(np.asarray(low.hessian(x, y), dtype=float).reshape(low.n_y, low.n_y))
         bound = max(_dual_bound(low, x, y, point.lam, point.mu, point.Z, curvature),
                     -np.inf if canon.lower_reference is not None else
@@ -327,7 +327,7 @@ def certify_point(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | Non
         checks["lower_solution"] = (abs(F - F_ref) / (slack / tol) if np.isfinite(F) else np.inf,
                                     f"y is {y_distance:.2e} from the unique re-solved y; F there = "
                                     f"{in_sense(F_ref, sense):.10g}")
-    proven = low.kind != "nlp" or convex_on_box(low, x, *_y_box(canon))
+    proven = not low.nonlinear or convex_on_box(low, x, *_y_box(canon))
     if not proven:
         note = "; ".join(filter(None, [note, LOCAL_EVIDENCE]))
     checks["upper_objective"] = (0.0 if np.isfinite(F) else np.inf, "" if np.isfinite(F) else f"F = {F}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import ClassVar, NamedTuple
+from typing import Callable, ClassVar, NamedTuple
 
 import casadi as ca
 import numpy as np
@@ -80,6 +80,65 @@ class LowerLevel(ABC):
     psd_names: list[str]
     convexity_probe: ConvexityProbe | None = None
     """The declaration's sampled convexity check (set by build_lower; None where nothing is sampled)."""
+
+    @property
+    def closed_form(self) -> bool:
+        """True for a least-squares lower level: unconstrained and strictly convex quadratic in y, so y*(x) is unique,
+        smooth in x and solved in closed form (no active set, nothing to polish)."""
+        return self.kind == "least-squares"
+
+    @property
+    def nonlinear(self) -> bool:
+        """True for a convex NLP lower level: its solves are local (IPOPT), evidence rather than proof."""
+        return self.kind == "nlp"
+
+    @property
+    def affine_kkt(self) -> bool:
+        """True where the KKT system is affine in y and the multipliers with scalar complementarity only (LP, QP,
+        least squares): the class of method global's linear MPCC."""
+        return self.kind in ("lp", "qp", "least-squares")
+
+    @property
+    def dual_bounded(self) -> bool:
+        """True for LP, QP and SDP lower levels: constrained, with a Lagrangian quadratic in y, so multipliers bound
+        f*(x) from below by weak duality (the certificate's check of a conic re-solve that stopped short)."""
+        return self.kind in ("lp", "qp", "sdp")
+
+    def nonunique_at(self, x: np.ndarray) -> str | None:
+        """Why the lower solution at upper point x may not be unique, or None where it is (a least-squares lower level;
+        a QP with a positive definite Hessian at x)."""
+        return None if self.closed_form else f"a lower level of class {self.kind!r} (its solution need not be unique)"
+
+    @property
+    def inner_kind(self) -> "LowerLevel":
+        """The kind whose functions take lift_point(x) as their upper point: this one, or for a lower level with
+        linear maps (ImageLower) the kind over [x; z]."""
+        return self
+
+    def lift_point(self, x: np.ndarray) -> np.ndarray:
+        """The upper point inner_kind is called at: x itself, or [x; z(x)] for a lower level with linear maps."""
+        return x
+
+    def pullback(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """A gradient over inner_kind's upper point pulled back to x: g itself without linear maps."""
+        return g
+
+    @property
+    def linear_map_arguments(self) -> list[ca.SX]:
+        """The expressions of x that linear maps are applied to ([] without linear maps)."""
+        return []
+
+    @property
+    def rows_solver(self) -> "Callable[[np.ndarray], list[np.ndarray | None]] | None":
+        """X -> the lower solution y at each row of X (None where it cannot be solved) where the kind solves many
+        points at once faster than one by one, else None."""
+        return None
+
+    def moving_hessian(self) -> tuple[Callable[[np.ndarray], np.ndarray],
+                                      Callable[[np.ndarray, np.ndarray], np.ndarray]] | None:
+        """(x -> P(x), (x, v) -> d(v'P(x)v)/dx) for a least-squares lower level whose Hessian P moves with x (up to a
+        positive factor; the conditioning start's parts), else None."""
+        return None
 
     def check_convexity(self) -> None:
         """Re-run the declaration's convexity check at the parameters' current values (after set_value)."""
@@ -308,3 +367,18 @@ class ExpressionLower(LowerLevel):
 
     def symbolic(self) -> "ExpressionLower":
         return self
+
+    def moving_hessian(self) -> tuple[Callable[[np.ndarray], np.ndarray],
+                                      Callable[[np.ndarray, np.ndarray], np.ndarray]] | None:
+        """The Hessian d^2f/dy^2 at y = 0 (f is quadratic in y) and its adjoint, where least squares and moving with x."""
+        if not self.closed_form:
+            return None
+        P = ca.substitute(self.hess_f, self.y, ca.DM.zeros(self.n_y))
+        if not ca.depends_on(P, self.x):
+            return None
+        V = ca.SX.sym("V", self.n_y, self.n_y)
+        hess_fun = self.params.function("conditioning_P", [self.x], [P])
+        adj_fun = self.params.function("conditioning_adjoint", [self.x, V],
+                                       [ca.jtimes(ca.vec(P), self.x, ca.vec(V), True)])
+        return (lambda xt: np.asarray(hess_fun(xt), dtype=float),
+                lambda xt, v: np.asarray(adj_fun(xt, np.outer(v, v)), dtype=float).ravel())

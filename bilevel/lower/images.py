@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Callable
 
 import casadi as ca
 import numpy as np
@@ -163,6 +164,42 @@ class ImageLower(LowerLevel):
     @property
     def fixed(self) -> bool:
         return self.inner.fixed
+
+    @property
+    def inner_kind(self) -> LowerLevel:
+        """The kind over [x; z], called at lift_point(x)."""
+        return self.inner
+
+    def lift_point(self, x: np.ndarray) -> np.ndarray:
+        """[x; z(x)] (Lift.__call__)."""
+        return self.lift(x)
+
+    def pullback(self, x: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """d/dx of <g, [x; z(x)]> (Lift.pullback)."""
+        return self.lift.pullback(x, g)
+
+    @property
+    def linear_map_arguments(self) -> list[ca.SX]:
+        """The arguments of the declared linear maps, expressions of x."""
+        return [i.arg for i in self.lift.images.items]
+
+    @property
+    def rows_solver(self) -> Callable[[np.ndarray], list[np.ndarray | None]]:
+        """solve_rows: the maps applied to all rows at once."""
+        return self.solve_rows
+
+    def nonunique_at(self, x: np.ndarray) -> str | None:
+        return None if self.closed_form else self.inner.nonunique_at(self.lift(x))
+
+    def moving_hessian(self) -> tuple[Callable[[np.ndarray], np.ndarray],
+                                      Callable[[np.ndarray, np.ndarray], np.ndarray]] | None:
+        """The inner kind's, composed with the lift (the adjoint pulled back to x)."""
+        parts = self.inner.moving_hessian()
+        if parts is None:
+            return None
+        hessian, adjoint = parts
+        lift = self.lift
+        return lambda x: hessian(lift(x)), lambda x, v: lift.pullback(x, adjoint(lift(x), v))
 
     @property
     def y(self) -> ca.SX:

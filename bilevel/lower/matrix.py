@@ -26,7 +26,8 @@ from ..real_data import refuse_complex
 from .base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
 from .least_squares import LeastSquaresLower, factor_solve, hessian_factor
 from .polish import polish
-from .quadratic import LinearLower, QPData, QuadraticLower, clarabel_solution, solve_qp_clarabel
+from .quadratic import (LinearLower, QPData, QuadraticLower, clarabel_solution, singular_hessian,
+                        solve_qp_clarabel)
 
 
 @dataclass
@@ -132,6 +133,9 @@ class MatrixLower(LowerLevel):
         """The QP coefficients at x in the form of the expression kinds (g = A y - b, h = E y - e)."""
         d, q, b, e, r = self.values(self.check_point(x))
         return QPData(self.hess, q - self.C.T @ d, 0.5 * float(d @ d) + float(r[0]), self.A, -b, self.E, -e)
+
+    def nonunique_at(self, x: np.ndarray) -> str | None:
+        return singular_hessian(self.data(x)) if self.kind == "qp" else super().nonunique_at(x)
 
     def solve(self, x: np.ndarray) -> LowerSolution:
         """Closed form (least squares), HiGHS (LP) or Clarabel (QP) at x."""

@@ -57,6 +57,15 @@ class QPData:
         return float(0.5 * y @ self.P @ y + self.q @ y + self.r)
 
 
+def singular_hessian(data: QPData) -> str | None:
+    """Why a QP's solution may not be unique (its Hessian is singular, not strictly convex), or None where the
+    Hessian is positive definite."""
+    P = data.P
+    if np.linalg.eigvalsh(0.5 * (P + P.T))[0] > 1e-10 * max(1.0, float(np.abs(P).max())):
+        return None
+    return "a QP lower level whose Hessian is singular at the start (not strictly convex)"
+
+
 def point_context(x: np.ndarray) -> str:
     """'at x = [...]' for error messages, summarized to its first and last three entries (formatting x in full costs
     about 5 us an entry at every solve)."""
@@ -262,6 +271,9 @@ class QuadraticLower(ExpressionLower):
         """Whether the Hessian does not depend on x: the declaration's convexity check (re-run after set_value) then
         covers every x, and the solves skip the per-point PSD test."""
         return not ca.depends_on(self.hess_f, self.x)
+
+    def nonunique_at(self, x: np.ndarray) -> str | None:
+        return singular_hessian(self.data(x)) if self.kind == "qp" else super().nonunique_at(x)
 
     def solve(self, x: np.ndarray) -> LowerSolution:
         """Solve at x with Clarabel (independent of the reduction)."""

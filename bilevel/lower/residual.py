@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Callable
 
 import casadi as ca
 import numpy as np
@@ -309,6 +310,11 @@ class ResidualLeastSquares(LowerLevel):
         """d(v'C(x)'C(x)v)/dx = 2 (d(C v)/dx)'(C v)."""
         Cv = self.data(x)[0] @ v
         return 2.0 * self._x_adjoint(x, np.zeros(self.n_y), v, Cv, np.zeros_like(Cv))
+
+    def moving_hessian(self) -> tuple[Callable[[np.ndarray], np.ndarray],
+                                      Callable[[np.ndarray, np.ndarray], np.ndarray]] | None:
+        """(gram, gram_adjoint): P = C'C formed numerically, where C moves with x."""
+        return (self.gram, self.gram_adjoint) if ca.depends_on(self.C_expr, self.x) else None
 
     def evaluate(self, x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, list[np.ndarray]]:
         C, d, c = self.data(x)

@@ -257,7 +257,7 @@ def _lower_moved_to(prep: Prepared, point: KKTPoint, x: np.ndarray) -> KKTPoint:
     low = prep.canon.lower
     sol = LowerSolution(point.y, np.nan, point.lam, point.mu, list(point.Z), "optimal", "the method's point")
     try:
-        if low.kind == "least-squares":
+        if low.closed_form:
             sol = low.solve(x)
         elif low.psd:
             sol = low.newton_polish(x, sol)[0]

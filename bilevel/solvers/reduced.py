@@ -24,10 +24,7 @@ import casadi as ca
 import numpy as np
 
 from ..errors import BilevelError, ModelError
-from ..lower.images import ImageLower
 from ..lower.nlp import ipopt_options
-from ..lower.matrix import MatrixLower
-from ..lower.quadratic import QuadraticLower
 from ..reduction import KKTPoint
 from ..result import Status
 from ..defaults import param
@@ -55,17 +52,7 @@ iterations (one run 95 for 93), about 5% less CPU."""
 def unique_lower(prep: Prepared) -> str | None:
     """Why the lower solution may not be unique (method `reduced` then does not apply), or None where it is: a
     least-squares lower level, or a QP with a positive definite Hessian at the declared start."""
-    low = prep.canon.lower
-    inner = low.inner if isinstance(low, ImageLower) else low
-    if low.kind == "least-squares":
-        return None
-    if low.kind == "qp" and isinstance(inner, (QuadraticLower, MatrixLower)):  # P numeric in MatrixLower
-        x0 = low.lift(prep.canon.x_start) if isinstance(low, ImageLower) else prep.canon.x_start
-        P = inner.data(x0).P
-        if np.linalg.eigvalsh(0.5 * (P + P.T))[0] > 1e-10 * max(1.0, float(np.abs(P).max())):
-            return None
-        return "a QP lower level whose Hessian is singular at the start (not strictly convex)"
-    return f"a lower level of class {low.kind!r} (its solution need not be unique)"
+    return prep.canon.lower.nonunique_at(prep.canon.x_start)
 
 
 class _Reduced:

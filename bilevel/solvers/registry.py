@@ -97,7 +97,7 @@ def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
     low, n = prep.canon.lower, int(prep.canon.x.numel())
     given, hypergradient, ipopt = set(options), options_of(solve_hypergradient), options_of(solve_ipopt)
     coupled = coupled_upper_rows(prep)
-    if coupled and low.kind == "least-squares" and prep.canon.spectral is None and given <= options_of(solve_reduced):
+    if coupled and low.closed_form and prep.canon.spectral is None and given <= options_of(solve_reduced):
         return "reduced", (f"{coupled} upper constraint(s) on the solution of a least-squares lower level (unique, "
                            "in closed form), which reduced keeps as constraints over the upper variables alone")
     if not given <= hypergradient:
@@ -109,7 +109,7 @@ def choose_method(prep: Prepared, options: dict[str, Any]) -> tuple[str, str]:
     if coupled:
         return "ipopt", (f"{coupled} upper constraint(s) on the lower solution, which ipopt keeps as constraints and "
                          "hypergradient would only penalize")
-    closed = "a least-squares lower level" if low.kind == "least-squares" else (
+    closed = "a least-squares lower level" if low.closed_form else (
         "a lower level independent of x" if low.fixed else "")
     if closed and any(b.norm == np.inf for b in prep.balls):
         return "hypergradient", (f"{closed} and an l_inf budget (a norm_inf row), which hypergradient projects onto "

@@ -29,7 +29,6 @@ from ...defaults import param
 from ...errors import BilevelError, RankDeficientRegressor
 from ...linear_maps import Gather
 from ...lower.base import ExpressionLower, KKTValues, LowerLevel, LowerSolution
-from ...lower.images import ImageLower
 from ...lower.residual import ResidualLeastSquares
 from ...lower.least_squares import factor_solve, hessian_factor
 from ...lower.matrix import MatrixLower
@@ -112,7 +111,7 @@ def _lower_gradient_parts(low: LowerLevel, y: ca.SX) -> tuple[ca.SX, ca.SX]:
     matrix form d and q: its gradient q - C'd is never built as an expression, its size is that of the data)."""
     if isinstance(low, MatrixLower):
         return ca.SX(low.hess.shape[0], low.hess.shape[1]), ca.vertcat(low.d, low.q)
-    low = low.inner if isinstance(low, ImageLower) else low  # expressions of [x; z]
+    low = low.inner_kind  # expressions of [x; z] with linear maps
     if isinstance(low, ResidualLeastSquares):  # P = C'C moves with x where C does; q = -C'd is affine where d is
         return low.C_expr, low.d_expr
     return low.hess_f, ca.substitute(ca.gradient(low.f, y), y, ca.DM.zeros(int(y.numel())))
@@ -124,16 +123,13 @@ def _block_data(canon: CanonicalBilevel, S: slice, hess_F: ca.SX, q: ca.SX) -> C
     low, x, y = canon.lower, canon.x, canon.y
     zero = ca.DM.zeros(int(y.numel()))
     grad0 = ca.substitute(ca.gradient(canon.F, y), y, zero)
-    inner = low.inner if isinstance(low, ImageLower) else low
+    inner = low.inner_kind
     if isinstance(inner, ResidualLeastSquares):  # dq/dx_S = -C' dd/dx_S
         return _residual_block_data(canon, inner, S, grad0, hess_F)
-    if isinstance(low, ImageLower):  # the block does not reach the maps (find_exact_block): data of [x; z] at lift(x)
-        fun = canon.params.function("exact_block_data", [low.inner.x], [ca.substitute(low.inner.hess_f, y, zero), q,
-                                                                        ca.jacobian(q, x[S]), grad0, hess_F])
-        return lambda xv: fun(low.lift(xv))
-    if not isinstance(low, MatrixLower):
-        return canon.params.function("exact_block_data", [x], [ca.substitute(low.hess_f, y, zero), q,
-                                                               ca.jacobian(q, x[S]), grad0, hess_F])
+    if not isinstance(low, MatrixLower):  # with linear maps, data of [x; z] at lift_point(x): the block does not
+        fun = canon.params.function("exact_block_data", [inner.x],  # reach the maps (find_exact_block)
+                                    [ca.substitute(inner.hess_f, y, zero), q, ca.jacobian(q, x[S]), grad0, hess_F])
+        return lambda xv: fun(low.lift_point(xv))
     parts = canon.params.function("exact_block_data", [x], [low.d, low.q, ca.jacobian(low.d, x[S]),
                                                             ca.jacobian(low.q, x[S]), grad0, hess_F])
 
@@ -150,7 +146,7 @@ def _residual_block_data(canon: CanonicalBilevel, inner: ResidualLeastSquares, S
     is affine in x_S (else a reverse sweep seeded with C's columns); grad0 and hess_F evaluated once per parameter
     revision where they do not depend on x (else with the sweep)."""
     low, x = canon.lower, canon.x
-    lift = low.lift if isinstance(low, ImageLower) else (lambda xv: xv)
+    lift = low.lift_point
     jac_d = ca.jacobian(inner.d_expr, x[S])
     constant_jac = not ca.depends_on(jac_d, inner.x) and not ca.depends_on(jac_d, canon.params.sym)
     jac_d_t = Gather.of(sp.csr_matrix(ca.evalf(jac_d).sparse().T)) if constant_jac else None  # (dd/dx_S)'
@@ -182,9 +178,9 @@ def _residual_block_data(canon: CanonicalBilevel, inner: ResidualLeastSquares, S
 def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactBlock | None, list[str]]:
     """The largest ball block that is exact (see the module docstring), and why each other one is not."""
     low = canon.lower
-    if not isinstance(low, (ExpressionLower, MatrixLower, ImageLower, ResidualLeastSquares)):
+    if not isinstance(low.inner_kind, (ExpressionLower, MatrixLower, ResidualLeastSquares)):
         return None, [f"the lower level ({type(low).__name__}) is neither declared by expressions nor by lower_qp"]
-    if low.kind != "least-squares":
+    if not low.closed_form:
         return None, [f"the lower level is {low.kind}, not an unconstrained strictly convex quadratic"]
     balls = [b for b in balls if b.norm == 2]
     if not balls:
@@ -196,8 +192,8 @@ def find_exact_block(canon: CanonicalBilevel, balls: list[Ball]) -> tuple[ExactB
     hess_f, q = _lower_gradient_parts(low, y)
     in_P = depends(hess_f, x)
     mapped = np.zeros(int(x.numel()), dtype=bool)  # entries of x that reach the lower level through linear maps
-    if isinstance(low, ImageLower):
-        mapped = depends(ca.vertcat(*[ca.vec(i.arg) for i in low.lift.images.items]), x)
+    if arguments := low.linear_map_arguments:
+        mapped = depends(ca.vertcat(*[ca.vec(arg) for arg in arguments]), x)
     in_F = depends(canon.F, x)
     why: list[str] = []
     best: Ball | None = None
@@ -331,6 +327,5 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
                     f"start {k} ({'converged' if converged else 'max_iter'})", nit, history, records,
                     {"best_start": k, "exact_block": None if exact is None else [S.start, S.stop],
                      "projected_gradient_norm": pg, "not_exact": why}, feasible_set=projection,
-                    lower_solve=low.solve_rows if isinstance(low, ImageLower) and low.kind == "least-squares"
-                    else None)
+                    lower_solve=low.rows_solver if low.closed_form else None)
     return stopped(run, limit, len(records), starts)

@@ -201,7 +201,7 @@ class Hypergradient:
     def polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, KKTValues | None]:
         """One Newton step on the active-set KKT equations at x from sol; kept if it keeps lam >= 0 and lowers the
         residual."""
-        if self.low.kind == "least-squares":  # a closed form: nothing to polish; KKT values wait for a gradient
+        if self.low.closed_form:  # a closed form: nothing to polish; KKT values wait for a gradient
             return sol, None
         vals = self.low.kkt_values(x, sol)
         rows, _ = self.active_set(vals.g, sol.lam)

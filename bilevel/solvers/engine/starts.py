@@ -16,17 +16,12 @@ from __future__ import annotations
 
 from typing import Callable, Hashable, NamedTuple
 
-import casadi as ca
 import numpy as np
 
 from ...defaults import param
 from ...kept import kept
-from ...lower.base import ExpressionLower
-from ...lower.images import ImageLower
-from ...lower.residual import ResidualLeastSquares
 from ...sampling import sample_in_bounds
 from .prepared import Prepared
-from .structure import depends
 
 
 class ConditioningParts(NamedTuple):
@@ -45,30 +40,10 @@ _KEPT: dict[Hashable, np.ndarray] = {}
 
 
 def _hessian_and_adjoint(prep: Prepared) -> ConditioningParts | None:
-    """The parts (x -> P(x), (x, v) -> d(v'P(x)v)/dx) for a least-squares lower level whose Hessian P depends on x, else None;
-    a lower level with linear maps is differentiated over [x; z] and pulled back to x."""
-    low = prep.canon.lower
-    inner = low.inner if isinstance(low, ImageLower) else low
-    if isinstance(inner, ResidualLeastSquares):  # P = C'C, formed numerically
-        if not depends(inner.C_expr, inner.x).any():
-            return None
-        hessian, adjoint = inner.gram, inner.gram_adjoint
-    elif low.kind == "least-squares" and isinstance(inner, ExpressionLower):
-        P = ca.substitute(inner.hess_f, inner.y, ca.DM.zeros(inner.n_y))
-        if not depends(P, inner.x).any():
-            return None
-        V = ca.SX.sym("V", inner.n_y, inner.n_y)
-        hess_fun = prep.canon.params.function("conditioning_P", [inner.x], [P])
-        adj_fun = prep.canon.params.function("conditioning_adjoint", [inner.x, V],
-                                             [ca.jtimes(ca.vec(P), inner.x, ca.vec(V), True)])
-        hessian = lambda xt: np.asarray(hess_fun(xt), dtype=float)  # noqa: E731
-        adjoint = lambda xt, v: np.asarray(adj_fun(xt, np.outer(v, v)), dtype=float).ravel()  # noqa: E731
-    else:
-        return None
-    if not isinstance(low, ImageLower):
-        return ConditioningParts(hessian, adjoint)
-    lift = low.lift
-    return ConditioningParts(lambda x: hessian(lift(x)), lambda x, v: lift.pullback(x, adjoint(lift(x), v)))
+    """The parts (x -> P(x), (x, v) -> d(v'P(x)v)/dx) for a least-squares lower level whose Hessian P depends on x, else None
+    (LowerLevel.moving_hessian; a lower level with linear maps differentiates over [x; z] and pulls back to x)."""
+    parts = prep.canon.lower.moving_hessian()
+    return None if parts is None else ConditioningParts(*parts)
 
 
 def conditioning_start(prep: Prepared, parts: ConditioningParts | None = None) -> np.ndarray | None:

@@ -212,8 +212,8 @@ def linear_mpcc(prep: Prepared, nonconvex_leader: bool = False) -> LinearMPCC:
     With nonconvex_leader (algorithm "scip"), a nonconvex upper objective and nonlinear upper rows are kept in
     the form's Leader instead of refused."""
     low = prep.canon.lower
-    nlp = low.kind == "nlp"
-    if low.kind not in ("lp", "qp", "least-squares") and not (nlp and nonconvex_leader):
+    nlp = low.nonlinear
+    if not low.affine_kkt and not (nlp and nonconvex_leader):
         fix = SCIP_FIX if nlp else NOT_IN_SCIP
         raise ModelError(f"method 'global' handles LP and convex-QP lower levels with affine constraints, and convex "
                          f"NLP ones with algorithm 'scip'; this lower level is of kind {low.kind!r} (class: nonlinear "

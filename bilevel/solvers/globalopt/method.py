@@ -115,7 +115,7 @@ def solve_global(prep: Prepared, *, algorithm: str = "auto", time_limit: float |
         box = derive_bounds(relax, big_m.fixed)
         free = unbounded_nonconvex(form.leader, box, prep.mpcc.blocks) if form.leader.nonconvex else []
         multipliers = [v for v in free if not v.startswith(("x[", "y["))]
-        if multipliers or (prep.canon.lower.kind == "nlp" and curved_rows(prep)):  # Slater: KKT exact, bounds
+        if multipliers or (prep.canon.lower.nonlinear and curved_rows(prep)):  # Slater: KKT exact, bounds
             box, big_m, slater = bound_multipliers(prep, form, box, big_m, multipliers)
             free = unbounded_nonconvex(form.leader, box, prep.mpcc.blocks)
             progress(verbose, "global", f"multiplier bounds from a Slater point ({time.perf_counter() - t0:.1f} s)")
