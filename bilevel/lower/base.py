@@ -370,7 +370,8 @@ class ExpressionLower(LowerLevel):
 
     def moving_hessian(self) -> tuple[Callable[[np.ndarray], np.ndarray],
                                       Callable[[np.ndarray, np.ndarray], np.ndarray]] | None:
-        """The Hessian d^2f/dy^2 at y = 0 (f is quadratic in y) and its adjoint, where least squares and moving with x."""
+        """The Hessian d^2f/dy^2 at y = 0 (f is quadratic in y) and its adjoint, where least squares and moving with
+        x."""
         if not self.closed_form:
             return None
         P = ca.substitute(self.hess_f, self.y, ca.DM.zeros(self.n_y))

@@ -129,19 +129,19 @@ class SemidefiniteLower(QuadraticLower):
         return self._once("reference", x, lambda: solve_qp_clarabel(self.data(x), point_context(x), self.lmi_data(x)))
 
     def solve(self, x: np.ndarray) -> LowerSolution:
-        """The learner's solution at x: the chosen one (choose), else Clarabel's point Newton-polished on this SDP's
-        KKT system and selected (select); where the SDP ignores x, once per parameter values (apart from
+        """The learner's solution at x: the chosen one (choose), else Clarabel's point refined by kkt_newton on this
+        SDP's KKT system and selected (select); where the SDP ignores x, once per parameter values (apart from
         reference_solve)."""
         chosen = self.chosen()
-        return chosen if chosen is not None else self._once("solve", x, lambda: self._polished(x))
+        return chosen if chosen is not None else self._once("solve", x, lambda: self._refined_solve(x))
 
-    def _polished(self, x: np.ndarray) -> LowerSolution:
-        """Clarabel's point (its own interface) Newton-polished and selected; SolverFailed where the SDP moves with x
-        and the polish stays above defaults["sdp.polished_tol"] (no strictly complementary solution: y*(x) has no
-        derivative there)."""
+    def _refined_solve(self, x: np.ndarray) -> LowerSolution:
+        """Clarabel's point (its own interface) refined by kkt_newton and selected; SolverFailed where the SDP moves
+        with x and the refined residual stays above defaults["sdp.polished_tol"] (no strictly complementary solution:
+        y*(x) has no derivative there)."""
         verified = self.constant_hessian and self.convexity_probe is not None  # the declaration's PSD check
         raw = clarabel_direct(self.data(x), point_context(x), verified, self.lmi_data(x))
-        sol, residual = self.newton_polish(x, raw)
+        sol, residual = self.kkt_newton(x, raw)
         if residual > (tol := param("sdp.polished_tol")) and not self.fixed:
             raise SolverFailed(f"the SDP {point_context(x)} has KKT residual {residual:.1e} > {tol:g} after "
                                "Newton polishing (no strictly complementary solution found): its solution's derivative "
@@ -253,7 +253,7 @@ class SemidefiniteLower(QuadraticLower):
         return bool(scalar) and all(psd_violation(m) <= param("sdp.psd_tol") * (1.0 + float(np.abs(m).max()))
                                     for m in list(mats) + list(sol.Z))
 
-    def newton_polish(self, x: np.ndarray, sol: LowerSolution, steps: int = 4) -> tuple[LowerSolution, float]:
+    def kkt_newton(self, x: np.ndarray, sol: LowerSolution, steps: int = 4) -> tuple[LowerSolution, float]:
         """Newton steps on r(w; x) = 0 from sol while the residual falls; returns the best iterate inside the
         cones and its residual (an iterate a hair outside a cone is stepped through, not returned)."""
         kkt = self.conic_kkt
@@ -281,7 +281,7 @@ class SemidefiniteLower(QuadraticLower):
         `near`, a solution at a nearby upper point (continuation, no conic solve), with its residual; None unless an
         iterate inside the cones reaches defaults["sdp.continuation_tol"] (then solve afresh). A KKT point inside the
         cones is optimal (the SDP is convex)."""
-        sol, residual = self.newton_polish(x, near, param("sdp.continuation_steps", steps))
+        sol, residual = self.kkt_newton(x, near, param("sdp.continuation_steps", steps))
         return (sol, residual) if sol is not near and residual <= param("sdp.continuation_tol") else None
 
     def seen_directions(self, x: np.ndarray) -> np.ndarray:

@@ -316,7 +316,7 @@ class WillemsAttack:
         low.min_norm = selection == "min-norm"
         if selection in SOLVER_SELECTIONS and low.chosen() is None:
             zero = np.zeros(low.n_x)
-            ridge = low.select_min_norm(zero, low.newton_polish(zero, low.reference_solve(zero))[0])
+            ridge = low.select_min_norm(zero, low.kkt_newton(zero, low.reference_solve(zero))[0])
             learner = stabilizing_controller if self.setting.design == "stabilizing" else lqr_controller
             kwargs = {} if self.setting.design == "stabilizing" else {"qx": self.qx, "input_cost": False}
             q = learner(self.x, self.u, solver=selection, **kwargs).q.ravel(order="F")

@@ -134,7 +134,8 @@ def run_nlp(nlp: NLPForm, w0: np.ndarray, options: dict[str, Any], tau: float | 
                   raw, int(stats.get("iter_count", 0)), trace)
 
 
-def polish(prep: Prepared, w: np.ndarray, options: dict[str, Any], limit: Deadline | None = None) -> NLPRun | None:
+def branch_polish(prep: Prepared, w: np.ndarray, options: dict[str, Any],
+                  limit: Deadline | None = None) -> NLPRun | None:
     """Re-solve on the MPCC branch selected by w (G_i = 0 where G_i <= H_i), within the deadline `limit`; None if it
     fails or the deadline has passed."""
     if limit is not None and limit.expired():
@@ -149,13 +150,13 @@ def polish(prep: Prepared, w: np.ndarray, options: dict[str, Any], limit: Deadli
     return run if run.status is Status.SOLVED else None
 
 
-def polish_best(prep: Prepared, candidates: list[tuple[np.ndarray, float, float]], runs: list[NLPRun],
+def branch_polish_best(prep: Prepared, candidates: list[tuple[np.ndarray, float, float]], runs: list[NLPRun],
                 records: list[dict[str, Any]], options: dict[str, Any],
                 limit: Deadline | None = None) -> tuple[int, int]:
-    """Polish the best candidate on its MPCC branch, and again whichever candidate is best after that, until the best
-    is polished or its polish failed (a relaxed solve's objective is within its tau of its branch's, so this is
-    usually one polish, not one per start); candidates, runs and records are updated in place. The best's index and
-    the polishes' iterations."""
+    """Branch-polish the best candidate (re-solve it on its MPCC branch), and again whichever candidate is best after
+    that, until the best is polished or its polish failed (a relaxed solve's objective is within its tau of its
+    branch's, so this is usually one polish, not one per start); candidates, runs and records are updated in place.
+    The best's index and the polishes' iterations."""
     tried: set[int] = set()
     iterations, polished = 0, None
     while (i := best_of(candidates)) not in tried:
@@ -163,7 +164,7 @@ def polish_best(prep: Prepared, candidates: list[tuple[np.ndarray, float, float]
                 1.0 + abs(candidates[polished][1])):
             return polished, iterations  # no better than the polished one beyond the relaxation's own accuracy
         tried.add(i)
-        pol = polish(prep, candidates[i][0], options, limit)
+        pol = branch_polish(prep, candidates[i][0], options, limit)
         if pol is None:
             continue
         iterations, polished = iterations + pol.iterations, i
@@ -260,11 +261,11 @@ def _lower_moved_to(prep: Prepared, point: KKTPoint, x: np.ndarray) -> KKTPoint:
         if low.closed_form:
             sol = low.solve(x)
         elif low.psd:
-            sol = low.newton_polish(x, sol)[0]
+            sol = low.kkt_newton(x, sol)[0]
         else:
             oracle = shared_oracle(prep)
             for _ in range(2):  # exact in one step for LP/QP on the same face; NLP converges quadratically
-                sol = oracle.polish(x, sol)[0]
+                sol = oracle.active_set_newton(x, sol)[0]
     except (BilevelError, np.linalg.LinAlgError):  # keep the method's lower part; the certificate judges it
         pass
     return KKTPoint(x, sol.y, sol.lam, sol.mu, list(sol.Z))
@@ -306,7 +307,7 @@ def solve_ipopt(prep: Prepared, *, starts: int | None = None, seed: Any = 0, sca
                         "iterations": run.iterations, "time": time.perf_counter() - t0})
         progress(verbose, "ipopt", f"start {k + 1}/{len(points)}: {run.raw_status}, F = "
                  f"{prep.declared(run.objective):.6g}, residual {res:.1e}, {run.iterations} iterations")
-    i, _ = (polish_best(prep, candidates, traces, records, nlp_opts, limit)
+    i, _ = (branch_polish_best(prep, candidates, traces, records, nlp_opts, limit)
             if branch_polish and prep.mpcc.pairs else (best_of(candidates), 0))
     total_iter = sum(r["iterations"] for r in records)
     best = traces[i]

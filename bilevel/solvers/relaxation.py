@@ -16,7 +16,7 @@ from ..defaults import param
 from ..errors import ModelError
 from ..mpcc import ComplementarityMode, KanzowSchwartz, Scholtes
 from .engine.prepared import MethodRun, Prepared, best_of, check_options
-from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, polish_best, residual, run_nlp, settled
+from .ipopt import NLPRun, kept_warm_point, kkt_nlp_options, kkt_starts, branch_polish_best, residual, run_nlp, settled
 from .engine.limits import Deadline, progress, stopped
 
 SCHEMES: dict[str, type[ComplementarityMode]] = {
@@ -82,7 +82,7 @@ def solve_relaxation(prep: Prepared, *, scheme: str = "scholtes", t0: float | No
                         "steps": len(path), "time": time.perf_counter() - t_start})
         progress(verbose, "relaxation", f"start {k + 1}/{len(points)}: {len(path)} steps, "
                  f"F = {prep.declared(run.objective):.6g}, residual {res:.1e}")
-    i, polishing = (polish_best(prep, candidates, finals, records, opts, limit)
+    i, polishing = (branch_polish_best(prep, candidates, finals, records, opts, limit)
                     if branch_polish and prep.mpcc.pairs else (best_of(candidates), 0))
     total = sum(p["iterations"] for path in paths for p in path) + polishing
     kept = kept_warm_point(prep, points, candidates[i], f"{finals[i].status.value} after {len(paths[i])} relaxation "

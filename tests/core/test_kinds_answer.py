@@ -34,8 +34,8 @@ def _strings(node: ast.AST) -> set[str]:
 
 
 def _mentions_kind(node: ast.AST) -> bool:
-    return any((isinstance(n, ast.Name) and n.id.endswith("kind")) or (isinstance(n, ast.Attribute) and n.attr == "kind")
-               for n in ast.walk(node))
+    return any((isinstance(n, ast.Name) and n.id.endswith("kind"))
+               or (isinstance(n, ast.Attribute) and n.attr == "kind") for n in ast.walk(node))
 
 
 def violations(source: str, where: str, constructs: bool = False) -> list[str]:
@@ -48,8 +48,8 @@ def violations(source: str, where: str, constructs: bool = False) -> list[str]:
               and any(isinstance(n, ast.Name) and n.id == "ImageLower" for n in ast.walk(node))):
             found.append(f"{where}:{node.lineno}: isinstance(..., ImageLower)")
         elif (isinstance(node, ast.Attribute) and node.attr in IMAGE_INTERNALS and not constructs
-              and isinstance(node.value, (ast.Name, ast.Attribute))
-              and (getattr(node.value, "id", None) in ("low", "lower") or getattr(node.value, "attr", None) == "lower")):
+              and (getattr(node.value, "id", None) in ("low", "lower")
+                   or getattr(node.value, "attr", None) == "lower")):
             found.append(f"{where}:{node.lineno}: ImageLower's .{node.attr} reached from a lower level")
     return found
 

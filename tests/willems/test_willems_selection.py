@@ -47,7 +47,7 @@ def _learner_from_two_starts(attack: WillemsAttack, x: np.ndarray) -> list[tuple
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
             sol = start(level.data(x), "of the learner", level.lmi_data(x))
-        sol, res = level.newton_polish(x, sol)
+        sol, res = level.kkt_newton(x, sol)
         if attack.setting.selection == "min-norm":
             projected = level.select_min_norm(x, sol)  # the engine's selection, from the SDP's coefficients
             res = level.kkt_residual(x, projected)

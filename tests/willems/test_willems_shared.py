@@ -132,8 +132,8 @@ def test_newton_continuation_reaches_the_conic_solution() -> None:
     rng = np.random.default_rng(5)
     x0 = rng.uniform(-0.01, 0.01, low.n_x)
     x1 = x0 + rng.uniform(-1e-3, 1e-3, low.n_x)
-    at0 = low.newton_polish(x0, low.reference_solve(x0))[0]
-    fresh, fresh_residual = low.newton_polish(x1, low.reference_solve(x1))
+    at0 = low.kkt_newton(x0, low.reference_solve(x0))[0]
+    fresh, fresh_residual = low.kkt_newton(x1, low.reference_solve(x1))
     near = low.continue_from(x1, at0)
     assert near is not None and near[1] <= 1e-9 and fresh_residual <= 1e-9
     # both are KKT points at residual <= 1e-9 of an ill-conditioned SDP: they agree to ~1e-8 relative, and how closely

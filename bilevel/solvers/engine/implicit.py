@@ -198,10 +198,10 @@ class Hypergradient:
         parts = [np.abs(S), np.maximum(g, 0.0), np.abs(h), np.abs(lam * g)]
         return max((float(p.max()) for p in parts if p.size), default=0.0)
 
-    def polish(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, KKTValues | None]:
+    def active_set_newton(self, x: np.ndarray, sol: LowerSolution) -> tuple[LowerSolution, KKTValues | None]:
         """One Newton step on the active-set KKT equations at x from sol; kept if it keeps lam >= 0 and lowers the
         residual."""
-        if self.low.closed_form:  # a closed form: nothing to polish; KKT values wait for a gradient
+        if self.low.closed_form:  # a closed form: no active set; KKT values wait for a gradient
             return sol, None
         vals = self.low.kkt_values(x, sol)
         rows, _ = self.active_set(vals.g, sol.lam)
@@ -225,8 +225,8 @@ class Hypergradient:
 
     def evaluate(self, x: np.ndarray, lower: LowerSolution | None = None,
                  kkt: KKTValues | None | None = None) -> Evaluation:
-        """Solve (and polish) the lower level at x, or take its known solution `lower` (and KKT values `kkt`, if
-        known), and evaluate phi there; raises if the lower solve fails. A given solution's objective is read from
+        """Solve (and refine by active_set_newton) the lower level at x, or take its known solution `lower` (and KKT
+        values `kkt`, if known), and evaluate phi there; raises if the lower solve fails. A given solution's objective is read from
         the same sweep as F when it is NaN."""
         x = self.low.check_point(x)
         revision = self.low.params.revision
@@ -240,7 +240,7 @@ class Hypergradient:
             sol, vals = (self.low.solve(x) if near is None else self.low.select(x, near[0])), None
             self._last_conic = (self._prep.runs, sol)
         else:
-            sol, vals = self.polish(x, self.low.solve(x))
+            sol, vals = self.active_set_newton(x, self.low.solve(x))
         if self.low.fixed:  # y* constant in x: solved once, no adjoint
             self._fixed = (revision, sol, vals)
         if np.isnan(sol.objective) and isinstance(self.low, ExpressionLower):  # F and f share subexpressions

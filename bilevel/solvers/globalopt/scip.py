@@ -157,7 +157,7 @@ def _build(scip: Any, relax: Relaxation, leader: Leader, big_m: BigM, lo: np.nda
     return model, w
 
 
-def polish(relax: Relaxation, w0: np.ndarray) -> np.ndarray | None:
+def nearest_on_branch(relax: Relaxation, w0: np.ndarray) -> np.ndarray | None:
     """The point nearest to w0 (max norm) on the branch w0 selects: every pair held on its side, an LP; None if it
     fails. Every point of that branch satisfies the lower level's KKT conditions exactly, except at a pair whose
     slack is nonlinear in x and zero at w0 (not an LP row: left where SCIP put it)."""
@@ -217,7 +217,7 @@ def solve_scip(relax: Relaxation, big_m: BigM, box: tuple[np.ndarray, np.ndarray
         return SearchOutcome(None, lower, np.inf, nodes, ended)
     sol = model.getBestSol()
     w_scip = np.array([sol[v] for v in w])
-    w_best = polish(relax, w_scip)
+    w_best = nearest_on_branch(relax, w_scip)
     if w_best is None:
         w_best = w_scip
     objective = ca.Function("F", [leader.w], [leader.objective])
