@@ -7,6 +7,16 @@ import difflib
 from typing import Any, Iterable
 
 
+RENAMES_REMOVED_IN = "0.2.0"
+"""The release that removes the rename shims (renamed options, attributes and the module bilevel.solvers.base): until
+then an old name raises (or, for the module, warns) with its new one."""
+
+
+def renamed(old: str, new: str) -> str:
+    """The message for a renamed name: what to use, and the release that drops the note."""
+    return f"{old} was renamed: use {new}; this note goes in bilevel {RENAMES_REMOVED_IN}"
+
+
 class BilevelError(Exception):
     """Base class; `result` carries a partial result when one exists (never lost on raise)."""
 

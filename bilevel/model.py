@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any, Callable, Literal
 import casadi as ca
 import numpy as np
 
-from .errors import InvalidData, ModelError
+from .errors import InvalidData, ModelError, renamed
 from .linear_maps import Image, LinearMap, Operator
 from .parameters import ParameterSet
 from .real_data import refuse_complex
@@ -447,8 +447,8 @@ class BilevelProblem:
     @property
     def starts(self) -> None:
         """Renamed: the starts given by suggest_start are suggested_starts (`starts` is the methods' count option)."""
-        raise AttributeError("BilevelProblem.starts was renamed: use suggested_starts (the starts given by "
-                             "suggest_start; the option starts is the number of multistart starts)")
+        raise AttributeError(renamed("BilevelProblem.starts", "suggested_starts (the starts given by suggest_start; the "
+                                     "option starts is the number of multistart starts)"))
 
     def upper_layout(self) -> dict[str, slice]:
         """Where each upper variable sits in the flat upper vector x (declaration order, column-major)."""

@@ -11,7 +11,7 @@ import casadi as ca
 import numpy as np
 
 from .certificate import Certificate, GlobalBound
-from .errors import InvalidData
+from .errors import InvalidData, renamed
 from .files import atomic_open
 
 SHOWN = 12
@@ -31,15 +31,6 @@ class Status(str, Enum):
     MAX_ITERATIONS = "max_iterations"          # iteration/time limit hit, certificate not passed
     INFEASIBLE = "infeasible"                  # backend found the single-level problem infeasible
     ERROR = "error"                            # backend failed without a usable point
-
-    @classmethod
-    def of_run(cls, converged: bool | None, certified: bool) -> "Status":
-        """A run's status: SOLVED only when it converged and its certificate passed; INACCURATE when certified but
-        stopped short (converged False) or not an optimizer's end point (None: a sample, a heuristic, a stop at
-        the caller's goal); CERTIFICATE_FAILED when it converged uncertified; MAX_ITERATIONS otherwise."""
-        if certified:
-            return cls.SOLVED if converged else cls.INACCURATE
-        return cls.CERTIFICATE_FAILED if converged else cls.MAX_ITERATIONS
 
 
 @dataclass(frozen=True)
@@ -76,8 +67,8 @@ class BilevelResult:
     @property
     def starts(self) -> None:
         """Renamed: the per-start records are start_records (`starts` is the option that counts them)."""
-        raise AttributeError("BilevelResult.starts was renamed: use start_records (the per-start records; the "
-                             "option starts is their count)")
+        raise AttributeError(renamed("BilevelResult.starts", "start_records (the per-start records; the option starts "
+                                     "is their count)"))
 
     def value(self, expr: Any) -> float | np.ndarray:
         """Evaluate any CasADi expression of the problem's variables at the solution."""

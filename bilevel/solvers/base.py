@@ -3,11 +3,12 @@ Prepared, MethodRun and prepare from bilevel.solvers, finalize from bilevel.solv
 
 import warnings
 
+from ..errors import RENAMES_REMOVED_IN
 from .engine.prepared import MethodRun, Prepared, best_of, check_options, options_of, prepare, unbounded_lower
 from .verdict.finalize import finalize
 
-warnings.warn("bilevel.solvers.base is deprecated and will be removed in bilevel 0.2.0: import Prepared, MethodRun "
-              "and prepare from bilevel.solvers (finalize: bilevel.solvers.verdict.finalize)", DeprecationWarning,
-              stacklevel=2)
+warnings.warn(f"bilevel.solvers.base is deprecated and will be removed in bilevel {RENAMES_REMOVED_IN}: import "
+              "Prepared, MethodRun and prepare from bilevel.solvers (finalize: bilevel.solvers.verdict.finalize)",
+              DeprecationWarning, stacklevel=2)
 
 __all__ = ["MethodRun", "Prepared", "best_of", "check_options", "finalize", "options_of", "prepare", "unbounded_lower"]

@@ -15,7 +15,7 @@ from ...canonical import (CanonicalBilevel, Canonicalize, NormalizeSense, in_sen
                           suggested_starts)
 from ...certificate import LOCAL_EVIDENCE, Certificate, GlobalBound, certify_point
 from ...defaults import param
-from ...errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption, did_you_mean
+from ...errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption, did_you_mean, renamed
 from ...model import BilevelProblem
 from ...mpcc import MPCC
 from ...reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
@@ -220,9 +220,8 @@ def check_options(method: str, given: dict[str, Any], accepted: Callable[..., An
     unknown = sorted(set(given) - allowed)
     if not unknown:
         return
-    renamed = [f"{old} was renamed: use {RENAMED_OPTIONS[method][old]}" for old in unknown
-               if old in RENAMED_OPTIONS.get(method, {})]
-    if renamed:
-        raise UnknownOption(f"method {method!r}: option {'; option '.join(renamed)}")
+    moved = [renamed(old, RENAMED_OPTIONS[method][old]) for old in unknown if old in RENAMED_OPTIONS.get(method, {})]
+    if moved:
+        raise UnknownOption(f"method {method!r}: option {'; option '.join(moved)}")
     raise UnknownOption(f"method {method!r} does not take option(s) {', '.join(unknown)}; "
                         f"{did_you_mean(unknown[0], allowed)}it accepts: {', '.join(sorted(allowed))}")
