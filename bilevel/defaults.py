@@ -41,6 +41,9 @@ ENTRIES: dict[str, tuple[Any, str]] = {
                                      "objective (relative)"),
     "block_exact.gain_tol": (1e-5, "the exact-block ascent stops when its gain over ascent.window steps is below this "
                                    "(relative)"),
+    "hypergradient.restoration_tol": (1e-12, "IPOPT's tol in the restoration NLP (the nearest upper point in the box "
+                                             "where the lower level is feasible)"),
+    "hypergradient.restoration_max_iter": (500, "IPOPT's iteration limit in that NLP (count)"),
     # the implicit-differentiation engine (bilevel.solvers.engine.implicit)
     "implicit.penalty": (1e4, "weight of the upper constraints' violation added to phi where they are penalized"),
     "implicit.active_tol": (1e-6, "a lower inequality is active where lam_i > this or |g_i| <= this (absolute)"),
@@ -98,6 +101,9 @@ ENTRIES: dict[str, tuple[Any, str]] = {
                                    "|entry|)"),
     "global.max_box_vertices": (4096, "vertices of the upper box on which an x-dependent lower Hessian is checked, at"
                                       " most (count)"),
+    "global.slater_tol": (1e-10, "IPOPT's tol in the Slater-point NLP that bounds the multipliers of a nonlinear lower "
+                                 "level for SCIP"),
+    "global.slater_max_iter": (500, "IPOPT's iteration limit in that NLP (count)"),
     "global.scip_feastol": (1e-9, "SCIP's feasibility tolerance (SCIP's own default is 1e-6; absolute)"),
     # multistart selection and dispatch (bilevel.solvers.engine.prepared, bilevel.solvers.registry)
     "solvers.feasibility_tol": (1e-6, "largest residual at which a start's end point counts as feasible"),
@@ -125,6 +131,8 @@ ENTRIES: dict[str, tuple[Any, str]] = {
                              "(absolute)"),
     "probe.descent_rel_tol": (1e-5, "along first-order directions a neighbour is better only by more than this "
                                     "(relative)"),
+    "optimistic.nlp_tol": (1e-10, "IPOPT's tol and constr_viol_tol in the optimistic selection's NLP over y"),
+    "optimistic.max_iter": (500, "IPOPT's iteration limit in that NLP (count)"),
     "optimistic.slack": (1e-9, "slack of the optimistic selection's lower optimality row, f <= f* + slack (1 + |f*|) "
                                "(relative)"),
     "optimistic.row_tol": (1e-8, "largest row violation, relative to 1 + max |y|, at which a selection counts as "
@@ -191,6 +199,9 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "lower.clarabel_ktratio": (1e-8, "Clarabel's tol_ktratio in the same solves"),
     "lower.nlp_tol": (1e-12, "IPOPT's tol in the solves of a convex NLP lower level (the certificate's re-solves)"),
     "lower.nlp_acceptable_tol": (1e-9, "IPOPT's acceptable_tol in the same solves"),
+    "lower.nlp_max_iter": (3000, "IPOPT's iteration limit in the same solves (count)"),
+    "lower.unique_rtol": (1e-10, "a QP lower level's solution counts as unique (method reduced applies) when the "
+                                 "smallest eigenvalue of its Hessian at the start exceeds this * max(1, max |P|)"),
     "mpcc.tau": (1e-8, "relaxation parameter of a complementarity mode built without one (Scholtes(), Product(), "
                        "KanzowSchwartz(), FischerBurmeister()); method ipopt's own mode takes ipopt.complementarity_t"),
     "polish.active_tol": (1e-6, "a row or LMI eigenvalue is active when within this * (1 + its scale) of zero"),

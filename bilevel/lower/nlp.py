@@ -35,7 +35,7 @@ class ConvexNLPLower(ExpressionLower):
     def __post_init__(self) -> None:
         super().__post_init__()
         nlp = {"x": self.y, "p": ca.vertcat(self.x, self.params.sym), "f": self.f, "g": ca.vertcat(self.g, self.h)}
-        opts = ipopt_options(param("lower.nlp_tol"), 3000, {"acceptable_tol": param("lower.nlp_acceptable_tol")})
+        opts = ipopt_options(param("lower.nlp_tol"), param("lower.nlp_max_iter"), {"acceptable_tol": param("lower.nlp_acceptable_tol")})
         self._solver = ca.nlpsol("lower_nlp", "ipopt", nlp, opts)
         self._ng = int(self.g.numel())
 

@@ -59,9 +59,9 @@ class QPData:
 
 def singular_hessian(data: QPData) -> str | None:
     """Why a QP's solution may not be unique (its Hessian is singular, not strictly convex), or None where the
-    Hessian is positive definite."""
+    Hessian is positive definite (smallest eigenvalue above defaults["lower.unique_rtol"] * max(1, max |P|))."""
     P = data.P
-    if np.linalg.eigvalsh(0.5 * (P + P.T))[0] > 1e-10 * max(1.0, float(np.abs(P).max())):
+    if np.linalg.eigvalsh(0.5 * (P + P.T))[0] > param("lower.unique_rtol") * max(1.0, float(np.abs(P).max())):
         return None
     return "a QP lower level whose Hessian is singular at the start (not strictly convex)"
 

@@ -62,7 +62,9 @@ class _Restoration:
         nlp = {"x": ca.vertcat(canon.x, canon.y), "p": ca.vertcat(v, canon.params.sym),
                "f": 0.5 * ca.sumsqr(canon.x - v),
                "g": ca.vertcat(low.g, low.h)}
-        self._solver = ca.nlpsol("restoration", "ipopt", nlp, ipopt_options(1e-12, 500, {"bound_relax_factor": 0.0}))
+        options = ipopt_options(param("hypergradient.restoration_tol"), param("hypergradient.restoration_max_iter"),
+                                {"bound_relax_factor": 0.0})
+        self._solver = ca.nlpsol("restoration", "ipopt", nlp, options)
         ng, nh = low.n_g, low.n_h
         ny = int(canon.y.numel())
         self._bounds = dict(lbx=np.concatenate([canon.x_lb, np.full(ny, -np.inf)]),

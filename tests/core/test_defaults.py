@@ -66,6 +66,9 @@ BEFORE = {  # the module constants and option defaults the registry replaced, as
     "robust_willems.margin_steps": 3, "robust_willems.margin_factor": 100.0, "robust_willems.check_margin": 1e-10,
     "certificate.unique_rtol": 1e-9, "probe.radius": 0.1, "lower.clarabel_tol": 1e-10, "lower.clarabel_ktratio": 1e-8,
     "lower.nlp_tol": 1e-12, "lower.nlp_acceptable_tol": 1e-9, "mpcc.tau": 1e-8,
+    "lower.nlp_max_iter": 3000, "lower.unique_rtol": 1e-10, "global.slater_tol": 1e-10, "global.slater_max_iter": 500,
+    "optimistic.nlp_tol": 1e-10, "optimistic.max_iter": 500, "hypergradient.restoration_tol": 1e-12,
+    "hypergradient.restoration_max_iter": 500,
 }
 
 METHOD_FUNCTIONS = {**{name: fn for name, fn in bl.METHODS.items()}, "destabilize": destabilize,

@@ -28,7 +28,7 @@ import numpy as np
 from ...defaults import param
 from ...errors import ModelError
 from ...lower.interval import enclose
-from ...lower.nlp import NLPSOL_QUIET
+from ...lower.nlp import ipopt_options
 from ..engine.prepared import Prepared
 from .bigm import BigM
 from .form import LOCAL_METHODS, LinearMPCC
@@ -100,7 +100,7 @@ def _slater_point(x: ca.SX, y: ca.SX, g: ca.SX, corners: list[np.ndarray], y_sta
     s = ca.SX.sym("s")
     rows = ca.vertcat(*[ca.substitute(g, x, ca.DM(c)) + s for c in corners])
     solver = ca.nlpsol("slater", "ipopt", {"x": ca.vertcat(y, s), "f": -s, "g": rows},
-                       {**NLPSOL_QUIET, "ipopt": {"print_level": 0, "sb": "yes", "tol": 1e-10, "max_iter": 500}})
+                       ipopt_options(param("global.slater_tol"), param("global.slater_max_iter")))
     n = int(y.numel())
     sol = solver(x0=np.append(y_start, 0.0), lbx=np.append(np.full(n, -np.inf), -np.inf),
                  ubx=np.append(np.full(n, np.inf), 1.0), ubg=0.0)

@@ -45,7 +45,9 @@ class _SelectionNLP:
         bound = ca.SX.sym("bound")
         rows = ca.vertcat(low.g, *G, low.h, *H, low.f - bound)
         nlp = {"x": canon.y, "p": ca.vertcat(canon.x, bound, canon.params.sym), "f": canon.F, "g": rows}
-        self.solver = ca.nlpsol("optimistic", "ipopt", nlp, ipopt_options(1e-10, 500, {"constr_viol_tol": 1e-10}))
+        tol = param("optimistic.nlp_tol")
+        options = ipopt_options(tol, param("optimistic.max_iter"), {"constr_viol_tol": tol})
+        self.solver = ca.nlpsol("optimistic", "ipopt", nlp, options)
         n_ineq, n_eq = int(low.g.numel()) + len(G), int(low.h.numel()) + len(H)
         self.lbg = np.concatenate([np.full(n_ineq, -np.inf), np.zeros(n_eq), [-np.inf]])
         self.ubg = np.zeros(n_ineq + n_eq + 1)
