@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any, Callable, Literal
 import casadi as ca
 import numpy as np
 
-from .errors import InvalidData, ModelError, renamed
+from .errors import InvalidData, ModelError, UnknownName, did_you_mean, renamed
 from .linear_maps import Image, LinearMap, Operator
 from .parameters import ParameterSet
 from .real_data import refuse_complex
@@ -143,6 +143,18 @@ class Objective:
     assume_convex: bool = False
     matrix: ca.SX | None = None
     function: MatrixFunction | None = None
+
+
+def _bounds(name: str, size: int, lb: Any, ub: Any, symmetric: bool) -> tuple[np.ndarray, np.ndarray]:
+    """A variable's bounds as flat arrays, checked: lb <= ub, no lb of +inf or ub of -inf."""
+    lbv = _bound_array(lb, size, f"lower bound of {name!r}", symmetric)
+    ubv = _bound_array(ub, size, f"upper bound of {name!r}", symmetric)
+    if np.any(lbv > ubv):
+        raise ModelError(f"variable {name!r}: a lower bound exceeds its upper bound")
+    if np.any(lbv == np.inf) or np.any(ubv == -np.inf):
+        raise ModelError(f"variable {name!r}: a lower bound of +inf or an upper bound of -inf leaves no "
+                         "feasible value; use lb=-inf / ub=inf for a free variable")
+    return lbv, ubv
 
 
 def _bound_array(value: Any, size: int, what: str, symmetric: bool = False) -> np.ndarray:
@@ -274,8 +286,10 @@ class BilevelProblem:
         self.suggested_starts: list[dict[str, np.ndarray]] = []
         self.parameters = ParameterSet()
         self.revision = 0
-        """Incremented by every declaration (not by set_value or suggest_start): solves reuse their preparation
-        while it is unchanged."""
+        """Incremented by every declaration (not by set_value, set_bounds or suggest_start): solves reuse their
+        preparation while it is unchanged."""
+        self.bounds_revision = 0
+        """Incremented by set_bounds: a prepared problem reads the new box of the upper variables at its next solve."""
         self.lower_matrices: LowerQP | None = None
         """The lower level given by matrices (lower_qp), if it was declared that way."""
         self.images: list[Image] = []
@@ -296,13 +310,7 @@ class BilevelProblem:
         else:
             sym = ca.SX.sym(name, int(rows), int(cols))
         size = int(sym.numel())
-        lbv = _bound_array(lb, size, f"lower bound of {name!r}", symmetric)
-        ubv = _bound_array(ub, size, f"upper bound of {name!r}", symmetric)
-        if np.any(lbv > ubv):
-            raise ModelError(f"variable {name!r}: a lower bound exceeds its upper bound")
-        if np.any(lbv == np.inf) or np.any(ubv == -np.inf):
-            raise ModelError(f"variable {name!r}: a lower bound of +inf or an upper bound of -inf leaves no "
-                             "feasible value; use lb=-inf / ub=inf for a free variable")
+        lbv, ubv = _bounds(name, size, lb, ub, symmetric)
         st = None if start is None else _bound_array(start, size, f"start of {name!r}", symmetric)
         if st is not None and not np.all(np.isfinite(st)):
             raise ModelError(f"start of {name!r} contains inf; give finite start values")
@@ -347,6 +355,21 @@ class BilevelProblem:
     def set_value(self, name: str, value: Any) -> None:
         """Set the value of parameter `name` (its declared shape, or flattened column-major)."""
         self.parameters.set(name, value)
+
+    def set_bounds(self, name: str, lb: Any = None, ub: Any = None) -> None:
+        """Re-set the box of upper variable `name` (a budget) without rebuilding, like set_value for data: the next
+        solve keeps the preparation and uses the new box (and a start clipped into it). None keeps that side."""
+        var = next((v for v in self.variables if v.name == name), None)
+        if var is None:
+            raise UnknownName(f"no variable named {name!r}; {did_you_mean(name, [v.name for v in self.variables])}"
+                              f"the upper variables are {', '.join(v.name for v in self.upper_variables) or 'none'}")
+        if var.level != "upper":
+            raise ModelError(f"set_bounds: {name!r} is a lower variable, whose bounds are lower-level constraints "
+                             "(part of the declaration); declare them as data instead (a parameter in a constraint)")
+        symmetric = var.matrix is not None
+        lbv, ubv = _bounds(name, var.size, var.lb if lb is None else lb, var.ub if ub is None else ub, symmetric)
+        var.lb[:], var.ub[:] = lbv, ubv  # in place: the prepared problem holds these arrays
+        self.bounds_revision += 1
 
     def upper_variable(self, name: str, shape: int | tuple[int, int] = 1, lb: Any = -np.inf,
                        ub: Any = np.inf, start: Any = None, symmetric: bool = False) -> ca.SX:

@@ -299,7 +299,7 @@ class WillemsAttack:
     def shared_problem(self, radius: bool = False) -> BilevelProblem:
         """The declared problem with the data as parameters (declare(..., parameters=True); radius: its objective
         rho(A_id + B_id K) as in radius_problem), prepared once per process for the last defaults["willems.shared_kept"]
-        shapes and given this attack's data (set_value where they differ) and box (Prepared.rebox): attacks of one
+        shapes and given this attack's data (set_value where they differ) and box (set_bounds): attacks of one
         shape share the engine's symbolic preparation, and attacks on one data set at several budgets or by several
         methods also the learner's solves. The learner's selection is given to its SDP lower level."""
         problem = kept(_SHARED.__dict__.setdefault("problems", {}), (self.shape, radius),
@@ -308,10 +308,12 @@ class WillemsAttack:
             value = getattr(self, DATA_PARAMETERS[item.name])
             if not np.array_equal(item.value, value.reshape(-1, order="F")):
                 problem.set_value(item.name, value)
-        prep = prepare(problem)
         bound = self.budget()
-        if not (np.array_equal(prep.canon.x_ub, bound) and np.array_equal(prep.canon.x_lb, -bound)):
-            prep.rebox(-bound, bound)
+        for name, part in problem.upper_layout().items():  # the budget: a declared box, re-set where it differs
+            var = next(v for v in problem.upper_variables if v.name == name)
+            if not (np.array_equal(var.ub, bound[part]) and np.array_equal(var.lb, -bound[part])):
+                problem.set_bounds(name, -bound[part], bound[part])
+        prep = prepare(problem)
         low, selection = prep.canon.lower, self.setting.selection
         low.min_norm = selection == "min-norm"
         if selection in SOLVER_SELECTIONS and low.chosen() is None:

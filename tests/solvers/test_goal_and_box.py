@@ -1,4 +1,5 @@
-"""The caller's goal (option callback, StopIteration), near-tie preference (option prefer) and Prepared.rebox."""
+"""The caller's goal (option callback, StopIteration), near-tie preference (option prefer) and the declared box
+(BilevelProblem.set_bounds; the deprecated Prepared.rebox)."""
 
 from __future__ import annotations
 
@@ -48,17 +49,33 @@ def test_prefer_breaks_near_ties_between_starts() -> None:
         assert float(np.ravel(res.x["x"])[0]) == pytest.approx(sign, abs=1e-6)
 
 
-def test_rebox_gives_every_later_solve_the_new_box() -> None:
-    """After rebox to [0.5, 3] the wavy problem's minimum is the local one near 1.54 (the global one, -0.51, is cut
-    off; checked on a 250,001-point grid of the box), and its certificate checks the new box."""
+def test_set_bounds_gives_every_later_solve_the_new_box() -> None:
+    """After set_bounds to [0.5, 3] the wavy problem's minimum is the local one near 1.54 (the global one, -0.51, is
+    cut off; checked on a 250,001-point grid of the box), and its certificate checks the new box; the preparation is
+    kept (a box is not a declaration)."""
     p = _wavy(1.5)
     prep = prepare(p)
-    prep.rebox(np.array([0.5]), np.array([3.0]))
+    p.set_bounds("x", 0.5, 3.0)
     res = bl.solve(p, method="hypergradient", starts=3, seed=0)
+    assert prepare(p) is prep and prep.canon.x_lb[0] == 0.5 and prep.canon.x_ub[0] == 3.0
     x = float(np.ravel(res.x["x"])[0])
     grid = np.linspace(0.5, 3.0, 250_001)
     best = grid[np.argmin(np.sin(3 * grid) + 0.1 * grid ** 2)]
     assert 0.5 <= x <= 3.0 and x == pytest.approx(best, abs=1e-4) and res.certificate.upper_feasibility == 0.0
-    assert p.upper_variables[0].lb[0] == 0.5
-    with pytest.raises(bl.ModelError, match="lb <= ub"):
+    with pytest.raises(bl.ModelError, match="lower bound exceeds its upper bound"):
+        p.set_bounds("x", 1.0, 0.0)
+    with pytest.raises(bl.UnknownName, match="did you mean 'x'"):
+        p.set_bounds("xx", 0.0, 1.0)
+    with pytest.raises(bl.ModelError, match="lower variable"):
+        p.set_bounds(p.lower_variables[0].name, 0.0, 1.0)
+
+
+def test_rebox_is_a_deprecated_set_bounds() -> None:
+    """Prepared.rebox warns (removed in 0.2.0) and gives the problem the box by set_bounds."""
+    p = _wavy(1.5)
+    prep = prepare(p)
+    with pytest.warns(DeprecationWarning, match="set_bounds"):
+        prep.rebox(np.array([0.5]), np.array([3.0]))
+    assert p.upper_variables[0].lb[0] == 0.5 and prep.canon.x_ub[0] == 3.0 and p.bounds_revision == 1
+    with pytest.warns(DeprecationWarning), pytest.raises(bl.ModelError, match="lb <= ub"):
         prep.rebox(np.array([1.0]), np.array([0.0]))

@@ -295,7 +295,8 @@ def test_the_declared_conditioning_start_is_kept_for_a_re_solve_at_the_same_para
     assert calls and not np.array_equal(moved, first)
     np.testing.assert_array_equal(moved, starts._conditioning_descent(prep, starts.ConditioningParts(hessian, adjoint)))
     calls.clear()
-    prep.rebox(np.array([-0.5, -0.5]), np.array([0.5, 0.5]))  # a new box (and a start clipped into it), same revision
+    p.set_bounds(p.upper_variables[0].name, -0.5, 0.5)  # a new box (and a start clipped into it), same revision
+    prep = prepare(p)
     boxed = starts.conditioning_start(prep)
     assert calls and np.all(np.abs(boxed) <= 0.5)
     np.testing.assert_array_equal(boxed, starts._conditioning_descent(prep, starts.ConditioningParts(hessian, adjoint)))

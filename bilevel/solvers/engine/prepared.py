@@ -4,6 +4,7 @@ bilevel.solvers.verdict.finalize."""
 from __future__ import annotations
 
 import inspect
+import warnings
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any, Callable, Iterable
@@ -15,7 +16,8 @@ from ...canonical import (CanonicalBilevel, Canonicalize, NormalizeSense, in_sen
                           suggested_starts)
 from ...certificate import LOCAL_EVIDENCE, Certificate, GlobalBound, certify_point
 from ...defaults import param
-from ...errors import BilevelError, LowerLevelUnbounded, ModelError, UnknownOption, did_you_mean, renamed
+from ...errors import (RENAMES_REMOVED_IN, BilevelError, LowerLevelUnbounded, ModelError, UnknownOption, did_you_mean,
+                       renamed)
 from ...model import BilevelProblem
 from ...mpcc import MPCC
 from ...reduction import Chain, KKTInverse, KKTPoint, SingleLevelReduction
@@ -40,6 +42,8 @@ class Prepared:
     memo: dict[str, Any] = field(default_factory=dict)
     """Methods' symbolic set-ups (compiled functions), built once per declaration."""
     values_revision: int = 0
+    bounds_revision: int = 0
+    """The problem's bounds_revision whose box canon holds (BilevelProblem.set_bounds)."""
     runs: int = 0
     """Solves begun on this preparation (bilevel.solve counts them): state a method keeps between evaluations, such as
     the SDP continuation's last solution, is not carried into another solve, so a result depends on its call only."""
@@ -51,8 +55,11 @@ class Prepared:
         return self.memo[key]
 
     def refresh(self) -> None:
-        """Bring value-dependent caches up to date with the problem's parameter values and suggested starts."""
+        """Bring value-dependent caches up to date with the problem's parameter values, upper box (set_bounds) and
+        suggested starts."""
         canon = self.canon
+        if self.problem.bounds_revision != self.bounds_revision:
+            self._read_box()
         canon.x_suggested = suggested_starts(self.problem, canon.x_start, canon.x_lb, canon.x_ub)
         if canon.params.revision != self.values_revision:
             canon.lower.check_convexity()  # the declaration's convexity check, on the new values
@@ -60,22 +67,29 @@ class Prepared:
                 self.__dict__.pop(name, None)
             self.values_revision = canon.params.revision
 
+    def _read_box(self) -> None:
+        """The upper box from the declared variables after set_bounds, the start clipped into it: every later
+        method, the certificate and the probe use it, while the symbolic set-ups, the lower level and its solutions
+        are kept (attacks on one instance at several budgets); balls, projection and the MPCC are rebuilt on use."""
+        canon = self.canon
+        canon.x_lb = np.concatenate([v.lb for v in canon.upper_vars]) if canon.upper_vars else np.zeros(0)
+        canon.x_ub = np.concatenate([v.ub for v in canon.upper_vars]) if canon.upper_vars else np.zeros(0)
+        canon.x_start = np.clip(canon.x_start, canon.x_lb, canon.x_ub)
+        for name in ("balls", "projection", "reduction"):
+            self.__dict__.pop(name, None)
+        self.bounds_revision = self.problem.bounds_revision
+
     def rebox(self, lb: np.ndarray, ub: np.ndarray) -> None:
-        """Give the upper variables the box [lb, ub] (flat), in the declaration and here: every later method, the
-        certificate and the probe use it, while the symbolic set-ups, the lower level and its solutions are kept
-        (attacks on one instance at several budgets)."""
+        """Deprecated (removed in bilevel 0.2.0): the flat box [lb, ub] of all upper variables, given to the problem by
+        BilevelProblem.set_bounds per variable, which is what to call instead."""
+        warnings.warn(f"Prepared.rebox is deprecated and will be removed in bilevel {RENAMES_REMOVED_IN}: declare the "
+                      "box with BilevelProblem.set_bounds(name, lb, ub)", DeprecationWarning, stacklevel=2)
         canon = self.canon
         lb, ub = np.asarray(lb, dtype=float), np.asarray(ub, dtype=float)
         if lb.shape != canon.x_lb.shape or ub.shape != canon.x_ub.shape or np.any(lb > ub):
             raise ModelError(f"rebox: lb and ub must be {canon.x_lb.size} bounds with lb <= ub")
-        start = 0
-        for v in canon.upper_vars:
-            v.lb[:], v.ub[:] = lb[start: start + v.size], ub[start: start + v.size]  # the declared (frozen) variable
-            start += v.size
-        canon.x_lb, canon.x_ub = lb.copy(), ub.copy()
-        canon.x_start = np.clip(canon.x_start, lb, ub)
-        for name in ("balls", "projection", "reduction"):
-            self.__dict__.pop(name, None)
+        for name, part in self.problem.upper_layout().items():
+            self.problem.set_bounds(name, lb[part], ub[part])
         self.refresh()
 
     @cached_property
@@ -143,7 +157,8 @@ def prepare(problem: BilevelProblem) -> Prepared:
     front = Chain([Canonicalize(), NormalizeSense()])
     canon, inverse = front.apply(problem)
     _ = canon.lower  # classify now so a bad lower level fails before any solve
-    prep = Prepared(problem, canon, front, inverse, values_revision=canon.params.revision)
+    prep = Prepared(problem, canon, front, inverse, values_revision=canon.params.revision,
+                    bounds_revision=problem.bounds_revision)
     problem.__dict__["_prepared"] = (key, prep)
     return prep
 

@@ -61,7 +61,7 @@ def conditioning_start(prep: Prepared, parts: ConditioningParts | None = None) -
         return None
     canon = prep.canon
     key = (canon.params.revision, param("starts.conditioning_steps"), canon.x_start.tobytes(), canon.x_lb.tobytes(),
-           canon.x_ub.tobytes())  # rebox changes the box and the start without a new revision
+           canon.x_ub.tobytes())  # set_bounds changes the box and the start without a new revision
     found = prep.memo.get(("conditioning-start-point",))
     if found is None or found[0] != key:
         found = prep.memo[("conditioning-start-point",)] = (key, _conditioning_descent(prep, declared))
