@@ -13,14 +13,15 @@ import os
 import sys
 from typing import Any
 
-SKIPPED = {"time_ms", "wall_time", "version", "digest"}
-"""Fields that differ between runs of the same code: times, and the source's hash (which names the tree)."""
+SKIPPED = {"wall_time", "version", "digest"}
+"""Fields that differ between runs of the same code: times (also every field named time_*), and the source's hash
+(which names the tree)."""
 
 
 def strip(value: Any) -> Any:
     """value without the SKIPPED fields, at every depth."""
     if isinstance(value, dict):
-        return {k: strip(v) for k, v in value.items() if k not in SKIPPED}
+        return {k: strip(v) for k, v in value.items() if k not in SKIPPED and not k.startswith("time_")}
     if isinstance(value, list):
         return [strip(v) for v in value]
     return value
