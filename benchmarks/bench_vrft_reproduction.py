@@ -46,7 +46,8 @@ def child(spec: list, out: str) -> None:
     t0 = time.perf_counter()
     with LocalExecutor(2) as executor:  # closed before getrusage: its workers' CPU time counts once reaped
         rows = run_sweep(getattr(vrft, "BATCHED_TASKS", vrft.attack_task), tasks, os.path.join(out, f"{name}.jsonl"),
-                         executor, None, name, lambda ran, _: computed.append(len(ran)), vrft.valid_row, **shared)
+                         executor, None, name, vrft.valid_row, units=lambda ran: computed.append(len(ran)) or len(ran),
+                         **shared)
     wall = time.perf_counter() - t0
     if hasattr(vrft, "write_csv"):
         vrft.write_csv(vrft.summarize(rows), os.path.join(out, f"table_{name}.csv"))
