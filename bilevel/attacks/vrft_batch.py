@@ -30,6 +30,7 @@ from ..solvers.engine.block_exact import SINGULAR_LEARNER
 from ..solvers.engine.prepared import MethodRun, Prepared, best_of, check_options
 from ..solvers.engine.projections import Blocks, NormBall
 from ..solvers.engine.starts import start_points
+from ..solvers.verdict.batch_probe import ProbeParts
 from .vrft_methods import METHODS, alternating
 
 
@@ -145,7 +146,7 @@ def _run_group(items: list[Gathered]) -> list[MethodRun]:
     def direction(rows: np.ndarray, p: Points) -> tuple[np.ndarray, np.ndarray]:
         fit = BatchFit(p["a"], p["C"], p["d"], p["theta"], None, None, p["R_inv"],
                        np.ones(rows.size, dtype=bool))
-        g = learner.gradient_b(fit, upper.gradient(rows, p["theta"]))
+        g = learner.gradient(fit, upper.gradient(rows, p["theta"]), target=False)[1]
         w = weight[rows, None]
         unit = np.sqrt(np.sum((g * w) ** 2, axis=1))
         d = np.where(unit[:, None] > 0, g * (w * w) / np.where(unit > 0, unit, 1.0)[:, None], 0.0)
@@ -189,7 +190,46 @@ def _method_run(g: Gathered, res: Any, rows: list[int], radius: np.ndarray, shar
                      lower_solve=atk.learner.thetas)
 
 
-BATCHED = BatchMethod(gather, run)
+PROBE_CHUNK = 2048
+"""Points whose lower solutions probe_parts computes in one stacked call (bounds the memory of the batched probe)."""
+
+
+def probe_parts(gathered: list[Gathered], runs: list[MethodRun]) -> ProbeParts:
+    """The learners' fits at the probe's points, the attack's criterion there (canonical F = -J) and the canonical
+    hypergradient at each run's point (bilevel.solvers.verdict.batch_probe)."""
+    atks = [g.atk for g in gathered]
+    N, m = atks[0].N, len(atks)
+    learner = AffineLSBatch(np.stack([a.phi0 for a in atks]), np.stack([a.t0 for a in atks]), _maps(atks[0]), N, N)
+    upper = upper_batch(atks, np.arange(m))
+
+    def solve(inst: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        Y, ok = np.zeros((len(X), atks[0].theta0.size)), np.zeros(len(X), dtype=bool)
+        for s in range(0, len(X), PROBE_CHUNK):
+            part = slice(s, s + PROBE_CHUNK)
+            with np.errstate(all="ignore"):
+                fit = learner.fit(inst[part], X[part, :N], X[part, N:])
+            Y[part], ok[part] = fit.theta, fit.ok
+        return Y, ok
+
+    gradients: dict[int, np.ndarray | None] = {}
+
+    def gradient(i: int) -> np.ndarray | None:
+        if not gradients:  # every run's point at once
+            have = [j for j, r in enumerate(runs) if r.w is not None]
+            x = np.array([gathered[j].prep.point(runs[j].w).x for j in have])
+            for s in range(0, len(have), PROBE_CHUNK):
+                rows = np.array(have[s: s + PROBE_CHUNK])
+                with np.errstate(all="ignore"):
+                    fit = learner.fit(rows, x[s: s + PROBE_CHUNK, :N], x[s: s + PROBE_CHUNK, N:])
+                    g_a, g_b = learner.gradient(fit, upper.gradient(rows, fit.theta))
+                for j, ok, ga, gb in zip(rows, fit.ok, g_a, g_b):
+                    gradients[int(j)] = -np.concatenate([ga, gb]) if ok else None
+        return gradients.get(i)
+
+    return ProbeParts(solve, lambda inst, X, Y: -upper.value(inst, Y), gradient)
+
+
+BATCHED = BatchMethod(gather, run, probe_parts)
 register_batch(alternating, BATCHED)
 
 

@@ -86,9 +86,10 @@ class VRFTRegressor:
     def _lags(self, w: np.ndarray) -> np.ndarray:
         """The lag matrix (n, width) of a signal w (n,), or one per column of w (n, m): shape (m, n, width)."""
         n, width = w.shape[0], self.basis_num.shape[1]
-        lag = np.zeros(w.shape[1:] + (n, width))
+        rows = np.ascontiguousarray(w.T)  # each signal contiguous: the shifted copies below read it in order
+        lag = np.zeros(rows.shape[:-1] + (n, width))
         for j in range(width):
-            lag[..., j:, j] = w[: n - j].T
+            lag[..., j:, j] = rows[..., : n - j]
         return lag
 
     @property

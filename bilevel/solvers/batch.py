@@ -13,6 +13,8 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
+import numpy as np
+
 from ..defaults import param
 from ..errors import ModelError
 from ..model import BilevelProblem
@@ -20,8 +22,11 @@ from ..result import BilevelResult
 from ..threads import single_threaded
 from .engine.options import check_common_options
 from .engine.prepared import MethodRun, Prepared, prepare
+from .engine.structure import budget_scale
 from .registry import METHODS, solve
+from .verdict.batch_probe import ProbeInstance, ProbeParts, covered, probe_many
 from .verdict.finalize import finalize
+from .verdict.probe import ProbeOutcome
 
 Value = Mapping[str, Any] | Callable[[BilevelProblem], None]
 """One instance: parameter values by name (set_value each), or a function that loads the instance into the problem
@@ -32,10 +37,12 @@ Value = Mapping[str, Any] | Callable[[BilevelProblem], None]
 class BatchMethod:
     """A method's batched form: gather(prepared, options) -> what one loaded instance contributes (None: that
     instance runs alone, through `solve`); run(gathered, options) -> one MethodRun per gathered instance, computed
-    together."""
+    together; probe_parts(gathered, runs), where given, what the batched local probe needs (ProbeParts), so that the
+    verdicts' probes run together too."""
 
     gather: Callable[[Prepared, dict[str, Any]], Any]
     run: Callable[[list[Any], dict[str, Any]], list[MethodRun]]
+    probe_parts: Callable[[list[Any], list[MethodRun]], ProbeParts] | None = None
 
 
 BATCH_METHODS: dict[Callable[..., MethodRun], BatchMethod] = {}
@@ -80,14 +87,19 @@ def solve_many(problem: BilevelProblem, values: Sequence[Value], method: str | C
     check_common_options(options, certificate_tol)
     t0 = time.perf_counter()
     gathered: list[Any] = []
+    sets: list[tuple[Any, Any, list]] = []  # each instance's feasible set, scale and balls, for the batched probe
     for value, e in zip(values, each):
         load(problem, value)
-        gathered.append(batched.gather(prepare(problem), {**options, **e}))
+        prep = prepare(problem)
+        gathered.append(batched.gather(prep, {**options, **e}))
+        sets.append((prep.projection, budget_scale(prep.canon, prep.balls), prep.balls))
     together = [i for i, g in enumerate(gathered) if g is not None]
-    prep = prepare(problem)
     small = prep.canon.lower.n_y <= param("solvers.small_lower")
     with single_threaded() if small else contextlib.nullcontext():
         runs = dict(zip(together, batched.run([gathered[i] for i in together], options) if together else []))
+        probed = _probe(prep, batched, [gathered[i] for i in together], [runs[i] for i in together],
+                        [sets[i] for i in together])
+        probed = dict(zip(together, probed))
         share = (time.perf_counter() - t0) / max(len(together), 1)
         results = []
         for i, (value, e) in enumerate(zip(values, each)):
@@ -98,7 +110,7 @@ def solve_many(problem: BilevelProblem, values: Sequence[Value], method: str | C
             load(problem, value)
             prep = prepare(problem)
             prep.runs += 1
-            result = finalize(prep, runs[i], name, share, certificate_tol)
+            result = finalize(prep, runs[i], name, share, certificate_tol, probed[i])
             results.append(dataclasses.replace(result, wall_time=share + time.perf_counter() - t1))
     return results
 
@@ -107,3 +119,27 @@ def _alone(problem: BilevelProblem, value: Value, method: Any, certificate_tol: 
            options: dict[str, Any]) -> BilevelResult:
     load(problem, value)
     return solve(problem, method, certificate_tol, **options)
+
+
+def _probe(prep: Prepared, batched: BatchMethod, gathered: list[Any], runs: list[MethodRun],
+           sets: list[tuple[Any, Any, list]]) -> list[ProbeOutcome | None]:
+    """The local probe's outcome at each run's point, found together (bilevel.solvers.verdict.batch_probe) where the
+    method gives ProbeParts and the problem is in the batched probe's class; None where finalize probes itself."""
+    canon = prep.canon
+    if batched.probe_parts is None or not runs or not covered(prep.balls, int(canon.G.numel()), int(canon.H.numel()),
+                                                               int(canon.x.numel())):
+        return [None] * len(runs)
+    parts = batched.probe_parts(gathered, runs)
+    have = [i for i, r in enumerate(runs) if r.w is not None and r.feasible_set is None]
+    if not have:
+        return [None] * len(runs)
+    points = [prep.point(runs[i].w) for i in have]
+    F = parts.objective(np.array(have), np.array([p.x for p in points]), np.array([p.y for p in points]))
+    outcomes = probe_many([ProbeInstance(p.x, float(f), *sets[i]) for i, p, f in zip(have, points, F)],
+                          ProbeParts(lambda idx, X: parts.solve(np.array(have)[idx], X),
+                                     lambda idx, X, Y: parts.objective(np.array(have)[idx], X, Y),
+                                     lambda j: parts.gradient(have[j])))
+    out: list[ProbeOutcome | None] = [None] * len(runs)
+    for i, o in zip(have, outcomes):
+        out[i] = o
+    return out

@@ -66,21 +66,23 @@ class AffineLSBatch:
         """T a of each row of A."""
         return A[:, : self.d0.shape[1]] if self.maps.targets is None else self.maps.targets(A)
 
-    def fit_at_zero_target(self, rows: np.ndarray, B: np.ndarray) -> BatchFit:
-        """The fits at (0, b) of the given rows (b the rows of B): AffineLeastSquares.fit(0, b, d0) each."""
+    def fit(self, rows: np.ndarray, A: np.ndarray | None, B: np.ndarray) -> BatchFit:
+        """The fits at (a, b) of the given rows (a, b the rows of A and B; A None: a = 0, the target d0):
+        AffineLeastSquares.fit each."""
         C = self.C0[rows] + self.maps.regressors(B)
-        d = self.d0[rows]
+        d = self.d0[rows] if A is None else self.d0[rows] + self.target(A)
         Q, R = thin_qr_batch(C)
         diag = np.diagonal(R, axis1=1, axis2=2)
         ok = np.all(diag != 0, axis=1) & np.all(np.isfinite(R.reshape(len(rows), -1)), axis=1)
         R_safe = np.where(ok[:, None, None], R, np.eye(R.shape[-1]))
         theta = solve_upper(R_safe, np.einsum("mrk,mr->mk", Q, d))
-        return BatchFit(np.zeros((len(rows), self.n_a)), C, d, theta, Q, R_safe, inverse_upper(R_safe), ok)
+        a = np.zeros((len(rows), self.n_a)) if A is None else A
+        return BatchFit(a, C, d, theta, Q, R_safe, inverse_upper(R_safe), ok)
 
     def target_block(self, rows: np.ndarray, B: np.ndarray) -> tuple[BatchFit, np.ndarray, np.ndarray | None]:
         """(fits at (0, b), S, W) per row as AffineLeastSquares.target_block: theta*(W v, b) = theta_c + S v with
         ||W v|| = ||v||; W None where T is a slice (S = R^{-1}, a = [Q v; 0])."""
-        s0 = self.fit_at_zero_target(rows, B)
+        s0 = self.fit(rows, None, B)
         if self.maps.targets is None:
             return s0, s0.R_inv, None
         W = self.maps.target_adjoints(s0.Q)
@@ -102,13 +104,22 @@ class AffineLSBatch:
             d = s0.d + self.target(a)
         return BatchFit(a, s0.C, d, s0.theta + np.einsum("mij,mj->mi", S, v), s0.Q, s0.R, s0.R_inv, s0.ok)
 
-    def gradient_b(self, s: BatchFit, g_theta: np.ndarray) -> np.ndarray:
-        """dJ/db at the fits for dJ/dtheta = g_theta (AffineLeastSquares.gradient's second part): with
-        w = (C'C)^{-1} g_theta and r = d - C theta, R'(r w' - (C w) theta')."""
+    def gradient(self, s: BatchFit, g_theta: np.ndarray, target: bool = True) -> tuple[np.ndarray | None, np.ndarray]:
+        """(dJ/da, dJ/db) at the fits for dJ/dtheta = g_theta (AffineLeastSquares.gradient): with
+        w = (C'C)^{-1} g_theta and r = d - C theta, dJ/da = T'(C w), dJ/db = R'(r w' - (C w) theta'); dJ/da None
+        unless `target`."""
         w = np.einsum("mij,mj->mi", s.R_inv, np.einsum("mji,mj->mi", s.R_inv, g_theta))
         cw = np.einsum("mrk,mk->mr", s.C, w)
         residual = s.d - np.einsum("mrk,mk->mr", s.C, s.theta)
-        return self.maps.regressor_adjoints(residual[:, :, None] * w[:, None, :] - cw[:, :, None] * s.theta[:, None, :])
+        g_b = self.maps.regressor_adjoints(residual[:, :, None] * w[:, None, :] - cw[:, :, None] * s.theta[:, None, :])
+        if not target:
+            return None, g_b
+        if self.maps.target_adjoints is None:
+            g_a = np.zeros((cw.shape[0], self.n_a))
+            g_a[:, : cw.shape[1]] = cw
+        else:
+            g_a = self.maps.target_adjoints(cw[:, :, None])[:, :, 0]
+        return g_a, g_b
 
 
 @dataclass
