@@ -23,13 +23,15 @@ from ..reduction import KKTPoint
 from ..result import BilevelResult, Status
 from ..solvers.batch import BatchMethod, register_batch, solve_many
 from ..solvers.engine.affine_ls import Oracle
-from ..solvers.engine.affine_ls_batch import AffineLSBatch, BatchFit, BatchMaps, TargetBlockBatch, UpperBatch
+from ..solvers.engine.affine_ls_batch import (AffineLSBatch, BatchMaps, TargetBlockBatch, UpperBatch,
+                                              conditioning_descent)
 from ..solvers.engine.batch_ascent import Points, batched_projected_ascent
 from ..solvers.engine.batch_linalg import project_l2_balls
 from ..solvers.engine.block_exact import SINGULAR_LEARNER
 from ..solvers.engine.prepared import MethodRun, Prepared, best_of, check_options
 from ..solvers.engine.projections import Blocks, NormBall
-from ..solvers.engine.starts import start_points
+from ..solvers.engine.starts import (conditioning_key, keep_conditioning_start, kept_conditioning_start,
+                                     random_starts, start_points)
 from ..solvers.verdict.batch_probe import ProbeParts
 from .vrft_methods import METHODS, alternating
 
@@ -45,6 +47,8 @@ class Gathered:
     radius_y: float
     max_iter: int
     gain_tol: float
+    pending: tuple[Any, int] | None = None
+    """(key, index in starts) of a conditioning start the batch finds (conditioning_descent), None where none is."""
 
 
 def gather(prep: Prepared, options: dict[str, Any]) -> Gathered | None:
@@ -62,17 +66,53 @@ def gather(prep: Prepared, options: dict[str, Any]) -> Gathered | None:
             and (own.center is None or not np.any(own.center))):
         return None
     rng = np.random.default_rng(options.get("seed", 0))
-    oracle = Oracle(atk.learner, atk.upper, atk.conditioning_key)
-    points = start_points(prep, int(param("vrft.starts", options.get("starts"))), rng,
-                          float(param("hypergradient.scale")), oracle.hessian_parts)
+    parts = Oracle(atk.learner, atk.upper, atk.conditioning_key).hessian_parts
+    starts, canon = int(param("vrft.starts", options.get("starts"))), prep.canon
+    pending = None
+    if starts > len(canon.x_suggested) and not np.any(canon.x_start):  # start_points' sequence, its conditioning
+        pending = conditioning_key(prep, parts)  # start found with the batch's where this process keeps none
+        known = kept_conditioning_start(pending)
+        points = [*canon.x_suggested, known if known is not None else np.zeros(2 * N), canon.x_start][:starts]
+        points += random_starts(prep, starts - len(points), rng, float(param("hypergradient.scale")))
+        pending = None if known is not None else (pending, len(canon.x_suggested))
+    else:
+        points = start_points(prep, starts, rng, float(param("hypergradient.scale")), parts)
     return Gathered(prep, atk, [p[N:].copy() for p in points], float(own.radius),
                     int(param(f"vrft.max_iter.{atk.objective}", options.get("max_iter"))),
-                    float(param("vrft.gain_tol", options.get("gain_tol"))))
+                    float(param("vrft.gain_tol", options.get("gain_tol"))), pending)
+
+
+def _conditioning(gathered: list[Gathered]) -> None:
+    """The pending conditioning starts of the gathered instances, found together (once per key) and kept in the
+    process as the engine keeps its own."""
+    first: dict[Any, int] = {}
+    for i, g in enumerate(gathered):
+        if g.pending is not None:
+            first.setdefault(g.pending[0], i)
+    by_design: dict[tuple, list[int]] = {}
+    for i in first.values():
+        by_design.setdefault((id(gathered[i].atk.setting.regressor), gathered[i].atk.N), []).append(i)
+    found: dict[Any, np.ndarray] = {}
+    for idx in by_design.values():
+        atks = [gathered[i].atk for i in idx]
+        N = atks[0].N
+        learner = AffineLSBatch(np.stack([a.phi0 for a in atks]), np.stack([a.t0 for a in atks]), _maps(atks[0]), N,
+                                N)
+        B = conditioning_descent(learner, np.arange(len(idx)), np.array([gathered[i].radius_y for i in idx]))
+        for i, b in zip(idx, B):
+            found[gathered[i].pending[0]] = np.concatenate([np.zeros(N), b])
+            keep_conditioning_start(gathered[i].pending[0], found[gathered[i].pending[0]])
+    for g in gathered:
+        if g.pending is not None:
+            key, k = g.pending
+            g.starts[k] = found[key][g.atk.N:].copy()
+            g.pending = None
 
 
 def run(gathered: list[Gathered], options: dict[str, Any]) -> list[MethodRun]:
     """The alternating attack's runs of the gathered instances, those sharing a learner design and limits in one
     batched ascent."""
+    _conditioning(gathered)
     groups: dict[tuple, list[int]] = {}
     for i, g in enumerate(gathered):
         key = (id(g.atk.setting.regressor), g.atk.N, g.atk.objective, g.max_iter, g.gain_tol)
@@ -88,14 +128,14 @@ def _maps(atk: VRFTAttack) -> BatchMaps:
     """The VRFT regressor's filters and prefilter on stacked signals."""
     reg, N = atk.setting.regressor, atk.N
     if reg.prefilter is None:
-        return BatchMaps(reg.stack, reg.stack_adjoint)
+        return BatchMaps(reg.stack, reg.stack_adjoint, regressor_adjoints_outer=reg.stack_adjoint_outer)
 
     def target_adjoints(G: np.ndarray) -> np.ndarray:  # (m, rows, p) -> (m, N, p): every column in one call
         m, rows, p = G.shape
         cols = reg.targets_adjoint(np.transpose(G, (1, 0, 2)).reshape(rows, m * p), N)
         return np.transpose(cols.reshape(N, m, p), (1, 0, 2))
 
-    return BatchMaps(reg.stack, reg.stack_adjoint, reg.stack_targets, target_adjoints)
+    return BatchMaps(reg.stack, reg.stack_adjoint, reg.stack_targets, target_adjoints, reg.stack_adjoint_outer)
 
 
 def upper_batch(atks: Sequence[VRFTAttack], inst: np.ndarray) -> UpperBatch:
@@ -137,16 +177,17 @@ def _run_group(items: list[Gathered]) -> list[MethodRun]:
     radius = np.array([items[j].radius_y for j in inst])
 
     def value(rows: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, Points]:
+        """J at each trial point, with its gradient in b (most trial points are accepted: computed while the fit's
+        arrays are at hand, the points keep only theta, a and the gradient)."""
         with np.errstate(all="ignore"):
             fit = block.solve(rows, X)
             f = upper.value(rows, fit.theta)
+            g = learner.gradient(fit, upper.gradient(rows, fit.theta), target=False)[1]
         f = np.where(fit.ok & np.isfinite(f), f, -np.inf)
-        return f, {"theta": fit.theta, "a": fit.a, "C": fit.C, "d": fit.d, "R_inv": fit.R_inv}
+        return f, {"theta": fit.theta, "a": fit.a, "g": g}
 
     def direction(rows: np.ndarray, p: Points) -> tuple[np.ndarray, np.ndarray]:
-        fit = BatchFit(p["a"], p["C"], p["d"], p["theta"], None, None, p["R_inv"],
-                       np.ones(rows.size, dtype=bool))
-        g = learner.gradient(fit, upper.gradient(rows, p["theta"]), target=False)[1]
+        g = p["g"]
         w = weight[rows, None]
         unit = np.sqrt(np.sum((g * w) ** 2, axis=1))
         d = np.where(unit[:, None] > 0, g * (w * w) / np.where(unit > 0, unit, 1.0)[:, None], 0.0)
@@ -190,10 +231,6 @@ def _method_run(g: Gathered, res: Any, rows: list[int], radius: np.ndarray, shar
                      lower_solve=atk.learner.thetas)
 
 
-PROBE_CHUNK = 2048
-"""Points whose lower solutions probe_parts computes in one stacked call (bounds the memory of the batched probe)."""
-
-
 def probe_parts(gathered: list[Gathered], runs: list[MethodRun]) -> ProbeParts:
     """The learners' fits at the probe's points, the attack's criterion there (canonical F = -J) and the canonical
     hypergradient at each run's point (bilevel.solvers.verdict.batch_probe)."""
@@ -204,8 +241,9 @@ def probe_parts(gathered: list[Gathered], runs: list[MethodRun]) -> ProbeParts:
 
     def solve(inst: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         Y, ok = np.zeros((len(X), atks[0].theta0.size)), np.zeros(len(X), dtype=bool)
-        for s in range(0, len(X), PROBE_CHUNK):
-            part = slice(s, s + PROBE_CHUNK)
+        size = int(param("batch.chunk"))
+        for s in range(0, len(X), size):
+            part = slice(s, s + size)
             with np.errstate(all="ignore"):
                 fit = learner.fit(inst[part], X[part, :N], X[part, N:])
             Y[part], ok[part] = fit.theta, fit.ok
@@ -217,10 +255,11 @@ def probe_parts(gathered: list[Gathered], runs: list[MethodRun]) -> ProbeParts:
         if not gradients:  # every run's point at once
             have = [j for j, r in enumerate(runs) if r.w is not None]
             x = np.array([gathered[j].prep.point(runs[j].w).x for j in have])
-            for s in range(0, len(have), PROBE_CHUNK):
-                rows = np.array(have[s: s + PROBE_CHUNK])
+            size = int(param("batch.chunk"))
+            for s in range(0, len(have), size):
+                rows = np.array(have[s: s + size])
                 with np.errstate(all="ignore"):
-                    fit = learner.fit(rows, x[s: s + PROBE_CHUNK, :N], x[s: s + PROBE_CHUNK, N:])
+                    fit = learner.fit(rows, x[s: s + size, :N], x[s: s + size, N:])
                     g_a, g_b = learner.gradient(fit, upper.gradient(rows, fit.theta))
                 for j, ok, ga, gb in zip(rows, fit.ok, g_a, g_b):
                     gradients[int(j)] = -np.concatenate([ga, gb]) if ok else None

@@ -154,6 +154,22 @@ class VRFTRegressor:
             raise InvalidData(f"gs must have shape (m, rows, {self.n_params}), got {gs.shape}")
         return self._adjoints(gs).T
 
+    def stack_adjoint_outer(self, us: ArrayLike, vs: ArrayLike) -> np.ndarray:
+        """stack_adjoint of G_i = sum_l us[l, i] vs[l, i]' (us: L x m x rows, vs: L x m x nk), shape (m, N), without
+        forming the G_i (a sum of outer products: the adjoint's taps read the factors)."""
+        us, vs = np.asarray(us, dtype=float), np.asarray(vs, dtype=float)
+        if us.ndim != 3 or vs.shape != us.shape[:2] + (self.n_params,):
+            raise InvalidData(f"us must have shape (L, m, rows) and vs (L, m, {self.n_params}), got {us.shape} and "
+                              f"{vs.shape}")
+        if self.drop:
+            us = np.concatenate([us, np.zeros(us.shape[:2] + (self.drop,))], axis=2)
+        vs = vs if self._delays else vs @ self.basis_num
+        n = us.shape[2]
+        fir = np.zeros((n, us.shape[1]))
+        for j in range(vs.shape[2]):  # sum_j b_j g_{t+j} with g = sum_l u_l v_l'
+            fir[: n - j] += np.einsum("lmt,lm->tm", us[:, :, j:], vs[:, :, j])
+        return self._back(fir).T
+
     def _adjoints(self, gs: np.ndarray) -> np.ndarray:
         """sum_i T_i^T g_i for each g of gs (m, rows, nk), as columns (N, m)."""
         if self.drop:
@@ -163,6 +179,10 @@ class VRFTRegressor:
         fir = np.zeros((n, h.shape[0]))
         for j in range(h.shape[2]):  # adjoint of the FIR part: sum_j b_j g_{t+j}
             fir[: n - j] += h[:, j:, j].T
+        return self._back(fir)
+
+    def _back(self, fir: np.ndarray) -> np.ndarray:
+        """The adjoint's filters after its FIR taps, on columns: 1/D reversed, L^T, the virtual error's adjoint."""
         back = scipy.signal.lfilter([1.0], self.basis_den, fir[::-1], axis=0)[::-1]
         if self.prefilter is not None:
             back = self.prefilter.adjoint(back)

@@ -135,10 +135,11 @@ def _probe(prep: Prepared, batched: BatchMethod, gathered: list[Any], runs: list
         return [None] * len(runs)
     points = [prep.point(runs[i].w) for i in have]
     F = parts.objective(np.array(have), np.array([p.x for p in points]), np.array([p.y for p in points]))
+    free = not np.isfinite(canon.x_lb).any() and not np.isfinite(canon.x_ub).any()
     outcomes = probe_many([ProbeInstance(p.x, float(f), *sets[i]) for i, p, f in zip(have, points, F)],
                           ProbeParts(lambda idx, X: parts.solve(np.array(have)[idx], X),
                                      lambda idx, X, Y: parts.objective(np.array(have)[idx], X, Y),
-                                     lambda j: parts.gradient(have[j])))
+                                     lambda j: parts.gradient(have[j])), balls_only=free)
     out: list[ProbeOutcome | None] = [None] * len(runs)
     for i, o in zip(have, outcomes):
         out[i] = o

@@ -13,18 +13,22 @@ from typing import Callable
 
 import numpy as np
 
-from .batch_linalg import inverse_upper, maximize_quadratics_on_balls, solve_upper, thin_qr_batch
+from ...defaults import param
+from .batch_linalg import inverse_upper, maximize_quadratics_on_balls, project_l2_balls, solve_upper, thin_qr_batch
 
 
 @dataclass(frozen=True)
 class BatchMaps:
     """The shared maps on stacked signals: regressors (m, n_b) -> (m, rows, k) and its adjoint (m, rows, k) -> (m, n_b);
-    targets (m, n_a) -> (m, rows) and its adjoint (m, rows, p) -> (m, n_a, p), both None where T a = a[:rows]."""
+    targets (m, n_a) -> (m, rows) and its adjoint (m, rows, p) -> (m, n_a, p), both None where T a = a[:rows];
+    regressor_adjoints_outer (us, vs) -> the adjoint of sum_l us[l] vs[l]' (us: L x m x rows, vs: L x m x k) without
+    forming it, where given."""
 
     regressors: Callable[[np.ndarray], np.ndarray]
     regressor_adjoints: Callable[[np.ndarray], np.ndarray]
     targets: Callable[[np.ndarray], np.ndarray] | None = None
     target_adjoints: Callable[[np.ndarray], np.ndarray] | None = None
+    regressor_adjoints_outer: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
 
 
 @dataclass
@@ -111,7 +115,10 @@ class AffineLSBatch:
         w = np.einsum("mij,mj->mi", s.R_inv, np.einsum("mji,mj->mi", s.R_inv, g_theta))
         cw = np.einsum("mrk,mk->mr", s.C, w)
         residual = s.d - np.einsum("mrk,mk->mr", s.C, s.theta)
-        g_b = self.maps.regressor_adjoints(residual[:, :, None] * w[:, None, :] - cw[:, :, None] * s.theta[:, None, :])
+        if self.maps.regressor_adjoints_outer is not None:
+            g_b = self.maps.regressor_adjoints_outer(np.stack([residual, -cw]), np.stack([w, s.theta]))
+        else:
+            g_b = self.maps.regressor_adjoints(residual[:, :, None] * w[:, None, :] - cw[:, :, None] * s.theta[:, None, :])
         if not target:
             return None, g_b
         if self.maps.target_adjoints is None:
@@ -139,3 +146,30 @@ class TargetBlockBatch:
         A = 0.5 * (St @ self.upper.hessian[rows] @ S)
         v = maximize_quadratics_on_balls(A, 0.5 * np.einsum("mij,mj->mi", St, grad), self.radius[rows])
         return self.learner.moved(s0, S, W, v)
+
+
+def conditioning_descent(learner: AffineLSBatch, rows: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """The conditioning start (bilevel.solvers.engine.starts) of each row's learner from zero poisoning: b after
+    defaults["starts.conditioning_steps"] projected steps of one radius down the gradient of the smallest eigenvalue
+    of C'C (C = C0 + R(b); a, on which C'C does not depend, stays at zero), b on the l2 ball of its radius; a row
+    whose step vanishes stops there. Computed defaults["batch.chunk"] rows at a time."""
+    B = np.zeros((len(rows), learner.n_b))
+    size, steps = int(param("batch.chunk")), int(param("starts.conditioning_steps"))
+    for s in range(0, len(rows), size):
+        part = np.arange(s, min(s + size, len(rows)))
+        for _ in range(steps):
+            C = learner.C0[rows[part]] + learner.maps.regressors(B[part])
+            P = np.swapaxes(C, 1, 2) @ C
+            v = np.linalg.eigh(0.5 * (P + np.swapaxes(P, 1, 2)))[1][:, :, 0]
+            cv = np.einsum("mrk,mk->mr", C, v)
+            if learner.maps.regressor_adjoints_outer is not None:
+                g = 2.0 * learner.maps.regressor_adjoints_outer(cv[None], v[None])
+            else:
+                g = 2.0 * learner.maps.regressor_adjoints(cv[:, :, None] * v[:, None, :])
+            unit = np.sqrt(np.sum((g * radius[part, None]) ** 2, axis=1))
+            ok = (unit > 0) & np.isfinite(unit)
+            part, g, unit = part[ok], g[ok], unit[ok]
+            if part.size == 0:
+                break
+            B[part] = project_l2_balls(B[part] - g * (radius[part] ** 2 / unit)[:, None], radius[part])
+    return B

@@ -54,17 +54,28 @@ def _put(store: Points, rows: np.ndarray, points: Points, sel: np.ndarray | slic
         store[k][rows] = v[sel]
 
 
+def in_chunks(value: Value, rows: np.ndarray, X: np.ndarray, size: int | None = None) -> tuple[np.ndarray, Points]:
+    """value(rows, X) computed defaults["batch.chunk"] rows (or `size`) at a time, the results joined (a stacked
+    evaluation of a few dozen rows keeps its working set in cache)."""
+    size = int(param("batch.chunk", size))
+    if rows.size <= size:
+        return value(rows, X)
+    parts = [value(rows[s: s + size], X[s: s + size]) for s in range(0, rows.size, size)]
+    return (np.concatenate([f for f, _ in parts]),
+            {k: np.concatenate([p[k] for _, p in parts]) for k in parts[0][1]})
+
+
 def batched_projected_ascent(value: Value, direction: Direction, project: Project, X0: np.ndarray,
                              scale: np.ndarray, max_iter: int, tol: float, step0: float = 1.0,
                              min_step: float = 1e-8) -> BatchAscent:
     """projected_ascent (bb="short") from each row of X0, scale[i] instance i's length scale (a number per row),
-    all rows in lockstep (module docstring)."""
+    all rows in lockstep (module docstring); value is called on defaults["batch.chunk"] rows at a time."""
     m = X0.shape[0]
     rows = np.arange(m)
     armijo, window = param("ascent.armijo"), int(param("ascent.window"))
     metric = (np.asarray(scale, dtype=float) ** 2)[:, None]
     x = project(rows, np.asarray(X0, dtype=float))
-    fx, pts = value(rows, x)
+    fx, pts = in_chunks(value, rows, x)
     store: Points = {"_size": np.zeros(m)}
     _put(store, rows, pts, slice(None))
     why = ["max_iter"] * m
@@ -107,7 +118,7 @@ def batched_projected_ascent(value: Value, direction: Direction, project: Projec
         idx, xn = idx[~held], xn[~held]
         if idx.size == 0:
             continue
-        fn, ptsn = value(idx, xn)
+        fn, ptsn = in_chunks(value, idx, xn)
         evaluations[idx] += 1
         rise = np.einsum("ij,ij->i", g[idx], xn - x[idx])
         ok = (fn >= fx[idx] + armijo * rise) & (fn >= fx[idx])

@@ -54,8 +54,22 @@ def covered(balls: list[Ball], n_G: int, n_H: int, n_x: int) -> bool:
             and n_x > param("probe.coordinates"))
 
 
-def probe_many(instances: list[ProbeInstance], parts: ProbeParts, seed: int = 0) -> list[ProbeOutcome | None]:
-    """probe_neighbours' outcome for each instance (module docstring), None where the batched probe does not decide."""
+def _on_balls(P: np.ndarray, balls: list[Ball]) -> np.ndarray:
+    """Each row of P projected on the l2 balls on their blocks (the other entries free): an instance's set where its
+    upper constraints are these balls and its box is free."""
+    P = P.copy()
+    for b in balls:
+        D = P[:, b.block] - b.center
+        norm = np.sqrt(np.sum(D * D, axis=1))
+        outside = norm > b.radius
+        P[outside, b.block] = b.center + D[outside] * (b.radius / norm[outside])[:, None]
+    return P
+
+
+def probe_many(instances: list[ProbeInstance], parts: ProbeParts, seed: int = 0,
+               balls_only: bool = False) -> list[ProbeOutcome | None]:
+    """probe_neighbours' outcome for each instance (module docstring), None where the batched probe does not decide;
+    balls_only: each instance's feasible set is its balls (a free box), projected on in one stacked call."""
     if not instances:
         return []
     n = instances[0].x.size
@@ -85,8 +99,10 @@ def probe_many(instances: list[ProbeInstance], parts: ProbeParts, seed: int = 0)
             return index[key]
 
         here = point(inst.x)
-        probes = [(point(inst.projection(inst.x + h * d)), h, tols) for d, tols in kinds.values() for h in round_radii]
-        where.append((here, probes))
+        trials = [(inst.x + h * d, h, tols) for d, tols in kinds.values() for h in round_radii]
+        moved = _on_balls(np.array([t for t, _, _ in trials]), inst.balls) if balls_only else [
+            inst.projection(t) for t, _, _ in trials]
+        where.append((here, [(point(xp), h, tols) for xp, (_, h, tols) in zip(moved, trials)]))
     owner_a, X = np.array(owner), np.array(points)
     Y, ok = parts.solve(owner_a, X)
     F = np.full(len(points), np.nan)
