@@ -240,14 +240,9 @@ def probe_parts(gathered: list[Gathered], runs: list[MethodRun]) -> ProbeParts:
     upper = upper_batch(atks, np.arange(m))
 
     def solve(inst: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        Y, ok = np.zeros((len(X), atks[0].theta0.size)), np.zeros(len(X), dtype=bool)
-        size = int(param("batch.chunk"))
-        for s in range(0, len(X), size):
-            part = slice(s, s + size)
-            with np.errstate(all="ignore"):
-                fit = learner.fit(inst[part], X[part, :N], X[part, N:])
-            Y[part], ok[part] = fit.theta, fit.ok
-        return Y, ok
+        with np.errstate(all="ignore"):
+            fit = learner.fit(inst, X[:, :N], X[:, N:])
+        return fit.theta, fit.ok
 
     gradients: dict[int, np.ndarray | None] = {}
 

@@ -134,7 +134,10 @@ def _probe(prep: Prepared, batched: BatchMethod, gathered: list[Any], runs: list
     if not have:
         return [None] * len(runs)
     points = [prep.point(runs[i].w) for i in have]
-    F = parts.objective(np.array(have), np.array([p.x for p in points]), np.array([p.y for p in points]))
+    size = int(param("batch.chunk"))
+    F = np.concatenate([parts.objective(np.array(have[s: s + size]), np.array([p.x for p in points[s: s + size]]),
+                                        np.array([p.y for p in points[s: s + size]]))
+                        for s in range(0, len(have), size)])
     free = not np.isfinite(canon.x_lb).any() and not np.isfinite(canon.x_ub).any()
     outcomes = probe_many([ProbeInstance(p.x, float(f), *sets[i]) for i, p, f in zip(have, points, F)],
                           ProbeParts(lambda idx, X: parts.solve(np.array(have)[idx], X),

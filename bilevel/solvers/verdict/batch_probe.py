@@ -104,10 +104,13 @@ def probe_many(instances: list[ProbeInstance], parts: ProbeParts, seed: int = 0,
             inst.projection(t) for t, _, _ in trials]
         where.append((here, [(point(xp), h, tols) for xp, (_, h, tols) in zip(moved, trials)]))
     owner_a, X = np.array(owner), np.array(points)
-    Y, ok = parts.solve(owner_a, X)
-    F = np.full(len(points), np.nan)
-    if ok.any():
-        F[ok] = parts.objective(owner_a[ok], X[ok], Y[ok])
+    F, ok = np.full(len(points), np.nan), np.zeros(len(points), dtype=bool)
+    size = int(param("batch.chunk"))
+    for s in range(0, len(points), size):  # a few dozen points at a time: their data stay in cache
+        part = slice(s, s + size)
+        Y, ok[part] = parts.solve(owner_a[part], X[part])
+        if ok[part].any():
+            F[part][ok[part]] = parts.objective(owner_a[part][ok[part]], X[part][ok[part]], Y[ok[part]])
     feasible = ok & np.isfinite(F)
     for k, ball in enumerate(instances[0].balls):  # the same blocks in every instance; centers and radii their own
         center = np.array([inst.balls[k].center for inst in instances])[owner_a]
