@@ -4,8 +4,8 @@ one-instance step (bilevel.lower.least_squares.thin_qr, bilevel.solvers.engine.t
 arithmetic is the same up to rounding (stacked LAPACK calls and reductions sum in another order); rows whose
 trust-region subproblem is in the hard or near-hard case are handed to the one-instance solver.
 
-Only operations the array-API standard has are used on the batch (matmul, linalg.qr, linalg.eigh, sum, where), so a
-GPU array library can run the same code later.
+Besides einsum (each use a batched matmul or vecdot of the array-API standard), the operations on the batch are the
+standard's (matmul, linalg.qr, linalg.eigh, sum, sqrt, where), so a GPU array library could run the same code later.
 """
 
 from __future__ import annotations
@@ -50,9 +50,9 @@ def project_l2_balls(D: np.ndarray, radius: np.ndarray) -> np.ndarray:
 
 def maximize_quadratics_on_balls(A: np.ndarray, b: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """The global maximizer of v'A[i]v + 2 b[i]'v over ||v|| <= delta[i] for each i (trust_region's
-    maximize_quadratic_on_ball, no `prefer`): one batched eigendecomposition and Newton on the secular equation for
-    every row in the easy case; the others (delta 0, interior maximizer of a concave quadratic, hard and near-hard
-    cases) by the one-instance solver."""
+    maximize_quadratic_on_ball, no `prefer`): one batched eigendecomposition, the interior maximizer of a strictly
+    concave quadratic where it lies in the ball, else Newton on the secular equation for every row at once; rows in the
+    hard or near-hard case go to the one-instance solver."""
     A = 0.5 * (A + np.swapaxes(A, 1, 2))
     out = np.zeros_like(b)
     lam, Q = np.linalg.eigh(A)
