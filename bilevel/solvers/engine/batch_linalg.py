@@ -83,18 +83,16 @@ def maximize_quadratics_on_balls(A: np.ndarray, b: np.ndarray, delta: np.ndarray
         mu_e, lam_e, c2_e, d_e = mu[easy], lam[easy], c2[easy], delta[easy]
         live = np.ones(easy.size, dtype=bool)
         for _ in range(100):  # Newton on psi(mu) = 1/delta - 1/||v(mu)|| from the left of the root, per row
-            idx = np.flatnonzero(live)
-            if idx.size == 0:
-                break
-            inv = 1.0 / (mu_e[idx, None] - lam_e[idx])
-            norm2 = np.sum(c2_e[idx] * inv * inv, axis=1)
-            dnorm2 = np.sum(c2_e[idx] * inv * inv * inv, axis=1)
+            inv = 1.0 / (mu_e[:, None] - lam_e)
+            weighted = c2_e * inv * inv
+            norm2, dnorm2 = weighted.sum(axis=1), (weighted * inv).sum(axis=1)
             norm = np.sqrt(norm2)
-            psi = 1.0 / d_e[idx] - 1.0 / norm
-            step = psi * norm2 * norm / dnorm2
-            mu_e[idx] += step
-            stop = (np.abs(step) <= 1e-15 * np.maximum(1.0, np.abs(mu_e[idx]))) | (np.abs(psi) <= 1e-15 / d_e[idx])
-            live[idx[stop]] = False
+            psi = 1.0 / d_e - 1.0 / norm
+            step = np.where(live, psi * norm2 * norm / dnorm2, 0.0)  # a row that stopped keeps its mu
+            mu_e += step
+            live &= (np.abs(step) > 1e-15 * np.maximum(1.0, np.abs(mu_e))) & (np.abs(psi) > 1e-15 / d_e)
+            if not live.any():
+                break
         v = np.einsum("mij,mj->mi", Q[easy], beta[easy] / (mu_e[:, None] - lam_e))
         vn = np.sqrt(np.sum(v * v, axis=1))
         out[easy] = v * np.minimum(1.0, d_e / np.maximum(vn, 1e-300))[:, None]
