@@ -69,16 +69,26 @@ def _on_balls(P: np.ndarray, balls: list[Ball]) -> np.ndarray:
 def probe_many(instances: list[ProbeInstance], parts: ProbeParts, seed: int = 0,
                balls_only: bool = False) -> list[ProbeOutcome | None]:
     """probe_neighbours' outcome for each instance (module docstring), None where the batched probe does not decide;
-    balls_only: each instance's feasible set is its balls (a free box), projected on in one stacked call."""
+    balls_only: each instance's feasible set is its balls (a free box), projected on in one stacked call. The
+    instances go through in groups of about defaults["batch.chunk"] probe points (their data stay in cache)."""
     if not instances:
         return []
-    n = instances[0].x.size
     rng = np.random.default_rng(seed)
-    draws = [rng.standard_normal(n) for _ in range(param("probe.directions"))]
-    round_radii = radii()
-    feas_tol = param("probe.feas_tol")
-    owner, points, where = [], [], []  # per instance: its probes (point index, radius, tolerances), x's index
-    for i, inst in enumerate(instances):
+    draws = [rng.standard_normal(instances[0].x.size) for _ in range(param("probe.directions"))]
+    group = max(1, int(param("batch.chunk")) // (3 * (len(draws) + 1) + 1))
+    out: list[ProbeOutcome | None] = []
+    for s in range(0, len(instances), group):
+        out += _probe_group(instances, range(s, min(s + group, len(instances))), parts, draws, balls_only)
+    return out
+
+
+def _probe_group(instances: list[ProbeInstance], group: range, parts: ProbeParts, draws: list[np.ndarray],
+                 balls_only: bool) -> list[ProbeOutcome | None]:
+    """probe_many on the instances of `group`: their points solved and judged together."""
+    round_radii, feas_tol = radii(), param("probe.feas_tol")
+    owner, points, where = [], [], []  # per instance: x's index, its probes (point index, radius, tolerances)
+    for i in group:
+        inst = instances[i]
         directions = [(z * inst.scale, "probe.rel_tol") for z in draws]
         g = parts.gradient(i)
         if g is not None and np.all(np.isfinite(g)) and np.any(g):
@@ -104,29 +114,25 @@ def probe_many(instances: list[ProbeInstance], parts: ProbeParts, seed: int = 0,
             inst.projection(t) for t, _, _ in trials]
         where.append((here, [(point(xp), h, tols) for xp, (_, h, tols) in zip(moved, trials)]))
     owner_a, X = np.array(owner), np.array(points)
-    F, ok = np.full(len(points), np.nan), np.zeros(len(points), dtype=bool)
-    size = int(param("batch.chunk"))
-    for s in range(0, len(points), size):  # a few dozen points at a time: their data stay in cache
-        part = slice(s, s + size)
-        Y, ok[part] = parts.solve(owner_a[part], X[part])
-        if ok[part].any():
-            F[part][ok[part]] = parts.objective(owner_a[part][ok[part]], X[part][ok[part]], Y[ok[part]])
+    F = np.full(len(points), np.nan)
+    Y, ok = parts.solve(owner_a, X)
+    if ok.any():
+        F[ok] = parts.objective(owner_a[ok], X[ok], Y[ok])
     feasible = ok & np.isfinite(F)
-    for k, ball in enumerate(instances[0].balls):  # the same blocks in every instance; centers and radii their own
-        center = np.array([inst.balls[k].center for inst in instances])[owner_a]
-        radius = np.array([inst.balls[k].radius for inst in instances])[owner_a]
-        D = X[:, ball.block] - center
-        feasible &= np.sum(D * D, axis=1) - radius ** 2 <= feas_tol
+    for i in group:
+        rows = owner_a == i
+        for b in instances[i].balls:
+            D = X[rows][:, b.block] - b.center
+            feasible[rows] &= np.sum(D * D, axis=1) - b.radius ** 2 <= feas_tol
     out: list[ProbeOutcome | None] = []
-    for i, inst in enumerate(instances):
-        here, probes = where[i]
+    for i, (here, probes) in zip(group, where):
         if not feasible[here]:
             out.append(ProbeOutcome(None))
             continue
         if not any(feasible[j] for j, _, _ in probes):
             out.append(None)  # the probe's next rounds (smaller radii): the one-instance probe
             continue
-        reference = min(inst.objective, float(F[here]))
+        reference = min(instances[i].objective, float(F[here]))
         bars = {tol: reference - param(tol) * max(1.0, abs(reference))
                 for tol in ("probe.rel_tol", "probe.descent_rel_tol")}
         best: Probe | None = None
