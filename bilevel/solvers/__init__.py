@@ -1,6 +1,6 @@
 """Solution methods for the single-level (KKT) reformulation, the dispatcher `solve` and `solve_many` (many instances of
-one declaration at once, bilevel.solvers.batch); engine/ holds what methods
-share, verdict/ how a run becomes a result, globalopt/ method "global"."""
+one declaration at once, bilevel.solvers.batch); engine/ holds what methods share, verdict/ how a run becomes a
+result, globalopt/ method "global"."""
 
 from .engine.prepared import MethodRun, Prepared, prepare
 from .batch import BatchMethod, register_batch, solve_many
