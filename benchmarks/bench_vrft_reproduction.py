@@ -8,7 +8,9 @@ computed attack; then the ratios baseline / this tree of the medians. With --att
 over the first K scenario-B tasks of each sweep, one after another in one process (no pool). Asserts nothing.
 The baseline tree is a checkout of an earlier commit, e.g. `git archive COMMIT | tar -x -C /tmp/base`.
 
-Run: python benchmarks/bench_vrft_reproduction.py --baseline /tmp/base --sims 512 --sweeps maxmin-paper
+With --check, each run's table is compared with the committed one (vrft_table_check.py).
+
+Run: python benchmarks/bench_vrft_reproduction.py --baseline /tmp/base --sims 512 --sweeps maxmin-paper --check
 """
 
 from __future__ import annotations
@@ -29,7 +31,9 @@ TREE = os.path.dirname(HERE)
 
 
 def child(spec: list, out: str) -> None:
-    """Run one sweep (name, sims, convention, objective, method) on 2 local workers; print its measurements."""
+    """Run one sweep (name, sims, convention, objective, method) on 2 local workers, with the tree's sweep function
+    (BATCHED_TASKS where the tree has it, else attack_task), write its table_NAME.csv into `out` where the tree can;
+    print its measurements."""
     from bilevel.experiments import vrft
     from bilevel.experiments.executor import LocalExecutor
     from bilevel.experiments.sweep import run_sweep
@@ -41,9 +45,12 @@ def child(spec: list, out: str) -> None:
     computed: list[int] = []
     t0 = time.perf_counter()
     with LocalExecutor(2) as executor:  # closed before getrusage: its workers' CPU time counts once reaped
-        rows = run_sweep(vrft.attack_task, tasks, os.path.join(out, f"{name}.jsonl"), executor, None, name,
-                         lambda ran, _: computed.append(len(ran)), vrft.valid_row, **shared)
+        rows = run_sweep(getattr(vrft, "BATCHED_TASKS", vrft.attack_task), tasks, os.path.join(out, f"{name}.jsonl"),
+                         executor, None, name, vrft.valid_row, units=lambda ran: computed.append(len(ran)) or len(ran),
+                         **shared)
     wall = time.perf_counter() - t0
+    if hasattr(vrft, "write_csv"):
+        vrft.write_csv(vrft.summarize(rows), os.path.join(out, f"table_{name}.csv"))
     cpu = sum(getattr(resource.getrusage(who), f) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
               for f in ("ru_utime", "ru_stime"))
     print(json.dumps({"wall": wall, "cpu": cpu, "rows": len(rows), "computed": computed[0]}))
@@ -81,6 +88,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--attacks", type=int, default=0,
                         help="instead of the sweeps: CPU ms per attack over this many scenario-B tasks, one process")
+    parser.add_argument("--check", action="store_true",
+                        help="check each run's table against the committed intervals (vrft_table_check.py)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     parser.add_argument("--out", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -117,6 +126,10 @@ def main() -> None:
             for label, tree in trees.items():
                 with tempfile.TemporaryDirectory() as tmp:
                     m = run(tree, plan[name], tmp)
+                    if args.check:
+                        check = subprocess.run([sys.executable, os.path.join(HERE, "vrft_table_check.py"), tmp],
+                                               capture_output=True, text=True)
+                        print(f"{name:>24} {label:>9} round {r + 1}, vrft_table_check.py: {check.stdout.strip()}")
                 got[label].append(m)
                 print(f"{name:>24} {label:>9} round {r + 1}: wall {m['wall']:7.1f} s, CPU {m['cpu']:7.1f} s, "
                       f"{m['rows']} rows, {m['computed']} computed, CPU {1e3 * m['cpu'] / m['rows']:6.2f} ms/row, "

@@ -135,15 +135,16 @@ class Certificate:
                 + ")")
 
 
-def _worst(residual: np.ndarray, scale: np.ndarray, names: list[str]) -> tuple[float, str]:
-    """max_i r_i / (1 + s_i) and the name of that row (0 and '' for no rows; NaN counts as worst)."""
+def _worst(residual: np.ndarray, scale: np.ndarray, names: list[str] | str) -> tuple[float, str]:
+    """max_i r_i / (1 + s_i) and the name of that row (0 and '' for no rows; NaN counts as worst); names: one per row,
+    or a pattern with {} for the row's index (the worst row's name alone is formed: x has thousands of entries)."""
     r = np.asarray(residual, dtype=float).ravel()
     if not r.size:
         return 0.0, ""
     v = r / (1.0 + np.abs(np.asarray(scale, dtype=float).ravel()))
     v = np.where(np.isnan(v), np.inf, v)
     i = int(np.argmax(v))
-    return float(v[i]), names[i]
+    return float(v[i]), names.format(i) if isinstance(names, str) else names[i]
 
 
 def _row_scale(jac: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -267,7 +268,7 @@ def certify_point(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | Non
     terms = [np.abs(grad_f), np.abs(jg.T @ point.lam), np.abs(jh.T @ point.mu)]
     terms += [np.abs(j.T @ np.asarray(z).reshape(-1, order="F")) for j, z in zip(jpsd, point.Z)]
     stat, _ = low.stationarity(x, y, point.lam, point.mu, point.Z)
-    y_names = [f"grad_y L[{i}]" for i in range(low.n_y)]
+    y_names = "grad_y L[{}]"
     sg, sh = _row_scale(jg, y), _row_scale(jh, y)
     checks: dict[str, tuple[float, str]] = {}
     checks["stationarity"] = _worst(np.abs(stat), np.max(terms, axis=0), y_names)
@@ -287,12 +288,12 @@ def certify_point(canon: "CanonicalBilevel", point: "KKTPoint", tol: float | Non
     checks["lower_convexity"] = convexity_violation(low, x, y)
     F, G, H, jG, jH = canon.upper_values(x, y)
     xy = np.concatenate([x, y])
-    upper = [_worst(np.maximum(G, 0.0), _row_scale(jG, xy), canon.G_names or [f"G[{i}]" for i in range(G.size)]),
-             _worst(np.abs(H), _row_scale(jH, xy), [f"H[{i}]" for i in range(H.size)]),
+    upper = [_worst(np.maximum(G, 0.0), _row_scale(jG, xy), canon.G_names or "G[{}]"),
+             _worst(np.abs(H), _row_scale(jH, xy), "H[{}]"),
              _worst(np.maximum(canon.x_lb - x, 0.0), np.where(np.isfinite(canon.x_lb), canon.x_lb, 0.0),
-                    [f"x.lb[{i}]" for i in range(x.size)]),
+                    "x.lb[{}]"),
              _worst(np.maximum(x - canon.x_ub, 0.0), np.where(np.isfinite(canon.x_ub), canon.x_ub, 0.0),
-                    [f"x.ub[{i}]" for i in range(x.size)])]
+                    "x.ub[{}]")]
     checks["upper_feasibility"] = max(upper, key=lambda t: t[0])
     note, unique, spread, F_ref = "", None, 0.0, None
     try:

@@ -151,6 +151,13 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "vrft.max_iter.destabilize": (200, "ascent steps per start of a VRFT destabilize attack (count)"),
     "vrft.gain_tol": (1e-4, "a VRFT attack's ascent stops when its gain over ascent.window steps is below this "
                             "(relative)"),
+    "vrft.batch_sims": (16, "data sets per task of the VRFT reproduction's sweeps, their attacks solved together "
+                            "(bilevel.attacks.vrft_batch; count)"),
+    # many instances at once (bilevel.solvers.batch)
+    "batch.min_size": (4, "solve_many runs a method's batched form on at least this many instances, below it one at "
+                          "a time (count)"),
+    "batch.chunk": (32, "rows a batched evaluation computes in one stacked call (count; a few dozen keep the working "
+                        "set of N = 512 signals in cache: 30 us per row at 32, 176 us at 2048)"),
     # the Willems attacks (bilevel.attacks.willems; WillemsAttack.shared_problem reads willems.shared_kept,
     # destabilize_attack destabilize.*, de_attack evolution.pop_tol)
     "willems.shared_kept": (4, "attack shapes (learner, criterion, sizes; the data are parameters) whose prepared "
@@ -258,7 +265,7 @@ class Range:
 COUNT, POSITIVE, FRACTION = Range(1), Range(0.0, open_low=True), Range(0.0, 1.0, True, True)
 RANGES: dict[str, Range] = {
     **{key: COUNT for key in ENTRIES if key.endswith((".starts", ".nlp_starts", ".popsize", ".members", ".evaluations",
-                                                        ".pool", ".window", ".shared_kept", ".max_faces", ".y_probes",
+                                                        ".pool", ".window", ".shared_kept", ".max_faces", ".y_probes", ".batch_sims", ".min_size", ".chunk",
                                                         ".max_box_vertices"))},
     **{key: POSITIVE for key in ENTRIES if key.endswith(("scale", "_tol", ".t0", ".t_min", "max_wall_time", ".penalty",
                                                          ".gtol"))

@@ -86,9 +86,10 @@ class VRFTRegressor:
     def _lags(self, w: np.ndarray) -> np.ndarray:
         """The lag matrix (n, width) of a signal w (n,), or one per column of w (n, m): shape (m, n, width)."""
         n, width = w.shape[0], self.basis_num.shape[1]
-        lag = np.zeros(w.shape[1:] + (n, width))
+        rows = np.ascontiguousarray(w.T)  # each signal contiguous: the shifted copies below read it in order
+        lag = np.zeros(rows.shape[:-1] + (n, width))
         for j in range(width):
-            lag[..., j:, j] = w[: n - j].T
+            lag[..., j:, j] = rows[..., : n - j]
         return lag
 
     @property
@@ -127,6 +128,12 @@ class VRFTRegressor:
         target = u if self.prefilter is None else self.prefilter.apply(u)
         return target[: self.rows(u.size)]
 
+    def stack_targets(self, us: ArrayLike) -> np.ndarray:
+        """targets of each row of us (m x n), shape (m, rows): the prefilter runs on all rows in one call."""
+        us = np.asarray(us, dtype=float)
+        rows = self.rows(us.shape[1])
+        return (us if self.prefilter is None else self.prefilter.apply(us.T).T)[:, :rows]
+
     def targets_adjoint(self, g: np.ndarray, n: int) -> np.ndarray:
         """Adjoint of u -> targets(u) for records of n samples (g a vector or columns): pad the dropped rows, then
         L^T."""
@@ -138,13 +145,45 @@ class VRFTRegressor:
         g = np.asarray(g, dtype=float)
         if g.ndim != 2 or g.shape[1] != self.n_params:
             raise InvalidData(f"g must have shape (rows, {self.n_params}), got {g.shape}")
-        h = np.concatenate([g, np.zeros((self.drop, g.shape[1]))], axis=0) if self.drop else g
-        h = h if self._delays else h @ self.basis_num
-        n = h.shape[0]
-        fir = np.zeros(n)
-        for j in range(h.shape[1]):  # adjoint of the FIR part: sum_j b_j g_{t+j}
-            fir[: n - j] += h[j:, j]
-        back = scipy.signal.lfilter([1.0], self.basis_den, fir[::-1])[::-1]
+        return self._adjoints(g[None])[:, 0]
+
+    def stack_adjoint(self, gs: ArrayLike) -> np.ndarray:
+        """adjoint of each gs[i] (m x rows x nk), shape (m, N): the filters run on all of them in one call each."""
+        gs = np.asarray(gs, dtype=float)
+        if gs.ndim != 3 or gs.shape[2] != self.n_params:
+            raise InvalidData(f"gs must have shape (m, rows, {self.n_params}), got {gs.shape}")
+        return self._adjoints(gs).T
+
+    def stack_adjoint_outer(self, us: ArrayLike, vs: ArrayLike) -> np.ndarray:
+        """stack_adjoint of G_i = sum_l us[l, i] vs[l, i]' (us: L x m x rows, vs: L x m x nk), shape (m, N), without
+        forming the G_i (a sum of outer products: the adjoint's taps read the factors)."""
+        us, vs = np.asarray(us, dtype=float), np.asarray(vs, dtype=float)
+        if us.ndim != 3 or vs.shape != us.shape[:2] + (self.n_params,):
+            raise InvalidData(f"us must have shape (L, m, rows) and vs (L, m, {self.n_params}), got {us.shape} and "
+                              f"{vs.shape}")
+        if self.drop:
+            us = np.concatenate([us, np.zeros(us.shape[:2] + (self.drop,))], axis=2)
+        vs = vs if self._delays else vs @ self.basis_num
+        n = us.shape[2]
+        fir = np.zeros((n, us.shape[1]))
+        for j in range(vs.shape[2]):  # sum_j b_j g_{t+j} with g = sum_l u_l v_l'
+            fir[: n - j] += np.einsum("lmt,lm->tm", us[:, :, j:], vs[:, :, j])
+        return self._back(fir).T
+
+    def _adjoints(self, gs: np.ndarray) -> np.ndarray:
+        """sum_i T_i^T g_i for each g of gs (m, rows, nk), as columns (N, m)."""
+        if self.drop:
+            gs = np.concatenate([gs, np.zeros((gs.shape[0], self.drop, gs.shape[2]))], axis=1)
+        h = gs if self._delays else gs @ self.basis_num
+        n = h.shape[1]
+        fir = np.zeros((n, h.shape[0]))
+        for j in range(h.shape[2]):  # adjoint of the FIR part: sum_j b_j g_{t+j}
+            fir[: n - j] += h[:, j:, j].T
+        return self._back(fir)
+
+    def _back(self, fir: np.ndarray) -> np.ndarray:
+        """The adjoint's filters after its FIR taps, on columns: 1/D reversed, L^T, the virtual error's adjoint."""
+        back = scipy.signal.lfilter([1.0], self.basis_den, fir[::-1], axis=0)[::-1]
         if self.prefilter is not None:
             back = self.prefilter.adjoint(back)
         return self.error.adjoint(back)

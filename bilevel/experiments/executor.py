@@ -44,6 +44,19 @@ MARKS_PREFIX = "bilevel-workers-"
 """In a local worker: the directory where it notes which task it is running (file named by its pid)."""
 
 
+class BatchTask:
+    """A sweep function that computes a batch of tasks in one call, many(tasks) -> their rows in order (e.g. the
+    instances of one declaration solved together: bilevel.solvers.batch); every executor hands it each batch of
+    `together` whole, and a task alone is many([task])[0]. Picklable where `many` is a module-level function."""
+
+    def __init__(self, many: Callable[[list[Task]], list[Row]]) -> None:
+        self.many = many
+        self.__name__ = getattr(many, "__name__", "batch")
+
+    def __call__(self, task: Task) -> Row:
+        return self.many([task])[0]
+
+
 def run_task(fn: Callable[[Task], Row], task: Task) -> Row:
     """fn(task) with one BLAS thread, as run_batch runs each task (every executor runs tasks through one of them, so
     they compute alike)."""
@@ -54,7 +67,7 @@ def run_task(fn: Callable[[Task], Row], task: Task) -> Row:
 def run_batch(fn: Callable[[Task], Row], tasks: list[Task]) -> list[Row]:
     """fn on each task in order, with one BLAS thread (run_task's rule, set once for the batch)."""
     with single_threaded():
-        return [fn(t) for t in tasks]
+        return fn.many(list(tasks)) if isinstance(fn, BatchTask) else [fn(t) for t in tasks]
 
 
 def batches(tasks: list[Task], together: Together | None) -> list[list[int]]:
@@ -124,6 +137,13 @@ def _worker_init(parent: int, marks: str) -> None:
 def _run_marked(fn: Callable[[Task], Row], batch: list[tuple[int, Task]]) -> list[Row]:
     """run_batch in a local worker, the index of the running task noted in the marks directory."""
     mark = os.path.join(_MARKS, str(os.getpid()))
+    if isinstance(fn, BatchTask):  # one call for the batch: its first task is noted as the running one
+        with open(mark, "w", encoding="utf-8") as fh:
+            fh.write(str(batch[0][0]))
+        try:
+            return run_batch(fn, [t for _, t in batch])
+        finally:
+            os.remove(mark)
 
     def marked(item: tuple[int, Task]) -> Row:
         with open(mark, "w", encoding="utf-8") as fh:
@@ -172,6 +192,10 @@ class LocalExecutor(Executor):
     def imap_unordered(self, fn: Callable[[Task], Row], tasks: list[Task],
                        report: Callable[[str], None] | None = None,
                        together: Together | None = None) -> Iterator[tuple[Task, Row]]:
+        if self.workers == 1 and isinstance(fn, BatchTask):
+            for b in batches(tasks, together):
+                yield from zip([tasks[i] for i in b], run_batch(fn, [tasks[i] for i in b]))
+            return
         if self.workers == 1:
             for task in tasks:
                 yield task, run_task(fn, task)

@@ -13,13 +13,14 @@ from typing import Any, Callable
 import numpy as np
 
 from ..attacks.outcome import attack_stat, unstable
+from ..attacks.vrft_batch import attack_budget_paths, attack_many
 from ..attacks.vrft_methods import attack, attack_budget_path, attack_value
 from ..defaults import param
 from ..files import atomic_open
 from ..problems.vrft_instance import CONVENTIONS, PAPER_EPS_Y, VRFTAttack, attack_instance
 from ..result import BilevelResult
 from .stats import mean_interval, wilson_interval
-from .executor import open_executor
+from .executor import BatchTask, open_executor
 from .sweep import (FINITE, NUMBER, check_fields, committed_timings, load_timings, run_sweep, settings_of,
                     sim_seeds, stderr_progress)
 
@@ -65,6 +66,39 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
     return {**attack_summary(res), "theta_poisoned": res.y["theta"].tolist()}
 
 
+def _path_row(results: list[BilevelResult], eps_y: list[float]) -> dict[str, Any]:
+    return {"cells": [{**attack_summary(r), "eps_y": eps, "theta_poisoned": r.y["theta"].tolist()}
+                      for eps, r in zip(eps_y, results)]}
+
+
+def attack_tasks(tasks: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """attack_task's rows for a batch of tasks, the alternating attacks and the budget paths of equal settings solved
+    together (bilevel.attacks.vrft_batch), the other methods one at a time."""
+    rows: list[dict[str, Any] | None] = [None] * len(tasks)
+    groups: dict[tuple, list[int]] = {}
+    for i, t in enumerate(tasks):
+        if t["method"] in ("alternating", "path"):
+            groups.setdefault((t["method"], t.get("max_iter"), tuple(np.atleast_1d(t["eps_y"]))
+                               if t["method"] == "path" else ()), []).append(i)
+        else:
+            rows[i] = attack_task(t)
+    for (method, max_iter, eps_y), idx in groups.items():
+        seeds = [tasks[i]["seed"] for i in idx]
+        if method == "path":
+            atks = [make_attack({**tasks[i], "eps_y": eps_y[0]}) for i in idx]
+            for i, path in zip(idx, attack_budget_paths(atks, list(eps_y), seeds=seeds)):
+                rows[i] = _path_row(path, list(eps_y))
+            continue
+        limit = {} if max_iter is None else {"max_iter": max_iter}
+        for i, res in zip(idx, attack_many([make_attack(tasks[i]) for i in idx], "alternating", seeds, **limit)):
+            rows[i] = {**attack_summary(res), "theta_poisoned": res.y["theta"].tolist()}
+    return rows  # type: ignore[return-value]
+
+
+BATCHED_TASKS = BatchTask(attack_tasks)
+"""The reproduction's sweep function: each batch of tasks (same_data) through attack_tasks."""
+
+
 def cell_tasks(sims: int, seed: int, convention: str, objective: str, method: str,
                eps_u: tuple[float, ...] = EPS_U, eps_y: tuple[float, ...] = EPS_Y) -> list[dict[str, Any]]:
     """Tasks of a Table-1-shaped sweep: scenarios A and B x eps_u x eps_y x sims; method "path" makes one
@@ -97,9 +131,10 @@ def same_attack(task: dict[str, Any]) -> str:
 
 
 def same_data(task: dict[str, Any]) -> tuple:
-    """A value shared by the tasks that attack one data set (run_sweep's `together`): run in one worker, they reuse
-    its data and the conditioning starts it keeps (bilevel.solvers.engine.starts, by data and output budget)."""
-    return task["convention"], task["scenario"], task.get("N", N_SAMPLES), task["seed"]
+    """A value shared by the tasks of defaults["vrft.batch_sims"] consecutive data sets (run_sweep's `together`): run in
+    one worker, their attacks are solved together (attack_tasks) and reuse the data and conditioning starts the worker
+    keeps (bilevel.solvers.engine.starts, by data and output budget)."""
+    return task["convention"], task["scenario"], task.get("N", N_SAMPLES), task["sim"] // param("vrft.batch_sims")
 
 
 def valid_row(row: dict[str, Any]) -> str:
@@ -221,7 +256,7 @@ def run_reproduction(sims: int = 32, out_dir: str = "out/vrft", seed: int = 0, w
     with open_executor(workers, dask) as executor:
         for name, n, convention, objective, method in plan:
             tasks = cell_tasks(n, seed, convention, objective, method)
-            runs[name] = run_sweep(attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress, name,
+            runs[name] = run_sweep(BATCHED_TASKS, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress, name,
                                    valid_row, same_attack, same_data, units=attacks_in,
                                    reference=committed_timings("vrft"))
     timings = load_timings(os.path.join(out_dir, "timings.json"), progress)

@@ -54,8 +54,8 @@ def conditioning_start(prep: Prepared, parts: ConditioningParts | None = None) -
     if parts is not None:
         if parts.key is None:
             return _conditioning_descent(prep, parts)
-        key = (parts.key, param("starts.conditioning_steps"), prep.canon.x_start.tobytes())
-        return kept(_KEPT, key, lambda: _conditioning_descent(prep, parts), KEPT_STARTS)[0].copy()
+        return kept(_KEPT, conditioning_key(prep, parts), lambda: _conditioning_descent(prep, parts),
+                    KEPT_STARTS)[0].copy()
     declared = prep.cached(("conditioning-start",), lambda: _hessian_and_adjoint(prep))
     if declared is None:
         return None
@@ -66,6 +66,23 @@ def conditioning_start(prep: Prepared, parts: ConditioningParts | None = None) -
     if found is None or found[0] != key:
         found = prep.memo[("conditioning-start-point",)] = (key, _conditioning_descent(prep, declared))
     return found[1].copy()
+
+
+def conditioning_key(prep: Prepared, parts: ConditioningParts) -> Hashable:
+    """The key under which the process keeps the conditioning start of keyed parts (parts.key not None)."""
+    return parts.key, param("starts.conditioning_steps"), prep.canon.x_start.tobytes()
+
+
+def kept_conditioning_start(key: Hashable) -> np.ndarray | None:
+    """A copy of the conditioning start kept under `key` (conditioning_key), or None."""
+    x = _KEPT.get(key)
+    return None if x is None else x.copy()
+
+
+def keep_conditioning_start(key: Hashable, x: np.ndarray) -> None:
+    """Keep a conditioning start found elsewhere (a batch's: bilevel.solvers.engine.affine_ls_batch) under `key`, as
+    conditioning_start keeps the ones it finds."""
+    kept(_KEPT, key, lambda: np.array(x, dtype=float), KEPT_STARTS)
 
 
 def _conditioning_descent(prep: Prepared, parts: ConditioningParts) -> np.ndarray:
@@ -94,7 +111,14 @@ def start_points(prep: Prepared, starts: int, rng: np.random.Generator, scale: f
     canon = prep.canon
     conditioning = conditioning_start(prep, parts) if starts > len(canon.x_suggested) else None
     points = [*canon.x_suggested, *([] if conditioning is None else [conditioning]), canon.x_start][:starts]
-    while len(points) < starts:
+    return points + random_starts(prep, starts - len(points), rng, scale)
+
+
+def random_starts(prep: Prepared, count: int, rng: np.random.Generator, scale: float) -> list[np.ndarray]:
+    """start_points' random starts: seeded points inside the upper bounds (half-width `scale` where a bound is
+    infinite) whose recognized budget-ball blocks lie on the ball's sphere, projected on the upper set."""
+    canon, points = prep.canon, []
+    for _ in range(max(count, 0)):
         x = sample_in_bounds(canon.x_lb, canon.x_ub, rng, scale)
         for ball in prep.balls:
             x[ball.block] = ball.sphere_point(rng)

@@ -17,7 +17,7 @@ from ...reduction import KKTPoint
 from ...result import BilevelResult, Status
 from ..engine.prepared import MethodRun, Prepared
 from .optimistic import optimistic_selection
-from .probe import probe_neighbours
+from .probe import ProbeOutcome, probe_neighbours
 
 
 def _final_status(run: MethodRun, passed: bool) -> tuple[Status, str]:
@@ -33,9 +33,11 @@ def _final_status(run: MethodRun, passed: bool) -> tuple[Status, str]:
 
 
 def _local_verdict(prep: Prepared, run: MethodRun, point: KKTPoint, cert: Certificate, stats: dict[str, Any],
-                   status: Status, message: str) -> tuple[Status, str]:
+                   status: Status, message: str, probed: ProbeOutcome | None = None) -> tuple[Status, str]:
     """NOT_LOCALLY_OPTIMAL when a lower solution at x gives a lower F than the method's (a non-unique lower
-    level: the optimistic selection) or the probe finds a better feasible neighbour; else the status as is."""
+    level: the optimistic selection) or the probe finds a better feasible neighbour; else the status as is.
+    probed: the probe's outcome at the point, found beforehand (bilevel.solvers.verdict.batch_probe), used where the
+    lower solution is unique."""
     F = objectives(prep.canon, point)[0]
     # the lower solution set at x may hold better responses (LMI lower levels: not checked, IPOPT cannot take them)
     ambiguous = not cert.lower_unique and not prep.canon.lower.psd
@@ -49,8 +51,8 @@ def _local_verdict(prep: Prepared, run: MethodRun, point: KKTPoint, cert: Certif
                 f"not a local solution of the optimistic bilevel problem: the lower solution is not unique at x and "
                 f"the method's selection is not the optimistic one; the lower solution in stats['optimistic'] gives "
                 f"upper objective {prep.declared(sel.objective):.8g} (here {prep.declared(F):.8g}) ({message})")
-    outcome = probe_neighbours(prep, point.x, F, run.feasible_set or prep.projection, optimistic=ambiguous,
-                               lower_solve=run.lower_solve)
+    outcome = probed if probed is not None and not ambiguous else probe_neighbours(
+        prep, point.x, F, run.feasible_set or prep.projection, optimistic=ambiguous, lower_solve=run.lower_solve)
     better = outcome.better
     stats["probe"] = None if better is None else {"x": better.x, "objective": prep.declared(better.objective),
                                                   "radius": better.radius}
@@ -113,9 +115,11 @@ def _start_spread(prep: Prepared, records: list[dict[str, Any]]) -> dict[str, An
             "worst": apart[-1]}
 
 
-def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol: float | None = None) -> BilevelResult:
+def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol: float | None = None,
+             probed: ProbeOutcome | None = None) -> BilevelResult:
     """Certify the run's point (up to tol; None: defaults["certificate.tol"]), map it back to declared names and
-    senses, and decide the status."""
+    senses, and decide the status; probed: the local probe's outcome at the run's point where it is known (a batch's,
+    bilevel.solvers.verdict.batch_probe), else the probe runs here."""
     run = replace(run, history=list(_declared_records(prep, run.history)),
                   start_records=list(_declared_records(prep, run.start_records)))
     if run.w is None or not np.all(np.isfinite(run.w)):
@@ -123,7 +127,7 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
         return BilevelResult(run.status if run.status is not Status.SOLVED else Status.ERROR, run.message, method,
                              prep.problem.name, {}, {}, {}, None, None, bounds, wall_time, run.nit,
                              tuple(run.history), tuple(run.start_records), run.stats)
-    point = prep.point(run.w)
+    point = own = prep.point(run.w)
     try:
         cert = certify_point(prep.canon, point, tol, prep.problem.upper_objective.sense)
         if run.global_bound is not None:
@@ -148,7 +152,8 @@ def finalize(prep: Prepared, run: MethodRun, method: str, wall_time: float, tol:
                     "multipliers zeroed; the method's y is in stats['method_y']")
     proven = run.global_bound is not None and run.global_bound.proven  # a global proof needs no local probe
     if status in (Status.SOLVED, Status.INACCURATE) and not proven:
-        status, message = _local_verdict(prep, run, point, cert, stats, status, message)
+        status, message = _local_verdict(prep, run, point, cert, stats, status, message,
+                                         probed if point is own else None)  # not at the re-solved y
     if not proven and (spread := _start_spread(prep, run.start_records)) is not None:
         stats["starts_spread"] = spread
         message += (f"; the {spread['starts']} feasible starts ended apart: {spread['reached_best']} at the best "
