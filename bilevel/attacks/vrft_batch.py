@@ -291,7 +291,7 @@ def attack_many(atks: Sequence[VRFTAttack], method: str = "alternating", seeds: 
             raise ModelError(f"warm_start must have shape ({atk.N},), got {np.shape(w)}")
     groups: dict[int, tuple[BilevelProblem, list[int]]] = {}
     for i, atk in enumerate(atks):
-        problem = problem_for(atk)
+        problem = problem_for(atk, load=False)  # solve_many loads each instance
         groups.setdefault(id(problem), (problem, []))[1].append(i)
     out: list[BilevelResult | None] = [None] * len(atks)
     for problem, idx in groups.values():
