@@ -51,10 +51,17 @@ class Gathered:
     """(key, index in starts) of a conditioning start the batch finds (conditioning_descent), None where none is."""
 
 
+_CHECKED: set[frozenset[str]] = set()
+"""Sets of option names that check_options has accepted for the alternating attack."""
+
+
 def gather(prep: Prepared, options: dict[str, Any]) -> Gathered | None:
     """The batched alternating attack's view of the loaded instance, or None where it runs alone (no exact input
     step, a budget the declaration relaxes, a_y's set not a plain l2 ball, time_limit or verbose)."""
-    check_options("alternating", options, alternating)
+    names = frozenset(options)
+    if names not in _CHECKED:  # once per set of option names (inspecting the signature costs a millisecond)
+        check_options("alternating", options, alternating)
+        _CHECKED.add(names)
     if options.get("time_limit") is not None or options.get("verbose"):
         return None
     atk = instance_of(prep.problem)

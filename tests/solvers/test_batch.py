@@ -14,6 +14,7 @@ import pytest
 import bilevel as bl
 from bilevel.attacks.vrft_batch import attack_budget_paths, attack_many
 from bilevel.attacks.vrft_methods import attack, attack_budget_path
+from bilevel.errors import UnknownOption
 from bilevel.model import BilevelProblem
 from bilevel.problems.budget import Budget
 from bilevel.problems.vrft_instance import attack_instance
@@ -178,5 +179,7 @@ def test_per_instance_options_and_bad_counts() -> None:
     atks = _instances()[:4]
     with pytest.raises(bl.ModelError, match="seeds"):
         attack_many(atks, seeds=[1, 2])
+    with pytest.raises(UnknownOption, match="bogus"):
+        attack_many(atks, bogus=1)
     with pytest.raises(bl.ModelError, match="per-instance"):
         solve_many(BilevelProblem("p"), [{}, {}], "hypergradient", each=[{}])
