@@ -22,7 +22,6 @@ import subprocess
 import time
 import tracemalloc
 
-
 from bilevel.attacks.vrft_batch import attack_many
 from bilevel.attacks.vrft_methods import attack
 from bilevel.defaults import defaults
