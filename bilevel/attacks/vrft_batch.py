@@ -117,16 +117,19 @@ def _conditioning(gathered: list[Gathered]) -> None:
 
 def run(gathered: list[Gathered], options: dict[str, Any]) -> list[MethodRun]:
     """The alternating attack's runs of the gathered instances, those sharing a learner design and limits in one
-    batched ascent."""
+    batched ascent (of at most defaults["batch.max_rows"] instances at a time)."""
     _conditioning(gathered)
     groups: dict[tuple, list[int]] = {}
     for i, g in enumerate(gathered):
         key = (id(g.atk.setting.regressor), g.atk.N, g.atk.objective, g.max_iter, g.gain_tol)
         groups.setdefault(key, []).append(i)
     out: list[MethodRun | None] = [None] * len(gathered)
+    size = int(param("batch.max_rows"))
     for idx in groups.values():
-        for i, r in zip(idx, _run_group([gathered[i] for i in idx])):
-            out[i] = r
+        for s in range(0, len(idx), size):  # consecutive ascents of at most batch.max_rows instances
+            part = idx[s: s + size]
+            for i, r in zip(part, _run_group([gathered[i] for i in part])):
+                out[i] = r
     return out  # type: ignore[return-value]
 
 
