@@ -22,8 +22,6 @@ import subprocess
 import time
 import tracemalloc
 
-import numpy as np
-
 from bilevel.attacks.vrft_batch import attack_many
 from bilevel.attacks.vrft_methods import attack
 from bilevel.defaults import defaults

@@ -51,10 +51,17 @@ class Gathered:
     """(key, index in starts) of a conditioning start the batch finds (conditioning_descent), None where none is."""
 
 
+_CHECKED: set[frozenset[str]] = set()
+"""Sets of option names that check_options has accepted for the alternating attack."""
+
+
 def gather(prep: Prepared, options: dict[str, Any]) -> Gathered | None:
     """The batched alternating attack's view of the loaded instance, or None where it runs alone (no exact input
     step, a budget the declaration relaxes, a_y's set not a plain l2 ball, time_limit or verbose)."""
-    check_options("alternating", options, alternating)
+    names = frozenset(options)
+    if names not in _CHECKED:  # once per set of option names (inspecting the signature costs a millisecond)
+        check_options("alternating", options, alternating)
+        _CHECKED.add(names)
     if options.get("time_limit") is not None or options.get("verbose"):
         return None
     atk = instance_of(prep.problem)
@@ -96,8 +103,7 @@ def _conditioning(gathered: list[Gathered]) -> None:
     for idx in by_design.values():
         atks = [gathered[i].atk for i in idx]
         N = atks[0].N
-        learner = AffineLSBatch(np.stack([a.phi0 for a in atks]), np.stack([a.t0 for a in atks]), _maps(atks[0]), N,
-                                N)
+        learner = AffineLSBatch(*_stacked(atks), _maps(atks[0]), N, N)
         B = conditioning_descent(learner, np.arange(len(idx)), np.array([gathered[i].radius_y for i in idx]))
         for i, b in zip(idx, B):
             found[gathered[i].pending[0]] = np.concatenate([np.zeros(N), b])
@@ -111,16 +117,19 @@ def _conditioning(gathered: list[Gathered]) -> None:
 
 def run(gathered: list[Gathered], options: dict[str, Any]) -> list[MethodRun]:
     """The alternating attack's runs of the gathered instances, those sharing a learner design and limits in one
-    batched ascent."""
+    batched ascent (of at most defaults["batch.max_rows"] instances at a time)."""
     _conditioning(gathered)
     groups: dict[tuple, list[int]] = {}
     for i, g in enumerate(gathered):
         key = (id(g.atk.setting.regressor), g.atk.N, g.atk.objective, g.max_iter, g.gain_tol)
         groups.setdefault(key, []).append(i)
     out: list[MethodRun | None] = [None] * len(gathered)
+    size = int(param("batch.max_rows"))
     for idx in groups.values():
-        for i, r in zip(idx, _run_group([gathered[i] for i in idx])):
-            out[i] = r
+        for s in range(0, len(idx), size):  # consecutive ascents of at most batch.max_rows instances
+            part = idx[s: s + size]
+            for i, r in zip(part, _run_group([gathered[i] for i in part])):
+                out[i] = r
     return out  # type: ignore[return-value]
 
 
@@ -138,12 +147,17 @@ def _maps(atk: VRFTAttack) -> BatchMaps:
     return BatchMaps(reg.stack, reg.stack_adjoint, reg.stack_targets, target_adjoints, reg.stack_adjoint_outer)
 
 
-def upper_batch(atks: Sequence[VRFTAttack], inst: np.ndarray) -> UpperBatch:
-    """J of the quadratic objectives (VRFTAttack.value, grad_theta, upper.hessian) for rows of instances `inst`."""
+def _stacked(atks: Sequence[VRFTAttack]) -> tuple[np.ndarray, np.ndarray]:
+    """The instances' clean regressors and targets, stacked (m x rows x k, m x rows)."""
+    return np.stack([a.phi0 for a in atks]), np.stack([a.t0 for a in atks])
+
+
+def upper_batch(atks: Sequence[VRFTAttack], phi0: np.ndarray, t0: np.ndarray) -> UpperBatch:
+    """J of the quadratic objectives (VRFTAttack.value, grad_theta, upper.hessian) of the instances (rows: their
+    indices), phi0 and t0 their _stacked data."""
     objective, k = atks[0].objective, atks[0].theta0.size
     if objective == "maxmin":
-        t0, phi0 = np.stack([a.t0 for a in atks])[inst], np.stack([a.phi0 for a in atks])[inst]
-        gram, cross = np.stack([a.gram0 for a in atks])[inst], np.stack([a.cross0 for a in atks])[inst]
+        gram, cross = np.stack([a.gram0 for a in atks]), np.stack([a.cross0 for a in atks])
         n = float(atks[0].n)
 
         def value(rows: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -155,10 +169,10 @@ def upper_batch(atks: Sequence[VRFTAttack], inst: np.ndarray) -> UpperBatch:
 
         return UpperBatch(value, gradient, 2.0 * gram / n)
     if objective == "targeted":
-        target = np.stack([a.theta_target for a in atks])[inst]
+        target = np.stack([a.theta_target for a in atks])
         return UpperBatch(lambda rows, theta: -np.sum((target[rows] - theta) ** 2, axis=1) / k,
                           lambda rows, theta: 2.0 / k * (target[rows] - theta),
-                          np.broadcast_to(-2.0 * np.eye(k) / k, (inst.size, k, k)))
+                          np.broadcast_to(-2.0 * np.eye(k) / k, (len(atks), k, k)))
     raise ModelError(f"the batched alternating attack needs a quadratic objective, not {objective!r}")
 
 
@@ -168,21 +182,22 @@ def _run_group(items: list[Gathered]) -> list[MethodRun]:
     atks = [g.atk for g in items]
     N = atks[0].N
     pairs = [(j, k) for j, g in enumerate(items) for k in range(len(g.starts))]
-    inst = np.array([j for j, _ in pairs], dtype=int)
-    learner = AffineLSBatch(np.stack([a.phi0 for a in atks])[inst], np.stack([a.t0 for a in atks])[inst],
-                            _maps(atks[0]), N, N)
-    upper = upper_batch(atks, inst)
-    block = TargetBlockBatch(learner, upper, np.array([atks[j].delta_u for j in inst]))
+    inst = np.array([j for j, _ in pairs], dtype=int)  # the instance of each row of the ascent
+    phi0, t0 = _stacked(atks)
+    learner = AffineLSBatch(phi0, t0, _maps(atks[0]), N, N)
+    upper = upper_batch(atks, phi0, t0)
+    block = TargetBlockBatch(learner, upper, np.array([a.delta_u for a in atks]))
     weight = np.array([atks[j].delta_y for j in inst])
     radius = np.array([items[j].radius_y for j in inst])
 
     def value(rows: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, Points]:
         """J at each trial point, with its gradient in b (most trial points are accepted: computed while the fit's
         arrays are at hand, the points keep only theta, a and the gradient)."""
+        of = inst[rows]
         with np.errstate(all="ignore"):
-            fit = block.solve(rows, X)
-            f = upper.value(rows, fit.theta)
-            g = learner.gradient(fit, upper.gradient(rows, fit.theta), target=False)[1]
+            fit = block.solve(of, X)
+            f = upper.value(of, fit.theta)
+            g = learner.gradient(fit, upper.gradient(of, fit.theta), target=False)[1]
         f = np.where(fit.ok & np.isfinite(f), f, -np.inf)
         return f, {"theta": fit.theta, "a": fit.a, "g": g}
 
@@ -235,9 +250,10 @@ def probe_parts(gathered: list[Gathered], runs: list[MethodRun]) -> ProbeParts:
     """The learners' fits at the probe's points, the attack's criterion there (canonical F = -J) and the canonical
     hypergradient at each run's point (bilevel.solvers.verdict.batch_probe)."""
     atks = [g.atk for g in gathered]
-    N, m = atks[0].N, len(atks)
-    learner = AffineLSBatch(np.stack([a.phi0 for a in atks]), np.stack([a.t0 for a in atks]), _maps(atks[0]), N, N)
-    upper = upper_batch(atks, np.arange(m))
+    N = atks[0].N
+    phi0, t0 = _stacked(atks)
+    learner = AffineLSBatch(phi0, t0, _maps(atks[0]), N, N)
+    upper = upper_batch(atks, phi0, t0)
 
     def solve(inst: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         with np.errstate(all="ignore"):
@@ -291,7 +307,7 @@ def attack_many(atks: Sequence[VRFTAttack], method: str = "alternating", seeds: 
             raise ModelError(f"warm_start must have shape ({atk.N},), got {np.shape(w)}")
     groups: dict[int, tuple[BilevelProblem, list[int]]] = {}
     for i, atk in enumerate(atks):
-        problem = problem_for(atk)
+        problem = problem_for(atk, load=False)  # solve_many loads each instance
         groups.setdefault(id(problem), (problem, []))[1].append(i)
     out: list[BilevelResult | None] = [None] * len(atks)
     for problem, idx in groups.values():

@@ -187,9 +187,10 @@ DECLARED_CACHE = 4
 _DECLARED: dict[tuple[Any, ...], tuple[VRFTSetting, VRFTProblem]] = {}
 
 
-def problem_for(atk: VRFTAttack) -> VRFTProblem:
+def problem_for(atk: VRFTAttack, load: bool = True) -> VRFTProblem:
     """The declared problem of `atk` (any budget `declare` takes), loaded with its data: declared once per setting,
-    objective, N, budget norms (linf: radii) and ARX orders in this process, re-targeted with set_value after."""
+    objective, N, budget norms (linf: radii) and ARX orders in this process, re-targeted with set_value after (not
+    with load=False: a caller that loads instances itself, e.g. bilevel.attacks.vrft_batch)."""
     budgets = tuple(b.radius(s) if b.norm == "linf" else b.norm
                     for b, s in ((atk.budget_u, atk.u), (atk.budget_y, atk.y)))  # linf radii are declared bounds
     key = (id(atk.setting), atk.objective, atk.N, budgets,
@@ -197,7 +198,7 @@ def problem_for(atk: VRFTAttack) -> VRFTProblem:
     # the setting is kept alive with its problem: its id is not reused while kept
     (_, problem), made = kept(_DECLARED, key, lambda: (atk.setting, declare(atk)), DECLARED_CACHE,
                               usable=lambda hit: hit[0] is atk.setting)
-    if not made:
+    if not made and load:
         _load(problem, atk)
     return problem
 

@@ -83,7 +83,7 @@ def solve_many(problem: BilevelProblem, values: Sequence[Value], method: str | C
     batched = BATCH_METHODS.get(fn) if fn is not None else None
     if batched is None or len(values) < param("batch.min_size"):
         return [_alone(problem, v, method, certificate_tol, {**options, **e}) for v, e in zip(values, each)]
-    name = method if isinstance(method, str) else getattr(method, "__name__", "custom")
+    name = str(method).lower() if isinstance(method, str) else getattr(method, "__name__", "custom")
     check_common_options(options, certificate_tol)
     t0 = time.perf_counter()
     gathered: list[Any] = []
