@@ -31,11 +31,26 @@ H(c) = sum_i c_i T_i is the regressor's filter, c_k >= |V_k'd| the set's extent 
 (Q + D) M^-1 E'r0). That box in U's basis is small along R's strong directions, where the fit barely moves and
 where the zero-exclusion test often looks; the certified set is the linear image plus it, intersected with the set
 before.
+Then the joint bound along the critical directions (option "joint", default on): that inequality holds along any
+direction w of d, not only R's singular ones. With g = R^-T w and c = R^-1 g = G0^-1 w (G0 = R'R): w'(d - d_lin) =
+g'(x - x_lin) = (H(c) a_y)'(r(a) - r0) - sum_k (V_k'd) g'Q'H(V_k) a_y exactly (D g = Phi(a_y) R^-1 g = H(c) a_y, and
+Phi(a_y) d = H(d) a_y = sum_k (V_k'd) H(V_k) a_y), so |w'(d - d_lin)| <= ||a_y|| (||H(c)|| ||r(a) - r0|| +
+sum_k c_k ||H(V_k)'Q g||) (Cauchy-Schwarz per term): one operator norm of the combined filter H(c), where summing the
+refinement's bounds over the U_j that g mixes gives sum_j |U_j'g| ||H(V_j)|| / s_j >= ||H(c)|| (triangle inequality,
+c = sum_j V_j U_j'g / s_j). It is taken along the directions w_i = S_z'u that decide the sweep: the best u at the
+CRITICAL smallest local minima of the sweep's bound on a COARSE grid, over the set without it (zero_exclusion.closest;
+any direction is valid, these are the ones that matter). For any W and any basis b of d, W = sum alpha_l b_l gives
+W'(d - d_lin) <= sum |alpha_l| max|b_l'(d - d_lin)|; the bases used are R'U (whose bound along R'U_j is the refinement's
+box) with the U_j that w_i leans on most replaced by w_i (invertible: that coefficient is nonzero), the certified set's
+support the linear image's plus the smallest of these sums, intersected with the set before. ||H(c)|| depends only on
+the direction (its frequency and angle index on the coarse grid), so each is computed once per data set (the square
+root of the largest eigenvalue of H(c) H(c)').
 The set {d} = R^-1 {x}, and the true loop's characteristic polynomial, affine in theta, is proven Schur stable over it
 by zero exclusion on the unit circle (bilevel.robust.zero_exclusion). The re-check rebuilds the operators by filtering
 unit impulses (the learner's own filters, not the dense matrices), recomputes beta1, eta1 and the operators' norms by
 SVDs and the Grams from the explicit maps, and re-runs the sweep on a grid twice as fine with twice the directions from
-those numbers (the larger of each pair).
+those numbers (the larger of each pair), the joint bound's norms along the same directions by SVDs of the impulse-built
+H(c) (the larger of each pair).
 """
 
 from __future__ import annotations
@@ -307,10 +322,14 @@ def _joint_refined(P: Perturbation, r_u: float, r_y: float, resid: float, before
     inverses, widths = [], []
     for i, a in enumerate((to_u @ joint.W).T):
         j = int(np.argmax(np.abs(a)))
+        if not abs(a[j]) > 0:
+            continue  # w_i = 0 bounds nothing
         basis = np.eye(a.size)
         basis[:, j] = a
         inverses.append(np.linalg.solve(basis, to_u))
         widths.append(np.where(np.arange(a.size) == j, wide[i], box))
+    if not inverses:
+        return before
     inverses, widths = np.array(inverses), np.array(widths)
 
     def h(W: np.ndarray) -> np.ndarray:
