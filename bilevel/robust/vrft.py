@@ -31,11 +31,26 @@ H(c) = sum_i c_i T_i is the regressor's filter, c_k >= |V_k'd| the set's extent 
 (Q + D) M^-1 E'r0). That box in U's basis is small along R's strong directions, where the fit barely moves and
 where the zero-exclusion test often looks; the certified set is the linear image plus it, intersected with the set
 before.
+Then the joint bound along the critical directions (option "joint", default on): that inequality holds along any
+direction w of d, not only R's singular ones. With g = R^-T w and c = R^-1 g = G0^-1 w (G0 = R'R): w'(d - d_lin) =
+g'(x - x_lin) = (H(c) a_y)'(r(a) - r0) - sum_k (V_k'd) g'Q'H(V_k) a_y exactly (D g = Phi(a_y) R^-1 g = H(c) a_y, and
+Phi(a_y) d = H(d) a_y = sum_k (V_k'd) H(V_k) a_y), so |w'(d - d_lin)| <= ||a_y|| (||H(c)|| ||r(a) - r0|| +
+sum_k c_k ||H(V_k)'Q g||) (Cauchy-Schwarz per term): one operator norm of the combined filter H(c), where summing the
+refinement's bounds over the U_j that g mixes gives sum_j |U_j'g| ||H(V_j)|| / s_j >= ||H(c)|| (triangle inequality,
+c = sum_j V_j U_j'g / s_j). It is taken along the directions w_i = S_z'u that decide the sweep: the best u at the
+CRITICAL smallest local minima of the sweep's bound on a COARSE grid, over the set without it (zero_exclusion.closest;
+any direction is valid, these are the ones that matter). For any W and any basis b of d, W = sum alpha_l b_l gives
+W'(d - d_lin) <= sum |alpha_l| max|b_l'(d - d_lin)|; the bases used are R'U (whose bound along R'U_j is the refinement's
+box) with the U_j that w_i leans on most replaced by w_i (invertible: that coefficient is nonzero), the certified set's
+support the linear image's plus the smallest of these sums, intersected with the set before. ||H(c)|| depends only on
+the direction (its frequency and angle index on the coarse grid), so each is computed once per data set (the square
+root of the largest eigenvalue of H(c) H(c)').
 The set {d} = R^-1 {x}, and the true loop's characteristic polynomial, affine in theta, is proven Schur stable over it
 by zero exclusion on the unit circle (bilevel.robust.zero_exclusion). The re-check rebuilds the operators by filtering
 unit impulses (the learner's own filters, not the dense matrices), recomputes beta1, eta1 and the operators' norms by
 SVDs and the Grams from the explicit maps, and re-runs the sweep on a grid twice as fine with twice the directions from
-those numbers (the larger of each pair).
+those numbers (the larger of each pair), the joint bound's norms along the same directions by SVDs of the impulse-built
+H(c) (the larger of each pair).
 """
 
 from __future__ import annotations
@@ -54,7 +69,7 @@ from ..problems.budget import Budget
 from ..problems.vrft_instance import VRFTAttack
 from .target import Signals, Target, register_mechanism, register_target
 from .verdict import Check, Evidence, Proof
-from .zero_exclusion import Sweep, sweep
+from .zero_exclusion import Sweep, closest, sweep
 
 PATH = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
 """The attack's budget path before bisection (the defenses frontier's VRFT path)."""
@@ -97,7 +112,9 @@ class Perturbation:
     coefficients (q_u[i], q_y[i]), ||u||, ||y||, and for the damped split: the Grams of a_y -> d through Q'v and
     through D'r0 (K_v, K_r), the norms of a_y -> Q'Phi(a_y) theta0 and a_y -> D'r0 (lin_v, lin_r), of
     (I - QQ') t(.) and (I - QQ') Phi(.) theta0 (out_u, out_y) and ||r0||; for the refinement: R's SVD (U, sv, Vt),
-    ||H(V_k)|| (HV), ||H(V_k)'Q U_j|| (HQ[j, k]) and the norms of t(.) and Phi(.) theta0 (norm_t, norm_f)."""
+    ||H(V_k)|| (HV), ||H(V_k)'Q U_j|| (HQ[j, k]) and the norms of t(.) and Phi(.) theta0 (norm_t, norm_f); for the
+    joint bound along the critical directions: the dense regressor operators T (k, rows, N) and H(V_k)'Q (HVQ[k],
+    N x k)."""
 
     theta0: np.ndarray
     R: np.ndarray
@@ -123,8 +140,10 @@ class Perturbation:
     Vt: np.ndarray
     HV: np.ndarray
     HQ: np.ndarray
+    HVQ: np.ndarray
     norm_t: float
     norm_f: float
+    T: np.ndarray
 
 
 def _operators(atk: VRFTAttack) -> tuple[np.ndarray, np.ndarray]:
@@ -157,15 +176,15 @@ def perturbation(atk: VRFTAttack) -> Perturbation:
                         float(np.linalg.norm(atk.y)), L_v @ L_v.T, L_r @ L_r.T, float(np.linalg.norm(R @ L_v, 2)),
                         float(np.linalg.norm(R @ L_r, 2)), out(Tu), out(F), float(np.linalg.norm(r0)),
                         *_directions(T, Q, R, lambda A: float(np.linalg.norm(A, 2))), float(np.linalg.norm(Tu, 2)),
-                        float(np.linalg.norm(F, 2)))
+                        float(np.linalg.norm(F, 2)), T)
 
 
 def _directions(T: np.ndarray, Q: np.ndarray, R: np.ndarray, norm) -> tuple[np.ndarray, ...]:
-    """(U, sv, Vt, HV, HQ) of the refinement (Perturbation docstring), the operator norms by `norm`."""
+    """(U, sv, Vt, HV, HQ, HVQ) of the refinement (Perturbation docstring), the operator norms by `norm`."""
     U, sv, Vt = np.linalg.svd(R)
-    H = [np.tensordot(v, T, axes=(0, 0)) for v in Vt]
-    QU = Q @ U
-    return U, sv, Vt, np.array([norm(h) for h in H]), np.array([[np.linalg.norm(h.T @ q) for h in H] for q in QU.T])
+    HVQ = np.stack([np.tensordot(v, T, axes=(0, 0)).T @ Q for v in Vt])
+    return U, sv, Vt, np.array([norm(np.tensordot(v, T, axes=(0, 0))) for v in Vt]), \
+        np.linalg.norm(HVQ @ U, axis=1).T, HVQ
 
 
 def _gains(M: np.ndarray, Q: np.ndarray, norm) -> tuple[float, float]:
@@ -184,12 +203,19 @@ def _impulse_operators(atk: VRFTAttack) -> tuple[np.ndarray, np.ndarray]:
 
 
 KEPT = 8
-_KEPT: dict[int, tuple[VRFTAttack, Perturbation]] = {}
+_KEPT: dict[int, tuple[VRFTAttack, Perturbation, dict]] = {}
+
+
+def _entry(atk: VRFTAttack) -> tuple[VRFTAttack, Perturbation, dict]:
+    """(atk, perturbation(atk), the joint bound's norms ||H(c)|| by critical direction's key), kept for the last KEPT
+    instances (certified_margin certifies one data set many times; the norms do not depend on the budget and the
+    bisection meets the same directions again)."""
+    return kept(_KEPT, id(atk), lambda: (atk, perturbation(atk), {}), KEPT, usable=lambda hit: hit[0] is atk)[0]
 
 
 def _cached(atk: VRFTAttack) -> Perturbation:
-    """perturbation(atk), kept for the last KEPT instances (certified_margin certifies one data set many times)."""
-    return kept(_KEPT, id(atk), lambda: (atk, perturbation(atk)), KEPT, usable=lambda hit: hit[0] is atk)[0][1]
+    """perturbation(atk), kept (_entry)."""
+    return _entry(atk)[1]
 
 
 @dataclass(frozen=True)
@@ -224,9 +250,10 @@ def remainder(P: Perturbation, delta: float) -> Remainder:
                      min(out / 2, (norm_box + beta * qv) / (1 - beta)) / (1 - beta))
 
 
-def support(P: Perturbation, delta: float, rem: Remainder):
+def support(P: Perturbation, delta: float, rem: Remainder, joint: Joint | None = None):
     """The support function of the certified set of d at budget delta (columns of W -> values): the smaller of the
-    expansion's (linear image plus R^-1 times ball and box) and the damped split's (module docstring)."""
+    expansion's (linear image plus R^-1 times ball and box) and the damped split's, refined along R's singular
+    directions and, given `joint`, along its critical directions (module docstring)."""
     r_u, r_y = delta * P.norm_u, delta * P.norm_y
     rinv_t = np.linalg.inv(P.R).T
 
@@ -245,10 +272,71 @@ def support(P: Perturbation, delta: float, rem: Remainder):
     resid = min(P.norm_r0, r_y * P.lin_r / (1 - rem.beta)) + r_u * P.norm_t + r_y * P.norm_f
     for _ in range(ROUNDS):
         h = _refined(P, r_u, r_y, resid, h)
+    for _ in range(JOINT_ROUNDS if joint is not None else 0):
+        h = _joint_refined(P, r_u, r_y, resid, h, joint)
     return h
 
 
 ROUNDS = 3
+JOINT_ROUNDS = 1
+
+
+@dataclass(frozen=True)
+class Joint:
+    """Directions w_i of d (W, k x m) with upper bounds on the norms the joint bound along them needs: nH[i] >=
+    ||H(G0^-1 w_i)|| (G0 = R'R) and nQ[i, k] >= ||H(V_k)'Q R^-T w_i|| (module docstring)."""
+
+    W: np.ndarray
+    nH: np.ndarray
+    nQ: np.ndarray
+
+
+def joint_norms(P: Perturbation, W: np.ndarray, norm, keys: list | None = None,
+                known: dict | None = None) -> Joint:
+    """The Joint of directions W (k x m), the operator norms ||H(c)|| by `norm` from P's dense operators; with `keys`
+    (one hashable per direction that fixes it, e.g. zero_exclusion.closest's) those norms are looked up in and added
+    to `known`."""
+    Rinv = np.linalg.inv(P.R)
+    G = Rinv.T @ W
+    known = {} if known is None else known
+    keys = keys if keys is not None else [None] * W.shape[1]
+    nH = []
+    for key, c in zip(keys, (Rinv @ G).T):
+        if key is None or key not in known:
+            value = norm(np.tensordot(c, P.T, axes=(0, 0)))
+            if key is None:
+                nH.append(value)
+                continue
+            known[key] = value
+        nH.append(known[key])
+    return Joint(W, np.array(nH, float).reshape(-1), np.linalg.norm(P.HVQ @ G, axis=1).T)
+
+
+def _joint_refined(P: Perturbation, r_u: float, r_y: float, resid: float, before, joint: Joint):
+    """One joint refinement (module docstring) of the set whose support function is `before`: the remainder's bound
+    along each critical direction w_i, exchanged into the basis R'U for the U_j it leans on most."""
+    extent = np.maximum(before(P.Vt.T), before(-P.Vt.T))
+    box = r_y * (P.HV / P.sv * resid + P.HQ @ extent)
+    wide = r_y * (joint.nH * resid + joint.nQ @ extent)
+    to_u = P.U.T @ np.linalg.inv(P.R).T  # W = R'U alpha: alpha = U'R^-T W
+    inverses, widths = [], []
+    for i, a in enumerate((to_u @ joint.W).T):
+        j = int(np.argmax(np.abs(a)))
+        if not abs(a[j]) > 0:
+            continue  # w_i = 0 bounds nothing
+        basis = np.eye(a.size)
+        basis[:, j] = a
+        inverses.append(np.linalg.solve(basis, to_u))
+        widths.append(np.where(np.arange(a.size) == j, wide[i], box))
+    if not inverses:
+        return before
+    inverses, widths = np.array(inverses), np.array(widths)
+
+    def h(W: np.ndarray) -> np.ndarray:
+        quad = lambda K: np.sqrt(np.maximum(np.einsum("im,ij,jm->m", W, K, W), 0.0))  # noqa: E731
+        rest = np.min(np.einsum("bj,bjm->bm", widths, np.abs(inverses @ W)), axis=0)
+        return np.minimum(before(W), r_u * quad(P.K_u) + r_y * quad(P.K_y) + rest)
+    return h
 
 
 def _refined(P: Perturbation, r_u: float, r_y: float, resid: float, before):
@@ -267,21 +355,50 @@ GRID = 16384
 ANGLES = 9
 
 
-def _sweep(atk: VRFTAttack, P: Perturbation, delta: float, refine: int = 1) -> tuple[float, float, Sweep | None]:
+CRITICAL = 8
+"""Frequencies (smallest local minima of the sweep's bound on a coarse grid) whose deciding direction u is bounded
+jointly (with SPREAD neighbouring directions on each side)."""
+SPREAD = 0
+COARSE = 1024
+
+
+def critical(atk: VRFTAttack, P: Perturbation, delta: float) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """The critical directions (k x m) at budget delta and their keys: where the sweep over the set without the joint
+    bound comes closest to failing (zero_exclusion.closest); none where beta >= 1."""
+    rem = remainder(P, delta)
+    if rem.beta >= 1.0:
+        return np.zeros((P.theta0.size, 0)), []
+    loop = atk.setting.loop
+    return closest(loop.coefficients(P.theta0), loop.slopes, support(P, delta, rem), COARSE, ANGLES, CRITICAL,
+                   SPREAD)
+
+
+def _eig_norm(A: np.ndarray) -> float:
+    """||A|| as the square root of the largest eigenvalue of A A' (the primary route; the re-check uses SVDs)."""
+    return float(np.sqrt(np.linalg.eigvalsh(A @ A.T)[-1]))
+
+
+def _sweep(atk: VRFTAttack, P: Perturbation, delta: float, refine: int = 1,
+           joint: Joint | None = None) -> tuple[float, float, Sweep | None]:
     rem = remainder(P, delta)
     if rem.beta >= 1.0:
         return rem.beta, rem.ball, None
     loop = atk.setting.loop
     base = loop.coefficients(P.theta0)
-    return rem.beta, rem.ball, sweep(base, loop.slopes, support(P, delta, rem), GRID * refine, ANGLES * refine)
+    return rem.beta, rem.ball, sweep(base, loop.slopes, support(P, delta, rem, joint), GRID * refine,
+                                     ANGLES * refine)
 
 
 def perturbation_bound(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
     """Mechanism "perturbation" (module docstring)."""
     atk = target.declaration
     t0 = time.perf_counter()
-    P = _cached(atk)
-    beta, ball, found = _sweep(atk, P, delta)
+    _, P, known = _entry(atk)
+    joint = None
+    if options.get("joint", True):
+        W, keys = critical(atk, P, delta)
+        joint = joint_norms(P, W, _eig_norm, keys, known)
+    beta, ball, found = _sweep(atk, P, delta, joint=joint)
     if found is None:
         return Evidence("perturbation", Proof.UNKNOWN, f"beta = {beta:.3g} >= 1: the poisoned regressor's conditioning "
                         "is not bounded at this budget", {"beta": beta}, Check(False, "nothing to check"),
@@ -293,15 +410,16 @@ def perturbation_bound(target: Target, delta: float, options: dict[str, Any]) ->
             else f"zero exclusion fails at delta = {delta:.6g} (guaranteed distance {found.excluded_by:.3g})"
         return Evidence("perturbation", Proof.UNKNOWN, why, numbers, Check(False, "nothing to check"),
                         time.perf_counter() - t0)
-    check = recheck(atk, P, delta)
+    check = recheck(atk, P, delta, joint)
     return Evidence("perturbation", Proof.PROVEN, f"no poisoning with ||a_u|| <= {delta:.6g} ||u||, ||a_y|| <= "
                     f"{delta:.6g} ||y|| destabilizes the true loop (perturbation bound + zero exclusion, distance "
                     f"{found.excluded_by:.3g} > 0)", numbers, check, time.perf_counter() - t0)
 
 
-def recheck(atk: VRFTAttack, P: Perturbation, delta: float) -> Check:
+def recheck(atk: VRFTAttack, P: Perturbation, delta: float, joint: Joint | None = None) -> Check:
     """The independent re-check (module docstring): operators from impulses, eta1 by SVD, Grams from the explicit
-    maps, the sweep on a twice finer grid with the larger of each pair of numbers."""
+    maps, the joint bound's norms by SVD from those operators, the sweep on a twice finer grid with the larger of
+    each pair of numbers."""
     T, Tu = _impulse_operators(atk)
     phi0 = np.einsum("irn,n->ri", T, atk.y)
     theta0 = np.linalg.lstsq(phi0, Tu @ atk.u, rcond=None)[0]
@@ -323,7 +441,7 @@ def recheck(atk: VRFTAttack, P: Perturbation, delta: float) -> Check:
     out = lambda A: top(A - phi0 @ np.linalg.lstsq(phi0, A, rcond=None)[0])  # noqa: E731
     again = Perturbation(theta0, R, L_u @ L_u.T, L_y @ L_y.T, top(R @ L_u), top(R @ L_y), eta1, beta1, q_u, q_y,
                          P.norm_u, P.norm_y, L_v @ L_v.T, L_r @ L_r.T, top(R @ L_v), top(R @ L_r), out(Tu), out(F),
-                         float(np.linalg.norm(r0)), *_directions(T, phi0 @ Rinv, R, top), top(Tu), top(F))
+                         float(np.linalg.norm(r0)), *_directions(T, phi0 @ Rinv, R, top), top(Tu), top(F), T)
     larger = {f.name: max(getattr(P, f.name), getattr(again, f.name)) for f in dataclasses.fields(Perturbation)
               if isinstance(getattr(P, f.name), float)}
     worst = dataclasses.replace(again, q_u=np.maximum(P.q_u, again.q_u), q_y=np.maximum(P.q_y, again.q_y),
@@ -331,7 +449,10 @@ def recheck(atk: VRFTAttack, P: Perturbation, delta: float) -> Check:
     relative = lambda a, b: float(np.max(np.abs(a - b)) / np.max(np.abs(b)))  # noqa: E731
     agree = max(abs(again.eta1 - P.eta1) / P.eta1, abs(again.beta1 - P.beta1) / P.beta1,
                 *(relative(getattr(again, K), getattr(P, K)) for K in ("K_u", "K_y", "K_v", "K_r")))
-    _, _, found = _sweep(atk, worst, delta, refine=2)
+    if joint is not None:
+        top_joint = joint_norms(again, joint.W, top)
+        joint = Joint(joint.W, np.maximum(joint.nH, top_joint.nH), np.maximum(joint.nQ, top_joint.nQ))
+    _, _, found = _sweep(atk, worst, delta, refine=2, joint=joint)
     scale = float(np.max(np.abs(atk.setting.loop.coefficients(theta0))))
     margin = param("robust.check_margin") * scale
     passed = found is not None and found.proven and found.excluded_by > margin and found.leading > margin \

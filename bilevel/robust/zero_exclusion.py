@@ -84,14 +84,41 @@ def sweep(base: np.ndarray, slopes: np.ndarray, support: Support, points: int, a
 def _distances(base: np.ndarray, slopes: np.ndarray, support: Support, powers: np.ndarray, w: np.ndarray,
                angles: int) -> np.ndarray:
     """At each frequency w, the best of `angles` lower bounds u'p0(z) - h(S_z' u) on the image's distance from 0."""
+    best = np.full(w.size, -np.inf)
+    for level, directions in _directions(base, slopes, powers, w, angles):
+        best = np.maximum(best, level - support(directions))
+    return best
+
+
+def _directions(base: np.ndarray, slopes: np.ndarray, powers: np.ndarray, w: np.ndarray, angles: int):
+    """Per offset of u from arg p0(z) (`angles` of them over [-pi/2, pi/2]): (u'p0(z), S_z' u) at each frequency w,
+    the level (points,) and the directions (k, points) of the bound u'p0(z) - h(S_z' u)."""
     z = np.exp(1j * w)
     vander = z[:, None] ** powers[None, :]
     p0 = vander @ base
     s = vander @ slopes.T  # (points, k)
-    best = np.full(w.size, -np.inf)
     phase = np.angle(p0)
     for off in np.linspace(-0.5 * np.pi, 0.5 * np.pi, angles):
         u = np.exp(1j * (phase + off))
-        directions = (s.real * u.real[:, None] + s.imag * u.imag[:, None]).T  # S_z' u, (k, points)
-        best = np.maximum(best, (p0.real * u.real + p0.imag * u.imag) - support(directions))
-    return best
+        yield p0.real * u.real + p0.imag * u.imag, (s.real * u.real[:, None] + s.imag * u.imag[:, None]).T
+
+
+def closest(base: np.ndarray, slopes: np.ndarray, support: Support, points: int, angles: int, count: int,
+            spread: int = 1) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """The directions S_z' u (k, m) deciding the sweep where it comes closest to excluding nothing: at the `count`
+    frequencies of `points` in [0, pi] with the smallest local minima of the distance bound, the best of `angles`
+    directions u and its `spread` neighbours on each side (any direction is valid to bound along; these are the ones
+    that matter), with each one's (frequency index, angle index): the direction depends on nothing else."""
+    base, slopes = np.asarray(base, float), np.asarray(slopes, float)
+    powers = np.arange(base.size - 1, -1, -1)
+    w = np.linspace(0.0, np.pi, points)
+    found = list(_directions(base, slopes, powers, w, angles))
+    bounds = np.array([level - support(directions) for level, directions in found])  # (angles, points)
+    best = bounds.max(axis=0)
+    inner = np.r_[True, best[1:] < best[:-1]] & np.r_[best[:-1] <= best[1:], True]
+    picked = [i for i in np.argsort(best) if inner[i]][:count]
+    keys = []
+    for i in picked:
+        a = int(np.argmax(bounds[:, i]))
+        keys += [(int(i), j) for j in range(max(a - spread, 0), min(a + spread, angles - 1) + 1)]
+    return np.array([found[j][1][:, i] for i, j in keys]).reshape(-1, slopes.shape[0]).T, keys
