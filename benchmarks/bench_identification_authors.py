@@ -6,12 +6,13 @@ with torch derivatives, 100 iterations, bounds [-0.5, 0.5], their start: 1e-5 no
 own environment through benchmarks/authors_slsqp_runner.py, one process per data set, one torch/BLAS thread; its rows
 are kept in a JSONL file (--results) and not rerun. The engine (bilevel.experiments.identification_paper.paper_attack:
 stealth_kind "authors", objective ||d[A B]||_2, paper_method(T)) runs here with one BLAS thread on the same (T, data
-set, delta), after one warm-up attack per T (declaration and compilation, once per process); its rows are kept in
---engine-results the same way. CPU times are time.process_time of each side's attack. Both answers are checked by
+set, delta), after one warm-up attack per T (declaration and compilation, once per process), a data set's deltas in
+increasing order, each continued from the smaller delta's answer (paper_attack's `smaller`: warm start, cold run beside
+it where needed); its rows are kept in --engine-results the same way. CPU times are time.process_time of each side's attack. Both answers are checked by
 bilevel.ddc.stealth_check (tolerance 1e-6).
 
 Run: python benchmarks/bench_identification_authors.py --authors DIR --python PY --data DIR [--horizons 100,500]
-[--sims 10] [--sims-500 N] [--results FILE] [--engine-results FILE] [--recorded-only]; DIR: their
+[--sims 10] [--sims-500 N] [--results FILE] [--engine-results FILE] [--recorded-only | --engine-only]; DIR: their
 example_stealthy_attack folder, PY: a python with torch (CPU), numpy, scipy and momentchi2 (docs/identification.md:
 `python3 -m venv V && V/bin/pip install torch numpy scipy momentchi2`), --data: their extracted datasets folder.
 Output: benchmarks/results/bench_identification_authors.txt. The side-by-side table is over the (T, data set, delta)
@@ -54,7 +55,7 @@ def authors_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[
     rows = recorded(args.results)
     for T, sim in plan:
         missing = [d for d in DELTAS if (T, sim, d) not in rows]
-        if not missing or args.recorded_only:
+        if not missing or args.recorded_only or args.engine_only:
             continue
         out = subprocess.run([args.python, RUNNER, args.authors, args.data, str(T), str(sim),
                               ",".join(map(str, missing))], capture_output=True, text=True, check=True,
@@ -70,7 +71,7 @@ def authors_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[
 def engine_row(T: int, sim: int, delta: float, run: PaperAttack) -> dict:
     return {"T": T, "sim": sim, "delta": delta, "norm2": run.check["norm2"], "stealthy": run.check["stealthy"],
             "AB": run.check["AB"].tolist(), "cpu_time": run.cpu_time, "status": run.result.status.value,
-            "iterations": run.result.nit}
+            "iterations": run.result.nit, "start": run.start}
 
 
 def engine_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[tuple[int, int, float], dict]:
@@ -81,7 +82,7 @@ def engine_rows(args: argparse.Namespace, plan: list[tuple[int, int]]) -> dict[t
         return rows
     with single_threaded(), open(args.engine_results, "a") as fh:
         for T, sim in plan:
-            smaller = None  # each delta from the last smaller delta's answer where it is better (paper_attack)
+            smaller = None  # each delta continued from the smaller delta's answer (paper_attack)
             for d in DELTAS:
                 if (T, sim, d) not in rows:
                     smaller = paper_attack(load_dataset(dataset_path(args.data, T, sim)), d, smaller)
@@ -110,6 +111,8 @@ def main() -> None:
     p.add_argument("--engine-results", default="engine_authors_terms.jsonl")
     p.add_argument("--recorded-only", action="store_true", help="compare on the rows --results and --engine-results "
                    "hold (the engine's data sets with every delta), run none")
+    p.add_argument("--engine-only", action="store_true", help="run the engine where --engine-results lacks rows, "
+                   "not the authors' SLSQP (compare on the rows --results holds)")
     args = p.parse_args()
     horizons = [int(t) for t in args.horizons.split(",")]
     plan = [(T, s) for T in horizons for s in range(args.sims if T != 500 or args.sims_500 is None else args.sims_500)]
@@ -156,16 +159,18 @@ def main() -> None:
     print("* of ||[A B]' - [A B]_true||_2 for their best of 10 starts, read off their figure (T = 500); the columns "
           "beside are ||[A B]' - [A B]_clean||_2 of one start (theirs: seed 0)")
     print("\nThe engine on every data set it ran (with or without an SLSQP row):\n")
-    print("| T | delta | data sets | stealthy | solved | median ||d[A B]||_2 | median ||[A B]' - [A B]_true||_2 | "
-          "authors' published median | median CPU s | total CPU s |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| T | delta | data sets | stealthy | solved | kept start (warm/cold/kept) | median ||d[A B]||_2 | "
+          "median ||[A B]' - [A B]_true||_2 | authors' published median | median CPU s | total CPU s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     truth = true_parameters()
     for T in horizons:
         for d in DELTAS:
             e = [v for (t, s, dd), v in ours.items() if t == T and dd == d and (t, s) in plan]
             pub = PUBLISHED_MEDIANS.get(T, {}).get(d)
             print(f"| {T} | {d} | {len(e)} | {sum(x['stealthy'] for x in e)} | "
-                  f"{sum(x['status'] == 'solved' for x in e)} | {np.median([x['norm2'] for x in e]):.3f} | "
+                  f"{sum(x['status'] == 'solved' for x in e)} | "
+                  f"{'/'.join(str(sum(x.get('start') == k for x in e)) for k in ('warm', 'cold', 'kept'))} | "
+                  f"{np.median([x['norm2'] for x in e]):.3f} | "
                   f"{np.median([np.linalg.norm(np.array(x['AB']) - truth, 2) for x in e]):.3f} | "
                   f"{'-' if pub is None else pub} | "
                   f"{np.median([x['cpu_time'] for x in e]):.3f} | {sum(x['cpu_time'] for x in e):.1f} |")

@@ -139,20 +139,23 @@ compiled NLP takes seconds to build, re-loading data a few milliseconds)."""
 _DECLARED: dict[tuple[Any, ...], BilevelProblem] = {}
 
 
-def problem_for(atk: IdentificationAttack) -> BilevelProblem:
+def problem_for(atk: IdentificationAttack, start: bool = True) -> BilevelProblem:
     """The declared problem of `atk`, loaded with its data: declared once per learner, signal shapes, orders,
-    objective and stealth declaration in this process, re-targeted with load_instance after."""
+    objective and stealth declaration in this process, re-targeted with load_instance after (start: as there)."""
     key = (atk.learner, tuple(v.shape for v in atk.signals.values()), atk.orders, atk.objective, atk.lags,
            atk.stealth is None, atk.lqr_weights, atk.stealth_kind, atk.box)
     problem, made = kept(_DECLARED, key, lambda: declare(atk), DECLARED_CACHE)
     if not made:
-        load_instance(problem, atk)
+        load_instance(problem, atk, start)
+    elif not start:
+        problem.suggested_starts.clear()
     return problem
 
 
-def load_instance(problem: BilevelProblem, atk: IdentificationAttack) -> None:
+def load_instance(problem: BilevelProblem, atk: IdentificationAttack, start: bool = True) -> None:
     """Set the parameters of a problem from `declare` to instance `atk` (same learner, shapes, objective and stealth
-    declaration); the next solve reuses the declared problem's preparation."""
+    declaration); the next solve reuses the declared problem's preparation. start: suggest a stealthy instance's
+    stealth_start; False leaves no suggested start (for a caller that suggests its own, e.g. a warm start)."""
     declared = {q.name: q for q in problem.parameters.items}
     if problem.name != f"ident-{atk.learner}" or ("stealth" in declared) != (atk.stealth is not None) \
             or any(declared[k].sym.shape != v.shape for k, v in atk.signals.items()):
@@ -167,10 +170,10 @@ def load_instance(problem: BilevelProblem, atk: IdentificationAttack) -> None:
     for name, value in values.items():
         problem.set_value(name, value)
     problem.suggested_starts.clear()  # a start suggested for the previous instance
-    if atk.stealth is not None:
-        start = stealth_start(problem)
+    if atk.stealth is not None and start:
+        x0 = stealth_start(problem)
         layout = problem.upper_layout()
-        problem.suggest_start(**{f"d{k}": start[layout[f"d{k}"]] for k in atk.signals})
+        problem.suggest_start(**{f"d{k}": x0[layout[f"d{k}"]] for k in atk.signals})
 
 
 def clean_statistics(atk: IdentificationAttack) -> dict[str, float]:

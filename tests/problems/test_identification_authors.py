@@ -19,7 +19,8 @@ from bilevel.cli import main
 from bilevel.ddc.stealth_check import check_stealth, correlations, statistics
 from bilevel.ddc.stealth_statistics import StealthStatistics, authors_lags
 from bilevel.errors import InvalidData, ModelError
-from bilevel.experiments.identification_paper import PLANT, dataset_path, load_dataset, paper_instance
+from bilevel.experiments.identification_paper import DELTAS, PLANT, dataset_path, load_dataset, paper_attack, \
+    paper_instance
 from bilevel.numeric_node import numeric_node
 from bilevel.problems.identification import problem_for
 from bilevel.problems.identification_instance import attack_instance
@@ -154,6 +155,38 @@ def test_loader_reads_their_format_and_nothing_else(tmp_path) -> None:
         load_dataset(str(bad))
     with pytest.raises(InvalidData, match="datasets.7z"):
         load_dataset(dataset_path(str(tmp_path), 500, 0))
+
+
+def test_continuation_over_the_delta_grid(tmp_path) -> None:
+    """paper_attack on one data set in their format, each delta from the smaller delta's answer: every answer
+    stealthy by the independent check, ||d[A B]||_2 never falls as delta grows, the first start cold and the later
+    ones warm where the warm run is kept; an answer that breaks the constraints at delta (here the answer at a larger
+    delta) is no start: the run is cold."""
+    write_authors_format(str(tmp_path), 100, 1, seed=3)
+    data = load_dataset(dataset_path(str(tmp_path), 100, 0))
+    runs, smaller = [], None
+    for delta in DELTAS[:3]:
+        smaller = paper_attack(data, delta, smaller)
+        runs.append(smaller)
+    for delta, run in zip(DELTAS, runs):
+        again = check_stealth(data.X, data.U, run.dX, run.dU, delta)
+        assert again["stealthy"] and run.check["stealthy"], (delta, again["worst"], again["violation"])
+    norms = [run.check["norm2"] for run in runs]
+    assert all(b >= a for a, b in zip(norms, norms[1:])), norms
+    assert runs[0].start == "cold" and {run.start for run in runs[1:]} <= {"warm", "cold", "kept"}
+    assert "warm" in {run.start for run in runs[1:]}, [run.start for run in runs]
+    back = paper_attack(data, DELTAS[0], runs[-1])
+    assert not check_stealth(data.X, data.U, runs[-1].dX, runs[-1].dU, DELTAS[0])["stealthy"]
+    assert back.start == "cold" and back.check["stealthy"] and np.isclose(back.check["norm2"], norms[0], rtol=1e-6)
+
+
+def test_problem_for_without_start_suggests_none() -> None:
+    """start=False leaves the problem without suggested starts (the caller suggests its own); the default suggests the
+    stealth start."""
+    atk = attack_instance("ss", T=100, eps=0.05, objective="spectral", stealth=0.05, seed=0, stealth_kind="authors")
+    assert len(problem_for(atk).suggested_starts) == 1
+    assert problem_for(atk, start=False).suggested_starts == []
+    assert len(problem_for(atk).suggested_starts) == 1
 
 
 def test_reproduce_paper_on_data_in_their_format(tmp_path) -> None:
