@@ -29,7 +29,7 @@ from ..files import atomic_open
 from ..problems.identification import load_instance, problem_for
 from ..result import BilevelResult, Status
 from ..problems.identification_instance import IdentificationAttack, IdentificationSetting
-from .executor import open_executor
+from .executor import BatchTask, open_executor
 from .identification import METHOD
 from .sweep import FINITE, NUMBER, check_fields, committed_timings, run_sweep, stderr_progress
 
@@ -215,23 +215,24 @@ def _judged(result: BilevelResult, data: CollectedData, delta: float, dX: np.nda
                        delta)
 
 
-_SMALLER: dict[str, tuple[float, PaperAttack]] = {}
-"""The last answer of this process per data set (path): its delta and the attack (paper_attack's `smaller`)."""
-
-
-def attack_task(task: dict[str, Any]) -> dict[str, Any]:
-    """One task's row: paper_attack on (data set, delta), with the distance to the true [A B] and the changes; a data
-    set's deltas run in one worker in increasing order (run_paper), each continued from the last smaller delta's
-    answer this process found (paper_attack's `smaller`; none after a resume: then a cold start)."""
-    last = _SMALLER.get(task["path"])
-    run = paper_attack(load_dataset(task["path"]), task["delta"],
-                       last[1] if last is not None and last[0] < task["delta"] else None)
-    _SMALLER[task["path"]] = (task["delta"], run)
-    check = run.check
-    return {"norm2": check["norm2"], "norm2_true": float(np.linalg.norm(check["AB"] - true_parameters(), 2)),
-            "stealthy": check["stealthy"], "violation": check["violation"], "worst": check["worst"],
-            "status": run.result.status.value, "start": run.start, "cpu_time": run.cpu_time,
-            "wall_time": run.wall_time, "dX": run.dX.tolist(), "dU": run.dU.tolist()}
+def attack_tasks(tasks: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Rows of `tasks` in their order: paper_attack on each (data set, delta) with the distance to the true [A B] and the
+    changes; a data set's deltas run in increasing order, each continued from the smaller delta's answer in this batch
+    (paper_attack's `smaller`; run_paper batches a data set's tasks together, so a resumed run repeats whole data sets)."""
+    rows: list[dict[str, Any] | None] = [None] * len(tasks)
+    last: dict[str, PaperAttack] = {}
+    for i in sorted(range(len(tasks)), key=lambda i: tasks[i]["delta"]):
+        task = tasks[i]
+        previous = last.get(task["path"])
+        run = paper_attack(load_dataset(task["path"]), task["delta"],
+                           previous if previous is not None and previous.delta < task["delta"] else None)
+        last[task["path"]] = run
+        check = run.check
+        rows[i] = {"norm2": check["norm2"], "norm2_true": float(np.linalg.norm(check["AB"] - true_parameters(), 2)),
+                   "stealthy": check["stealthy"], "violation": check["violation"], "worst": check["worst"],
+                   "status": run.result.status.value, "start": run.start, "cpu_time": run.cpu_time,
+                   "wall_time": run.wall_time, "dX": run.dX.tolist(), "dU": run.dU.tolist()}
+    return [row for row in rows if row is not None]
 
 
 def paper_tasks(folder: str, horizons: tuple[int, ...] = HORIZONS, sims: int = SIMS,
@@ -272,7 +273,7 @@ def run_paper(folder: str, out_dir: str = "out/identification-paper", workers: i
     tasks = paper_tasks(folder, horizons, sims)
     os.makedirs(out_dir, exist_ok=True)
     with open_executor(workers, dask) as executor:
-        rows = run_sweep(attack_task, tasks, os.path.join(out_dir, "authors_terms.jsonl"), executor, progress, "paper",
+        rows = run_sweep(BatchTask(attack_tasks), tasks, os.path.join(out_dir, "authors_terms.jsonl"), executor, progress, "paper",
                          valid=lambda row: check_fields(row, ROW_SCHEMA), together=lambda t: t["path"],
                          reference=committed_timings("identification-paper"))
     path = os.path.join(out_dir, "report.md")

@@ -19,8 +19,8 @@ from bilevel.cli import main
 from bilevel.ddc.stealth_check import check_stealth, correlations, statistics
 from bilevel.ddc.stealth_statistics import StealthStatistics, authors_lags
 from bilevel.errors import InvalidData, ModelError
-from bilevel.experiments.identification_paper import DELTAS, PLANT, dataset_path, load_dataset, paper_attack, \
-    paper_instance
+from bilevel.experiments.identification_paper import DELTAS, PLANT, attack_tasks, dataset_path, load_dataset, \
+    paper_attack, paper_instance
 from bilevel.numeric_node import numeric_node
 from bilevel.problems.identification import problem_for
 from bilevel.problems.identification_instance import attack_instance
@@ -180,6 +180,18 @@ def test_continuation_over_the_delta_grid(tmp_path) -> None:
     assert back.start == "cold" and back.check["stealthy"] and np.isclose(back.check["norm2"], norms[0], rtol=1e-6)
 
 
+def test_attack_tasks_continue_within_their_batch(tmp_path) -> None:
+    """attack_tasks (run_paper's batch of one data set's tasks) returns rows in the tasks' order, each delta continued
+    from the smaller delta's answer of the same batch, whatever the tasks' order: the same rows in reversed order."""
+    write_authors_format(str(tmp_path), 100, 1, seed=3)
+    path = dataset_path(str(tmp_path), 100, 0)
+    tasks = [{"path": path, "delta": delta} for delta in DELTAS[:3]]
+    forward, backward = attack_tasks(tasks), attack_tasks(tasks[::-1])
+    assert forward[0]["start"] == "cold" and set(r["start"] for r in forward[1:]) != {"cold"}
+    assert [r["start"] for r in backward[::-1]] == [r["start"] for r in forward]
+    assert [r["norm2"] for r in backward[::-1]] == pytest.approx([r["norm2"] for r in forward], rel=1e-6)
+
+
 def test_problem_for_without_start_suggests_none() -> None:
     """start=False leaves the problem without suggested starts (the caller suggests its own); the default suggests the
     stealth start."""
@@ -202,6 +214,8 @@ def test_reproduce_paper_on_data_in_their_format(tmp_path) -> None:
     assert all(r["stealthy"] and r["violation"] <= 1e-6 for r in rows), [(r["worst"], r["violation"]) for r in rows]
     norms = [r["norm2"] for r in sorted(rows, key=lambda r: r["task"]["delta"])]
     assert all(b >= a for a, b in zip(norms, norms[1:])), norms  # nested budgets: each from the smaller's answer
+    starts = [r["start"] for r in sorted(rows, key=lambda r: r["task"]["delta"])]
+    assert starts[0] == "cold" and set(starts[1:]) != {"cold"}, starts  # the batch hands each answer to the next delta
     report = open(os.path.join(out, "report.md")).read()
     assert "| 100 | 0.05 | 1 | 1 |" in report
     assert main(["reproduce", "identification", "--paper", str(data), "--quick", "--out", out]) == 2
