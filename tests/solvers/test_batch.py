@@ -127,19 +127,24 @@ def test_attack_many_equals_one_at_a_time() -> None:
 def test_attack_many_with_random_starts() -> None:
     """starts=3: the conditioning start, zero poisoning and a seeded sphere point per instance (its own seed). Zero
     poisoning is a stationary point of the attacker's objective, so the ascent from it follows the gradient's rounding
-    and may end elsewhere (measured: 0.0320 one at a time, 0.0311 batched); the other starts agree as always, and the
-    best values within 1e-6 relative (measured 1.8e-7, where zero poisoning's start won)."""
+    and may end elsewhere (measured: 0.0320 one at a time, 0.0311 batched; the best values 1.8e-7 apart under one
+    OpenBLAS kernel and 1.05e-6 under another, where zero poisoning's start won): the other starts agree as always, and
+    each best value is its own starts' best and at least the agreeing starts' best."""
     atks = _instances()[:6]
     seeds = [11, 12, 13, 14, 15, 16]
     single = [attack(a, "alternating", starts=3, seed=s) for a, s in zip(atks, seeds)]
     many = attack_many(atks, seeds=seeds, starts=3)
     assert [r.status for r in single] == [r.status for r in many]
     for a, b in zip(single, many):
-        assert abs(a.stats["value"] - b.stats["value"]) <= 1e-6 * abs(a.stats["value"])
         for k in (0, 2):  # the conditioning start and the random one
             ra, rb = a.start_records[k], b.start_records[k]
             assert ra["iterations"] == rb["iterations"]
             assert abs(ra["objective"] - rb["objective"]) <= VALUE_RTOL * abs(ra["objective"])
+        for r in (a, b):
+            objectives = [rec["objective"] for rec in r.start_records]
+            assert len(objectives) == 3 and np.isfinite(objectives[1])
+            assert r.stats["value"] >= max(objectives[0], objectives[2]) * (1 - VALUE_RTOL)
+            assert abs(r.stats["value"] - max(objectives)) <= VALUE_RTOL * abs(r.stats["value"])
 
 
 def test_attack_many_with_target_maps() -> None:
