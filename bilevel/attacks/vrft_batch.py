@@ -20,14 +20,14 @@ from ..model import BilevelProblem
 from ..problems.vrft import _load, instance_of, problem_for
 from ..problems.vrft_instance import VRFTAttack
 from ..reduction import KKTPoint
-from ..result import BilevelResult, Status
+from ..result import BilevelResult
 from ..solvers.batch import BatchMethod, register_batch, solve_many
 from ..solvers.engine.affine_ls import Oracle
 from ..solvers.engine.affine_ls_batch import (AffineLSBatch, BatchMaps, TargetBlockBatch, UpperBatch,
                                               conditioning_descent)
 from ..solvers.engine.batch_ascent import Points, batched_projected_ascent
 from ..solvers.engine.batch_linalg import project_l2_balls
-from ..solvers.engine.block_exact import SINGULAR_LEARNER
+from ..solvers.engine.block_exact import SINGULAR_LEARNER, multistart_run
 from ..solvers.engine.prepared import MethodRun, Prepared, best_of, check_options
 from ..solvers.engine.projections import Blocks, NormBall
 from ..solvers.engine.starts import (conditioning_key, keep_conditioning_start, kept_conditioning_start,
@@ -51,17 +51,10 @@ class Gathered:
     """(key, index in starts) of a conditioning start the batch finds (conditioning_descent), None where none is."""
 
 
-_CHECKED: set[frozenset[str]] = set()
-"""Sets of option names that check_options has accepted for the alternating attack."""
-
-
 def gather(prep: Prepared, options: dict[str, Any]) -> Gathered | None:
     """The batched alternating attack's view of the loaded instance, or None where it runs alone (no exact input
     step, a budget the declaration relaxes, a_y's set not a plain l2 ball, time_limit or verbose)."""
-    names = frozenset(options)
-    if names not in _CHECKED:  # once per set of option names (inspecting the signature costs a millisecond)
-        check_options("alternating", options, alternating)
-        _CHECKED.add(names)
+    check_options("alternating", options, alternating)
     if options.get("time_limit") is not None or options.get("verbose"):
         return None
     atk = instance_of(prep.problem)
@@ -233,17 +226,13 @@ def _method_run(g: Gathered, res: Any, rows: list[int], radius: np.ndarray, shar
         if not failed:
             ends.append((float(res.f[r]), r, bool(res.converged[r]), k))
     if not ends:
-        return MethodRun(None, Status.ERROR, f"the lower level could not be solved at any of {starts} starts", nit,
-                         [], records, lower_solve=atk.learner.thetas)
+        return multistart_run(None, starts, nit, records, lower_solve=atk.learner.thetas)
     fx, r, converged, k = ends[best_of([(None, -end[0], 0.0) for end in ends])]
     b, a, theta = res.x[r], res.points["a"][r], res.points["theta"][r]
     w = g.prep.pack(KKTPoint(np.concatenate([a, b]), theta, np.zeros(0), np.zeros(0), []))
     pg = float(np.linalg.norm(project_l2_balls((b + res.gradient[r])[None], radius[r:r + 1])[0] - b))
-    return MethodRun(w, Status.SOLVED if converged else Status.MAX_ITERATIONS,
-                     f"exact block x[0:{N}]; best of {starts} starts: start {k} "
-                     f"({'converged' if converged else 'max_iter'})", nit, list(res.history[r]), records,
-                     {"best_start": k, "exact_block": [0, N], "projected_gradient_norm": pg, "not_exact": []},
-                     lower_solve=atk.learner.thetas)
+    return multistart_run((w, converged, k, list(res.history[r]), pg), starts, nit, records, slice(0, N),
+                          lower_solve=atk.learner.thetas)
 
 
 def probe_parts(gathered: list[Gathered], runs: list[MethodRun]) -> ProbeParts:

@@ -315,17 +315,28 @@ def ascend_with_exact_block(prep: Prepared, exact: ExactBlock | None, why: list[
         if ev is not None:
             ends.append((fx, ev, converged, history, k))
     if not ends:
-        return MethodRun(None, Status.ERROR, f"the lower level could not be solved at any of {starts} starts", nit,
-                         [], records)
+        return multistart_run(None, starts, nit, records)
     fx, ev, converged, history, k = ends[best_of([(None, -end[0], 0.0) for end in ends])]
     w = prep.pack(KKTPoint(ev.x, ev.lower.y, ev.lower.lam, ev.lower.mu, ev.lower.Z))
     g = oracle.gradient(ev)[0][rest]
     pg = float(np.linalg.norm(project(ev.x[rest] - g) - ev.x[rest]))  # ||P(x - grad phi) - x||, as the descent
-    block = "" if exact is None else f"exact block x[{S.start}:{S.stop}]; "
     low = prep.canon.lower  # a lower level with linear maps solves the local probe's points in one lift
-    run = MethodRun(w, Status.SOLVED if converged else Status.MAX_ITERATIONS, f"{block}best of {starts} starts: "
-                    f"start {k} ({'converged' if converged else 'max_iter'})", nit, history, records,
-                    {"best_start": k, "exact_block": None if exact is None else [S.start, S.stop],
-                     "projected_gradient_norm": pg, "not_exact": why}, feasible_set=projection,
-                    lower_solve=low.rows_solver if low.closed_form else None)
+    run = multistart_run((w, converged, k, history, pg), starts, nit, records, None if exact is None else S, why,
+                         feasible_set=projection, lower_solve=low.rows_solver if low.closed_form else None)
     return stopped(run, limit, len(records), starts)
+
+
+def multistart_run(best: tuple[np.ndarray, bool, int, list, float] | None, starts: int, nit: int, records: list[dict],
+                   block: slice | None = None, why: list[str] | None = None, **fields: Any) -> MethodRun:
+    """The MethodRun of a multistart ascent (ascend_with_exact_block's and its batched form's): best = (packed point,
+    converged, start index, history, projected gradient norm) of the best start, None where no start could be
+    evaluated (status ERROR); block: the exact block's slice; fields: further MethodRun fields."""
+    if best is None:
+        return MethodRun(None, Status.ERROR, f"the lower level could not be solved at any of {starts} starts", nit,
+                         [], records, **fields)
+    w, converged, k, history, pg = best
+    head = "" if block is None else f"exact block x[{block.start}:{block.stop}]; "
+    return MethodRun(w, Status.SOLVED if converged else Status.MAX_ITERATIONS, f"{head}best of {starts} starts: "
+                     f"start {k} ({'converged' if converged else 'max_iter'})", nit, history, records,
+                     {"best_start": k, "exact_block": None if block is None else [block.start, block.stop],
+                      "projected_gradient_norm": pg, "not_exact": [] if why is None else why}, **fields)
