@@ -14,6 +14,7 @@ from typing import Callable
 import numpy as np
 
 from ...defaults import param
+from .batch_ascent import Points
 from .batch_linalg import inverse_upper, maximize_quadratics_on_balls, project_l2_balls, solve_upper, thin_qr_batch
 
 
@@ -146,6 +147,48 @@ class TargetBlockBatch:
         A = 0.5 * (St @ self.upper.hessian[rows] @ S)
         v = maximize_quadratics_on_balls(A, 0.5 * np.einsum("mij,mj->mi", St, grad), self.radius[rows])
         return self.learner.moved(s0, S, W, v)
+
+
+@dataclass
+class BatchOracle:
+    """The batched twin of affine_ls.Oracle with its TargetBlock (the exact block a at its optimum for each b) for
+    bilevel.solvers.engine.block_exact_batch: J at the best a for each row's b, with its gradient in b (Danskin), and
+    the fits and canonical hypergradients (grad of -J in x = (a, b)) the verdict's probe reads."""
+
+    block: TargetBlockBatch
+
+    @property
+    def learner(self) -> AffineLSBatch:
+        return self.block.learner
+
+    @property
+    def upper(self) -> UpperBatch:
+        return self.block.upper
+
+    def evaluate(self, inst: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, Points]:
+        """J at each row's b with a at its optimum (-inf where the learner has no unique fit), and the points' theta,
+        a and gradient g of J in b (most trial points are accepted: computed while the fit's arrays are at hand)."""
+        with np.errstate(all="ignore"):
+            fit = self.block.solve(inst, B)
+            f = self.upper.value(inst, fit.theta)
+            g = self.learner.gradient(fit, self.upper.gradient(inst, fit.theta), target=False)[1]
+        f = np.where(fit.ok & np.isfinite(f), f, -np.inf)
+        return f, {"theta": fit.theta, "a": fit.a, "g": g}
+
+    def fits(self, inst: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """theta*(x) at each row x = (a, b) of X, and whether the fit is unique."""
+        n = self.learner.n_a
+        with np.errstate(all="ignore"):
+            fit = self.learner.fit(inst, X[:, :n], X[:, n:])
+        return fit.theta, fit.ok
+
+    def hypergradients(self, inst: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The canonical gradient of -J(theta*(x)) in x = (a, b) at each row of X, and whether the fit is unique."""
+        n = self.learner.n_a
+        with np.errstate(all="ignore"):
+            fit = self.learner.fit(inst, X[:, :n], X[:, n:])
+            g_a, g_b = self.learner.gradient(fit, self.upper.gradient(inst, fit.theta))
+        return -np.concatenate([g_a, g_b], axis=1), fit.ok
 
 
 def conditioning_descent(learner: AffineLSBatch, rows: np.ndarray, radius: np.ndarray) -> np.ndarray:

@@ -105,11 +105,15 @@ def _conditioning_descent(prep: Prepared, parts: ConditioningParts) -> np.ndarra
 
 
 def start_points(prep: Prepared, starts: int, rng: np.random.Generator, scale: float,
-                 parts: ConditioningParts | None = None) -> list[np.ndarray]:
+                 parts: ConditioningParts | None = None, conditioning: np.ndarray | None = None) -> list[np.ndarray]:
     """`starts` upper starts: suggested ones, the conditioning start (where it applies; parts as conditioning_start
-    takes them), the declared one, then random ones (balls: on their sphere)."""
+    takes them; `conditioning` where the caller has it, e.g. a placeholder a batch fills with the starts it finds
+    together: at index len(prep.canon.x_suggested)), the declared one, then random ones (balls: on their sphere)."""
     canon = prep.canon
-    conditioning = conditioning_start(prep, parts) if starts > len(canon.x_suggested) else None
+    if starts <= len(canon.x_suggested):
+        conditioning = None
+    elif conditioning is None:
+        conditioning = conditioning_start(prep, parts)
     points = [*canon.x_suggested, *([] if conditioning is None else [conditioning]), canon.x_start][:starts]
     return points + random_starts(prep, starts - len(points), rng, scale)
 
