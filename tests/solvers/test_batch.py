@@ -22,7 +22,7 @@ from bilevel.solvers.batch import solve_many
 from bilevel.solvers.engine.ascent import projected_ascent
 from bilevel.solvers.engine.batch_ascent import batched_projected_ascent
 from bilevel.solvers.engine.batch_linalg import (inverse_upper, maximize_quadratics_on_balls, project_l2_balls,
-                                                 solve_upper)
+                                                 r_factor_batch, solve_upper)
 from bilevel.solvers.engine.projections import NormBall
 from bilevel.solvers.engine.trust_region import maximize_quadratic_on_ball
 
@@ -75,6 +75,29 @@ def test_triangular_solves_and_ball_projection() -> None:
     D, radius = rng.standard_normal((5, 9)), np.array([0.5, 10.0, 1.0, 0.0, 2.0])
     for i, row in enumerate(project_l2_balls(D, radius)):
         np.testing.assert_allclose(row, NormBall(radius[i])(D[i]), rtol=1e-15, atol=1e-15)
+
+
+def test_r_factor_by_gram_matrix_equals_householder() -> None:
+    """CholeskyQR2 where C is well conditioned, Householder for an ill-conditioned, a rank-deficient and a NaN C:
+    R (up to its rows' signs), R^{-1} and Q'd as numpy's QR gives them, to rounding."""
+    rng = np.random.default_rng(2)
+    C = rng.standard_normal((6, 200, 6)) * np.array([1.0, 1e-1, 1e-2, 1.0, 3.0, 1.0])
+    C[3, :, 5] = C[3, :, 4] + 1e-7 * rng.standard_normal(200)  # cond ~1e8: over batch.gram_cond
+    C[4, :, 5] = C[4, :, 4]  # rank deficient
+    C[5, 7, 2] = np.nan
+    d = rng.standard_normal((6, 200))
+    R, R_inv, Qd = r_factor_batch(C, d, 1e4)
+    for i in range(3):
+        Q, Rh = np.linalg.qr(C[i])
+        sign = np.sign(np.diag(Rh))
+        np.testing.assert_allclose(R[i], sign[:, None] * Rh, rtol=0, atol=1e-12 * np.abs(Rh).max())
+        np.testing.assert_allclose(R_inv[i] @ R[i], np.eye(6), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(Qd[i], sign * (Q.T @ d[i]), rtol=0, atol=1e-12)
+    for i in (3, 4):  # Householder's R
+        Q, Rh = np.linalg.qr(C[i])
+        assert np.array_equal(R[i], Rh)
+        np.testing.assert_allclose(Qd[i], Q.T @ d[i], rtol=0, atol=1e-13)
+    assert not np.all(np.isfinite(R[5]))
 
 
 @pytest.mark.parametrize("convention", ["paper", "raw-drop"])

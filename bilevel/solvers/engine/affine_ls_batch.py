@@ -15,7 +15,7 @@ import numpy as np
 
 from ...defaults import param
 from .batch_ascent import Points
-from .batch_linalg import inverse_upper, maximize_quadratics_on_balls, project_l2_balls, solve_upper, thin_qr_batch
+from .batch_linalg import maximize_quadratics_on_balls, project_l2_balls, r_factor_batch, solve_upper
 
 
 @dataclass(frozen=True)
@@ -34,15 +34,14 @@ class BatchMaps:
 
 @dataclass
 class BatchFit:
-    """Fits of some rows: a (m, n_a), regressor C, target d, theta, thin QR (Q, R; None where not kept), R^{-1}, and
-    whether C had full rank (theta and the rest are meaningless where not)."""
+    """Fits of some rows: a (m, n_a), regressor C, target d, theta, the R of C's thin QR (C = Q R; Q = C R^{-1} is not
+    kept), R^{-1}, and whether C had full rank (theta and the rest are meaningless where not)."""
 
     a: np.ndarray
     C: np.ndarray
     d: np.ndarray
     theta: np.ndarray
-    Q: np.ndarray | None
-    R: np.ndarray | None
+    R: np.ndarray
     R_inv: np.ndarray
     ok: np.ndarray
 
@@ -73,16 +72,17 @@ class AffineLSBatch:
 
     def fit(self, rows: np.ndarray, A: np.ndarray | None, B: np.ndarray) -> BatchFit:
         """The fits at (a, b) of the given rows (a, b the rows of A and B; A None: a = 0, the target d0):
-        AffineLeastSquares.fit each."""
+        AffineLeastSquares.fit each, R from the Gram matrix where C is well conditioned (r_factor_batch below
+        defaults["batch.gram_cond"])."""
         C = self.C0[rows] + self.maps.regressors(B)
         d = self.d0[rows] if A is None else self.d0[rows] + self.target(A)
-        Q, R = thin_qr_batch(C)
+        R, R_inv, Qd = r_factor_batch(C, d, float(param("batch.gram_cond")))
         diag = np.diagonal(R, axis1=1, axis2=2)
         ok = np.all(diag != 0, axis=1) & np.all(np.isfinite(R.reshape(len(rows), -1)), axis=1)
         R_safe = np.where(ok[:, None, None], R, np.eye(R.shape[-1]))
-        theta = solve_upper(R_safe, np.einsum("mrk,mr->mk", Q, d))
+        theta = solve_upper(R_safe, Qd)
         a = np.zeros((len(rows), self.n_a)) if A is None else A
-        return BatchFit(a, C, d, theta, Q, R_safe, inverse_upper(R_safe), ok)
+        return BatchFit(a, C, d, theta, R_safe, R_inv, ok)
 
     def target_block(self, rows: np.ndarray, B: np.ndarray) -> tuple[BatchFit, np.ndarray, np.ndarray | None]:
         """(fits at (0, b), S, W) per row as AffineLeastSquares.target_block: theta*(W v, b) = theta_c + S v with
@@ -90,7 +90,7 @@ class AffineLSBatch:
         s0 = self.fit(rows, None, B)
         if self.maps.targets is None:
             return s0, s0.R_inv, None
-        W = self.maps.target_adjoints(s0.Q)
+        W = self.maps.target_adjoints(s0.C @ s0.R_inv)  # T'Q
         lam, V = np.linalg.eigh(np.swapaxes(W, 1, 2) @ W)
         lam = np.maximum(lam, 1e-14 * lam.max(axis=1, keepdims=True))
         root = np.sqrt(lam)
@@ -100,14 +100,14 @@ class AffineLSBatch:
     def moved(self, s0: BatchFit, S: np.ndarray, W: np.ndarray | None, v: np.ndarray) -> BatchFit:
         """The fits at a = W v of the target blocks (AffineLeastSquares.moved)."""
         if W is None:
-            qv = np.einsum("mrk,mk->mr", s0.Q, v)
+            qv = np.einsum("mrk,mk->mr", s0.C, np.einsum("mij,mj->mi", s0.R_inv, v))  # Q v
             a = np.zeros((v.shape[0], self.n_a))
             a[:, : qv.shape[1]] = qv
             d = s0.d + qv
         else:
             a = np.einsum("mnk,mk->mn", W, v)
             d = s0.d + self.target(a)
-        return BatchFit(a, s0.C, d, s0.theta + np.einsum("mij,mj->mi", S, v), s0.Q, s0.R, s0.R_inv, s0.ok)
+        return BatchFit(a, s0.C, d, s0.theta + np.einsum("mij,mj->mi", S, v), s0.R, s0.R_inv, s0.ok)
 
     def gradient(self, s: BatchFit, g_theta: np.ndarray, target: bool = True) -> tuple[np.ndarray | None, np.ndarray]:
         """(dJ/da, dJ/db) at the fits for dJ/dtheta = g_theta (AffineLeastSquares.gradient): with

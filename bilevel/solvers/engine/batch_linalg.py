@@ -20,6 +20,49 @@ def thin_qr_batch(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.linalg.qr(C, mode="reduced")
 
 
+def r_factor_batch(C: np.ndarray, d: np.ndarray, max_cond: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R, R^{-1}, Q'd) of the thin QR of each tall C[i] (rows x k) with d[i] (rows), Q not formed: from the
+    Cholesky factor of C[i]'C[i] (R'R = C'C, Q'd = R^{-T} C'd; matrix products, no Householder sweep) where C[i] is
+    finite and well conditioned (||R||_F ||R^{-1}||_F <= max_cond: the Gram matrix squares the conditioning), else
+    Householder's (thin_qr_batch; R^{-1} of the identity where R is singular or not finite). Equal to the Householder
+    factors up to rounding and the signs of R's rows (Cholesky's diagonal is positive)."""
+    m, k = C.shape[0], C.shape[2]
+    R, R_inv, Qd = np.zeros((m, k, k)), np.zeros((m, k, k)), np.zeros((m, k))
+    gram = np.swapaxes(C, 1, 2) @ C
+    rows = np.flatnonzero(np.all(np.isfinite(gram.reshape(m, -1)), axis=1))
+    if rows.size:
+        try:
+            L = np.linalg.cholesky(gram[rows])
+        except np.linalg.LinAlgError:  # a Gram matrix not numerically positive definite: row by row (rare)
+            L = np.array([_cholesky_or_nan(G) for G in gram[rows]])
+        Rc = np.swapaxes(L, 1, 2)
+        with np.errstate(all="ignore"):
+            Rc_inv = inverse_upper(Rc)
+            fine = np.sqrt(np.sum(Rc * Rc, axis=(1, 2)) * np.sum(Rc_inv * Rc_inv, axis=(1, 2))) <= max_cond
+        rows, Rc, Rc_inv = rows[fine], Rc[fine], Rc_inv[fine]
+        Q1 = C[rows] @ Rc_inv  # CholeskyQR2: a second pass on Q1 = C R1^{-1} restores Householder's accuracy
+        R2 = np.swapaxes(np.linalg.cholesky(np.swapaxes(Q1, 1, 2) @ Q1), 1, 2)
+        R2_inv = inverse_upper(R2)
+        R[rows], R_inv[rows] = R2 @ Rc, Rc_inv @ R2_inv
+        Qd[rows] = np.einsum("mji,mj->mi", R2_inv, np.einsum("mrk,mr->mk", Q1, d[rows]))
+    rest = np.setdiff1d(np.arange(m), rows)
+    if rest.size:
+        Q, Rh = thin_qr_batch(C[rest])
+        ok = np.all(np.diagonal(Rh, axis1=1, axis2=2) != 0, axis=1) & np.all(np.isfinite(Rh.reshape(rest.size, -1)),
+                                                                               axis=1)
+        R[rest], Qd[rest] = Rh, np.einsum("mrk,mr->mk", Q, d[rest])
+        R_inv[rest] = inverse_upper(np.where(ok[:, None, None], Rh, np.eye(k)))
+    return R, R_inv, Qd
+
+
+def _cholesky_or_nan(G: np.ndarray) -> np.ndarray:
+    """The lower Cholesky factor of G, NaN where G is not numerically positive definite."""
+    try:
+        return np.linalg.cholesky(G)
+    except np.linalg.LinAlgError:
+        return np.full(G.shape, np.nan)
+
+
 def solve_upper(R: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """R[i]^{-1} rhs[i] for upper-triangular R (m, k, k) and rhs (m, k) or (m, k, p), by back-substitution over k
     (vectorized across the batch)."""
