@@ -81,7 +81,8 @@ def batched_projected_ascent(value: Value, direction: Direction, project: Projec
     why = ["max_iter"] * m
     converged = np.zeros(m, dtype=bool)
     iterations, evaluations = np.zeros(m, dtype=int), np.ones(m, dtype=int)
-    history: list[list[dict[str, float]]] = [[] for _ in range(m)]
+    accepted = np.zeros((m, max(max_iter, 0) + 1, 3))  # per row: its accepted steps' (iteration, value, step)
+    count = np.zeros(m, dtype=int)
     g, d = np.zeros_like(x), np.zeros_like(x)
     live = fx != -np.inf
     for i in np.flatnonzero(~live):
@@ -132,15 +133,19 @@ def batched_projected_ascent(value: Value, direction: Direction, project: Projec
             alpha[rows_acc] = np.where((curvature > 0) & (yy > 0), curvature / np.where(yy > 0, yy, 1.0), np.nan)
             x[rows_acc], fx[rows_acc], g[rows_acc], d[rows_acc] = xn[acc], fn[acc], gn, dn
             _put(store, rows_acc, ptsn, acc)
-            for i in rows_acc:
-                h = history[i]
-                h.append({"iter": int(iterations[i]), "value": float(fx[i]), "step": float(lam[i])})
-                if iterations[i] >= window and fx[i] - h[-window]["value"] <= tol * max(abs(fx[i]), 1e-12):
-                    converged[i], why[i], live[i] = True, "window", False
+            accepted[rows_acc, count[rows_acc]] = np.stack([iterations[rows_acc], fx[rows_acc], lam[rows_acc]], axis=1)
+            count[rows_acc] += 1
+            back = accepted[rows_acc, np.maximum(count[rows_acc] - window, 0), 1]  # the value `window` steps back
+            flat = (iterations[rows_acc] >= window) & (fx[rows_acc] - back <= tol * np.maximum(np.abs(fx[rows_acc]),
+                                                                                                 1e-12))
+            for i in rows_acc[flat]:
+                converged[i], why[i], live[i] = True, "window", False
             fresh[rows_acc] = True
         rej = idx[~ok]
         lam[rej] *= 0.5
         for i in rej[lam[rej] < min_step]:
             converged[i], why[i], live[i] = True, "line search", False
     del store["_size"]
+    history = [[{"iter": int(it), "value": float(v), "step": float(st)} for it, v, st in accepted[i, :count[i]]]
+               for i in range(m)]
     return BatchAscent(x, fx, store, iterations, evaluations, converged, why, g, history)
