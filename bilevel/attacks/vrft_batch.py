@@ -129,7 +129,7 @@ def _oracle(atks: Sequence[VRFTAttack]) -> BatchOracle:
 
 def probe_parts(gathered: list[Gathered], runs: list[MethodRun]) -> ProbeParts:
     """What the verdict's batched probe needs of the gathered instances (the engine's batch_probe_parts)."""
-    return batch_probe_parts(_oracle([g.atk for g in gathered]), [g.inst for g in gathered], runs)
+    return ProbeParts(*batch_probe_parts(_oracle([g.atk for g in gathered]), [g.inst for g in gathered], runs))
 
 
 BATCHED = BatchMethod(gather, run, probe_parts)

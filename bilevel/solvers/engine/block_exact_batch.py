@@ -15,7 +15,6 @@ import numpy as np
 
 from ...defaults import param
 from ...reduction import KKTPoint
-from ..verdict.batch_probe import ProbeParts
 from .affine_ls_batch import AffineLSBatch, BatchOracle, conditioning_descent
 from .batch_ascent import BatchAscent, batched_projected_ascent
 from .batch_linalg import project_l2_balls
@@ -138,9 +137,11 @@ def _method_run(inst: BatchInstance, res: BatchAscent, rows: list[int], radius: 
                           **inst.fields)
 
 
-def batch_probe_parts(oracle: BatchOracle, instances: list[BatchInstance], runs: list[MethodRun]) -> ProbeParts:
-    """The learners' fits at the probe's points, the criterion there (canonical F = -J) and the canonical
-    hypergradient at each run's point (bilevel.solvers.verdict.batch_probe), oracle's instance i = instances[i]."""
+def batch_probe_parts(oracle: BatchOracle, instances: list[BatchInstance], runs: list[MethodRun]) -> tuple[
+        Callable, Callable, Callable]:
+    """The fields of the verdict's ProbeParts (bilevel.solvers.verdict.batch_probe, a layer above): the learners' fits
+    at the probe's points, the criterion there (canonical F = -J) and the canonical hypergradient at each run's point,
+    oracle's instance i = instances[i]."""
     gradients: dict[int, np.ndarray | None] = {}
 
     def gradient(i: int) -> np.ndarray | None:
@@ -155,4 +156,4 @@ def batch_probe_parts(oracle: BatchOracle, instances: list[BatchInstance], runs:
                     gradients[int(j)] = gj if o else None
         return gradients.get(i)
 
-    return ProbeParts(oracle.fits, lambda inst, X, Y: -oracle.upper.value(inst, Y), gradient)
+    return oracle.fits, lambda inst, X, Y: -oracle.upper.value(inst, Y), gradient
