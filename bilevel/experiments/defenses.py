@@ -37,7 +37,7 @@ from ..problems import defended_deepc, defended_identification  # noqa: E402
 from ..problems.deepc import declare as declare_deepc  # noqa: E402
 from ..problems.deepc_instance import attack_instance as deepc_instance  # noqa: E402
 from ..problems.defended_vrft import declare, defended_instance, model_reference_cost  # noqa: E402
-from ..problems.willems import build_attack  # noqa: E402
+from ..problems.willems import kept_attack  # noqa: E402
 from ..problems.willems_instance import WillemsAttack, WillemsSetting, criterion_values  # noqa: E402
 from ..attacks.budget_search import smallest_budget  # noqa: E402
 from ..solvers.engine.block_exact import SINGULAR_LEARNER  # noqa: E402
@@ -74,9 +74,10 @@ REL_TOL = 0.1
 
 
 def clean_gain(attack: WillemsAttack) -> np.ndarray:
-    """The learner's gain on the clean data (the engine's SDP lower level solved at zero poisoning)."""
+    """The learner's gain on the clean data (the engine's SDP lower level solved at zero poisoning, on the radius
+    problem that destabilize_attack then searches: one learner solve per data set serves both)."""
     zero = np.zeros(int(attack.upper.numel()))
-    return attack.loop(zero, attack.oracle().evaluate(zero).lower.y)[0]
+    return attack.loop(zero, attack.oracle(radius=True).evaluate(zero).lower.y)[0]
 
 
 def h2_cost(attack: WillemsAttack, gain: np.ndarray) -> float:
@@ -166,7 +167,7 @@ def frontier_task(task: dict[str, Any]) -> dict[str, Any]:
                                 REL_TOL)
     else:
         setting = WillemsSetting(objective="destabilize", horizon=task["N"], seed=task["seed"], reg=task["param"])
-        cost = clean_performance(build_attack(setting))
+        cost = clean_performance(kept_attack(setting))
         found = smallest_destabilizing_budget(setting, rel_tol=REL_TOL, starts=8, seed=task["attack_seed"])
     return {"learner": task["learner"], "defense": task["defense"], "param": task["param"], "N": task["N"],
             "data_seed": task["seed"], "clean_cost": cost, "delta_star": found.delta, "attacks": len(found.runs)}

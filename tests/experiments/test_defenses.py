@@ -60,6 +60,20 @@ def test_willems_task_matches_its_parts():
     assert 7.0 < row["clean_cost"] < 20.0  # the batch reactor's trace(Qx W) near the SDP optimum (7.70 at reg 1e-8)
 
 
+def test_clean_gain_of_the_radius_problem_is_the_learners_to_rounding():
+    """clean_gain solves the learner on the radius problem (shared with destabilize_attack): the gain of the declared
+    problem's learner, to rounding (the clean costs of the committed frontier agree to 1e-15 relative)."""
+    from bilevel.experiments.defenses import clean_gain
+    from bilevel.problems.willems import build_attack
+    from bilevel.problems.willems_instance import WillemsSetting
+
+    for reg in (1e-8, 1e-2):
+        attack = build_attack(WillemsSetting(objective="destabilize", horizon=15, seed=3, reg=reg))
+        zero = np.zeros(int(attack.upper.numel()))
+        declared = attack.loop(zero, attack.oracle().evaluate(zero).lower.y)[0]
+        np.testing.assert_allclose(clean_gain(attack), declared, rtol=1e-12, atol=1e-12)
+
+
 def test_input_integrity_deviance():
     from bilevel.ddc.input_integrity import filtered_white_spectrum, whittle_deviance
 
