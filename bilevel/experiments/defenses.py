@@ -36,7 +36,8 @@ from ..files import atomic_open, atomic_path, write_rows_csv  # noqa: E402
 from ..problems import defended_deepc, defended_identification  # noqa: E402
 from ..problems.deepc import declare as declare_deepc  # noqa: E402
 from ..problems.deepc_instance import attack_instance as deepc_instance  # noqa: E402
-from ..problems.defended_vrft import declare, defended_instance, model_reference_cost  # noqa: E402
+from ..kept import kept  # noqa: E402
+from ..problems.defended_vrft import budget_values, declare, defended_instance, model_reference_cost  # noqa: E402
 from ..problems.willems import kept_attack  # noqa: E402
 from ..problems.willems_instance import WillemsAttack, WillemsSetting, criterion_values  # noqa: E402
 from ..attacks.budget_search import smallest_budget  # noqa: E402
@@ -112,12 +113,20 @@ def make_plan(sims: int, quick: bool) -> Plan:
     return Plan(sims, 512, (15, 50), 100, 200)
 
 
+KEPT_DECLARED = 2
+"""Defended VRFT problems (one per data set and setting) a process keeps for the budget search's next radius."""
+_DECLARED: dict[tuple, Any] = {}
+
+
 def vrft_radius(defense: str, lam: float, N: int, seed: int, eps: float, attack_seed: int) -> float:
     """The true closed loop's spectral radius after the adaptive attack at budget eps; inf where a start of the attack
     made the learner's system singular (the IV matrix Z' Phi: the start record's SINGULAR_LEARNER field; the learner
     returns no controller) or no start could be solved."""
     d = defended_instance(defense, "destabilize", lam, "B", eps, eps, seed, N)
-    result = solve(declare(d), starts=2, seed=attack_seed)
+    problem = kept(_DECLARED, (defense, lam, N, seed), lambda: declare(d), KEPT_DECLARED)[0]
+    for name, value in budget_values(d).items():  # the budget search's next radius, on the problem prepared once
+        problem.set_value(name, value)
+    result = solve(problem, starts=2, seed=attack_seed)
     if result.status is Status.ERROR or any(r.get(SINGULAR_LEARNER) for r in result.start_records):
         return float("inf")
     x = {k: np.asarray(v, dtype=float).ravel() for k, v in result.x.items()}

@@ -161,6 +161,19 @@ def test_vrft_radius_reads_a_singular_learner_from_the_result(monkeypatch):
     assert defenses.vrft_radius("iv", 0.0, 128, 0, 0.02, 0) == math.inf
 
 
+def test_vrft_radius_on_the_kept_problem_is_a_fresh_declarations():
+    """vrft_radius re-sets the budget parameters of the problem declared for the data set's first budget (budget_values):
+    at each budget of a search the answer is that of the problem declared afresh at that budget."""
+    from bilevel.experiments import defenses
+    from bilevel.problems.defended_vrft import defended_instance
+
+    for eps in (0.05, 0.02):
+        d = defended_instance("iv", "destabilize", 0.0, "B", eps, eps, 4, 128)
+        fresh = defenses.solve(defenses.declare(d), starts=2, seed=1)
+        x = {k: np.asarray(v, dtype=float).ravel() for k, v in fresh.x.items()}
+        assert defenses.vrft_radius("iv", 0.0, 128, 4, eps, 1) == d.atk.setting.loop.spectral_radius(d.poisoned(**x))
+
+
 def test_learner_subset_keeps_the_full_runs_tasks():
     """A subset runs exactly the full sweep's tasks of those learners (same keys and seeds: a full run's rows are
     reused, and a subset's rows by a later full run); a bad subset names the valid learners."""
