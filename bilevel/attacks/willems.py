@@ -8,6 +8,8 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import numpy as np
+
 from ..defaults import param
 from ..errors import ModelError
 from ..problems.willems_instance import WillemsAttack
@@ -22,10 +24,17 @@ def _goal(attack: WillemsAttack, stop_when_unstable: bool, counter: dict[str, in
     """The attacker's callback: count evaluations, stop (StopIteration) once the identified loop is unstable, with
     stop_when_unstable or for the max-min criterion (+inf there)."""
     stops = stop_when_unstable or attack.setting.objective == "maxmin"
+    last: dict[bytes, float] = {}  # the radius at the last point seen (a method may report one point many times)
 
     def callback(point: Any) -> None:
         counter["evaluations"] += 1
-        if stops and attack.identified_radius(point.x, point.y) >= 1.0:
+        if not stops:
+            return
+        key = np.asarray(point.x, dtype=float).tobytes() + np.asarray(point.y, dtype=float).tobytes()
+        if key not in last:
+            last.clear()
+            last[key] = attack.identified_radius(point.x, point.y)
+        if last[key] >= 1.0:
             raise StopIteration
     return callback
 

@@ -36,8 +36,9 @@ from ..files import atomic_open, atomic_path, write_rows_csv  # noqa: E402
 from ..problems import defended_deepc, defended_identification  # noqa: E402
 from ..problems.deepc import declare as declare_deepc  # noqa: E402
 from ..problems.deepc_instance import attack_instance as deepc_instance  # noqa: E402
-from ..problems.defended_vrft import declare, defended_instance, model_reference_cost  # noqa: E402
-from ..problems.willems import build_attack  # noqa: E402
+from ..kept import kept  # noqa: E402
+from ..problems.defended_vrft import budget_values, declare, defended_instance, model_reference_cost  # noqa: E402
+from ..problems.willems import kept_attack  # noqa: E402
 from ..problems.willems_instance import WillemsAttack, WillemsSetting, criterion_values  # noqa: E402
 from ..attacks.budget_search import smallest_budget  # noqa: E402
 from ..solvers.engine.block_exact import SINGULAR_LEARNER  # noqa: E402
@@ -74,9 +75,10 @@ REL_TOL = 0.1
 
 
 def clean_gain(attack: WillemsAttack) -> np.ndarray:
-    """The learner's gain on the clean data (the engine's SDP lower level solved at zero poisoning)."""
+    """The learner's gain on the clean data (the engine's SDP lower level solved at zero poisoning, on the radius
+    problem that destabilize_attack then searches: one learner solve per data set serves both)."""
     zero = np.zeros(int(attack.upper.numel()))
-    return attack.loop(zero, attack.oracle().evaluate(zero).lower.y)[0]
+    return attack.loop(zero, attack.oracle(radius=True).evaluate(zero).lower.y)[0]
 
 
 def h2_cost(attack: WillemsAttack, gain: np.ndarray) -> float:
@@ -111,12 +113,20 @@ def make_plan(sims: int, quick: bool) -> Plan:
     return Plan(sims, 512, (15, 50), 100, 200)
 
 
+KEPT_DECLARED = 2
+"""Defended VRFT problems (one per data set and setting) a process keeps for the budget search's next radius."""
+_DECLARED: dict[tuple, Any] = {}
+
+
 def vrft_radius(defense: str, lam: float, N: int, seed: int, eps: float, attack_seed: int) -> float:
     """The true closed loop's spectral radius after the adaptive attack at budget eps; inf where a start of the attack
     made the learner's system singular (the IV matrix Z' Phi: the start record's SINGULAR_LEARNER field; the learner
     returns no controller) or no start could be solved."""
     d = defended_instance(defense, "destabilize", lam, "B", eps, eps, seed, N)
-    result = solve(declare(d), starts=2, seed=attack_seed)
+    problem = kept(_DECLARED, (defense, lam, N, seed), lambda: declare(d), KEPT_DECLARED)[0]
+    for name, value in budget_values(d).items():  # the budget search's next radius, on the problem prepared once
+        problem.set_value(name, value)
+    result = solve(problem, starts=2, seed=attack_seed)
     if result.status is Status.ERROR or any(r.get(SINGULAR_LEARNER) for r in result.start_records):
         return float("inf")
     x = {k: np.asarray(v, dtype=float).ravel() for k, v in result.x.items()}
@@ -166,7 +176,7 @@ def frontier_task(task: dict[str, Any]) -> dict[str, Any]:
                                 REL_TOL)
     else:
         setting = WillemsSetting(objective="destabilize", horizon=task["N"], seed=task["seed"], reg=task["param"])
-        cost = clean_performance(build_attack(setting))
+        cost = clean_performance(kept_attack(setting))
         found = smallest_destabilizing_budget(setting, rel_tol=REL_TOL, starts=8, seed=task["attack_seed"])
     return {"learner": task["learner"], "defense": task["defense"], "param": task["param"], "N": task["N"],
             "data_seed": task["seed"], "clean_cost": cost, "delta_star": found.delta, "attacks": len(found.runs)}

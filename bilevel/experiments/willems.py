@@ -35,7 +35,7 @@ from ..ddc.depersis_tesi import (check_persistency, lqr_controller, stabilizing_
 from ..ddc.plants import batch_reactor  # noqa: E402
 from ..errors import BilevelError  # noqa: E402
 from ..files import atomic_open, save_figure  # noqa: E402
-from ..problems.willems import build_attack  # noqa: E402
+from ..problems.willems import kept_attack  # noqa: E402
 from ..problems.willems_instance import (DEFAULT_REG, SOLVER_SELECTIONS, WillemsSetting,  # noqa: E402
                                          selection_applies)
 from ..result import BilevelResult  # noqa: E402
@@ -189,6 +189,12 @@ def _reference_radius(setting: WillemsSetting, x: np.ndarray, u: np.ndarray, cle
     return float(np.max(np.abs(np.linalg.eigvals(plant.A + plant.B @ k))))
 
 
+def data_set(task: dict[str, Any]) -> tuple:
+    """The sweep's batches: a data set's tasks (every budget, method and design) run in one worker, one after another,
+    so it builds the attack once per declaration (kept_attack) and solves the learner once per data set."""
+    return task["experiment"], task["horizon"], task["seed"]
+
+
 def attack_task(task: dict[str, Any]) -> dict[str, Any]:
     """Run one attack described by a task; a JSON row with the task's fields and its outcome (or its error)."""
     fields = {k: v for k, v in task.items() if k != "key"}
@@ -196,7 +202,7 @@ def attack_task(task: dict[str, Any]) -> dict[str, Any]:
                              delta_u=task["delta_u"], delta_x=task["delta_x"], poison=task["poison"],
                              design=task["design"], selection=task["selection"], reg=task["reg"])
     try:
-        attack = build_attack(setting)
+        attack = kept_attack(setting)
         if task["method"] == "hypergradient":
             res = hypergradient_attack(attack, starts=task["starts"], seed=task["attack_seed"])
         elif task["method"] == "destabilize":
@@ -586,7 +592,8 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
     with open_executor(workers, dask) as executor:
         for name, (tasks, fields) in sweeps.items():
             rows[name] = run_sweep(attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress,
-                                   f"willems-{name}", valid_row, timing=name, reference=committed_timings("willems"))
+                                   f"willems-{name}", valid_row, timing=name, reference=committed_timings("willems"),
+                                   together=data_set)
             summaries[name] = summarize(rows[name], fields)
             write_csv(summaries[name], fields, os.path.join(out_dir, f"table_{name}.csv"))
     wall = load_timings(os.path.join(out_dir, "timings.json"), progress)

@@ -18,7 +18,7 @@ from matplotlib.figure import Figure  # noqa: E402
 from ..attacks.willems import destabilize_attack  # noqa: E402
 from ..errors import ModelError  # noqa: E402
 from ..files import atomic_open, atomic_path, write_rows_csv  # noqa: E402
-from ..problems.willems import build_attack  # noqa: E402
+from ..problems.willems import kept_attack  # noqa: E402
 from ..problems.willems_instance import WillemsSetting  # noqa: E402
 from ..attacks.budget_search import BudgetSearch, smallest_budget  # noqa: E402
 from .executor import open_executor  # noqa: E402
@@ -42,7 +42,7 @@ def smallest_destabilizing_budget(setting: WillemsSetting, path: tuple[float, ..
                          f"{setting.poison!r}: use poison='u'")
 
     def radius(delta: float) -> float:
-        attack = build_attack(dataclasses.replace(setting, objective="destabilize", delta_u=delta))
+        attack = kept_attack(dataclasses.replace(setting, objective="destabilize", delta_u=delta))
         return destabilize_attack(attack, **options).stats["spectral_radius"]
 
     return smallest_budget(radius, lambda rho: rho >= 1.0, path, rel_tol)

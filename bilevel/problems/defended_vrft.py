@@ -132,8 +132,8 @@ def declare(d: DefendedVRFT) -> BilevelProblem:
     else:
         ridge = d.lam * d.scale if d.defense == "ridge" else 0.0
         p.minimize_lower(ca.sumsqr(residual) / rows + ridge * ca.sumsqr(theta))
-    for name, a, delta in budgets:
-        p.upper_constraint(ca.sumsqr(a) <= delta ** 2, name=f"budget_{name}")
+    for name, a, delta in budgets:  # the radii are parameters: budget_values re-sets them (no new declaration)
+        p.upper_constraint(ca.sumsqr(a) <= p.parameter(f"delta_{name}", value=delta) ** 2, name=f"budget_{name}")
     if atk.objective == "maxmin":
         p.maximize_upper((float(atk.t0 @ atk.t0) - 2 * ca.dot(ca.DM(atk.cross0), theta)
                           + ca.bilin(ca.DM(atk.gram0), theta, theta)) / rows)
@@ -142,6 +142,12 @@ def declare(d: DefendedVRFT) -> BilevelProblem:
     else:
         p.maximize_spectral_radius(companion(atk.model_loop.base, atk.model_loop.slopes, theta))
     return p
+
+
+def budget_values(d: DefendedVRFT) -> dict[str, float]:
+    """The budget radii of instance d by parameter name of its declared problem: set_value them on the problem declared
+    for another budget of the same data, defense and lam to attack d without declaring again."""
+    return {"delta_u": d.atk.delta_u, "delta_y": d.atk.delta_y} | ({"delta_y2": d.delta_y2} if d.defense == "iv" else {})
 
 
 def companion(base: np.ndarray, slopes: np.ndarray, theta: ca.SX) -> ca.SX:

@@ -34,6 +34,7 @@ poisoning (poison="u", designs lqr and stabilizing), so Q is fixed and K is affi
 
 from __future__ import annotations
 
+import threading
 from dataclasses import fields
 from typing import Any
 
@@ -42,12 +43,15 @@ import numpy as np
 import scipy.linalg
 
 from ..ddc.depersis_tesi import check_persistency, state_data
+from ..defaults import param
 from ..errors import ModelError, NotPersistentlyExciting
+from ..kept import kept
 from ..model import BilevelProblem
 from ..vech import symmetric_sx
 from .registry import register
 from .surrogates import gelfand_log_radius
-from .willems_instance import DEFAULT_HORIZON, GELFAND_POWER, SOLVER_SELECTIONS, WillemsAttack, WillemsSetting
+from .willems_instance import (DEFAULT_HORIZON, GELFAND_POWER, SOLVER_SELECTIONS, WillemsAttack, WillemsSetting,
+                               declaration_of)
 
 SOURCE = ("Russo & Proutiere, Poisoning attacks against data-driven control methods (extended), appendix "
           "'Attacks on methods based on Willems lemma'; De Persis & Tesi, IEEE TAC 2020, Thms 3-4")
@@ -100,6 +104,19 @@ def build_attack(setting: WillemsSetting | None = None, **params: Any) -> Willem
     qx, r = _weight(s.qx, x.shape[0], "qx"), _weight(s.r, u.shape[0], "r")
     p, du, dx, gain, acl, upper, seen = declare(s, x, u, a_id, b_id, qx, r)
     return WillemsAttack(s, x, u, a_id, b_id, qx, r, p, du, dx, gain, acl, upper, seen)
+
+
+_BUILT = threading.local()
+"""Per thread, .attacks: declaration -> the attack kept_attack built for it (the last willems.shared_kept)."""
+
+
+def kept_attack(setting: WillemsSetting) -> WillemsAttack:
+    """build_attack(setting), reusing this thread's attack of the same declaration (data, learner, criterion) where it
+    was built before, at the setting's budgets (WillemsAttack.at_budget: nothing rebuilt, the declared box shared):
+    for sweeps that attack one data set at several budgets, one attack at a time."""
+    built, made = kept(_BUILT.__dict__.setdefault("attacks", {}), declaration_of(setting),
+                       lambda: build_attack(setting), param("willems.shared_kept"))
+    return built if made else built.at_budget(setting.delta_u, setting.delta_x)
 
 
 def declare(s: WillemsSetting, x: np.ndarray, u: np.ndarray, a_id: np.ndarray, b_id: np.ndarray, qx: np.ndarray,

@@ -14,7 +14,7 @@ import copy
 import dataclasses
 import threading
 from dataclasses import dataclass, fields
-from functools import cache, cached_property
+from functools import cache
 from typing import Any
 
 import casadi as ca
@@ -167,6 +167,11 @@ def selection_applies(selection: str, poison: str, design: str) -> bool:
     return selection not in SOLVER_SELECTIONS or (poison == "u" and design != "lqr-r")
 
 
+def declaration_of(setting: WillemsSetting) -> tuple:
+    """The setting's fields but its budgets (delta_u, delta_x), as (name, value) pairs: WillemsAttack.declaration."""
+    return tuple((f.name, getattr(setting, f.name)) for f in fields(setting) if f.name not in ("delta_u", "delta_x"))
+
+
 def criterion_values(closed_loop: np.ndarray, gain: np.ndarray, objective: str, qx: np.ndarray,
                      r_cost: np.ndarray) -> np.ndarray:
     """The attacker's criterion for batches Acl (..., n, n), K (..., m, n), numerically (same as the problem's)."""
@@ -222,6 +227,8 @@ class WillemsAttack:
     upper: ca.SX
     seen: ca.SX
     """D(x): the poisoned data rows the SDP multiplies Q with ([X0; X1], plus U0 for lqr-r)."""
+    compiled: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False, compare=False)
+    """Maps compiled from the declaration (loop; criteria's affine gain), shared by the attacks at_budget makes."""
 
     @property
     def n_states(self) -> int:
@@ -278,8 +285,18 @@ class WillemsAttack:
     def declaration(self) -> tuple:
         """The setting without its budgets (delta_u, delta_x): attacks with equal declarations have the same data,
         learner and criterion, and differ only in the box."""
-        return tuple((f.name, getattr(self.setting, f.name)) for f in fields(self.setting)
-                     if f.name not in ("delta_u", "delta_x"))
+        return declaration_of(self.setting)
+
+    def at_budget(self, delta_u: float, delta_x: float) -> WillemsAttack:
+        """This attack at the budgets (delta_u, delta_x): its data, learner, criterion and symbolic declaration with
+        their compiled maps (loop, criteria's affine gain), none rebuilt. The declared problem is shared and its box
+        re-set to the new budgets, so the attacks of one declaration are to be used one at a time."""
+        new = copy.copy(self)
+        new.setting = dataclasses.replace(self.setting, delta_u=delta_u, delta_x=delta_x)
+        bound = new.budget()
+        for name, part in new.problem.upper_layout().items():
+            new.problem.set_bounds(name, -bound[part], bound[part])
+        return new
 
     @property
     def shape(self) -> tuple:
@@ -342,10 +359,12 @@ class WillemsAttack:
         """The flat lower vector (vec of each lower variable)."""
         return ca.vertcat(*[ca.vec(v.sym) for v in self.problem.lower_variables])
 
-    @cached_property
+    @property
     def _loop(self) -> ca.Function:
-        """(x, y) -> (K, A_id + B_id K) of the declared gain and identified loop."""
-        return ca.Function("loop", [self.upper, self._lower], [self.gain, self.closed_loop])
+        """(x, y) -> (K, A_id + B_id K) of the declared gain and identified loop (compiled once per declaration)."""
+        if "loop" not in self.compiled:
+            self.compiled["loop"] = ca.Function("loop", [self.upper, self._lower], [self.gain, self.closed_loop])
+        return self.compiled["loop"]
 
     def loop(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The gain K and the attacker's identified loop A_id + B_id K at poisoning x (flat), learner solution y."""
@@ -358,12 +377,13 @@ class WillemsAttack:
 
     def criteria(self, xs: np.ndarray, y: np.ndarray) -> np.ndarray:
         """The criterion at each column of xs for a learner that ignores the poisoning (y its solution): K =
-        K0 + dK/dx x is affine in x (K0 and dK/dx from the declared gain, at the first call), numerically."""
-        if "_affine" not in self.__dict__:
+        K0 + dK/dx x is affine in x (K0 and dK/dx from the declared gain, at the first call on this declaration: y is
+        the same for every budget), numerically."""
+        if "affine" not in self.compiled:
             jacobian = ca.jacobian(ca.vec(self.gain), self.upper)
             affine = ca.Function("affine", [self.upper, self._lower], [self.gain, jacobian])
-            self.__dict__["_affine"] = tuple(np.asarray(v, dtype=float) for v in affine(np.zeros(xs.shape[0]), y))
-        k0, jac = self.__dict__["_affine"]
+            self.compiled["affine"] = tuple(np.asarray(v, dtype=float) for v in affine(np.zeros(xs.shape[0]), y))
+        k0, jac = self.compiled["affine"]
         gains = k0[None] + (xs.T @ jac.T).reshape(xs.shape[1], self.n_states, self.n_inputs).transpose(0, 2, 1)
         return criterion_values(self.a_id + self.b_id @ gains, gains, self.setting.objective, self.qx, self.cost_weight)
 

@@ -60,6 +60,20 @@ def test_willems_task_matches_its_parts():
     assert 7.0 < row["clean_cost"] < 20.0  # the batch reactor's trace(Qx W) near the SDP optimum (7.70 at reg 1e-8)
 
 
+def test_clean_gain_of_the_radius_problem_is_the_learners_to_rounding():
+    """clean_gain solves the learner on the radius problem (shared with destabilize_attack): the gain of the declared
+    problem's learner, to rounding (the clean costs of the committed frontier agree to 1e-15 relative)."""
+    from bilevel.experiments.defenses import clean_gain
+    from bilevel.problems.willems import build_attack
+    from bilevel.problems.willems_instance import WillemsSetting
+
+    for reg in (1e-8, 1e-2):
+        attack = build_attack(WillemsSetting(objective="destabilize", horizon=15, seed=3, reg=reg))
+        zero = np.zeros(int(attack.upper.numel()))
+        declared = attack.loop(zero, attack.oracle().evaluate(zero).lower.y)[0]
+        np.testing.assert_allclose(clean_gain(attack), declared, rtol=1e-12, atol=1e-12)
+
+
 def test_input_integrity_deviance():
     from bilevel.ddc.input_integrity import filtered_white_spectrum, whittle_deviance
 
@@ -145,6 +159,19 @@ def test_vrft_radius_reads_a_singular_learner_from_the_result(monkeypatch):
     singular = dataclasses.replace(fake, start_records=({"status": "error", "message": "...", SINGULAR_LEARNER: True},))
     monkeypatch.setattr(defenses, "solve", lambda *args, **kwargs: singular)
     assert defenses.vrft_radius("iv", 0.0, 128, 0, 0.02, 0) == math.inf
+
+
+def test_vrft_radius_on_the_kept_problem_is_a_fresh_declarations():
+    """vrft_radius re-sets the budget parameters of the problem declared for the data set's first budget (budget_values):
+    at each budget of a search the answer is that of the problem declared afresh at that budget."""
+    from bilevel.experiments import defenses
+    from bilevel.problems.defended_vrft import defended_instance
+
+    for eps in (0.05, 0.02):
+        d = defended_instance("iv", "destabilize", 0.0, "B", eps, eps, 4, 128)
+        fresh = defenses.solve(defenses.declare(d), starts=2, seed=1)
+        x = {k: np.asarray(v, dtype=float).ravel() for k, v in fresh.x.items()}
+        assert defenses.vrft_radius("iv", 0.0, 128, 4, eps, 1) == d.atk.setting.loop.spectral_radius(d.poisoned(**x))
 
 
 def test_learner_subset_keeps_the_full_runs_tasks():

@@ -191,3 +191,22 @@ def test_lqr_r_design_tasks_pass_their_certificates() -> None:
         experiment._REFERENCES = kept
     statuses = [r["status"] for r in rows]
     assert all(s in ("solved", "not_locally_optimal", "inaccurate") for s in statuses), statuses
+
+
+def test_kept_attack_at_a_new_budget_is_a_fresh_attack():
+    """kept_attack re-budgets the attack of its declaration (nothing rebuilt): same box, criterion values and result
+    as build_attack at that budget; the compiled maps are shared, the declared box follows the budget."""
+    from bilevel.attacks.willems import destabilize_attack
+    from bilevel.problems.willems import build_attack, kept_attack
+    from bilevel.problems.willems_instance import WillemsSetting
+
+    first = kept_attack(WillemsSetting(objective="destabilize", horizon=15, seed=11, delta_u=0.2))
+    setting = WillemsSetting(objective="destabilize", horizon=15, seed=11, delta_u=0.5)
+    again, fresh = kept_attack(setting), build_attack(setting)
+    assert again is not first and again.compiled is first.compiled and again.setting == setting
+    np.testing.assert_array_equal(again.budget(), fresh.budget())
+    du = next(v for v in again.problem.upper_variables if v.name == "Du")
+    assert np.all(du.ub == 0.5) and np.all(du.lb == -0.5)
+    ours, theirs = destabilize_attack(again, seed=2, starts=4), destabilize_attack(fresh, seed=2, starts=4)
+    np.testing.assert_array_equal(ours.stats["x"], theirs.stats["x"])
+    assert ours.stats["spectral_radius"] == theirs.stats["spectral_radius"]
