@@ -93,6 +93,34 @@ class CanonicalBilevel:
         return low if lift is None else ImageLower(low, lift, self.x, self.params)
 
     @cached_property
+    def G_ranges(self) -> tuple[np.ndarray, np.ndarray, Callable[[], np.ndarray] | None]:
+        """The two-sided bounds among the rows of G: (upper, lower, width) with row upper[k] = e - b (e <= b) and row
+        lower[k] = a - e (e >= a) for one expression node e of (x, y) and bounds a, b of the parameters alone (so
+        G[upper[k]] + G[lower[k]] = a - b everywhere), and width(): the vector b - a at the parameters' current values
+        (None without pairs). A solver may state each pair as one ranged row, G[upper[k]] in [a - b, 0], halving the
+        rows a dense e brings (method reduced does)."""
+        xy = ca.vertcat(self.x, self.y)
+        upper_rows: dict[int, tuple[int, ca.SX]] = {}  # expression node -> (row, b) of `e - b`
+        lower_rows: dict[int, tuple[int, ca.SX]] = {}  # expression node -> (row, a) of `a - e`
+        free = lambda e: not ca.depends_on(e, xy)  # noqa: E731
+        for i in range(int(self.G.numel())):
+            row = self.G[i]
+            if not row.is_op(ca.OP_SUB):
+                continue
+            left, right = row.dep(0), row.dep(1)
+            if free(right) and not free(left):
+                upper_rows.setdefault(left.element_hash(), (i, right))
+            elif free(left) and not free(right):
+                lower_rows.setdefault(right.element_hash(), (i, left))
+        pairs = [(i, j, b - a) for node, (i, b) in upper_rows.items() if node in lower_rows
+                 for j, a in [lower_rows[node]]]
+        if not pairs:
+            return np.zeros(0, dtype=int), np.zeros(0, dtype=int), None
+        width = self.params.function("ranges", [], [ca.vertcat(*(w for _, _, w in pairs))])
+        return (np.array([i for i, _, _ in pairs]), np.array([j for _, j, _ in pairs]),
+                lambda: np.asarray(width(), dtype=float).ravel())
+
+    @cached_property
     def squares(self) -> NumericSquares | None:
         """F as NumericSquares where it is a sum of squares of y alone with a numeric matrix written into it (value
         and y-gradient by BLAS; a sweep walks the matrix's entries), else None."""

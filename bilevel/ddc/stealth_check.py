@@ -13,7 +13,7 @@ clean data (X: n x (T+1), U: m x T) and poisoned data (X + dX, U + dU), [A B] fi
 - every entry of dX and dU in [-box, box] (their SLSQP's bounds, box = 0.5).
 
 Nothing here calls the attack's code (bilevel.ddc.stealth_statistics): the fits are numpy lstsq, the correlations
-explicit sums over t, so the verdict is a second computation of the same definitions.
+explicit index sums over t (einsum), so the verdict is a second computation of the same definitions.
 """
 
 from __future__ import annotations
@@ -35,14 +35,8 @@ def _residuals(target: np.ndarray, regressors: np.ndarray) -> np.ndarray:
 
 def correlations(E: np.ndarray, lags: int) -> list[np.ndarray]:
     """C_0..C_lags of residuals E (n x T), C_tau = (1/T) sum_t e_t e_{t+tau}' (the authors' utils.correlate)."""
-    n, T = E.shape
-    out = []
-    for tau in range(lags + 1):
-        C = np.zeros((n, n))
-        for t in range(T - tau):
-            C += np.outer(E[:, t], E[:, t + tau])
-        out.append(C / T)
-    return out
+    T = E.shape[1]
+    return [np.einsum("it,jt->ij", E[:, :T - tau], E[:, tau:]) / T for tau in range(lags + 1)]  # sum_t e_t e_{t+tau}'
 
 
 def statistics(X: np.ndarray, U: np.ndarray, lags: int) -> dict[str, object]:

@@ -6,7 +6,9 @@ exact solve (bilevel.solvers.engine.implicit.Hypergradient.evaluate: closed form
 and an active-set Newton polish for a QP), and the Jacobian of (F, G, H) along y*(x) comes from the engine's one adjoint
 solve (Hypergradient.jacobian). IPOPT runs through CasADi on a ca.Callback with that Jacobian and a limited-memory
 Hessian; a point where the lower level cannot be solved is NaN to IPOPT, which shortens its step there. A recognized
-budget ball also bounds IPOPT's steps by the box around it (the ball stays a constraint). Where IPOPT stops (max_iter,
+budget ball also bounds IPOPT's steps by the box around it (the ball stays a constraint). A two-sided bound on one
+expression (CanonicalBilevel.G_ranges) is one ranged row of the NLP, not two: on the stealthy identification attack
+(T = 500, 52 dense statistic rows) 46 against 79 ms per IPOPT iteration, the same answers. Where IPOPT stops (max_iter,
 an error) off the feasible set, the start's answer is the best feasible point it evaluated, with IPOPT's status.
 
 It needs a unique lower solution, so that y*(x) is a function: a least-squares lower level (positive definite
@@ -173,15 +175,17 @@ class _Jacobian(ca.Callback):
 
 
 class _Solver:
-    """The reduced NLP compiled once per preparation and nlpsol options (the callbacks read parameters at each call)."""
+    """The reduced NLP compiled once per preparation, nlpsol options and rows stated (the callbacks read parameters at
+    each call): rows, the indices into [G; H] that are rows of the NLP (all but the lower rows of ranged pairs)."""
 
-    def __init__(self, oracle: Hypergradient, options: dict[str, Any]) -> None:
+    def __init__(self, oracle: Hypergradient, options: dict[str, Any], rows: list[int]) -> None:
         self.reduced = _Reduced(oracle)
         self.values = _Values(self.reduced)
         x = ca.MX.sym("x", self.reduced.n_x)
         out = self.values(x)
         try:
-            self.solver = ca.nlpsol("reduced", "ipopt", {"x": x, "f": out[0], "g": out[1:]}, options)
+            self.solver = ca.nlpsol("reduced", "ipopt", {"x": x, "f": out[0], "g": out[[1 + i for i in rows]]},
+                                    options)
         except RuntimeError as exc:  # CasADi refuses an option before any solve
             reason = str(exc).strip().splitlines()[-1].split(": ", 1)[-1]
             raise ModelError(f"IPOPT did not accept its options ({reason}); check the names and types in option "
@@ -228,8 +232,16 @@ def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, s
         ubx[ball.block] = np.minimum(ubx[ball.block], ball.center + ball.radius)  # (its nonsmooth row is left free)
         if ball.norm == np.inf:
             ubg[ball.row] = np.inf
-    bounds = dict(lbx=lbx, ubx=ubx, lbg=np.concatenate([np.full(nG, -np.inf), np.zeros(int(canon.H.numel()))]),
-                  ubg=ubg)
+    lbg = np.concatenate([np.full(nG, -np.inf), np.zeros(int(canon.H.numel()))])
+    upper, lower, width = canon.G_ranges  # each two-sided bound one ranged row: half the rows of a dense statistic
+    if width is not None:
+        w = width()
+        fit = np.isfinite(w) & (w >= 0) & np.isfinite(ubg[upper]) & np.isfinite(ubg[lower])
+        upper, lower = upper[fit], lower[fit]
+        lbg[upper] = -w[fit]
+    dropped = set(lower.tolist())
+    rows = [i for i in range(lbg.size) if i not in dropped]
+    bounds = dict(lbx=lbx, ubx=ubx, lbg=lbg[rows], ubg=ubg[rows])
     rng = np.random.default_rng(seed)
     records, candidates, ends = [], [], []
     for k, x0 in enumerate(start_points(prep, starts, rng, float(scale))):
@@ -237,8 +249,8 @@ def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, s
             break
         t0 = time.perf_counter()
         nlp_opts = within(ipopt_opts, limit)  # levels of time_limit: few compiled solvers
-        nlp: _Solver = prep.cached(("reduced", active_tol, repr(sorted(nlp_opts["ipopt"].items()))),
-                                   lambda: _Solver(oracle, nlp_opts))
+        nlp: _Solver = prep.cached(("reduced", active_tol, repr(sorted(nlp_opts["ipopt"].items())), tuple(rows)),
+                                   lambda: _Solver(oracle, nlp_opts, rows))
         solver = nlp.solver
         evaluations, nlp.reduced.best = nlp.reduced.evaluations, None
         sol = solver(x0=np.clip(x0, lbx, ubx), **bounds)

@@ -10,6 +10,7 @@ import pytest
 import bilevel as bl
 from bilevel.errors import ModelError
 from bilevel.problems import registry
+from bilevel.solvers.engine.prepared import prepare
 
 
 @pytest.mark.parametrize("name", ["macmpec-ex9.2.2", "bolib-gumusfloudas2001ex4"])
@@ -70,3 +71,40 @@ def test_options_are_the_keywords_and_bad_ones_are_named() -> None:
         bl.solve(p, method="reduced", max_iters=3)
     with pytest.raises(ModelError, match="IPOPT did not accept"):
         bl.solve(p, method="reduced", ipopt={"no_such_option": 1})
+
+
+
+def _ranged(shared: bool, lo: float, hi: float, inner: bool = False) -> bl.BilevelProblem:
+    """y*(x) = x (least squares); on the box [-1, 1]^2 with lo <= y0^2 + y1^2 <= hi (the two bounds on one expression
+    (shared) or on two equal ones built apart) the leader maximizes y0 + 2 y1 (the upper bound active) or, inner,
+    minimizes ||y - (0.1, 0.2)||^2 (the lower bound active)."""
+    p = bl.BilevelProblem("ranged")
+    x = p.upper_variable("x", 2, lb=-1, ub=1)
+    y = p.lower_variable("y", 2)
+    p.minimize_lower(ca.sumsqr(y - x))
+    if inner:
+        p.minimize_upper(ca.sumsqr(y - ca.DM([0.1, 0.2])))
+    else:
+        p.maximize_upper(y[0] + 2 * y[1])
+    e = ca.sumsqr(y)
+    p.upper_constraint(e <= p.parameter("hi", value=hi), name="high")
+    p.upper_constraint((e if shared else ca.sumsqr(y)) >= lo, name="low")
+    return p
+
+
+def test_a_two_sided_bound_on_one_expression_is_one_ranged_row_with_the_same_answer() -> None:
+    """G_ranges pairs the rows `e - b` and `a - e` of one expression node (width b - a at the parameters' values), not
+    two equal expressions built apart; method reduced states the pair as one ranged row and reaches the answer of the
+    two rows: F* = sqrt(5 hi) with the upper bound active, (sqrt(lo) - sqrt(0.05))^2 with the lower one."""
+    p = _ranged(True, 0.25, 0.5)
+    up, lo, width = prepare(p).canon.G_ranges
+    assert list(up) == [0] and list(lo) == [1] and width() == pytest.approx([0.25])
+    p.set_value("hi", 0.64)
+    assert width() == pytest.approx([0.39])  # b - a read at the parameters' current values
+    for inner, optimum in ((False, np.sqrt(5 * 0.64)), (True, (0.5 - np.sqrt(0.05)) ** 2)):
+        one, two = _ranged(True, 0.25, 0.64, inner), _ranged(False, 0.25, 0.64, inner)
+        assert len(prepare(one).canon.G_ranges[0]) == 1 and len(prepare(two).canon.G_ranges[0]) == 0
+        a, b = one.solve("reduced"), two.solve("reduced")
+        assert a.status.value == b.status.value == "solved" and a.certificate.passed, a.message
+        assert a.upper_objective == pytest.approx(optimum, rel=1e-7)
+        np.testing.assert_allclose(a.x["x"], b.x["x"], atol=1e-6)
