@@ -40,10 +40,39 @@ Mechanism "directional" (one input, tried first) keeps the shapes lyapunov's bal
   set (bilevel.robust.zero_exclusion, Lipschitz-rigorous between grid points) proves every reachable gain stabilizing
   once the clean data's gain (d = 0) is (checked by eigenvalues): exact for the set, where step 3's Lyapunov LMI asks
   for one quadratic Lyapunov function for a ball.
+Mechanism "affine" (one input, tried first) is a sandwich that follows P with the model. The model set is one
+ellipsoid dTheta = sum_j a_j D_j, ||a|| <= 1, the outer ellipsoid of the Minkowski sum of the fit's linear images of
+the two budget balls and the ball of its nonlinear part (S = sum_i S_i / p_i, p_i proportional to sqrt(tr S_i)).
+- First order: E1(D) solves E1 - Acl0'E1 Acl0 = (DF)'P0 Acl0 + Acl0'P0 (DF) (the Riccati solution's Frechet
+  derivative, one Lyapunov solve per unit model), W1(D) = l(D) + B0'E1(D) Acl0 and k1(D) = -M0^-1 W1(D) (M0 = R +
+  B0'P0 B0) the gain's.
+- The affine sandwich: Yc + E1(dTheta) <= P(Theta) <= Xc + E1(dTheta) for every model of the ellipsoid. Upper: with
+  K^ = K0 + k1(dTheta) and X = Xc + E1(dTheta), [[diag(X - Q, -R) + sym(Lam [K^, -I]), Theta'G'], [G Theta,
+  G + G' - X]] >= 0 gives X >= Q + K^'R K^ + (Theta F^)'X (Theta F^), F^ = [I; K^] (at the vector (x, K^x,
+  -Theta F^ x) Finsler's Lam term vanishes and G's terms cancel), so with X >= Y >= 0 the gain K^ stabilizes the
+  model and P <= P_K^ <= X. Lower: [[diag(Q - Y, R) + sym(Theta'H), H'], [H, Y]] >= 0 gives (vector (z, -Theta z))
+  diag(Q - Y, R) + Theta'Y Theta >= 0, the Bellman inequality, so x'Y x <= the optimal cost x'P x. Both LMIs are
+  affine in a: F0 + sum_j a_j F_j >= 0 for ||a|| <= 1 follows from [[F0 - L, A'], [A, I kron L]] >= 0, L >= 0,
+  A_j = F_j / 2 + S_j with S_j skew (the vector (xi, -a kron xi); A_j' + A_j = F_j for any skew S_j, and the free
+  S_j keep the relaxation's loss second order in the set's size where a common multiplier loses first order). One
+  SDP (cvxpy + Clarabel), minimizing the box's width as sandwich does; Xc >= Yc. Then e = P - P0 - E1(dTheta) =
+  C + S, -H <= S <= H (C, H the box's centre and half-width), ||e|| <= t_e.
+- The gain, exactly: W - W0 = W1(dTheta) + B0'e Acl0 + T2, T2 = [dB'P0 dTheta F + dB'E1 Acl0 + B0'E1 dTheta F] +
+  dB'E1 dTheta F + [dB'e Acl0 + B0'e dTheta F + dB'e dTheta F] (E1 = E1(dTheta)). Along u: W1's part is the image
+  of the two budget balls under an exact linear map plus ||W1|| times the fit's nonlinear part; -B0'e Acl0 u <=
+  -(B0'C Acl0) u + ||H^1/2 B0|| ||H^1/2 Acl0 u|| (or ||B0|| t_e ||Acl0 u||); the bracketed quadratic part is
+  a'Q_u a with Q_u symmetric k x k, at most max |eig Q_u|; the cubic term at most ||dB|| ||E1|| ||dTheta F u|| (each
+  the largest over the ellipsoid, ||dTheta F u|| by the spectral norm of [D_j F u]_j); the e terms by ||dB||
+  (||C Acl0 u|| + ||H^1/2|| ||H^1/2 Acl0 u||) + (||e B0|| + ||dB|| t_e) ||dTheta F u||. M = R + B'PB = M0 + [2 B0'P0
+  dB + B0'E1 B0] + [dB'P0 dB + 2 dB'E1 B0] + dB'E1 dB + B'e B lies in [m_lo, m_hi] by the same bounds (the linear part
+  by its coefficients' norm, the quadratic by eigenvalues). K - K0 = -W / M then lies in a convex set given by its
+  support function, and zero exclusion proves the true loop as in "directional".
 The re-check recomputes step 1 from SVDs (the linear map built the whitened way), t and eps_K from numpy eigenvalues
 of X - P0, P0 - Y, X - Y and Y at the SDP's solution, and checks every LMI there by numpy eigenvalues with a margin
 above rounding; for "directional", the ellipsoid from the whitened maps, the multipliers L1, L2 >= 0, l's matrix from
-Kronecker products, the loop polynomial from np.poly and the sweep on a grid twice as fine with twice the directions.
+Kronecker products, the loop polynomial from np.poly and the sweep on a grid twice as fine with twice the directions;
+for "affine", E1 and W1 from Kronecker products, the model maps and ellipsoid the whitened way, the affine LMIs by
+numpy eigenvalues at the SDP's solution (margin above rounding), L >= 0, S_j skew, m_lo > 0 and the sweep again.
 """
 
 from __future__ import annotations
@@ -54,6 +83,7 @@ from typing import Any
 
 import cvxpy as cp
 import numpy as np
+from scipy.linalg import solve_discrete_lyapunov
 
 from ..ddc.model_based import lqr_gain
 from ..defaults import param
@@ -71,6 +101,8 @@ PATH = (0.002, 0.005, 0.01, 0.02, 0.05, 0.1)
 """The attack's budget path before bisection (the defenses frontier's identification path)."""
 STRICT = 1e-7
 """Every LMI is solved with this much room (times its scale), so that the numpy re-check passes above rounding."""
+SYMMETRIC = ("Xc", "Yc")
+"""The affine sandwich's symmetric matrix variables."""
 
 
 def _fit(atk: IdentificationAttack, signals: Signals) -> np.ndarray:
@@ -257,18 +289,21 @@ class ModelShape:
     rho: float
 
 
-def model_shape(atk: IdentificationAttack, delta: float, maps: tuple[np.ndarray, np.ndarray]) -> ModelShape:
+def model_shape(atk: IdentificationAttack, delta: float, maps: tuple[np.ndarray, np.ndarray], ball: bool = False
+                ) -> ModelShape:
     """The ModelShape at budget delta: the image GX a_X + GU a_U of the two balls lies in the ellipsoid v'S^-1 v <= 1,
     S = (1 + beta) S_X + (1 + 1/beta) S_U (S_X = r_X^2 GX GX', beta = sqrt(tr S_U / tr S_X)), whose semi-axes give the
     D_j; the fit's part beyond its linear map is the ball (step 1's rest)."""
     theta0 = atk.theta0
     r_X, r_U = delta * np.linalg.norm(atk.signals["X"]), delta * np.linalg.norm(atk.signals["U"])
     S_X, S_U = r_X ** 2 * maps[0] @ maps[0].T, r_U ** 2 * maps[1] @ maps[1].T
-    beta = float(np.sqrt(np.trace(S_U) / np.trace(S_X)))
-    lam, V = np.linalg.eigh(_sym((1 + beta) * S_X + (1 + 1 / beta) * S_U))
+    rest = _fit_parts(atk, delta)[1]
+    parts = [S_X, S_U] + ([rest ** 2 * np.eye(S_X.shape[0])] if ball else [])
+    roots = [float(np.sqrt(np.trace(S))) for S in parts]
+    lam, V = np.linalg.eigh(_sym(sum(S * sum(roots) / root for S, root in zip(parts, roots))))
     axes = V * np.sqrt(np.maximum(lam, 0.0))
     D = np.hstack([axes[:, j].reshape(theta0.shape) for j in range(axes.shape[1])])
-    return ModelShape(D, axes.shape[1], _fit_parts(atk, delta)[1])
+    return ModelShape(D, axes.shape[1], 0.0 if ball else rest)
 
 
 def _blocks(atk: IdentificationAttack, c: Clean, eps: float, X, Y, mu1, mu2, t, Z, mu3, eps_K, tau, lib,
@@ -353,6 +388,124 @@ def sandwich(atk: IdentificationAttack, c: Clean, eps: float, shaped: bool = Fal
     if any(v.value is None for v in found.values()):
         return None
     return {k: _sym(v.value) if v.ndim == 2 else float(v.value) for k, v in found.items()}
+
+
+def riccati_maps(c: Clean, kron: bool = False) -> tuple[list[np.ndarray], np.ndarray]:
+    """The Riccati solution's Frechet derivative on the unit models: E1(D) solves E1 - Acl0'E1 Acl0 = (DF)'P0 Acl0 +
+    Acl0'P0 (DF) (one Lyapunov solve per direction; kron: by Kronecker products, the re-check's route), and the matrix
+    of D -> W1(D) = l(D) + B0'E1(D) Acl0 (row-major vecs), the first-order change of the gain equation's residual W
+    with P following the model: K's first-order change is -M0^-1 W1."""
+    n = c.theta0.shape[0]
+    B0 = c.theta0[:, n:]
+    units = np.eye(c.theta0.size).reshape(-1, *c.theta0.shape)
+    lyap = np.eye(n * n) - np.kron(c.Acl0.T, c.Acl0.T)
+    E1 = []
+    for D in units:
+        G = (D @ c.F).T @ c.P0 @ c.Acl0
+        G = G + G.T
+        E1.append(_sym(np.linalg.solve(lyap, G.ravel()).reshape(n, n) if kron
+                       else solve_discrete_lyapunov(c.Acl0.T, G, method="bilinear")))
+    lmap = _first_order_map_kron(c) if kron else first_order_map(c)
+    return E1, lmap + np.array([(B0.T @ E @ c.Acl0).ravel() for E in E1]).T
+
+
+def model_channels(shape: ModelShape, theta_shape: tuple[int, int]) -> list[list[np.ndarray]]:
+    """The model set as channels of semi-axes, each ||w_c|| <= 1: the shape's ellipsoid (its D_j) and its ball (rho
+    times the unit models: ||D_r||_F <= rho is ||w|| <= 1 on them)."""
+    nm = theta_shape[1]
+    ellipsoid = [shape.D[:, j * nm:(j + 1) * nm] for j in range(shape.k)]
+    units = np.eye(theta_shape[0] * nm).reshape(-1, *theta_shape)
+    return [ellipsoid] + ([[shape.rho * U for U in units]] if shape.rho > 0 else [])
+
+
+def _affine_blocks(c: Clean, q: float, r: float, channels: list, E1: list, k1: list, Xc, Yc, G, H, Lam, L1: list,
+                   L2: list, skew1: list, skew2: list, lib) -> list:
+    """The affine sandwich's LMI matrices (cvxpy expressions with lib=cp, numbers with lib=np; module docstring):
+    upper (X(w) = Xc + E1(w) bounds the cost of the gain K0 + k1(w) on every model: Finsler's multiplier Lam for
+    u = K x, de Oliveira's slack G), lower (Y(w) = Yc + E1(w) satisfies every model's Bellman inequality, slack H) and
+    Xc - Yc. Each LMI is F0 + sum_c sum_j w_cj F_cj for ||w_c|| <= 1 per channel c (model_channels; E1[c][j],
+    k1[c][j] at its semi-axes), with the full-block multipliers [[F0 - sum_c L_c, A_c'...], [A_c, I kron L_c]],
+    A_cj = F_cj / 2 + skew_cj (skew_cj = -skew_cj')."""
+    n, nm = c.theta0.shape
+    m = nm - n
+    bmat = lib.bmat if lib is cp else np.block
+    zero = lambda a, b: np.zeros((a, b))  # noqa: E731
+    pad = lambda E: bmat([[E, zero(n, m)], [zero(m, n), zero(m, m)]])  # noqa: E731
+    N = 2 * n + m
+
+    def robust(F0, Fc, L, skew):
+        sizes = [N * len(F) for F in Fc]
+        cols = [bmat([[0.5 * F[j] + S[j]] for j in range(len(F))]) for F, S in zip(Fc, skew)]
+        rows = [[F0 - sum(L), *[A.T for A in cols]]]
+        for i, A in enumerate(cols):
+            rows.append([A] + [lib.kron(np.eye(len(Fc[i])), L[i]) if i == j else zero(sizes[i], sizes[j])
+                               for j in range(len(cols))])
+        return bmat(rows)
+    # upper, xi = [x; u; y]
+    fin = Lam @ np.hstack([c.K0, -np.eye(m)])
+    F0 = bmat([[bmat([[Xc - q * np.eye(n), zero(n, m)], [zero(m, n), -r * np.eye(m)]]) + fin + fin.T,
+                c.theta0.T @ G.T], [G @ c.theta0, G + G.T - Xc]])
+    Fc = []
+    for axes, Es, ks in zip(channels, E1, k1):
+        Fj = []
+        for D, E, k in zip(axes, Es, ks):
+            fin = Lam @ np.hstack([k, zero(m, m)])
+            Fj.append(bmat([[pad(E) + fin + fin.T, D.T @ G.T], [G @ D, -E]]))
+        Fc.append(Fj)
+    upper = robust(F0, Fc, L1, skew1)
+    # lower, xi = [zeta; z]
+    TH = c.theta0.T @ H
+    F0 = bmat([[bmat([[q * np.eye(n) - Yc, zero(n, m)], [zero(m, n), r * np.eye(m)]]) + TH + TH.T, H.T], [H, Yc]])
+    Fc = [[bmat([[-pad(E) + D.T @ H + H.T @ D, zero(nm, n)], [zero(n, nm), E]]) for D, E in zip(axes, Es)]
+          for axes, Es in zip(channels, E1)]
+    lower = robust(F0, Fc, L2, skew2)
+    return [upper, lower, Xc - Yc]
+
+
+def _affine_inputs(c: Clean, r: float, channels: list, E1: list, Wmap: np.ndarray) -> tuple[list, list]:
+    """(E1_cj, k1_cj) at the channels' semi-axes D_cj: E1(D_cj) and k1(D_cj) = -M0^-1 W1(D_cj)."""
+    n, nm = c.theta0.shape
+    B0 = c.theta0[:, n:]
+    M0 = r * np.eye(nm - n) + B0.T @ c.P0 @ B0
+    E_all = np.array([E.ravel() for E in E1]).T
+    return ([[_sym((E_all @ D.ravel()).reshape(n, n)) for D in axes] for axes in channels],
+            [[-np.linalg.solve(M0, (Wmap @ D.ravel()).reshape(nm - n, n)) for D in axes] for axes in channels])
+
+
+def affine_sandwich(atk: IdentificationAttack, c: Clean, shape: ModelShape, E1: list, Wmap: np.ndarray
+                    ) -> dict[str, Any] | None:
+    """{Xc, Yc, G, H, Lam, L1, L2, skew1, skew2}: Yc + E1(dTheta) <= P(Theta) <= Xc + E1(dTheta) for every model
+    Theta0 + dTheta of the shape (module docstring), minimizing the box's width (as sandwich does); None if the SDP
+    finds none."""
+    n, nm = c.theta0.shape
+    q, r = atk.lqr_weights
+    B0 = c.theta0[:, n:]
+    channels = model_channels(shape, c.theta0.shape)
+    E1c, k1c = _affine_inputs(c, r, channels, E1, Wmap)
+    Xc, Yc = cp.Variable((n, n), symmetric=True), cp.Variable((n, n), symmetric=True)
+    G, H, Lam = cp.Variable((n, n)), cp.Variable((n, nm)), cp.Variable((nm, nm - n))
+    N = 2 * n + nm - n
+    L1, L2 = [[cp.Variable((N, N), symmetric=True) for _ in channels] for _ in range(2)]
+    S1, S2 = [[[cp.Variable((N, N)) for _ in axes] for axes in channels] for _ in range(2)]
+    skew1, skew2 = [[[S - S.T for S in Sc] for Sc in Ss] for Ss in (S1, S2)]
+    upper, lower, gap = _affine_blocks(c, q, r, channels, E1c, k1c, Xc, Yc, G, H, Lam, L1, L2, skew1, skew2, cp)
+    room = STRICT * (1.0 + float(np.max(np.abs(c.P0))))
+    t, t_B, t_A = cp.Variable(), cp.Variable(), cp.Variable()
+    cons = [_sym(upper) >> room * np.eye(upper.shape[0]), _sym(lower) >> room * np.eye(lower.shape[0]),
+            _sym(gap) >> room * np.eye(n), *[L >> 0 for L in L1 + L2],
+            Xc - c.P0 << t * np.eye(n), c.P0 - Yc << t * np.eye(n),
+            _sym(B0.T @ (Xc - Yc) @ B0) << t_B * np.eye(nm - n), _sym(c.Acl0.T @ (Xc - Yc) @ c.Acl0) << t_A * np.eye(n)]
+    try:
+        solve_quietly(cp.Problem(cp.Minimize(t + t_B + t_A), cons), solver=cp.CLARABEL)  # the numpy re-check decides
+    except cp.SolverError:
+        return None
+    found = {"Xc": Xc, "Yc": Yc, "G": G, "H": H, "Lam": Lam}
+    if any(v.value is None for v in [*found.values(), *L1, *L2, *[S for Ss in S1 + S2 for S in Ss]]):
+        return None
+    out = {k: _sym(v.value) if k in SYMMETRIC else np.asarray(v.value, float) for k, v in found.items()}
+    skew = lambda Ss: [[np.asarray(S.value - S.value.T) for S in Sc] for Sc in Ss]  # noqa: E731
+    return {**out, "L1": [_sym(L.value) for L in L1], "L2": [_sym(L.value) for L in L2], "skew1": skew(S1),
+            "skew2": skew(S2)}
 
 
 def lyapunov(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
@@ -489,6 +642,91 @@ def gain_set(atk: IdentificationAttack, c: Clean, delta: float, eps: float, X: n
                    min(_norm(C @ B0) + _norm(root) * half_B, t * _norm(B0)), m_lo, m_hi)
 
 
+@dataclass(frozen=True)
+class AffineGainSet:
+    """A convex outer set of the gain errors d = (K - K0)' over the budget (one input) from the affine sandwich, by its
+    support function: K - K0 = -W / M, W - W0 = W1(dTheta) + B0'e Acl0 + T2 exactly (module docstring), the model
+    set the ellipsoid dTheta = sum_j a_j D_j, ||a|| <= 1, with the fit's exact linear image inside it."""
+
+    WX: np.ndarray        # W1's image of the X ball (n x X's size)
+    WU: np.ndarray        # and of the U ball
+    ball: float           # ||W0|| + ||W1|| times the fit's nonlinear part
+    centre: np.ndarray    # B0'C Acl0 (C the box's centre)
+    half_B: float         # ||H^1/2 B0|| (H the box's half-width)
+    half: float           # ||H^1/2||
+    half_A: np.ndarray    # H^1/2 Acl0
+    CA: np.ndarray        # C Acl0
+    e_B: float            # ||C B0|| + ||H^1/2|| ||H^1/2 B0|| >= ||e B0||
+    t_e: float            # ||e|| <= t_e
+    acl0: np.ndarray
+    b: float              # ||B0||
+    quad: np.ndarray      # T2's quadratic part, (n, k, k): u'Q(D_i, D_j) symmetrized, per unit u
+    DF: np.ndarray        # (n, n, k): [D_j F e_l]_j per unit e_l
+    ext_B: float          # max ||dB|| over the ellipsoid
+    ext_E: float          # max ||E1(dTheta)|| over the ellipsoid
+    m_lo: float
+    m_hi: float
+
+    def support(self, U: np.ndarray) -> np.ndarray:
+        """An upper bound on max over the set of u'd for each column u of U (n x p)."""
+        col = lambda M: np.linalg.norm(M, axis=0)  # noqa: E731
+        ext_F = np.sqrt(np.maximum(np.linalg.eigvalsh(_gram_rows(np.einsum("lik,lp->pik", self.DF, U)))[:, -1], 0.0))
+        quad = np.abs(np.linalg.eigvalsh(np.einsum("lij,lp->pij", self.quad, U))).max(axis=1)
+        h_A = col(self.half_A @ U)
+        g = (col(self.WX.T @ U) + col(self.WU.T @ U) + self.ball * col(U)
+             + np.minimum(-self.centre @ U + self.half_B * h_A, self.b * self.t_e * col(self.acl0 @ U))
+             + quad + self.ext_B * self.ext_E * ext_F
+             + self.ext_B * (col(self.CA @ U) + self.half * h_A) + (self.e_B + self.ext_B * self.t_e) * ext_F)
+        return np.maximum(g / self.m_lo, g / self.m_hi)
+
+
+def _gram_rows(M: np.ndarray) -> np.ndarray:
+    """M M' for a stack of matrices (p, a, b) -> (p, a, a)."""
+    return np.einsum("pik,pjk->pij", M, M)
+
+
+def affine_gain_set(atk: IdentificationAttack, c: Clean, delta: float, shape: ModelShape, sol: dict[str, Any],
+                    maps: tuple[np.ndarray, np.ndarray], E1: list, Wmap: np.ndarray) -> AffineGainSet:
+    """The AffineGainSet at budget delta from the affine sandwich's solution (Xc, Yc) on the combined ellipsoid
+    `shape` (model_shape(..., ball=True)), the fit's maps, E1 on the unit models and W1's matrix (riccati_maps)."""
+    n, nm = c.theta0.shape
+    B0 = c.theta0[:, n:]
+    r = atk.lqr_weights[1]
+    r_X, r_U = delta * np.linalg.norm(atk.signals["X"]), delta * np.linalg.norm(atk.signals["U"])
+    _, rest, _, _ = _fit_parts(atk, delta)
+    Xc, Yc = _sym(sol["Xc"]), _sym(sol["Yc"])
+    H, C = 0.5 * _sym(Xc - Yc), 0.5 * _sym(Xc + Yc) - c.P0
+    root = _root(H)
+    t_e = max(float(np.linalg.eigvalsh(Xc - c.P0)[-1]), float(np.linalg.eigvalsh(c.P0 - Yc)[-1]), 0.0)
+    half_B, half = _norm(root @ B0), _norm(root)
+    e_B = min(_norm(C @ B0) + half * half_B, t_e * _norm(B0))
+    Ds = [shape.D[:, j * nm:(j + 1) * nm] for j in range(shape.k)]
+    E_all = np.array([E.ravel() for E in E1]).T
+    Ej = [_sym((E_all @ D.ravel()).reshape(n, n)) for D in Ds]
+    dB = [D[:, n:] for D in Ds]
+    P0A = c.P0 @ c.Acl0
+    # T2's quadratic part: dB'P0 dTheta F + dB'E1(dTheta) Acl0 + B0'E1(dTheta) dTheta F at (D_i, D_j), a row per pair
+    Q = np.array([[(dB[i].T @ c.P0 @ Ds[j] @ c.F + dB[i].T @ Ej[j] @ c.Acl0 + B0.T @ Ej[i] @ Ds[j] @ c.F).ravel()
+                   for j in range(shape.k)] for i in range(shape.k)])  # (k, k, n)
+    quad = np.moveaxis(0.5 * (Q + Q.transpose(1, 0, 2)), 2, 0)
+    DF = np.array([np.array([D @ c.F[:, l] for D in Ds]).T for l in range(n)])  # (n, n, k)
+    ext_B = _norm(np.hstack(dB))
+    ext_E = _norm(E_all @ np.array([D.ravel() for D in Ds]).T)
+    # M = r + B'PB: M0 + [2 B0'P0 dB + B0'E1 B0] + [dB'P0 dB + 2 dB'E1 B0] + dB'E1 dB + B'e B
+    M0 = r + (B0.T @ c.P0 @ B0).item()
+    lin = np.array([(2 * B0.T @ c.P0 @ b + B0.T @ E @ B0).item() for b, E in zip(dB, Ej)])
+    Mq = np.array([[(dB[i].T @ c.P0 @ dB[j] + dB[i].T @ Ej[j] @ B0 + dB[j].T @ Ej[i] @ B0).item()
+                    for j in range(shape.k)] for i in range(shape.k)])
+    spread = (np.linalg.norm(lin) + np.abs(np.linalg.eigvalsh(_sym(Mq))).max() + ext_B ** 2 * ext_E
+              + 2 * ext_B * e_B + ext_B ** 2 * t_e)
+    centre_M = (B0.T @ C @ B0).item()
+    m_lo = M0 + centre_M - half_B ** 2 - spread
+    m_hi = M0 + centre_M + half_B ** 2 + spread
+    return AffineGainSet(Wmap @ maps[0] * r_X, Wmap @ maps[1] * r_U, _norm(c.W0) + _norm(Wmap) * rest,
+                         (B0.T @ C @ c.Acl0).ravel(), half_B, half, root @ c.Acl0, C @ c.Acl0, e_B, t_e, c.Acl0,
+                         _norm(B0), quad, DF, ext_B, ext_E, m_lo, m_hi)
+
+
 def loop_polynomial(A: np.ndarray, B: np.ndarray, K0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(base, slopes): det(zI - A - B (K0 + d')) = base(z) + d' slopes(z) (coefficients highest power first; one input,
     so affine in d), by Faddeev-LeVerrier: adj(zI - Acl) = sum_k z^(n-1-k) N_k, N_0 = I, N_k = Acl N_k-1 + c_k I."""
@@ -601,6 +839,94 @@ def recheck_directional(atk: IdentificationAttack, delta: float, sol: dict[str, 
                   "excluded_by": swept.excluded_by, "margin": margin, "eps_model": eps, "t_cost": t})
 
 
+def affine(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
+    """Mechanism "affine" (module docstring): the affine sandwich and its gain set, zero exclusion as in directional;
+    None for more than one input."""
+    atk = target.declaration
+    A, B = atk.setting.state_space
+    if B.shape[1] != 1:
+        return None
+    t0 = time.perf_counter()
+    eps, s = model_radius(atk, delta)
+    if not np.isfinite(eps):
+        return Evidence("affine", Proof.UNKNOWN, f"the poisoned regressor may be singular (s = {s:.3g})", {"s": s},
+                        Check(False, "nothing to check"), time.perf_counter() - t0)
+    Y0, Z0 = atk.regression(atk.signals)
+    c = clean(atk, least_squares_fit(Y0, Z0))
+    clean_radius = radius(A + B @ c.K0)
+    numbers: dict[str, float] = {"eps_model": eps, "s": s, "clean_radius": clean_radius}
+    if not clean_radius < 1:
+        return Evidence("affine", Proof.UNKNOWN, f"the clean loop is not stable (spectral radius {clean_radius:.4g})",
+                        numbers, Check(False, "nothing to check"), time.perf_counter() - t0)
+    maps = model_maps(atk)
+    shape = model_shape(atk, delta, maps, ball=True)
+    E1, Wmap = riccati_maps(c)
+    found = affine_sandwich(atk, c, shape, E1, Wmap)
+    if found is None:
+        return Evidence("affine", Proof.UNKNOWN, "the affine sandwich's SDP found no bounds", numbers,
+                        Check(False, "nothing to check"), time.perf_counter() - t0)
+    gains = affine_gain_set(atk, c, delta, shape, found, maps, E1, Wmap)
+    numbers.update(t_e=gains.t_e, m_lo=gains.m_lo)
+    if not gains.m_lo > 0:
+        return Evidence("affine", Proof.UNKNOWN, "the gain equation's denominator may vanish", numbers,
+                        Check(False, "nothing to check"), time.perf_counter() - t0)
+    swept = sweep(*loop_polynomial(A, B, c.K0), gains.support, GRID, ANGLES)
+    numbers.update(excluded_by=swept.excluded_by, lipschitz=swept.lipschitz)
+    if not swept.proven:
+        return Evidence("affine", Proof.UNKNOWN, f"zero exclusion fails at delta = {delta:.6g} (guaranteed distance "
+                        f"{swept.excluded_by:.3g})", numbers, Check(False, "nothing to check"),
+                        time.perf_counter() - t0)
+    check = recheck_affine(atk, delta, found)
+    return Evidence("affine", Proof.PROVEN, f"no poisoning with ||dX||_F <= {delta:.6g} ||X||_F, ||dU||_F <= "
+                    f"{delta:.6g} ||U||_F destabilizes the true loop under certainty-equivalence LQR (Riccati "
+                    f"solutions within {gains.t_e:.3g} of their first-order change, zero excluded by "
+                    f"{swept.excluded_by:.3g})",
+                    numbers, check, time.perf_counter() - t0)
+
+
+def recheck_affine(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Check:
+    """The affine sandwich's LMIs by numpy eigenvalues at the SDP's solution (margin above rounding; multipliers >= 0,
+    Xc >= Yc), with E1 and W1 from Kronecker products, the fit's maps and the ellipsoid the whitened way and the clean
+    model from a numpy lstsq re-fit; the gain set from them, the loop polynomial from np.poly and the sweep on a grid
+    twice as fine with twice the directions."""
+    A, B = atk.setting.state_space
+    c = _refit_clean(atk)
+    n, nm = c.theta0.shape
+    q, r = atk.lqr_weights
+    maps = model_maps(atk, whitened=True)
+    shape = model_shape(atk, delta, maps, ball=True)
+    E1, Wmap = riccati_maps(c, kron=True)
+    channels = model_channels(shape, c.theta0.shape)
+    E1c, k1c = _affine_inputs(c, r, channels, E1, Wmap)
+    Xc, Yc = _sym(sol["Xc"]), _sym(sol["Yc"])
+    mats = _affine_blocks(c, q, r, channels, E1c, k1c, Xc, Yc, sol["G"], sol["H"], sol["Lam"], sol["L1"], sol["L2"],
+                          sol["skew1"], sol["skew2"], np)
+    eigs, ok = _smallest_eigs(mats, ("upper", "lower", "gap"))
+    multipliers = min(float(np.linalg.eigvalsh(L)[0]) for L in sol["L1"] + sol["L2"])
+    skew = max(float(np.max(np.abs(S + S.T))) for Ss in sol["skew1"] + sol["skew2"] for S in Ss)
+    gains = affine_gain_set(atk, c, delta, shape, sol, maps, E1, Wmap)
+    Acl = A + B @ c.K0
+    base = np.poly(Acl)
+    slopes = np.array([np.poly(Acl + B @ e[None, :]) - base for e in np.eye(n)])
+    fl_base, fl_slopes = loop_polynomial(A, B, c.K0)
+    agree = max(float(np.max(np.abs(slopes - fl_slopes)) / np.max(np.abs(slopes))),
+                float(np.max(np.abs(base - fl_base))))
+    slopes = np.where(np.abs(slopes) >= np.abs(fl_slopes), slopes, fl_slopes)
+    swept = sweep(base, slopes, gains.support, 2 * GRID, 2 * ANGLES)
+    margin = param("robust.check_margin") * float(np.max(np.abs(base)))
+    clean_radius = float(np.max(np.abs(np.linalg.eigvals(Acl))))
+    passed = clean_radius < 1 - margin and ok["upper"] and ok["lower"] and ok["gap"] and multipliers >= 0 \
+        and skew == 0 and gains.m_lo > 0 and swept.excluded_by > margin and swept.leading > margin and agree < 1e-6
+    return Check(passed, "numpy eigenvalues of the affine sandwich's LMIs (smallest: "
+                 + ", ".join(f"{k} {v:.3g}" for k, v in eigs.items())
+                 + f"; multipliers {multipliers:.3g}); the sweep at {2 * GRID} frequencies excludes zero by "
+                 f"{swept.excluded_by:.3g} (margin {margin:.1e}); the clean loop's spectral radius {clean_radius:.4g}",
+                 {**{f"min_eig_{k}": v for k, v in eigs.items()}, "multipliers": multipliers, "agreement": agree,
+                  "clean_radius": clean_radius, "excluded_by": swept.excluded_by, "margin": margin,
+                  "t_e": gains.t_e, "m_lo": gains.m_lo})
+
+
 register_target(IdentificationAttack, identification_target)
+register_mechanism("ident-ce-lqr", affine, "affine", cost=0.4)
 register_mechanism("ident-ce-lqr", directional, "directional", cost=0.5)
 register_mechanism("ident-ce-lqr", lyapunov, "lyapunov", cost=1.0)

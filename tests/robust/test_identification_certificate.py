@@ -13,14 +13,17 @@ import pytest
 from bilevel.ddc.model_based import lqr_gain
 from bilevel.problems.identification_instance import IdentificationAttack, IdentificationSetting, attack_instance
 from bilevel.robust import Proof, as_target, certify, sample_soundness, sphere_poisoning
-from bilevel.robust.identification import (_first_order_map_kron, clean, directional, first_order_map, gain_set,
-                                           loop_polynomial, lyapunov, model_maps, model_radius, model_shape, recheck,
-                                           recheck_directional, sandwich)
+from bilevel.robust.identification import (_first_order_map_kron, affine, affine_gain_set, affine_sandwich, clean,
+                                           directional, first_order_map, gain_set, loop_polynomial, lyapunov,
+                                           model_maps, model_radius, model_shape, recheck, recheck_affine,
+                                           recheck_directional, riccati_maps, sandwich)
 
 PROVEN = 0.0005
 """A budget lyapunov proves on data seed 0 (T = 100), where it alone bisects to delta_lb 0.00148."""
 BEYOND = 0.0025
 """A budget directional proves on data seed 0 and lyapunov does not (the attack's delta_ub there is 0.0325)."""
+AFFINE = 0.006
+"""A budget affine proves on data seed 0 and directional does not (they bisect to 0.00445 and 0.00688 there)."""
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +138,7 @@ def test_directional_proves_beyond_lyapunov_and_a_tampered_solution_fails(atk) -
     found = directional(target, BEYOND, {})
     assert found.proof is Proof.PROVEN and found.check.passed and found.check.numbers["excluded_by"] > 0
     assert lyapunov(target, BEYOND, {}).proof is Proof.UNKNOWN
-    assert certify(atk, PROVEN).evidence[0].mechanism == "directional"
+    assert certify(atk, PROVEN, mechanisms=("directional", "lyapunov")).evidence[0].mechanism == "directional"
     tampered = {"X": 0.5 * np.eye(4), "Y": 0.5 * np.eye(4), "mu1": 1.0, "mu2": 1.0, "L1": np.eye(4), "L2": np.eye(5)}
     assert not recheck_directional(atk, BEYOND, tampered).passed
 
@@ -148,3 +151,57 @@ def test_directional_proves_nothing_for_a_true_plant_its_clean_gain_does_not_sta
     assert as_target(wrong).true_radius({}) > 1
     found = directional(as_target(wrong), PROVEN, {})
     assert found.proof is Proof.UNKNOWN and "not stable" in found.claim
+
+
+def test_the_riccati_maps_are_the_derivative_two_ways(atk) -> None:
+    c = clean(atk, atk.theta0)
+    n = c.theta0.shape[0]
+    E1, W1 = riccati_maps(c)
+    E1k, W1k = riccati_maps(c, kron=True)
+    assert max(np.abs(a - b).max() for a, b in zip(E1, E1k)) < 1e-10 and np.abs(W1 - W1k).max() < 1e-10
+    D = np.random.default_rng(8).standard_normal(c.theta0.shape)
+    h = 1e-6
+    K1, P1 = lqr_gain(c.theta0[:, :n] + h * D[:, :n], c.theta0[:, n:] + h * D[:, n:], np.eye(n), np.eye(1))
+    K2, P2 = lqr_gain(c.theta0[:, :n] - h * D[:, :n], c.theta0[:, n:] - h * D[:, n:], np.eye(n), np.eye(1))
+    E = sum(d * E for d, E in zip(D.ravel(), E1))
+    M0 = 1 + (c.theta0[:, n:].T @ c.P0 @ c.theta0[:, n:]).item()
+    assert np.allclose((P1 - P2) / (2 * h), E, atol=1e-5 * np.abs(E).max())
+    assert np.allclose((K1 - K2).ravel() / (2 * h), -W1 @ D.ravel() / M0, atol=1e-5)
+
+
+def test_the_affine_sets_contain_the_refits_and_the_attack(atk) -> None:
+    target = as_target(atk)
+    c = clean(atk, atk.theta0)
+    n = c.theta0.shape[0]
+    maps = model_maps(atk)
+    shape = model_shape(atk, AFFINE, maps, ball=True)
+    E1, W1 = riccati_maps(c)
+    found = affine_sandwich(atk, c, shape, E1, W1)
+    gains = affine_gain_set(atk, c, AFFINE, shape, found, maps, E1, W1)
+    rng = np.random.default_rng(6)
+    poisonings = [sphere_poisoning(target, AFFINE, rng) for _ in range(100)]
+    poisonings.append(target.attacks["engine"](AFFINE, 0))
+    W = rng.standard_normal((n, 200))
+    W = np.hstack([W / np.linalg.norm(W, axis=0), np.eye(n), -np.eye(n)])
+    bound = gains.support(W)
+    for a in poisonings:
+        theta = target.refit(target.poisoned(a))
+        K, P = lqr_gain(theta[:, :n], theta[:, n:], np.eye(n), np.eye(1))
+        assert np.all((K - c.K0) @ W <= bound)
+        E = sum(d * E for d, E in zip((theta - c.theta0).ravel(), E1))
+        assert np.linalg.eigvalsh(found["Xc"] + E - P)[0] >= 0 and np.linalg.eigvalsh(P - found["Yc"] - E)[0] >= 0
+        M = 1 + (theta[:, n:].T @ P @ theta[:, n:]).item()
+        assert gains.m_lo <= M <= gains.m_hi
+
+
+def test_affine_proves_beyond_directional_and_a_tampered_solution_fails(atk) -> None:
+    target = as_target(atk)
+    found = affine(target, AFFINE, {})
+    assert found.proof is Proof.PROVEN and found.check.passed and found.check.numbers["excluded_by"] > 0
+    assert directional(target, AFFINE, {}).proof is Proof.UNKNOWN
+    assert certify(atk, AFFINE).evidence[0].mechanism == "affine"
+    solution = affine_sandwich(atk, clean(atk, atk.theta0), model_shape(atk, AFFINE, model_maps(atk), ball=True),
+                               *riccati_maps(clean(atk, atk.theta0)))
+    assert recheck_affine(atk, AFFINE, solution).passed
+    assert not recheck_affine(atk, AFFINE, {**solution, "Xc": solution["Xc"] - 0.2 * np.eye(4)}).passed
+    assert not recheck_affine(atk, AFFINE, {**solution, "Yc": solution["Yc"] + 0.2 * np.eye(4)}).passed
