@@ -31,8 +31,9 @@ Mechanism "kkt-sensitivity" (a proof at delta):
   so the cost residual is exactly r(a) = r0 + G a + P0 W0 Delta' e + P0 Delta (g - g0). Splitting e = dv1 + (e - dv1)
   and g - g0 = dg1 + (g - g0 - dg1) gives back the quadratic part above, and the rest is
   P0 W0 Delta' (e - dv1) + P0 Delta (g - g0 - dg1) with e - dv1 = -M^-1 [W Delta' dv1 + Delta dg1] and
-  g - g0 - dg1 = W' (e - dv1) + Delta' dv1. With rest >= ||M^-1/2 [W Delta' dv1 + Delta dg1]|| (<= ||Delta' dv1|| +
-  beta / (1 - beta) ||dg1||) and y3 >= ||M^-1/2 y3|| as in the first way:
+  g - g0 - dg1 = W' (e - dv1) + Delta' dv1. With rest >= ||M^-1/2 [W Delta' dv1 + Delta dg1]||, the smaller of
+  ||Delta' dv1|| + beta / (1 - beta) ||dg1|| and ||M0^1/2 R2|| / (1 - beta) + beta / (1 - beta) ||Delta' dv1|| (the
+  bracket is -M0 R2 + Delta Delta' dv1), and y3 >= ||M^-1/2 y3|| as in the first way:
   ||Delta' (e - dv1)|| <= min(beta / (1 - beta) rest, beta ||M0^1/2 R2|| + beta / (1 - beta) y3) (e - dv1 = R2 + R3),
   ||W' (e - dv1)|| <= min(rest, (1 + beta) ||M0^1/2 R2|| + y3) (||W' M^-1/2|| <= 1, W0 W0' <= M0), so the rest is at
   most ||P0 W0|| ||Delta' (e - dv1)|| + sup ||P0 Delta|| (||W' (e - dv1)|| + ||Delta' dv1||). The plan barely reads
@@ -306,7 +307,8 @@ def cost_bound(maps: Maps, atk: DeePCAttack, delta: float, mult: tuple[float, fl
     b2 = min(a2 + beta * maps.dg1 * delta, float(np.linalg.norm(maps.quad_m0 @ squares)))  # ||M0^1/2 R2||
     second = float(np.linalg.norm(maps.quad @ squares))
     grow = beta / (1 - beta)  # >= ||M^-1/2 Delta||
-    rest = a2 + grow * maps.dg1 * delta  # >= ||M^-1/2 [W Delta' dv1 + Delta dg1]|| = ||M^1/2 (v - v0 - dv1)||
+    # >= ||M^-1/2 [W Delta' dv1 + Delta dg1]|| = ||M^1/2 (v - v0 - dv1)||
+    rest = min(a2 + grow * maps.dg1 * delta, b2 / (1 - beta) + grow * a2)
     y3 = beta * b2 + grow * (b2 + a2)  # >= ||M^-1/2 y3||
     through_m = maps.out * y3
     d_rest = min(grow * rest, beta * b2 + grow * y3)  # >= ||Delta' (v - v0 - dv1)||
