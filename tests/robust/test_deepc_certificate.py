@@ -142,3 +142,12 @@ def test_plan_sensitivity_bound_holds_where_it_decides(target) -> None:
     ascended = target.true_radius(_ascent_poisoning(target, delta, starts=3, steps=60, seed=4)) * level
     assert max(sampled, attacked, ascended) <= cert.bound
     assert ascended > target.declaration.clean_cost  # the ascent does move the cost
+
+
+def test_tampered_plan_sensitivity_fails_its_recheck() -> None:
+    # where the plan-sensitivity way decides (T = 60, seed 0, delta 1.3e-3), a too-small ||P0 W0|| is caught
+    target = as_target(attack_instance(T=60, seed=0))
+    cost = target.declaration
+    cost.cache["gram"] = dataclasses.replace(gram_maps(cost), p0w0=0.1 * gram_maps(cost).p0w0)
+    cert = certify(target, 1.3e-3)
+    assert cert.proof is Proof.UNKNOWN and not cert.evidence[0].check.passed
