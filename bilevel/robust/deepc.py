@@ -21,8 +21,24 @@ Mechanism "kkt-sensitivity" (a proof at delta):
   is a quadratic form of the poisoning per cost entry, a' B_i a, each bounded over the balls by its blocks' spectral
   norms; R3 is bounded with M >= lambda_g Pi (so (lambda_g / r_weight) ||Mm E_uf M^-1/2|| <= ||Mm||
   sqrt(lambda_g / r_weight)), ||M^-1/2 W|| <= 1, ||M0^-1/2 W0|| <= 1 and M >= (1 - beta)^2 M0 where beta >=
-  ||M0^-1/2 Delta|| (so ||M^-1/2 Delta|| <= beta / (1 - beta)); the norm of a linear map of the poisoning is bounded
-  by the sum of its two blocks' spectral norms times the radii;
+  ||M0^-1/2 Delta|| (so ||M^-1/2 Delta|| <= beta / (1 - beta)): R3 = -M^-1 y3 with ||M^-1/2 y3|| <= y3 :=
+  beta ||M0^1/2 R2|| + beta / (1 - beta) (||M0^1/2 R2|| + ||Delta' dv1||), and R3's image in the cost is at most
+  ||Mm|| sqrt(lambda_g / r_weight) y3 (the first way); the norm of a linear map of the poisoning is bounded by the sum
+  of its two blocks' spectral norms times the radii;
+- the cubic rest, a second way, through the plan's own sensitivity P0 = (lambda_g / r_weight) Mm E_uf M0^-1 (the
+  cost residual's response to M's right-hand side at the clean data) instead of M's weakest directions. With
+  e = v - v0 and g = W' v the poisoned learner's g, M0 e = -(M - M0) v exactly, and (M - M0) v = W0 Delta' v + Delta g,
+  so the cost residual is exactly r(a) = r0 + G a + P0 W0 Delta' e + P0 Delta (g - g0). Splitting e = dv1 + (e - dv1)
+  and g - g0 = dg1 + (g - g0 - dg1) gives back the quadratic part above, and the rest is
+  P0 W0 Delta' (e - dv1) + P0 Delta (g - g0 - dg1) with e - dv1 = -M^-1 [W Delta' dv1 + Delta dg1] and
+  g - g0 - dg1 = W' (e - dv1) + Delta' dv1. With rest >= ||M^-1/2 [W Delta' dv1 + Delta dg1]||, the smaller of
+  ||Delta' dv1|| + beta / (1 - beta) ||dg1|| and ||M0^1/2 R2|| / (1 - beta) + beta / (1 - beta) ||Delta' dv1|| (the
+  bracket is -M0 R2 + Delta Delta' dv1), and y3 >= ||M^-1/2 y3|| as in the first way:
+  ||Delta' (e - dv1)|| <= min(beta / (1 - beta) rest, beta ||M0^1/2 R2|| + beta / (1 - beta) y3) (e - dv1 = R2 + R3),
+  ||W' (e - dv1)|| <= min(rest, (1 + beta) ||M0^1/2 R2|| + y3) (||W' M^-1/2|| <= 1, W0 W0' <= M0), so the rest is at
+  most ||P0 W0|| ||Delta' (e - dv1)|| + sup ||P0 Delta|| (||W' (e - dv1)|| + ||Delta' dv1||). The plan barely reads
+  W0's range (||P0 W0|| = 0.156 against the first way's factor 6.4 on attack_instance(T=100, seed=0)) and
+  sup ||P0 Delta|| is 19 times smaller than 6.4 beta there; the bound takes the smaller of the two ways;
 - sqrt(J) <= sqrt(linear bound) + the two remainders' bounds; the slack stays zero if 2 lambda_g ||v_yp||_inf <
   lambda_y over the set (v - v0 - dv1 = -M^-1 [W Delta' dv1 + Delta dg1] bounded the same way).
 The re-check builds the linear maps a second way (implicit differentiation of the learner's KKT system in g, numpy),
@@ -164,6 +180,8 @@ class Maps:
     s_norm: float
     quad: np.ndarray
     quad_m0: np.ndarray
+    p0w0: float
+    beta_p: float
 
 
 def _quadratic_blocks(p: np.ndarray, w0: np.ndarray, units: np.ndarray, dv1: np.ndarray, dg1: np.ndarray,
@@ -191,12 +209,13 @@ def _maps(cost: DeePCCost, dv1: np.ndarray, dg1: np.ndarray, v0: np.ndarray, w0:
     ev, vec = np.linalg.eigh(m0)
     s = vec @ np.diag(ev ** -0.5) @ vec.T  # M0^-1/2
     g = mm @ (-(lam / atk.r_weight) * dv1[:, 2 * k:2 * k + n].T)
-    p = (lam / atk.r_weight) * mm @ m0_inv_uf
+    p = (lam / atk.r_weight) * mm @ m0_inv_uf  # P0: the plan's (cost residual's) sensitivity to M's right-hand side
     return Maps(mm @ u0 - c, g, v0, _block_norm(np.tensordot(units, s, axes=([1], [1])), t, radii),
                 _block_norm(units, t, radii), _block_norm(dv1, t, radii),
                 _block_norm(dv1 @ np.linalg.cholesky(m0), t, radii), _block_norm(dg1, t, radii),
                 float(np.linalg.norm(mm, 2) * np.sqrt(lam / atk.r_weight)), float(ev[0] ** -0.5),
-                _quadratic_blocks(p, w0, units, dv1, dg1, t), _quadratic_blocks(s, w0, units, dv1, dg1, t))
+                _quadratic_blocks(p, w0, units, dv1, dg1, t), _quadratic_blocks(s, w0, units, dv1, dg1, t),
+                float(np.linalg.norm(p @ w0, 2)), _block_norm(np.tensordot(units, p, axes=([1], [1])), t, radii))
 
 
 def gram_maps(cost: DeePCCost) -> Maps:
@@ -287,12 +306,21 @@ def cost_bound(maps: Maps, atk: DeePCAttack, delta: float, mult: tuple[float, fl
     squares = np.array([radii[0] ** 2, 2 * radii[0] * radii[1], radii[1] ** 2])
     b2 = min(a2 + beta * maps.dg1 * delta, float(np.linalg.norm(maps.quad_m0 @ squares)))  # ||M0^1/2 R2||
     second = float(np.linalg.norm(maps.quad @ squares))
-    third = maps.out * (beta * b2 + beta / (1 - beta) * (b2 + a2))
+    grow = beta / (1 - beta)  # >= ||M^-1/2 Delta||
+    # >= ||M^-1/2 [W Delta' dv1 + Delta dg1]|| = ||M^1/2 (v - v0 - dv1)||
+    rest = min(a2 + grow * maps.dg1 * delta, b2 / (1 - beta) + grow * a2)
+    y3 = beta * b2 + grow * (b2 + a2)  # >= ||M^-1/2 y3||
+    through_m = maps.out * y3
+    d_rest = min(grow * rest, beta * b2 + grow * y3)  # >= ||Delta' (v - v0 - dv1)||
+    w_rest = min(rest, (1 + beta) * b2 + y3)  # >= ||W' (v - v0 - dv1)||
+    through_plan = maps.p0w0 * d_rest + maps.beta_p * delta * (w_rest + a2)
+    third = min(through_m, through_plan)
     remainder = second + third
     dv = maps.dv1 * delta + maps.s_norm / (1 - beta) * (a2 + beta / (1 - beta) * maps.dg1 * delta)
     k = atk.t_ini
     slack = 2 * atk.lambda_g * (float(np.max(np.abs(maps.v0[k:2 * k]))) + dv)
-    return {"beta": beta, "linear": linear, "second_order": second, "remainder": remainder,
+    return {"beta": beta, "linear": linear, "second_order": second, "third_through_m": through_m,
+            "third_through_plan": through_plan, "remainder": remainder,
             "bound": (np.sqrt(linear) + remainder) ** 2, "slack_multiplier": slack}
 
 

@@ -77,3 +77,77 @@ def test_other_settings_are_refused(change, why) -> None:
     atk = dataclasses.replace(attack_instance(T=60, seed=0), **change)
     with pytest.raises(ModelError, match=why):
         as_target(atk)
+
+
+def _ascent_poisoning(target, delta: float, starts: int, steps: int, seed: int) -> dict[str, np.ndarray]:
+    """The largest true tracking cost a projected-gradient ascent finds on the budget spheres (the gradient of the
+    Gram form's plan written out here; the cost judged by the target's numpy KKT re-fit)."""
+    from bilevel.robust.deepc import _cost_metric, _unit_rows, hankel_rows
+
+    atk = target.declaration.attack
+    t, k, n, lam, rw = atk.u.size, atk.t_ini, atk.horizon, atk.lambda_g, atk.r_weight
+    w0, units = hankel_rows(atk, atk.u, atk.y), _unit_rows(atk)
+    pi = np.diag(np.concatenate([np.zeros(2 * k), np.full(n, 1 / rw), np.full(n, 1 / atk.q)]))
+    h = np.concatenate([atk.past_u[-k:], atk.past_y[-k:], np.zeros(n), np.full(n, atk.reference)])
+    mm, c = _cost_metric(atk)
+    radii = target.radii(delta)
+
+    def onto(a):
+        return np.concatenate([radii["u"] * a[:t] / np.linalg.norm(a[:t]), radii["y"] * a[t:] / np.linalg.norm(a[t:])])
+
+    def cost_grad(a):
+        w = w0 + np.tensordot(a, units, axes=1)
+        m = w @ w.T + lam * pi
+        v = np.linalg.solve(m, h)
+        r = mm @ (-(lam / rw) * v[2 * k:2 * k + n]) - c
+        z = np.linalg.solve(m, np.concatenate([np.zeros(2 * k), (lam / rw) * mm.T @ r, np.zeros(n)]))
+        return r @ r, 2 * (np.einsum("r,src,c->s", z, units, w.T @ v) + np.einsum("r,src,c->s", v, units, w.T @ z))
+
+    rng = np.random.default_rng(seed)
+    best, best_a = -np.inf, None
+    for _ in range(starts):
+        a, step = onto(rng.standard_normal(2 * t)), 1e-3
+        for _ in range(steps):
+            f, grad = cost_grad(a)
+            trial = onto(a + step * radii["y"] * grad / np.linalg.norm(grad))
+            a, step = (trial, 1.5 * step) if cost_grad(trial)[0] > f else (a, 0.5 * step)
+        if cost_grad(a)[0] > best:
+            best, best_a = cost_grad(a)[0], a
+    return {"u": best_a[:t], "y": best_a[t:]}
+
+
+def test_plan_sensitivity_way_is_tighter_than_m_alone(target) -> None:
+    # T = 60, seed 0: the first way alone proves the level up to delta 8.1e-4; with the plan's sensitivity 1.66e-3
+    from bilevel.robust.deepc import cost_bound
+
+    cost, delta = target.declaration, 1.3e-3
+    cert = certify(target, delta)
+    numbers = cert.evidence[0].numbers
+    assert cert.proof is Proof.PROVEN and cert.evidence[0].check.passed
+    assert numbers["third_through_plan"] < 0.2 * numbers["third_through_m"]
+    m_alone = dataclasses.replace(gram_maps(cost), p0w0=float("inf"), beta_p=float("inf"))
+    old = cost_bound(m_alone, cost.attack, delta, (numbers["multiplier_u"], numbers["multiplier_y"]))
+    assert old["bound"] >= cost.level > cert.bound
+
+
+def test_plan_sensitivity_bound_holds_where_it_decides(target) -> None:
+    # near the new delta_lb: 2000 sphere poisonings, the engine's attack and a gradient ascent of the true cost
+    delta = 1.6e-3
+    cert = certify(target, delta)
+    assert cert.proven and cert.evidence[0].numbers["third_through_plan"] < cert.evidence[0].numbers["third_through_m"]
+    level = target.declaration.level
+    rng = np.random.default_rng(3)
+    sampled = max(target.true_radius(sphere_poisoning(target, delta, rng)) for _ in range(2000)) * level
+    attacked = target.true_radius(target.attacks["engine"](delta, 0)) * level
+    ascended = target.true_radius(_ascent_poisoning(target, delta, starts=3, steps=60, seed=4)) * level
+    assert max(sampled, attacked, ascended) <= cert.bound
+    assert ascended > target.declaration.clean_cost  # the ascent does move the cost
+
+
+def test_tampered_plan_sensitivity_fails_its_recheck() -> None:
+    # where the plan-sensitivity way decides (T = 60, seed 0, delta 1.3e-3), a too-small ||P0 W0|| is caught
+    target = as_target(attack_instance(T=60, seed=0))
+    cost = target.declaration
+    cost.cache["gram"] = dataclasses.replace(gram_maps(cost), p0w0=0.1 * gram_maps(cost).p0w0)
+    cert = certify(target, 1.3e-3)
+    assert cert.proof is Proof.UNKNOWN and not cert.evidence[0].check.passed
