@@ -5,8 +5,9 @@ Qx = I), input poisoning in an linf ball of radius delta_u, eigenvalue criterion
 attack and the differential-evolution baseline run on the same instances (sim i has the same data
 for every delta and method). Side experiments: the paper's output-poisoning remark (delta_y = 1e-3
 on the states, x_0 clean) and the other designs (lqr-r, stabilizing; u and xu poisoning; max-min
-criterion). Every attack is one sweep task (bilevel.experiments.sweep: one JSON line per finished
-attack, resumable, on the local pool or a Dask cluster); seeds come from SeedSequence(seed).spawn(sims).
+criterion). Every attack is one sweep task (bilevel.experiments.sweep: one JSON line per attack, written when its
+data set's tasks are done, as one worker runs them in order; resumable, on the local pool or a Dask cluster); seeds come
+from SeedSequence(seed).spawn(sims).
 """
 
 from __future__ import annotations
