@@ -5,9 +5,8 @@ Qx = I), input poisoning in an linf ball of radius delta_u, eigenvalue criterion
 attack and the differential-evolution baseline run on the same instances (sim i has the same data
 for every delta and method). Side experiments: the paper's output-poisoning remark (delta_y = 1e-3
 on the states, x_0 clean) and the other designs (lqr-r, stabilizing; u and xu poisoning; max-min
-criterion). Every attack is one sweep task (bilevel.experiments.sweep: one JSON line per attack, written when its
-data set's tasks are done, as one worker runs them in order; resumable, on the local pool or a Dask cluster); seeds come
-from SeedSequence(seed).spawn(sims).
+criterion). Every attack is one sweep task (bilevel.experiments.sweep: one JSON line per finished
+attack, resumable, on the local pool or a Dask cluster); seeds come from SeedSequence(seed).spawn(sims).
 """
 
 from __future__ import annotations
@@ -188,12 +187,6 @@ def _reference_radius(setting: WillemsSetting, x: np.ndarray, u: np.ndarray, cle
     except BilevelError:
         return float("nan")
     return float(np.max(np.abs(np.linalg.eigvals(plant.A + plant.B @ k))))
-
-
-def data_set(task: dict[str, Any]) -> tuple:
-    """The sweep's batches: a data set's tasks (every budget, method and design) run in one worker, one after another,
-    so it builds the attack once per declaration (kept_attack) and solves the learner once per data set."""
-    return task["experiment"], task["horizon"], task["seed"]
 
 
 def attack_task(task: dict[str, Any]) -> dict[str, Any]:
@@ -593,8 +586,7 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
     with open_executor(workers, dask) as executor:
         for name, (tasks, fields) in sweeps.items():
             rows[name] = run_sweep(attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress,
-                                   f"willems-{name}", valid_row, timing=name, reference=committed_timings("willems"),
-                                   together=data_set)
+                                   f"willems-{name}", valid_row, timing=name, reference=committed_timings("willems"))
             summaries[name] = summarize(rows[name], fields)
             write_csv(summaries[name], fields, os.path.join(out_dir, f"table_{name}.csv"))
     wall = load_timings(os.path.join(out_dir, "timings.json"), progress)
