@@ -189,12 +189,6 @@ def _reference_radius(setting: WillemsSetting, x: np.ndarray, u: np.ndarray, cle
     return float(np.max(np.abs(np.linalg.eigvals(plant.A + plant.B @ k))))
 
 
-def data_set(task: dict[str, Any]) -> tuple:
-    """The sweep's batches: a data set's tasks (every budget, method and design) run in one worker, one after another,
-    so it builds the attack once per declaration (kept_attack) and solves the learner once per data set."""
-    return task["experiment"], task["horizon"], task["seed"]
-
-
 def attack_task(task: dict[str, Any]) -> dict[str, Any]:
     """Run one attack described by a task; a JSON row with the task's fields and its outcome (or its error)."""
     fields = {k: v for k, v in task.items() if k != "key"}
@@ -592,8 +586,7 @@ def run_reproduction(sims: int = 256, out_dir: str = "out/willems", quick: bool 
     with open_executor(workers, dask) as executor:
         for name, (tasks, fields) in sweeps.items():
             rows[name] = run_sweep(attack_task, tasks, os.path.join(out_dir, f"{name}.jsonl"), executor, progress,
-                                   f"willems-{name}", valid_row, timing=name, reference=committed_timings("willems"),
-                                   together=data_set)
+                                   f"willems-{name}", valid_row, timing=name, reference=committed_timings("willems"))
             summaries[name] = summarize(rows[name], fields)
             write_csv(summaries[name], fields, os.path.join(out_dir, f"table_{name}.csv"))
     wall = load_timings(os.path.join(out_dir, "timings.json"), progress)

@@ -377,13 +377,14 @@ class WillemsAttack:
 
     def criteria(self, xs: np.ndarray, y: np.ndarray) -> np.ndarray:
         """The criterion at each column of xs for a learner that ignores the poisoning (y its solution): K =
-        K0 + dK/dx x is affine in x (K0 and dK/dx from the declared gain, at the first call on this declaration: y is
-        the same for every budget), numerically."""
+        K0 + dK/dx x is affine in x (K0 and dK/dx from the declared gain at y, kept per y for the declaration's
+        attacks at every budget), numerically."""
         if "affine" not in self.compiled:
             jacobian = ca.jacobian(ca.vec(self.gain), self.upper)
-            affine = ca.Function("affine", [self.upper, self._lower], [self.gain, jacobian])
-            self.compiled["affine"] = tuple(np.asarray(v, dtype=float) for v in affine(np.zeros(xs.shape[0]), y))
-        k0, jac = self.compiled["affine"]
+            self.compiled["affine"] = ca.Function("affine", [self.upper, self._lower], [self.gain, jacobian])
+        y = np.asarray(y, dtype=float)
+        k0, jac = kept(self.compiled.setdefault("affine_at", {}), y.tobytes(), lambda: tuple(
+            np.asarray(v, dtype=float) for v in self.compiled["affine"](np.zeros(xs.shape[0]), y)), 4)[0]
         gains = k0[None] + (xs.T @ jac.T).reshape(xs.shape[1], self.n_states, self.n_inputs).transpose(0, 2, 1)
         return criterion_values(self.a_id + self.b_id @ gains, gains, self.setting.objective, self.qx, self.cost_weight)
 
