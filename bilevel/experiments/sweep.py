@@ -365,9 +365,10 @@ def run_sweep(fn: Callable[[dict[str, Any]], dict[str, Any]], tasks: Iterable[di
                     progress(f"\r[{label}] {len(done)}/{len(tasks)} done, the first after {now - t0:.1f} s "
                              "(with the workers' start-up)")
                 elif progress and (ran == 1 or ran % report_every == 0 or ran == len(computed)):
-                    # once every worker has finished a task, the pace since the first excludes the start-up
-                    rate = (ran - 1) / max(now - t_first, 1e-9) if ran > max(1, executor.workers) else \
-                        ran / max(now - t0, 1e-9)
+                    # once every worker has finished a task, the pace since the first excludes the start-up; batches
+                    # (`together`) arrive as bursts of rows, so there the pace counts from the start
+                    rate = (ran - 1) / max(now - t_first, 1e-9) if ran > max(1, executor.workers) and together is None \
+                        else ran / max(now - t0, 1e-9)
                     progress(f"\r[{label}] {len(done)}/{len(tasks)} done, {rate:.2f} tasks/s, "
                              f"ETA {(len(computed) - ran) / max(rate, 1e-9):.0f} s")
     except SweepInterrupted as exc:
