@@ -746,12 +746,16 @@ GRID = 4096
 ANGLES = 9
 
 
-def _one_input_start(name: str, atk: IdentificationAttack, delta: float, t0: float
-                     ) -> tuple[float, Clean, dict[str, float]] | Evidence:
-    """(eps, the clean numbers, the evidence's numbers) for a zero-exclusion mechanism, or its UNKNOWN Evidence where
-    the poisoned regressor may be singular or the clean data's gain does not stabilize the true loop (zero exclusion
-    needs one stable member: the clean gain, d = 0)."""
+def _one_input_start(name: str, atk: IdentificationAttack, delta: float
+                     ) -> tuple[float, Clean, dict[str, float], tuple[np.ndarray, np.ndarray], float] | Evidence | None:
+    """(eps, the clean numbers, the evidence's numbers, the fit's maps, the start time) for a zero-exclusion mechanism;
+    None for more than one input (the loop is then not affine in the gain error); its UNKNOWN Evidence where the
+    poisoned regressor may be singular or the clean data's gain does not stabilize the true loop (zero exclusion needs
+    one stable member: the clean gain, d = 0)."""
     A, B = atk.setting.state_space
+    if B.shape[1] != 1:
+        return None
+    t0 = time.perf_counter()
     eps, s = model_radius(atk, delta)
     if not np.isfinite(eps):
         return Evidence(name, Proof.UNKNOWN, f"the poisoned regressor may be singular (s = {s:.3g})", {"s": s},
@@ -763,7 +767,7 @@ def _one_input_start(name: str, atk: IdentificationAttack, delta: float, t0: flo
     if not clean_radius < 1:
         return Evidence(name, Proof.UNKNOWN, f"the clean loop is not stable (spectral radius {clean_radius:.4g})",
                         numbers, Check(False, "nothing to check"), time.perf_counter() - t0)
-    return eps, c, numbers
+    return eps, c, numbers, model_maps(atk), t0
 
 
 def _unknown(name: str, claim: str, numbers: dict[str, float], t0: float) -> Evidence:
@@ -787,17 +791,12 @@ def _zero_exclusion(name: str, atk: IdentificationAttack, c: Clean, delta: float
 
 
 def directional(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
-    """Mechanism "directional" (module docstring); None for more than one input (the loop is then not affine in the
-    gain error)."""
+    """Mechanism "directional" (module docstring); None for more than one input."""
     atk = target.declaration
-    if atk.setting.state_space[1].shape[1] != 1:
-        return None
-    t0 = time.perf_counter()
-    start = _one_input_start("directional", atk, delta, t0)
-    if isinstance(start, Evidence):
+    start = _one_input_start("directional", atk, delta)
+    if not isinstance(start, tuple):
         return start
-    eps, c, numbers = start
-    maps = model_maps(atk)
+    eps, c, numbers, maps, t0 = start
     found = sandwich(atk, c, eps, shaped=True, shape=model_shape(atk, delta, maps))
     if found is None:
         return _unknown("directional", "the gain bound's SDP found no robust cost bounds", numbers, t0)
@@ -866,14 +865,10 @@ def affine(target: Target, delta: float, options: dict[str, Any]) -> Evidence | 
     """Mechanism "affine" (module docstring): the affine sandwich and its gain set, zero exclusion as in directional;
     None for more than one input."""
     atk = target.declaration
-    if atk.setting.state_space[1].shape[1] != 1:
-        return None
-    t0 = time.perf_counter()
-    start = _one_input_start("affine", atk, delta, t0)
-    if isinstance(start, Evidence):
+    start = _one_input_start("affine", atk, delta)
+    if not isinstance(start, tuple):
         return start
-    _, c, numbers = start
-    maps = model_maps(atk)
+    _, c, numbers, maps, t0 = start
     shape = model_shape(atk, delta, maps, ball=True)
     E1, Wmap = riccati_maps(c)
     found = affine_sandwich(atk, c, shape, E1, Wmap)
