@@ -121,9 +121,10 @@ spends most of IPOPT's time in its quality-function search and ran its 300 itera
 
 
 def paper_method(T: int) -> dict[str, Any]:
-    """The engine's options for an attack on a data set of horizon T: METHOD, with the monotone barrier update from
-    MONOTONE_FROM on."""
-    return {**METHOD, "ipopt": {"mu_strategy": "monotone"}} if T >= MONOTONE_FROM else dict(METHOD)
+    """The engine's options for an attack on a data set of horizon T: METHOD with ranged rows (the 2 + s stealth rows
+    as ranged rows, not 2(2 + s)), and the monotone barrier update from MONOTONE_FROM on."""
+    method = {**METHOD, "ranged_rows": True}
+    return {**method, "ipopt": {"mu_strategy": "monotone"}} if T >= MONOTONE_FROM else method
 
 
 CERTIFIED = (Status.SOLVED, Status.INACCURATE, Status.NOT_LOCALLY_OPTIMAL)

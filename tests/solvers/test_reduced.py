@@ -104,7 +104,7 @@ def test_a_two_sided_bound_on_one_expression_is_one_ranged_row_with_the_same_ans
     for inner, optimum in ((False, np.sqrt(5 * 0.64)), (True, (0.5 - np.sqrt(0.05)) ** 2)):
         one, two = _ranged(True, 0.25, 0.64, inner), _ranged(False, 0.25, 0.64, inner)
         assert len(prepare(one).canon.G_ranges[0]) == 1 and len(prepare(two).canon.G_ranges[0]) == 0
-        a, b = one.solve("reduced"), two.solve("reduced")
+        a, b = one.solve("reduced", ranged_rows=True), two.solve("reduced", ranged_rows=True)
         assert a.status.value == b.status.value == "solved" and a.certificate.passed, a.message
         assert a.upper_objective == pytest.approx(optimum, rel=1e-7)
         np.testing.assert_allclose(a.x["x"], b.x["x"], atol=1e-6)
