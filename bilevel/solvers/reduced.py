@@ -10,8 +10,9 @@ budget ball also bounds IPOPT's steps by the box around it (the ball stays a con
 two-sided bound on one expression (CanonicalBilevel.G_ranges) is one ranged row of the NLP, not two: on the stealthy
 identification attack on the authors' terms (T = 500, 52 dense statistic rows) 46 against 79 ms per IPOPT iteration.
 It is off by default: IPOPT's path changes, and on a feasible set as thin as the unstable plant's stealthy attack
-(tests/problems/test_identification_unstable.py) it declared the problem infeasible under one BLAS kernel. Where IPOPT stops (max_iter,
-an error) off the feasible set, the start's answer is the best feasible point it evaluated, with IPOPT's status.
+(tests/problems/test_identification_unstable.py) it declared the problem infeasible under one BLAS kernel. Where
+IPOPT stops (max_iter, an error) off the feasible set, the start's answer is the best feasible point it evaluated,
+with IPOPT's status.
 
 It needs a unique lower solution, so that y*(x) is a function: a least-squares lower level (positive definite
 Hessian; a singular one at some x is an error there) or a QP whose Hessian is positive definite at the start. Other
@@ -236,16 +237,15 @@ def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, s
         if ball.norm == np.inf:
             ubg[ball.row] = np.inf
     lbg = np.concatenate([np.full(nG, -np.inf), np.zeros(int(canon.H.numel()))])
-    upper, lower, width = canon.G_ranges  # each two-sided bound one ranged row: half the rows of a dense statistic
-    if not ranged_rows:
-        upper, lower, width = upper[:0], lower[:0], None
-    if width is not None:
-        w = width()
-        fit = np.isfinite(w) & (w >= 0) & np.isfinite(ubg[upper]) & np.isfinite(ubg[lower])
-        upper, lower = upper[fit], lower[fit]
-        lbg[upper] = -w[fit]
-    dropped = set(lower.tolist())
-    rows = [i for i in range(lbg.size) if i not in dropped]
+    rows = list(range(lbg.size))
+    if ranged_rows:  # each two-sided bound one ranged row: half the rows of a dense statistic
+        upper, lower, width = canon.G_ranges
+        if width is not None:
+            w = width()
+            fit = np.isfinite(w) & (w >= 0) & np.isfinite(ubg[upper]) & np.isfinite(ubg[lower])
+            lbg[upper[fit]] = -w[fit]
+            dropped = set(lower[fit].tolist())
+            rows = [i for i in rows if i not in dropped]
     bounds = dict(lbx=lbx, ubx=ubx, lbg=lbg[rows], ubg=ubg[rows])
     rng = np.random.default_rng(seed)
     records, candidates, ends = [], [], []
