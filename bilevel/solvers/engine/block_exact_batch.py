@@ -110,7 +110,8 @@ def ascend_with_exact_block_batch(oracle: BatchOracle, instances: list[BatchInst
                                    lambda rows, X: project_l2_balls(X, radius[rows]), X0, weight,
                                    instances[0].max_iter, instances[0].gain_tol)
     share = (time.perf_counter() - t0) / max(len(pairs), 1)
-    return [_method_run(inst, res, [r for r, (jj, _) in enumerate(pairs) if jj == j], radius, share, n_a)
+    first = np.cumsum([0] + [len(inst.starts) for inst in instances])  # instance j's starts: rows first[j]..first[j+1]
+    return [_method_run(inst, res, list(range(first[j], first[j + 1])), radius, share, n_a)
             for j, inst in enumerate(instances)]
 
 
