@@ -121,19 +121,21 @@ def declare(d: DefendedVRFT) -> BilevelProblem:
     phi = ca.DM(atk.phi0) + _regressor(p, atk.setting, a_y, "")[:rows, :]
     t_a = (a_u if reg.prefilter is None else filtered(p, "lu", reg.prefilter, a_u))[:rows]
     residual = ca.DM(atk.t0) + t_a - ca.mtimes(phi, theta)
-    budgets = [("u", a_u, atk.delta_u), ("y", a_y, atk.delta_y)]
+    budgets = [("u", a_u), ("y", a_y)]
     if d.defense in INSTRUMENTAL:
         instrument = ca.DM(reg(d.y2))
         if d.defense == "iv":
             a_y2 = p.upper_variable("a_y2", N)
-            budgets.append(("y2", a_y2, d.delta_y2))
+            budgets.append(("y2", a_y2))
             instrument = instrument + _regressor(p, atk.setting, a_y2, "_2")[:rows, :]
         p.minimize_lower(ca.sumsqr(ca.mtimes(instrument.T, residual)) / rows ** 2)
     else:
         ridge = d.lam * d.scale if d.defense == "ridge" else 0.0
         p.minimize_lower(ca.sumsqr(residual) / rows + ridge * ca.sumsqr(theta))
-    for name, a, delta in budgets:  # the radii are parameters: budget_values re-sets them (no new declaration)
-        p.upper_constraint(ca.sumsqr(a) <= p.parameter(f"delta_{name}", value=delta) ** 2, name=f"budget_{name}")
+    radii = budget_values(d)  # parameters: budget_values of another budget re-sets them (no new declaration)
+    for name, a in budgets:
+        p.upper_constraint(ca.sumsqr(a) <= p.parameter(f"delta_{name}", value=radii[f"delta_{name}"]) ** 2,
+                           name=f"budget_{name}")
     if atk.objective == "maxmin":
         p.maximize_upper((float(atk.t0 @ atk.t0) - 2 * ca.dot(ca.DM(atk.cross0), theta)
                           + ca.bilin(ca.DM(atk.gram0), theta, theta)) / rows)
