@@ -39,13 +39,17 @@ def r_factor_batch(C: np.ndarray, d: np.ndarray, max_cond: float) -> tuple[np.nd
         with np.errstate(all="ignore"):
             Rc_inv = inverse_upper(Rc)
             fine = np.sqrt(np.sum(Rc * Rc, axis=(1, 2)) * np.sum(Rc_inv * Rc_inv, axis=(1, 2))) <= max_cond
-        rows, Rc, Rc_inv = rows[fine], Rc[fine], Rc_inv[fine]
-        Q1 = C[rows] @ Rc_inv  # CholeskyQR2: a second pass on Q1 = C R1^{-1} restores Householder's accuracy
-        R2 = np.swapaxes(np.linalg.cholesky(np.swapaxes(Q1, 1, 2) @ Q1), 1, 2)
+        every = rows.size == m and bool(fine.all())  # the usual case: no row copied
+        if not every:
+            rows, Rc, Rc_inv = rows[fine], Rc[fine], Rc_inv[fine]
+        Q1 = (C if every else C[rows]) @ Rc_inv  # CholeskyQR2: a second pass on Q1 = C R1^{-1} restores Householder's
+        R2 = np.swapaxes(np.linalg.cholesky(np.swapaxes(Q1, 1, 2) @ Q1), 1, 2)  # accuracy
         R2_inv = inverse_upper(R2)
         R[rows], R_inv[rows] = R2 @ Rc, Rc_inv @ R2_inv
-        Qd[rows] = np.einsum("mji,mj->mi", R2_inv, np.einsum("mrk,mr->mk", Q1, d[rows]))
-    rest = np.setdiff1d(np.arange(m), rows)
+        Qd[rows] = np.einsum("mji,mj->mi", R2_inv, np.einsum("mrk,mr->mk", Q1, d if every else d[rows]))
+    factored = np.zeros(m, dtype=bool)
+    factored[rows] = True
+    rest = np.flatnonzero(~factored)
     if rest.size:
         Q, Rh = thin_qr_batch(C[rest])
         ok = np.all(np.diagonal(Rh, axis1=1, axis2=2) != 0, axis=1) & np.all(np.isfinite(Rh.reshape(rest.size, -1)),
