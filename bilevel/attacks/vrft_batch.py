@@ -100,7 +100,7 @@ def upper_batch(atks: Sequence[VRFTAttack], phi0: np.ndarray, t0: np.ndarray) ->
         n = float(atks[0].n)
 
         def value(rows: np.ndarray, theta: np.ndarray) -> np.ndarray:
-            r = t0[rows] - np.einsum("mrk,mk->mr", phi0[rows], theta)
+            r = t0[rows] - (phi0[rows] @ theta[:, :, None])[:, :, 0]
             return np.sum(r * r, axis=1) / n
 
         def gradient(rows: np.ndarray, theta: np.ndarray) -> np.ndarray:

@@ -100,7 +100,7 @@ class AffineLSBatch:
     def moved(self, s0: BatchFit, S: np.ndarray, W: np.ndarray | None, v: np.ndarray) -> BatchFit:
         """The fits at a = W v of the target blocks (AffineLeastSquares.moved)."""
         if W is None:
-            qv = np.einsum("mrk,mk->mr", s0.C, np.einsum("mij,mj->mi", s0.R_inv, v))  # Q v
+            qv = (s0.C @ (s0.R_inv @ v[:, :, None]))[:, :, 0]  # Q v
             a = np.zeros((v.shape[0], self.n_a))
             a[:, : qv.shape[1]] = qv
             d = s0.d + qv
@@ -114,8 +114,8 @@ class AffineLSBatch:
         w = (C'C)^{-1} g_theta and r = d - C theta, dJ/da = T'(C w), dJ/db = R'(r w' - (C w) theta'); dJ/da None
         unless `target`."""
         w = np.einsum("mij,mj->mi", s.R_inv, np.einsum("mji,mj->mi", s.R_inv, g_theta))
-        cw = np.einsum("mrk,mk->mr", s.C, w)
-        residual = s.d - np.einsum("mrk,mk->mr", s.C, s.theta)
+        both = s.C @ np.stack([w, s.theta], axis=2)  # C w and C theta: one pass over C
+        cw, residual = both[:, :, 0], s.d - both[:, :, 1]
         if self.maps.regressor_adjoints_outer is not None:
             g_b = self.maps.regressor_adjoints_outer(np.stack([residual, -cw]), np.stack([w, s.theta]))
         else:

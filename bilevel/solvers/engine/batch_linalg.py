@@ -46,7 +46,7 @@ def r_factor_batch(C: np.ndarray, d: np.ndarray, max_cond: float) -> tuple[np.nd
         R2 = np.swapaxes(np.linalg.cholesky(np.swapaxes(Q1, 1, 2) @ Q1), 1, 2)  # accuracy
         R2_inv = inverse_upper(R2)
         R[rows], R_inv[rows] = R2 @ Rc, Rc_inv @ R2_inv
-        Qd[rows] = np.einsum("mji,mj->mi", R2_inv, np.einsum("mrk,mr->mk", Q1, d if every else d[rows]))
+        Qd[rows] = np.einsum("mji,mj->mi", R2_inv, ((d if every else d[rows])[:, None, :] @ Q1)[:, 0])
     factored = np.zeros(m, dtype=bool)
     factored[rows] = True
     rest = np.flatnonzero(~factored)
