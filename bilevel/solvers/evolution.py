@@ -61,6 +61,28 @@ def _others(rng: np.random.Generator, members: np.ndarray, size: int) -> tuple[n
     return r0, r1 + (r1 >= hi)
 
 
+def _generation(rng: np.random.Generator, unit: np.ndarray, best: int, weight: float, lb: np.ndarray,
+                width: np.ndarray, buffers: np.ndarray, values: Callable[[np.ndarray], Any]) -> np.ndarray:
+    """One deferred generation of evolve on the population `unit` (members x n, in the unit box): best1bin trials
+    into buffers[0] (buffers[1]: work space), scored by values at their points (n x members, a new array: values may
+    keep views of it); returns their values. The draws, in order, and each entry's arithmetic are evolve's."""
+    size, n = unit.shape
+    trial, work = buffers
+    r0, r1 = _others(rng, np.arange(size), size)
+    np.take(unit, r0, axis=0, out=trial)
+    np.subtract(trial, np.take(unit, r1, axis=0, out=work), out=trial)
+    np.multiply(trial, weight, out=trial)
+    np.add(trial, unit[best], out=trial)  # the mutant unit[best] + weight * (unit[r0] - unit[r1])
+    keep = rng.random((size, n), dtype=np.float32) >= RECOMBINATION  # not crossed over
+    keep[np.arange(size), rng.integers(n, size=size)] = False
+    np.copyto(trial, unit, where=keep)
+    outside = (trial < 0.0) | (trial > 1.0)
+    trial[outside] = rng.uniform(size=int(outside.sum()))
+    points = np.multiply(trial, width)
+    np.add(points, lb, out=points)
+    return np.asarray(values(points.T), dtype=float).ravel()
+
+
 def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, rng: np.random.Generator,
            max_iter: int, popsize: int, tol: float, stop: Callable[[Any], bool] | None = None,
            vectorized: bool = False, init: str | np.ndarray = "latinhypercube") -> scipy.optimize.OptimizeResult:
@@ -93,9 +115,18 @@ def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, 
     energies = score(unit)
     best, nfev, message, success = int(np.argmin(energies)), size, "Maximum number of iterations has been exceeded.", False
     nit = 0
+    if vectorized:
+        buffers = np.empty((2, size, n))
     for nit in range(1, int(max_iter) + 1):
         weight = rng.uniform(*MUTATION)
-        for members in [np.arange(size)] if vectorized else np.arange(size)[:, None]:
+        if vectorized:  # the whole generation in place: the same arithmetic and draws as the member loop below
+            trial_energies = _generation(rng, unit, best, weight, lb, width, buffers, values)
+            nfev += size
+            better = trial_energies <= energies
+            np.copyto(unit, buffers[0], where=better[:, None])
+            np.copyto(energies, trial_energies, where=better)
+            best = int(np.argmin(energies))
+        for members in [] if vectorized else np.arange(size)[:, None]:
             r0, r1 = _others(rng, members, size)
             mutant = unit[best] + weight * (unit[r0] - unit[r1])
             cross = rng.random((members.size, n), dtype=np.float32) < RECOMBINATION
@@ -107,7 +138,7 @@ def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, 
             nfev += members.size
             better = trial_energies <= energies[members]
             unit[members[better]], energies[members[better]] = trial[better], trial_energies[better]
-            best = int(np.argmin(energies)) if vectorized or energies[members[0]] <= energies[best] else best
+            best = int(np.argmin(energies)) if energies[members[0]] <= energies[best] else best
         state = scipy.optimize.OptimizeResult(x=lb + unit[best] * width, fun=float(energies[best]), nit=nit, nfev=nfev)
         if stop is not None and stop(state):
             message = "callback function requested stop early"

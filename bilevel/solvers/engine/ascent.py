@@ -118,10 +118,11 @@ def batched_box_ascent(values: Callable[..., tuple[np.ndarray, np.ndarray]], bou
     at the rows of X: per start, a step along the gradient scaled to the box (t in budget units along its largest
     entry), kept where f grows (t doubled, at most 2), else halved; a start stops below min_step, or where the
     projection holds it still (every shorter step would too: stationary on the box). Returns each start's best x
-    and f, the iterations and the evaluations. bound: one for every row (n,) or one per row (rows x n). indexed: values(X, rows) also gets the rows of `starts` that X holds
-    (several problems' starts climbing together, each row its own); counts, if given, receives per row "last" (the
-    last iteration it was live, 0 if none) and "evaluations" (its points evaluated): a row's climb does not depend on
-    the others', so a group of rows gets the iterations and evaluations it would have alone (group_counts)."""
+    and f, the iterations and the evaluations. bound: one for every row (n,) or one per row (rows x n). indexed:
+    values(X, rows) also gets the rows of `starts` that X holds (several problems' starts climbing together, each
+    row its own); counts, if given, receives per row "last" (the last iteration it was live, 0 if none) and
+    "evaluations" (its points evaluated): a row's climb does not depend on the others', so a group of rows gets the
+    iterations and evaluations it would have alone (group_counts)."""
     bound = np.asarray(bound, dtype=float)
     x = np.clip(np.asarray(starts, dtype=float), -bound, bound)
     every = np.arange(x.shape[0])
