@@ -62,25 +62,26 @@ def _others(rng: np.random.Generator, members: np.ndarray, size: int) -> tuple[n
 
 
 def _generation(rng: np.random.Generator, unit: np.ndarray, best: int, weight: float, lb: np.ndarray,
-                width: np.ndarray, buffers: np.ndarray, values: Callable[[np.ndarray], Any]) -> np.ndarray:
-    """One deferred generation of evolve on the population `unit` (members x n, in the unit box): best1bin trials
-    into buffers[0] (buffers[1]: work space), scored by values at their points (n x members, a new array: values may
-    keep views of it); returns their values. The draws, in order, and each entry's arithmetic are evolve's."""
+                width: np.ndarray, values: Callable[[np.ndarray], Any]) -> tuple[np.ndarray, np.ndarray]:
+    """One deferred generation of evolve on the population `unit` (members x n, in the unit box): the best1bin
+    trials and their values, scored by values at their points (n x members). The draws, in order, and each entry's
+    arithmetic are evolve's member loop's; the arrays are updated in place, masks applied as index lists."""
     size, n = unit.shape
-    trial, work = buffers
     r0, r1 = _others(rng, np.arange(size), size)
-    np.take(unit, r0, axis=0, out=trial)
-    np.subtract(trial, np.take(unit, r1, axis=0, out=work), out=trial)
+    trial = unit[r0]
+    np.subtract(trial, unit[r1], out=trial)
     np.multiply(trial, weight, out=trial)
     np.add(trial, unit[best], out=trial)  # the mutant unit[best] + weight * (unit[r0] - unit[r1])
     keep = rng.random((size, n), dtype=np.float32) >= RECOMBINATION  # not crossed over
     keep[np.arange(size), rng.integers(n, size=size)] = False
-    np.copyto(trial, unit, where=keep)
-    outside = (trial < 0.0) | (trial > 1.0)
-    trial[outside] = rng.uniform(size=int(outside.sum()))
+    flat = trial.reshape(-1)  # masks as index lists: a random mask's branches cost more than the gather
+    kept = np.flatnonzero(keep)
+    flat[kept] = unit.reshape(-1)[kept]
+    outside = np.flatnonzero((trial < 0.0) | (trial > 1.0))  # redrawn in C order, as trial[mask] = draws
+    flat[outside] = rng.uniform(size=outside.size)
     points = np.multiply(trial, width)
     np.add(points, lb, out=points)
-    return np.asarray(values(points.T), dtype=float).ravel()
+    return trial, np.asarray(values(points.T), dtype=float).ravel()
 
 
 def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, rng: np.random.Generator,
@@ -115,16 +116,13 @@ def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, 
     energies = score(unit)
     best, nfev, message, success = int(np.argmin(energies)), size, "Maximum number of iterations has been exceeded.", False
     nit = 0
-    if vectorized:
-        buffers = np.empty((2, size, n))
     for nit in range(1, int(max_iter) + 1):
         weight = rng.uniform(*MUTATION)
         if vectorized:  # the whole generation in place: the same arithmetic and draws as the member loop below
-            trial_energies = _generation(rng, unit, best, weight, lb, width, buffers, values)
+            trial, trial_energies = _generation(rng, unit, best, weight, lb, width, values)
             nfev += size
-            better = trial_energies <= energies
-            np.copyto(unit, buffers[0], where=better[:, None])
-            np.copyto(energies, trial_energies, where=better)
+            better = np.flatnonzero(trial_energies <= energies)
+            unit[better], energies[better] = trial[better], trial_energies[better]
             best = int(np.argmin(energies))
         for members in [] if vectorized else np.arange(size)[:, None]:
             r0, r1 = _others(rng, members, size)
