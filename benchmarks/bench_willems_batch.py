@@ -7,7 +7,8 @@ default, the reproduction's 64 starts and 100 steps): data sets of seeds sim_see
 delta_u, the first SIZE of them, each with its sweep attack seed. Attacks are built beforehand (not timed). For each
 size: CPU ms per attack batched and one at a time (one at a time on at most --single instances, the first of the
 batch, measured in the same run), their ratio, results equal field by field (every field but the wall time) on those
-instances, peak traced memory of the batched call (tracemalloc, a separate run; --memory-max caps the sizes traced).
+instances, statuses, iterations and unstable flags equal, the true loop's spectral radius's largest relative difference,
+peak traced memory of the batched call (tracemalloc, a separate run; --memory-max caps the sizes traced).
 Batch size 1 runs the one-instance path (below defaults["batch.min_size"]), measured as 16 batches of one. Prints the
 load average before and after.
 
@@ -25,6 +26,7 @@ import tracemalloc
 
 import numpy as np
 
+from bilevel.attacks.outcome import unstable
 from bilevel.attacks.willems import destabilize_attack, destabilize_many
 from bilevel.experiments.willems import make_plan, sim_seeds
 from bilevel.problems.willems import build_attack
@@ -100,9 +102,12 @@ def main() -> None:
             t_single, single = cpu(lambda: [destabilize_attack(a, seed=s, **opts)
                                             for a, s in zip(part[:n_single], ps[:n_single])])
             same = sum(fields(a) == fields(b) for a, b in zip(single, many))
+            flags = sum((a.status, a.nit, unstable(a)) == (b.status, b.nit, unstable(b)) for a, b in zip(single, many))
+            rel = max(abs(a.stats["spectral_radius"] / b.stats["spectral_radius"] - 1) for a, b in zip(single, many))
             line = (f"batch {size:5d}: batched {1e3 * t_batch / size:7.2f} ms/attack, one at a time "
                     f"{1e3 * t_single / n_single:7.2f} ms/attack (on {n_single}); ratio "
-                    f"{(t_single / n_single) / (t_batch / size):.2f}x; results equal {same}/{n_single}")
+                    f"{(t_single / n_single) / (t_batch / size):.2f}x; results equal {same}/{n_single}, status, "
+                    f"iterations and unstable flag equal {flags}/{n_single}, spectral radius max rel diff {rel:.1e}")
             if size <= args.memory_max:
                 memory = peak(lambda: destabilize_many(atks[:size], seeds[:size], **opts))
                 line += f"; peak traced memory of the batched call {memory:.1f} MiB"

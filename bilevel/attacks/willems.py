@@ -111,7 +111,8 @@ def destabilize_many(attacks: Sequence[WillemsAttack], seeds: Sequence[Any] | No
     """destabilize_attack(attacks[i], seed=seeds[i], starts=..., max_iter=..., pool=...) for every i, the attacks of
     one shape solved together (bilevel.solvers.batch.solve_many: each learner solved on loading, every start of every
     attack in one batched ascent, then each attack's verdict); results in order, as destabilize_attack's (the same
-    points, values, iterations and evaluations; the wall time a share of the batch plus the attack's verdict)."""
+    points, values, iterations and evaluations to rounding, willems_methods._values; the wall time a share of the batch
+    plus the attack's verdict)."""
     seeds = [0] * len(attacks) if seeds is None else list(seeds)
     if len(seeds) != len(attacks):
         raise ModelError(f"destabilize_many: {len(attacks)} attacks and {len(seeds)} seeds")

@@ -82,9 +82,11 @@ def _climbed(c: Climb, xs: np.ndarray, rho: np.ndarray, iters: int, evaluations:
 
 def _values(climbs: Sequence[Climb], owner: np.ndarray) -> Callable[[np.ndarray, np.ndarray], tuple]:
     """The ascent's objective -F and its gradient at rows X of the stacked starts (rows: their indices, owner[row]
-    the instance): each instance's M by its own product, one stacked eigendecomposition for all (per matrix the same
-    arithmetic as one instance alone: results bit-identical); an instance without an affine map (alone) through its
-    engine's spectral_batch."""
+    the instance): each instance's M by its own product, one stacked eigendecomposition for all, per matrix the same
+    operations as one instance alone. Identical to rounding: numpy's complex division and inversion may round a
+    matrix's entries differently with its place in the stack (vectorized body or tail), so an instance's values can
+    differ in the last digit from its run alone (seen on 1 of 256 paper attacks; benchmarks/bench_willems_batch.py).
+    An instance without an affine map (alone) goes through its engine's spectral_batch."""
     n = int(climbs[0].prep.canon.spectral.size1())
 
     def values(xs: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -104,7 +106,7 @@ def _values(climbs: Sequence[Climb], owner: np.ndarray) -> Callable[[np.ndarray,
 
 def climb_together(climbs: Sequence[Climb]) -> list[MethodRun]:
     """destabilize's runs of several loaded instances of one shape, their starts in one batched_box_ascent (each
-    instance's rows climb as they would alone: the same points, iterations and evaluations)."""
+    instance's rows climb as they would alone, to rounding (_values): its points, iterations and evaluations)."""
     owner = np.repeat(np.arange(len(climbs)), [c.starts.shape[0] for c in climbs])
     bound = np.vstack([np.broadcast_to(c.bound, c.starts.shape) for c in climbs])
     max_iter = max(c.max_iter for c in climbs)
