@@ -189,6 +189,8 @@ def solve_evolution(prep: Prepared, *, starts: int | None = None, seed: Any = 0,
 
     def ranked(phi: Any) -> Any:
         """phi as differential evolution ranks it: NaN and +inf (and anything beyond) as UNSOLVED."""
+        if isinstance(phi, np.ndarray) and phi.dtype == float and np.all(np.abs(phi) < UNSOLVED):
+            return phi  # all finite and inside: as it is (the common case, without nan_to_num's copies)
         return np.clip(np.nan_to_num(phi, nan=UNSOLVED, posinf=UNSOLVED, neginf=-UNSOLVED), -UNSOLVED, UNSOLVED)
 
     def value(x: np.ndarray) -> float:
