@@ -133,8 +133,9 @@ def destabilize_many(attacks: Sequence[WillemsAttack], seeds: Sequence[Any] | No
                     raise ModelError("destabilize_many: the shared problem of one shape changed during the batch; "
                                      "raise defaults['willems.shared_kept']")
             return load
+        given = {k: v for k, v in (("starts", starts), ("max_iter", max_iter), ("pool", pool)) if v is not None}
         results = solve_many(problem, [loader(attacks[i]) for i in idx], destabilize,
-                             each=[{"seed": seeds[i]} for i in idx], starts=starts, max_iter=max_iter, pool=pool)
+                             each=[{"seed": seeds[i]} for i in idx], **given)
         for i, r in zip(idx, results):
             if r.certificate is None:
                 raise SolverFailed(f"destabilize attack: {r.status.value}: {r.message}", result=r)
