@@ -5,15 +5,17 @@ carries WillemsAttack.stats (gain, true and identified radius)."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
 from ..defaults import param
-from ..errors import ModelError
+from ..errors import ModelError, SolverFailed
 from ..problems.willems_instance import WillemsAttack
 from ..result import BilevelResult
+from ..solvers.batch import solve_many
 from ..solvers.engine.prepared import check_options
 from .willems_methods import destabilize, random_signs
 from ..threads import single_threaded_call
@@ -100,6 +102,46 @@ def destabilize_attack(attack: WillemsAttack, *, starts: int | None = None, seed
                          f"{attack.setting.objective!r}: build the attack with objective='destabilize'")
     return _run(attack, "destabilize", destabilize, radius=True, starts=starts, seed=seed, max_iter=max_iter,
                 pool=pool)
+
+
+@single_threaded_call
+def destabilize_many(attacks: Sequence[WillemsAttack], seeds: Sequence[Any] | None = None, *,
+                     starts: int | None = None, max_iter: int | None = None,
+                     pool: int | None = None) -> list[BilevelResult]:
+    """destabilize_attack(attacks[i], seed=seeds[i], starts=..., max_iter=..., pool=...) for every i, the attacks of
+    one shape solved together (bilevel.solvers.batch.solve_many: each learner solved on loading, every start of every
+    attack in one batched ascent, then each attack's verdict); results in order, as destabilize_attack's (the same
+    points, values, iterations and evaluations to rounding, willems_methods._values; the wall time a share of the batch
+    plus the attack's verdict)."""
+    seeds = [0] * len(attacks) if seeds is None else list(seeds)
+    if len(seeds) != len(attacks):
+        raise ModelError(f"destabilize_many: {len(attacks)} attacks and {len(seeds)} seeds")
+    for a in attacks:
+        if a.setting.objective != "destabilize":
+            raise ModelError(f"destabilize_many maximizes the spectral radius; got objective={a.setting.objective!r}: "
+                             "build the attacks with objective='destabilize'")
+    groups: dict[tuple, list[int]] = {}
+    for i, a in enumerate(attacks):
+        groups.setdefault(a.shape, []).append(i)
+    out: list[BilevelResult | None] = [None] * len(attacks)
+    for idx in groups.values():
+        problem = attacks[idx[0]].shared_problem(radius=True)
+
+        def loader(a: WillemsAttack) -> Any:
+            def load(p: Any) -> None:
+                if a.shared_problem(radius=True) is not p:
+                    raise ModelError("destabilize_many: the shared problem of one shape changed during the batch; "
+                                     "raise defaults['willems.shared_kept']")
+            return load
+        given = {k: v for k, v in (("starts", starts), ("max_iter", max_iter), ("pool", pool)) if v is not None}
+        results = solve_many(problem, [loader(attacks[i]) for i in idx], destabilize,
+                             each=[{"seed": seeds[i]} for i in idx], **given)
+        for i, r in zip(idx, results):
+            if r.certificate is None:
+                raise SolverFailed(f"destabilize attack: {r.status.value}: {r.message}", result=r)
+            out[i] = dataclasses.replace(r, method="destabilize", stats={**r.stats, **attacks[i].stats(
+                r, int(r.stats.get("evaluations", 1)))})
+    return out  # type: ignore[return-value]
 
 
 @single_threaded_call

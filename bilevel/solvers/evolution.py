@@ -61,6 +61,29 @@ def _others(rng: np.random.Generator, members: np.ndarray, size: int) -> tuple[n
     return r0, r1 + (r1 >= hi)
 
 
+def _generation(rng: np.random.Generator, unit: np.ndarray, best: int, weight: float, lb: np.ndarray,
+                width: np.ndarray, values: Callable[[np.ndarray], Any]) -> tuple[np.ndarray, np.ndarray]:
+    """One deferred generation of evolve on the population `unit` (members x n, in the unit box): the best1bin
+    trials and their values, scored by values at their points (n x members). The draws, in order, and each entry's
+    arithmetic are evolve's member loop's; the arrays are updated in place, masks applied as index lists."""
+    size, n = unit.shape
+    r0, r1 = _others(rng, np.arange(size), size)
+    trial = unit[r0]
+    np.subtract(trial, unit[r1], out=trial)
+    np.multiply(trial, weight, out=trial)
+    np.add(trial, unit[best], out=trial)  # the mutant unit[best] + weight * (unit[r0] - unit[r1])
+    keep = rng.random((size, n), dtype=np.float32) >= RECOMBINATION  # not crossed over
+    keep[np.arange(size), rng.integers(n, size=size)] = False
+    flat = trial.reshape(-1)  # masks as index lists: a random mask's branches cost more than the gather
+    kept = np.flatnonzero(keep)
+    flat[kept] = unit.reshape(-1)[kept]
+    outside = np.flatnonzero((trial < 0.0) | (trial > 1.0))  # redrawn in C order, as trial[mask] = draws
+    flat[outside] = rng.uniform(size=outside.size)
+    points = np.multiply(trial, width)
+    np.add(points, lb, out=points)
+    return trial, np.asarray(values(points.T), dtype=float).ravel()
+
+
 def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, rng: np.random.Generator,
            max_iter: int, popsize: int, tol: float, stop: Callable[[Any], bool] | None = None,
            vectorized: bool = False, init: str | np.ndarray = "latinhypercube") -> scipy.optimize.OptimizeResult:
@@ -95,7 +118,13 @@ def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, 
     nit = 0
     for nit in range(1, int(max_iter) + 1):
         weight = rng.uniform(*MUTATION)
-        for members in [np.arange(size)] if vectorized else np.arange(size)[:, None]:
+        if vectorized:  # the whole generation in place: the same arithmetic and draws as the member loop below
+            trial, trial_energies = _generation(rng, unit, best, weight, lb, width, values)
+            nfev += size
+            better = np.flatnonzero(trial_energies <= energies)
+            unit[better], energies[better] = trial[better], trial_energies[better]
+            best = int(np.argmin(energies))
+        for members in [] if vectorized else np.arange(size)[:, None]:
             r0, r1 = _others(rng, members, size)
             mutant = unit[best] + weight * (unit[r0] - unit[r1])
             cross = rng.random((members.size, n), dtype=np.float32) < RECOMBINATION
@@ -107,7 +136,7 @@ def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, 
             nfev += members.size
             better = trial_energies <= energies[members]
             unit[members[better]], energies[members[better]] = trial[better], trial_energies[better]
-            best = int(np.argmin(energies)) if vectorized or energies[members[0]] <= energies[best] else best
+            best = int(np.argmin(energies)) if energies[members[0]] <= energies[best] else best
         state = scipy.optimize.OptimizeResult(x=lb + unit[best] * width, fun=float(energies[best]), nit=nit, nfev=nfev)
         if stop is not None and stop(state):
             message = "callback function requested stop early"
@@ -160,6 +189,8 @@ def solve_evolution(prep: Prepared, *, starts: int | None = None, seed: Any = 0,
 
     def ranked(phi: Any) -> Any:
         """phi as differential evolution ranks it: NaN and +inf (and anything beyond) as UNSOLVED."""
+        if isinstance(phi, np.ndarray) and phi.dtype == float and np.all(np.abs(phi) < UNSOLVED):
+            return phi  # all finite and inside: as it is (the common case, without nan_to_num's copies)
         return np.clip(np.nan_to_num(phi, nan=UNSOLVED, posinf=UNSOLVED, neginf=-UNSOLVED), -UNSOLVED, UNSOLVED)
 
     def value(x: np.ndarray) -> float:

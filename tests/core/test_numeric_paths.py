@@ -87,3 +87,28 @@ def test_batched_box_ascent_reaches_the_vertex_and_stops_there() -> None:
     np.testing.assert_array_equal(x, np.tile(np.sign(c) * b, (5, 1)))
     np.testing.assert_allclose(f, np.abs(c) @ b, rtol=1e-14)
     assert evaluations < 5 * 10  # halving to min_step 1e-6 would take 20 more evaluations per start
+
+
+def test_batched_box_ascent_rows_climb_as_alone() -> None:
+    """Two problems' starts climbing together (indexed values, a bound per row) reach each problem's points, values,
+    iterations and evaluations of its own run (group_counts)."""
+    from bilevel.solvers.engine.ascent import group_counts
+    rng = np.random.default_rng(3)
+    centres, bounds = rng.standard_normal((2, 4)), np.array([[0.5] * 4, [2.0] * 4])
+
+    def one(k: int):
+        return lambda x: (-np.sum((x - centres[k]) ** 2, axis=1), -2.0 * (x - centres[k]))
+    starts = [rng.uniform(-1.0, 1.0, (3, 4)) * bounds[k] for k in range(2)]
+    owner = np.repeat([0, 1], 3)
+
+    def values(x, rows):
+        f, g = zip(*(one(owner[r])(x[i: i + 1]) for i, r in enumerate(rows)))
+        return np.concatenate(f), np.vstack(g)
+    counts: dict = {}
+    x, f, _, _ = batched_box_ascent(values, np.repeat(bounds, 3, axis=0), np.vstack(starts), 40, indexed=True,
+                                    counts=counts)
+    for k in range(2):
+        xk, fk, it, ev = batched_box_ascent(one(k), bounds[k], starts[k], 40)
+        rows = np.flatnonzero(owner == k)
+        assert np.array_equal(x[rows], xk) and np.array_equal(f[rows], fk)
+        assert group_counts(counts, rows, 40) == (it, ev)

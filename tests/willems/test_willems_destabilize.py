@@ -180,3 +180,25 @@ def test_smallest_destabilizing_budget_brackets_the_first_unstable_budget() -> N
     assert smallest_destabilizing_budget(WillemsSetting(horizon=15, seed=1), path=(0.05,), starts=1).delta == np.inf
     with pytest.raises(ModelError, match="increasing and positive"):
         smallest_destabilizing_budget(WillemsSetting(horizon=15), path=(0.3, 0.1))
+
+
+def test_destabilize_many_equals_one_at_a_time_to_rounding() -> None:
+    """Three data sets, two budgets each (a batch above batch.min_size): destabilize_many's results are
+    destabilize_attack's: statuses, iterations, evaluations and unstable flags equal, points and radii to rounding
+    (stacked complex arithmetic may round differently with a matrix's place in the stack); a non-destabilizing
+    attack is refused."""
+    from bilevel.attacks.willems import destabilize_many
+    atks = [build_attack(objective="destabilize", horizon=15, seed=s, delta_u=d) for s in (1, 2, 3)
+            for d in (0.2, 0.6)]
+    seeds = [10, 11, 12, 13, 14, 15]
+    one = [destabilize_attack(a, seed=s, starts=8, max_iter=15) for a, s in zip(atks, seeds)]
+    many = destabilize_many(atks, seeds, starts=8, max_iter=15)
+    for a, b in zip(one, many):
+        assert (a.status, a.nit, a.stats["evaluations"], unstable(a)) == (b.status, b.nit, b.stats["evaluations"],
+                                                                          unstable(b))
+        assert np.abs(a.stats["x"] - b.stats["x"]).max() <= 1e-12
+        assert b.stats["spectral_radius"] == pytest.approx(a.stats["spectral_radius"], rel=1e-12)
+        assert b.stats["identified_radius"] == pytest.approx(a.stats["identified_radius"], rel=1e-12)
+    assert len({r.nit for r in one} | {r.stats["evaluations"] for r in one}) > 2  # the counts are per instance
+    with pytest.raises(ModelError, match="objective='destabilize'"):
+        destabilize_many([build_attack(objective="eigen", horizon=15, seed=1)])

@@ -111,37 +111,56 @@ def projected_ascent(f: Callable[[np.ndarray], tuple[float, Any]],
     return x, fx, aux, it, evals, converged
 
 
-def batched_box_ascent(values: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], bound: np.ndarray,
-                       starts: np.ndarray, max_iter: int,
-                       min_step: float = 1e-6) -> tuple[np.ndarray, np.ndarray, int, int]:
+def batched_box_ascent(values: Callable[..., tuple[np.ndarray, np.ndarray]], bound: np.ndarray,
+                       starts: np.ndarray, max_iter: int, min_step: float = 1e-6, indexed: bool = False,
+                       counts: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Maximize f over the box |x| <= bound from every row of `starts` at once, values(X) giving f and its gradient
     at the rows of X: per start, a step along the gradient scaled to the box (t in budget units along its largest
     entry), kept where f grows (t doubled, at most 2), else halved; a start stops below min_step, or where the
     projection holds it still (every shorter step would too: stationary on the box). Returns each start's best x
-    and f, the iterations and the evaluations."""
+    and f, the iterations and the evaluations. bound: one for every row (n,) or one per row (rows x n). indexed:
+    values(X, rows) also gets the rows of `starts` that X holds (several problems' starts climbing together, each
+    row its own); counts, if given, receives per row "last" (the last iteration it was live, 0 if none) and
+    "evaluations" (its points evaluated): a row's climb does not depend on the others', so a group of rows gets the
+    iterations and evaluations it would have alone (group_counts)."""
+    bound = np.asarray(bound, dtype=float)
     x = np.clip(np.asarray(starts, dtype=float), -bound, bound)
-    f, grad = values(x)
+    every = np.arange(x.shape[0])
+    f, grad = values(x, every) if indexed else values(x)
     step = np.ones(x.shape[0])
+    last, evaluated = np.zeros(x.shape[0], dtype=int), np.ones(x.shape[0], dtype=int)
     it, evaluations = 0, x.shape[0]
     for it in range(1, max_iter + 1):
         live = np.flatnonzero(step >= min_step)
         if live.size == 0:
             break
-        x_live, z = (x, grad * bound) if live.size == step.size else (x[live], grad[live] * bound)
+        last[live] = it
+        whole = live.size == step.size
+        b = bound if whole or bound.ndim == 1 else bound[live]
+        x_live, z = (x, grad * b) if whole else (x[live], grad[live] * b)
         size = np.abs(z).max(axis=1, keepdims=True)
         trial = np.divide(z, size, out=np.zeros(z.shape), where=size > 0)  # the direction, then the trial in place
-        np.add(x_live, step[live, None] * bound * trial, out=trial)
-        np.minimum(np.maximum(trial, -bound, out=trial), bound, out=trial)
+        np.add(x_live, step[live, None] * b * trial, out=trial)
+        np.minimum(np.maximum(trial, -b, out=trial), b, out=trial)
         moved = np.any(trial != x_live, axis=1)
         if not moved.all():
             step[live[~moved]] = 0.0
             live, trial = live[moved], trial[moved]
             if live.size == 0:
                 continue
-        f_trial, g_trial = values(trial)
+        f_trial, g_trial = values(trial, live) if indexed else values(trial)
         evaluations += live.size
+        evaluated[live] += 1
         better = f_trial > f[live]  # NaN never counts as better
         kept = live[better]
         x[kept], f[kept], grad[kept] = trial[better], f_trial[better], g_trial[better]
         step[live] = np.where(better, np.minimum(2.0 * step[live], 2.0), 0.5 * step[live])
+    if counts is not None:
+        counts.update(last=last, evaluations=evaluated)
     return x, f, it, evaluations
+
+
+def group_counts(counts: dict[str, np.ndarray], rows: np.ndarray, max_iter: int) -> tuple[int, int]:
+    """(iterations, evaluations) that batched_box_ascent returns on the rows `rows` of its starts alone, from the
+    per-row counts of a run on more rows (its loop ends after the group's last live iteration, or at max_iter)."""
+    return min(int(max_iter), int(counts["last"][rows].max()) + 1), int(counts["evaluations"][rows].sum())

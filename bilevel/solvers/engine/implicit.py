@@ -330,6 +330,12 @@ class Hypergradient:
         if self._spectral is None or not self.low.fixed:
             raise ModelError("spectral_batch needs a spectral-radius upper objective (maximize_spectral_radius) and a "
                              "lower level that does not depend on the upper variables; use evaluate and gradient")
+        affine = self.spectral_map()
+        return None if affine is None else affine_stack(*affine, xs, int(self.canon.spectral.size1()))
+
+    def spectral_map(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(vec M at x = 0, dvec M/dx) of a spectral-radius objective affine in x on a lower level that ignores x (for
+        the current parameter values), None where M is not affine or the function of M is not the spectral radius."""
         if not self.spectral_affine or self.canon.matrix_function is not rho_and_gradient:
             return None
         revision = self.low.params.revision
@@ -337,9 +343,7 @@ class Hypergradient:
             zero = np.zeros(self.low.n_x)
             m0, jx = (np.asarray(v, dtype=float) for v in self._spectral(zero, self.evaluate(zero).lower.y))
             self._affine = (revision, m0.ravel(), jx)
-        _, m0, jx = self._affine
-        n = int(self.canon.spectral.size1())
-        return (m0[:, None] + jx @ np.asarray(xs, dtype=float)).T.reshape(-1, n, n).transpose(0, 2, 1)
+        return self._affine[1], self._affine[2]
 
     def batch_phi(self, xs: np.ndarray) -> np.ndarray:
         """phi at each column of xs (n_x x S) by one mapped sweep, for a lower level that ignores x (solved once)."""
@@ -431,3 +435,8 @@ def shared_oracle(prep: Prepared, penalty: float | None = None, active_tol: floa
     penalty, active_tol = param("implicit.penalty", penalty), param("implicit.active_tol", active_tol)
     key = ("hypergradient", float(penalty), float(active_tol), tuple(projected_rows))
     return prep.cached(key, lambda: Hypergradient(prep, penalty, active_tol, projected_rows))
+
+
+def affine_stack(m0: np.ndarray, jx: np.ndarray, xs: np.ndarray, n: int) -> np.ndarray:
+    """The n x n matrices M with vec M = m0 + jx x (column-major vec) at each column x of xs: an (S, n, n) stack."""
+    return (m0[:, None] + jx @ np.asarray(xs, dtype=float)).T.reshape(-1, n, n).transpose(0, 2, 1)
