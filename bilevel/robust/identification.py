@@ -42,8 +42,14 @@ Mechanism "directional" (one input, tried first) keeps the shapes lyapunov's bal
   for one quadratic Lyapunov function for a ball.
 Mechanism "affine" (one input, tried after "directional": about 20 times its CPU time) is a sandwich that follows P with
 the model. The model set is one ellipsoid dTheta = sum_j a_j D_j, ||a|| <= 1, the outer ellipsoid of the Minkowski sum
-of the fit's linear images of the two budget balls and the ball of its nonlinear part (S = sum_i S_i / p_i, p_i
-proportional to sqrt(tr S_i)).
+of the fit's linear images of the two budget balls and of its nonlinear part (S = sum_i S_i / p_i, p_i proportional to
+sqrt(tr S_i)). The nonlinear part is bounded by its exact expansion (SecondOrder): with Z0' = Q R, D = dZ' R^-1,
+V = dY - Theta0 dZ, L1 = E0 D + V Q and N = Q'D + D'Q + D'D, dTheta = [L1 + V D] (I + N)^-1 R^-T, whose second-order
+part dTheta_2 = [V D - L1 (Q'D + D'Q)] R^-T is a quadratic form in the poisoning per model entry: each entry lies in
+[-h_i, h_i] (S-procedure over the two balls, h ~ delta^2; the box's min-trace outer ellipsoid joins the sum), and the
+rest [-L1 D'D - V D N + (L1 + V D) N^2 (I + N)^-1] R^-T in a ball by norms (||D|| <= eta < 1, N = A'A - I, A = Q + D).
+This replaced a ball around the whole nonlinear part (step 1's rest), 4.1 times the second-order box's diagonal
+and 13 times the rest beyond it (0.030, 0.0073, 0.0023 on the first data set at delta 0.0055).
 - First order: E1(D) solves E1 - Acl0'E1 Acl0 = (DF)'P0 Acl0 + Acl0'P0 (DF) (the Riccati solution's Frechet
   derivative, one Lyapunov solve per unit model), W1(D) = l(D) + B0'E1(D) Acl0 and k1(D) = -M0^-1 W1(D) (M0 = R +
   B0'P0 B0) the gain's.
@@ -60,7 +66,8 @@ proportional to sqrt(tr S_i)).
   C + S, -H <= S <= H (C, H the box's centre and half-width), ||e|| <= t_e.
 - The gain, exactly: W - W0 = W1(dTheta) + B0'e Acl0 + T2, T2 = [dB'P0 dTheta F + dB'E1 Acl0 + B0'E1 dTheta F] +
   dB'E1 dTheta F + [dB'e Acl0 + B0'e dTheta F + dB'e dTheta F] (E1 = E1(dTheta)). Along u: W1's part is the image
-  of the two budget balls under an exact linear map plus ||W1|| times the fit's nonlinear part; -B0'e Acl0 u <=
+  of the two budget balls under an exact linear map, plus W1 of the second-order part in the box |.| <= g (the
+  S-procedure on the forms W1 maps them to; support g'|u|), plus ||W1|| times the rest beyond it; -B0'e Acl0 u <=
   -(B0'C Acl0) u + ||H^1/2 B0|| ||H^1/2 Acl0 u|| (or ||B0|| t_e ||Acl0 u||); the bracketed quadratic part is
   a'Q_u a with Q_u symmetric k x k, at most max |eig Q_u|; the cubic term at most ||dB|| ||E1|| ||dTheta F u|| (each
   the largest over the ellipsoid, ||dTheta F u|| by the spectral norm of [D_j F u]_j); the e terms by ||dB||
@@ -72,14 +79,15 @@ The re-check recomputes step 1 from SVDs (the linear map built the whitened way)
 of X - P0, P0 - Y, X - Y and Y at the SDP's solution, and checks every LMI there by numpy eigenvalues with a margin
 above rounding; for "directional", the ellipsoid from the whitened maps, the multipliers L1, L2 >= 0, l's matrix from
 Kronecker products, the loop polynomial from np.poly and the sweep on a grid twice as fine with twice the directions;
-for "affine", E1 and W1 from Kronecker products, the model maps and ellipsoid the whitened way, the affine LMIs by
+for "affine", E1 and W1 from Kronecker products, the model maps and ellipsoid the whitened way, the second-order forms
+from the normal equations (dTheta_2 = [dY dZ' - dTheta_1 (Z0 dZ' + dZ Z0') - Theta0 dZ dZ'] G0^-1), the affine LMIs by
 numpy eigenvalues at the SDP's solution (margin above rounding), L >= 0, S_j skew, m_lo > 0 and the sweep again.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cvxpy as cp
@@ -141,6 +149,20 @@ def identification_target(atk: IdentificationAttack, starts: int = 1, **options:
                   lambda theta: ce_radius(atk, theta), {"engine": engine}, PATH, options=options)
 
 
+def _pokes(atk: IdentificationAttack) -> tuple[np.ndarray, np.ndarray, int]:
+    """(dY, dZ, nx): the regression's change at each unit poisoning, X's entries first then U's (row-major), stacked
+    (N, n, T) and (N, n + m, T), and X's count."""
+    T = atk.signals["U"].shape[1]
+    dY, dZ = [], []
+    for name in ("X", "U"):
+        for k in range(atk.signals[name].size):
+            d = {key: np.zeros(v.shape) for key, v in atk.signals.items()}
+            d[name].flat[k] = 1.0
+            dY.append(d["X"][:, 1:T + 1])
+            dZ.append(np.vstack([d["X"][:, :T], d["U"]]))
+    return np.array(dY), np.array(dZ), atk.signals["X"].size
+
+
 def model_maps(atk: IdentificationAttack, whitened: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The linear part of the poisoned fit, dTheta_lin = [E0 dZ' + (dY - Theta0 dZ) Z0'] G0^-1, as matrices from vec(dX)
     and vec(dU) to vec(dTheta); whitened: the same map computed as [E0 D + V Q] R^-T (Z0' = Q R, D = dZ' R^-1), the
@@ -148,24 +170,19 @@ def model_maps(atk: IdentificationAttack, whitened: bool = False) -> tuple[np.nd
     Y0, Z0 = atk.regression(atk.signals)
     theta0 = least_squares_fit(Y0, Z0)
     E0 = Y0 - theta0 @ Z0
-    T = Z0.shape[1]
     Qz, Rz = np.linalg.qr(Z0.T)
     G0inv = np.linalg.inv(Z0 @ Z0.T)
-    maps = []
-    for name in ("X", "U"):
-        cols = []
-        for k in range(atk.signals[name].size):
-            d = {key: np.zeros(v.shape) for key, v in atk.signals.items()}
-            d[name].flat[k] = 1.0
-            dY, dZ = d["X"][:, 1:T + 1], np.vstack([d["X"][:, :T], d["U"]])
-            V = dY - theta0 @ dZ
-            if whitened:
-                D = np.linalg.solve(Rz.T, dZ).T
-                cols.append(np.linalg.solve(Rz, (E0 @ D + V @ Qz).T).T.ravel())
-            else:
-                cols.append(((E0 @ dZ.T + V @ Z0.T) @ G0inv).ravel())
-        maps.append(np.array(cols).T)
-    return maps[0], maps[1]
+    dYs, dZs, nx = _pokes(atk)
+    cols = []
+    for dY, dZ in zip(dYs, dZs):
+        V = dY - theta0 @ dZ
+        if whitened:
+            D = np.linalg.solve(Rz.T, dZ).T
+            cols.append(np.linalg.solve(Rz, (E0 @ D + V @ Qz).T).T.ravel())
+        else:
+            cols.append(((E0 @ dZ.T + V @ Z0.T) @ G0inv).ravel())
+    cols = np.array(cols).T
+    return cols[:, :nx], cols[:, nx:]
 
 
 def _fit_parts(atk: IdentificationAttack, delta: float) -> tuple[float, float, float, float]:
@@ -186,6 +203,99 @@ def _fit_parts(atk: IdentificationAttack, delta: float) -> tuple[float, float, f
     eta = r_Z / sigma
     rest = ((e0 * eta + lin_V) * ((1 - eta) ** -2 - 1) + lin_V * eta * (1 - eta) ** -2) / sigma
     return e0 * r_Z / s ** 2 + lin_V / s, float(rest), s, r_Z
+
+
+SPLITS = (0.5, 1.0, 2.0)
+"""SecondOrder.bound tries the S-procedure's weights w = 1 - s (1 - w0) for these s, w0 = X's share of the squared
+radii (the best on the reproduction's first data set lies between w0 and 1 - (1 - w0) / 2; any w in (0, 1) is
+sound)."""
+
+
+@dataclass(frozen=True)
+class SecondOrder:
+    """The poisoned fit's second-order part as quadratic forms: entry i of dTheta_2 (row-major) is z'forms[i]z, z the
+    poisoning scaled to the unit balls at delta = 1 (X's nx entries over ||X||_F, then U's over ||U||_F); at budget
+    delta the forms scale by delta^2. cubic(delta) bounds (Frobenius) everything beyond the second order."""
+
+    forms: np.ndarray   # (n (n + m), N, N)
+    nx: int
+    sigma: float        # sigma_min(Z0)
+    linear: np.ndarray  # operator norms at delta = 1 of the maps a_X, a_U -> E0 D + V Q and -> V (Frobenius)
+    scale: np.ndarray   # (||X||_F, ||U||_F)
+    cache: dict = field(default_factory=dict)
+
+    def bound(self, C: np.ndarray) -> np.ndarray:
+        """For each row c of C: h >= |z' (sum_i c_i forms_i) z| over ||z_X||, ||z_U|| <= 1 at delta = 1 (S-procedure:
+        G <= lam diag(I / w, I / (1 - w)) after scaling gives z'Gz <= lam; the best w of SPLITS' per sign)."""
+        key = C.tobytes()
+        if key in self.cache:
+            return self.cache[key]
+        G = np.einsum("ci,ikl->ckl", C, self.forms)
+        up = lo = np.full(len(C), np.inf)
+        w0 = self.scale[0] ** 2 / float(self.scale @ self.scale)
+        for w in [1 - split * (1 - w0) for split in SPLITS]:
+            d = np.where(np.arange(G.shape[1]) < self.nx, 1 / np.sqrt(w), 1 / np.sqrt(1 - w))
+            lam = np.linalg.eigvalsh(d[None, :, None] * G * d[None, None, :])
+            up, lo = np.minimum(up, np.maximum(lam[:, -1], 0.0)), np.minimum(lo, np.maximum(-lam[:, 0], 0.0))
+        self.cache[key] = np.maximum(up, lo)
+        return self.cache[key]
+
+    def cubic(self, delta: float) -> float:
+        """A bound on ||dTheta - dTheta_1 - dTheta_2||_F over the budget: with L1 = E0 D + V Q and N = Q'D + D'Q + D'D
+        = A'A - I (A = Q + D, ||D|| <= eta < 1, so N's eigenvalues lie in [(1 - eta)^2 - 1, (1 + eta)^2 - 1]), the rest
+        is [-L1 D'D - V D N + (L1 + V D) N^2 (I + N)^-1] R^-T, and ||N^2 (I + N)^-1|| is the larger of x^2 / (1 + x)
+        at the two ends (convex in x > -1); inf where eta >= 1."""
+        r = delta * self.scale
+        eta = float(np.hypot(*r)) / self.sigma
+        if eta >= 1:
+            return float("inf")
+        ends = np.array([(1 - eta) ** 2 - 1, (1 + eta) ** 2 - 1])
+        nu, tail = float(ends[1]), float(np.max(ends ** 2 / (1 + ends)))
+        ell, v = self.linear @ r
+        return float((ell * eta ** 2 + v * eta * nu + (ell + v * eta) * tail) / self.sigma)
+
+
+_SECOND: dict[tuple, SecondOrder] = {}
+
+
+def second_order(atk: IdentificationAttack, normal: bool = False) -> SecondOrder:
+    """The SecondOrder of the fit (cached per data and route): with Z0' = Q R, D = dZ' R^-1, V = dY - Theta0 dZ and
+    L1 = E0 D + V Q, dTheta_2 = [V D - L1 (Q'D + D'Q)] R^-T; normal: the re-check's route from the normal equations,
+    dTheta_2 = [dY dZ' - dTheta_1 (Z0 dZ' + dZ Z0') - Theta0 dZ dZ'] G0^-1."""
+    key = (atk.signals["X"].tobytes(), atk.signals["U"].tobytes(), normal)
+    if key in _SECOND:
+        return _SECOND[key]
+    Y0, Z0 = atk.regression(atk.signals)
+    theta0 = least_squares_fit(Y0, Z0) if not normal else np.linalg.lstsq(Z0.T, Y0.T, rcond=None)[0].T
+    E0 = Y0 - theta0 @ Z0
+    dY, dZ, nx = _pokes(atk)
+    scale = np.array([np.linalg.norm(atk.signals["X"]), np.linalg.norm(atk.signals["U"])])
+    z = np.where(np.arange(len(dY)) < nx, scale[0], scale[1])
+    V = dY - np.einsum("ij,kjt->kit", theta0, dZ)
+    Qz, Rz = np.linalg.qr(Z0.T)
+    D = np.einsum("kjt,jm->ktm", dZ, np.linalg.inv(Rz))
+    L1 = np.einsum("it,ktj->kij", E0, D) + np.einsum("kit,tj->kij", V, Qz)
+    if normal:
+        G0inv = np.linalg.inv(Z0 @ Z0.T)
+        lin = np.einsum("it,kjt->kij", E0, dZ) + np.einsum("kit,jt->kij", V, Z0)
+        lin = np.einsum("kij,jm->kim", lin, G0inv)
+        G1 = np.einsum("jt,lmt->ljm", Z0, dZ)
+        G1 = G1 + G1.transpose(0, 2, 1)
+        B = (np.einsum("kit,ljt->klij", dY, dZ) - np.einsum("kij,ljm->klim", lin, G1)
+             - np.einsum("ij,kjt,lmt->klim", theta0, dZ, dZ))
+        B = np.einsum("klij,jm->klim", B, G0inv)
+    else:
+        M = np.einsum("tj,ktm->kjm", Qz, D)
+        B = np.einsum("kit,ltj->klij", V, D) - np.einsum("kij,ljm->klim", L1, M + M.transpose(0, 2, 1))
+        B = np.einsum("klij,mj->klim", B, np.linalg.inv(Rz))
+    B = 0.5 * (B + B.transpose(1, 0, 2, 3)) * z[:, None, None, None] * z[None, :, None, None]
+    op = lambda F: [_norm(F[:nx].reshape(nx, -1).T), _norm(F[nx:].reshape(len(F) - nx, -1).T)]  # noqa: E731
+    found = SecondOrder(np.moveaxis(B.reshape(len(z), len(z), -1), 2, 0), nx,
+                        float(np.linalg.svd(Z0, compute_uv=False)[-1]), np.array([op(L1), op(V)]), scale)
+    if len(_SECOND) >= 8:
+        _SECOND.pop(next(iter(_SECOND)))
+    _SECOND[key] = found
+    return found
 
 
 def model_radius(atk: IdentificationAttack, delta: float, whitened: bool = False) -> tuple[float, float]:
@@ -290,16 +400,24 @@ class ModelShape:
     rho: float
 
 
-def model_shape(atk: IdentificationAttack, delta: float, maps: tuple[np.ndarray, np.ndarray], ball: bool = False
-                ) -> ModelShape:
+def model_shape(atk: IdentificationAttack, delta: float, maps: tuple[np.ndarray, np.ndarray], ball: bool = False,
+                second: tuple[np.ndarray, float] | None = None) -> ModelShape:
     """The ModelShape at budget delta: the image GX a_X + GU a_U of the two balls lies in the ellipsoid v'S^-1 v <= 1,
     S = (1 + beta) S_X + (1 + 1/beta) S_U (S_X = r_X^2 GX GX', beta = sqrt(tr S_U / tr S_X)), whose semi-axes give the
-    D_j; the fit's part beyond its linear map is the ball (step 1's rest)."""
+    D_j; the fit's part beyond its linear map is the ball (step 1's rest). ball: the ball joins the ellipsoid (rho 0);
+    second = (h, c): so do, in its place, the box |dTheta_2 entries| <= h (its min-trace outer ellipsoid, semi-axes
+    sqrt(h_i sum h)) and the ball c beyond the second order (SecondOrder)."""
     theta0 = atk.theta0
     r_X, r_U = delta * np.linalg.norm(atk.signals["X"]), delta * np.linalg.norm(atk.signals["U"])
     S_X, S_U = r_X ** 2 * maps[0] @ maps[0].T, r_U ** 2 * maps[1] @ maps[1].T
-    rest = _fit_parts(atk, delta)[1]
-    parts = [S_X, S_U] + ([rest ** 2 * np.eye(S_X.shape[0])] if ball else [])
+    if second is not None:
+        h, cubic = second
+        parts = [S_X, S_U, np.diag(h * h.sum()), cubic ** 2 * np.eye(S_X.shape[0])]
+        parts = [S for S in parts if np.trace(S) > 0]
+        ball = True
+    else:
+        rest = _fit_parts(atk, delta)[1]
+        parts = [S_X, S_U] + ([rest ** 2 * np.eye(S_X.shape[0])] if ball else [])
     roots = [float(np.sqrt(np.trace(S))) for S in parts]
     lam, V = np.linalg.eigh(_sym(sum(S * sum(roots) / root for S, root in zip(parts, roots))))
     axes = V * np.sqrt(np.maximum(lam, 0.0))
@@ -667,6 +785,7 @@ class AffineGainSet:
     ext_E: float          # max ||E1(dTheta)|| over the ellipsoid
     m_lo: float
     m_hi: float
+    box: np.ndarray | None = None  # |W1(dTheta_2)| <= box entrywise (None: the ball holds the whole nonlinear part)
 
     def support(self, U: np.ndarray) -> np.ndarray:
         """An upper bound on max over the set of u'd for each column u of U (n x p)."""
@@ -678,6 +797,8 @@ class AffineGainSet:
              + np.minimum(-self.centre @ U + self.half_B * h_A, self.b * self.t_e * col(self.acl0 @ U))
              + quad + self.ext_B * self.ext_E * ext_F
              + self.ext_B * (col(self.CA @ U) + self.half * h_A) + (self.e_B + self.ext_B * self.t_e) * ext_F)
+        if self.box is not None:
+            g = g + self.box @ np.abs(U)
         return np.maximum(g / self.m_lo, g / self.m_hi)
 
 
@@ -687,9 +808,12 @@ def _gram_rows(M: np.ndarray) -> np.ndarray:
 
 
 def affine_gain_set(atk: IdentificationAttack, c: Clean, delta: float, shape: ModelShape, sol: dict[str, Any],
-                    maps: tuple[np.ndarray, np.ndarray], E1: list, Wmap: np.ndarray) -> AffineGainSet:
+                    maps: tuple[np.ndarray, np.ndarray], E1: list, Wmap: np.ndarray,
+                    second: tuple[np.ndarray, float] | None = None) -> AffineGainSet:
     """The AffineGainSet at budget delta from the affine sandwich's solution (Xc, Yc) on the combined ellipsoid
-    `shape` (model_shape(..., ball=True)), the fit's maps, E1 on the unit models and W1's matrix (riccati_maps)."""
+    `shape` (model_shape(..., ball=True)), the fit's maps, E1 on the unit models and W1's matrix (riccati_maps);
+    second = (g, c): W1 of the fit's second-order part lies in the box |.| <= g and the rest beyond it in the ball c
+    (SecondOrder), in place of ||W1|| times step 1's rest."""
     n, nm = c.theta0.shape
     B0 = c.theta0[:, n:]
     r = atk.lqr_weights[1]
@@ -723,9 +847,11 @@ def affine_gain_set(atk: IdentificationAttack, c: Clean, delta: float, shape: Mo
     centre_M = (B0.T @ C @ B0).item()
     m_lo = M0 + centre_M - half_B ** 2 - spread
     m_hi = M0 + centre_M + half_B ** 2 + spread
+    if second is not None:
+        rest = second[1]
     return AffineGainSet(Wmap @ maps[0] * r_X, Wmap @ maps[1] * r_U, _norm(c.W0) + _norm(Wmap) * rest,
                          (B0.T @ C @ c.Acl0).ravel(), half_B, half, root @ c.Acl0, C @ c.Acl0, e_B, t_e, c.Acl0,
-                         _norm(B0), quad, DF, ext_B, ext_E, m_lo, m_hi)
+                         _norm(B0), quad, DF, ext_B, ext_E, m_lo, m_hi, None if second is None else second[0])
 
 
 def loop_polynomial(A: np.ndarray, B: np.ndarray, K0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -861,6 +987,19 @@ def recheck_directional(atk: IdentificationAttack, delta: float, sol: dict[str, 
                   "excluded_by": swept.excluded_by, "margin": margin, "eps_model": eps, "t_cost": t})
 
 
+def second_parts(atk: IdentificationAttack, c: Clean, Wmap: np.ndarray, delta: float, normal: bool = False
+                 ) -> tuple[tuple[np.ndarray, float], tuple[np.ndarray, float]] | tuple[None, None]:
+    """((h, c), (g, c)) at budget delta: the box of the fit's second-order part on the model's entries, that of W1
+    on it, and the ball beyond the second order (SecondOrder; normal: the re-check's route); (None, None) where the
+    expansion's rest is unbounded (step 1's ball then holds the whole nonlinear part)."""
+    so = second_order(atk, normal)
+    cubic = so.cubic(delta)
+    if not np.isfinite(cubic):
+        return None, None
+    h = so.bound(np.vstack([np.eye(c.theta0.size), Wmap])) * delta ** 2
+    return (h[:c.theta0.size], cubic), (h[c.theta0.size:], cubic)
+
+
 def affine(target: Target, delta: float, options: dict[str, Any]) -> Evidence | None:
     """Mechanism "affine" (module docstring): the affine sandwich and its gain set, zero exclusion as in directional;
     None for more than one input."""
@@ -869,12 +1008,13 @@ def affine(target: Target, delta: float, options: dict[str, Any]) -> Evidence | 
     if not isinstance(start, tuple):
         return start
     _, c, numbers, maps, t0 = start
-    shape = model_shape(atk, delta, maps, ball=True)
     E1, Wmap = riccati_maps(c)
+    in_model, in_gain = second_parts(atk, c, Wmap, delta)
+    shape = model_shape(atk, delta, maps, ball=True, second=in_model)
     found = affine_sandwich(atk, c, shape, E1, Wmap)
     if found is None:
         return _unknown("affine", "the affine sandwich's SDP found no bounds", numbers, t0)
-    gains = affine_gain_set(atk, c, delta, shape, found, maps, E1, Wmap)
+    gains = affine_gain_set(atk, c, delta, shape, found, maps, E1, Wmap, in_gain)
     numbers.update(t_e=gains.t_e, m_lo=gains.m_lo)
     if not gains.m_lo > 0:
         return _unknown("affine", "the gain equation's denominator may vanish", numbers, t0)
@@ -883,18 +1023,22 @@ def affine(target: Target, delta: float, options: dict[str, Any]) -> Evidence | 
                            f"Riccati solutions within {gains.t_e:.3g} of their first-order change")
 
 
-def recheck_affine(atk: IdentificationAttack, delta: float, sol: dict[str, Any]) -> Check:
+def recheck_affine(atk: IdentificationAttack, delta: float, sol: dict[str, Any], second: bool = True) -> Check:
     """The affine sandwich's LMIs by numpy eigenvalues at the SDP's solution (margin above rounding; multipliers >= 0,
-    Xc >= Yc), with E1 and W1 from Kronecker products, the fit's maps and the ellipsoid the whitened way and the clean
-    model from a numpy lstsq re-fit; the gain set from them, the loop polynomial from np.poly and the sweep on a grid
-    twice as fine with twice the directions."""
+    Xc >= Yc), with E1 and W1 from Kronecker products, the fit's maps and the ellipsoid the whitened way, the fit's
+    second-order forms from the normal equations (second: the solution's model set used them; else step 1's ball)
+    and the clean model from a numpy lstsq re-fit; the gain set from them, the loop polynomial from np.poly and the
+    sweep on a grid twice as fine with twice the directions."""
     A, B = atk.setting.state_space
     c = _refit_clean(atk)
     n, nm = c.theta0.shape
     q, r = atk.lqr_weights
     maps = model_maps(atk, whitened=True)
-    shape = model_shape(atk, delta, maps, ball=True)
     E1, Wmap = riccati_maps(c, kron=True)
+    in_model, in_gain = second_parts(atk, c, Wmap, delta, normal=True) if second else (None, None)
+    if in_model is not None:
+        in_model, in_gain = [(h * (1 + 1e-9), rest * (1 + 1e-9)) for h, rest in (in_model, in_gain)]
+    shape = model_shape(atk, delta, maps, ball=True, second=in_model)
     channels = model_channels(shape, c.theta0.shape)
     E1c, k1c = _affine_inputs(c, r, channels, E1, Wmap)
     Xc, Yc = _sym(sol["Xc"]), _sym(sol["Yc"])
@@ -903,7 +1047,7 @@ def recheck_affine(atk: IdentificationAttack, delta: float, sol: dict[str, Any])
     eigs, ok = _smallest_eigs(mats, ("upper", "lower", "gap"))
     multipliers = min(float(np.linalg.eigvalsh(L)[0]) for L in sol["L1"] + sol["L2"])
     skew = max(float(np.max(np.abs(S + S.T))) for Ss in sol["skew1"] + sol["skew2"] for S in Ss)
-    gains = affine_gain_set(atk, c, delta, shape, sol, maps, E1, Wmap)
+    gains = affine_gain_set(atk, c, delta, shape, sol, maps, E1, Wmap, in_gain)
     Acl = A + B @ c.K0
     base = np.poly(Acl)
     slopes = np.array([np.poly(Acl + B @ e[None, :]) - base for e in np.eye(n)])

@@ -13,10 +13,11 @@ import pytest
 from bilevel.ddc.model_based import lqr_gain
 from bilevel.problems.identification_instance import IdentificationAttack, IdentificationSetting, attack_instance
 from bilevel.robust import Proof, as_target, certify, sample_soundness, sphere_poisoning
-from bilevel.robust.identification import (_first_order_map_kron, affine, affine_gain_set, affine_sandwich, clean,
-                                           directional, first_order_map, gain_set, loop_polynomial, lyapunov,
-                                           model_maps, model_radius, model_shape, recheck, recheck_affine,
-                                           recheck_directional, riccati_maps, sandwich)
+from bilevel.robust.identification import (_first_order_map_kron, _fit_parts, affine, affine_gain_set,
+                                           affine_sandwich, clean, directional, first_order_map, gain_set,
+                                           loop_polynomial, lyapunov, model_maps, model_radius, model_shape, recheck,
+                                           recheck_affine, recheck_directional, riccati_maps, sandwich, second_order,
+                                           second_parts)
 
 PROVEN = 0.0005
 """A budget lyapunov proves on data seed 0 (T = 100), where it alone bisects to delta_lb 0.00148."""
@@ -201,8 +202,32 @@ def test_affine_proves_beyond_directional_and_a_tampered_solution_fails(atk) -> 
     assert directional(target, AFFINE, {}).proof is Proof.UNKNOWN
     cert = certify(atk, AFFINE)  # directional first (cheaper), then affine
     assert cert.proven and [e.mechanism for e in cert.evidence] == ["directional", "affine"]
-    solution = affine_sandwich(atk, clean(atk, atk.theta0), model_shape(atk, AFFINE, model_maps(atk), ball=True),
-                               *riccati_maps(clean(atk, atk.theta0)))
+    c = clean(atk, atk.theta0)
+    E1, W1 = riccati_maps(c)
+    in_model = second_parts(atk, c, W1, AFFINE)[0]
+    solution = affine_sandwich(atk, c, model_shape(atk, AFFINE, model_maps(atk), second=in_model), E1, W1)
     assert recheck_affine(atk, AFFINE, solution).passed
+    assert not recheck_affine(atk, AFFINE, solution, second=False).passed  # solved on the smaller model set
     assert not recheck_affine(atk, AFFINE, {**solution, "Xc": solution["Xc"] - 0.2 * np.eye(4)}).passed
     assert not recheck_affine(atk, AFFINE, {**solution, "Yc": solution["Yc"] + 0.2 * np.eye(4)}).passed
+
+
+def test_the_second_order_forms_two_ways_bound_the_refits(atk) -> None:
+    """The fit's second-order forms by the QR and the normal-equation route agree; on sphere re-fits and the attack
+    the second-order part lies in its box and the rest beyond it in the cubic ball, far inside step 1's rest."""
+    qr, normal = second_order(atk), second_order(atk, normal=True)
+    assert np.allclose(qr.forms, normal.forms, rtol=0, atol=1e-10 * np.abs(qr.forms).max())
+    target = as_target(atk)
+    c = clean(atk, atk.theta0)
+    (h, cubic), _ = second_parts(atk, c, riccati_maps(c)[1], AFFINE)
+    assert np.linalg.norm(h) + cubic < 0.5 * _fit_parts(atk, AFFINE)[1]
+    GX, GU = model_maps(atk)
+    rng = np.random.default_rng(8)
+    poisonings = [sphere_poisoning(target, AFFINE, rng) for _ in range(50)] + [target.attacks["engine"](AFFINE, 0)]
+    for a in poisonings:
+        z = np.concatenate([a["X"].ravel() / qr.scale[0], a["U"].ravel() / qr.scale[1]])
+        quad = np.einsum("k,ikl,l->i", z, qr.forms, z)
+        assert np.all(np.abs(quad) <= h)
+        rest = target.refit(target.poisoned(a)) - c.theta0 - (GX @ a["X"].ravel() + GU @ a["U"].ravel()).reshape(
+            c.theta0.shape)
+        assert np.linalg.norm(rest.ravel() - quad) <= cubic
