@@ -151,3 +151,34 @@ def test_tampered_plan_sensitivity_fails_its_recheck() -> None:
     cost.cache["gram"] = dataclasses.replace(gram_maps(cost), p0w0=0.1 * gram_maps(cost).p0w0)
     cert = certify(target, 1.3e-3)
     assert cert.proof is Proof.UNKNOWN and not cert.evidence[0].check.passed
+
+
+def test_lower_bound_on_m_through_the_linear_part_decides_and_holds(target) -> None:
+    # T = 60, seed 0: with M >= (1 - beta)^2 M0 alone the level is proven up to delta 1.66e-3, with
+    # kappa = max(1 - beta, 1 - gamma / 2) up to 1.75e-3; at 1.72e-3 the bound must hold for 2000 sphere poisonings,
+    # the engine's attack and a gradient ascent of the true cost
+    from bilevel.robust.deepc import cost_bound
+
+    cost, delta = target.declaration, 1.72e-3
+    cert = certify(target, delta)
+    numbers = cert.evidence[0].numbers
+    assert cert.proof is Proof.PROVEN and cert.evidence[0].check.passed
+    assert numbers["kappa"] > 1 - numbers["beta"]
+    beta_alone = dataclasses.replace(gram_maps(cost), gamma=float("inf"))
+    assert cost_bound(beta_alone, cost.attack, delta, (numbers["multiplier_u"], numbers["multiplier_y"]))["bound"] \
+        >= cost.level
+    level = cost.level
+    rng = np.random.default_rng(5)
+    sampled = max(target.true_radius(sphere_poisoning(target, delta, rng)) for _ in range(2000)) * level
+    attacked = target.true_radius(target.attacks["engine"](delta, 0)) * level
+    ascended = target.true_radius(_ascent_poisoning(target, delta, starts=3, steps=60, seed=6)) * level
+    assert max(sampled, attacked, ascended) <= cert.bound
+
+
+def test_tampered_gamma_fails_its_recheck() -> None:
+    # where kappa comes from gamma (T = 60, seed 0, delta 1.72e-3), a too-small gamma is caught by the second route
+    target = as_target(attack_instance(T=60, seed=0))
+    cost = target.declaration
+    cost.cache["gram"] = dataclasses.replace(gram_maps(cost), gamma=0.5 * gram_maps(cost).gamma)
+    cert = certify(target, 1.72e-3)
+    assert cert.proof is Proof.UNKNOWN and not cert.evidence[0].check.passed
