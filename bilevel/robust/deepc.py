@@ -220,7 +220,7 @@ def _maps(cost: DeePCCost, dv1: np.ndarray, dg1: np.ndarray, v0: np.ndarray, w0:
     s = vec @ np.diag(ev ** -0.5) @ vec.T  # M0^-1/2
     g = mm @ (-(lam / atk.r_weight) * dv1[:, 2 * k:2 * k + n].T)
     p = (lam / atk.r_weight) * mm @ m0_inv_uf  # P0: the plan's (cost residual's) sensitivity to M's right-hand side
-    lin = np.einsum("ab,sbc,dc,de->sae", s, units, w0, s)  # M0^-1/2 Delta(e_s) W0' M0^-1/2
+    lin = s @ units @ (w0.T @ s)  # M0^-1/2 Delta(e_s) W0' M0^-1/2, per unit poisoning
     return Maps(mm @ u0 - c, g, v0, _block_norm(np.tensordot(units, s, axes=([1], [1])), t, radii),
                 _block_norm(lin + lin.transpose(0, 2, 1), t, radii), _block_norm(units, t, radii), _block_norm(dv1, t, radii),
                 _block_norm(dv1 @ np.linalg.cholesky(m0), t, radii), _block_norm(dg1, t, radii),
