@@ -23,8 +23,10 @@ Mechanism "kkt-sensitivity" (a proof at delta):
   sqrt(lambda_g / r_weight)), ||M^-1/2 W|| <= 1, ||M0^-1/2 W0|| <= 1 and M >= (1 - beta)^2 M0 where beta >=
   ||M0^-1/2 Delta|| (so ||M^-1/2 Delta|| <= beta / (1 - beta)): R3 = -M^-1 y3 with ||M^-1/2 y3|| <= y3 :=
   beta ||M0^1/2 R2|| + beta / (1 - beta) (||M0^1/2 R2|| + ||Delta' dv1||), and R3's image in the cost is at most
-  ||Mm|| sqrt(lambda_g / r_weight) y3 (the first way); the norm of a linear map of the poisoning is bounded by the sum
-  of its two blocks' spectral norms times the radii;
+  ||Mm|| sqrt(lambda_g / r_weight) y3 (the first way); the norm of a linear map F of the poisoning over the two balls
+  is bounded by the S-lemma, sup ||F a||^2 <= l_u rho_u^2 + l_y rho_y^2 whenever F'F <= diag(l_u I, l_y I) (at most
+  the sum of its two blocks' spectral norms times the radii, 14 % below it for beta on attack_instance(T=100,
+  seed=3757552657));
 - the cubic rest, a second way, through the plan's own sensitivity P0 = (lambda_g / r_weight) Mm E_uf M0^-1 (the
   cost residual's response to M's right-hand side at the clean data) instead of M's weakest directions. With
   e = v - v0 and g = W' v the poisoned learner's g, M0 e = -(M - M0) v exactly, and (M - M0) v = W0 Delta' v + Delta g,
@@ -166,10 +168,27 @@ def _unit_rows(atk: DeePCAttack) -> np.ndarray:
 
 
 def _block_norm(rows: np.ndarray, t: int, radii: tuple[float, float]) -> float:
-    """An upper bound of sup ||sum_s a_s rows[s]|| over ||a_u|| <= radii[0], ||a_y|| <= radii[1]: the sum of the two
-    blocks' spectral norms times their radii (rows: one flattened image per unit poisoning)."""
+    """An upper bound of sup ||sum_s a_s rows[s]|| (Frobenius) over ||a_u|| <= radii[0], ||a_y|| <= radii[1] (rows: one
+    image per unit poisoning, first the t of du): the smaller of the two blocks' spectral norms times their radii,
+    summed, and the S-lemma's value l_u radii[0]^2 + l_y radii[1]^2 with F'F <= diag(l_u I, l_y I) (F the flattened
+    rows' transpose), l_y = tau l_u at the best tau found by a bounded scalar search, l_u = lambda_max(D^-1/2 F'F
+    D^-1/2) (1 + 1e-9) (D = diag(I, tau I)): every tau gives a valid bound."""
     flat = rows.reshape(rows.shape[0], -1)
-    return radii[0] * np.linalg.norm(flat[:t], 2) + radii[1] * np.linalg.norm(flat[t:], 2)
+    nu, ny = np.linalg.norm(flat[:t], 2), np.linalg.norm(flat[t:], 2)
+    blocks = radii[0] * nu + radii[1] * ny
+    if nu == 0.0 or ny == 0.0:
+        return float(blocks)
+    gram = flat @ flat.T
+
+    def value(log_tau: float) -> float:
+        scale = np.concatenate([np.ones(t), np.full(rows.shape[0] - t, np.exp(-log_tau / 2))])
+        return float(np.linalg.eigvalsh(gram * np.outer(scale, scale))[-1] * (1 + 1e-9)
+                     * (radii[0] ** 2 + np.exp(log_tau) * radii[1] ** 2))
+
+    centre = np.log(ny * radii[0] / (nu * radii[1]))  # the block sum's tau
+    found = scipy.optimize.minimize_scalar(value, bounds=(centre - 5.0, centre + 5.0), method="bounded",
+                                           options={"xatol": 1e-6})
+    return float(min(blocks, np.sqrt(value(float(found.x)))))
 
 
 @dataclass(frozen=True)
@@ -222,7 +241,8 @@ def _maps(cost: DeePCCost, dv1: np.ndarray, dg1: np.ndarray, v0: np.ndarray, w0:
     p = (lam / atk.r_weight) * mm @ m0_inv_uf  # P0: the plan's (cost residual's) sensitivity to M's right-hand side
     lin = s @ units @ (w0.T @ s)  # M0^-1/2 Delta(e_s) W0' M0^-1/2, per unit poisoning
     return Maps(mm @ u0 - c, g, v0, _block_norm(np.tensordot(units, s, axes=([1], [1])), t, radii),
-                _block_norm(lin + lin.transpose(0, 2, 1), t, radii), _block_norm(units, t, radii), _block_norm(dv1, t, radii),
+                _block_norm(lin + lin.transpose(0, 2, 1), t, radii), _block_norm(units, t, radii),
+                _block_norm(dv1, t, radii),
                 _block_norm(dv1 @ np.linalg.cholesky(m0), t, radii), _block_norm(dg1, t, radii),
                 float(np.linalg.norm(mm, 2) * np.sqrt(lam / atk.r_weight)), float(ev[0] ** -0.5),
                 _quadratic_blocks(p, w0, units, dv1, dg1, t), _quadratic_blocks(s, w0, units, dv1, dg1, t),
