@@ -117,7 +117,8 @@ def _ascent_poisoning(target, delta: float, starts: int, steps: int, seed: int) 
 
 
 def test_plan_sensitivity_way_is_tighter_than_m_alone(target) -> None:
-    # T = 60, seed 0: the first way alone proves the level up to delta 8.1e-4; with the plan's sensitivity 1.66e-3
+    # T = 60, seed 0 (before kappa and the S-lemma's block norms): the first way alone proved the level up to delta
+    # 8.1e-4, with the plan's sensitivity 1.66e-3
     from bilevel.robust.deepc import cost_bound
 
     cost, delta = target.declaration, 1.3e-3
@@ -150,4 +151,63 @@ def test_tampered_plan_sensitivity_fails_its_recheck() -> None:
     cost = target.declaration
     cost.cache["gram"] = dataclasses.replace(gram_maps(cost), p0w0=0.1 * gram_maps(cost).p0w0)
     cert = certify(target, 1.3e-3)
+    assert cert.proof is Proof.UNKNOWN and not cert.evidence[0].check.passed
+
+
+def test_lower_bound_on_m_through_the_linear_part_decides_and_holds(target) -> None:
+    # T = 60, seed 0: with M >= (1 - beta)^2 M0 alone the level is proven up to delta 1.84e-3, with
+    # kappa = max(1 - beta, 1 - gamma / 2) up to 1.92e-3; at 1.9e-3 the bound must hold for 2000 sphere poisonings,
+    # the engine's attack and a gradient ascent of the true cost
+    from bilevel.robust.deepc import cost_bound
+
+    cost, delta = target.declaration, 1.9e-3
+    cert = certify(target, delta)
+    numbers = cert.evidence[0].numbers
+    assert cert.proof is Proof.PROVEN and cert.evidence[0].check.passed
+    assert numbers["kappa"] > 1 - numbers["beta"]
+    beta_alone = dataclasses.replace(gram_maps(cost), gamma=float("inf"))
+    assert cost_bound(beta_alone, cost.attack, delta, (numbers["multiplier_u"], numbers["multiplier_y"]))["bound"] \
+        >= cost.level
+    level = cost.level
+    rng = np.random.default_rng(5)
+    sampled = max(target.true_radius(sphere_poisoning(target, delta, rng)) for _ in range(2000)) * level
+    attacked = target.true_radius(target.attacks["engine"](delta, 0)) * level
+    ascended = target.true_radius(_ascent_poisoning(target, delta, starts=3, steps=60, seed=6)) * level
+    assert max(sampled, attacked, ascended) <= cert.bound
+
+
+def test_tampered_gamma_fails_its_recheck() -> None:
+    # where kappa comes from gamma (T = 60, seed 0, delta 1.9e-3), a too-small gamma is caught by the second route
+    target = as_target(attack_instance(T=60, seed=0))
+    cost = target.declaration
+    cost.cache["gram"] = dataclasses.replace(gram_maps(cost), gamma=0.5 * gram_maps(cost).gamma)
+    cert = certify(target, 1.9e-3)
+    assert cert.proof is Proof.UNKNOWN and not cert.evidence[0].check.passed
+
+
+def test_block_norm_bounds_the_sup_and_beats_the_block_sum() -> None:
+    # the S-lemma value is at most the two blocks' sum and at least every ||F a|| on the balls, including the
+    # maximizer's candidates along each block's top singular vectors combined with both signs
+    from bilevel.robust.deepc import _block_norm
+
+    rng = np.random.default_rng(7)
+    t, radii = 6, (0.7, 2.0)
+    rows = rng.standard_normal((2 * t, 3, 4))
+    flat = rows.reshape(2 * t, -1)
+    bound = _block_norm(rows, t, radii)
+    assert bound <= radii[0] * np.linalg.norm(flat[:t], 2) + radii[1] * np.linalg.norm(flat[t:], 2)
+    tops = [np.linalg.svd(flat[blk].T)[2][0] for blk in (slice(0, t), slice(t, 2 * t))]
+    tries = [np.concatenate([radii[0] * tops[0], sign * radii[1] * tops[1]]) for sign in (1, -1)]
+    for _ in range(2000):
+        a = rng.standard_normal(2 * t)
+        a[:t], a[t:] = radii[0] * a[:t] / np.linalg.norm(a[:t]), radii[1] * a[t:] / np.linalg.norm(a[t:])
+        tries.append(a)
+    assert max(np.linalg.norm(flat.T @ a) for a in tries) <= bound
+
+
+def test_tampered_beta_fails_its_recheck() -> None:
+    target = as_target(attack_instance(T=60, seed=0))
+    cost = target.declaration
+    cost.cache["gram"] = dataclasses.replace(gram_maps(cost), beta=0.8 * gram_maps(cost).beta)
+    cert = certify(target, 1.9e-3)
     assert cert.proof is Proof.UNKNOWN and not cert.evidence[0].check.passed
