@@ -26,7 +26,7 @@ import casadi as ca
 import clarabel
 import numpy as np
 import scipy.sparse as sp
-from scipy.optimize import minimize
+from scipy.optimize import minimize, nnls
 
 from bilevel.model import BilevelProblem
 
@@ -240,9 +240,21 @@ class ConvexNLP:
         jac = lambda y: -np.asarray(self.g(x, y)[1], dtype=float).reshape(-1, self.ny)  # noqa: E731
         res = minimize(lambda y: self._f(x, y), self.start, jac=True, method="SLSQP",
                        constraints=[{"type": "ineq", "fun": rows, "jac": jac}], options={"ftol": 1e-14, "maxiter": 500})
-        if not res.success or rows(res.x).min(initial=0.0) < -1e-9:
-            return "infeasible", None, np.inf
+        if rows(res.x).min(initial=0.0) < -1e-9:
+            return ("infeasible" if res.success else "failed"), None, np.inf
+        if not res.success and not self._kkt(x, res.x, rows(res.x), jac(res.x)):
+            return "failed", None, np.inf
         return "optimal", np.asarray(res.x), self._f(x, res.x)[0]
+
+    def _kkt(self, x: np.ndarray, y: np.ndarray, slack: np.ndarray, jac: np.ndarray) -> bool:
+        """Whether feasible y is a KKT point (so optimal: the level is convex), for SLSQP runs that stall at the
+        optimum without declaring success (e.g. "Positive directional derivative for linesearch", which with
+        ftol 1e-14 depends on the BLAS's rounding): multipliers >= 0 of the active rows by nonnegative least
+        squares, stationarity to 1e-8 of the gradient's scale."""
+        grad = self._f(x, y)[1]
+        active = slack <= 1e-9 * (1.0 + np.abs(y).max(initial=0.0))
+        residual = nnls(jac[active].T, grad)[1] if active.any() else float(np.linalg.norm(grad))
+        return residual <= 1e-8 * (1.0 + float(np.linalg.norm(grad)))
 
 
 def _vec(vars_: Sequence[Any]) -> ca.SX:
