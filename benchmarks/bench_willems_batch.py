@@ -108,10 +108,10 @@ def main() -> None:
                     f"{1e3 * t_single / n_single:7.2f} ms/attack (on {n_single}); ratio "
                     f"{(t_single / n_single) / (t_batch / size):.2f}x; results equal {same}/{n_single}, status, "
                     f"iterations and unstable flag equal {flags}/{n_single}, spectral radius max rel diff {rel:.1e}")
+            print(line, flush=True)  # before the memory run, which takes longer than the timed one
             if size <= args.memory_max:
                 memory = peak(lambda: destabilize_many(atks[:size], seeds[:size], **opts))
-                line += f"; peak traced memory of the batched call {memory:.1f} MiB"
-            print(line, flush=True)
+                print(f"batch {size:5d}: peak traced memory of the batched call {memory:.1f} MiB", flush=True)
     print(f"# load average after: {open('/proc/loadavg').read().split()[:3]}")
 
 
