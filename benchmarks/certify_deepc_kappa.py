@@ -1,8 +1,9 @@
-"""The DeePC certificate with kappa = max(1 - beta, 1 - gamma / 2) and the S-lemma's block norms (issue 46) on the reproduction's 32 data sets
-(T = 100): delta_lb by certified_margin below the committed delta_ub (docs/results/certify/certify.csv, the same
-attack), the sampling check at the new delta_lb (10,000 sphere poisonings and the engine's attack, 1 start), and
-delta_lb with M >= (1 - beta)^2 M0 alone (gamma = inf) on the same bisection. CPU seconds by time.process_time.
-Writes docs/results/certify/deepc_kappa.{csv,md}. Usage: python benchmarks/certify_deepc_kappa.py [workers [data sets]]"""
+"""The DeePC certificate with kappa = max(1 - beta, 1 - gamma / 2) and the S-lemma's block norms (issue 46) on the
+reproduction's 32 data sets (T = 100): delta_lb by certified_margin below the committed delta_ub
+(docs/results/certify/certify.csv, the same attack), the sampling check at the new delta_lb (10,000 sphere poisonings
+and the engine's attack, 1 start), and delta_lb with M >= (1 - beta)^2 M0 alone (gamma = inf) on the same bisection.
+CPU seconds by time.process_time. Writes docs/results/certify/deepc_kappa.{csv,md}.
+Usage: python benchmarks/certify_deepc_kappa.py [workers [data sets]]"""
 
 from __future__ import annotations
 
@@ -67,11 +68,12 @@ def main(workers: int, count: int) -> None:
                 f"with other jobs (load {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end). DeePC tracking "
                 f"cost (level 2 J0), T = 100, the reproduction's 32 data sets; delta_ub from certify.csv (same "
                 f"attack, 1 start); delta_lb by certified_margin with kappa = max(1 - beta, 1 - gamma / 2), and "
-                f"with beta alone (gamma = inf) on the same bisection; every norm of a linear map of the poisoning by the "
-                f"S-lemma (bilevel/robust/deepc.py, _block_norm).\n\n")
+                f"with beta alone (gamma = inf) on the same bisection; every norm of a linear map of the poisoning "
+                f"by the S-lemma (bilevel/robust/deepc.py, _block_norm).\n\n")
         f.write("| data sets | 0 < lb <= ub | median ub/lb | worst ub/lb | best ub/lb | median ub/lb, beta alone | "
                 "worst, beta alone | delta_lb gain (median, min, max) | samples at lb | failing at lb | largest "
-                "J / level (samples, attack) | median CPU s per margin |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+                "J / level (samples, attack) | median CPU s per margin |\n"
+                "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
         f.write(f"| {len(rows)} | {ok} | {np.median(ratio):.3g} | {ratio.max():.3g} | {ratio.min():.3g} | "
                 f"{np.median(old):.3g} | {old.max():.3g} | {np.median(gain):.3f}, {gain.min():.3f}, {gain.max():.3f} "
                 f"| {sum(r['samples'] for r in rows)} | {sum(r['unstable'] for r in rows)} | "
