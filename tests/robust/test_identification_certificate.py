@@ -170,15 +170,18 @@ def test_the_riccati_maps_are_the_derivative_two_ways(atk) -> None:
     assert np.allclose((K1 - K2).ravel() / (2 * h), -W1 @ D.ravel() / M0, atol=1e-5)
 
 
-def test_the_affine_sets_contain_the_refits_and_the_attack(atk) -> None:
+@pytest.mark.parametrize("second", [False, True])
+def test_the_affine_sets_contain_the_refits_and_the_attack(atk, second) -> None:
+    """With step 1's ball around the fit's nonlinear part, and with its second-order box and the rest beyond it."""
     target = as_target(atk)
     c = clean(atk, atk.theta0)
     n = c.theta0.shape[0]
     maps = model_maps(atk)
-    shape = model_shape(atk, AFFINE, maps, ball=True)
     E1, W1 = riccati_maps(c)
+    in_model, in_gain = second_parts(atk, c, W1, AFFINE) if second else (None, None)
+    shape = model_shape(atk, AFFINE, maps, ball=True, second=in_model)
     found = affine_sandwich(atk, c, shape, E1, W1)
-    gains = affine_gain_set(atk, c, AFFINE, shape, found, maps, E1, W1)
+    gains = affine_gain_set(atk, c, AFFINE, shape, found, maps, E1, W1, in_gain)
     rng = np.random.default_rng(6)
     poisonings = [sphere_poisoning(target, AFFINE, rng) for _ in range(100)]
     poisonings.append(target.attacks["engine"](AFFINE, 0))
