@@ -18,7 +18,7 @@ from ..model import BilevelProblem
 from ..problems.vrft import _load, instance_of, problem_for
 from ..problems.vrft_instance import VRFTAttack
 from ..result import BilevelResult
-from ..solvers.batch import BatchMethod, register_batch, solve_many
+from ..solvers.batch import BatchMethod, in_groups, register_batch, solve_many
 from ..solvers.engine.affine_ls import Oracle
 from ..solvers.engine.affine_ls_batch import AffineLSBatch, BatchMaps, BatchOracle, TargetBlockBatch, UpperBatch
 from ..solvers.engine.block_exact_batch import (BatchInstance, ascend_with_exact_block_batch, batch_instance,
@@ -57,19 +57,9 @@ def run(gathered: list[Gathered], options: dict[str, Any]) -> list[MethodRun]:
     atks = [g.atk for g in gathered]
     conditioning_starts([g.inst for g in gathered], lambda i: (id(atks[i].setting.regressor), atks[i].N),
                         lambda idx: _learner([atks[i] for i in idx]))
-    groups: dict[tuple, list[int]] = {}
-    for i, g in enumerate(gathered):
-        key = (id(g.atk.setting.regressor), g.atk.N, g.atk.objective, g.inst.max_iter, g.inst.gain_tol)
-        groups.setdefault(key, []).append(i)
-    out: list[MethodRun | None] = [None] * len(gathered)
-    size = int(param("batch.max_rows"))
-    for idx in groups.values():
-        for s in range(0, len(idx), size):  # consecutive ascents of at most batch.max_rows instances
-            part = idx[s: s + size]
-            for i, r in zip(part, ascend_with_exact_block_batch(_oracle([atks[i] for i in part]),
-                                                                [gathered[i].inst for i in part])):
-                out[i] = r
-    return out  # type: ignore[return-value]
+    return in_groups(gathered, lambda g: (id(g.atk.setting.regressor), g.atk.N, g.atk.objective, g.inst.max_iter,
+                                          g.inst.gain_tol),
+                     lambda part: ascend_with_exact_block_batch(_oracle([g.atk for g in part]), [g.inst for g in part]))
 
 
 def _maps(atk: VRFTAttack) -> BatchMaps:

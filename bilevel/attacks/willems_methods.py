@@ -13,13 +13,12 @@ from ..defaults import param
 from ..errors import ModelError
 from ..reduction import KKTPoint
 from ..result import Status
-from ..solvers.batch import BatchMethod, register_batch
+from ..solvers.batch import BatchMethod, in_groups, register_batch
 from ..solvers.engine.ascent import batched_box_ascent, group_counts
 from ..solvers.engine.prepared import MethodRun, Prepared, check_options
-from ..solvers.engine.implicit import shared_oracle
+from ..solvers.engine.implicit import affine_stack, shared_oracle
 from ..solvers.engine.options import check_common_options, check_counts
 from ..spectral_radius import spectral_radius
-from ..solvers.engine.implicit import affine_stack
 
 
 def random_signs(prep: Prepared, *, seed: Any = 0, **unknown: Any) -> MethodRun:
@@ -143,16 +142,7 @@ def _gather(prep: Prepared, options: dict[str, Any]) -> Climb | None:
 
 def _run_together(climbs: list[Climb], options: dict[str, Any]) -> list[MethodRun]:
     """climb_together on groups of at most defaults["batch.max_rows"] instances of one max_iter."""
-    groups: dict[int, list[int]] = {}
-    for i, c in enumerate(climbs):
-        groups.setdefault(c.max_iter, []).append(i)
-    out: list[MethodRun | None] = [None] * len(climbs)
-    size = int(param("batch.max_rows"))
-    for idx in groups.values():
-        for s in range(0, len(idx), size):
-            for i, r in zip(idx[s: s + size], climb_together([climbs[i] for i in idx[s: s + size]])):
-                out[i] = r
-    return out  # type: ignore[return-value]
+    return in_groups(climbs, lambda c: c.max_iter, climb_together)
 
 
 register_batch(destabilize, BatchMethod(_gather, _run_together))

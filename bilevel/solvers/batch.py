@@ -11,7 +11,7 @@ import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Hashable, Mapping, Sequence
 
 import numpy as np
 
@@ -55,6 +55,23 @@ def register_batch(method: Callable[..., MethodRun], batched: BatchMethod) -> No
     if not callable(method) or not isinstance(batched, BatchMethod):
         raise ModelError("register_batch needs a method function and a BatchMethod(gather, run)")
     BATCH_METHODS[method] = batched
+
+
+def in_groups(items: Sequence[Any], key: Callable[[Any], Hashable],
+              run: Callable[[list[Any]], Sequence[Any]]) -> list[Any]:
+    """run(part) on the items sharing key(item), at most defaults["batch.max_rows"] of them at a time (consecutive
+    batched runs), groups in order of first appearance; one result per item, in the items' order."""
+    groups: dict[Hashable, list[int]] = {}
+    for i, item in enumerate(items):
+        groups.setdefault(key(item), []).append(i)
+    out: list[Any] = [None] * len(items)
+    size = int(param("batch.max_rows"))
+    for idx in groups.values():
+        for s in range(0, len(idx), size):
+            part = idx[s: s + size]
+            for i, r in zip(part, run([items[i] for i in part])):
+                out[i] = r
+    return out
 
 
 def load(problem: BilevelProblem, value: Value) -> None:
