@@ -98,6 +98,16 @@ def test_the_clean_loop_is_stable_and_an_unproven_budget_is_unknown(atk) -> None
     assert certify(atk, PROVEN).proven
 
 
+def _probes(target, delta: float, n: int, seed: int) -> tuple[list, np.ndarray]:
+    """100 poisonings on the budget sphere at delta and the engine attack's answer; 200 random unit directions of the
+    gain and the +-axes (n x 206)."""
+    rng = np.random.default_rng(seed)
+    poisonings = [sphere_poisoning(target, delta, rng) for _ in range(100)]
+    poisonings.append(target.attacks["engine"](delta, 0))
+    W = rng.standard_normal((n, 200))
+    return poisonings, np.hstack([W / np.linalg.norm(W, axis=0), np.eye(n), -np.eye(n)])
+
+
 def test_the_directional_sets_contain_the_refits_and_the_attack(atk) -> None:
     target = as_target(atk)
     c = clean(atk, atk.theta0)
@@ -107,11 +117,7 @@ def test_the_directional_sets_contain_the_refits_and_the_attack(atk) -> None:
     shape = model_shape(atk, BEYOND, maps)
     found = sandwich(atk, c, eps, shaped=True, shape=shape)
     gains = gain_set(atk, c, BEYOND, eps, found["X"], found["Y"], maps, first_order_map(c))
-    rng = np.random.default_rng(5)
-    poisonings = [sphere_poisoning(target, BEYOND, rng) for _ in range(100)]
-    poisonings.append(target.attacks["engine"](BEYOND, 0))
-    W = rng.standard_normal((n, 200))
-    W = np.hstack([W / np.linalg.norm(W, axis=0), np.eye(n), -np.eye(n)])
+    poisonings, W = _probes(target, BEYOND, n, 5)
     bound = gains.support(W)
     cols = c.theta0.shape[1]
     axes = np.stack([shape.D[:, j * cols:(j + 1) * cols].ravel() for j in range(shape.k)], 1)
@@ -182,11 +188,7 @@ def test_the_affine_sets_contain_the_refits_and_the_attack(atk, second) -> None:
     shape = model_shape(atk, AFFINE, maps, ball=True, second=in_model)
     found = affine_sandwich(atk, c, shape, E1, W1)
     gains = affine_gain_set(atk, c, AFFINE, shape, found, maps, E1, W1, in_gain)
-    rng = np.random.default_rng(6)
-    poisonings = [sphere_poisoning(target, AFFINE, rng) for _ in range(100)]
-    poisonings.append(target.attacks["engine"](AFFINE, 0))
-    W = rng.standard_normal((n, 200))
-    W = np.hstack([W / np.linalg.norm(W, axis=0), np.eye(n), -np.eye(n)])
+    poisonings, W = _probes(target, AFFINE, n, 6)
     bound = gains.support(W)
     for a in poisonings:
         theta = target.refit(target.poisoned(a))
