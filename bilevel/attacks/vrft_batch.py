@@ -53,12 +53,13 @@ def gather(prep: Prepared, options: dict[str, Any]) -> Gathered | None:
 
 def run(gathered: list[Gathered], options: dict[str, Any]) -> list[MethodRun]:
     """The alternating attack's runs of the gathered instances, those sharing a learner design and limits in one
-    batched ascent (of at most defaults["batch.max_rows"] instances at a time)."""
+    batched ascent (of at most defaults["batch.max_rows"] instances at a time); instances without an input budget
+    (delta_u 0) apart from the others, so that their evaluations skip the input block's step (TargetBlockBatch.solve)."""
     atks = [g.atk for g in gathered]
     conditioning_starts([g.inst for g in gathered], lambda i: (id(atks[i].setting.regressor), atks[i].N),
                         lambda idx: _learner([atks[i] for i in idx]))
     return in_groups(gathered, lambda g: (id(g.atk.setting.regressor), g.atk.N, g.atk.objective, g.inst.max_iter,
-                                          g.inst.gain_tol),
+                                          g.inst.gain_tol, g.atk.delta_u == 0),
                      lambda part: ascend_with_exact_block_batch(_oracle([g.atk for g in part]), [g.inst for g in part]))
 
 

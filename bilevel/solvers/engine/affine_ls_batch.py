@@ -140,7 +140,10 @@ class TargetBlockBatch:
     radius: np.ndarray
 
     def solve(self, rows: np.ndarray, B: np.ndarray) -> BatchFit:
-        """The fits with a at its best value for each row's b (radius 0: a = 0)."""
+        """The fits with a at its best value for each row's b (radius 0: a = 0; where every row's radius is 0, the fits
+        at (0, b) without the block's step, as TargetBlock skips it)."""
+        if not np.any(self.radius[rows]):
+            return self.learner.fit(rows, None, B)
         s0, S, W = self.learner.target_block(rows, B)
         St = np.swapaxes(S, 1, 2)
         grad = self.upper.gradient(rows, s0.theta)
