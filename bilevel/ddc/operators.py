@@ -27,6 +27,27 @@ def _signal(x: ArrayLike) -> np.ndarray:
     return x
 
 
+def filter_columns(b: np.ndarray, a: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """scipy.signal.lfilter(b, a, x, axis=0) for a[0] = 1, bit for bit, with two forms of it as array sums (no
+    per-sample loop): a FIR filter (a = [1, 0, ..., 0]) as its taps summed in lfilter's order,
+    ((b_k x_{t-k} + b_{k-1} x_{t-k+1}) + ...) + b_0 x_t, and a running sum (b = [1, 0, ...], a = [1, -1, 0, ...]) as
+    cumsum (lfilter's products with the zero taps are exact zeros for finite x); any other filter, or x not finite, by
+    lfilter."""
+    x = np.asarray(x, dtype=float)
+    if a[0] != 1.0 or x.ndim == 0 or x.shape[0] == 0 or not np.isfinite(x).all():
+        return scipy.signal.lfilter(b, a, x, axis=0)
+    if b.size <= a.size and b[0] == 1.0 and not np.any(b[1:]) and a.size > 1 and a[1] == -1.0 and not np.any(a[2:]):
+        return np.cumsum(x, axis=0)
+    if b.size == a.size and not np.any(a[1:]):
+        n = x.shape[0]
+        y = np.zeros_like(x)
+        for k in range(b.size - 1, -1, -1):
+            if k < n:
+                y[k:] += b[k] * x[: n - k]
+        return y
+    return scipy.signal.lfilter(b, a, x, axis=0)
+
+
 class LTIOperator:
     """Toeplitz operator of a proper SISO filter on length-N signals (columns of an (N, k) array)."""
 
@@ -50,9 +71,9 @@ class LTIOperator:
         x = _signal(x)
         d = self.advance
         if d == 0:
-            return scipy.signal.lfilter(self._b, self.den, x, axis=0)
+            return filter_columns(self._b, self.den, x)
         padded = np.concatenate([x, np.zeros((d,) + x.shape[1:])], axis=0)
-        return scipy.signal.lfilter(self._b, self.den, padded, axis=0)[d:]
+        return filter_columns(self._b, self.den, padded)[d:]
 
     def adjoint(self, y: ArrayLike) -> np.ndarray:
         """T^T y, by filtering the time-reversed signal (a square Toeplitz T satisfies T^T = J T J)."""

@@ -22,12 +22,11 @@ from typing import Literal
 import control
 import numpy as np
 import scipy.linalg
-import scipy.signal
 from numpy.typing import ArrayLike
 
 from bilevel.errors import InvalidData, RankDeficientRegressor, UnknownOption
 from bilevel.ddc.bases import Basis, basis_polynomials, controller_tf
-from bilevel.ddc.operators import LTIOperator, virtual_error_operator
+from bilevel.ddc.operators import LTIOperator, filter_columns, virtual_error_operator
 from bilevel.ddc.systems import SystemLike, as_tf
 from bilevel.lower.least_squares import thin_qr
 
@@ -59,6 +58,9 @@ def _pair(u: ArrayLike, y: ArrayLike, suffix: str = "") -> tuple[np.ndarray, np.
     if u.size != y.size:
         raise InvalidData(f"u{suffix} and y{suffix} must have equal length, got {u.size} and {y.size}")
     return u, y
+
+
+_ONE = np.ones(1)  # the numerator of the basis's common all-pole filter 1/D
 
 
 @dataclass(frozen=True)
@@ -110,7 +112,7 @@ class VRFTRegressor:
     def __call__(self, y: ArrayLike) -> np.ndarray:
         """Phi(y), shape (rows, nk); linear in y."""
         y = _signal("y", y)
-        w = scipy.signal.lfilter([1.0], self.basis_den, self.error_signal(y))
+        w = filter_columns(_ONE, self.basis_den, self.error_signal(y))
         lag = self._lags(w)
         return (lag if self._delays else lag @ self.basis_num.T)[: self.rows(y.size)]
 
@@ -119,7 +121,7 @@ class VRFTRegressor:
         ys = np.asarray(ys, dtype=float)
         if ys.ndim != 2 or not np.all(np.isfinite(ys)):
             raise InvalidData(f"ys must be a 2-D array of finite signals (one per row), got shape {ys.shape}")
-        lag = self._lags(scipy.signal.lfilter([1.0], self.basis_den, self.error_signal(ys.T), axis=0))
+        lag = self._lags(filter_columns(_ONE, self.basis_den, self.error_signal(ys.T)))
         return (lag if self._delays else lag @ self.basis_num.T)[:, : self.rows(ys.shape[1])]
 
     def targets(self, u: ArrayLike) -> np.ndarray:
@@ -183,7 +185,7 @@ class VRFTRegressor:
 
     def _back(self, fir: np.ndarray) -> np.ndarray:
         """The adjoint's filters after its FIR taps, on columns: 1/D reversed, L^T, the virtual error's adjoint."""
-        back = scipy.signal.lfilter([1.0], self.basis_den, fir[::-1], axis=0)[::-1]
+        back = filter_columns(_ONE, self.basis_den, fir[::-1])[::-1]
         if self.prefilter is not None:
             back = self.prefilter.adjoint(back)
         return self.error.adjoint(back)
