@@ -159,9 +159,6 @@ ENTRIES: dict[str, tuple[Any, str]] = {
     "batch.max_rows": (256, "instances one batched ascent carries; more run in consecutive batches of this size "
                             "(count; the per-instance arrays stay in cache: 5.6 ms per VRFT attack at 256, 6.8 at "
                             "4,096)"),
-    "batch.gram_cond": (1e4, "a batched least-squares fit factors the Gram matrix C'C (Cholesky) where "
-                             "||R||_F ||R^{-1}||_F of C is at most this, else C itself (Householder QR): the Gram "
-                             "matrix squares the conditioning (bound on cond(C))"),
     "batch.chunk": (32, "rows a batched evaluation computes in one stacked call (count; a few dozen keep the working "
                         "set of N = 512 signals in cache: 30 us per row at 32, 176 us at 2048)"),
     # the Willems attacks (bilevel.attacks.willems; WillemsAttack.shared_problem reads willems.shared_kept,

@@ -58,7 +58,6 @@ BEFORE = {  # the module constants and option defaults the registry replaced, as
     "residual.sparse_squares": 0.25, "linear_maps.dense_limit": 25_000_000, "spectral_radius.defective_cond": 1e12,
     "vrft.starts": 1, "vrft.max_iter.maxmin": 60, "vrft.max_iter.targeted": 500, "vrft.max_iter.destabilize": 200,
     "vrft.gain_tol": 1e-4, "vrft.batch_sims": 16, "batch.min_size": 4, "batch.chunk": 32, "batch.max_rows": 256,
-    "batch.gram_cond": 1e4,
     "willems.shared_kept": 4, "willems.hypergradient.starts": 8,
     "willems.hypergradient.max_iter": 300, "willems.hypergradient.ftol": 1e-10, "willems.evolution.max_iter": 300,
     "willems.evolution.popsize": 5,

@@ -72,11 +72,10 @@ class AffineLSBatch:
 
     def fit(self, rows: np.ndarray, A: np.ndarray | None, B: np.ndarray) -> BatchFit:
         """The fits at (a, b) of the given rows (a, b the rows of A and B; A None: a = 0, the target d0):
-        AffineLeastSquares.fit each, R from the Gram matrix where C is well conditioned (r_factor_batch below
-        defaults["batch.gram_cond"])."""
+        AffineLeastSquares.fit each (Householder's R and Q'd of [C d], r_factor_batch)."""
         C = self.C0[rows] + self.maps.regressors(B)
         d = self.d0[rows] if A is None else self.d0[rows] + self.target(A)
-        R, R_inv, Qd = r_factor_batch(C, d, float(param("batch.gram_cond")))
+        R, R_inv, Qd = r_factor_batch(C, d)
         diag = np.diagonal(R, axis1=1, axis2=2)
         ok = np.all(diag != 0, axis=1) & np.all(np.isfinite(R.reshape(len(rows), -1)), axis=1)
         R_safe = np.where(ok[:, None, None], R, np.eye(R.shape[-1]))
