@@ -88,11 +88,10 @@ class VRFTRegressor:
     def _lags(self, w: np.ndarray) -> np.ndarray:
         """The lag matrix (n, width) of a signal w (n,), or one per column of w (n, m): shape (m, n, width)."""
         n, width = w.shape[0], self.basis_num.shape[1]
-        rows = np.ascontiguousarray(w.T)  # each signal contiguous: the shifted copies below read it in order
-        lag = np.zeros(rows.shape[:-1] + (n, width))
-        for j in range(width):
-            lag[..., j:, j] = rows[..., : n - j]
-        return lag
+        padded = np.zeros((n + width - 1,) + w.shape[1:])
+        padded[width - 1:] = w
+        windows = np.lib.stride_tricks.sliding_window_view(padded, width, axis=0)[..., ::-1]  # (n, [m,] width)
+        return np.ascontiguousarray(windows if w.ndim == 1 else np.moveaxis(windows, 1, 0))  # one copy
 
     @property
     def n_params(self) -> int:
