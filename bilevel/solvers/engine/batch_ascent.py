@@ -102,8 +102,9 @@ def batched_projected_ascent(value: Value, direction: Direction, project: Projec
             live[over] = False  # why stays "max_iter"
             begin = begin[iterations[begin] <= max_iter] if over.size else begin
             first = np.isnan(alpha[begin])
-            move[begin] = np.where(first[:, None], d[begin], alpha[begin, None] * (metric[begin] * g[begin]))
-            still = ~np.any(move[begin] != 0, axis=1)
+            step = np.where(first[:, None], d[begin], alpha[begin, None] * (metric[begin] * g[begin]))
+            move[begin] = step
+            still = ~np.any(step != 0, axis=1)
             for i in begin[still]:
                 converged[i], why[i], live[i] = True, "zero step", False
             begin = begin[~still]
@@ -112,22 +113,25 @@ def batched_projected_ascent(value: Value, direction: Direction, project: Projec
         idx = np.flatnonzero(live)
         if idx.size == 0:
             break
-        xn = project(idx, x[idx] + lam[idx, None] * move[idx])
-        held = np.all(xn == x[idx], axis=1)
-        for i in idx[held]:
-            converged[i], why[i], live[i] = True, "stationary", False
-        idx, xn = idx[~held], xn[~held]
+        xi = x[idx]  # the rows' points, gathered once per round
+        xn = project(idx, xi + lam[idx, None] * move[idx])
+        held = np.all(xn == xi, axis=1)
+        if held.any():
+            for i in idx[held]:
+                converged[i], why[i], live[i] = True, "stationary", False
+            idx, xn, xi = idx[~held], xn[~held], xi[~held]
         if idx.size == 0:
             continue
         fn, ptsn = in_chunks(value, idx, xn)
         evaluations[idx] += 1
-        rise = np.einsum("ij,ij->i", g[idx], xn - x[idx])
+        moved = xn - xi
+        rise = np.einsum("ij,ij->i", g[idx], moved)
         ok = (fn >= fx[idx] + armijo * rise) & (fn >= fx[idx])
         acc = np.flatnonzero(ok)
         if acc.size:
             rows_acc = idx[acc]
-            gn, dn = direction(rows_acc, _take(ptsn, acc))
-            s, y = xn[acc] - x[rows_acc], gn - g[rows_acc]
+            gn, dn = direction(rows_acc, _take(ptsn, acc))  # copies: contiguous rows, whose sums round as before
+            s, y = moved[acc], gn - g[rows_acc]
             curvature = -np.einsum("ij,ij->i", s, y)
             yy = np.einsum("ij,ij->i", y, metric[rows_acc] * y)
             alpha[rows_acc] = np.where((curvature > 0) & (yy > 0), curvature / np.where(yy > 0, yy, 1.0), np.nan)
