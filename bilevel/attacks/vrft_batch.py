@@ -66,15 +66,16 @@ def run(gathered: list[Gathered], options: dict[str, Any]) -> list[MethodRun]:
 def _maps(atk: VRFTAttack) -> BatchMaps:
     """The VRFT regressor's filters and prefilter on stacked signals."""
     reg, N = atk.setting.regressor, atk.N
+    lagged = (reg.stack_signals, reg.stack_lags) if reg.lags_are_regressors else (None, None)
     if reg.prefilter is None:
-        return BatchMaps(reg.stack, reg.stack_adjoint, regressor_adjoints_outer=reg.stack_adjoint_outer)
+        return BatchMaps(reg.stack, reg.stack_adjoint, None, None, reg.stack_adjoint_outer, *lagged)
 
     def target_adjoints(G: np.ndarray) -> np.ndarray:  # (m, rows, p) -> (m, N, p): every column in one call
         m, rows, p = G.shape
         cols = reg.targets_adjoint(np.transpose(G, (1, 0, 2)).reshape(rows, m * p), N)
         return np.transpose(cols.reshape(N, m, p), (1, 0, 2))
 
-    return BatchMaps(reg.stack, reg.stack_adjoint, reg.stack_targets, target_adjoints, reg.stack_adjoint_outer)
+    return BatchMaps(reg.stack, reg.stack_adjoint, reg.stack_targets, target_adjoints, reg.stack_adjoint_outer, *lagged)
 
 
 def _stacked(atks: Sequence[VRFTAttack]) -> tuple[np.ndarray, np.ndarray]:
@@ -107,8 +108,13 @@ def upper_batch(atks: Sequence[VRFTAttack], phi0: np.ndarray, t0: np.ndarray) ->
 
 
 def _learner(atks: Sequence[VRFTAttack]) -> AffineLSBatch:
-    """The instances' learners, stacked (one design)."""
-    return AffineLSBatch(*_stacked(atks), _maps(atks[0]), atks[0].N, atks[0].N)
+    """The instances' learners, stacked (one design), with the clean data's signals where the regressors are their lags
+    and the instances' phi0 are those lags (checked once here)."""
+    maps, (phi0, t0) = _maps(atks[0]), _stacked(atks)
+    S0 = None if maps.signals is None else maps.signals(np.stack([a.y for a in atks]))
+    if S0 is not None and not np.array_equal(maps.lags(S0), phi0):
+        S0 = None
+    return AffineLSBatch(phi0, t0, maps, atks[0].N, atks[0].N, S0)
 
 
 def _oracle(atks: Sequence[VRFTAttack]) -> BatchOracle:

@@ -117,11 +117,26 @@ class VRFTRegressor:
 
     def stack(self, ys: ArrayLike) -> np.ndarray:
         """Phi of each row of ys (m x n), shape (m, rows, nk): the filters run on all rows in one call each."""
+        return self.stack_lags(self.stack_signals(ys))
+
+    def stack_signals(self, ys: ArrayLike) -> np.ndarray:
+        """The signal of each row of ys (m x n) whose lags make up its Phi (1/D of the virtual error), as columns
+        (n, m)."""
         ys = np.asarray(ys, dtype=float)
         if ys.ndim != 2 or not np.all(np.isfinite(ys)):
             raise InvalidData(f"ys must be a 2-D array of finite signals (one per row), got shape {ys.shape}")
-        lag = self._lags(filter_columns(_ONE, self.basis_den, self.error_signal(ys.T)))
-        return (lag if self._delays else lag @ self.basis_num.T)[:, : self.rows(ys.shape[1])]
+        return filter_columns(_ONE, self.basis_den, self.error_signal(ys.T))
+
+    def stack_lags(self, w: np.ndarray) -> np.ndarray:
+        """Phi from stack_signals' columns w (n, m), shape (m, rows, nk)."""
+        lag = self._lags(w)
+        return (lag if self._delays else lag @ self.basis_num.T)[:, : self.rows(w.shape[0])]
+
+    @property
+    def lags_are_regressors(self) -> bool:
+        """Whether Phi(y) is the lag matrix of its signal itself (a basis of delays): then Phi(y) + Phi(y') equals the
+        lags of the two signals' sum bit for bit (each entry the same one addition)."""
+        return self._delays
 
     def targets(self, u: ArrayLike) -> np.ndarray:
         """The regressed targets: u (or L u) on the regression rows."""

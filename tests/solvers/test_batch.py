@@ -226,3 +226,17 @@ def test_per_instance_options_and_bad_counts() -> None:
         attack_many(atks, bogus=1)
     with pytest.raises(bl.ModelError, match="per-instance"):
         solve_many(BilevelProblem("p"), [{}, {}], "hypergradient", each=[{}])
+
+
+@pytest.mark.parametrize("convention", ["paper", "raw"])
+def test_fits_from_summed_signals_equal_gathered_regressors(convention: str) -> None:
+    """Where the regressors are lags of one signal, a fit's C0 + R(b) formed as the lags of the summed signals (S0) is
+    the gathered C0 plus R(b) bit for bit, and so is its theta."""
+    from bilevel.attacks.vrft_batch import _learner
+    atks = _instances(convention=convention)
+    learner = _learner(atks)
+    assert learner.S0 is not None
+    plain = dataclasses.replace(learner, S0=None)
+    rows, B = np.array([5, 0, 3]), 0.01 * np.random.default_rng(4).standard_normal((3, learner.n_b))
+    a, b = learner.fit(rows, None, B), plain.fit(rows, None, B)
+    assert np.array_equal(a.C, b.C) and np.array_equal(a.theta, b.theta)

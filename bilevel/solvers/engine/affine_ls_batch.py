@@ -23,13 +23,17 @@ class BatchMaps:
     """The shared maps on stacked signals: regressors (m, n_b) -> (m, rows, k) and its adjoint (m, rows, k) -> (m, n_b);
     targets (m, n_a) -> (m, rows) and its adjoint (m, rows, p) -> (m, n_a, p), both None where T a = a[:rows];
     regressor_adjoints_outer (us, vs) -> the adjoint of sum_l us[l] vs[l]' (us: L x m x rows, vs: L x m x k) without
-    forming it, where given."""
+    forming it, where given; signals (m, n_b) -> (n, m) and lags (n, m) -> (m, rows, k), where given, with
+    regressors(B) = lags(signals(B)) and the regressors of a sum of signals equal to the sum of theirs bit for bit
+    (AffineLSBatch.S0)."""
 
     regressors: Callable[[np.ndarray], np.ndarray]
     regressor_adjoints: Callable[[np.ndarray], np.ndarray]
     targets: Callable[[np.ndarray], np.ndarray] | None = None
     target_adjoints: Callable[[np.ndarray], np.ndarray] | None = None
     regressor_adjoints_outer: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+    signals: Callable[[np.ndarray], np.ndarray] | None = None
+    lags: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 @dataclass
@@ -58,13 +62,16 @@ class UpperBatch:
 
 @dataclass
 class AffineLSBatch:
-    """theta*(a, b) = argmin ||d0_i + T a - (C0_i + R(b)) theta||^2 for each instance i, the maps shared."""
+    """theta*(a, b) = argmin ||d0_i + T a - (C0_i + R(b)) theta||^2 for each instance i, the maps shared; S0 (n, m),
+    where given, the signals with C0_i = maps.lags(S0[:, [i]]), so that a fit forms C0_i + R(b) as the lags of one
+    sum of signals (the same numbers, without gathering C0)."""
 
     C0: np.ndarray
     d0: np.ndarray
     maps: BatchMaps
     n_a: int
     n_b: int
+    S0: np.ndarray | None = None
 
     def target(self, A: np.ndarray) -> np.ndarray:
         """T a of each row of A."""
@@ -73,7 +80,10 @@ class AffineLSBatch:
     def fit(self, rows: np.ndarray, A: np.ndarray | None, B: np.ndarray) -> BatchFit:
         """The fits at (a, b) of the given rows (a, b the rows of A and B; A None: a = 0, the target d0):
         AffineLeastSquares.fit each (Householder's R and Q'd of [C d], r_factor_batch)."""
-        C = self.C0[rows] + self.maps.regressors(B)
+        if self.S0 is not None:
+            C = self.maps.lags(self.S0[:, rows] + self.maps.signals(B))
+        else:
+            C = self.C0[rows] + self.maps.regressors(B)
         d = self.d0[rows] if A is None else self.d0[rows] + self.target(A)
         R, R_inv, Qd = r_factor_batch(C, d)
         diag = np.diagonal(R, axis1=1, axis2=2)
