@@ -28,11 +28,8 @@ def _signal(x: ArrayLike) -> np.ndarray:
 
 
 def filter_columns(b: np.ndarray, a: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """scipy.signal.lfilter(b, a, x, axis=0) for a[0] = 1, bit for bit, with two forms of it as array sums (no
-    per-sample loop): a FIR filter (a = [1, 0, ..., 0]) as its taps summed in lfilter's order,
-    ((b_k x_{t-k} + b_{k-1} x_{t-k+1}) + ...) + b_0 x_t, and a running sum (b = [1, 0, ...], a = [1, -1, 0, ...]) as
-    cumsum (lfilter's products with the zero taps are exact zeros for finite x); any other filter, or x not finite, by
-    lfilter."""
+    """scipy.signal.lfilter(b, a, x, axis=0) bit for bit; a FIR filter (a = [1, 0, ...]) as its taps summed in lfilter's
+    order and a running sum (b = [1], a = [1, -1, 0, ...]) as cumsum, on finite x (no per-sample loop)."""
     x = np.asarray(x, dtype=float)
     if a[0] != 1.0 or x.ndim == 0 or x.shape[0] == 0 or not np.isfinite(x).all():
         return scipy.signal.lfilter(b, a, x, axis=0)

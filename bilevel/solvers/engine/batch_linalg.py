@@ -21,9 +21,8 @@ _GEQRF = scipy.linalg.lapack.dgeqrf
 
 
 def r_factor_batch(C: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(R, R^{-1}, Q'd) of the thin QR of each tall C[i] (rows x k, rows > k) with d[i] (rows), Q not formed:
-    Householder's (LAPACK geqrf, as bilevel.lower.least_squares.thin_qr) on [C d], whose leading k x (k + 1) block is
-    [R Q'd]; R^{-1} of the identity where R is singular or not finite."""
+    """(R, R^{-1}, Q'd) of the thin QR of each tall C[i] (rows > k) with d[i]: Householder's (geqrf, as thin_qr) on
+    [C d], whose top k x (k + 1) block is [R Q'd]; R^{-1} of the identity where R is singular or not finite."""
     m, rows, k = C.shape
     A = np.empty((m, k + 1, rows))  # each A[i].T a Fortran-ordered rows x (k + 1) matrix: geqrf works on it in place
     A[:, :k] = np.swapaxes(C, 1, 2)
