@@ -89,6 +89,11 @@ def _values(climbs: Sequence[Climb], owner: np.ndarray) -> Callable[[np.ndarray,
     n = int(climbs[0].prep.canon.spectral.size1())
 
     def values(xs: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if len(climbs) == 1 and climbs[0].m0 is not None:  # one instance (destabilize alone): no parts to gather
+            c = climbs[0]
+            r = spectral_radius(affine_stack(c.m0, c.jx, xs.T, n))
+            grads = r.gradient.transpose(0, 2, 1).reshape(xs.shape[0], -1)
+            return -(c.sign * r.value), -(c.sign * (c.jx.T @ grads.T)).T
         parts = np.split(np.arange(rows.size), np.flatnonzero(np.diff(owner[rows])) + 1)  # one run per instance
         mine = [climbs[owner[rows[p[0]]]] for p in parts]
         if mine[0].m0 is None:

@@ -29,6 +29,7 @@ from ..defaults import param
 from ..errors import InvalidData, ModelError
 from ..kept import kept
 from ..model import BilevelProblem
+from ..parameters import CompiledFunction
 from ..result import BilevelResult
 from ..solvers.engine.prepared import prepare
 from ..solvers.engine.implicit import Hypergradient, shared_oracle
@@ -360,10 +361,13 @@ class WillemsAttack:
         return ca.vertcat(*[ca.vec(v.sym) for v in self.problem.lower_variables])
 
     @property
-    def _loop(self) -> ca.Function:
-        """(x, y) -> (K, A_id + B_id K) of the declared gain and identified loop (compiled once per declaration)."""
+    def _loop(self) -> CompiledFunction:
+        """(x, y) -> (K, A_id + B_id K) of the declared gain and identified loop (compiled once per declaration), called
+        through CasADi's buffers (bilevel.parameters.CompiledFunction: the same evaluation without the DM conversions,
+        which cost three quarters of a call; the attacks' callbacks call it at every point)."""
         if "loop" not in self.compiled:
-            self.compiled["loop"] = ca.Function("loop", [self.upper, self._lower], [self.gain, self.closed_loop])
+            self.compiled["loop"] = CompiledFunction(ca.Function("loop", [self.upper, self._lower],
+                                                                 [self.gain, self.closed_loop]))
         return self.compiled["loop"]
 
     def loop(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

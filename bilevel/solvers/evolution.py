@@ -224,8 +224,9 @@ def solve_evolution(prep: Prepared, *, starts: int | None = None, seed: Any = 0,
 
     def generation(intermediate_result: scipy.optimize.OptimizeResult) -> bool:  # scipy passes it by this name
         """One progress line per generation; True (stop) at the deadline or where the callback raises StopIteration."""
-        progress(verbose, "differential-evolution", f"generation {intermediate_result.nit}/{generations}: best phi = "
-                 f"{prep.declared(intermediate_result.fun):.6g} ({intermediate_result.nfev} evaluations)")
+        if verbose:  # the line is formatted only when it is shown (a generation can cost under a millisecond)
+            progress(verbose, "differential-evolution", f"generation {intermediate_result.nit}/{generations}: best "
+                     f"phi = {prep.declared(intermediate_result.fun):.6g} ({intermediate_result.nfev} evaluations)")
         if callback is not None and "ev" in best:
             try:
                 callback(intermediate(prep, best["ev"]))

@@ -118,6 +118,28 @@ def test_numeric_criterion_equals_declared_objective(objective: str, design: str
     assert seen_stable
 
 
+@pytest.mark.parametrize("poison", ["u", "xu"])
+def test_loop_equals_the_casadi_evaluation_and_keeps_each_calls_arrays(poison: str) -> None:
+    """WillemsAttack.loop (CasADi's buffers) returns exactly ca.Function's (K, A_id + B_id K), in fresh arrays: a later
+    call at another point leaves an earlier call's result unchanged."""
+    attack = build_attack(horizon=15, seed=4, objective="eigen", poison=poison, delta_u=0.3,
+                          delta_x=1e-3 if poison == "xu" else 0.0)
+    y = ca.vertcat(*[ca.vec(v.sym) for v in attack.problem.lower_variables])
+    fn = ca.Function("f", [attack.upper, y], [attack.gain, attack.closed_loop])
+    rng = np.random.default_rng(1)
+    n_x, n_y = attack.upper.numel(), y.numel()
+    points = [(rng.uniform(-0.3, 0.3, n_x), rng.standard_normal(n_y)) for _ in range(2)]
+    first = attack.loop(*points[0])
+    kept = [a.copy() for a in first]
+    second = attack.loop(*points[1])
+    for got, (x, yv) in ((first, points[0]), (second, points[1])):
+        for a, b in zip(got, fn(x, yv)):
+            assert np.array_equal(a, np.asarray(b, dtype=float))
+    assert all(np.array_equal(a, b) for a, b in zip(first, kept))
+    assert not np.array_equal(first[1], second[1])
+    assert attack.identified_radius(*points[0]) == np.max(np.abs(np.linalg.eigvals(kept[1])))
+
+
 @pytest.mark.parametrize(("params", "match"), [
     ({"design": "lqg"}, "design='lqg' is not one of"),
     ({"poison": "x", "delta_u": 0.1, "delta_x": 1e-3}, "leaves U clean"),
