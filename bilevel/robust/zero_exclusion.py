@@ -1,13 +1,14 @@
 """Robust stability of a polynomial affine in parameters over a set, by zero exclusion on the unit circle.
 
-p(z; d) = p0(z) + d' s(z) (coefficients highest power first) with d in a convex symmetric set D given by its support
-function h(w) = max_{d in D} w'd. If p(.; 0) is Schur stable, the leading coefficient never vanishes on D and
-p(z; d) != 0 for every |z| = 1 and d in D, every p(.; d) is Schur stable (the roots move continuously on the connected
-D and cannot cross the circle). At z, the image {p(z; d)} is a convex set in C = R^2 whose distance from 0 is at
-least u'p0(z) - h(S_z' u) for every unit u (S_z = [Re s(z), Im s(z)]'), each u a valid bound; between grid points
-the image moves by at most L = sum_m m (|c_m(0)| + h(+-e_m)) per radian, so on [w_i, w_i+1] the distance is at least
-(b_i + b_i+1 - L (w_i+1 - w_i)) / 2 for grid distances b_i, b_i+1. An interval whose bound is below KEEP times its
-ends' smaller distance while both ends exclude zero is split into SPLIT pieces, up to DEPTH times (the fine grid is only
+p(z; d) = p0(z) + d' s(z) (coefficients highest power first) with d in a convex set D containing 0 given by its
+support function h(w) = max_{d in D} w'd (D need not be symmetric). If p(.; 0) is Schur stable, the leading
+coefficient never vanishes on D and p(z; d) != 0 for every |z| = 1 and d in D, every p(.; d) is Schur stable (the roots
+move continuously on the connected D and cannot cross the circle). At z, the image {p(z; d)} is a convex set in C = R^2
+whose distance from 0 is at least u'p0(z) - h(-S_z' u) for every unit u (S_z = [Re s(z), Im s(z)]'; the smallest of
+u'p(z; d) = u'p0(z) + (S_z' u)'d over D), each u a valid bound; between grid points the image moves by at most
+L = sum_m m (|c_m(0)| + h(+-e_m)) per radian, so on [w_i, w_i+1] the distance is at least (b_i + b_i+1 - L (w_i+1 -
+w_i)) / 2 for grid distances b_i, b_i+1. An interval whose bound is below KEEP times its ends' smaller distance while
+both ends exclude zero is split into SPLIT pieces, up to DEPTH times (the fine grid is only
 needed where the loop comes closest to the circle).
 """
 
@@ -83,16 +84,16 @@ def sweep(base: np.ndarray, slopes: np.ndarray, support: Support, points: int, a
 
 def _distances(base: np.ndarray, slopes: np.ndarray, support: Support, powers: np.ndarray, w: np.ndarray,
                angles: int) -> np.ndarray:
-    """At each frequency w, the best of `angles` lower bounds u'p0(z) - h(S_z' u) on the image's distance from 0."""
+    """At each frequency w, the best of `angles` lower bounds u'p0(z) - h(-S_z' u) on the image's distance from 0."""
     best = np.full(w.size, -np.inf)
     for level, directions in _directions(base, slopes, powers, w, angles):
-        best = np.maximum(best, level - support(directions))
+        best = np.maximum(best, level - support(-directions))
     return best
 
 
 def _directions(base: np.ndarray, slopes: np.ndarray, powers: np.ndarray, w: np.ndarray, angles: int):
     """Per offset of u from arg p0(z) (`angles` of them over [-pi/2, pi/2]): (u'p0(z), S_z' u) at each frequency w,
-    the level (points,) and the directions (k, points) of the bound u'p0(z) - h(S_z' u)."""
+    the level (points,) and the directions S_z' u (k, points) of the bound u'p0(z) - h(-S_z' u)."""
     z = np.exp(1j * w)
     vander = z[:, None] ** powers[None, :]
     p0 = vander @ base
@@ -105,7 +106,8 @@ def _directions(base: np.ndarray, slopes: np.ndarray, powers: np.ndarray, w: np.
 
 def closest(base: np.ndarray, slopes: np.ndarray, support: Support, points: int, angles: int, count: int,
             spread: int = 1) -> tuple[np.ndarray, list[tuple[int, int]]]:
-    """The directions S_z' u (k, m) deciding the sweep where it comes closest to excluding nothing: at the `count`
+    """The directions -S_z' u (k, m) (those the support function is taken along) deciding the sweep where it comes
+    closest to excluding nothing: at the `count`
     frequencies of `points` in [0, pi] with the smallest local minima of the distance bound, the best of `angles`
     directions u and its `spread` neighbours on each side (any direction is valid to bound along; these are the ones
     that matter), with each one's (frequency index, angle index): the direction depends on nothing else."""
@@ -113,7 +115,7 @@ def closest(base: np.ndarray, slopes: np.ndarray, support: Support, points: int,
     powers = np.arange(base.size - 1, -1, -1)
     w = np.linspace(0.0, np.pi, points)
     found = list(_directions(base, slopes, powers, w, angles))
-    bounds = np.array([level - support(directions) for level, directions in found])  # (angles, points)
+    bounds = np.array([level - support(-directions) for level, directions in found])  # (angles, points)
     best = bounds.max(axis=0)
     inner = np.r_[True, best[1:] < best[:-1]] & np.r_[best[:-1] <= best[1:], True]
     picked = [i for i in np.argsort(best) if inner[i]][:count]
@@ -121,4 +123,4 @@ def closest(base: np.ndarray, slopes: np.ndarray, support: Support, points: int,
     for i in picked:
         a = int(np.argmax(bounds[:, i]))
         keys += [(int(i), j) for j in range(max(a - spread, 0), min(a + spread, angles - 1) + 1)]
-    return np.array([found[j][1][:, i] for i, j in keys]).reshape(-1, slopes.shape[0]).T, keys
+    return -np.array([found[j][1][:, i] for i, j in keys]).reshape(-1, slopes.shape[0]).T, keys

@@ -57,3 +57,13 @@ def test_an_unstable_clean_polynomial_is_never_proven() -> None:
     assert found.nominal == pytest.approx(1.03) and not found.proven
     stable = sweep(*family(0.001), 256, 9)
     assert stable.nominal == pytest.approx(0.97) and stable.proven
+
+
+def test_an_asymmetric_set_is_bounded_along_the_right_side() -> None:
+    """D = the segment from 0 to d = (-0.3, 0) (h(w) = max(w'd, 0), not symmetric), whose end p(.; d) has a root of
+    modulus 1.012: never proven. The bound u'p0 - h(S'u) (the reflected set's) proved it, zero excluded by 0.012."""
+    base, slopes, _ = family(0.0)
+    d = np.array([-0.3, 0.0])
+    assert np.abs(np.roots(base + d @ slopes)).max() > 1.01
+    found = sweep(base, slopes, lambda W: np.maximum(d @ W, 0.0), 256, 9)
+    assert not found.proven and found.excluded_by < 0
