@@ -221,7 +221,8 @@ def _cached(atk: VRFTAttack) -> Perturbation:
 @dataclass(frozen=True)
 class Remainder:
     """The radii (in x = R d) at one budget (module docstring): beta, the expansion's ball and box; the damped split's
-    balls about Q'v's and E'r0's linear parts (rem_v, rem_r) or about zero (sat_v, sat_r), and that of M^-1 E'v."""
+    balls about Q'v's and E'r0's linear parts (rem_v, rem_r) or about zero (sat_v, sat_r), and that of M^-1 E'v;
+    floor, the lower bound on the smallest singular value of A = Q + D used (1 - beta, or a larger one given)."""
 
     beta: float
     ball: float
@@ -231,23 +232,29 @@ class Remainder:
     rem_r: float
     sat_r: float
     rest: float
+    floor: float = 0.0
 
 
-def remainder(P: Perturbation, delta: float) -> Remainder:
-    """The Remainder at budget delta (every radius inf where beta >= 1)."""
+def remainder(P: Perturbation, delta: float, floor: float = 0.0) -> Remainder:
+    """The Remainder at budget delta, given `floor`, a proven lower bound on the smallest singular value of
+    A = Q + Phi(a_y) R^-1 over the budget ball (0: none known; 1 - beta is one): every bound below that needs
+    1 - beta needs only s = max(1 - beta, floor) > 0, since ||M^-1 A'|| = 1 / sigma_min(A) <= 1 / s bounds
+    M^-1 (I + B)' = M^-1 A'Q and M^-1 E' = M^-1 A'(I - QQ'), and M >= s^2 I (every radius inf where s <= 0)."""
     r_u, r_y = delta * P.norm_u, delta * P.norm_y
     beta, eta = r_y * P.beta1, r_y * P.eta1
     box = r_y * r_u * P.q_u + r_y ** 2 * P.q_y
-    if beta >= 1.0:
+    s = max(1.0 - beta, float(floor))
+    if not s > 0.0:
         inf = float("inf")
-        return Remainder(beta, inf, box, inf, inf, inf, inf, inf)
-    spread = max((1 - beta) ** -2 - 1, 1 - 1 / ((1 + beta) ** 2 + eta ** 2))
+        return Remainder(beta, inf, box, inf, inf, inf, inf, inf, s)
+    damp = min(1 / (2 * (1 - beta)), 1 / s) if beta < 1.0 else 1 / s  # ||M^-1 E'||
+    spread = max(s ** -2 - 1, 1 - 1 / ((1 + beta) ** 2 + eta ** 2))
     qv, out = r_u * P.lin_u + r_y * P.lin_v, r_u * P.out_u + r_y * P.out_y
     norm_box = float(np.linalg.norm(box))
     return Remainder(beta, spread * (r_u * P.lin_u + r_y * P.lin_y + norm_box), box,
-                     min(spread + beta / (1 - beta) ** 2, (beta + eta / 2) / (1 - beta)) * qv, qv / (1 - beta),
-                     spread * r_y * P.lin_r, P.norm_r0 / (2 * (1 - beta)),
-                     min(out / 2, (norm_box + beta * qv) / (1 - beta)) / (1 - beta))
+                     min(spread + beta / s ** 2, beta / s + eta * damp) * qv, qv / s,
+                     spread * r_y * P.lin_r, P.norm_r0 * damp,
+                     min(out * damp, (norm_box + beta * qv) / s ** 2), s)
 
 
 def support(P: Perturbation, delta: float, rem: Remainder, joint: Joint | None = None):
@@ -267,9 +274,9 @@ def support(P: Perturbation, delta: float, rem: Remainder, joint: Joint | None =
             np.minimum(r_y * quad(P.K_r) + rem.rem_r * size, rem.sat_r * size)
         damped = np.minimum(lin_u + lin_y + (rem.rem_v + rem.rem_r) * size, apart) + rem.rest * size
         return np.minimum(expansion, damped)
-    if rem.beta >= 1.0:
+    if not rem.floor > 0.0:
         return h
-    resid = min(P.norm_r0, r_y * P.lin_r / (1 - rem.beta)) + r_u * P.norm_t + r_y * P.norm_f
+    resid = min(P.norm_r0, r_y * P.lin_r / rem.floor) + r_u * P.norm_t + r_y * P.norm_f
     for _ in range(ROUNDS):
         h = _refined(P, r_u, r_y, resid, h)
     for _ in range(JOINT_ROUNDS if joint is not None else 0):
@@ -366,7 +373,7 @@ def critical(atk: VRFTAttack, P: Perturbation, delta: float) -> tuple[np.ndarray
     """The critical directions (k x m) at budget delta and their keys: where the sweep over the set without the joint
     bound comes closest to failing (zero_exclusion.closest); none where beta >= 1."""
     rem = remainder(P, delta)
-    if rem.beta >= 1.0:
+    if not rem.floor > 0.0:
         return np.zeros((P.theta0.size, 0)), []
     loop = atk.setting.loop
     return closest(loop.coefficients(P.theta0), loop.slopes, support(P, delta, rem), COARSE, ANGLES, CRITICAL,
@@ -381,7 +388,7 @@ def _eig_norm(A: np.ndarray) -> float:
 def _sweep(atk: VRFTAttack, P: Perturbation, delta: float, refine: int = 1,
            joint: Joint | None = None) -> tuple[float, float, Sweep | None]:
     rem = remainder(P, delta)
-    if rem.beta >= 1.0:
+    if not rem.floor > 0.0:
         return rem.beta, rem.ball, None
     loop = atk.setting.loop
     base = loop.coefficients(P.theta0)

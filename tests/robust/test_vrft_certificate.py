@@ -142,3 +142,39 @@ def test_the_joint_delta_lb_is_sound_by_sampling(atk, margins) -> None:
         a_y *= delta * np.linalg.norm(atk.y) / np.linalg.norm(a_y)
         theta = np.linalg.lstsq(reg(atk.y + a_y), reg.targets(atk.u + a_u), rcond=None)[0]
         assert np.max(np.abs(np.roots(atk.setting.loop.coefficients(theta)))) < 1
+
+
+@pytest.mark.parametrize("beta", [0.9, 1.3])
+def test_a_floor_on_the_regressor_replaces_one_minus_beta(atk, beta) -> None:
+    """remainder(..., floor=s) with s <= sigma_min(Q + Phi(a_y) R^-1) at every poisoning considered: the damped split's
+    terms stay within their radii, also past beta = 1 (each inequality holds poisoning by poisoning); a floor below
+    1 - beta changes nothing, and no floor past beta = 1 bounds nothing."""
+    P = _cached(atk)
+    target = as_target(atk)
+    reg = atk.setting.regressor
+    rng = np.random.default_rng(7)
+    delta = beta / (P.beta1 * P.norm_y)
+    r0 = atk.t0 - atk.phi0 @ atk.theta0
+    Q = atk.phi0 @ np.linalg.inv(P.R)
+    eye = np.eye(P.theta0.size)
+    samples = []
+    for _ in range(100):
+        a = sphere_poisoning(target, delta, rng)
+        D = reg(a["y"]) @ np.linalg.inv(P.R)
+        samples.append((a, D, np.linalg.svd(Q + D, compute_uv=False)[-1]))
+    floor = min(s for *_, s in samples)
+    assert 0 < floor
+    rem = remainder(P, delta, floor)
+    assert rem.floor == pytest.approx(max(floor, 1 - beta)) and np.isfinite(rem.rest)
+    assert repr(remainder(P, delta, 0.5 * max(1 - beta, 0.0))) == repr(remainder(P, delta))
+    assert (beta < 1) == np.isfinite(remainder(P, delta).ball)
+    for a, D, _ in samples:
+        d = target.refit(target.poisoned(a)) - atk.theta0
+        v = reg.targets(a["u"]) - reg(a["y"]) @ atk.theta0
+        B, E = Q.T @ D, D - Q @ (Q.T @ D)
+        M = (Q + D).T @ (Q + D)
+        parts = [np.linalg.solve(M, (eye + B).T @ (Q.T @ v)), np.linalg.solve(M, E.T @ r0), np.linalg.solve(M, E.T @ v)]
+        assert np.allclose(sum(parts), P.R @ d, rtol=0, atol=1e-9 * np.linalg.norm(P.R @ d))
+        assert np.linalg.norm(parts[0] - Q.T @ v) <= rem.rem_v and np.linalg.norm(parts[0]) <= rem.sat_v
+        assert np.linalg.norm(parts[1] - E.T @ r0) <= rem.rem_r and np.linalg.norm(parts[1]) <= rem.sat_r
+        assert np.linalg.norm(parts[2]) <= rem.rest
