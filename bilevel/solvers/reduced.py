@@ -27,6 +27,8 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 from ..errors import BilevelError, ModelError
 from ..lower.least_squares import LeastSquaresLower
@@ -213,8 +215,7 @@ class _CompiledSolver:
         self.params = params
         x, p = ca.MX.sym("x", self.reduced.n_x), ca.MX.sym("p", psym.numel())
         if isinstance(low, ResidualLeastSquares) and canon.images is None:  # f = 1/2 ||C(x) y - d(x)||^2 + c(x)
-            C, d = ca.Function("lower_residual", [canon.x, psym], [low.C_expr, low.d_expr])(x, p)
-            y = ca.solve(ca.mtimes(C.T, C), ca.mtimes(C.T, d))
+            y = _residual_solution(low, canon.x, psym, x, p)
         elif isinstance(low, LeastSquaresLower) and canon.images is None:  # f = 1/2 y'P(x)y + q(x)'y + r(x)
             zero = ca.DM.zeros(low.n_y)
             P, q = ca.Function("lower_closed_form", [canon.x, psym], [ca.substitute(e, canon.y, zero) for e in (
@@ -251,6 +252,34 @@ class _CompiledSolver:
         if not self.n_aux:
             return np.zeros(0)
         return np.linalg.eigh(np.asarray(self.matrix(x0, self.p), dtype=float))[1][:, -1]
+
+
+def _residual_solution(low: ResidualLeastSquares, xs: ca.SX, ps: ca.SX, x: ca.MX, p: ca.MX) -> ca.MX:
+    """y*(x) = argmin ||C(x) y - d(x)|| as MX: [nonzeros of C; d] by one sparse product J x + b(p) where they are
+    affine in x with a J free of the parameters (else one call of their expressions), and the normal equations
+    solved per block of C (the connected parts of its sparsity: one per output row of a regression), each a small
+    dense solve: CasADi's reverse sweeps through one sparse C'C cost about 0.1 ms a direction at 800 x 36."""
+    sparsity = low.C_expr.sparsity()
+    data = ca.vertcat(*low.C_expr.nonzeros(), low.d_expr)
+    J = ca.jacobian(data, xs)
+    if ca.depends_on(J, ca.vertcat(xs, ps)):
+        values = ca.Function("lower_residual", [xs, ps], [data])(x, p)
+    else:
+        offset = ca.Function("lower_residual_offset", [ps], [ca.substitute(data, xs, ca.DM.zeros(xs.numel()))])
+        values = ca.mtimes(ca.MX(ca.evalf(J)), x) + offset(p)
+    nnz = sparsity.nnz()
+    C, d = ca.MX(sparsity, values[:nnz]), values[nnz:]
+    rows, cols = (np.asarray(v) for v in sparsity.get_triplet())
+    n_r, n_y = sparsity.shape
+    graph = sp.coo_matrix((np.ones(rows.size), (rows, n_r + cols)), shape=(n_r + n_y,) * 2)
+    labels = connected_components(graph, directed=False)[1]
+    order, parts = [], []
+    for label in np.unique(labels[n_r:]):
+        R, K = np.flatnonzero(labels[:n_r] == label).tolist(), np.flatnonzero(labels[n_r:] == label).tolist()
+        B = ca.densify(C[R, K])
+        parts.append(ca.solve(ca.mtimes(B.T, B), ca.mtimes(B.T, d[R])))
+        order += K
+    return ca.vertcat(*parts)[np.argsort(order).tolist()]
 
 
 SYMMETRY_TOL = 1e-10
