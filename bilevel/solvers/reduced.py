@@ -200,6 +200,44 @@ class _Solver:
                              "ipopt={...} against the IPOPT options reference") from None
 
 
+class _Iterates(ca.Callback):
+    """IPOPT's iterates of the compiled NLP, read once an iteration (no evaluation): the one with the lowest objective
+    among those within defaults["solvers.feasibility_tol"] of the bounds (what _Reduced.best keeps for the callbacks),
+    for a run that ends off the feasible set (max_iter)."""
+
+    def __init__(self, n_x: int, n_g: int, n_p: int) -> None:
+        ca.Callback.__init__(self)
+        self.sizes = (n_x, 1, n_g, n_x, n_g, n_p)
+        self.bounds: tuple[np.ndarray, ...] = ()
+        self.best: tuple[float, np.ndarray] | None = None
+        self.construct("reduced_iterates", {})
+
+    def get_n_in(self) -> int:
+        return 6
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self.sizes[i], 1)
+
+    def get_sparsity_out(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(1, 1)
+
+    def reset(self, lbx: np.ndarray, ubx: np.ndarray, lbg: np.ndarray, ubg: np.ndarray) -> None:
+        """Forget the last run's iterates; the bounds of the next."""
+        self.bounds, self.best = (lbx, ubx, lbg, ubg), None
+
+    def eval(self, arg: list[ca.DM]) -> list[ca.DM]:
+        x, f, g = (np.asarray(a, dtype=float).ravel() for a in arg[:3])
+        lbx, ubx, lbg, ubg = self.bounds
+        violation = max(float(np.max(lbx - x, initial=0)), float(np.max(x - ubx, initial=0)),
+                        float(np.max(lbg - g, initial=0)), float(np.max(g - ubg, initial=0)))
+        if violation <= param("solvers.feasibility_tol") and (self.best is None or f[0] < self.best[0]):
+            self.best = (float(f[0]), x)
+        return [ca.DM(0)]
+
+
 class _CompiledSolver:
     """The reduced NLP as one CasADi graph (option compiled): y*(x) of a least-squares lower level solved inside the graph
     (the normal equations C'C y = C'd of its residual form, or P y = -q of its Hessian P and gradient q at y = 0), F, G, H along it with CasADi's exact derivatives,
@@ -236,7 +274,9 @@ class _CompiledSolver:
             F, g = canon.spectral_sign * ca.bilin(M, u, u), ca.vertcat(g, ca.sumsqr(u))
             x = ca.vertcat(x, u)
         try:
-            self.solver = ca.nlpsol("reduced_compiled", "ipopt", {"x": x, "p": p, "f": F, "g": g}, options)
+            self.iterates = _Iterates(int(x.numel()), int(g.numel()), int(p.numel()))
+            self.solver = ca.nlpsol("reduced_compiled", "ipopt", {"x": x, "p": p, "f": F, "g": g},
+                                    {**options, "iteration_callback": self.iterates})
         except RuntimeError as exc:  # CasADi refuses an option before any solve
             reason = str(exc).strip().splitlines()[-1].split(": ", 1)[-1]
             raise ModelError(f"IPOPT did not accept its options ({reason}); check the names and types in option "
@@ -370,10 +410,11 @@ def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, s
         x0 = np.clip(x0, lbx, ubx)
         if compiled:
             aux = nlp.aux_start(x0)
-            sol = solver(x0=np.concatenate([x0, aux]), p=nlp.p,
-                         lbx=np.concatenate([lbx, np.full(aux.size, -1.0)]), ubx=np.concatenate([ubx, np.ones(aux.size)]),
-                         lbg=np.concatenate([bounds["lbg"], np.full(min(aux.size, 1), -np.inf)]),
-                         ubg=np.concatenate([bounds["ubg"], np.ones(min(aux.size, 1))]))
+            box = dict(lbx=np.concatenate([lbx, np.full(aux.size, -1.0)]), ubx=np.concatenate([ubx, np.ones(aux.size)]),
+                       lbg=np.concatenate([bounds["lbg"], np.full(min(aux.size, 1), -np.inf)]),
+                       ubg=np.concatenate([bounds["ubg"], np.ones(min(aux.size, 1))]))
+            nlp.iterates.reset(**box)
+            sol = solver(x0=np.concatenate([x0, aux]), p=nlp.p, **box)
         else:
             sol = solver(x0=x0, **bounds)
         stats = solver.stats()
@@ -382,10 +423,14 @@ def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, s
             limit.expired()
         x = np.asarray(sol["x"], dtype=float).ravel()[:nlp.reduced.n_x]
         ev, best = nlp.reduced.point(x), nlp.reduced.best
+        tol = param("solvers.feasibility_tol")
+        if compiled and nlp.iterates.best is not None and (ev is None or ev.violation > tol):
+            best = nlp.reduced.point(nlp.iterates.best[1][:nlp.reduced.n_x])  # the engine's evaluation of that iterate
+            best = best if best is not None and best.violation <= tol else None
+            ev = nlp.reduced.point(x)
         status = IPOPT_STATUS.get(raw, Status.ERROR)
-        if status is not Status.SOLVED and best is not None and (
-                ev is None or ev.violation > param("solvers.feasibility_tol")):
-            ev, raw = best, f"{raw}; the best feasible point it evaluated"  # IPOPT ended off the feasible set
+        if status is not Status.SOLVED and best is not None and (ev is None or ev.violation > tol):
+            ev, raw = best, f"{raw}; the best feasible {'iterate' if compiled else 'point it evaluated'}"
         record = {"start": k, "x0": x0.tolist(), "status": raw, "iterations": int(stats.get("iter_count", 0)),
                   "evaluations": nlp.reduced.evaluations - evaluations, "time": time.perf_counter() - t0}
         if ev is not None:
