@@ -14,6 +14,14 @@ It is off by default: IPOPT's path changes, and on a feasible set as thin as the
 IPOPT stops (max_iter, an error) off the feasible set, the start's answer is the best feasible point it evaluated,
 with IPOPT's status.
 
+With option compiled the NLP is one CasADi graph instead (_CompiledSolver): y*(x) of a least-squares lower level solved
+inside it (per block of its residual matrix), F, G, H along it with CasADi's exact derivatives and no Python
+evaluation; numeric nodes in the declaration (bilevel.numeric_node) stay Python calls there. A maximized spectral
+radius of a symmetric positive semidefinite M(x, y) becomes max u'M u with ||u|| <= 1 (auxiliary u): for fixed x,
+u'M u <= lambda_max(M) ||u||^2 <= lambda_max(M) = rho(M), with equality at a unit top eigenvector, so the joint
+maximum over (x, u) is the maximum of rho(M(x, y*(x))) over x, attained at the same x (compiled_rayleigh checks the
+form applies). IPOPT's best feasible iterate is kept for a run that ends off the feasible set.
+
 It needs a unique lower solution, so that y*(x) is a function: a least-squares lower level (positive definite
 Hessian; a singular one at some x is an error there) or a QP whose Hessian is positive definite at the start. Other
 classes are refused (ModelError). y*(x) of a constrained QP has kinks where its active set changes: IPOPT may stop
