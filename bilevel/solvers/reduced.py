@@ -247,11 +247,12 @@ class _Iterates(ca.Callback):
 
 
 class _CompiledSolver:
-    """The reduced NLP as one CasADi graph (option compiled): y*(x) of a least-squares lower level solved inside the graph
-    (the normal equations C'C y = C'd of its residual form, or P y = -q of its Hessian P and gradient q at y = 0), F, G, H along it with CasADi's exact derivatives,
-    no Python callback; a spectral objective max rho(M(x, y)) of a symmetric positive semidefinite M becomes
-    max u'M u over the unit ball (auxiliary u, one more row u'u <= 1), whose maximum over u is lambda_max(M) = rho(M)
-    (compiled_rayleigh). reduced.point evaluates the end point through the engine, as without the option."""
+    """The reduced NLP as one CasADi graph (option compiled): y*(x) of a least-squares lower level solved inside the
+    graph (the normal equations C'C y = C'd of its residual form, or P y = -q of its Hessian P and gradient q at
+    y = 0), F, G, H along it with CasADi's exact derivatives, no Python callback; a spectral objective max
+    rho(M(x, y)) of a symmetric positive semidefinite M becomes max u'M u over the unit ball (auxiliary u, one more row
+    u'u <= 1), whose maximum over u is lambda_max(M) = rho(M) (compiled_rayleigh). reduced.point evaluates the end
+    point through the engine, as without the option."""
 
     def __init__(self, prep: Prepared, oracle: Hypergradient, options: dict[str, Any], rows: list[int]) -> None:
         canon, low = prep.canon, prep.canon.lower
@@ -343,8 +344,9 @@ def compiled_rayleigh(canon: Any, matrix: ca.Function, p: np.ndarray) -> None:
     would be maximized in lambda_max; the result's F is rho(M) at the end point by the engine either way."""
     M = np.asarray(matrix(canon.x_start, p), dtype=float)
     scale = max(1.0, float(np.abs(M).max()))
-    if canon.matrix_function is not rho_and_gradient or canon.spectral_sign > 0 or \
-            np.abs(M - M.T).max() > SYMMETRY_TOL * scale or np.linalg.eigvalsh(0.5 * (M + M.T))[0] < -SYMMETRY_TOL * scale:
+    symmetric = np.abs(M - M.T).max() <= SYMMETRY_TOL * scale
+    psd = np.linalg.eigvalsh(0.5 * (M + M.T))[0] >= -SYMMETRY_TOL * scale
+    if canon.matrix_function is not rho_and_gradient or canon.spectral_sign > 0 or not (symmetric and psd):
         raise ModelError("option compiled of method 'reduced' states a spectral objective as max u'M u over the unit "
                          "ball, equal to rho(M) only for a maximized spectral radius of a symmetric positive "
                          "semidefinite M (e.g. D D'); this objective is not one: drop compiled=True")
