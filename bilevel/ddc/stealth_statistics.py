@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, Callable
 
+import casadi as ca
 import numpy as np
 
 from ..errors import InvalidData
@@ -71,10 +73,7 @@ class StealthStatistics:
         N, keep = self.N, list(self.keep)
         Zr = Z[keep]
         E, Er = Y - theta @ Z, Y - theta_r @ Zr
-        r, rr = float(np.sum(E * E)), float(np.sum(Er * Er))
-        P = np.linalg.inv(E @ E.T / N)
-        C = [E[:, :N - t] @ E[:, t:].T / N for t in range(1, self.lags + 1)]
-        M = [c @ P for c in C]
+        r, rr, P, C, M = _parts(E, Er, self.lags, lambda A: float(np.sum(A * A)), np.linalg.inv)
         values = np.array([r, rr / r - 1.0, *(float(np.sum(m * m)) for m in M)])
         if not jacobian:
             return values, None
@@ -96,3 +95,22 @@ class StealthStatistics:
         dtheta_r = np.zeros((self.size, *theta_r.shape))
         dtheta_r[1] = -gEr @ Zr.T
         return values, (dY, dZ, dtheta, dtheta_r)
+
+    def expression(self, Y: ca.SX | ca.MX, Z: ca.SX | ca.MX, theta: ca.SX | ca.MX, theta_r: ca.SX | ca.MX
+                   ) -> ca.SX | ca.MX:
+        """[r, Z_d, f_1..f_s] as a CasADi column of expressions (SX or MX) of (Y, Z, theta, theta_r): the same
+        formulas as evaluate (_parts), for a compiled problem whose derivatives CasADi takes (method reduced with
+        compiled=True)."""
+        Zr = Z[list(self.keep), :]
+        E, Er = Y - ca.mtimes(theta, Z), Y - ca.mtimes(theta_r, Zr)
+        r, rr, _, _, M = _parts(E, Er, self.lags, ca.sumsqr, ca.inv)
+        return ca.vertcat(r, rr / r - 1.0, *(ca.sumsqr(m) for m in M))
+
+
+def _parts(E: Any, Er: Any, lags: int, sumsq: Callable[[Any], Any], inv: Callable[[Any], Any]) -> tuple[Any, ...]:
+    """(r, ||E_r||_F^2, P = C_0^{-1}, [C_1..C_s], [C_tau P]) of residuals E, E_r (n x N), numpy arrays or CasADi
+    expressions alike (sumsq and inv of their kind; @ and slicing are shared): the one definition of the statistics."""
+    N = E.shape[1]
+    P = inv(E @ E.T / N)
+    C = [E[:, :N - t] @ E[:, t:].T / N for t in range(1, lags + 1)]
+    return sumsq(E), sumsq(Er), P, C, [c @ P for c in C]

@@ -120,10 +120,11 @@ spends most of IPOPT's time in its quality-function search and ran its 300 itera
 32.6 CPU s, at 1.78 against 1.62. At T = 100 it took a few more iterations for the same answers (3 data sets)."""
 
 
-def paper_method(T: int) -> dict[str, Any]:
+def paper_method(T: int, compiled: bool = False) -> dict[str, Any]:
     """The engine's options for an attack on a data set of horizon T: METHOD with ranged rows (the 2 + s stealth rows
-    as ranged rows, not 2(2 + s)), and the monotone barrier update from MONOTONE_FROM on."""
-    method = {**METHOD, "ranged_rows": True}
+    as ranged rows, not 2(2 + s)), and the monotone barrier update from MONOTONE_FROM on; compiled: method reduced's
+    compiled NLP (on the problem declared with the statistics as CasADi expressions, problem_for's compiled)."""
+    method = {**METHOD, "ranged_rows": True, **({"compiled": True} if compiled else {})}
     return {**method, "ipopt": {"mu_strategy": "monotone"}} if T >= MONOTONE_FROM else method
 
 
@@ -135,8 +136,8 @@ more than 0.3% (at delta 0.075 and 0.1, where both ran IPOPT's 300 iterations); 
 it took 24 CPU s for 2.95 against the warm run's 3.94."""
 
 
-_WARMED: set[int] = set()
-"""Horizons whose problem this process has declared and compiled."""
+_WARMED: set[tuple[int, bool]] = set()
+"""(Horizon, compiled) pairs whose problem this process has declared and compiled."""
 
 
 class PaperAttack(NamedTuple):
@@ -154,7 +155,8 @@ class PaperAttack(NamedTuple):
     delta: float = 0.0
 
 
-def paper_attack(data: CollectedData, delta: float, smaller: PaperAttack | None = None) -> PaperAttack:
+def paper_attack(data: CollectedData, delta: float, smaller: PaperAttack | None = None, compiled: bool = False
+                 ) -> PaperAttack:
     """The engine's attack on one data set at delta (module docstring); CPU and wall time of the re-targeting and
     solve (the process's first attack at a T, which declares and compiles the problem, is run once before on the same
     data and not counted). smaller: the answer at a smaller delta on the same data set (continuation over the delta
@@ -162,23 +164,24 @@ def paper_attack(data: CollectedData, delta: float, smaller: PaperAttack | None 
     only widens), and IPOPT starts from it (warm) scaled towards delta (warm_start); where the warm run ends without a certified point (status not in
     CERTIFIED) or below smaller's value, IPOPT runs again from the stealth start (cold: load_instance) and the better
     stealthy answer is kept, or smaller's own where it is above both, so a data set's values never fall as delta grows
-    (all runs timed)."""
+    (all runs timed). compiled: paper_method's compiled NLP."""
     atk = paper_instance(data, delta)
     T = data.U.shape[1]
-    if T not in _WARMED:
-        problem_for(atk).solve(**paper_method(T), seed=0)
-        _WARMED.add(T)
+    method = paper_method(T, compiled)
+    if (T, compiled) not in _WARMED:
+        problem_for(atk, compiled=compiled).solve(**method, seed=0)
+        _WARMED.add((T, compiled))
     cpu, wall = time.process_time(), time.perf_counter()
     previous = None if smaller is None else _judged(smaller.result, data, delta, smaller.dX, smaller.dU, "kept")
     if previous is None or not previous.check["stealthy"]:
-        run = _judged(problem_for(atk).solve(**paper_method(T), seed=0), data, delta)
+        run = _judged(problem_for(atk, compiled=compiled).solve(**method, seed=0), data, delta)
     else:
-        problem = problem_for(atk, start=False)
+        problem = problem_for(atk, start=False, compiled=compiled)
         problem.suggest_start(**warm_start(data, previous, delta / smaller.delta))
-        run = _judged(problem.solve(**paper_method(T), seed=0), data, delta, start="warm")
+        run = _judged(problem.solve(**method, seed=0), data, delta, start="warm")
         if run.result.status not in CERTIFIED or _value(run) < previous.check["norm2"]:
             load_instance(problem, atk)
-            cold = _judged(problem.solve(**paper_method(T), seed=0), data, delta)
+            cold = _judged(problem.solve(**method, seed=0), data, delta)
             run = max((run, cold, previous), key=_value)
     return run._replace(cpu_time=time.process_time() - cpu, wall_time=time.perf_counter() - wall)
 

@@ -84,8 +84,21 @@ def authors_node(stats: StealthStatistics) -> ca.Function:
     return numeric_node("authors_statistics", stats.evaluate, shapes, stats.size)
 
 
-def declare(atk: IdentificationAttack) -> BilevelProblem:
-    """The bilevel program of an attack instance, declared with the generic API (budgets as balls)."""
+@lru_cache(maxsize=8)
+def authors_function(stats: StealthStatistics) -> ca.Function:
+    """The authors' statistics [r, Z_d, f_1..f_s] of (Y, Z, theta, theta_r) as one CasADi Function of MX expressions
+    (StealthStatistics.expression, the same formulas as authors_node), kept a call node: for method reduced with
+    compiled=True, whose NLP CasADi then evaluates and differentiates without Python."""
+    Y, Z = ca.MX.sym("Y", stats.n, stats.N), ca.MX.sym("Z", stats.k, stats.N)
+    theta, theta_r = ca.MX.sym("theta", stats.n, stats.k), ca.MX.sym("theta_restricted", stats.n, len(stats.keep))
+    return ca.Function("authors_statistics", [Y, Z, theta, theta_r], [stats.expression(Y, Z, theta, theta_r)],
+                       {"never_inline": True})
+
+
+def declare(atk: IdentificationAttack, compiled: bool = False) -> BilevelProblem:
+    """The bilevel program of an attack instance, declared with the generic API (budgets as balls); compiled: the
+    authors' statistics as CasADi expressions (authors_function) instead of the numeric node (authors_node), for method
+    reduced's option compiled."""
     p = BilevelProblem(f"ident-{atk.learner}")
     poisoned = {}
     bound = np.inf if atk.box is None else atk.box
@@ -107,7 +120,8 @@ def declare(atk: IdentificationAttack) -> BilevelProblem:
         lower += ca.sumsqr(E_r)
         delta = p.parameter("stealth")
         if atk.stealth_kind == "authors":
-            values = authors_node(atk.authors_statistics)(Y, Z, theta, theta_r)
+            node = authors_function if compiled else authors_node
+            values = node(atk.authors_statistics)(Y, Z, theta, theta_r)
             stats = [(values[i], name) for i, name in enumerate(statistic_names(atk.lags))]
         else:
             nodes = statistics_functions(Y.shape[0], *Z.shape, tuple(keep), atk.setting.noise_std, atk.lags)
@@ -139,12 +153,13 @@ compiled NLP takes seconds to build, re-loading data a few milliseconds)."""
 _DECLARED: dict[tuple[Any, ...], BilevelProblem] = {}
 
 
-def problem_for(atk: IdentificationAttack, start: bool = True) -> BilevelProblem:
+def problem_for(atk: IdentificationAttack, start: bool = True, compiled: bool = False) -> BilevelProblem:
     """The declared problem of `atk`, loaded with its data: declared once per learner, signal shapes, orders,
-    objective and stealth declaration in this process, re-targeted with load_instance after (start: as there)."""
+    objective, stealth declaration and `compiled` (declare's) in this process, re-targeted with load_instance after
+    (start: as there)."""
     key = (atk.learner, tuple(v.shape for v in atk.signals.values()), atk.orders, atk.objective, atk.lags,
-           atk.stealth is None, atk.lqr_weights, atk.stealth_kind, atk.box)
-    problem, made = kept(_DECLARED, key, lambda: declare(atk), DECLARED_CACHE)
+           atk.stealth is None, atk.lqr_weights, atk.stealth_kind, atk.box, compiled)
+    problem, made = kept(_DECLARED, key, lambda: declare(atk, compiled), DECLARED_CACHE)
     if not made:
         load_instance(problem, atk, start)
     elif not start:

@@ -14,6 +14,14 @@ It is off by default: IPOPT's path changes, and on a feasible set as thin as the
 IPOPT stops (max_iter, an error) off the feasible set, the start's answer is the best feasible point it evaluated,
 with IPOPT's status.
 
+With option compiled the NLP is one CasADi graph instead (_CompiledSolver): y*(x) of a least-squares lower level solved
+inside it (per block of its residual matrix), F, G, H along it with CasADi's exact derivatives and no Python
+evaluation; numeric nodes in the declaration (bilevel.numeric_node) stay Python calls there. A maximized spectral
+radius of a symmetric positive semidefinite M(x, y) becomes max u'M u with ||u|| <= 1 (auxiliary u): for fixed x,
+u'M u <= lambda_max(M) ||u||^2 <= lambda_max(M) = rho(M), with equality at a unit top eigenvector, so the joint
+maximum over (x, u) is the maximum of rho(M(x, y*(x))) over x, attained at the same x (compiled_rayleigh checks the
+form applies). IPOPT's best feasible iterate is kept for a run that ends off the feasible set.
+
 It needs a unique lower solution, so that y*(x) is a function: a least-squares lower level (positive definite
 Hessian; a singular one at some x is an error there) or a QP whose Hessian is positive definite at the start. Other
 classes are refused (ModelError). y*(x) of a constrained QP has kinks where its active set changes: IPOPT may stop
@@ -27,12 +35,17 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 from ..errors import BilevelError, ModelError
+from ..lower.least_squares import LeastSquaresLower
+from ..lower.residual import ResidualLeastSquares
 from ..lower.nlp import ipopt_options
 from ..reduction import KKTPoint
 from ..result import Status
 from ..defaults import param
+from ..spectral_radius import rho_and_gradient
 from .engine.prepared import MethodRun, Prepared, best_of, check_options
 from .engine.implicit import Evaluation, Hypergradient, shared_oracle
 from .ipopt import IPOPT_STATUS, checked_ipopt, within
@@ -195,6 +208,167 @@ class _Solver:
                              "ipopt={...} against the IPOPT options reference") from None
 
 
+class _Iterates(ca.Callback):
+    """IPOPT's iterates of the compiled NLP, read once an iteration (no evaluation): the one with the lowest objective
+    among those within defaults["solvers.feasibility_tol"] of the bounds (what _Reduced.best keeps for the callbacks),
+    for a run that ends off the feasible set (max_iter)."""
+
+    def __init__(self, n_x: int, n_g: int, n_p: int) -> None:
+        ca.Callback.__init__(self)
+        self.sizes = (n_x, 1, n_g, n_x, n_g, n_p)
+        self.bounds: tuple[np.ndarray, ...] = ()
+        self.best: tuple[float, np.ndarray] | None = None
+        self.tol = 0.0
+        self.construct("reduced_iterates", {})
+
+    def get_n_in(self) -> int:
+        return 6
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self.sizes[i], 1)
+
+    def get_sparsity_out(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(1, 1)
+
+    def reset(self, lbx: np.ndarray, ubx: np.ndarray, lbg: np.ndarray, ubg: np.ndarray) -> None:
+        """Forget the last run's iterates; the bounds of the next."""
+        self.bounds, self.best = (lbx, ubx, lbg, ubg), None
+        self.tol = float(param("solvers.feasibility_tol"))
+
+    def has_eval_buffer(self) -> bool:
+        return True
+
+    def eval_buffer(self, arg: tuple[memoryview, ...], res: tuple[memoryview, ...]) -> int:
+        x, f, g = (np.frombuffer(a, dtype=np.float64) for a in arg[:3])
+        lbx, ubx, lbg, ubg = self.bounds
+        feasible = np.all(x >= lbx - self.tol) and np.all(x <= ubx + self.tol) and \
+            np.all(g >= lbg - self.tol) and np.all(g <= ubg + self.tol)
+        if feasible and (self.best is None or f[0] < self.best[0]):
+            self.best = (float(f[0]), x.copy())
+        np.frombuffer(res[0], dtype=np.float64)[:] = 0.0
+        return 0
+
+
+class _CompiledSolver:
+    """The reduced NLP as one CasADi graph (option compiled): y*(x) of a least-squares lower level solved inside the
+    graph (the normal equations C'C y = C'd of its residual form, or P y = -q of its Hessian P and gradient q at
+    y = 0), F, G, H along it with CasADi's exact derivatives, no Python callback; a spectral objective max
+    rho(M(x, y)) of a symmetric positive semidefinite M becomes max u'M u over the unit ball (auxiliary u, one more row
+    u'u <= 1), whose maximum over u is lambda_max(M) = rho(M) (compiled_rayleigh). reduced.point evaluates the end
+    point through the engine, as without the option."""
+
+    def __init__(self, prep: Prepared, oracle: Hypergradient, options: dict[str, Any], rows: list[int]) -> None:
+        canon, low = prep.canon, prep.canon.lower
+        self.reduced = _Reduced(oracle)
+        params = canon.params
+        psym = params.sym if params.items else ca.SX(0, 1)
+        self.params = params
+        x, p = ca.MX.sym("x", self.reduced.n_x), ca.MX.sym("p", psym.numel())
+        if isinstance(low, ResidualLeastSquares) and canon.images is None:  # f = 1/2 ||C(x) y - d(x)||^2 + c(x)
+            y = _residual_solution(low, canon.x, psym, x, p)
+        elif isinstance(low, LeastSquaresLower) and canon.images is None:  # f = 1/2 y'P(x)y + q(x)'y + r(x)
+            zero = ca.DM.zeros(low.n_y)
+            P, q = ca.Function("lower_closed_form", [canon.x, psym], [ca.substitute(e, canon.y, zero) for e in (
+                low.hess_f, ca.gradient(low.f, canon.y))])(x, p)
+            y = -ca.solve(P, q)
+        else:
+            raise ModelError(f"option compiled of method 'reduced' needs a least-squares lower level in closed form; "
+                             f"{prep.problem.name!r} has a {low.kind} lower level: drop compiled=True")
+        upper = ca.Function("upper", [canon.x, canon.y, psym], [canon.F, ca.vertcat(canon.G, canon.H)])
+        F, GH = upper(x, y, p)
+        self.n_aux, g = 0, GH[rows]
+        if canon.spectral is not None:
+            M = ca.Function("spectral", [canon.x, canon.y, psym], [canon.spectral])(x, y, p)
+            self.matrix = ca.Function("spectral_x", [x, p], [M])
+            compiled_rayleigh(canon, self.matrix, self.p)
+            self.n_aux = int(M.shape[0])
+            u = ca.MX.sym("u", self.n_aux)
+            F, g = canon.spectral_sign * ca.bilin(M, u, u), ca.vertcat(g, ca.sumsqr(u))
+            x = ca.vertcat(x, u)
+        try:
+            self.iterates = _Iterates(int(x.numel()), int(g.numel()), int(p.numel()))
+            self.solver = ca.nlpsol("reduced_compiled", "ipopt", {"x": x, "p": p, "f": F, "g": g},
+                                    {**options, "iteration_callback": self.iterates})
+        except RuntimeError as exc:  # CasADi refuses an option before any solve
+            reason = str(exc).strip().splitlines()[-1].split(": ", 1)[-1]
+            raise ModelError(f"IPOPT did not accept its options ({reason}); check the names and types in option "
+                             "ipopt={...} against the IPOPT options reference") from None
+
+    @property
+    def p(self) -> np.ndarray:
+        """The parameters' current values (the NLP's p)."""
+        return self.params.value if self.params.items else np.zeros(0)
+
+    def aux_start(self, x0: np.ndarray) -> np.ndarray:
+        """u at the start: the top unit eigenvector of M(x0) (none without a spectral objective)."""
+        if not self.n_aux:
+            return np.zeros(0)
+        return np.linalg.eigh(np.asarray(self.matrix(x0, self.p), dtype=float))[1][:, -1]
+
+
+def _residual_solution(low: ResidualLeastSquares, xs: ca.SX, ps: ca.SX, x: ca.MX, p: ca.MX) -> ca.MX:
+    """y*(x) = argmin ||C(x) y - d(x)|| as MX: [nonzeros of C; d] by one sparse product J x + b(p) where they are
+    affine in x with a J free of the parameters (else one call of their expressions), and the normal equations
+    solved per block of C (the connected parts of its sparsity: one per output row of a regression), each a small
+    dense solve, blocks of one matrix (a regression's outputs share their regressors) as one solve with a column per
+    block: CasADi's reverse sweeps through one sparse C'C cost about 0.1 ms a direction at 800 x 36."""
+    sparsity = low.C_expr.sparsity()
+    data = ca.vertcat(*low.C_expr.nonzeros(), low.d_expr)
+    J = ca.jacobian(data, xs)
+    if ca.depends_on(J, ca.vertcat(xs, ps)):
+        values = ca.Function("lower_residual", [xs, ps], [data])(x, p)
+    else:
+        offset = ca.Function("lower_residual_offset", [ps], [ca.substitute(data, xs, ca.DM.zeros(xs.numel()))])
+        values = ca.mtimes(ca.MX(ca.evalf(J)), x) + offset(p)
+    nnz = sparsity.nnz()
+    C, d = ca.MX(sparsity, values[:nnz]), values[nnz:]
+    rows, cols = (np.asarray(v) for v in sparsity.get_triplet())
+    n_r, n_y = sparsity.shape
+    graph = sp.coo_matrix((np.ones(rows.size), (rows, n_r + cols)), shape=(n_r + n_y,) * 2)
+    labels = connected_components(graph, directed=False)[1]
+    groups: list[tuple[ca.SX, list[list[int]], list[list[int]]]] = []  # blocks with one matrix: one solve
+    for label in np.unique(labels[n_r:]):
+        R, K = np.flatnonzero(labels[:n_r] == label).tolist(), np.flatnonzero(labels[n_r:] == label).tolist()
+        block = low.C_expr[R, K]
+        same = next((g for g in groups if g[0].shape == block.shape and ca.is_equal(g[0], block, 2)), None)
+        if same is None:
+            groups.append((block, [R], [K]))
+        else:
+            same[1].append(R)
+            same[2].append(K)
+    order, parts = [], []
+    for _, Rs, Ks in groups:
+        B = ca.densify(C[Rs[0], Ks[0]])
+        Y = ca.solve(ca.mtimes(B.T, B), ca.mtimes(B.T, ca.horzcat(*(d[R] for R in Rs))))
+        parts.append(ca.vec(Y))  # column j: the block of Ks[j]
+        order += [k for K in Ks for k in K]
+    return ca.vertcat(*parts)[np.argsort(order).tolist()]
+
+
+SYMMETRY_TOL = 1e-10
+"""compiled_rayleigh's relative tolerance on M - M' and on a negative eigenvalue of M."""
+
+
+def compiled_rayleigh(canon: Any, matrix: ca.Function, p: np.ndarray) -> None:
+    """Refuse (ModelError) a spectral objective whose Rayleigh form would not be rho(M): max over ||u|| <= 1 of u'M u
+    is lambda_max(M) for symmetric M (Rayleigh), which is rho(M) = max |eig(M)| where M is positive semidefinite
+    (every eigenvalue >= 0), e.g. M = D D' for ||D||_2^2. Checked: the sense is max (the NLP minimizes -u'M u; a
+    minimized rho has no such form), the function is the spectral radius, and at the declared start M is symmetric
+    and PSD (relative SYMMETRY_TOL); symbolically M is not proved PSD, so a matrix PSD at the start but not elsewhere
+    would be maximized in lambda_max; the result's F is rho(M) at the end point by the engine either way."""
+    M = np.asarray(matrix(canon.x_start, p), dtype=float)
+    scale = max(1.0, float(np.abs(M).max()))
+    symmetric = np.abs(M - M.T).max() <= SYMMETRY_TOL * scale
+    psd = np.linalg.eigvalsh(0.5 * (M + M.T))[0] >= -SYMMETRY_TOL * scale
+    if canon.matrix_function is not rho_and_gradient or canon.spectral_sign > 0 or not (symmetric and psd):
+        raise ModelError("option compiled of method 'reduced' states a spectral objective as max u'M u over the unit "
+                         "ball, equal to rho(M) only for a maximized spectral radius of a symmetric positive "
+                         "semidefinite M (e.g. D D'); this objective is not one: drop compiled=True")
+
+
 def _ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> dict[str, Any]:
     """nlpsol options of the reduced NLP: quiet, tol, max_iter, max_wall_time (defaults["ipopt.max_wall_time"]),
     REDUCED_IPOPT, then the option ipopt={...}."""
@@ -205,7 +379,7 @@ def _ipopt_options(tol: float, max_iter: int, extra: dict[str, Any] | None) -> d
 def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, scale: float | None = None,
                   nlp_tol: float | None = None, max_iter: int | None = None, ipopt: dict[str, Any] | None = None,
                   active_tol: float | None = None, time_limit: float | None = None, verbose: bool = False,
-                  ranged_rows: bool = False, **unknown: Any) -> MethodRun:
+                  ranged_rows: bool = False, compiled: bool = False, **unknown: Any) -> MethodRun:
     """IPOPT on the reduced NLP over x (module docstring). An option left None takes the registry's value,
     defaults["reduced.NAME"] (active_tol: implicit.active_tol).
 
@@ -213,7 +387,8 @@ def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, s
     IPOPT's tol and max_iter per start; ipopt: further IPOPT options (a dict); active_tol: the lower level's active-set
     tolerance; the best feasible end point wins. At time_limit (seconds) IPOPT stops and the
     starts not begun are skipped (MAX_ITERATIONS); verbose prints one line per start; ranged_rows states each two-sided
-    bound on one expression as one row."""
+    bound on one expression as one row; compiled states the NLP as one CasADi graph (_CompiledSolver: a least-squares
+    lower level, expressions without numeric nodes for its speed) instead of the engine's callbacks."""
     check_options("reduced", unknown, solve_reduced)
     starts, scale = int(param("reduced.starts", starts)), float(param("reduced.scale", scale))
     nlp_tol, max_iter = float(param("reduced.nlp_tol", nlp_tol)), int(param("reduced.max_iter", max_iter))
@@ -254,21 +429,35 @@ def solve_reduced(prep: Prepared, *, starts: int | None = None, seed: Any = 0, s
             break
         t0 = time.perf_counter()
         nlp_opts = within(ipopt_opts, limit)  # levels of time_limit: few compiled solvers
-        nlp: _Solver = prep.cached(("reduced", active_tol, repr(sorted(nlp_opts["ipopt"].items())), tuple(rows)),
-                                   lambda: _Solver(oracle, nlp_opts, rows))
+        key = ("reduced", active_tol, repr(sorted(nlp_opts["ipopt"].items())), tuple(rows), compiled)
+        nlp: _Solver | _CompiledSolver = prep.cached(key, lambda: _CompiledSolver(prep, oracle, nlp_opts, rows)
+                                                     if compiled else _Solver(oracle, nlp_opts, rows))
         solver = nlp.solver
         evaluations, nlp.reduced.best = nlp.reduced.evaluations, None
-        sol = solver(x0=np.clip(x0, lbx, ubx), **bounds)
+        x0 = np.clip(x0, lbx, ubx)
+        if compiled:
+            aux = nlp.aux_start(x0)
+            box = dict(lbx=np.concatenate([lbx, np.full(aux.size, -1.0)]), ubx=np.concatenate([ubx, np.ones(aux.size)]),
+                       lbg=np.concatenate([bounds["lbg"], np.full(min(aux.size, 1), -np.inf)]),
+                       ubg=np.concatenate([bounds["ubg"], np.ones(min(aux.size, 1))]))
+            nlp.iterates.reset(**box)
+            sol = solver(x0=np.concatenate([x0, aux]), p=nlp.p, **box)
+        else:
+            sol = solver(x0=x0, **bounds)
         stats = solver.stats()
         raw = str(stats.get("return_status", "unknown"))
         if raw == "Maximum_WallTime_Exceeded" and limit.seconds is not None:
             limit.expired()
-        x = np.asarray(sol["x"], dtype=float).ravel()
+        x = np.asarray(sol["x"], dtype=float).ravel()[:nlp.reduced.n_x]
         ev, best = nlp.reduced.point(x), nlp.reduced.best
+        tol = param("solvers.feasibility_tol")
+        if compiled and nlp.iterates.best is not None and (ev is None or ev.violation > tol):
+            best = nlp.reduced.point(nlp.iterates.best[1][:nlp.reduced.n_x])  # the engine's evaluation of that iterate
+            best = best if best is not None and best.violation <= tol else None
+            ev = nlp.reduced.point(x)
         status = IPOPT_STATUS.get(raw, Status.ERROR)
-        if status is not Status.SOLVED and best is not None and (
-                ev is None or ev.violation > param("solvers.feasibility_tol")):
-            ev, raw = best, f"{raw}; the best feasible point it evaluated"  # IPOPT ended off the feasible set
+        if status is not Status.SOLVED and best is not None and (ev is None or ev.violation > tol):
+            ev, raw = best, f"{raw}; the best feasible {'iterate' if compiled else 'point it evaluated'}"
         record = {"start": k, "x0": x0.tolist(), "status": raw, "iterations": int(stats.get("iter_count", 0)),
                   "evaluations": nlp.reduced.evaluations - evaluations, "time": time.perf_counter() - t0}
         if ev is not None:

@@ -236,3 +236,53 @@ def test_numeric_node_reverse_in_several_directions() -> None:
         for j in range(2):
             want = np.tensordot(seeds[:, j], block, axes=1)
             assert np.allclose(got[:, j * cols:(j + 1) * cols], want, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", [ca.SX, ca.MX])
+def test_expressions_equal_the_numeric_statistics(kind: type) -> None:
+    """StealthStatistics.expression (CasADi, for the compiled NLP) and evaluate (numpy) share one definition (_parts):
+    their values agree to 1e-12 relative on changed data, and CasADi's derivative of the expressions equals
+    evaluate's exact Jacobian to 1e-9."""
+    rng = np.random.default_rng(4)
+    X, U = rng.standard_normal((4, 101)), rng.standard_normal((1, 100))
+    Y, Z, theta, theta_r = fit_parts(X + 0.1 * rng.standard_normal(X.shape), U)
+    stats = StealthStatistics(4, 5, 100, (0, 1, 2, 3), 4)
+    syms = [kind.sym(name, *a.shape) for name, a in zip(("Y", "Z", "t", "tr"), (Y, Z, theta, theta_r))]
+    expr = stats.expression(*syms)
+    values, blocks = stats.evaluate(Y, Z, theta, theta_r, jacobian=True)
+    got = np.asarray(ca.Function("s", syms, [expr])(Y, Z, theta, theta_r)).ravel()
+    assert np.max(np.abs(got - values) / np.abs(values)) < 1e-12
+    jac = ca.Function("j", syms, [ca.jacobian(expr, syms[1])])(Y, Z, theta, theta_r)
+    assert np.allclose(np.asarray(jac), blocks[1].transpose(0, 2, 1).reshape(stats.size, -1), rtol=1e-9, atol=1e-9)
+
+
+def test_compiled_reduced_reaches_the_callback_answer(tmp_path) -> None:
+    """Method reduced with compiled=True (one CasADi graph, the spectral objective as max u'M u on the unit ball) on
+    the problem declared with the statistics as expressions ends at the same stealthy answer as the callback path
+    (||d[A B]||_2 to 1e-4 relative), each judged by the independent check."""
+    write_authors_format(str(tmp_path), 100, 1, seed=3)
+    data = load_dataset(dataset_path(str(tmp_path), 100, 0))
+    runs = [paper_attack(data, DELTAS[1], compiled=compiled) for compiled in (False, True)]
+    for run in runs:
+        assert run.check["stealthy"], (run.check["worst"], run.check["violation"])
+    assert np.isclose(runs[1].check["norm2"], runs[0].check["norm2"], rtol=1e-4), [r.check["norm2"] for r in runs]
+
+
+def test_compiled_states_rho_of_a_psd_matrix_and_refuses_others() -> None:
+    """compiled=True states max rho(M) as max u'M u over the unit ball: for M = y y' (PSD) it reaches the optimum
+    rho = ||y||^2 = 2 at a corner of the box (y* = x); an indefinite M (rho from its negative eigenvalue) is refused,
+    naming the option to drop."""
+    from bilevel.model import BilevelProblem
+
+    def problem(indefinite: bool) -> BilevelProblem:
+        p = BilevelProblem("rho")
+        x = p.upper_variable("x", 2, lb=-1, ub=1, start=[0.3, 0.2])
+        y = p.lower_variable("y", 2)
+        p.minimize_lower(ca.sumsqr(y - x))
+        p.maximize_spectral_radius(ca.diag(ca.vertcat(y[0], -2)) if indefinite else ca.mtimes(y, y.T))
+        return p
+
+    result = problem(False).solve(method="reduced", compiled=True)
+    assert np.isclose(result.upper_objective, 2.0, rtol=1e-6), result.upper_objective
+    with pytest.raises(ModelError, match="drop compiled=True"):
+        problem(True).solve(method="reduced", compiled=True)
