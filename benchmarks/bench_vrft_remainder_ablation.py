@@ -3,13 +3,13 @@ delta_ub from docs/results/certify/certify.csv), delta_lb by bisection (2 %, no 
 the first is a proof) with one ingredient set to zero: the bound on ||r(a) - r0|| in the refinement and the joint bound
 (resid), its part ||v|| <= ||a_u|| ||t(.)|| + ||a_y|| ||Phi(.) theta0|| alone (norm_t, norm_f), the set's extents' term sum_k c_k ||H(V_k)'Q g|| (HQ, HVQ), the first outer sets' radii (the expansion's
 ball and box, the damped split's balls), and all of them (the linear image alone). CPU seconds, load."""
-import csv, dataclasses, os, sys, time
+import dataclasses, os, sys, time
 
 import numpy as np
 
 import bilevel.robust.vrft as V
-from bilevel.experiments.certify import certify_tasks
 from bilevel.problems.vrft_instance import attack_instance
+from bench_vrft_regressor_floor import bisect, vrft_512  # benchmarks/ (the script's directory) is on sys.path
 
 
 def proves(atk, P, known, delta, resid=1.0, radii=1.0):
@@ -33,19 +33,8 @@ def proves(atk, P, known, delta, resid=1.0, radii=1.0):
         V._refined, V._joint_refined, V.remainder = refined, joint_refined, remainder
 
 
-def bisect(test, top, tol=0.02):
-    low, high = 0.0, top
-    while high - low > tol * high:
-        mid = 0.5 * (low + high) if low > 0 else high / 2
-        low, high = (mid, high) if test(mid) else (low, mid)
-    return low
-
-
-ub = {int(r["data_seed"]): float(r["delta_ub"]) for r in csv.DictReader(open("docs/results/certify/certify.csv"))
-      if r["family"] == "vrft" and r["size"] == "512"}
-count = int(sys.argv[1]) if len(sys.argv) > 1 else 2
-print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, load {os.getloadavg()}")
-for task in [t for t in certify_tasks(32, False, 0, 10000, ("vrft",)) if t["size"] == 512][:count]:
+tasks, ub = vrft_512(int(sys.argv[1]) if len(sys.argv) > 1 else 2)
+for task in tasks:
     atk = attack_instance("destabilize", "B", 0.0, 0.0, seed=task["seed"], N=512)
     _, P, known = V._entry(atk)
     flat = dataclasses.replace(P, HQ=np.zeros_like(P.HQ), HVQ=np.zeros_like(P.HVQ))
