@@ -27,8 +27,8 @@ Then, ROUNDS times, a per-direction refinement from the set found so far: the no
 x - x_lin = D'(r(a) - r0) - Q'Phi(a_y) d (r(a) the poisoned fit's residual), so along R's left singular vectors U_j
 (R = U S V'), |U_j'(x - x_lin)| <= ||a_y|| (||H(V_j)|| / s_j ||r(a) - r0|| + sum_k c_k ||H(V_k)'Q U_j||), where
 H(c) = sum_i c_i T_i is the regressor's filter, c_k >= |V_k'd| the set's extent along V_k and
-||r(a) - r0||^2 <= min(||r0||, ||D'r0|| / (1 - beta))^2 + ||v||^2 (r(a) - r0 = (I - P_a) v - P_a r0, two orthogonal
-parts, P_a r0 = (Q + D) M^-1 E'r0). That box in U's basis is small along R's strong directions, where the fit barely moves and
+||r(a) - r0|| <= min(||r0||, ||D'r0|| / (1 - beta)) + ||v|| (r(a) - r0 = (I - P_a) v - P_a r0, P_a r0 =
+(Q + D) M^-1 E'r0). That box in U's basis is small along R's strong directions, where the fit barely moves and
 where the zero-exclusion test often looks; the certified set is the linear image plus it, intersected with the set
 before.
 Then the joint bound along the critical directions (option "joint", default on): that inequality holds along any
@@ -276,7 +276,7 @@ def support(P: Perturbation, delta: float, rem: Remainder, joint: Joint | None =
         return np.minimum(expansion, damped)
     if not rem.floor > 0.0:
         return h
-    resid = float(np.hypot(min(P.norm_r0, r_y * P.lin_r / rem.floor), r_u * P.norm_t + r_y * P.norm_f))
+    resid = min(P.norm_r0, r_y * P.lin_r / rem.floor) + r_u * P.norm_t + r_y * P.norm_f
     for _ in range(ROUNDS):
         h = _refined(P, r_u, r_y, resid, h)
     for _ in range(JOINT_ROUNDS if joint is not None else 0):
