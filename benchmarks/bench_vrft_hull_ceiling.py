@@ -80,7 +80,8 @@ for task in [t for t in certify_tasks(32, False, 0, 10000, ("vrft",)) if t["size
         minima = [i for i in np.argsort(ratio) if 0 < i < 1023 and ratio[i] <= min(ratio[i - 1], ratio[i + 1])][:8]
         _, P, _ = V._entry(atk)
         _, keys = V.critical(atk, P, delta)
-        freqs = sorted({float(grid[i]) for i in minima} | {float(np.linspace(0.0, np.pi, V.COARSE)[i]) for i, _ in keys})
+        coarse = np.linspace(0.0, np.pi, V.COARSE)
+        freqs = sorted({float(grid[i]) for i in minima} | {float(coarse[i]) for i, _ in keys})
         for w in freqs:
             zp = np.exp(1j * w) ** np.arange(degree, -1, -1)
             p0, s = loop.base @ zp, loop.slopes @ zp
