@@ -29,7 +29,8 @@ for task in [t for t in certify_tasks(32, False, 0, 10000, ("vrft",)) if t["size
     one = time.process_time() - c
     check = sample_soundness(as_target(atk, starts=8), margin.delta_lb, samples, seed=task["attack_seed"])
     print(f"data seed {task['seed']}: delta_lb {margin.delta_lb:.5g} (committed {before:.5g}, "
-          f"x{margin.delta_lb / before:.3f}), delta_ub {top:.5g}, ratio {top / margin.delta_lb:.3g} (committed {top / before:.3g}); certificate at delta_lb "
+          f"x{margin.delta_lb / before:.3f}), delta_ub {top:.5g}, ratio {top / margin.delta_lb:.3g} "
+          f"(committed {top / before:.3g}); certificate at delta_lb "
           f"{cert.proof.value}, re-check {cert.evidence[0].check.passed}, {one:.2f} CPU s warm; "
           f"bisection {spent:.0f} CPU s;"
           f" {check.samples} sphere poisonings and the attacks: unstable {check.unstable}, largest radius "

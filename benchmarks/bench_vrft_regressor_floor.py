@@ -97,7 +97,8 @@ def main(count):
             mu = descent_floor(atk, P, delta)
             beta = delta * P.norm_y * P.beta1
             print(f"  delta {delta:.5g}: 1 - beta {1 - beta:.3f}, descent's sigma_min(A) {mu:.3f}; proven with the "
-                  f"descent's floor: {proves(atk, P, known, delta, lambda d: mu)} ({time.process_time() - c:.0f} CPU s, "
+                  f"descent's floor: {proves(atk, P, known, delta, lambda d: mu)} "
+                  f"({time.process_time() - c:.0f} CPU s, "
                   f"load {os.getloadavg()[0]:.1f})", flush=True)
 
 

@@ -1,8 +1,9 @@
 """Which term of the VRFT certificate's remainder stops the proof? On the reproduction's first data sets (N = 512,
 delta_ub from docs/results/certify/certify.csv), delta_lb by bisection (2 %, no re-check; none of the variants but
-the first is a proof) with one ingredient set to zero: the bound on ||r(a) - r0|| in the refinement and the joint bound
-(resid), its part ||v|| <= ||a_u|| ||t(.)|| + ||a_y|| ||Phi(.) theta0|| alone (norm_t, norm_f), the set's extents' term sum_k c_k ||H(V_k)'Q g|| (HQ, HVQ), the first outer sets' radii (the expansion's
-ball and box, the damped split's balls), and all of them (the linear image alone). CPU seconds, load."""
+the first is a proof) with one ingredient set to zero: the bound on ||r(a) - r0|| in the refinement and the joint
+bound (resid), its part ||v|| <= ||a_u|| ||t(.)|| + ||a_y|| ||Phi(.) theta0|| alone (norm_t, norm_f), the set's
+extents' term sum_k c_k ||H(V_k)'Q g|| (HQ, HVQ), the first outer sets' radii (the expansion's ball and box, the
+damped split's balls), and all of them (the linear image alone). CPU seconds, load."""
 import dataclasses, os, sys, time
 
 import numpy as np
