@@ -1,5 +1,6 @@
-"""(Run at commit 845de10, reverted since: the package bounds the sum again.) VRFT delta_lb with the refinement's
-||r(a) - r0|| bounded as sqrt(||P_a r0||^2 + ||(I - P_a) v||^2) (two orthogonal parts) instead of their sum:
+"""VRFT delta_lb with the refinement's ||r(a) - r0|| bounded as sqrt(||P_a r0||^2 + ||(I - P_a) v||^2) (two orthogonal
+parts) instead of their sum, the critical directions picked over both sets (vrft.critical; at commit 845de10 over the
+smaller set alone, results/bench_vrft_orthogonal_residual.txt's first run):
 certified_margin (with re-checks) below the reproduction's delta_ub (docs/results/certify/certify.csv) on its first
 data sets at N = 512, then 10,000 budget-sphere poisonings at the new delta_lb and the target's attacks there
 (sample_soundness: the joint attack with 8 starts, white noise; the 64-start attack is left to the reproduction).
