@@ -62,6 +62,7 @@ def proves(atk, P, known, delta, floor):
 
 
 def bisect(test, top, tol=0.02):
+    """The largest budget in (0, top] where test holds, by bisection to tol * top (0 if none)."""
     low, high = 0.0, top
     while high - low > tol * high:
         mid = 0.5 * (low + high) if low > 0 else high / 2
@@ -69,25 +70,37 @@ def bisect(test, top, tol=0.02):
     return low
 
 
-ub = {int(r["data_seed"]): float(r["delta_ub"]) for r in csv.DictReader(open("docs/results/certify/certify.csv"))
-      if r["family"] == "vrft" and r["size"] == "512"}
-count = int(sys.argv[1]) if len(sys.argv) > 1 else 3
-print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, load {os.getloadavg()}")
-for task in [t for t in certify_tasks(32, False, 0, 10000, ("vrft",)) if t["size"] == 512][:count]:
-    atk = attack_instance("destabilize", "B", 0.0, 0.0, seed=task["seed"], N=512)
-    _, P, known = V._entry(atk)
-    top, limit = ub[task["seed"]], 1 / (P.beta1 * P.norm_y)
-    print(f"data seed {task['seed']}: delta_ub {top:.5g}, beta limit 1/(beta1 ||y||) {limit:.5g}", flush=True)
-    lbs = {}
-    for label, floor in (("1 - beta", lambda d: 0.0), ("s = 1", lambda d: 1.0)):
-        c = time.process_time()
-        lbs[label] = bisect(lambda d: proves(atk, P, known, d, floor), top)
-        print(f"  delta_lb, floor {label}: {lbs[label]:.5g} (ratio {top / lbs[label]:.3g}), "
-              f"{time.process_time() - c:.0f} CPU s", flush=True)
-    for delta in (lbs["1 - beta"], 2 * lbs["1 - beta"], limit, top / 3, top):
-        c = time.process_time()
-        mu = descent_floor(atk, P, delta)
-        beta = delta * P.norm_y * P.beta1
-        print(f"  delta {delta:.5g}: 1 - beta {1 - beta:.3f}, descent's sigma_min(A) {mu:.3f}; proven with the "
-              f"descent's floor: {proves(atk, P, known, delta, lambda d: mu)} ({time.process_time() - c:.0f} CPU s, "
-              f"load {os.getloadavg()[0]:.1f})", flush=True)
+def vrft_512(count):
+    """(the reproduction's first `count` N = 512 data sets' tasks, their committed delta_ub by data seed); prints the
+    header line (date, load)."""
+    ub = {int(r["data_seed"]): float(r["delta_ub"]) for r in csv.DictReader(open("docs/results/certify/certify.csv"))
+          if r["family"] == "vrft" and r["size"] == "512"}
+    print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, load {os.getloadavg()}")
+    return [t for t in certify_tasks(32, False, 0, 10000, ("vrft",)) if t["size"] == 512][:count], ub
+
+
+def main(count):
+    tasks, ub = vrft_512(count)
+    for task in tasks:
+        atk = attack_instance("destabilize", "B", 0.0, 0.0, seed=task["seed"], N=512)
+        _, P, known = V._entry(atk)
+        top, limit = ub[task["seed"]], 1 / (P.beta1 * P.norm_y)
+        print(f"data seed {task['seed']}: delta_ub {top:.5g}, beta limit 1/(beta1 ||y||) {limit:.5g}", flush=True)
+        lbs = {}
+        for label, floor in (("1 - beta", lambda d: 0.0), ("s = 1", lambda d: 1.0)):
+            c = time.process_time()
+            lbs[label] = bisect(lambda d: proves(atk, P, known, d, floor), top)
+            print(f"  delta_lb, floor {label}: {lbs[label]:.5g} (ratio {top / lbs[label]:.3g}), "
+                  f"{time.process_time() - c:.0f} CPU s", flush=True)
+        for delta in (lbs["1 - beta"], 2 * lbs["1 - beta"], limit, top / 3, top):
+            c = time.process_time()
+            mu = descent_floor(atk, P, delta)
+            beta = delta * P.norm_y * P.beta1
+            print(f"  delta {delta:.5g}: 1 - beta {1 - beta:.3f}, descent's sigma_min(A) {mu:.3f}; proven with the "
+                  f"descent's floor: {proves(atk, P, known, delta, lambda d: mu)} "
+                  f"({time.process_time() - c:.0f} CPU s, "
+                  f"load {os.getloadavg()[0]:.1f})", flush=True)
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 3)

@@ -27,8 +27,8 @@ Then, ROUNDS times, a per-direction refinement from the set found so far: the no
 x - x_lin = D'(r(a) - r0) - Q'Phi(a_y) d (r(a) the poisoned fit's residual), so along R's left singular vectors U_j
 (R = U S V'), |U_j'(x - x_lin)| <= ||a_y|| (||H(V_j)|| / s_j ||r(a) - r0|| + sum_k c_k ||H(V_k)'Q U_j||), where
 H(c) = sum_i c_i T_i is the regressor's filter, c_k >= |V_k'd| the set's extent along V_k and
-||r(a) - r0|| <= min(||r0||, ||D'r0|| / (1 - beta)) + ||v|| (r(a) - r0 = (I - P_a) v - P_a r0, P_a r0 =
-(Q + D) M^-1 E'r0). That box in U's basis is small along R's strong directions, where the fit barely moves and
+||r(a) - r0||^2 <= min(||r0||, ||D'r0|| / (1 - beta))^2 + ||v||^2 (r(a) - r0 = (I - P_a) v - P_a r0, two orthogonal
+parts, P_a r0 = (Q + D) M^-1 E'r0). That box in U's basis is small along R's strong directions, where the fit barely moves and
 where the zero-exclusion test often looks; the certified set is the linear image plus it, intersected with the set
 before.
 Then the joint bound along the critical directions (option "joint", default on): that inequality holds along any
@@ -257,10 +257,11 @@ def remainder(P: Perturbation, delta: float, floor: float = 0.0) -> Remainder:
                      min(out * damp, (norm_box + beta * qv) / s ** 2), s)
 
 
-def support(P: Perturbation, delta: float, rem: Remainder, joint: Joint | None = None):
+def support(P: Perturbation, delta: float, rem: Remainder, joint: Joint | None = None, orthogonal: bool = True):
     """The support function of the certified set of d at budget delta (columns of W -> values): the smaller of the
     expansion's (linear image plus R^-1 times ball and box) and the damped split's, refined along R's singular
-    directions and, given `joint`, along its critical directions (module docstring)."""
+    directions and, given `joint`, along its critical directions (module docstring); `orthogonal` bounds
+    ||r(a) - r0|| by the hypot of its two orthogonal parts' bounds, else by their sum (larger; critical uses both)."""
     r_u, r_y = delta * P.norm_u, delta * P.norm_y
     rinv_t = np.linalg.inv(P.R).T
 
@@ -276,7 +277,8 @@ def support(P: Perturbation, delta: float, rem: Remainder, joint: Joint | None =
         return np.minimum(expansion, damped)
     if not rem.floor > 0.0:
         return h
-    resid = min(P.norm_r0, r_y * P.lin_r / rem.floor) + r_u * P.norm_t + r_y * P.norm_f
+    parts = (min(P.norm_r0, r_y * P.lin_r / rem.floor), r_u * P.norm_t + r_y * P.norm_f)
+    resid = float(np.hypot(*parts)) if orthogonal else sum(parts)
     for _ in range(ROUNDS):
         h = _refined(P, r_u, r_y, resid, h)
     for _ in range(JOINT_ROUNDS if joint is not None else 0):
@@ -371,13 +373,21 @@ COARSE = 1024
 
 def critical(atk: VRFTAttack, P: Perturbation, delta: float) -> tuple[np.ndarray, list[tuple[int, int]]]:
     """The critical directions (k x m) at budget delta and their keys: where the sweep over the set without the joint
-    bound comes closest to failing (zero_exclusion.closest); none where beta >= 1."""
+    bound comes closest to failing (zero_exclusion.closest), the union of the picks over that set with ||r(a) - r0||
+    bounded by the hypot and by the sum of its parts (a smaller set can flip the best angle at a frequency to one the
+    joint bound serves worse); none where no floor is known (beta >= 1)."""
     rem = remainder(P, delta)
     if not rem.floor > 0.0:
         return np.zeros((P.theta0.size, 0)), []
     loop = atk.setting.loop
-    return closest(loop.coefficients(P.theta0), loop.slopes, support(P, delta, rem), COARSE, ANGLES, CRITICAL,
-                   SPREAD)
+    columns, keys = [], []
+    for orthogonal in (True, False):  # both sets' picks: the smaller set alone may pick a worse angle
+        W, found = closest(loop.coefficients(P.theta0), loop.slopes, support(P, delta, rem, orthogonal=orthogonal),
+                           COARSE, ANGLES, CRITICAL, SPREAD)
+        new = [i for i, key in enumerate(found) if key not in keys]
+        columns.append(W[:, new])
+        keys += [found[i] for i in new]
+    return np.hstack(columns), keys
 
 
 def _eig_norm(A: np.ndarray) -> float:

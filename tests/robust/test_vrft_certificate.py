@@ -16,6 +16,19 @@ def atk():
     return attack_instance("destabilize", "B", 0.0, 0.0, seed=0, N=64)
 
 
+def _assert_damped_split(P, Q, D, v, r0, d, rem) -> None:
+    """The damped split x = M^-1 (I + B)'Q'v + M^-1 E'r0 + M^-1 E'v (D = Phi(a_y) R^-1 = QB + E, M = (Q + D)'(Q + D))
+    holds exactly at R d, each term within its radii in `rem`."""
+    B, E = Q.T @ D, D - Q @ (Q.T @ D)
+    M = (Q + D).T @ (Q + D)
+    parts = [np.linalg.solve(M, (np.eye(B.shape[0]) + B).T @ (Q.T @ v)), np.linalg.solve(M, E.T @ r0),
+             np.linalg.solve(M, E.T @ v)]
+    assert np.allclose(sum(parts), P.R @ d, rtol=0, atol=1e-9 * np.linalg.norm(P.R @ d))
+    assert np.linalg.norm(parts[0] - Q.T @ v) <= rem.rem_v and np.linalg.norm(parts[0]) <= rem.sat_v
+    assert np.linalg.norm(parts[1] - E.T @ r0) <= rem.rem_r and np.linalg.norm(parts[1]) <= rem.sat_r
+    assert np.linalg.norm(parts[2]) <= rem.rest
+
+
 @pytest.mark.parametrize("beta", [0.2, 0.9])  # eta = 1.3 at 0.9
 def test_the_remainder_bounds_contain_the_exact_refit(atk, beta) -> None:
     """For poisonings on the budget sphere: R (d - d_lin) lies in the expansion's box plus ball, the damped split
@@ -42,14 +55,7 @@ def test_the_remainder_bounds_contain_the_exact_refit(atk, beta) -> None:
         d_lin = np.linalg.solve(G0, atk.phi0.T @ v + reg(a["y"]).T @ r0)
         outside_box = np.maximum(np.abs(P.R @ (d - d_lin)) - rem.box, 0.0)
         assert np.linalg.norm(outside_box) <= rem.ball
-        D = reg(a["y"]) @ np.linalg.inv(P.R)
-        B, E = Q.T @ D, D - Q @ (Q.T @ D)
-        M = (Q + D).T @ (Q + D)
-        parts = [np.linalg.solve(M, (eye + B).T @ (Q.T @ v)), np.linalg.solve(M, E.T @ r0), np.linalg.solve(M, E.T @ v)]
-        assert np.allclose(sum(parts), P.R @ d, rtol=0, atol=1e-9 * np.linalg.norm(P.R @ d))
-        assert np.linalg.norm(parts[0] - Q.T @ v) <= rem.rem_v and np.linalg.norm(parts[0]) <= rem.sat_v
-        assert np.linalg.norm(parts[1] - E.T @ r0) <= rem.rem_r and np.linalg.norm(parts[1]) <= rem.sat_r
-        assert np.linalg.norm(parts[2]) <= rem.rest
+        _assert_damped_split(P, Q, reg(a["y"]) @ np.linalg.inv(P.R), v, r0, d, rem)
         W = np.hstack([eye, -eye, P.Vt.T, -P.Vt.T, d[:, None] / np.linalg.norm(d)])
         assert np.all(W.T @ d <= h(W))
 
@@ -156,7 +162,6 @@ def test_a_floor_on_the_regressor_replaces_one_minus_beta(atk, beta) -> None:
     delta = beta / (P.beta1 * P.norm_y)
     r0 = atk.t0 - atk.phi0 @ atk.theta0
     Q = atk.phi0 @ np.linalg.inv(P.R)
-    eye = np.eye(P.theta0.size)
     samples = []
     for _ in range(100):
         a = sphere_poisoning(target, delta, rng)
@@ -171,10 +176,4 @@ def test_a_floor_on_the_regressor_replaces_one_minus_beta(atk, beta) -> None:
     for a, D, _ in samples:
         d = target.refit(target.poisoned(a)) - atk.theta0
         v = reg.targets(a["u"]) - reg(a["y"]) @ atk.theta0
-        B, E = Q.T @ D, D - Q @ (Q.T @ D)
-        M = (Q + D).T @ (Q + D)
-        parts = [np.linalg.solve(M, (eye + B).T @ (Q.T @ v)), np.linalg.solve(M, E.T @ r0), np.linalg.solve(M, E.T @ v)]
-        assert np.allclose(sum(parts), P.R @ d, rtol=0, atol=1e-9 * np.linalg.norm(P.R @ d))
-        assert np.linalg.norm(parts[0] - Q.T @ v) <= rem.rem_v and np.linalg.norm(parts[0]) <= rem.sat_v
-        assert np.linalg.norm(parts[1] - E.T @ r0) <= rem.rem_r and np.linalg.norm(parts[1]) <= rem.sat_r
-        assert np.linalg.norm(parts[2]) <= rem.rest
+        _assert_damped_split(P, Q, D, v, r0, d, rem)
