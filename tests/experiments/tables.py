@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import glob
+import math
 import os
 import re
 import subprocess
@@ -44,6 +45,37 @@ def tables(out_dir: str) -> dict[str, Any]:
         with open(path, encoding="utf-8") as fh:
             out[os.path.basename(path)] = _markdown_tables(fh.read())
     return out
+
+
+NUMBER = re.compile(r"-?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|nan|-?inf")
+
+
+def _cell_difference(x: str, y: str, rtol: float) -> bool:
+    """Whether two cells differ beyond rounding: their text outside numbers, or a number by more than rtol relative."""
+    if x == y:
+        return False
+    if NUMBER.sub("#", x) != NUMBER.sub("#", y):
+        return True
+    pairs = zip(NUMBER.findall(x), NUMBER.findall(y))
+    return any(not math.isclose(float(a), float(b), rel_tol=rtol, abs_tol=1e-300) and a != b for a, b in pairs)
+
+
+def table_difference(out_a: str, out_b: str, rtol: float = 1e-9) -> str:
+    """"" where two output directories' tables (tables(): time columns dropped) agree, numbers to rtol relative; else
+    the first cell that differs. Runs of the same tasks in processes with other histories may differ in the last
+    digits (a BLAS kernel's rounding depends on its arrays' alignment in memory), never beyond rounding."""
+    a, b = tables(out_a), tables(out_b)
+    if sorted(a) != sorted(b):
+        return f"tables {sorted(a)} against {sorted(b)}"
+
+    def walk(x: Any, y: Any, where: str) -> str:
+        if isinstance(x, str) and isinstance(y, str):
+            return f"{where}: {x!r} against {y!r}" if _cell_difference(x, y, rtol) else ""
+        if isinstance(x, list) and isinstance(y, list) and len(x) == len(y):
+            return next((d for i, (u, v) in enumerate(zip(x, y)) if (d := walk(u, v, f"{where}[{i}]"))), "")
+        return f"{where}: {x!r} against {y!r}"
+
+    return next((d for name in sorted(a) if (d := walk(a[name], b[name], name))), "")
 
 
 def row_count(path: str) -> int:

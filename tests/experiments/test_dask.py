@@ -21,7 +21,7 @@ from bilevel.experiments import vrft  # noqa: E402
 from bilevel.experiments.executor import DaskExecutor, LocalExecutor  # noqa: E402
 from bilevel.experiments.sweep import run_sweep  # noqa: E402
 
-from .tables import BILEVEL, tables, wait_for_rows  # noqa: E402
+from .tables import BILEVEL, table_difference, wait_for_rows  # noqa: E402
 
 DASK = os.path.join(os.path.dirname(sys.executable), "dask")
 
@@ -104,4 +104,4 @@ def test_cli_reproduction_on_dask_with_a_killed_worker_equals_the_local_pool(tmp
         with open(os.path.join(remote, f"{name}.jsonl"), encoding="utf-8") as fh:
             keys = [json.loads(line)["key"] for line in fh]
         assert len(keys) == len(set(keys))
-    assert tables(remote) == tables(local)
+    assert not (diff := table_difference(remote, local)), diff
