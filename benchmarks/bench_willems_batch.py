@@ -22,7 +22,6 @@ import os
 import platform
 import subprocess
 import time
-import tracemalloc
 
 import numpy as np
 
@@ -32,6 +31,7 @@ from bilevel.experiments.willems import make_plan, sim_seeds
 from bilevel.problems.willems import build_attack
 from bilevel.problems.willems_instance import WillemsSetting
 from bilevel.threads import single_threaded
+from bench_vrft_batch import peak  # benchmarks/ (the script's directory) is on sys.path
 
 
 def instances(count: int, horizon: int) -> tuple[list, list]:
@@ -59,15 +59,6 @@ def cpu(f) -> tuple[float, object]:
     t0 = time.process_time()
     out = f()
     return time.process_time() - t0, out
-
-
-def peak(f) -> float:
-    """Peak traced memory of f() in MiB."""
-    tracemalloc.start()
-    f()
-    top = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    return top / 2 ** 20
 
 
 def main() -> None:
