@@ -124,19 +124,20 @@ def evolve(values: Callable[[np.ndarray], Any], lb: np.ndarray, ub: np.ndarray, 
             better = np.flatnonzero(trial_energies <= energies)
             unit[better], energies[better] = trial[better], trial_energies[better]
             best = int(np.argmin(energies))
-        for members in [] if vectorized else np.arange(size)[:, None]:
-            r0, r1 = _others(rng, members, size)
-            mutant = unit[best] + weight * (unit[r0] - unit[r1])
-            cross = rng.random((members.size, n), dtype=np.float32) < RECOMBINATION
-            cross[np.arange(members.size), rng.integers(n, size=members.size)] = True
-            trial = np.where(cross, mutant, unit[members])
-            outside = (trial < 0.0) | (trial > 1.0)
-            trial[outside] = rng.uniform(size=int(outside.sum()))
-            trial_energies = score(trial)
-            nfev += members.size
-            better = trial_energies <= energies[members]
-            unit[members[better]], energies[members[better]] = trial[better], trial_energies[better]
-            best = int(np.argmin(energies)) if energies[members[0]] <= energies[best] else best
+        else:  # immediate: member by member, each trial scored on its own
+            for members in np.arange(size)[:, None]:
+                r0, r1 = _others(rng, members, size)
+                mutant = unit[best] + weight * (unit[r0] - unit[r1])
+                cross = rng.random((members.size, n), dtype=np.float32) < RECOMBINATION
+                cross[np.arange(members.size), rng.integers(n, size=members.size)] = True
+                trial = np.where(cross, mutant, unit[members])
+                outside = (trial < 0.0) | (trial > 1.0)
+                trial[outside] = rng.uniform(size=int(outside.sum()))
+                trial_energies = score(trial)
+                nfev += members.size
+                better = trial_energies <= energies[members]
+                unit[members[better]], energies[members[better]] = trial[better], trial_energies[better]
+                best = int(np.argmin(energies)) if energies[members[0]] <= energies[best] else best
         state = scipy.optimize.OptimizeResult(x=lb + unit[best] * width, fun=float(energies[best]), nit=nit, nfev=nfev)
         if stop is not None and stop(state):
             message = "callback function requested stop early"
