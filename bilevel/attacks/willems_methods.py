@@ -88,23 +88,28 @@ def _values(climbs: Sequence[Climb], owner: np.ndarray) -> Callable[[np.ndarray,
     An instance without an affine map (alone) goes through its engine's spectral_batch."""
     n = int(climbs[0].prep.canon.spectral.size1())
 
+    def radii(stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """rho of each matrix of the stack and its gradient in vec M (one row per matrix)."""
+        r = spectral_radius(stack)
+        return r.value, r.gradient.transpose(0, 2, 1).reshape(stack.shape[0], -1)
+
+    def signed(c: Climb, rho: np.ndarray, grads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """F = sign * rho of instance c's rows and its gradient in x (through vec M = m0 + jx x)."""
+        return c.sign * rho, (c.sign * (c.jx.T @ grads.T)).T
+
     def values(xs: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if len(climbs) == 1 and climbs[0].m0 is not None:  # one instance (destabilize alone): no parts to gather
             c = climbs[0]
-            r = spectral_radius(affine_stack(c.m0, c.jx, xs.T, n))
-            grads = r.gradient.transpose(0, 2, 1).reshape(xs.shape[0], -1)
-            return -(c.sign * r.value), -(c.sign * (c.jx.T @ grads.T)).T
+            f, g = signed(c, *radii(affine_stack(c.m0, c.jx, xs.T, n)))
+            return -f, -g
         parts = np.split(np.arange(rows.size), np.flatnonzero(np.diff(owner[rows])) + 1)  # one run per instance
         mine = [climbs[owner[rows[p[0]]]] for p in parts]
         if mine[0].m0 is None:
             f, g, _ = mine[0].engine.spectral_batch(xs.T)
             return -f, -g.T
-        stack = np.concatenate([affine_stack(c.m0, c.jx, xs[p].T, n) for c, p in zip(mine, parts)])
-        r = spectral_radius(stack)
-        grads = r.gradient.transpose(0, 2, 1).reshape(stack.shape[0], -1)
-        f = np.concatenate([c.sign * r.value[p] for c, p in zip(mine, parts)])
-        g = np.vstack([(c.sign * (c.jx.T @ grads[p].T)).T for c, p in zip(mine, parts)])
-        return -f, -g
+        rho, grads = radii(np.concatenate([affine_stack(c.m0, c.jx, xs[p].T, n) for c, p in zip(mine, parts)]))
+        pieces = [signed(c, rho[p], grads[p]) for c, p in zip(mine, parts)]
+        return -np.concatenate([f for f, _ in pieces]), -np.vstack([g for _, g in pieces])
     return values
 
 
