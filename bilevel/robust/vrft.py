@@ -232,7 +232,7 @@ class Remainder:
     rem_r: float
     sat_r: float
     rest: float
-    floor: float = 0.0
+    floor: float
 
 
 def remainder(P: Perturbation, delta: float, floor: float = 0.0) -> Remainder:
